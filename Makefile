@@ -1,0 +1,48 @@
+# ajtwin — every target creates/uses .venv, so a fresh clone needs nothing else.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test test-all bench lint openfoam clean
+
+$(VENV): $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	# torch first, from the exact pin (local CPU wheel), so nothing pulls a CUDA build
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+.venv: $(STAMP)
+
+# OpenFOAM v1912 from Debian, for the CFD macro-model; skipped when already present.
+openfoam:
+	@if [ -f /usr/share/openfoam/etc/bashrc ] && command -v blockMesh >/dev/null 2>&1 || [ -x /usr/bin/blockMesh ]; then \
+		echo "openfoam: present"; \
+	else \
+		echo "openfoam: installing Debian package (apt-get)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq openfoam >/dev/null; \
+	fi
+
+demo: $(STAMP)
+	$(VENV)/bin/ajtwin demo
+
+test: $(STAMP) openfoam
+	$(PY) -m pytest -m "not slow" -q
+
+test-all: $(STAMP) openfoam
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/run_all.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+
+clean:
+	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache demo-output

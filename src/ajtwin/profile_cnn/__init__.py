@@ -1,0 +1,1 @@
+"""ajtwin.profile_cnn"""

@@ -1,0 +1,129 @@
+"""Unit conversions — the only place in ajtwin where units are converted.
+
+The public API and files speak the *display units* of SPEC §3:
+
+========  =====================================  =========
+symbol    quantity                               unit
+========  =====================================  =========
+d_a       median droplet diameter                µm
+V_l       ink volume in the vial                 mL
+ΔR_T      radial ink deposition in the tube      µm
+ΔR_N      radial ink deposition in the nozzle    µm
+φ_A       aerosol volume fraction in carrier     –
+I_A       atomizer current                       mA
+Q_c, Q_s  carrier / sheath gas flow              sccm
+L_w, L_o  linewidth / overspray                  µm
+P_c, P_s  carrier / sheath pressure              Pa
+Q_m       deposited material flow (silver)       mL/s
+========  =====================================  =========
+
+Physics inside :mod:`ajtwin.model` runs in SI. Every factor between the two
+lives here; the functions work on floats, NumPy and JAX arrays alike.
+
+Examples
+--------
+>>> round(sccm_to_m3_per_s(60.0), 12)
+1e-06
+>>> to_si(75.0, "um")
+7.5e-05
+"""
+
+from __future__ import annotations
+
+# 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (SPEC §3).
+SCCM_IN_ML_PER_S = 1.0 / 60.0
+ML_IN_M3 = 1e-6
+UM_IN_M = 1e-6
+UM3_IN_ML = 1e-12  # 1 µm³ = 1e-12 cm³ = 1e-12 mL
+MA_IN_A = 1e-3
+
+# Unit strings used in the packaged data files, and their factor to SI.
+_SI_FACTORS: dict[str, float] = {
+    "m": 1.0,
+    "mm": 1e-3,
+    "um": UM_IN_M,
+    "µm": UM_IN_M,
+    "nm": 1e-9,
+    "m3": 1.0,
+    "mL": ML_IN_M3,
+    "kg/m3": 1.0,
+    "Pa": 1.0,
+    "Pa*s": 1.0,
+    "Pa*s/m3": 1.0,
+    "m/s2": 1.0,
+    "K": 1.0,
+    "1": 1.0,
+    "-": 1.0,
+    "1/s": 1.0,
+    "sccm": SCCM_IN_ML_PER_S * ML_IN_M3,
+    "mL/s": ML_IN_M3,
+    "J/K": 1.0,
+    "mm/s": 1e-3,
+}
+
+
+def to_si(value, unit: str):
+    """Convert ``value`` given in ``unit`` (a data-file unit string) to SI.
+
+    Parameters
+    ----------
+    value : float or array
+    unit : str
+        One of the unit strings used by the packaged data files (``"um"``,
+        ``"mL"``, ``"sccm"``, ``"Pa*s/m3"`` …).
+
+    Raises
+    ------
+    ValueError
+        For a unit string this module does not know.
+    """
+    try:
+        return value * _SI_FACTORS[unit]
+    except KeyError:
+        known = ", ".join(sorted(_SI_FACTORS))
+        raise ValueError(f"unknown unit {unit!r}; known units: {known}") from None
+
+
+def sccm_to_ml_per_s(q):
+    """Gas flow in sccm → mL/s."""
+    return q * SCCM_IN_ML_PER_S
+
+
+def ml_per_s_to_sccm(q):
+    """Gas flow in mL/s → sccm."""
+    return q / SCCM_IN_ML_PER_S
+
+
+def sccm_to_m3_per_s(q):
+    """Gas flow in sccm → m³/s."""
+    return q * (SCCM_IN_ML_PER_S * ML_IN_M3)
+
+
+def um_to_m(length):
+    return length * UM_IN_M
+
+
+def m_to_um(length):
+    return length / UM_IN_M
+
+
+def ml_to_m3(volume):
+    return volume * ML_IN_M3
+
+
+def m3_to_ml(volume):
+    return volume / ML_IN_M3
+
+
+def um3_per_s_to_ml_per_s(rate):
+    """Volume rate in µm³/s → mL/s (the generation fit H is in µm³/s)."""
+    return rate * UM3_IN_ML
+
+
+def mm_per_s_to_um_per_s(speed):
+    return speed * 1e3
+
+
+def um2_to_ml_per_um(area_um2):
+    """Cross-section area in µm² → volume per unit length in mL/µm."""
+    return area_um2 * UM3_IN_ML

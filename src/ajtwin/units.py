@@ -127,3 +127,19 @@ def mm_per_s_to_um_per_s(speed):
 def um2_to_ml_per_um(area_um2):
     """Cross-section area in µm² → volume per unit length in mL/µm."""
     return area_um2 * UM3_IN_ML
+
+
+def cross_section_um2(material_flow_ml_s, platen_speed_mm_s):
+    """Line cross-section area (µm²) deposited by material flow Q_m [mL/s] at platen speed ν.
+
+    ``Q_m = ν ∫h dr`` (paper eq. qink_measurement), so ``∫h dr = Q_m / ν``.
+
+    >>> round(cross_section_um2(1.5e-8, 1.0), 9)
+    15.0
+    """
+    return (material_flow_ml_s / UM3_IN_ML) / mm_per_s_to_um_per_s(platen_speed_mm_s)
+
+
+def material_flow_ml_s(cross_section_area_um2, platen_speed_mm_s):
+    """Material flow Q_m [mL/s] from a line cross-section (µm²) at platen speed ν [mm/s]."""
+    return cross_section_area_um2 * UM3_IN_ML * mm_per_s_to_um_per_s(platen_speed_mm_s)

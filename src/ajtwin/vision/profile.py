@@ -1,0 +1,363 @@
+"""Synthetic line cross-sections and the reference linewidth/overspray definitions.
+
+Three pieces that the renderer, the extractor's tests, the height-profile CNN and the
+virtual printer share, so that they all mean the same thing by "linewidth" and "overspray":
+
+* :func:`brightness_from_profile` — the camera's optical model (SPEC §9: flat = bright,
+  steep = dark): ``B = background * (floor + (1 - floor) / (1 + |dh/dr| / slope_scale))``.
+  Its constants live in ``optics.toml`` next to this module.
+* :func:`profile_features` — the paper's definitions (App. A) applied to the *noiseless*
+  brightness of a true profile: minima (ii), first peaks outward (iii), linewidth between
+  the (iii) points, overspray from (iii) outward to where brightness is back within 95 % of
+  the background, one-sided = mean of both sides.  This is the truth the extractor is
+  scored against.
+* :func:`line_profile` — a deposit cross-section with a central body, two shoulders and a
+  faint overspray tail (like the paper's profilometer scans, Fig. lw_def b), built in closed
+  form so that :func:`profile_features` returns the requested linewidth and overspray and
+  ``∫h dr`` equals the requested cross-section area.
+
+Shape of :func:`line_profile` (per side, distance ``u`` from the centre, shoulder at ``w``,
+tail length ``T``, shoulder height ``h_s``, body height ``H_b``)::
+
+    body   0 <= u <= w      h = h_s + H_b (1 + cos(pi u / w)) / 2
+    tail   w <  u <= w + T  h = h_s (1 + cos(pi (u - w) / T)) / 2
+    substrate               h = 0
+
+The slope is zero at the centre (i) and exactly at the shoulder, so brightness peaks at
+``u = w`` — the (iii) point — whatever the heights are; the steepest body slope, the (ii)
+minimum, is at ``u = w / 2``.  In the tail the slope ``h_s pi / (2T) sin(pi x)`` exceeds the
+slope ``s95`` at which brightness sits at the 95 % threshold between the two roots of
+``sin(pi x) = s95 / P``; the outer root ``x_e = 1 - arcsin(s95 / P) / pi`` is the overspray edge,
+so ``overspray = T x_e``.  With the tail's peak slope ``P = tail_contrast * s95`` (default 2,
+a faint but visible band) this fixes ``T`` and ``h_s``; the body height takes the rest of the
+area: ``A = h_s (wL + wR) + h_s (TL + TR) / 2 + H_b (wL + wR) / 2``.
+"""
+
+from __future__ import annotations
+
+import functools
+import tomllib
+import warnings
+from importlib import resources
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+from scipy.optimize import brentq
+
+from ajtwin.vision.features import EdgePoints, find_edges
+
+
+@functools.cache
+def optics() -> dict:
+    """The optical/profile/render constants of ``optics.toml`` (with provenance comments)."""
+    text = resources.files("ajtwin.vision").joinpath("optics.toml").read_text()
+    return tomllib.loads(text)
+
+
+def _brightness_constants(slope_scale, floor):
+    cfg = optics()["brightness"]
+    return (
+        cfg["slope_scale"] if slope_scale is None else float(slope_scale),
+        cfg["floor"] if floor is None else float(floor),
+    )
+
+
+def brightness_from_slope(slope, *, background=1.0, slope_scale=None, floor=None):
+    """Brightness seen by the alignment camera for a surface slope (SPEC §9).
+
+    Parameters
+    ----------
+    slope : float or array
+        Surface slope dh/dr (µm/µm, dimensionless); its sign does not matter.
+    background : float or array
+        Brightness of flat substrate (any units, e.g. 8-bit gray).
+    slope_scale, floor : float, optional
+        Override the ``optics.toml`` constants.
+
+    Returns
+    -------
+    brightness : float or array
+        ``background * (floor + (1 - floor) / (1 + |slope| / slope_scale))``.
+
+    Examples
+    --------
+    >>> float(brightness_from_slope(0.0, background=170.0))
+    170.0
+    """
+    s0, fl = _brightness_constants(slope_scale, floor)
+    return background * (fl + (1.0 - fl) / (1.0 + np.abs(slope) / s0))
+
+
+def brightness_from_profile(r_um, h_um, *, background=1.0, slope_scale=None, floor=None):
+    """Brightness across the line from a height profile (flat = bright, steep = dark).
+
+    Parameters
+    ----------
+    r_um : (n,) array
+        Position across the line, µm, increasing.
+    h_um : (..., n) array
+        Deposit height, µm (several profiles may be stacked on leading axes).
+    background, slope_scale, floor
+        See :func:`brightness_from_slope`.
+
+    Returns
+    -------
+    brightness : (..., n) array
+
+    Examples
+    --------
+    >>> r = np.linspace(-100, 100, 2001)
+    >>> b = brightness_from_profile(r, line_profile(r, 43.0, 29.0, 15.0))
+    >>> bool(b.min() < 0.5 and b.max() <= 1.0)
+    True
+    """
+    r_um = np.asarray(r_um, dtype=float)
+    h_um = np.asarray(h_um, dtype=float)
+    slope = np.gradient(h_um, r_um, axis=-1)
+    return brightness_from_slope(slope, background=background, slope_scale=slope_scale, floor=floor)
+
+
+def slope_at_threshold(threshold=None, *, slope_scale=None, floor=None) -> float:
+    """Slope (µm/µm) at which brightness is exactly ``threshold`` x background."""
+    s0, fl = _brightness_constants(slope_scale, floor)
+    if threshold is None:
+        threshold = optics()["brightness"]["overspray_threshold"]
+    y = (threshold - fl) / (1.0 - fl)
+    return s0 * (1.0 / y - 1.0)
+
+
+REFERENCE_STEP_UM = 0.02  # grid on which the reference definitions are evaluated
+
+
+def _uniform(r_um, h_um):
+    r_um = np.asarray(r_um, dtype=float)
+    h_um = np.asarray(h_um, dtype=float)
+    if r_um.ndim != 1 or r_um.size < 5 or h_um.shape != r_um.shape:
+        raise ValueError(
+            f"r_um and h_um must be 1-D arrays of the same length >= 5, got shapes "
+            f"{r_um.shape} and {h_um.shape}"
+        )
+    if not (np.all(np.isfinite(r_um)) and np.all(np.isfinite(h_um))):
+        raise ValueError("r_um/h_um contain NaN or inf")
+    step = np.diff(r_um)
+    if np.any(step <= 0):
+        raise ValueError("r_um must be strictly increasing")
+    if np.ptp(step) > 1e-6 * step.mean() or step.mean() > REFERENCE_STEP_UM * 1.0001:
+        # PCHIP: shape-preserving (no overshoot, so no invented extrema or slopes)
+        n = int(np.ceil((r_um[-1] - r_um[0]) / REFERENCE_STEP_UM)) + 1
+        grid = np.linspace(r_um[0], r_um[-1], n)
+        return grid, PchipInterpolator(r_um, h_um)(grid)
+    return r_um, h_um
+
+
+def profile_feature_points(r_um, h_um, *, threshold=None) -> tuple[EdgePoints, float, float]:
+    """Like :func:`profile_features` but also returns the feature points.
+
+    Returns
+    -------
+    points : EdgePoints
+        Indices of (ii), (iii) and the overspray edges on the grid of interval midpoints
+        of the (uniform) r grid, where the slopes are evaluated.
+    r0_um, dr_um : float
+        Origin and spacing of that grid, so ``r = r0_um + index * dr_um``.
+    """
+    r_um, h_um = _uniform(r_um, h_um)
+    if threshold is None:
+        threshold = optics()["brightness"]["overspray_threshold"]
+    # slope by forward differences, brightness at the interval midpoints: a central
+    # difference would smear the slope-free shoulder point with its steep neighbour and move
+    # the (iii) peak by up to a full grid step
+    dr = float(r_um[1] - r_um[0])
+    brightness = brightness_from_slope(np.diff(h_um) / dr)
+    # noiseless: the peak prominence rule reduces to 2 % of the (ii) contrast
+    points = find_edges(brightness, 1.0, threshold=threshold, noise=0.0, refine=False)
+    return points, float(r_um[0]) + 0.5 * dr, dr
+
+
+def profile_features(r_um, h_um, *, threshold=None) -> tuple[float, float]:
+    """Linewidth and one-sided overspray of a true height profile (the reference values).
+
+    The paper's image definitions (SPEC §9, App. A) applied to the noiseless brightness
+    of the profile (no pixels, no blur, no noise).  The profile is first resampled with a
+    shape-preserving PCHIP interpolant onto a uniform 0.02 µm grid (unless already that
+    fine); slopes are forward differences, and points are taken at the sample (no sub-sample
+    fit: the noiseless shoulder peak is a cusp), so positions are exact to ~0.01 µm plus the
+    interpolation error of a coarse input grid: (ii) = darkest point of each half,
+    (iii) = first brightness peak outward from each (ii) (prominence >= 2 % of the (ii)
+    contrast), linewidth = distance between the (iii) points, overspray = from each (iii)
+    outward to where brightness is back at or above 95 % of the background, mean of left and right.
+
+    Parameters
+    ----------
+    r_um : (n,) array
+        Positions across the line, µm (resampled to a uniform grid if needed).
+    h_um : (n,) array
+        Heights, µm.
+    threshold : float, optional
+        Overspray threshold (default 0.95 from ``optics.toml``).
+
+    Returns
+    -------
+    linewidth_um, overspray_um : float
+        ``nan`` when a definition cannot be applied (no shoulder peak, tail reaching the
+        end of ``r_um``).
+
+    Examples
+    --------
+    >>> r = np.arange(-120.0, 120.0, 0.02)
+    >>> lw, ov = profile_features(r, line_profile(r, 43.0, 29.0, 15.0))
+    >>> round(lw, 1), round(ov, 1)
+    (43.0, 29.0)
+    """
+    points, _, dr = profile_feature_points(r_um, h_um, threshold=threshold)
+    return float(points.linewidth * dr), float(points.overspray * dr)
+
+
+def _tail_length(overspray_um, shoulder_height_um, s95):
+    """Tail length T whose visible part (slope > s95) ends ``overspray_um`` past the shoulder."""
+    if overspray_um <= 0:
+        return 0.0
+    k = 2.0 * s95 / (np.pi * shoulder_height_um)  # tail slope peak = 1 / (k T) * s95
+
+    def visible(t):
+        return t * (1.0 - np.arcsin(min(1.0, k * t)) / np.pi)
+
+    # visible(T) rises from 0 to a maximum before k T = 1; take the branch below it
+    grid = np.linspace(0.0, 1.0 / k, 400)
+    t_max = grid[int(np.argmax([visible(t) for t in grid]))]
+    if visible(t_max) <= overspray_um:
+        return t_max
+    return brentq(lambda t: visible(t) - overspray_um, overspray_um, t_max, xtol=1e-9)
+
+
+def minimum_area_um2(linewidth_um, overspray_um, *, tail_contrast=None) -> float:
+    """Smallest cross-section area (µm²) for which :func:`line_profile` is exact.
+
+    Below it the overspray tail cannot be both as long and as visible as requested while the
+    body still rises above the shoulders; :func:`line_profile` then thins the tail (with a
+    warning) and the visible overspray comes out shorter.
+    """
+    cfg = optics()["profile"]
+    c = cfg["tail_contrast"] if tail_contrast is None else float(tail_contrast)
+    s95 = slope_at_threshold()
+    w = 0.5 * linewidth_um
+    x_e = 1.0 - np.arcsin(1.0 / c) / np.pi
+    t = overspray_um / x_e
+    h_s = 2.0 * t * c * s95 / np.pi
+    return float(h_s * (2 * w + t + cfg["min_body_to_shoulder"] * w))
+
+
+def line_profile(
+    r_um,
+    linewidth_um: float,
+    overspray_um: float,
+    area_um2: float,
+    *,
+    rng: np.random.Generator | None = None,
+    raggedness_um: float = 0.0,
+    center_um: float = 0.0,
+    tail_contrast: float | None = None,
+) -> np.ndarray:
+    """A deposit cross-section with the requested linewidth, overspray and area.
+
+    Parameters
+    ----------
+    r_um : array
+        Positions across the line, µm (any shape; the profile is evaluated pointwise).
+    linewidth_um : float
+        Distance between the shoulders (iii), µm, > 0.
+    overspray_um : float
+        One-sided overspray (mean of the left and right extents), µm, > 0.
+    area_um2 : float
+        Cross-section area ``∫h dr``, µm².  From a material flow Q_m [mL/s] at platen speed
+        ν: :func:`ajtwin.units.cross_section_um2`.
+    rng : numpy Generator, optional
+        Source of the raggedness perturbation.
+    raggedness_um : float
+        Standard deviation (µm) of independent random shifts of the two shoulders and of the
+        two overspray edges (paper App. A: shoulder positions vary randomly).  With 0 the
+        profile is symmetric and :func:`profile_features` returns the requested values.
+    center_um : float
+        Line centre, µm.
+    tail_contrast : float, optional
+        Peak slope of the overspray tail as a multiple of the 95 %-threshold slope (default
+        from ``optics.toml``; must be > 1 for the overspray to be visible).
+
+    Returns
+    -------
+    h_um : array
+        Heights, µm, same shape as ``r_um``.
+
+    Raises
+    ------
+    ValueError
+        For non-finite or non-positive sizes.
+
+    Warns
+    -----
+    UserWarning
+        When ``area_um2`` is below :func:`minimum_area_um2`: the tail is thinned and the
+        visible overspray will be shorter than requested.
+
+    Examples
+    --------
+    >>> r = np.arange(-120.0, 120.0, 0.05)
+    >>> h = line_profile(r, 43.0, 29.0, 15.0)
+    >>> round(float(np.trapezoid(h, r)), 3)
+    15.0
+    """
+    for name, value in (
+        ("linewidth_um", linewidth_um),
+        ("overspray_um", overspray_um),
+        ("area_um2", area_um2),
+    ):
+        if not np.isfinite(value) or value <= 0:
+            raise ValueError(f"line_profile: {name} must be finite and > 0, got {value!r}")
+    if not np.isfinite(raggedness_um) or raggedness_um < 0:
+        raise ValueError(f"line_profile: raggedness_um must be >= 0, got {raggedness_um!r}")
+    cfg = optics()["profile"]
+    c = cfg["tail_contrast"] if tail_contrast is None else float(tail_contrast)
+    if c <= 1.0:
+        raise ValueError(f"line_profile: tail_contrast must be > 1, got {c}")
+    s95 = slope_at_threshold()
+
+    half = np.full(2, 0.5 * linewidth_um)
+    ovs = np.full(2, float(overspray_um))
+    if raggedness_um > 0:
+        rng = np.random.default_rng() if rng is None else rng
+        half = np.maximum(half + rng.normal(0.0, raggedness_um, 2), 0.25 * half)
+        ovs = np.maximum(ovs + rng.normal(0.0, raggedness_um, 2), 0.25 * ovs)
+
+    # the shoulder height follows from the mean overspray at the nominal tail contrast
+    x_e = 1.0 - np.arcsin(1.0 / c) / np.pi
+    h_s = 2.0 * (ovs.mean() / x_e) * c * s95 / np.pi
+    if raggedness_um > 0:
+        tails = np.array([_tail_length(o, h_s, s95) for o in ovs])
+    else:
+        tails = ovs / x_e
+    body_span = half.sum()
+    body = 2.0 * (area_um2 - h_s * body_span - 0.5 * h_s * tails.sum()) / body_span
+    k_min = cfg["min_body_to_shoulder"]
+    if body < k_min * h_s:
+        warnings.warn(
+            f"line_profile: area {area_um2:.3g} µm² is below the "
+            f"{minimum_area_um2(linewidth_um, overspray_um, tail_contrast=c):.3g} µm² needed "
+            f"for a visible {overspray_um:.3g} µm overspray with a {linewidth_um:.3g} µm "
+            "line; thinning the tail (the visible overspray will be shorter)",
+            stacklevel=2,
+        )
+        h_s = area_um2 / (body_span + 0.5 * tails.sum() + 0.5 * k_min * body_span)
+        body = k_min * h_s
+
+    r = np.asarray(r_um, dtype=float) - center_um
+    right = r >= 0
+    u = np.abs(r)
+    w = np.where(right, half[1], half[0])
+    t = np.where(right, tails[1], tails[0])
+    h = np.zeros_like(u)
+    in_body = u <= w
+    h[in_body] = h_s + body * 0.5 * (1.0 + np.cos(np.pi * u[in_body] / w[in_body]))
+    in_tail = (u > w) & (u < w + t)
+    x = (u[in_tail] - w[in_tail]) / t[in_tail]
+    h[in_tail] = h_s * 0.5 * (1.0 + np.cos(np.pi * x))
+    return h

@@ -1,1 +1,17 @@
-"""ajtwin.simulation"""
+"""ajtwin.simulation — the virtual AJ printer and its scenarios (docs/scenarios.md).
+
+:func:`simulate` turns a scenario and a seed into a :class:`ajtwin.io.PrintRecord`
+with known truth; :func:`run_virtual_print` keeps everything behind it.
+"""
+
+from ajtwin.simulation.printer import VirtualPrint, run_virtual_print, simulate
+from ajtwin.simulation.scenarios import Scenario, list_scenarios, load_scenario
+
+__all__ = [
+    "simulate",
+    "run_virtual_print",
+    "VirtualPrint",
+    "Scenario",
+    "load_scenario",
+    "list_scenarios",
+]

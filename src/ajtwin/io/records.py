@@ -1,0 +1,641 @@
+"""Print records: one print = one 1 Hz table of inputs, outputs and (optional) truth.
+
+A :class:`PrintRecord` holds
+
+* ``data`` — a pandas DataFrame sampled at 1 Hz with the columns of
+  :data:`INPUT_COLUMNS` and :data:`OUTPUT_COLUMNS` (display units, SPEC §3) after
+  ``time_s``, optionally the truth columns :data:`TRUTH_COLUMNS` of a virtual print.
+  NaN means "no measurement at this second" and is kept as such.
+* ``meta`` — a dict with at least ``machine_id``, ``scenario``, ``seed``,
+  ``platen_speed_mm_s``, ``units`` and the fault information ``fault_kind`` /
+  ``fault_onset_s`` (``"none"`` / ``None`` for a clean print).
+
+:func:`read_record` reads Parquet (metadata in the schema metadata under the key
+``ajtwin``) or CSV (metadata as ``# meta: {json}`` comment lines at the top; a bare
+CSV with only the columns is valid and gets :data:`DEFAULT_META`). Messy logs are
+handled in the open: column aliases (``aliases.toml``), NaN kept, irregular time
+stamps resampled to 1 s with a warning; a wrong unit scale, non-monotonic time, a
+missing required column or a non-numeric cell is rejected with an error naming the
+file, row and column. The schema is documented in ``docs/record_format.md``.
+
+Examples
+--------
+>>> import numpy as np, pandas as pd
+>>> t = np.arange(3.0)
+>>> df = pd.DataFrame({"time_s": t, "atomizer_current_mA": 375.0, "carrier_flow_sccm": 23.0,
+...                    "sheath_flow_sccm": 50.0, "carrier_pressure_Pa": 5661.0,
+...                    "sheath_pressure_Pa": 5641.0, "linewidth_um": 43.0,
+...                    "overspray_um": 29.0, "material_flow_mL_s": 1.5e-8})
+>>> rec = PrintRecord(df, {})
+>>> rec.inputs.shape, rec.meta["platen_speed_mm_s"]
+((3, 3), 1.0)
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+import warnings
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+FORMAT_VERSION = 1
+PARQUET_META_KEY = b"ajtwin"
+CSV_META_PREFIX = "# meta: "
+
+TIME_COLUMN = "time_s"
+INPUT_COLUMNS = ("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")
+OUTPUT_COLUMNS = (
+    "linewidth_um",
+    "overspray_um",
+    "carrier_pressure_Pa",
+    "sheath_pressure_Pa",
+    "material_flow_mL_s",
+)
+#: Truth columns of a virtual print, in the model's state order (d_a, V_l, ΔR_T, ΔR_N, φ_A).
+TRUTH_COLUMNS = (
+    "true_droplet_diameter_um",
+    "true_vial_volume_mL",
+    "true_tube_deposition_um",
+    "true_nozzle_deposition_um",
+    "true_aerosol_fraction",
+)
+#: Column order of a record's table: time, the raw log's columns, then truth.
+RECORD_COLUMNS = (
+    TIME_COLUMN,
+    "atomizer_current_mA",
+    "carrier_flow_sccm",
+    "sheath_flow_sccm",
+    "carrier_pressure_Pa",
+    "sheath_pressure_Pa",
+    "linewidth_um",
+    "overspray_um",
+    "material_flow_mL_s",
+)
+#: Columns a record must have. material_flow_mL_s may be absent (no height-profile
+#: CNN on that machine): it is then added as all-NaN with a warning.
+REQUIRED_COLUMNS = tuple(c for c in RECORD_COLUMNS if c != "material_flow_mL_s")
+
+UNITS = {
+    "time_s": "s",
+    "atomizer_current_mA": "mA",
+    "carrier_flow_sccm": "sccm",
+    "sheath_flow_sccm": "sccm",
+    "carrier_pressure_Pa": "Pa",
+    "sheath_pressure_Pa": "Pa",
+    "linewidth_um": "um",
+    "overspray_um": "um",
+    "material_flow_mL_s": "mL/s",
+    "true_droplet_diameter_um": "um",
+    "true_vial_volume_mL": "mL",
+    "true_tube_deposition_um": "um",
+    "true_nozzle_deposition_um": "um",
+    "true_aerosol_fraction": "1",
+}
+
+#: Metadata a record gets when its file says nothing (e.g. a bare CSV).
+DEFAULT_META = {
+    "format_version": FORMAT_VERSION,
+    "machine_id": "unknown",
+    "scenario": "unknown",
+    "seed": None,
+    "platen_speed_mm_s": 1.0,
+    "units": dict(UNITS),
+    "fault_kind": "none",
+    "fault_onset_s": None,
+}
+
+# Plausible value ranges in display units, and what a value outside them most likely
+# means. Each entry: (low, high, {"too_small": hint, "too_large": hint}); a value is
+# rejected when it is finite and outside [low, high]. The ranges are wide enough for
+# any AJ 300-class print and narrow enough to catch a factor-of-60/1000 unit slip.
+PLAUSIBLE_RANGES = {
+    "atomizer_current_mA": (50.0, 1000.0, "A (expected mA; 375 mA = 0.375 A)", None),
+    "carrier_flow_sccm": (
+        1.0,
+        200.0,
+        "mL/s or L/min (expected sccm; 23 sccm = 0.383 mL/s)",
+        "a unit smaller than sccm",
+    ),
+    "sheath_flow_sccm": (
+        1.0,
+        500.0,
+        "mL/s or L/min (expected sccm; 50 sccm = 0.833 mL/s)",
+        "a unit smaller than sccm",
+    ),
+    "carrier_pressure_Pa": (
+        100.0,
+        1e6,
+        "kPa, bar or psi (expected Pa; 5661 Pa = 5.661 kPa)",
+        "a unit smaller than Pa",
+    ),
+    "sheath_pressure_Pa": (
+        100.0,
+        1e6,
+        "kPa, bar or psi (expected Pa; 5641 Pa = 5.641 kPa)",
+        "a unit smaller than Pa",
+    ),
+    "linewidth_um": (1.0, 5000.0, "mm or m (expected µm; 43 µm = 0.043 mm)", "nm (expected µm)"),
+    "overspray_um": (0.0, 5000.0, None, "nm (expected µm)"),
+    "material_flow_mL_s": (
+        0.0,
+        1e-4,
+        None,
+        "a unit larger than mL/s per s, e.g. µL/s or nL/s (expected mL/s; typical 1.5e-8 mL/s)",
+    ),
+    "true_droplet_diameter_um": (0.1, 50.0, "m or mm (expected µm)", "nm (expected µm)"),
+    "true_vial_volume_mL": (0.0, 10.0, None, "µL (expected mL)"),
+    "true_tube_deposition_um": (-1000.0, 1000.0, None, "nm (expected µm)"),
+    "true_nozzle_deposition_um": (-75.0, 75.0, None, "nm (expected µm)"),
+    "true_aerosol_fraction": (0.0, 1.0, None, "a percentage or ppm (expected a fraction)"),
+}
+# Columns with a lower bound of 0 can still reveal a unit slip through their median:
+# overspray of a real line is micrometres, not 0.03 (mm).
+MEDIAN_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
+
+#: Time stamps closer than this to the 1 s grid count as regular.
+TIME_TOLERANCE_S = 1e-6
+#: When resampling, a grid point between two samples farther apart than this gets NaN.
+MAX_INTERPOLATION_GAP_S = 5.0
+
+
+class RecordError(ValueError):
+    """A print record that cannot be read as it is; the message names file, row, column."""
+
+
+@dataclass
+class PrintRecord:
+    """One print: a 1 Hz table (``data``) and its metadata (``meta``).
+
+    Missing metadata keys are filled from :data:`DEFAULT_META` (the keys that were
+    filled are listed in ``meta["assumed_defaults"]``).
+
+    Parameters
+    ----------
+    data : pandas.DataFrame
+        ``time_s`` and the record columns in display units; NaN = no measurement.
+    meta : dict
+        ``machine_id``, ``scenario``, ``seed``, ``platen_speed_mm_s`` [mm/s], ``units``,
+        ``fault_kind``, ``fault_onset_s`` [s] and anything else JSON-serialisable.
+    """
+
+    data: pd.DataFrame
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        meta = dict(self.meta)
+        assumed = list(meta.get("assumed_defaults", []))
+        for key, value in DEFAULT_META.items():
+            if key not in meta:
+                meta[key] = copy.deepcopy(value)
+                if key != "format_version":
+                    assumed.append(key)
+        if assumed:
+            meta["assumed_defaults"] = sorted(set(assumed))
+        self.meta = meta
+
+    # -- convenient array views (display units) ----------------------------------
+    @property
+    def time_s(self) -> np.ndarray:
+        """Sample times [s], shape (T,)."""
+        return self.data[TIME_COLUMN].to_numpy(dtype=float)
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """Measured inputs u = [I_A mA, Q_c sccm, Q_s sccm], shape (T, 3)."""
+        return self.data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+
+    @property
+    def outputs(self) -> np.ndarray:
+        """Measured outputs y = [L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s], (T, 5); NaN = none."""
+        return self.data[list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
+
+    @property
+    def has_truth(self) -> bool:
+        return all(c in self.data.columns for c in TRUTH_COLUMNS)
+
+    @property
+    def true_states(self) -> np.ndarray | None:
+        """True states x = [d_a µm, V_l mL, ΔR_T µm, ΔR_N µm, φ_A], (T, 5), or None."""
+        if not self.has_truth:
+            return None
+        return self.data[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+
+    @property
+    def duration_s(self) -> float:
+        t = self.time_s
+        return float(t[-1] - t[0]) if len(t) else 0.0
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def window(self, start_s: float | None = None, stop_s: float | None = None) -> PrintRecord:
+        """The samples with start_s <= time_s < stop_s, as a new record (same meta)."""
+        t = self.data[TIME_COLUMN]
+        keep = np.ones(len(t), dtype=bool)
+        if start_s is not None:
+            keep &= t >= start_s
+        if stop_s is not None:
+            keep &= t < stop_s
+        return PrintRecord(self.data.loc[keep].reset_index(drop=True), copy.deepcopy(self.meta))
+
+
+# --------------------------------------------------------------------------- #
+# Aliases
+# --------------------------------------------------------------------------- #
+
+
+def load_aliases(path: str | Path | None = None) -> dict[str, str]:
+    """Alias → canonical column name, from the packaged file plus an optional user file.
+
+    Keys are lower-cased and stripped; the canonical names map to themselves.
+    """
+    tables = []
+    with (resources.files("ajtwin.io") / "aliases.toml").open("rb") as fh:
+        tables.append(tomllib.load(fh))
+    if path is not None:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"alias file not found: {path}")
+        with path.open("rb") as fh:
+            try:
+                tables.append(tomllib.load(fh))
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{path}: not valid TOML: {exc}") from None
+    mapping: dict[str, str] = {c.lower(): c for c in UNITS}
+    for table in tables:
+        for canonical, names in table.get("aliases", {}).items():
+            if canonical not in UNITS:
+                raise ValueError(
+                    f"alias file names unknown column {canonical!r}; known: {', '.join(UNITS)}"
+                )
+            for name in names:
+                mapping[str(name).strip().lower()] = canonical
+    return mapping
+
+
+def _apply_aliases(df: pd.DataFrame, mapping: dict[str, str], where: str) -> pd.DataFrame:
+    renamed: dict[str, str] = {}
+    seen: dict[str, str] = {}
+    for column in df.columns:
+        canonical = mapping.get(str(column).strip().lower())
+        if canonical is None:
+            continue
+        if canonical in seen:
+            raise RecordError(
+                f"{where}: columns {seen[canonical]!r} and {column!r} both mean {canonical!r}"
+            )
+        seen[canonical] = column
+        if canonical != column:
+            renamed[column] = canonical
+    if renamed:
+        pretty = ", ".join(f"{a!r} → {b!r}" for a, b in renamed.items())
+        warnings.warn(f"{where}: renamed columns by alias: {pretty}", stacklevel=3)
+    return df.rename(columns=renamed)
+
+
+# --------------------------------------------------------------------------- #
+# Validation
+# --------------------------------------------------------------------------- #
+
+
+def _row_label(df: pd.DataFrame, position: int, row_offset: int) -> str:
+    """Row for messages: data row (1 = first data row) and, for text files, the file line."""
+    label = f"row {position + 1}"
+    if row_offset:
+        label += f" (line {position + 1 + row_offset})"
+    return label
+
+
+def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
+    out = {}
+    for column in df.columns:
+        series = df[column]
+        if pd.api.types.is_numeric_dtype(series):
+            out[column] = series.astype(float)
+            continue
+        # empty strings / "nan" / "NA" are missing values; anything else must be a number
+        text = series.astype("string").str.strip()
+        blank = text.isna() | text.str.lower().isin(["", "nan", "na", "n/a", "none", "null"])
+        numbers = pd.to_numeric(text.where(~blank), errors="coerce")
+        bad = numbers.isna() & ~blank
+        if bad.any():
+            position = int(np.flatnonzero(bad.to_numpy())[0])
+            raise RecordError(
+                f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
+                f"value {series.iloc[position]!r} is not a number"
+            )
+        out[column] = numbers.astype(float)
+    return pd.DataFrame(out, index=df.index)
+
+
+def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise RecordError(
+            f"{where}: missing required column(s) {', '.join(map(repr, missing))}; "
+            f"found {', '.join(map(repr, map(str, df.columns)))}. If your log names them "
+            "differently, add the names to an alias file (see docs/record_format.md)."
+        )
+    if "material_flow_mL_s" not in df.columns:
+        warnings.warn(
+            f"{where}: no 'material_flow_mL_s' column; added as all-NaN (no measurement)",
+            stacklevel=3,
+        )
+        df = df.assign(material_flow_mL_s=np.nan)
+    present_truth = [c for c in TRUTH_COLUMNS if c in df.columns]
+    if present_truth and len(present_truth) != len(TRUTH_COLUMNS):
+        lacking = [c for c in TRUTH_COLUMNS if c not in df.columns]
+        warnings.warn(f"{where}: partial truth; lacking {', '.join(lacking)}", stacklevel=3)
+    return df
+
+
+def _check_ranges(df: pd.DataFrame, where: str, row_offset: int) -> None:
+    for column, (low, high, small_hint, large_hint) in PLAUSIBLE_RANGES.items():
+        if column not in df.columns:
+            continue
+        values = df[column].to_numpy(dtype=float)
+        if np.isinf(values).any():
+            position = int(np.flatnonzero(np.isinf(values))[0])
+            raise RecordError(
+                f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
+                f"value {values[position]!r} is infinite (use NaN for a missing measurement)"
+            )
+        finite = np.isfinite(values)
+        for mask, hint, side in (
+            (finite & (values < low), small_hint, "below"),
+            (finite & (values > high), large_hint, "above"),
+        ):
+            if mask.any():
+                position = int(np.flatnonzero(mask)[0])
+                unit = UNITS[column]
+                guess = f"; the values look like {hint}" if hint else ""
+                raise RecordError(
+                    f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
+                    f"value {values[position]:g} is {side} the plausible range "
+                    f"[{low:g}, {high:g}] {unit}{guess}"
+                )
+        if column in MEDIAN_FLOORS and finite.any():
+            floor, hint = MEDIAN_FLOORS[column]
+            if np.median(values[finite]) < floor:
+                position = int(np.flatnonzero(finite & (values < floor))[0])
+                raise RecordError(
+                    f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
+                    f"median {np.median(values[finite]):g} {UNITS[column]} is below {floor:g}; "
+                    f"the values look like {hint}"
+                )
+
+
+def _check_time(df: pd.DataFrame, where: str, row_offset: int) -> np.ndarray:
+    t = df[TIME_COLUMN].to_numpy(dtype=float)
+    if len(t) == 0:
+        raise RecordError(f"{where}: the record has no rows")
+    missing = ~np.isfinite(t)
+    if missing.any():
+        position = int(np.flatnonzero(missing)[0])
+        raise RecordError(
+            f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': "
+            f"time stamp {t[position]!r} is missing; every row needs a time"
+        )
+    steps = np.diff(t)
+    bad = steps <= 0
+    if bad.any():
+        position = int(np.flatnonzero(bad)[0]) + 1
+        raise RecordError(
+            f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': time "
+            f"{t[position]:g} s does not increase (previous row {t[position - 1]:g} s); "
+            "time must be strictly increasing"
+        )
+    return t
+
+
+def resample_to_seconds(
+    df: pd.DataFrame, max_gap_s: float = MAX_INTERPOLATION_GAP_S
+) -> tuple[pd.DataFrame, dict]:
+    """Resample a strictly increasing, irregular table onto a 1 s grid.
+
+    Each grid second gets the linear interpolation of its two neighbouring samples;
+    when either neighbour is NaN, or the two are more than ``max_gap_s`` apart, the
+    grid value is NaN (no measurement), never invented.
+
+    Returns
+    -------
+    (DataFrame, dict)
+        The resampled table and a summary (``n_in``, ``n_out``, ``n_gap_nan``).
+    """
+    t = df[TIME_COLUMN].to_numpy(dtype=float)
+    grid = np.arange(math.ceil(t[0] - TIME_TOLERANCE_S), math.floor(t[-1] + TIME_TOLERANCE_S) + 1)
+    grid = grid.astype(float)
+    right = np.clip(np.searchsorted(t, grid, side="left"), 0, len(t) - 1)
+    exact = np.abs(t[right] - grid) <= TIME_TOLERANCE_S
+    left = np.clip(right - 1, 0, len(t) - 1)
+    left = np.where(exact, right, left)
+    span = t[right] - t[left]
+    weight = np.where(span > 0, (grid - t[left]) / np.where(span > 0, span, 1.0), 0.0)
+    too_far = span > max_gap_s
+    out = {TIME_COLUMN: grid}
+    for column in df.columns:
+        if column == TIME_COLUMN:
+            continue
+        v = df[column].to_numpy(dtype=float)
+        value = v[left] + weight * (v[right] - v[left])
+        value[too_far] = np.nan
+        out[column] = value
+    summary = {"n_in": int(len(t)), "n_out": int(len(grid)), "n_gap_nan": int(too_far.sum())}
+    return pd.DataFrame(out), summary
+
+
+def validate_table(
+    df: pd.DataFrame,
+    where: str = "<table>",
+    aliases: str | Path | None = None,
+    row_offset: int = 0,
+) -> pd.DataFrame:
+    """Check, rename and regularise a raw table into record columns (see :func:`read_record`).
+
+    Returns a DataFrame on a 1 s grid: ``time_s``, the record columns, truth columns
+    when present, then any extra columns of the log (kept, never dropped).
+    """
+    df = _apply_aliases(df, load_aliases(aliases), where)
+    df = _check_columns(df, where)
+    df = _to_numeric(df, where, row_offset)
+    t = _check_time(df, where, row_offset)
+    _check_ranges(df, where, row_offset)
+    steps = np.diff(t)
+    on_grid = len(t) == 1 or (
+        np.all(np.abs(steps - 1.0) <= TIME_TOLERANCE_S)
+        and abs(t[0] - round(t[0])) <= TIME_TOLERANCE_S
+    )
+    if not on_grid:
+        df, summary = resample_to_seconds(df.reset_index(drop=True))
+        warnings.warn(
+            f"{where}: irregular time stamps (steps {steps.min():g}–{steps.max():g} s); "
+            f"resampled {summary['n_in']} samples to {summary['n_out']} at 1 s "
+            f"(linear interpolation; {summary['n_gap_nan']} grid points in gaps > "
+            f"{MAX_INTERPOLATION_GAP_S:g} s set to NaN)",
+            stacklevel=2,
+        )
+    known = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in df.columns]
+    extra = [c for c in df.columns if c not in known]
+    return df[known + extra].reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------- #
+# Reading and writing
+# --------------------------------------------------------------------------- #
+
+
+def _json_safe(meta: dict) -> dict:
+    def convert(value):
+        if isinstance(value, dict):
+            return {str(k): convert(v) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [convert(v) for v in value]
+        if isinstance(value, np.generic):
+            return value.item()
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if isinstance(value, Path):
+            return str(value)
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        return value
+
+    return convert(meta)
+
+
+def _read_csv(path: Path) -> tuple[pd.DataFrame, dict, int]:
+    meta: dict = {}
+    header_lines = 0
+    with path.open("r", encoding="utf-8-sig") as fh:
+        for line in fh:
+            if not line.startswith("#"):
+                break
+            header_lines += 1
+            if line.startswith(CSV_META_PREFIX):
+                try:
+                    meta.update(json.loads(line[len(CSV_META_PREFIX) :]))
+                except json.JSONDecodeError as exc:
+                    raise RecordError(
+                        f"{path}: line {header_lines}: metadata is not valid JSON: {exc}"
+                    ) from None
+    try:
+        df = pd.read_csv(path, skiprows=header_lines, encoding="utf-8-sig")
+    except pd.errors.EmptyDataError:
+        raise RecordError(f"{path}: no table after the header") from None
+    except pd.errors.ParserError as exc:
+        raise RecordError(f"{path}: not a valid CSV table: {exc}") from None
+    # file line of data row 1 = comment lines + the column-name line + 1
+    return df, meta, header_lines + 1
+
+
+def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path)
+    except Exception as exc:  # pyarrow raises several types for a corrupt file
+        raise RecordError(f"{path}: not a readable Parquet file: {exc}") from None
+    raw = (table.schema.metadata or {}).get(PARQUET_META_KEY)
+    meta = json.loads(raw.decode()) if raw else {}
+    return table.to_pandas(), meta
+
+
+def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRecord:
+    """Read a print record from Parquet (``.parquet``/``.pq``) or CSV (``.csv``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The record file.
+    aliases : str or Path, optional
+        A TOML alias file (same form as ``ajtwin/io/aliases.toml``) adding column names.
+
+    Returns
+    -------
+    PrintRecord
+        Data on a 1 s grid in display units; NaN = no measurement.
+
+    Raises
+    ------
+    RecordError
+        Missing required column, non-monotonic time, a non-numeric cell, or a value
+        whose scale betrays a wrong unit — the message names file, row and column
+        (rows count data rows from 1, after any ``#`` header lines).
+    FileNotFoundError
+        When the file does not exist.
+
+    Warns
+    -----
+    UserWarning
+        Columns renamed by alias, irregular time stamps resampled, material flow absent.
+
+    Examples
+    --------
+    >>> rec = read_record("print.parquet")          # doctest: +SKIP
+    >>> rec.meta["scenario"], rec.inputs.shape      # doctest: +SKIP
+    ('exp1', (5400, 3))
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"print record not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix in (".parquet", ".pq"):
+        df, meta = _read_parquet(path)
+        row_offset = 0
+    elif suffix == ".csv":
+        df, meta, row_offset = _read_csv(path)
+    else:
+        raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
+    data = validate_table(df, str(path), aliases=aliases, row_offset=row_offset)
+    if "units" in meta:
+        for column, unit in meta["units"].items():
+            if column in UNITS and unit not in (
+                UNITS[column],
+                "µm" if UNITS[column] == "um" else UNITS[column],
+            ):
+                raise RecordError(
+                    f"{path}: column {column!r} declared in unit {unit!r}; "
+                    f"records use {UNITS[column]!r} — convert before writing"
+                )
+    meta = dict(meta)
+    meta["source_file"] = str(path)
+    return PrintRecord(data, meta)
+
+
+def write_record(record: PrintRecord, path: str | Path) -> Path:
+    """Write a record to Parquet or CSV by suffix (metadata included, see module doc).
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    meta = _json_safe({k: v for k, v in record.meta.items() if k != "source_file"})
+    meta.setdefault("units", dict(UNITS))
+    meta["format_version"] = FORMAT_VERSION
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix in (".parquet", ".pq"):
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.Table.from_pandas(record.data, preserve_index=False)
+        schema_meta = dict(table.schema.metadata or {})
+        schema_meta[PARQUET_META_KEY] = json.dumps(meta).encode()
+        pq.write_table(table.replace_schema_metadata(schema_meta), path)
+    elif suffix == ".csv":
+        with path.open("w", encoding="utf-8", newline="") as fh:
+            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} (docs/record_format.md)\n")
+            fh.write(CSV_META_PREFIX + json.dumps(meta) + "\n")
+            record.data.to_csv(fh, index=False)
+    else:
+        raise ValueError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
+    return path

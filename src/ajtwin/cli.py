@@ -17,7 +17,7 @@ from ajtwin import __version__
 # name -> "module:attribute" of a click command or group
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("ajtwin.demo:demo_command", "Run the end-to-end demo on the embedded default."),
-    "openloop": ("ajtwin.simulation.cli:openloop", "Open-loop run of the digital model."),
+    "openloop": ("ajtwin.simulation.openloop:openloop", "Open-loop run of the digital model."),
     "simulate": ("ajtwin.simulation.cli:simulate", "Virtual printer: simulate a print record."),
     "plot": ("ajtwin.simulation.cli:plot", "Plot a print record (inputs, outputs, truth)."),
     "estimate": ("ajtwin.estimation.cli:estimate", "Run the twin (EKF/RTS/EM) on a print record."),

@@ -59,6 +59,8 @@ _SI_FACTORS: dict[str, float] = {
     "mL/s": ML_IN_M3,
     "J/K": 1.0,
     "mm/s": 1e-3,
+    "um3/s": UM3_IN_ML * ML_IN_M3,
+    "deg": 3.141592653589793 / 180.0,
 }
 
 

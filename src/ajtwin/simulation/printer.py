@@ -183,7 +183,14 @@ def draw_processes(scenario: Scenario, seed: int, streams: dict) -> Processes:
         mfc_inputs[:, 0] - truth["droplet_reference_current_mA"]
     )
     input_shift = _first_order_lag(input_target, truth["droplet_input_lag_s"])
-    droplet = droplet_start + trend_um_per_h * t / 3600.0 + wander + input_shift
+    # the trend starts at trend_um_per_h and levels off after ~droplet_trend_time_s
+    # (a drift that kept its rate for 8 h would leave the physical range of d_a)
+    trend_time_s = truth["droplet_trend_time_s"]
+    if trend_time_s > 0:
+        trend = trend_um_per_h / 3600.0 * trend_time_s * -np.expm1(-t / trend_time_s)
+    else:
+        trend = trend_um_per_h * t / 3600.0
+    droplet = droplet_start + trend + wander + input_shift
     droplet = np.maximum(droplet, 0.5)
 
     generation_offset = truth["generation_offset_sd"] * float(

@@ -1,0 +1,122 @@
+"""``ajtwin simulate`` and ``ajtwin plot`` (registered in :mod:`ajtwin.cli`)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.option(
+    "--scenario",
+    "-s",
+    default="exp1",
+    show_default=True,
+    help="Packaged scenario name (see --list) or a path to your own scenario .toml.",
+)
+@click.option(
+    "--seed",
+    "-n",
+    default=0,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Seed of every random process; same seed, same record.",
+)
+@click.option(
+    "--out",
+    "-o",
+    "out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Output record (.parquet or .csv).",
+)
+@click.option(
+    "--duration-min",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Override the scenario's duration [min].",
+)
+@click.option(
+    "--plot",
+    "plot_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also draw the record to this PNG.",
+)
+@click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
+def simulate(scenario, seed, out, duration_min, plot_path, list_only):
+    """Virtual printer: simulate one print with known truth into a record file.
+
+    Example: ajtwin simulate --scenario exp3 --seed 1 --out print.parquet
+    """
+    from ajtwin.simulation.scenarios import list_scenarios, load_scenario
+
+    if list_only:
+        for name in list_scenarios():
+            s = load_scenario(name)
+            click.echo(f"{name:24s} {s.config['scenario']['description']}")
+        return
+    if out is None:
+        raise click.UsageError("--out is required (a .parquet or .csv path)")
+    if out.suffix.lower() not in (".parquet", ".pq", ".csv"):
+        raise click.BadParameter(f"{out}: use a .parquet or .csv suffix", param_hint="--out")
+    from ajtwin.io.records import write_record
+    from ajtwin.simulation.printer import simulate as run
+
+    t0 = time.perf_counter()
+    try:
+        record = run(scenario, seed, duration_min)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    elapsed = time.perf_counter() - t0
+    write_record(record, out)
+    meta = record.meta
+    onset = meta["fault_onset_s"]
+    fault = meta["fault_kind"] + (f" from {onset / 60:.1f} min" if onset is not None else "")
+    click.echo(
+        f"{out}: {meta['scenario']} seed {seed}, {len(record)} s, fault {fault} "
+        f"(simulated in {elapsed:.2f} s)"
+    )
+    if plot_path is not None:
+        from ajtwin.simulation.plotting import plot_record
+
+        plot_record(record, plot_path)
+        click.echo(f"{plot_path}: plot")
+
+
+@click.command()
+@click.argument("record_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--output",
+    "-o",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Image file (.png, .pdf, .svg).",
+)
+@click.option(
+    "--aliases",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Extra column-alias TOML file for a machine log.",
+)
+@click.option(
+    "--nominal/--no-nominal",
+    default=True,
+    show_default=True,
+    help="Overlay the nominal model's open-loop prediction when truth is present.",
+)
+def plot(record_path, output, aliases, nominal):
+    """Plot a print record: inputs, outputs and (when present) truth in one figure.
+
+    Example: ajtwin plot print.parquet -o print.png
+    """
+    from ajtwin.io.records import RecordError, read_record
+    from ajtwin.simulation.plotting import plot_record
+
+    try:
+        record = read_record(record_path, aliases=aliases)
+    except RecordError as exc:
+        raise click.ClickException(str(exc)) from None
+    plot_record(record, output, nominal=nominal)
+    click.echo(f"{output}: {record.meta.get('scenario')} ({len(record)} samples)")

@@ -1,0 +1,147 @@
+"""One-figure overview of a print record: inputs, outputs and (when present) truth.
+
+Measured outputs are drawn as thin raw traces with a 60 s rolling median on top
+(NaN samples are simply absent); a fault onset in the metadata is a dashed line.
+With ``nominal=True`` and truth present, the twin's nominal open-loop prediction
+(the digital model from the true initial state, driven by the measured inputs) is
+overlaid on the truth and on the outputs — the gap is what the twin must infer.
+"""
+
+from __future__ import annotations
+
+import textwrap
+import warnings
+from pathlib import Path
+
+from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TRUTH_COLUMNS, PrintRecord
+
+LABELS = {
+    "atomizer_current_mA": "I_A [mA]",
+    "carrier_flow_sccm": "Q_c [sccm]",
+    "sheath_flow_sccm": "Q_s [sccm]",
+    "linewidth_um": "L_w [µm]",
+    "overspray_um": "L_o [µm]",
+    "carrier_pressure_Pa": "P_c [Pa]",
+    "sheath_pressure_Pa": "P_s [Pa]",
+    "material_flow_mL_s": "Q_m [mL/s]",
+    "true_droplet_diameter_um": "d_a [µm]",
+    "true_vial_volume_mL": "V_l [mL]",
+    "true_tube_deposition_um": "ΔR_T [µm]",
+    "true_nozzle_deposition_um": "ΔR_N [µm]",
+    "true_aerosol_fraction": "φ_A [–]",
+}
+SMOOTHING_S = 60
+
+
+def nominal_open_loop(record: PrintRecord):
+    """The nominal digital model's open-loop states and outputs for a record with truth.
+
+    Starts from the true state at the first sample, with the twin's prior of a clean
+    tube and nozzle (ΔR_T = ΔR_N = 0, SPEC §7), θ = 0, Euler at 1 s, driven by the
+    measured inputs. Returns (states (T, 5), outputs (T, 5)).
+    """
+    from ajtwin.model import DigitalModel
+
+    model = DigitalModel.default()
+    x0 = record.true_states[0].copy()
+    x0[2:4] = 0.0
+    inputs = record.inputs
+    states = model.simulate(x0, inputs[:-1]) if len(inputs) > 1 else x0[None]
+    return states, model.outputs(states, inputs)
+
+
+def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bool = True):
+    """Draw a record's inputs, outputs and truth in one figure.
+
+    Parameters
+    ----------
+    record : PrintRecord
+    path : str or Path, optional
+        Save the figure there (PNG, PDF or SVG by suffix).
+    nominal : bool
+        Overlay the nominal model's open-loop prediction when truth is present.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    import matplotlib
+
+    if path is not None:
+        matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    data = record.data
+    minutes = record.time_s / 60.0
+    truth = record.has_truth
+    ncols = 3 if truth else 2
+    fig, axes = plt.subplots(5, ncols, figsize=(5.2 * ncols, 12), sharex=True, squeeze=False)
+    onset = record.meta.get("fault_onset_s")
+    predicted = None
+    if truth and nominal:
+        try:
+            predicted = nominal_open_loop(record)
+        except ValueError as exc:  # e.g. the nominal run leaves the model's valid range
+            warnings.warn(f"no nominal overlay: {exc}", stacklevel=2)
+
+    def mark(ax):
+        if onset is not None:
+            ax.axvline(onset / 60.0, color="crimson", ls="--", lw=1)
+
+    for row, column in enumerate(INPUT_COLUMNS):
+        ax = axes[row, 0]
+        ax.plot(minutes, data[column], lw=0.6, color="tab:blue")
+        ax.set_ylabel(LABELS[column])
+        mark(ax)
+    meta_ax = axes[3, 0]
+    meta_ax.axis("off")
+    axes[4, 0].axis("off")
+    meta = record.meta
+    lines = [
+        f"scenario: {meta.get('scenario')}",
+        f"seed: {meta.get('seed')}",
+        f"machine: {meta.get('machine_id')}",
+        f"platen speed: {meta.get('platen_speed_mm_s')} mm/s",
+        f"fault: {meta.get('fault_kind')}"
+        + (f" at {onset / 60:.1f} min" if onset is not None else ""),
+        f"samples: {len(record)} ({record.duration_s / 60:.1f} min)",
+    ]
+    if meta.get("description"):
+        lines.extend(textwrap.wrap(str(meta["description"]), 48))
+    meta_ax.text(0.0, 1.0, "\n".join(lines), va="top", fontsize=9, wrap=True)
+    if predicted is not None:
+        meta_ax.text(0.0, 0.05, "black dashed: nominal model, open loop", fontsize=8, color="0.2")
+
+    for row, column in enumerate(OUTPUT_COLUMNS):
+        ax = axes[row, 1]
+        series = data[column]
+        ax.plot(minutes, series, lw=0.3, color="0.6")
+        smooth = series.rolling(SMOOTHING_S, center=True, min_periods=SMOOTHING_S // 4).median()
+        ax.plot(minutes, smooth, lw=1.2, color="tab:orange")
+        if predicted is not None:
+            ax.plot(minutes, predicted[1][:, row], lw=1.0, ls="--", color="k")
+        ax.set_ylabel(LABELS[column])
+        mark(ax)
+
+    if truth:
+        for row, column in enumerate(TRUTH_COLUMNS):
+            ax = axes[row, 2]
+            ax.plot(minutes, data[column], lw=1.2, color="tab:green")
+            if predicted is not None:
+                ax.plot(minutes, predicted[0][:, row], lw=1.0, ls="--", color="k")
+            ax.set_ylabel(LABELS[column])
+            mark(ax)
+        axes[0, 2].set_title("truth (hidden states)")
+    axes[0, 0].set_title("measured inputs")
+    axes[0, 1].set_title("measured outputs (grey) and 60 s median")
+    for ax in axes[-1]:
+        ax.set_xlabel("time [min]")
+    axes[2, 0].set_xlabel("time [min]")
+    axes[2, 0].xaxis.set_tick_params(labelbottom=True)
+    fig.suptitle(f"ajtwin print record — {meta.get('scenario')} (seed {meta.get('seed')})")
+    fig.tight_layout()
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=110)
+    return fig

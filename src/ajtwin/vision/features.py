@@ -74,14 +74,14 @@ def _nan_points(center: float, status: str, minima=(np.nan, np.nan)) -> EdgePoin
     return EdgePoints(float(center), minima, nan2, nan2, (False, False), status)
 
 
-def _refine_peak(seg: np.ndarray, j: int) -> float:
+def _refine_peak(seg: np.ndarray, j: int, parabola: bool = True) -> float:
     """Sub-sample position of the peak at ``j`` (plateau midpoint or parabola vertex)."""
     p = j
     while p > 0 and seg[p - 1] == seg[j]:
         p -= 1
     if p < j:
         return 0.5 * (p + j)
-    if 0 < j < seg.size - 1:
+    if parabola and 0 < j < seg.size - 1:
         a, b, c = seg[j - 1], seg[j], seg[j + 1]
         denom = a - 2.0 * b + c
         if denom < 0:
@@ -115,7 +115,7 @@ def first_peak(seg: np.ndarray, delta: float, *, refine: bool = True) -> float:
         k = higher[0] if higher.size else after.size
         if k == 0 or peak - after[:k].min() < delta:
             continue
-        return _refine_peak(seg, int(j)) if refine else float(j)
+        return _refine_peak(seg, int(j), parabola=refine)
     return np.nan
 
 

@@ -42,7 +42,6 @@ from importlib import resources
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
-from scipy.optimize import brentq
 
 from ajtwin.vision.features import EdgePoints, find_edges
 
@@ -213,21 +212,49 @@ def profile_features(r_um, h_um, *, threshold=None) -> tuple[float, float]:
     return float(points.linewidth * dr), float(points.overspray * dr)
 
 
-def _tail_length(overspray_um, shoulder_height_um, s95):
-    """Tail length T whose visible part (slope > s95) ends ``overspray_um`` past the shoulder."""
-    if overspray_um <= 0:
-        return 0.0
-    k = 2.0 * s95 / (np.pi * shoulder_height_um)  # tail slope peak = 1 / (k T) * s95
+def _tail_geometry(overspray_um, shoulder_height_um, ramp_um, foot_um, s95):
+    """Peak slope P and length T of a tail whose visible part ends ``overspray_um`` out.
 
-    def visible(t):
-        return t * (1.0 - np.arcsin(min(1.0, k * t)) / np.pi)
+    The tail's slope magnitude ramps from 0 to P over ``ramp_um``, stays at P, and falls
+    linearly to 0 over the last ``foot_um``.  It drops below ``s95`` (brightness back within
+    the threshold) at ``T - foot * s95 / P``, which must equal the overspray; its integral
+    ``P (T - ramp/2 - foot/2)`` must equal the shoulder height.  Both are linear in T, so
+    ``P = (h_s - foot s95) / (overspray - ramp/2 - foot/2)``.
+    """
+    denom = overspray_um - 0.5 * ramp_um - 0.5 * foot_um
+    peak = (shoulder_height_um - foot_um * s95) / denom
+    return peak, overspray_um + foot_um * s95 / peak
 
-    # visible(T) rises from 0 to a maximum before k T = 1; take the branch below it
-    grid = np.linspace(0.0, 1.0 / k, 400)
-    t_max = grid[int(np.argmax([visible(t) for t in grid]))]
-    if visible(t_max) <= overspray_um:
-        return t_max
-    return brentq(lambda t: visible(t) - overspray_um, overspray_um, t_max, xtol=1e-9)
+
+def _tail_height(x, shoulder_height, peak, length, ramp, foot):
+    """Height of the tail at distance ``x`` (0..length) past the shoulder."""
+    knee = length - foot
+    drop = np.where(
+        x <= ramp,
+        0.5 * peak * x * x / ramp,
+        np.where(
+            x <= knee,
+            peak * (0.5 * ramp + (x - ramp)),
+            peak * (0.5 * ramp + (knee - ramp) + (x - knee) - (x - knee) ** 2 / (2 * foot)),
+        ),
+    )
+    return shoulder_height - drop
+
+
+def _tail_area(peak, length, ramp, foot):
+    """∫ tail height dx = ∫ x |slope| dx (integration by parts)."""
+    knee = length - foot
+    return peak * (ramp**2 / 3 + (knee**2 - ramp**2) / 2 + length * foot / 2 - foot**2 / 3)
+
+
+def _shape_constants(overspray_um, tail_contrast):
+    cfg = optics()["profile"]
+    c = cfg["tail_contrast"] if tail_contrast is None else float(tail_contrast)
+    if c <= 1.0:
+        raise ValueError(f"line_profile: tail_contrast must be > 1, got {c}")
+    s95 = slope_at_threshold()
+    foot = cfg["foot_fraction"] * overspray_um
+    return c, s95, foot, cfg
 
 
 def minimum_area_um2(linewidth_um, overspray_um, *, tail_contrast=None) -> float:
@@ -237,14 +264,17 @@ def minimum_area_um2(linewidth_um, overspray_um, *, tail_contrast=None) -> float
     body still rises above the shoulders; :func:`line_profile` then thins the tail (with a
     warning) and the visible overspray comes out shorter.
     """
-    cfg = optics()["profile"]
-    c = cfg["tail_contrast"] if tail_contrast is None else float(tail_contrast)
-    s95 = slope_at_threshold()
+    c, s95, foot, cfg = _shape_constants(overspray_um, tail_contrast)
+    ramp = cfg["ramp_min_um"]
+    terrace = min(cfg["terrace_um"], 0.25 * linewidth_um, 0.5 * overspray_um)
+    visible = overspray_um - 0.5 * terrace
+    peak = c * s95
+    h_s = peak * (visible - 0.5 * ramp - 0.5 * foot) + foot * s95
+    length = visible + foot * s95 / peak
     w = 0.5 * linewidth_um
-    x_e = 1.0 - np.arcsin(1.0 / c) / np.pi
-    t = overspray_um / x_e
-    h_s = 2.0 * t * c * s95 / np.pi
-    return float(h_s * (2 * w + t + cfg["min_body_to_shoulder"] * w))
+    tail = _tail_area(peak, length, ramp, foot)
+    body_min = cfg["min_body_to_shoulder"] * h_s * (w - 0.5 * terrace)
+    return float(h_s * (2 * w + terrace) + 2 * tail + body_min)
 
 
 def line_profile(
@@ -315,30 +345,46 @@ def line_profile(
             raise ValueError(f"line_profile: {name} must be finite and > 0, got {value!r}")
     if not np.isfinite(raggedness_um) or raggedness_um < 0:
         raise ValueError(f"line_profile: raggedness_um must be >= 0, got {raggedness_um!r}")
-    cfg = optics()["profile"]
-    c = cfg["tail_contrast"] if tail_contrast is None else float(tail_contrast)
-    if c <= 1.0:
-        raise ValueError(f"line_profile: tail_contrast must be > 1, got {c}")
-    s95 = slope_at_threshold()
+    c, s95, foot, cfg = _shape_constants(overspray_um, tail_contrast)
 
     half = np.full(2, 0.5 * linewidth_um)
     ovs = np.full(2, float(overspray_um))
     if raggedness_um > 0:
         rng = np.random.default_rng() if rng is None else rng
         half = np.maximum(half + rng.normal(0.0, raggedness_um, 2), 0.25 * half)
-        ovs = np.maximum(ovs + rng.normal(0.0, raggedness_um, 2), 0.25 * ovs)
-
-    # the shoulder height follows from the mean overspray at the nominal tail contrast
-    x_e = 1.0 - np.arcsin(1.0 / c) / np.pi
-    h_s = 2.0 * (ovs.mean() / x_e) * c * s95 / np.pi
-    if raggedness_um > 0:
-        tails = np.array([_tail_length(o, h_s, s95) for o in ovs])
-    else:
-        tails = ovs / x_e
+        ovs = np.maximum(ovs + rng.normal(0.0, raggedness_um, 2), 0.5 * ovs)
     body_span = half.sum()
-    body = 2.0 * (area_um2 - h_s * body_span - 0.5 * h_s * tails.sum()) / body_span
     k_min = cfg["min_body_to_shoulder"]
-    if body < k_min * h_s:
+    peak_nominal = c * s95
+    ramp = cfg["ramp_min_um"]
+    thinned = False
+    terrace = min(cfg["terrace_um"], 0.5 * half.min(), 0.5 * ovs.min())
+    visible = ovs - 0.5 * terrace  # visible tail length past the terrace
+    body_half = half - 0.5 * terrace
+    for _ in range(4):
+        # shoulder height from the mean overspray at the nominal tail contrast
+        h_s = peak_nominal * (visible.mean() - 0.5 * ramp - 0.5 * foot) + foot * s95
+        geometry = [_tail_geometry(o, h_s, ramp, foot, s95) for o in visible]
+        tails = sum(_tail_area(p, t, ramp, foot) for p, t in geometry)
+        body = 2.0 * (area_um2 - h_s * (body_span + terrace) - tails) / (body_span - terrace)
+        if body < k_min * h_s:
+            # too little material: scale shoulder and tail down, body at its minimum
+            scale = area_um2 / (
+                h_s * (body_span + terrace) + tails + 0.5 * k_min * h_s * (body_span - terrace)
+            )
+            h_s *= scale
+            geometry = [(p * scale, t) for p, t in geometry]
+            body = k_min * h_s
+            thinned = True
+            break
+        # match the tail's initial slope rise to the body's curvature at the shoulder, so
+        # the brightness peak at (iii) is not lopsided (blur would then move it outward)
+        curvature = body * np.pi**2 / (2.0 * body_half.mean() ** 2)
+        new_ramp = float(np.clip(peak_nominal / curvature, cfg["ramp_min_um"], 0.25 * ovs.min()))
+        if abs(new_ramp - ramp) < 1e-3:
+            break
+        ramp = new_ramp
+    if thinned:
         warnings.warn(
             f"line_profile: area {area_um2:.3g} µm² is below the "
             f"{minimum_area_um2(linewidth_um, overspray_um, tail_contrast=c):.3g} µm² needed "
@@ -346,18 +392,18 @@ def line_profile(
             "line; thinning the tail (the visible overspray will be shorter)",
             stacklevel=2,
         )
-        h_s = area_um2 / (body_span + 0.5 * tails.sum() + 0.5 * k_min * body_span)
-        body = k_min * h_s
 
     r = np.asarray(r_um, dtype=float) - center_um
-    right = r >= 0
-    u = np.abs(r)
-    w = np.where(right, half[1], half[0])
-    t = np.where(right, tails[1], tails[0])
-    h = np.zeros_like(u)
-    in_body = u <= w
-    h[in_body] = h_s + body * 0.5 * (1.0 + np.cos(np.pi * u[in_body] / w[in_body]))
-    in_tail = (u > w) & (u < w + t)
-    x = (u[in_tail] - w[in_tail]) / t[in_tail]
-    h[in_tail] = h_s * 0.5 * (1.0 + np.cos(np.pi * x))
-    return h
+    h = np.zeros_like(r)
+    for side, sign in ((0, -1.0), (1, 1.0)):
+        u = sign * r
+        mask = (u >= 0) if side == 1 else (u > 0)
+        w = body_half[side]
+        start = w + terrace  # tail starts after the flat shoulder terrace
+        peak, length = geometry[side]
+        in_body = mask & (u <= w)
+        h[in_body] = h_s + body * 0.5 * (1.0 + np.cos(np.pi * u[in_body] / w))
+        h[mask & (u > w) & (u <= start)] = h_s
+        in_tail = mask & (u > start) & (u < start + length)
+        h[in_tail] = _tail_height(u[in_tail] - start, h_s, peak, length, ramp, foot)
+    return np.maximum(h, 0.0)

@@ -37,7 +37,7 @@ from scipy.ndimage import gaussian_filter1d
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
 
 SUBSAMPLES_PER_PX = 4  # across-line samples per pixel in the brightness map
-SHOT_NOISE_GRAY = 0.15  # shot-noise variance per gray level (gray²/gray)
+SHOT_NOISE_GRAY = 0.03  # shot-noise variance per gray level (~33 e-/gray, 8.4k e- full well)
 
 
 @dataclass(frozen=True)

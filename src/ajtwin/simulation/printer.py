@@ -295,11 +295,12 @@ def run_virtual_print(
     scenario: str | Path | Scenario | dict = "exp1",
     seed: int = 0,
     duration_min: float | None = None,
+    overrides: dict | None = None,
     params=None,
     coefficients=None,
 ) -> VirtualPrint:
     """Simulate one print and keep the full truth (see :func:`simulate`)."""
-    scenario = load_scenario(scenario)
+    scenario = load_scenario(scenario, overrides)
     if duration_min is not None:
         scenario = scenario.with_duration(duration_min)
     if not isinstance(seed, int | np.integer) or seed < 0:
@@ -395,6 +396,7 @@ def simulate(
     scenario: str | Path | Scenario | dict = "exp1",
     seed: int = 0,
     duration_min: float | None = None,
+    overrides: dict | None = None,
 ) -> PrintRecord:
     """Simulate one print on the virtual printer.
 
@@ -409,6 +411,8 @@ def simulate(
         Seed of every random process; the same seed gives the same record.
     duration_min : float, optional
         Override the scenario's duration [min] (e.g. a short test).
+    overrides : dict, optional
+        Tables of scenario keys to change, e.g. ``{"truth": {"droplet_ou_sd_um": 0.0}}``.
 
     Returns
     -------
@@ -423,4 +427,4 @@ def simulate(
     >>> len(rec), rec.meta["fault_kind"], rec.has_truth
     (120, 'none', True)
     """
-    return run_virtual_print(scenario, seed, duration_min).record
+    return run_virtual_print(scenario, seed, duration_min, overrides).record

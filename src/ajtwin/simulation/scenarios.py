@@ -200,7 +200,9 @@ def _validate(config: dict, where: str) -> None:
         raise ValueError(f"{where}: fault.generation_fraction must be in [0, 1]")
 
 
-def load_scenario(scenario: str | Path | Scenario | dict) -> Scenario:
+def load_scenario(
+    scenario: str | Path | Scenario | dict, overrides: dict | None = None
+) -> Scenario:
     """A packaged scenario by name, a user's scenario file, or a dict of overrides.
 
     Parameters
@@ -209,12 +211,21 @@ def load_scenario(scenario: str | Path | Scenario | dict) -> Scenario:
         ``"exp1"`` … (see :func:`list_scenarios`), a path to a ``.toml`` file, or a
         dict of the same tables (merged over base.toml, named ``"custom"`` unless
         ``scenario.name`` is given).
+    overrides : dict, optional
+        Tables of keys to change on top of the scenario, e.g.
+        ``{"truth": {"nozzle_deposition_factor": 2.0}}``.
 
     Raises
     ------
     ValueError
         Unknown scenario, unknown key (a typo), or a value out of range.
     """
+    if overrides:
+        loaded = load_scenario(scenario)
+        where = f"overrides of scenario {loaded.name!r}"
+        config = _merge(loaded.config, overrides, where)
+        _validate(config, where)
+        return Scenario(loaded.name, config, loaded.source + " + overrides")
     if isinstance(scenario, Scenario):
         return scenario
     base = _base()

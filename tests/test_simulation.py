@@ -257,6 +257,30 @@ def test_ink_is_conserved(exp1, fault_prints, name):
     phi_m = load_parameters().silver_volume_fraction
     drawn_by_qm = np.trapezoid(vp.outputs_true[:, 4] / phi_m)
     assert drawn_by_qm == pytest.approx(drawn, rel=2e-3)
+    # per second, against the model's own ink accounting (ajtwin.model.ink_flows, trapezoid
+    # over the second): the nozzle deposit grows by factor × the model's flow into it, and
+    # the substrate gains what leaves the vial minus both deposits
+    from ajtwin.model import ink_flows
+
+    params = load_parameters()
+    k = np.arange(100, len(vp.states) - 1, 700)
+    u = vp.processes.head_inputs[k]
+    flows = [np.asarray(ink_flows(vp.states[j], u, params)) for j in (k, k + 1)]
+    out, into_tube, into_nozzle = (0.5 * (flows[0][i] + flows[1][i]) for i in range(3))
+    factors = vp.processes.drivers[k]
+    nozzle_gain = (
+        np.pi
+        * params.nozzle_length
+        * 1e6
+        * (
+            (params.nozzle_radius - vp.states[k, 3] * 1e-6) ** 2
+            - (params.nozzle_radius - vp.states[k + 1, 3] * 1e-6) ** 2
+        )
+    )
+    np.testing.assert_allclose(nozzle_gain, factors[:, 2] * into_nozzle, rtol=1e-3)
+    expected = out - factors[:, 1] * into_tube - factors[:, 2] * into_nozzle
+    gained = vp.substrate_ink_mL[k + 1] - vp.substrate_ink_mL[k]
+    np.testing.assert_allclose(gained, expected, rtol=1e-3)
 
 
 def test_deposition_is_faster_than_the_model(exp1):

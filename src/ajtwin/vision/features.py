@@ -40,6 +40,7 @@ OVERSPRAY_OUTSIDE = "overspray_outside_frame"
 RISE_FRACTION = 0.02  # minimum peak prominence as a fraction of the (ii) contrast
 NOISE_MULTIPLE = 3.0  # ... and as a multiple of the noise of the profile
 STD_RISE_FRACTION = 0.1  # std fallback: prominence as a fraction of the std range
+HOLD_SAMPLES = 3  # the return to background must last this many samples
 
 
 @dataclass(frozen=True)
@@ -106,36 +107,45 @@ def first_peak(seg: np.ndarray, delta: float, *, refine: bool = True) -> float:
     if candidates.size == 0:
         return np.nan
     running_min = np.minimum.accumulate(seg)
-    for j in candidates:
+    candidates = candidates[seg[candidates] - running_min[candidates] >= delta]
+    for j in candidates.tolist():
         peak = seg[j]
-        if peak - running_min[j] < delta:
-            continue
         after = seg[j + 1 :]
-        higher = np.flatnonzero(after > peak)
-        k = higher[0] if higher.size else after.size
+        higher = after > peak
+        k = int(np.argmax(higher)) if higher.any() else after.size
         if k == 0 or peak - after[:k].min() < delta:
             continue
-        return _refine_peak(seg, int(j), parabola=refine)
+        return _refine_peak(seg, j, parabola=refine)
     return np.nan
 
 
-def overspray_end(seg: np.ndarray, thresh: np.ndarray) -> float:
+def overspray_end(seg: np.ndarray, thresh: np.ndarray, hold: int = HOLD_SAMPLES) -> float:
     """Offset where ``seg`` (starting at a shoulder) is back at/above ``thresh`` for good.
 
-    From the start, find the first sample below the threshold, then the first sample at or
-    above it after that; the crossing is interpolated linearly.  Returns 0 when the profile
-    never drops below the threshold and ``nan`` when it never returns inside ``seg``.
+    From the start, find the first sample below the threshold, then the first sample after
+    it from which ``hold`` consecutive samples are at or above the threshold (so one bright
+    speck of substrate texture inside the overspray band does not end it); the crossing is
+    interpolated linearly.  Returns 0 when the profile never drops below the threshold and
+    ``nan`` when it never returns inside ``seg``.
+
+    Examples
+    --------
+    >>> round(overspray_end(np.array([1.0, 0.8, 0.8, 0.9, 1.0, 1.0]), np.full(6, 0.95), hold=2), 6)
+    3.5
     """
     below = seg < thresh
-    first_below = np.argmax(below)
+    first_below = int(np.argmax(below))
     if not below[first_below]:
         return 0.0
-    back = np.flatnonzero(~below[first_below:])
-    if back.size == 0:
+    above = ~below[first_below:]
+    ok = above.copy()
+    for shift in range(1, max(1, int(hold))):
+        # a run reaching the end of the profile counts even if shorter than ``hold``
+        ok[:-shift] &= above[shift:]
+    start = int(np.argmax(ok))
+    if not ok[start]:
         return np.nan
-    b = first_below + int(back[0])
-    if b == 0:
-        return 0.0
+    b = first_below + start
     lo, hi = seg[b - 1] - thresh[b - 1], seg[b] - thresh[b]
     return (b - 1) + float(-lo / (hi - lo)) if hi != lo else float(b)
 
@@ -224,7 +234,7 @@ def find_edges(
             edges.append(np.nan)
             used_std.append(False)
             continue
-        j = int(np.floor(offset))
+        j = int(np.rint(offset))  # the peak sample itself (the refined vertex is within 0.5)
         extent = overspray_end(seg[j:], seg_thr[j:])
         outer = j + extent if np.isfinite(extent) else np.nan
         outer = max(outer, offset) if np.isfinite(outer) else np.nan
@@ -244,3 +254,173 @@ def find_edges(
     return EdgePoints(
         float(center), minima, tuple(shoulders), tuple(edges), tuple(used_std), status
     )
+
+
+LOOKAHEAD_SAMPLES = 16  # batch version: how far past a peak its fall is looked for
+
+
+@dataclass(frozen=True)
+class BatchEdges:
+    """Feature points of many cross-sections at once (columns of a batch-mean image)."""
+
+    center: np.ndarray  # (B,)
+    shoulders: np.ndarray  # (B, 2) left, right (iii), sample index
+    overspray_edges: np.ndarray  # (B, 2)
+    status: list[str]
+
+    @property
+    def linewidth(self) -> np.ndarray:
+        return self.shoulders[:, 1] - self.shoulders[:, 0]
+
+    @property
+    def overspray(self) -> np.ndarray:
+        left = self.shoulders[:, 0] - self.overspray_edges[:, 0]
+        right = self.overspray_edges[:, 1] - self.shoulders[:, 1]
+        return 0.5 * (left + right)
+
+
+def _gather(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """values[rows[k, b], b] with NaN where ``rows`` falls outside the array."""
+    inside = (rows >= 0) & (rows < values.shape[0])
+    picked = np.take_along_axis(values, np.clip(rows, 0, values.shape[0] - 1), axis=0)
+    return np.where(inside, picked, np.nan)
+
+
+def _side_batches(mean, thresh, start, direction, delta, lookahead, hold):
+    """Vectorised first peak outward from ``start`` and overspray end, per column."""
+    n_rows, n_cols = mean.shape
+    steps = np.arange(n_rows)[:, None]
+    seg = _gather(mean, start[None, :] + direction * steps)
+    with np.errstate(invalid="ignore"):
+        d = np.diff(seg, axis=0)
+        local_max = np.zeros_like(seg, dtype=bool)
+        local_max[1:-1] = (d[:-1] >= 0) & (d[1:] < 0)
+        running_min = np.fmin.accumulate(seg, axis=0)
+        rise_ok = seg - running_min >= delta
+    # the fall after the peak (below peak - delta before anything exceeds the peak), tested
+    # only at the few candidates that pass the first two tests
+    kk, bb = np.nonzero(local_max & rise_ok)
+    level = seg[kk, bb]
+    need = np.broadcast_to(delta, seg.shape)[kk, bb]
+    fall_ok = np.zeros(kk.size, dtype=bool)
+    alive = np.ones(kk.size, dtype=bool)
+    for t in range(1, lookahead + 1):
+        idx = kk + t
+        inside = idx < n_rows
+        ahead = np.where(inside, seg[np.minimum(idx, n_rows - 1), bb], np.nan)
+        with np.errstate(invalid="ignore"):
+            alive &= ~(ahead > level)
+            fall_ok |= alive & (ahead <= level - need)
+    # np.nonzero lists candidates row by row, so a column's first hit is its nearest peak
+    first = np.full(n_cols, n_rows, dtype=np.int64)
+    hit_cols, first_hit = np.unique(bb[fall_ok], return_index=True)
+    first[hit_cols] = kk[fall_ok][first_hit]
+    found = first < n_rows
+    k = np.where(found, first, 0)
+    cols = np.arange(n_cols)
+    km1 = seg[np.maximum(k - 1, 0), cols]
+    k0 = seg[k, cols]
+    kp1 = seg[np.minimum(k + 1, n_rows - 1), cols]
+    denom = km1 - 2.0 * k0 + kp1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where(denom < 0, np.clip(0.5 * (km1 - kp1) / denom, -0.5, 0.5), 0.0)
+    offset = np.where(found, k + shift, np.nan)
+
+    # overspray: from the peak sample outward, below threshold, then back for ``hold``
+    rows_out = start[None, :] + direction * (k[None, :] + steps)
+    tail = _gather(mean, rows_out)
+    tail_thr = _gather(thresh, rows_out)
+    with np.errstate(invalid="ignore"):
+        below = tail < tail_thr
+    has_below = below.any(axis=0)
+    after_first = np.logical_or.accumulate(below, axis=0)
+    back = ~below  # NaN beyond the frame counts as "back" only to finish a run
+    ok = back & ~np.isnan(tail) & after_first
+    for s in range(1, max(1, hold)):
+        ok[:-s] &= back[s:]
+    returned = ok.any(axis=0)
+    b = np.maximum(np.argmax(ok, axis=0), 1)
+    lo = tail[b - 1, cols] - tail_thr[b - 1, cols]
+    hi = tail[b, cols] - tail_thr[b, cols]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cross = np.where(hi != lo, (b - 1) + (-lo) / (hi - lo), b)
+    extent = np.where(has_below, np.where(returned, cross, np.nan), 0.0)
+    outer = np.fmax(k + extent, offset)
+    outer = np.where(np.isfinite(extent) & found, outer, np.nan)
+    return start + direction * offset, start + direction * outer, found
+
+
+def find_edges_batches(
+    mean: np.ndarray,
+    background: np.ndarray,
+    *,
+    std: np.ndarray | None = None,
+    threshold: float = 0.95,
+    noise: np.ndarray | float = 0.0,
+    lookahead: int = LOOKAHEAD_SAMPLES,
+    hold: int = HOLD_SAMPLES,
+) -> BatchEdges:
+    """:func:`find_edges` for every column of ``mean`` at once (NumPy-vectorised).
+
+    Identical definitions, with one bound: a peak's fall (prominence on the outer side)
+    must show within ``lookahead`` samples.  Columns without a brightness peak fall back to
+    :func:`find_edges` with the std profile, column by column.
+
+    Parameters
+    ----------
+    mean, background : (rows, B) arrays
+        Batch-mean brightness and substrate background per row.
+    std : (rows, B) array, optional
+        Per-row standard deviation of each batch.
+    threshold : float
+    noise : float or (B,) array
+        Noise sigma of each column of ``mean``.
+    """
+    mean = np.asarray(mean, dtype=float)
+    n_rows, n_cols = mean.shape
+    background = np.broadcast_to(np.asarray(background, dtype=float), mean.shape)
+    noise = np.broadcast_to(np.asarray(noise, dtype=float), (n_cols,))
+    rows = np.arange(n_rows, dtype=float)[:, None]
+    contrast = background - mean
+    peak = contrast.max(axis=0)
+    weight = np.where(contrast > 0.5 * peak, contrast, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        center = (rows * weight).sum(axis=0) / weight.sum(axis=0)
+    valid = (peak > 0) & np.isfinite(center) & (center >= 1) & (center <= n_rows - 2)
+    ci = np.where(valid, np.rint(np.nan_to_num(center)), 1).astype(np.int64)
+    left_min = np.argmin(np.where(rows <= ci, mean, np.inf), axis=0)
+    right_min = np.argmin(np.where(rows >= ci, mean, np.inf), axis=0)
+    cols = np.arange(n_cols)
+    thresh = threshold * background
+    shoulders = np.full((n_cols, 2), np.nan)
+    edges = np.full((n_cols, 2), np.nan)
+    found = np.zeros((n_cols, 2), dtype=bool)
+    for side, (start, direction) in enumerate(((left_min, -1), (right_min, 1))):
+        depth = background[start, cols] - mean[start, cols]
+        delta = np.maximum(NOISE_MULTIPLE * noise, RISE_FRACTION * depth)
+        shoulder, edge, ok = _side_batches(
+            mean, thresh, start, direction, delta[None, :], lookahead, hold
+        )
+        shoulders[:, side], edges[:, side], found[:, side] = shoulder, edge, ok
+    both = found.all(axis=1)
+    finite = np.isfinite(edges).all(axis=1)
+    status = np.where(
+        ~valid, NO_LINE, np.where(~both, NO_SHOULDER, np.where(finite, OK, OVERSPRAY_OUTSIDE))
+    )
+    status = status.astype(object)
+    shoulders[~valid] = np.nan
+    edges[~valid] = np.nan
+    if std is not None:
+        for b in np.flatnonzero(valid & ~both):  # rare: the std fallback, column by column
+            pts = find_edges(
+                mean[:, b],
+                background[:, b],
+                std=std[:, b],
+                threshold=threshold,
+                noise=float(noise[b]),
+                center=float(center[b]),
+            )
+            shoulders[b], edges[b] = pts.shoulders, pts.overspray_edges
+            status[b] = pts.status
+    status = status.tolist()
+    return BatchEdges(center, shoulders, edges, status)

@@ -151,8 +151,11 @@ def test_irregular_time_is_resampled_with_warning(tmp_path):
     df["linewidth_um"] = [40.0, 41.0, 44.0, 45.0, 48.0, 50.0]
     path = tmp_path / "irregular.parquet"
     write_record(PrintRecord(df, {}), path)
-    with pytest.warns(UserWarning, match="irregular time stamps"):
+    with pytest.warns(UserWarning) as caught:
         record = read_record(path)
+    messages = " ".join(str(w.message) for w in caught)
+    assert "irregular time stamps" in messages and "resampled 6 samples to 13" in messages
+    assert "inputs missing (NaN)" in messages  # the 7 s gap is a gap in the inputs too
     np.testing.assert_array_equal(record.time_s, np.arange(13.0))
     lw = record.data["linewidth_um"].to_numpy()
     # hand-computed linear interpolation between the bracketing samples
@@ -272,3 +275,13 @@ def test_window_and_views():
     assert len(part) == 10 and part.time_s[0] == 10 and part.meta["seed"] == 11
     assert record.inputs.shape == (30, 3) and record.outputs.shape == (30, 5)
     assert list(TRUTH_COLUMNS) == [c for c in record.data.columns if c.startswith("true_")]
+
+
+def test_missing_inputs_are_kept_and_warned(tmp_path):
+    df = make_table(5)
+    df.loc[2, "carrier_flow_sccm"] = np.nan
+    path = tmp_path / "input_gap.csv"
+    df.to_csv(path, index=False)
+    with pytest.warns(UserWarning, match="carrier_flow_sccm: 1"):
+        record = read_record(path)
+    assert np.isnan(record.inputs[2, 1])

@@ -481,6 +481,14 @@ def validate_table(
             f"{MAX_INTERPOLATION_GAP_S:g} s set to NaN)",
             stacklevel=2,
         )
+    missing_inputs = {c: int(df[c].isna().sum()) for c in INPUT_COLUMNS if df[c].isna().any()}
+    if missing_inputs:
+        counts = ", ".join(f"{c}: {n}" for c, n in missing_inputs.items())
+        warnings.warn(
+            f"{where}: inputs missing (NaN) in some seconds ({counts}); the model needs inputs "
+            "every second — fill them (e.g. hold the last set-point) before estimating",
+            stacklevel=2,
+        )
     known = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in df.columns]
     extra = [c for c in df.columns if c not in known]
     return df[known + extra].reset_index(drop=True)

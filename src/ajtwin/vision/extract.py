@@ -44,6 +44,7 @@ PARALLEL_TOLERANCE_DEG = 2.0
 DOWNSCALE_ABOVE_PX = 800
 LINE_FILLS_FRAME = "line_fills_frame"
 TRACK_WINDOW_DEG = 3.0
+MIN_LINE_CONTRAST = 0.08  # a line's dark streak is at least this much below the substrate
 
 
 class VisionInputError(ValueError):
@@ -266,14 +267,23 @@ class LineExtractor:
             interpolation=cv2.INTER_AREA,
         ).astype(np.float64)
         profile = coarse.mean(axis=1)
-        bg0 = float(np.median(profile))
+        # substrate level: a high percentile, so a line covering many rows does not pull it
+        bg0 = float(np.percentile(profile, 90))
+        depth = bg0 - float(profile.min())
+        noise_c = _noise(profile)
+        if depth < max(MIN_LINE_CONTRAST * bg0, 6.0 * noise_c):
+            result.status = F.NO_LINE  # Hough found edges, but there is no dark streak
+            return result
         center_c = F.dark_band_center(profile, bg0)
         if not np.isfinite(center_c):
             result.status = F.NO_LINE
             return result
-        first = F.find_edges(profile, bg0, threshold=self.threshold, noise=_noise(profile))
+        first = F.find_edges(profile, bg0, threshold=self.threshold, noise=noise_c)
         if np.all(np.isfinite(first.overspray_edges)):
             extent_c = max(center_c - first.overspray_edges[0], first.overspray_edges[1] - center_c)
+        elif np.mean(profile < self.threshold * bg0) > 0.5:
+            result.status = LINE_FILLS_FRAME
+            return result
         else:
             extent_c = 0.25 * small.shape[0]
         y_c = (np.arange(small.shape[0]) + 0.5) * (height / small.shape[0]) - 0.5

@@ -273,8 +273,20 @@ def minimum_area_um2(linewidth_um, overspray_um, *, tail_contrast=None) -> float
     length = visible + foot * s95 / peak
     w = 0.5 * linewidth_um
     tail = _tail_area(peak, length, ramp, foot)
-    body_min = cfg["min_body_to_shoulder"] * h_s * (w - 0.5 * terrace)
+    body_min = _min_body_height(h_s, peak, w - 0.5 * terrace, cfg) * (w - 0.5 * terrace)
     return float(h_s * (2 * w + terrace) + 2 * tail + body_min)
+
+
+def _min_body_height(shoulder_height, tail_peak_slope, body_half_width, cfg) -> float:
+    """Lowest body (above the shoulders) that keeps (ii) on the body's flank.
+
+    The body must rise clearly above the shoulders, and its steepest slope
+    ``H_b pi / (2 w_b)`` must exceed the tail's by ``min_flank_to_tail_slope``, or the
+    darkest point of a half would sit in the overspray band.
+    """
+    by_height = cfg["min_body_to_shoulder"] * shoulder_height
+    by_slope = cfg["min_flank_to_tail_slope"] * tail_peak_slope * 2.0 * body_half_width / np.pi
+    return max(by_height, by_slope)
 
 
 def line_profile(
@@ -354,7 +366,6 @@ def line_profile(
         half = np.maximum(half + rng.normal(0.0, raggedness_um, 2), 0.25 * half)
         ovs = np.maximum(ovs + rng.normal(0.0, raggedness_um, 2), 0.5 * ovs)
     body_span = half.sum()
-    k_min = cfg["min_body_to_shoulder"]
     peak_nominal = c * s95
     ramp = cfg["ramp_min_um"]
     thinned = False
@@ -367,14 +378,15 @@ def line_profile(
         geometry = [_tail_geometry(o, h_s, ramp, foot, s95) for o in visible]
         tails = sum(_tail_area(p, t, ramp, foot) for p, t in geometry)
         body = 2.0 * (area_um2 - h_s * (body_span + terrace) - tails) / (body_span - terrace)
-        if body < k_min * h_s:
-            # too little material: scale shoulder and tail down, body at its minimum
+        body_min = _min_body_height(h_s, max(p for p, _ in geometry), body_half.mean(), cfg)
+        if body < body_min:
+            # too little material: scale shoulder, tail and minimum body down together
             scale = area_um2 / (
-                h_s * (body_span + terrace) + tails + 0.5 * k_min * h_s * (body_span - terrace)
+                h_s * (body_span + terrace) + tails + 0.5 * body_min * (body_span - terrace)
             )
             h_s *= scale
             geometry = [(p * scale, t) for p, t in geometry]
-            body = k_min * h_s
+            body = body_min * scale
             thinned = True
             break
         # match the tail's initial slope rise to the body's curvature at the shoulder, so

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import scipy.fft
 from scipy.ndimage import gaussian_filter1d
 
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
@@ -124,13 +125,13 @@ def _smooth_noise_1d(n: int, correlation_px: float, rng: np.random.Generator) ->
 
 def _smooth_noise_2d(shape, correlation_px: float, rng: np.random.Generator) -> np.ndarray:
     """Periodic smooth 2-D Gaussian noise of unit variance."""
-    white = rng.standard_normal(shape)
+    white = rng.standard_normal(shape, dtype=np.float32)
     if correlation_px <= 0.5:
-        return white.astype(np.float32)
-    fy = np.fft.fftfreq(shape[0])[:, None]
-    fx = np.fft.rfftfreq(shape[1])[None, :]
+        return white
+    fy = np.fft.fftfreq(shape[0])[:, None].astype(np.float32)
+    fx = np.fft.rfftfreq(shape[1])[None, :].astype(np.float32)
     kernel = np.exp(-0.5 * (2 * np.pi * correlation_px) ** 2 * (fx**2 + fy**2))
-    field = np.fft.irfft2(np.fft.rfft2(white) * kernel, shape)
+    field = scipy.fft.irfft2(scipy.fft.rfft2(white, workers=-1) * kernel, shape, workers=-1)
     return (field / max(field.std(), 1e-12)).astype(np.float32)
 
 
@@ -142,7 +143,7 @@ class Substrate:
     consecutive frames.
     """
 
-    PERIOD_PX = 4096
+    PERIOD_PX = 2048
 
     def __init__(self, shape, settings: RenderSettings, rng: np.random.Generator):
         height, width = shape
@@ -341,6 +342,7 @@ def render_columns(
     noise_sigma_gray: float = 2.0,
     blur_sigma_px: float = 0.8,
     center_jitter_px: float = 0.0,
+    shot_noise: float = SHOT_NOISE_GRAY,
     as_uint8: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Render many 1-D grayscale columns straight across the line (fast path for the CNN).
@@ -365,6 +367,8 @@ def render_columns(
         Read noise (gray levels) and blur (pixels).
     center_jitter_px : float
         1-sigma random shift of the line centre per column, pixels.
+    shot_noise : float
+        Shot-noise variance per gray level (0 with ``noise_sigma_gray = 0`` = noiseless).
     as_uint8 : bool
         Quantise to uint8 (else float32 gray levels, still noisy).
 
@@ -420,7 +424,7 @@ def render_columns(
     image = gray * pixels
     if blur_sigma_px > 0:
         image = gaussian_filter1d(image, blur_sigma_px, axis=1, mode="nearest")
-    variance = noise_sigma_gray**2 + SHOT_NOISE_GRAY * np.maximum(image, 0)
+    variance = noise_sigma_gray**2 + shot_noise * np.maximum(image, 0)
     image = image + rng.standard_normal(image.shape) * np.sqrt(variance)
     if as_uint8:
         return np.clip(np.rint(image), 0, 255).astype(np.uint8), r_px

@@ -9,7 +9,7 @@ Examples
 >>> from ajtwin.simulation import run_virtual_print
 >>> d = difference_from_nominal(run_virtual_print("exp1", seed=0, duration_min=10))
 >>> sorted(d)[:3]
-['L_w_um', 'P_c_Pa', 'Q_m_percent']
+['L_o_um', 'L_w_um', 'P_c_Pa']
 """
 
 from __future__ import annotations

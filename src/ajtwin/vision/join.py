@@ -9,8 +9,9 @@ distance ``camera_offset_um`` behind the nozzle, so the line it sees was printed
     print_time = frame_time + start_offset_s - camera_offset_um / (1000 * platen_speed_mm_s)
 
 Each record second ``t`` gets the mean of the successfully measured frames with
-``print_time`` in ``[t - 0.5, t + 0.5)``; seconds without such frames get NaN (no
-measurement).  Everything else in the record is kept.
+``print_time`` in ``[t, t + 1)`` — the record's row ``t`` stands for the second that starts
+at ``t``, as in the renderer, which shows row ``t``'s line until ``t + 1``.  Seconds without
+such frames get NaN (no measurement).  Everything else in the record is kept.
 """
 
 from __future__ import annotations
@@ -83,10 +84,11 @@ def join_features(
         platen_speed_mm_s=platen_speed_mm_s,
     )
     record_time = record["time_s"].to_numpy(dtype=float)
-    # nearest record second for each frame (half-open bins [t - 0.5, t + 0.5))
-    index = np.searchsorted(record_time - 0.5, print_time, side="right") - 1
+    # the record second each frame falls in (half-open bins [t, t + 1))
+    index = np.searchsorted(record_time, print_time, side="right") - 1
     inside = (index >= 0) & (index < record_time.size)
-    inside &= np.abs(print_time - record_time[np.clip(index, 0, record_time.size - 1)]) <= 0.5
+    offset = print_time - record_time[np.clip(index, 0, record_time.size - 1)]
+    inside &= (offset >= 0) & (offset < 1.0)
     joined = record.copy()
     for column in ("linewidth_um", "overspray_um"):
         values = good[column].to_numpy(dtype=float)

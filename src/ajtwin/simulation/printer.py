@@ -42,7 +42,7 @@ from ajtwin.io.records import (
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
 from ajtwin.model.system import output_function
 from ajtwin.simulation.scenarios import Scenario, load_scenario
-from ajtwin.simulation.truth import integrate_truth, true_generation, true_outputs
+from ajtwin.simulation.truth import integrate_truth, true_generation
 
 # Named random streams, in a fixed order (append only: never reorder).
 STREAMS = (
@@ -339,24 +339,19 @@ def run_virtual_print(
             aerosol0,
         ]
     )
-    states, substrate = integrate_truth(
+    truth = integrate_truth(
         x0,
         processes.droplet_um,
         processes.head_inputs,
         processes.drivers,
         params,
+        line_coefficients,
         substeps=int(cfg["truth"]["integration_substeps"]),
     )
-    states = np.asarray(states)
-    substrate = np.asarray(substrate)
+    states = truth["states"]
     if not np.isfinite(states).all():
         raise FloatingPointError(f"scenario {scenario.name!r}: the true states became non-finite")
-    outputs_true = np.asarray(
-        true_outputs(states, processes.head_inputs, params, line_coefficients)
-    )
-    generation = np.asarray(
-        true_generation(processes.head_inputs, states[:, 1], processes.drivers[:, 0], params)
-    )
+    outputs_true = truth["outputs"]
     inputs, outputs = measure(scenario, processes, outputs_true, streams)
 
     n = scenario.duration_s
@@ -388,7 +383,14 @@ def run_virtual_print(
     }
     record = PrintRecord(data, meta)
     return VirtualPrint(
-        record, scenario, processes, states, outputs_true, substrate, line_coefficients, generation
+        record,
+        scenario,
+        processes,
+        states,
+        outputs_true,
+        truth["substrate_ink_mL"],
+        line_coefficients,
+        truth["generation_ml_s"],
     )
 
 

@@ -20,6 +20,8 @@ V_l(0) − V_l(t) − evaporated = tube deposit + nozzle deposit + substrate.
 
 from __future__ import annotations
 
+import numpy as np
+
 from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.model.atomizer import net_droplet_generation
@@ -94,8 +96,45 @@ def _rk4(x, substrate, flow_input, drivers, params, dt):
     return x_next, substrate_next
 
 
-def integrate_truth(x0, droplet_um, flow_inputs, drivers, params, substeps=4):
-    """True state trajectory over T seconds (``lax.scan``), pure and jit-able.
+def _scan_seconds(
+    carry, droplet_um, droplet_next_um, flow_inputs, drivers, params, coefficients, substeps
+):
+    """``lax.scan`` over seconds; carry = (state, substrate ink). Pure and jit-able.
+
+    Emits per second the state, the substrate ink, the noise-free true outputs and the
+    true generation, so nothing downstream compiles per print length.
+    """
+    dt = 1.0 / substeps
+
+    def body(carry, per_second):
+        x, substrate = carry
+        d_a, flow_input, driver, d_a_next = per_second
+        x = x.at[0].set(d_a)
+        state_k, substrate_k = x, substrate
+        outputs_k = output_function(x, flow_input, params, coefficients)
+        generation_k = true_generation(flow_input, x[1], driver[0], params)
+
+        def sub(c, _):
+            return _rk4(c[0], c[1], flow_input, driver, params, dt), None
+
+        (x, substrate), _ = jax.lax.scan(sub, (x, substrate), None, length=substeps)
+        x = x.at[0].set(d_a_next)
+        return (x, substrate), (state_k, substrate_k, outputs_k, generation_k)
+
+    return jax.lax.scan(body, carry, (droplet_um, flow_inputs, drivers, droplet_next_um))
+
+
+_scan_seconds_jit = jax.jit(_scan_seconds, static_argnames=("substeps",))
+
+#: Seconds per compiled scan chunk: every print length reuses one compiled chunk.
+CHUNK_S = 600
+
+
+def integrate_truth(x0, droplet_um, flow_inputs, drivers, params, coefficients, substeps=1):
+    """True state trajectory over T seconds.
+
+    A ``lax.scan`` over fixed chunks of :data:`CHUNK_S` seconds (the last one padded and
+    trimmed), so prints of any length share one compilation.
 
     Parameters
     ----------
@@ -108,42 +147,36 @@ def integrate_truth(x0, droplet_um, flow_inputs, drivers, params, substeps=4):
     drivers : array (T, 4)
         See :func:`truth_rates`.
     params : PhysicalParameters
+    coefficients : array (2, 8)
+        The true line-output coefficients.
     substeps : int
-        RK4 sub-steps per second (static).
+        RK4 steps per second.
 
     Returns
     -------
-    (array (T, 5), array (T,))
-        States at t_k = k s and the cumulative ink on the substrate [mL].
+    dict of numpy arrays
+        ``states`` (T, 5) at t_k = k s, ``substrate_ink_mL`` (T,) cumulative ink on the
+        substrate, ``outputs`` (T, 5) noise-free true outputs, ``generation_ml_s`` (T,).
     """
-    dt = 1.0 / substeps
+    droplet_um = np.asarray(droplet_um, dtype=float)
+    flow_inputs = np.asarray(flow_inputs, dtype=float)
+    drivers = np.asarray(drivers, dtype=float)
+    n = len(droplet_um)
+    droplet_next = np.concatenate([droplet_um[1:], droplet_um[-1:]])
+    pad = (-n) % CHUNK_S
 
-    def body(carry, per_second):
-        x, substrate = carry
-        d_a, flow_input, driver, d_a_next = per_second
-        x = x.at[0].set(d_a)
-        state_k, substrate_k = x, substrate
+    def padded(a):
+        return np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a
 
-        def sub(c, _):
-            return _rk4(c[0], c[1], flow_input, driver, params, dt), None
-
-        (x, substrate), _ = jax.lax.scan(sub, (x, substrate), None, length=substeps)
-        x = x.at[0].set(d_a_next)
-        return (x, substrate), (state_k, substrate_k)
-
-    droplet_next = jnp.concatenate([droplet_um[1:], droplet_um[-1:]])
-    _, (states, substrate) = jax.lax.scan(
-        body,
-        (jnp.asarray(x0, dtype=float), jnp.zeros(())),
-        (droplet_um, flow_inputs, drivers, droplet_next),
-    )
-    return states, substrate
-
-
-integrate_truth = jax.jit(integrate_truth, static_argnames=("substeps",))
-
-
-@jax.jit
-def true_outputs(states, flow_inputs, params, coefficients):
-    """Noise-free true outputs at the true states and true flows, (T, 5)."""
-    return output_function(states, flow_inputs, params, coefficients)
+    arrays = [padded(a) for a in (droplet_um, droplet_next, flow_inputs, drivers)]
+    carry = (jnp.asarray(x0, dtype=float), jnp.zeros(()))
+    coefficients = jnp.asarray(coefficients, dtype=float)
+    pieces = []
+    for start in range(0, n + pad, CHUNK_S):
+        chunk = [a[start : start + CHUNK_S] for a in arrays]
+        carry, emitted = _scan_seconds_jit(
+            carry, *chunk, params, coefficients, substeps=int(substeps)
+        )
+        pieces.append([np.asarray(e) for e in emitted])
+    names = ("states", "substrate_ink_mL", "outputs", "generation_ml_s")
+    return {name: np.concatenate([p[i] for p in pieces])[:n] for i, name in enumerate(names)}

@@ -285,3 +285,27 @@ def test_missing_inputs_are_kept_and_warned(tmp_path):
     with pytest.warns(UserWarning, match="carrier_flow_sccm: 1"):
         record = read_record(path)
     assert np.isnan(record.inputs[2, 1])
+
+
+def test_wall_clock_time_stamps_become_seconds(tmp_path):
+    df = make_table(4)
+    df["time_s"] = [
+        "2026-11-21T14:00:00",
+        "2026-11-21T14:00:01",
+        "2026-11-21T14:00:02",
+        "2026-11-21T14:00:03",
+    ]
+    path = tmp_path / "clock.csv"
+    df.to_csv(path, index=False)
+    with pytest.warns(UserWarning, match="wall-clock"):
+        record = read_record(path)
+    np.testing.assert_array_equal(record.time_s, [0.0, 1.0, 2.0, 3.0])
+
+
+def test_time_in_milliseconds_is_rejected(tmp_path):
+    df = make_table(5)
+    df["time_s"] = np.arange(5) * 1000.0
+    path = tmp_path / "ms.csv"
+    df.to_csv(path, index=False)
+    with pytest.raises(RecordError, match="milliseconds"):
+        read_record(path)

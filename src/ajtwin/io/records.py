@@ -412,7 +412,35 @@ def _check_time(df: pd.DataFrame, where: str, row_offset: int) -> np.ndarray:
             f"{t[position]:g} s does not increase (previous row {t[position - 1]:g} s); "
             "time must be strictly increasing"
         )
+    if len(steps) >= 3 and np.median(steps) >= 100.0:
+        raise RecordError(
+            f"{where}: column 'time_s': median step {np.median(steps):g} between rows; the "
+            "time looks like milliseconds (expected seconds, one row per ~1 s)"
+        )
     return t
+
+
+def _datetimes_to_seconds(df: pd.DataFrame, where: str) -> pd.DataFrame:
+    """Wall-clock time stamps (ISO text or datetime dtype) → seconds since the first row."""
+    column = df[TIME_COLUMN]
+    if pd.api.types.is_numeric_dtype(column):
+        return df
+    if pd.api.types.is_datetime64_any_dtype(column):
+        stamps = column
+    else:
+        text = column.astype("string").str.strip()
+        if pd.to_numeric(text, errors="coerce").notna().all():
+            return df  # numbers stored as text; _to_numeric handles them
+        stamps = pd.to_datetime(text, errors="coerce", format="ISO8601")
+        if stamps.isna().any():
+            return df  # not all dates: let _to_numeric name the offending row
+    seconds = (stamps - stamps.iloc[0]).dt.total_seconds()
+    warnings.warn(
+        f"{where}: 'time_s' holds wall-clock time stamps; converted to seconds since "
+        f"{stamps.iloc[0]}",
+        stacklevel=3,
+    )
+    return df.assign(**{TIME_COLUMN: seconds.to_numpy(dtype=float)})
 
 
 def resample_to_seconds(
@@ -464,6 +492,7 @@ def validate_table(
     """
     df = _apply_aliases(df, load_aliases(aliases), where)
     df = _check_columns(df, where)
+    df = _datetimes_to_seconds(df, where)
     df = _to_numeric(df, where, row_offset)
     t = _check_time(df, where, row_offset)
     _check_ranges(df, where, row_offset)

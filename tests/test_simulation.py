@@ -407,3 +407,37 @@ def test_clean_long_eight_hours():
     assert 2.5 < x[:, 0].min() and x[:, 0].max() < 4.5  # d_a stays physical for 8 h
     drawn, tube, nozzle, substrate = ink_balance(vp)
     assert tube + nozzle + substrate == pytest.approx(drawn, rel=1e-6)
+
+
+def test_a_second_print_continues_the_machine(tmp_path):
+    first = simulate("exp1", seed=1, duration_min=20)
+    second = simulate("exp3", seed=2, duration_min=5, continue_from=first)
+    last, start = first.true_states[-1], second.true_states[0]
+    np.testing.assert_array_equal(start[1:4], last[1:4])
+    assert second.meta["machine_id"] == first.meta["machine_id"]
+    # the CLI does the same from a file
+    from ajtwin.cli import main
+    from ajtwin.io import write_record
+
+    write_record(first, tmp_path / "first.parquet")
+    out = tmp_path / "second.parquet"
+    result = CliRunner().invoke(
+        main,
+        [
+            "simulate",
+            "-s",
+            "exp3",
+            "-n",
+            "2",
+            "--duration-min",
+            "5",
+            "--out",
+            str(out),
+            "--continue-from",
+            str(tmp_path / "first.parquet"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert read_record(out).data.equals(second.data)
+    with pytest.raises(ValueError, match="needs a record with truth"):
+        simulate("exp1", continue_from=first.__class__(first.data.iloc[:, :9], {}))

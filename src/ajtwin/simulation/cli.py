@@ -44,8 +44,15 @@ import click
     default=None,
     help="Also draw the record to this PNG.",
 )
+@click.option(
+    "--continue-from",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="A previous virtual print of the same machine: start from its final vial level "
+    "and deposits.",
+)
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
-def simulate(scenario, seed, out, duration_min, plot_path, list_only):
+def simulate(scenario, seed, out, duration_min, plot_path, continue_from, list_only):
     """Virtual printer: simulate one print with known truth into a record file.
 
     Example: ajtwin simulate --scenario exp3 --seed 1 --out print.parquet
@@ -64,9 +71,17 @@ def simulate(scenario, seed, out, duration_min, plot_path, list_only):
     from ajtwin.io.records import write_record
     from ajtwin.simulation.printer import simulate as run
 
+    previous = None
+    if continue_from is not None:
+        from ajtwin.io.records import RecordError, read_record
+
+        try:
+            previous = read_record(continue_from)
+        except RecordError as exc:
+            raise click.ClickException(str(exc)) from None
     t0 = time.perf_counter()
     try:
-        record = run(scenario, seed, duration_min)
+        record = run(scenario, seed, duration_min, continue_from=previous)
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     elapsed = time.perf_counter() - t0

@@ -291,15 +291,38 @@ class VirtualPrint:
     generation_ml_s: np.ndarray
 
 
+def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> dict:
+    """Start where a previous virtual print of the same machine ended (vial, deposits)."""
+    if not previous.has_truth:
+        raise ValueError(
+            "continue_from needs a record with truth columns (a virtual print); "
+            f"{previous.meta.get('source_file', 'this record')} has none"
+        )
+    last = previous.true_states[-1]
+    merged = {key: dict(value) for key, value in (overrides or {}).items()}
+    initial = merged.setdefault("initial", {})
+    initial.setdefault("vial_volume_mL", float(last[1]))
+    initial.setdefault("tube_deposition_um", float(last[2]))
+    initial.setdefault("nozzle_deposition_um", float(last[3]))
+    scenario_table = merged.setdefault("scenario", {})
+    machine = previous.meta.get("machine_id")
+    if machine and machine != "unknown":
+        scenario_table.setdefault("machine_id", machine)
+    return merged
+
+
 def run_virtual_print(
     scenario: str | Path | Scenario | dict = "exp1",
     seed: int = 0,
     duration_min: float | None = None,
     overrides: dict | None = None,
+    continue_from: PrintRecord | None = None,
     params=None,
     coefficients=None,
 ) -> VirtualPrint:
     """Simulate one print and keep the full truth (see :func:`simulate`)."""
+    if continue_from is not None:
+        overrides = _continuation_overrides(continue_from, overrides)
     scenario = load_scenario(scenario, overrides)
     if duration_min is not None:
         scenario = scenario.with_duration(duration_min)
@@ -399,6 +422,7 @@ def simulate(
     seed: int = 0,
     duration_min: float | None = None,
     overrides: dict | None = None,
+    continue_from: PrintRecord | None = None,
 ) -> PrintRecord:
     """Simulate one print on the virtual printer.
 
@@ -415,6 +439,11 @@ def simulate(
         Override the scenario's duration [min] (e.g. a short test).
     overrides : dict, optional
         Tables of scenario keys to change, e.g. ``{"truth": {"droplet_ou_sd_um": 0.0}}``.
+    continue_from : PrintRecord, optional
+        A previous virtual print of the same machine: this print starts with its final
+        vial level and tube/nozzle deposits (and its machine id). The droplet size and
+        the generation start afresh (a new print, a new atomizer run); seed the two
+        prints differently. Explicit ``overrides["initial"]`` keys win.
 
     Returns
     -------
@@ -429,4 +458,4 @@ def simulate(
     >>> len(rec), rec.meta["fault_kind"], rec.has_truth
     (120, 'none', True)
     """
-    return run_virtual_print(scenario, seed, duration_min, overrides).record
+    return run_virtual_print(scenario, seed, duration_min, overrides, continue_from).record

@@ -1,0 +1,130 @@
+"""Sweep metadata and the validation figures the issue asks for (paper §6.2, App. C, D)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+def sweep_metadata(sweep_dir: str | Path, table: pd.DataFrame) -> dict:
+    """Design, mesh, OpenFOAM version, wall time and cell count of a finished sweep."""
+    sweep_dir = Path(sweep_dir)
+    meta_path = sweep_dir / "sweep.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    runs = meta.get("runs", [])
+    meta["wall_time_s"] = float(sum(r.get("wall_time_s", 0.0) for r in runs)) or meta.get(
+        "wall_time_s", 0.0
+    )
+    ok = table[table["status"] == "ok"]
+    if "nominal" not in meta:
+        meta["nominal"] = [0.0, 23.0, 50.0]
+    nominal = ok[
+        np.isclose(ok["nozzle_deposition_um"], meta["nominal"][0])
+        & np.isclose(ok["carrier_flow_sccm"], meta["nominal"][1])
+        & np.isclose(ok["sheath_flow_sccm"], meta["nominal"][2])
+    ]
+    meta["cells"] = int(nominal["cells"].iloc[0]) if len(nominal) else 0
+    meta["mesh_level"] = int(ok["mesh_level"].iloc[0]) if len(ok) else meta.get("mesh_level", 0)
+    meta["openfoam_version"] = "unknown"
+    for flow_json in sorted(sweep_dir.glob("*/flow.json")):
+        meta["openfoam_version"] = json.loads(flow_json.read_text()).get(
+            "openfoam_version", "unknown"
+        )
+        break
+    return meta
+
+
+def case_value(
+    table: pd.DataFrame,
+    column: str,
+    deposition: float,
+    carrier: float,
+    sheath: float,
+    droplet: float | None = None,
+) -> float:
+    """One value of the summary table (NaN when the case is absent or failed)."""
+    sel = (
+        (table["status"] == "ok")
+        & np.isclose(table["nozzle_deposition_um"], deposition)
+        & np.isclose(table["carrier_flow_sccm"], carrier)
+        & np.isclose(table["sheath_flow_sccm"], sheath)
+    )
+    if droplet is not None:
+        sel &= np.isclose(table["droplet_diameter_um"], droplet)
+    rows = table[sel]
+    return float(rows[column].iloc[0]) if len(rows) else float("nan")
+
+
+def validation(table: pd.DataFrame, fit: dict, resistance: dict) -> dict:
+    """The issue's validation figures from one sweep (display units)."""
+    from ajtwin.cfd.fit import sensitivity_signs
+
+    return {
+        "max_speed_m_s_25_50": case_value(table, "max_speed_m_s", 0.0, 25.0, 50.0),
+        "paper_max_speed_m_s_25_50": 91.7,
+        "tip_resistance_a0_pa_s_m3": resistance["cfd_a0_pa_s_m3"],
+        "tip_resistance_a1_pa_s_m3_per_um": resistance["cfd_a1_pa_s_m3_per_um"],
+        "paper_a0_pa_s_m3": resistance["paper_a0_pa_s_m3"],
+        "paper_a1_pa_s_m3_per_um": resistance["paper_a1_pa_s_m3_per_um"],
+        "linewidth_um_23_50_da3.5": case_value(table, "linewidth_um", 0.0, 23.0, 50.0, 3.5),
+        "overspray_um_23_50_da3.5": case_value(table, "overspray_um", 0.0, 23.0, 50.0, 3.5),
+        "paper_linewidth_um": 43.0,
+        "model_linewidth_um_23_50_da3.5": None
+        if fit is None
+        else float(
+            fit["linewidth"]["droplet_diameter"] * 3.5
+            + fit["linewidth"]["carrier_flow"] * 23.0
+            + fit["linewidth"]["sheath_flow"] * 50.0
+            + fit["linewidth"]["offset"]
+            + fit["linewidth"]["aerosol_fraction"] * fit["anchor_aerosol_fraction"]
+        ),
+        "signs": sensitivity_signs(fit),
+    }
+
+
+def matched_rows(a: pd.DataFrame, b: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Rows of two sweeps at the same (ΔR_N, Q_c, Q_s, d_a), both usable, same order."""
+    keys = ["nozzle_deposition_um", "carrier_flow_sccm", "sheath_flow_sccm", "droplet_diameter_um"]
+
+    def keyed(t):
+        t = t[t["status"] == "ok"].copy()
+        t["_key"] = list(zip(*(t[k].round(6) for k in keys), strict=True))
+        return t.set_index("_key")
+
+    ka, kb = keyed(a), keyed(b)
+    common = sorted(set(ka.index) & set(kb.index))
+    return ka.loc[common].reset_index(drop=True), kb.loc[common].reset_index(drop=True)
+
+
+def mesh_comparison(coarse: pd.DataFrame, fine: pd.DataFrame, reference: dict) -> dict:
+    """Coefficients fitted to the same cases on two meshes, and their change."""
+    from ajtwin.cfd.fit import COEFFICIENT_KEYS, fit_output_model
+
+    a, b = matched_rows(coarse, fine)
+    fit_a = fit_output_model(a, reference)
+    fit_b = fit_output_model(b, reference)
+    out = {
+        "rows": len(a),
+        "cells_coarse": int(a["cells"].max()),
+        "cells_fine": int(b["cells"].max()),
+    }
+    for output in ("linewidth", "overspray"):
+        out[output] = {
+            key: {
+                "coarse": fit_a[output][key],
+                "fine": fit_b[output][key],
+                "change": fit_b[output][key] - fit_a[output][key],
+            }
+            for key in COEFFICIENT_KEYS
+            if key != "aerosol_fraction"
+        }
+        column = f"{output}_um"
+        out[output]["mean_abs_case_change_um"] = float(np.mean(np.abs(b[column] - a[column])))
+        out[output]["mean_case_change_um"] = float(np.mean(b[column] - a[column]))
+    for column in ("max_speed_m_s", "tip_resistance_pa_s_m3"):
+        rel = (b[column] - a[column]) / a[column]
+        out[f"{column}_max_rel_change"] = float(np.max(np.abs(rel)))
+    return out

@@ -16,21 +16,30 @@ virtual printer share, so that they all mean the same thing by "linewidth" and "
   form so that :func:`profile_features` returns the requested linewidth and overspray and
   ``∫h dr`` equals the requested cross-section area.
 
-Shape of :func:`line_profile` (per side, distance ``u`` from the centre, shoulder at ``w``,
-tail length ``T``, shoulder height ``h_s``, body height ``H_b``)::
+Shape of :func:`line_profile`, per side (distance ``u`` from the centre, shoulder (iii) at
+``w = L_w / 2``, flat terrace of width ``p`` centred on it, shoulder height ``h_s``, body
+height ``H_b`` above it, body half-width ``w_b = w - p/2``)::
 
-    body   0 <= u <= w      h = h_s + H_b (1 + cos(pi u / w)) / 2
-    tail   w <  u <= w + T  h = h_s (1 + cos(pi (u - w) / T)) / 2
-    substrate               h = 0
+    body     0 <= u <= w_b          h = h_s + H_b (1 + cos(pi u / w_b)) / 2
+    terrace  w_b < u <= w + p/2     h = h_s            (slope 0: the brightness peak (iii))
+    tail     next T micrometres     slope ramps 0 -> P over `ramp`, stays P, falls to 0
+                                    linearly over the last `foot` (= 0.25 L_o)
+    substrate                       h = 0
 
-The slope is zero at the centre (i) and exactly at the shoulder, so brightness peaks at
-``u = w`` — the (iii) point — whatever the heights are; the steepest body slope, the (ii)
-minimum, is at ``u = w / 2``.  In the tail the slope ``h_s pi / (2T) sin(pi x)`` exceeds the
-slope ``s95`` at which brightness sits at the 95 % threshold between the two roots of
-``sin(pi x) = s95 / P``; the outer root ``x_e = 1 - arcsin(s95 / P) / pi`` is the overspray edge,
-so ``overspray = T x_e``.  With the tail's peak slope ``P = tail_contrast * s95`` (default 2,
-a faint but visible band) this fixes ``T`` and ``h_s``; the body height takes the rest of the
-area: ``A = h_s (wL + wR) + h_s (TL + TR) / 2 + H_b (wL + wR) / 2``.
+* (ii), the steepest body slope, is at ``u = w_b / 2``; the body is kept at least
+  ``min_flank_to_tail_slope`` times steeper than the tail so (ii) never lands in the tail.
+* (iii) is the terrace centre ``u = w`` (a plateau of maximal brightness whose midpoint the
+  definitions take), so linewidth = ``L_w`` exactly.
+* The tail slope drops below ``s95`` (brightness back at 95 % of the background) at
+  ``T - foot * s95 / P``; that point is placed at ``u = w + L_o``, so overspray = ``L_o``.
+  ``P = tail_contrast * s95`` (2.5: a faint band ~11 % darker than the substrate).
+* The tail's initial ramp is matched to the body's curvature at the terrace, so the
+  brightness peak is symmetric and camera blur does not shift it.
+* ``H_b`` takes whatever area is left:
+  ``A = h_s (w_L + w_R + p) + H_b (w_bL + w_bR) / 2 + tail areas``.  Below
+  :func:`minimum_area_um2` the shoulder and tail are thinned (with a warning).
+
+Constants live in ``optics.toml`` ([brightness], [profile]).
 """
 
 from __future__ import annotations

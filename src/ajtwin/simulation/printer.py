@@ -124,7 +124,7 @@ class Processes:
     draws: dict = field(default_factory=dict)  # seeded constants, for the metadata
 
 
-def draw_processes(scenario: Scenario, seed: int, streams: dict) -> Processes:
+def draw_processes(scenario: Scenario, streams: dict) -> Processes:
     """Draw the exogenous processes of a scenario (layer 1)."""
     cfg = scenario.config
     truth, meas, fault = cfg["truth"], cfg["measurement"], cfg["fault"]
@@ -341,7 +341,7 @@ def run_virtual_print(
             strict=True,
         )
     )
-    processes = draw_processes(scenario, int(seed), streams)
+    processes = draw_processes(scenario, streams)
     cfg = scenario.config
 
     line_factors = 1.0 + cfg["truth"]["line_coefficient_sd"] * streams[

@@ -1,1 +1,31 @@
-"""ajtwin.estimation"""
+"""State and parameter estimation (paper §7, SPEC §7): initial fit, EKF, RTS, EM."""
+
+from ajtwin.estimation.em import m_step, run_em
+from ajtwin.estimation.filters import (
+    DEFAULT_SCALING,
+    FilterResult,
+    ModelSpec,
+    Scaling,
+    SmootherResult,
+    ekf,
+    rts_smoother,
+)
+from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.estimation.twin import Twin, TwinConfig, TwinRun
+
+__all__ = [
+    "ekf",
+    "rts_smoother",
+    "run_em",
+    "m_step",
+    "fit_initial_state",
+    "Twin",
+    "TwinConfig",
+    "TwinRun",
+    "ModelSpec",
+    "Scaling",
+    "DEFAULT_SCALING",
+    "FilterResult",
+    "SmootherResult",
+    "InitialFit",
+]

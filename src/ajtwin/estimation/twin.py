@@ -1,0 +1,373 @@
+"""The twin: model + estimators + state, run over a print (a thin shell).
+
+:class:`Twin` ties the pure functions together the way the paper runs them:
+initial-state fit (or the previous print's end state), the EKF over the print,
+EM over a moving window (default T = 600 s every 300 s) that updates θ while
+printing, and optionally an RTS pass over the whole print.
+
+Examples
+--------
+>>> from ajtwin.simulation import simulate
+>>> from ajtwin.estimation import Twin
+>>> run = Twin.default().run(simulate("exp1", seed=1))          # doctest: +SKIP
+>>> run.to_frame()[["time_s", "droplet_diameter_um"]].tail(1)   # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pandas as pd
+
+from ajtwin._jax import jax, jnp
+from ajtwin.estimation.em import run_em
+from ajtwin.estimation.filters import (
+    DEFAULT_SCALING,
+    FilterResult,
+    ModelSpec,
+    SmootherResult,
+    ekf,
+    rts_smoother,
+)
+from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
+from ajtwin.model.system import check_input, euler_step, rk4_step
+
+
+@dataclass(frozen=True)
+class TwinConfig:
+    """Tuning of the estimators (display units, per 1 s step)."""
+
+    process_std: tuple  # σ of ξ per step (5,)
+    measurement_std: tuple  # σ of w (5,)
+    em: bool = True
+    window_s: int = 600
+    every_s: int = 300
+    em_max_iterations: int = 10
+    em_tolerance: float = 1e-3  # nats per step
+    # MAP prior σ on θ [1/s]; inf = flat. Keeps θ of states the data cannot see at 0.
+    theta_prior_std: tuple = (1e-4, 1e-5, 1e-3, 1e-3, 0.1)  # θ_φA must absorb H offsets
+    gate_sigma: float = np.inf
+    initial_samples: int = 10
+    vial_fill_ml: float = 1.0
+    vial_fill_std_ml: float = 3e-3
+    nozzle_prior_std_um: float = 0.05
+    tube_prior_std_um: float = 1e-3
+    method: str = "euler"
+
+    noise_profile: str = "calibrated"
+
+    @classmethod
+    def default(
+        cls, model: DigitalModel | None = None, noise_profile: str = "calibrated", **overrides
+    ) -> TwinConfig:
+        """Filter tuning from ``noise.toml``.
+
+        ``noise_profile="calibrated"`` (default) or ``"paper"`` (SPEC §6 values,
+        σ_Qm = 20 % of the nominal Q_m).
+        """
+        model = model or DigitalModel.default()
+        noise = load_noise(profile=noise_profile)
+        proc = noise["process"]
+        meas = noise["measurement"]
+        # nominal Q_m at the Exp 1 operating point (SPEC §6: the paper's value is unusable)
+        u = np.array([375.0, 23.0, 50.0])
+        phi = float(model.steady_aerosol_fraction(u, 1.0))
+        q_m = float(model.outputs(np.array([3.5, 1.0, 0.0, 0.0, phi]), u)[4])
+        process = tuple(proc[name] for name in STATE_NAMES)
+        measurement = (
+            meas["linewidth_um"],
+            meas["overspray_um"],
+            meas["carrier_pressure_Pa"],
+            meas["sheath_pressure_Pa"],
+            meas["material_flow_relative"] * q_m,
+        )
+        initial = {}
+        if "vial_fill_std_mL" in noise["initial"]:
+            initial["vial_fill_std_ml"] = noise["initial"]["vial_fill_std_mL"]
+        base = cls(process, measurement, noise_profile=noise_profile, **initial)
+        return replace(base, **overrides)
+
+
+@dataclass
+class TwinRun:
+    """Everything a run of the twin over one print produced."""
+
+    time_s: np.ndarray
+    filtered: FilterResult
+    smoothed: SmootherResult | None
+    theta_per_step: np.ndarray  # (T, 5) θ in force at each step
+    theta_history: pd.DataFrame  # one row per EM update
+    initial: InitialFit | None
+    start_mean: np.ndarray
+    start_cov: np.ndarray
+    end_mean: np.ndarray = field(default=None)
+    end_cov: np.ndarray = field(default=None)
+
+    @property
+    def means(self) -> np.ndarray:
+        return np.asarray(self.filtered.means)
+
+    @property
+    def stds(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diagonal(np.asarray(self.filtered.covariances), 0, 1, 2), 0))
+
+    def to_frame(self, smoothed: bool | None = None) -> pd.DataFrame:
+        """States with σ, one-step predicted outputs, NIS: the ``estimate`` CSV."""
+        use_smoothed = self.smoothed is not None if smoothed is None else smoothed
+        if use_smoothed and self.smoothed is None:
+            raise ValueError("this run has no smoothed estimates (run with smooth=True)")
+        src = self.smoothed if use_smoothed else self.filtered
+        means = np.asarray(src.means)
+        stds = np.sqrt(np.maximum(np.diagonal(np.asarray(src.covariances), 0, 1, 2), 0))
+        frame = pd.DataFrame({"time_s": self.time_s})
+        for i, name in enumerate(STATE_NAMES):
+            frame[name] = means[:, i]
+            frame[name + "_std"] = stds[:, i]
+        pred = np.asarray(self.filtered.predicted_outputs)
+        for i, name in enumerate(OUTPUT_NAMES):
+            frame["pred_" + name] = pred[:, i]
+        frame["nis"] = np.asarray(self.filtered.nis)
+        frame["n_measured"] = np.asarray(self.filtered.n_measured)
+        frame["log_likelihood"] = np.asarray(self.filtered.log_likelihood)
+        frame["reinitialised"] = np.asarray(self.filtered.reinitialised)
+        return frame
+
+
+def predict(spec, mean, cov, u, theta, process_cov, method="euler"):
+    """One EKF prediction x̂_{k+1|k}, P_{k+1|k} in display units."""
+    step = rk4_step if method == "rk4" else euler_step
+    s = spec.scaling.state
+
+    def f_scaled(z):
+        return step(z * s, u, theta, spec.params, spec.dt) / s
+
+    z = mean / s
+    jac = jax.jacfwd(f_scaled)(z)
+    p = jac @ (cov / jnp.outer(s, s)) @ jac.T
+    return f_scaled(z) * s, p * jnp.outer(s, s) + process_cov
+
+
+predict = jax.jit(predict, static_argnames=("method",))
+
+
+def _concat(results: list[FilterResult]) -> FilterResult:
+    return FilterResult(*[jnp.concatenate(parts, axis=0) for parts in zip(*results)])
+
+
+def _slice(result: FilterResult, stop: int) -> FilterResult:
+    return FilterResult(*[part[:stop] for part in result])
+
+
+def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
+    if len(array) == length:
+        return array
+    pad = np.repeat(
+        array[-1:] if fill is None else np.full_like(array[-1:], fill), length - len(array), axis=0
+    )
+    return np.concatenate([array, pad], axis=0)
+
+
+class Twin:
+    """A digital twin of one machine: model, tuning, θ and the current state.
+
+    Parameters
+    ----------
+    model : DigitalModel
+    config : TwinConfig
+    theta : array (5,), optional
+        Starting drift parameters (the machine's learned θ; default zeros).
+    """
+
+    def __init__(self, model: DigitalModel, config: TwinConfig, theta=None):
+        self.model = model
+        self.config = config
+        self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
+        self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
+
+    @classmethod
+    def default(cls, **config_overrides) -> Twin:
+        model = DigitalModel.default()
+        return cls(model, TwinConfig.default(model, **config_overrides))
+
+    # ------------------------------------------------------------------ #
+    @property
+    def process_cov(self) -> np.ndarray:
+        return np.diag(np.asarray(self.config.process_std) ** 2)
+
+    @property
+    def measurement_var(self) -> np.ndarray:
+        return np.asarray(self.config.measurement_std) ** 2
+
+    @property
+    def theta_prior_precision(self) -> np.ndarray:
+        std = np.asarray(self.config.theta_prior_std, dtype=float)
+        return np.where(np.isfinite(std), 1.0 / std**2, 0.0)
+
+    def initial_state(self, inputs, measurements) -> InitialFit:
+        c = self.config
+        return fit_initial_state(
+            self.model.params,
+            jnp.asarray(self.model.coefficient_matrix),
+            inputs,
+            measurements,
+            np.asarray(c.measurement_std),
+            n_samples=c.initial_samples,
+            vial_fill_ml=c.vial_fill_ml,
+            vial_fill_std_ml=c.vial_fill_std_ml,
+            tube_prior_std_um=c.tube_prior_std_um,
+            nozzle_prior_std_um=c.nozzle_prior_std_um,
+        )
+
+    def _predict(self, mean, cov, u, theta):
+        m, p = predict(self.spec, mean, cov, u, theta, self.process_cov, self.config.method)
+        return np.asarray(m), np.asarray(p)
+
+    def _filter(self, mean, cov, inputs, measurements, thetas):
+        return ekf(
+            self.spec,
+            mean,
+            cov,
+            inputs,
+            measurements,
+            thetas,
+            self.process_cov,
+            self.measurement_var,
+            self.config.gate_sigma,
+            method=self.config.method,
+        )
+
+    # ------------------------------------------------------------------ #
+    def run(
+        self,
+        record=None,
+        *,
+        inputs=None,
+        measurements=None,
+        time_s=None,
+        start=None,
+        smooth: bool = False,
+        progress=None,
+    ) -> TwinRun:
+        """Estimate the states over a print (and learn θ if ``config.em``).
+
+        Parameters
+        ----------
+        record : PrintRecord, optional
+            The print; or give ``inputs`` (T, 3) and ``measurements`` (T, 5).
+        start : (mean (5,), cov (5, 5)), optional
+            Start state (the previous print's end); default: the initial fit.
+        smooth : bool
+            Also run the RTS smoother over the whole print.
+        progress : callable(int), optional
+            Called with the number of steps done (for a progress bar).
+        """
+        if record is not None:
+            inputs, measurements, time_s = record.inputs, record.outputs, record.time_s
+        inputs = check_input(np.asarray(inputs, dtype=float))
+        measurements = np.asarray(measurements, dtype=float)
+        n = len(inputs)
+        if measurements.shape != (n, 5):
+            raise ValueError(f"measurements must be ({n}, 5); got {measurements.shape}")
+        if n < 2:
+            raise ValueError("a print needs at least 2 samples")
+        time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
+
+        initial = None
+        if start is None:
+            initial = self.initial_state(inputs, measurements)
+            mean, cov = initial.mean, initial.covariance
+        else:
+            mean, cov = (np.asarray(a, dtype=float) for a in start)
+        start_mean, start_cov = mean.copy(), cov.copy()
+        c = self.config
+        theta = self.theta.copy()
+        history = []
+        thetas = np.zeros((n, 5))
+
+        if not c.em:
+            thetas[:] = theta
+            filtered = self._filter(mean, cov, inputs, measurements, theta)
+            if progress:
+                progress(n)
+        else:
+            every, window = int(c.every_s), int(c.window_s)
+            if every < 1 or window < 2:
+                raise ValueError("EM needs every_s >= 1 and window_s >= 2")
+            pieces = []
+            pos = 0
+            while pos < n:
+                end = min(pos + every, n)
+                seg = self._filter(
+                    mean,
+                    cov,
+                    _pad(inputs[pos:end], every, None),
+                    _pad(measurements[pos:end], every, np.nan),
+                    theta,
+                )
+                seg = _slice(seg, end - pos)
+                pieces.append(seg)
+                thetas[pos:end] = theta
+                last_mean = np.asarray(seg.means[-1])
+                last_cov = np.asarray(seg.covariances[-1])
+                pos = end
+                if pos >= window and pos < n:
+                    w0 = pos - window
+                    full = _concat(pieces)
+                    prior_mean = np.asarray(full.predicted_means[w0])
+                    prior_cov = np.asarray(full.predicted_covariances[w0])
+                    em = run_em(
+                        self.spec,
+                        prior_mean,
+                        prior_cov,
+                        inputs[w0:pos],
+                        measurements[w0:pos],
+                        theta,
+                        self.process_cov,
+                        self.measurement_var,
+                        theta_prior_precision=self.theta_prior_precision,
+                        max_iterations=c.em_max_iterations,
+                        tolerance=c.em_tolerance,
+                        gate=c.gate_sigma,
+                        method=c.method,
+                    )
+                    theta = em.theta
+                    last_mean = np.asarray(em.filtered.means[-1])
+                    last_cov = np.asarray(em.filtered.covariances[-1])
+                    history.append(
+                        {
+                            "time_s": float(time_s[pos - 1]),
+                            "window_start_s": float(time_s[w0]),
+                            "iterations": em.iterations,
+                            "converged": em.converged,
+                            "log_likelihood": em.log_likelihood,
+                            **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
+                        }
+                    )
+                if pos < n:
+                    mean, cov = self._predict(last_mean, last_cov, inputs[pos - 1], theta)
+                if progress:
+                    progress(pos)
+            filtered = _concat(pieces)
+
+        smoothed = None
+        if smooth:
+            consistent = self._filter(start_mean, start_cov, inputs, measurements, thetas)
+            smoothed = rts_smoother(self.spec, consistent)
+        self.theta = theta
+        columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
+            f"theta_{name}" for name in STATE_NAMES
+        ]
+        return TwinRun(
+            time_s=time_s,
+            filtered=filtered,
+            smoothed=smoothed,
+            theta_per_step=thetas,
+            theta_history=pd.DataFrame(history, columns=columns),
+            initial=initial,
+            start_mean=start_mean,
+            start_cov=start_cov,
+            end_mean=np.asarray(filtered.means[-1]),
+            end_cov=np.asarray(filtered.covariances[-1]),
+        )

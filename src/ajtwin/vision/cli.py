@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import warnings
 from collections import Counter
@@ -138,7 +139,7 @@ def render(
     speed); without it a constant line of --linewidth/--overspray/--area is rendered.
     """
     from ajtwin.units import cross_section_um2
-    from ajtwin.vision.profile import line_profile
+    from ajtwin.vision.profile import line_profile, minimum_area_um2
     from ajtwin.vision.render import RenderSettings, render_video
 
     shape = _parse_size(size)
@@ -193,24 +194,33 @@ def render(
     area = np.where(np.isfinite(flow), cross_section_um2(flow, speed), area_um2)
     reach = float(np.nanmax(0.5 * lw + 1.6 * ov)) if np.isfinite(lw).any() else 100.0
     r_um = np.arange(-reach - 20.0, reach + 20.0, 0.05)
-    profiles, held, small = [], 0, 0
-    previous = None
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        for lw_t, ov_t, area_t in zip(lw, ov, area, strict=True):
-            if not (np.isfinite(lw_t) and np.isfinite(ov_t) and lw_t > 0 and ov_t > 0):
-                if previous is None:
-                    previous = line_profile(r_um, linewidth_um, overspray_um, area_um2)
-                profiles.append(previous)
-                held += 1
-                continue
-            previous = line_profile(r_um, lw_t, ov_t, area_t)
-            profiles.append(previous)
-        small = sum("below the" in str(w.message) for w in caught)
+    # rows without a usable line hold the previous one (the first falls back to the options)
+    usable = np.isfinite(lw) & np.isfinite(ov) & (lw > 0) & (ov > 0) & np.isfinite(area)
+    source_row = np.where(usable, np.arange(lw.size), -1)
+    source_row = np.maximum.accumulate(source_row)
+    held = int((~usable).sum())
+    small = int(
+        np.sum(
+            area[usable]
+            < [minimum_area_um2(a, b) for a, b in zip(lw[usable], ov[usable], strict=True)]
+        )
+    )
     if held:
         click.echo(f"note: {held} seconds without linewidth/overspray: previous line held")
     if small:
-        click.echo(f"note: {small} seconds with too little material for the requested overspray")
+        click.echo(
+            f"note: {small} seconds with too little material for the requested overspray "
+            "(its visible part will be shorter)"
+        )
+
+    def profile_for(row: int) -> np.ndarray:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # counted above
+            if row < 0:
+                return line_profile(r_um, linewidth_um, overspray_um, area_um2)
+            return line_profile(r_um, lw[row], ov[row], area[row])
+
+    profiles = _LazyProfiles(source_row, profile_for)
     truth_path = render_video(
         r_um,
         profiles,
@@ -445,6 +455,20 @@ def extract(
             source,
             um_per_px,
         )
+
+
+class _LazyProfiles:
+    """A sequence of profiles computed on demand (a 90-min print never sits in memory)."""
+
+    def __init__(self, rows: np.ndarray, make):
+        self.rows = rows
+        self.make = functools.lru_cache(maxsize=8)(make)
+
+    def __len__(self) -> int:
+        return int(self.rows.size)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        return self.make(int(self.rows[index]))
 
 
 class _Null:

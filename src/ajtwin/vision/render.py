@@ -38,6 +38,7 @@ from scipy.ndimage import gaussian_filter1d
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
 
 SUBSAMPLES_PER_PX = 4  # across-line samples per pixel in the brightness map
+S_STEP_PX = 2  # along-line sampling of the brightness map, pixels
 SHOT_NOISE_GRAY = 0.03  # shot-noise variance per gray level (~33 e-/gray, 8.4k e- full well)
 
 
@@ -157,6 +158,32 @@ class Substrate:
         self.raggedness_um = settings.raggedness_um * np.stack(
             [_smooth_noise_1d(self.PERIOD_PX, corr, rng) for _ in range(4)]
         )
+        self._geometry: dict = {}
+
+    def geometry(self, shape, settings: RenderSettings):
+        """Per-pixel line coordinates (s along + half diagonal, d across) and illumination.
+
+        Cached: consecutive frames of a video share them.
+        """
+        key = (
+            tuple(shape),
+            settings.tilt_deg,
+            settings.offset_px,
+            settings.illumination_gradient,
+            settings.vignetting,
+        )
+        if key not in self._geometry:
+            height, width = shape
+            theta = np.deg2rad(settings.tilt_deg)
+            along = np.array([np.cos(theta), -np.sin(theta)])  # image y points down
+            normal = np.array([np.sin(theta), np.cos(theta)])
+            xs = np.arange(width, dtype=np.float32) - 0.5 * (width - 1)
+            ys = np.arange(height, dtype=np.float32) - 0.5 * (height - 1)
+            gx, gy = np.meshgrid(xs, ys)
+            s_px = (gx * along[0] + gy * along[1] + self.half_diagonal).astype(np.float32)
+            d_px = (gx * normal[0] + gy * normal[1] - settings.offset_px).astype(np.float32)
+            self._geometry = {key: (s_px, d_px, _illumination(shape, settings))}
+        return self._geometry[key]
 
 
 def _illumination(shape, settings: RenderSettings) -> np.ndarray:
@@ -279,8 +306,9 @@ def render_frame(
     d_extent_um = max(ends) + margin_um
     step_um = px / SUBSAMPLES_PER_PX
     d_um = np.arange(-d_extent_um, d_extent_um + step_um, step_um)
-    s_count = 2 * substrate.half_diagonal
-    s_index = (np.arange(s_count) + int(round(travel_um / px))) % Substrate.PERIOD_PX
+    # the map is sampled every S_STEP_PX along the line (raggedness is smooth over 4 µm)
+    s_count = 2 * substrate.half_diagonal // S_STEP_PX + 2
+    s_index = (np.arange(s_count) * S_STEP_PX + int(round(travel_um / px))) % Substrate.PERIOD_PX
     shifts = substrate.raggedness_um[:, s_index]
     if settings.raggedness_um > 0:
         profile_r = _warp_positions(d_um, half, ends, shifts) + center
@@ -291,34 +319,28 @@ def render_frame(
     # average over each pixel's width (box of SUBSAMPLES_PER_PX samples across the line)
     line_map = cv2.blur(line_map, (SUBSAMPLES_PER_PX, 1), borderType=cv2.BORDER_REPLICATE)
 
-    # --- pixel -> line coordinates ---
-    theta = np.deg2rad(settings.tilt_deg)
-    along = np.array([np.cos(theta), -np.sin(theta)])  # image y points down
-    normal = np.array([np.sin(theta), np.cos(theta)])
-    xs = np.arange(width, dtype=np.float32) - 0.5 * (width - 1)
-    ys = np.arange(height, dtype=np.float32) - 0.5 * (height - 1)
-    gx, gy = np.meshgrid(xs, ys)
-    s_px = gx * along[0] + gy * along[1]
-    d_px = gx * normal[0] + gy * normal[1] - settings.offset_px
-    map_d = ((d_px * px + d_extent_um) / step_um).astype(np.float32)
-    map_s = (s_px + substrate.half_diagonal).astype(np.float32)
+    # --- pixel -> line coordinates (cached per frame geometry on the substrate) ---
+    s_px, d_px, illumination = substrate.geometry((height, width), settings)
+    map_d = (d_px * (px / step_um) + d_extent_um / step_um).astype(np.float32)
     line = cv2.remap(
-        line_map, map_d, map_s, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0
+        line_map,
+        map_d,
+        s_px * (1.0 / S_STEP_PX),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=1.0,
     )
-    texture_s = (map_s + travel_um / px) % Substrate.PERIOD_PX
-    texture_d = (d_px + substrate.half_diagonal).astype(np.float32)
+    texture_s = (s_px + np.float32(travel_um / px)) % Substrate.PERIOD_PX
     texture = cv2.remap(
         substrate.texture,
-        texture_s.astype(np.float32),
-        texture_d,
+        texture_s,
+        d_px + np.float32(substrate.half_diagonal),
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_WRAP,
     )
 
     # --- optics and sensor ---
-    image = (
-        settings.background_gray * _illumination((height, width), settings) * (1.0 + texture) * line
-    )
+    image = settings.background_gray * illumination * (1.0 + texture) * line
     if settings.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), settings.blur_sigma_px)
     variance = settings.noise_sigma_gray**2 + SHOT_NOISE_GRAY * np.maximum(image, 0)

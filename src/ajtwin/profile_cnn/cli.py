@@ -1,0 +1,415 @@
+"""``ajtwin cnn`` — height-profile CNN: data, training, cross-validation, Q_m inference.
+
+The default model is reproduced by one command (no weights are shipped)::
+
+    ajtwin cnn train --synthetic --seed 0 --out model.pt
+
+(125 synthetic profilometer pairs + 4000 CV-labelled columns rendered by the
+vision module, ResNet-18-1D, stage 1 then 50 epochs of stage 2).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+
+def _synthetic(n_pairs, n_columns, seed, um_per_px, progress):
+    from ajtwin.profile_cnn.synth import synthetic_labelled, synthetic_pairs
+
+    pairs = synthetic_pairs(n_pairs, seed=seed, um_per_px=um_per_px, progress=progress)
+    labelled = synthetic_labelled(n_columns, seed=seed, um_per_px=um_per_px, progress=progress)
+    return pairs, labelled
+
+
+def _load_data(pairs_path, columns_path, synthetic, n_pairs, n_columns, seed, um_per_px, progress):
+    from ajtwin.profile_cnn.data import load_dataset
+
+    if synthetic:
+        if pairs_path or columns_path:
+            raise click.UsageError("--synthetic replaces --pairs/--columns; give one or the other")
+        return _synthetic(n_pairs, n_columns, seed, um_per_px, progress)
+    if not pairs_path and not columns_path:
+        raise click.UsageError("give --pairs and/or --columns data sets, or --synthetic")
+    try:
+        pairs = load_dataset(pairs_path) if pairs_path else None
+        labelled = load_dataset(columns_path) if columns_path else None
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    return pairs, labelled
+
+
+def _training_options(f):
+    options = [
+        click.option("--seed", type=int, default=0, show_default=True),
+        click.option("--stage1-epochs", type=int, default=150, show_default=True),
+        click.option("--stage2-epochs", type=int, default=50, show_default=True),
+        click.option("--batch-size", type=int, default=32, show_default=True),
+        click.option("--stage1-lr", type=float, default=1e-3, show_default=True),
+        click.option("--stage2-lr", type=float, default=2e-4, show_default=True),
+        click.option(
+            "--stage1-brightness-weight",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Weight of the brightness (slope) term in the stage-1 loss; 0 = plain MSE.",
+        ),
+        click.option(
+            "--replay-weight",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Stage-1 profile loss mixed into stage 2 (0 = the paper's pure feature loss).",
+        ),
+        click.option(
+            "--width",
+            "base_channels",
+            type=int,
+            default=64,
+            show_default=True,
+            help="Channels of the first stage (64 = ResNet-18's 64-512).",
+        ),
+        click.option("--threads", type=int, default=None, help="torch threads (default 1)."),
+        click.option("--synthetic", is_flag=True, help="Train on synthetic rendered data."),
+        click.option(
+            "--pairs",
+            "pairs_path",
+            type=click.Path(dir_okay=False),
+            default=None,
+            help="Stage-1 pairs NPZ (columns + profiles_um).",
+        ),
+        click.option(
+            "--columns",
+            "columns_path",
+            type=click.Path(dir_okay=False),
+            default=None,
+            help="Stage-2 NPZ (columns + linewidth_um/overspray_um CV labels).",
+        ),
+        click.option(
+            "--n-pairs", type=int, default=125, show_default=True, help="Synthetic stage-1 pairs."
+        ),
+        click.option(
+            "--n-columns",
+            type=int,
+            default=4000,
+            show_default=True,
+            help="Synthetic stage-2 columns.",
+        ),
+        click.option(
+            "--um-per-px",
+            type=float,
+            default=0.75,
+            show_default=True,
+            help="Pixel size of synthetic data, µm.",
+        ),
+        click.option("--progress/--no-progress", default=True, show_default=True),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+def _config(kw):
+    from ajtwin.profile_cnn.train import TrainConfig
+
+    return TrainConfig(
+        seed=kw["seed"],
+        stage1_epochs=kw["stage1_epochs"],
+        stage2_epochs=kw["stage2_epochs"],
+        batch_size=kw["batch_size"],
+        stage1_lr=kw["stage1_lr"],
+        stage2_lr=kw["stage2_lr"],
+        stage1_brightness_weight=kw["stage1_brightness_weight"],
+        stage2_replay_weight=kw["replay_weight"],
+        base_channels=kw["base_channels"],
+        n_threads=kw["threads"],
+    )
+
+
+@click.group()
+def cnn():
+    """Height-profile CNN (paper §5): train, cross-validate, infer Q_m from video."""
+
+
+@cnn.command()
+@click.option("--out-dir", type=click.Path(file_okay=False), required=True)
+@click.option("--n-pairs", type=int, default=125, show_default=True)
+@click.option("--n-columns", type=int, default=4000, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--um-per-px", type=float, default=0.75, show_default=True)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def synth(out_dir, n_pairs, n_columns, seed, um_per_px, progress):
+    """Render synthetic training data: OUT_DIR/pairs.npz and OUT_DIR/columns.npz."""
+    from ajtwin.profile_cnn.data import save_dataset
+
+    pairs, labelled = _synthetic(n_pairs, n_columns, seed, um_per_px, progress)
+    out = Path(out_dir)
+    click.echo(f"wrote {save_dataset(pairs, out / 'pairs.npz')} ({len(pairs)} pairs)")
+    click.echo(f"wrote {save_dataset(labelled, out / 'columns.npz')} ({len(labelled)} columns)")
+
+
+@cnn.command()
+@click.argument("manifest", type=click.Path(exists=True, dir_okay=False))
+@click.option("--um-per-px", type=float, required=True, help="Camera pixel size, µm.")
+@click.option("--out", type=click.Path(dir_okay=False), required=True)
+@click.option(
+    "--half-width-px",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Average 2·N+1 neighbouring frame columns per pair.",
+)
+def pairs(manifest, um_per_px, out, half_width_px):
+    """Build stage-1 pairs from real frames and profilometer scans (MANIFEST CSV).
+
+    Columns: frame, column_px, line_row_px, scan, scan_row, scan_pixel_size_um
+    (blank = from the scan file), optional height_unit. See docs/profile_cnn.md.
+    """
+    from ajtwin.profile_cnn.data import pairs_from_manifest, save_dataset
+
+    try:
+        data = pairs_from_manifest(manifest, um_per_px, half_width_px=half_width_px)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {save_dataset(data, out)} ({len(data)} pairs)")
+
+
+@cnn.command()
+@_training_options
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="Model file (.pt).")
+@click.option(
+    "--checkpoint",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Checkpoint written every epoch (default: OUT.ckpt).",
+)
+@click.option("--resume", is_flag=True, help="Continue from the checkpoint if it exists.")
+@click.option(
+    "--init",
+    "init_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="Start from this model (e.g. fine-tune only with --columns).",
+)
+def train(out, checkpoint, resume, init_path, **kw):
+    """Train the CNN: stage 1 on profile pairs, stage 2 on CV-labelled columns."""
+    from ajtwin.profile_cnn.model import ProfileModel
+    from ajtwin.profile_cnn.train import Trainer
+
+    pairs_ds, labelled = _load_data(
+        kw["pairs_path"],
+        kw["columns_path"],
+        kw["synthetic"],
+        kw["n_pairs"],
+        kw["n_columns"],
+        kw["seed"],
+        kw["um_per_px"],
+        kw["progress"],
+    )
+    config = _config(kw)
+    init = ProfileModel.load(init_path) if init_path else None
+    checkpoint = checkpoint or str(out) + ".ckpt"
+    try:
+        trainer = Trainer(
+            config,
+            pairs_ds,
+            labelled,
+            init_model=init,
+            checkpoint=checkpoint,
+            resume=resume,
+            progress=kw["progress"],
+        )
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    model = trainer.run()
+    model.meta["command"] = (
+        click.get_current_context().command_path
+        + " "
+        + json.dumps({k: v for k, v in kw.items() if k != "progress"})
+    )
+    model.save(out)
+    click.echo(
+        f"wrote {out} (stage 1 {trainer.stage_seconds['1']:.0f} s, "
+        f"stage 2 {trainer.stage_seconds['2']:.0f} s; checkpoint {checkpoint})"
+    )
+
+
+@cnn.command()
+@_training_options
+@click.option("--folds", "k", type=int, default=10, show_default=True)
+@click.option("--only-fold", "only", type=int, multiple=True, help="Run just these folds.")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="Results JSON.")
+def crossval(k, only, out, **kw):
+    """K-fold cross-validation of two-stage training (paper: k = 10).
+
+    Writes OUT after every fold; re-running with the same settings skips the
+    folds already done.
+    """
+    from ajtwin.profile_cnn.evaluate import cross_validate
+
+    pairs_ds, labelled = _load_data(
+        kw["pairs_path"],
+        kw["columns_path"],
+        kw["synthetic"],
+        kw["n_pairs"],
+        kw["n_columns"],
+        kw["seed"],
+        kw["um_per_px"],
+        kw["progress"],
+    )
+    if pairs_ds is None or labelled is None:
+        raise click.UsageError("cross-validation needs both --pairs and --columns (or --synthetic)")
+    result = cross_validate(
+        pairs_ds,
+        labelled,
+        _config(kw),
+        k=k,
+        folds=list(only) or None,
+        out_json=out,
+        progress=kw["progress"],
+    )
+    s = result["summary"]
+    for key in (
+        "before_columns.mae_linewidth_vs_cv_um",
+        "after_columns.mae_linewidth_vs_cv_um",
+        "before_columns.mae_overspray_vs_cv_um",
+        "after_columns.mae_overspray_vs_cv_um",
+        "before_pairs.qm_rel_error",
+        "after_pairs.qm_rel_error",
+    ):
+        if f"{key}.mean" in s:
+            click.echo(f"{key}: {s[key + '.mean']:.4g} (fold variance {s[key + '.var']:.3g})")
+    click.echo(f"wrote {out}")
+
+
+@cnn.command()
+@click.argument("video", type=click.Path(exists=True))
+@click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False), required=True)
+@click.option("--um-per-px", type=float, required=True, help="Camera pixel size, µm.")
+@click.option("--platen-speed-mm-s", type=float, required=True, help="Platen speed ν, mm/s.")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="Q_m CSV.")
+@click.option("--batch", type=int, default=50, show_default=True, help="Columns per batch.")
+@click.option("--fps", type=float, default=None, help="Frame rate override.")
+@click.option(
+    "--join",
+    "join_record",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="Print record whose material_flow_mL_s to fill.",
+)
+@click.option(
+    "--join-out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Joined record path (default: RECORD_cnn.parquet).",
+)
+@click.option(
+    "--start-offset",
+    "start_offset_s",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="Print time (s) of the first video frame.",
+)
+@click.option(
+    "--camera-offset",
+    "camera_offset_um",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="Nozzle-to-camera distance along the print, µm.",
+)
+@click.option("--threads", type=int, default=None, help="torch threads (default 1).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def infer(
+    video,
+    model_path,
+    um_per_px,
+    platen_speed_mm_s,
+    out,
+    batch,
+    fps,
+    join_record,
+    join_out,
+    start_offset_s,
+    camera_offset_um,
+    threads,
+    progress,
+):
+    """Material flow Q_m = ν ∫ h dr per frame of VIDEO (video, image folder or image).
+
+    CSV columns: frame, time_s, material_flow_mL_s, then material_flow_std_mL_s
+    (spread over the frame's batches), cross_section_um2, n_columns, status.
+    """
+    from ajtwin.profile_cnn.infer import infer_video
+    from ajtwin.profile_cnn.model import ProfileModel, set_threads
+    from ajtwin.vision.extract import VisionInputError
+
+    set_threads(threads)
+    try:
+        model = ProfileModel.load(model_path)
+        table = infer_video(
+            video,
+            model,
+            um_per_px=um_per_px,
+            platen_speed_mm_s=platen_speed_mm_s,
+            batch=batch,
+            fps=fps,
+            progress=progress,
+        )
+    except (ValueError, VisionInputError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out, index=False)
+    n_ok = int((table["status"] == "ok").sum())
+    click.echo(f"wrote {out} ({len(table)} frames, {n_ok} with Q_m)")
+    if join_record:
+        _join(
+            join_record,
+            join_out,
+            table,
+            start_offset_s,
+            camera_offset_um,
+            platen_speed_mm_s,
+            video,
+            model_path,
+        )
+
+
+def _join(record_path, join_out, table, start_offset_s, camera_offset_um, speed, video, model):
+    from ajtwin.io.records import PrintRecord, RecordError, read_record, write_record
+    from ajtwin.profile_cnn.infer import join_material_flow
+
+    record_path = Path(record_path)
+    try:
+        rec = read_record(record_path)
+        joined, summary = join_material_flow(
+            rec.data,
+            table,
+            start_offset_s=start_offset_s,
+            camera_offset_um=camera_offset_um,
+            platen_speed_mm_s=speed,
+        )
+    except (RecordError, ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    meta = dict(rec.meta)
+    meta["profile_cnn"] = {
+        "source": str(video),
+        "model": str(model),
+        "platen_speed_mm_s": speed,
+        "start_offset_s": start_offset_s,
+        "camera_offset_um": camera_offset_um,
+        **summary,
+    }
+    join_out = (
+        Path(join_out) if join_out else record_path.with_name(record_path.stem + "_cnn.parquet")
+    )
+    path = write_record(PrintRecord(joined, meta), join_out)
+    click.echo(f"wrote {path} ({json.dumps(summary)})")
+    if summary["seconds_filled"] == 0:
+        raise click.ClickException(
+            "no video frame fell inside the record's time span: check --start-offset, "
+            "--camera-offset and the frame rate"
+        )

@@ -1,0 +1,382 @@
+"""Two-stage training of the height-profile CNN (paper §5, SPEC §9).
+
+Stage 1: supervised MSE between predicted and profilometer profiles
+(the paper's 125 scans). Stage 2: fine-tuning on many columns labelled only
+with computer-vision linewidth and overspray; the loss is the MSE between the
+linewidth/overspray computed *differentiably* from the predicted profile
+(:mod:`ajtwin.profile_cnn.features`) and the CV labels (paper: 50 epochs).
+
+Reproducibility: every epoch's batch order and augmentation come from a
+generator seeded by ``(seed, stage, epoch)``, and kernels are deterministic,
+so a run resumed from a checkpoint produces the same weights as one that was
+never interrupted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ajtwin.profile_cnn import features as feat
+from ajtwin.profile_cnn.data import ColumnDataset, normalize_columns
+from ajtwin.profile_cnn.model import ProfileModel, set_threads
+from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile
+
+
+@dataclass
+class TrainConfig:
+    """Training hyper-parameters (all stored in the checkpoint).
+
+    Parameters
+    ----------
+    seed : int
+        Seeds weights, batch order and augmentation.
+    stage1_epochs, stage2_epochs : int
+        Epochs of supervised pre-training and of CV-label fine-tuning
+        (paper: 50 for stage 2).
+    batch_size : int
+    stage1_lr, stage2_lr : float
+        Adam learning rates (cosine-annealed to 5 % over each stage).
+    weight_decay : float
+    augment : bool
+        Stage 1 and 2: mirror the column across the line centre (with its
+        profile) and shift it by up to ``max_shift_px`` pixels — symmetries
+        of the physics, which stretch 125 pairs further.
+    max_shift_px : int
+    stage2_replay_weight : float
+        Weight of the stage-1 profile loss (on a quarter batch of pairs, in
+        units of ``height_scale_um²``) mixed into each stage-2 step; the
+        feature loss is in µm², so useful weights are 1e2–1e4. 0 = the
+        paper's pure feature loss.
+    base_channels : int
+        64 = ResNet-18 (64–512 channels); smaller only for tests.
+    n_threads : int, optional
+        torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
+    grad_clip : float
+        Gradient-norm clip (feature positions can react strongly to nm-level slopes).
+    stage1_brightness_weight : float
+        Weight of a second stage-1 term: MSE between the camera brightness
+        (optics model, slope → B/B_bg) of the predicted and the true profile.
+        Linewidth and overspray are defined on that brightness, so this teaches
+        the slopes they depend on; 0 = plain profile MSE.
+    """
+
+    seed: int = 0
+    stage1_epochs: int = 150
+    stage2_epochs: int = 50
+    batch_size: int = 32
+    stage1_lr: float = 1e-3
+    stage2_lr: float = 2e-4
+    weight_decay: float = 1e-4
+    augment: bool = True
+    max_shift_px: int = 6
+    stage2_replay_weight: float = 0.0
+    base_channels: int = 64
+    n_threads: int | None = None
+    grad_clip: float = 5.0
+    stage1_brightness_weight: float = 0.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _epoch_generator(seed: int, stage: int, epoch: int) -> torch.Generator:
+    digest = hashlib.sha256(f"{seed}/{stage}/{epoch}".encode()).digest()
+    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & (2**63 - 1))
+
+
+def _augment(x: torch.Tensor, ys: list[torch.Tensor], gen: torch.Generator, max_shift: int):
+    """Random mirror and shift applied identically to columns and profiles."""
+    n = x.shape[0]
+    flip = torch.rand(n, generator=gen) < 0.5
+    shifts = torch.randint(-max_shift, max_shift + 1, (n,), generator=gen)
+    n_px = x.shape[-1]
+    base = torch.arange(n_px)
+    # index map: mirror then shift, clamped at the ends (edge values repeat: substrate)
+    src = torch.where(flip[:, None], n_px - 1 - base[None, :], base[None, :])
+    src = (src - shifts[:, None]).clamp(0, n_px - 1)
+    return torch.gather(x, 1, src), [None if y is None else torch.gather(y, 1, src) for y in ys]
+
+
+def data_fingerprint(*datasets: ColumnDataset | None) -> str:
+    h = hashlib.sha256()
+    for ds in datasets:
+        if ds is None:
+            h.update(b"none")
+            continue
+        h.update(ds.columns.tobytes())
+        for a in (ds.profiles_um, ds.linewidth_um, ds.overspray_um):
+            h.update(b"-" if a is None else a.tobytes())
+    return h.hexdigest()[:16]
+
+
+class Trainer:
+    """Runs stage 1 and stage 2, with checkpoints and resume.
+
+    Parameters
+    ----------
+    config : TrainConfig
+    pairs : ColumnDataset, optional
+        Stage-1 (column, profile) pairs.
+    labelled : ColumnDataset, optional
+        Stage-2 columns with ``linewidth_um``/``overspray_um`` CV labels.
+    init_model : ProfileModel, optional
+        Start from this model instead of fresh weights (e.g. fine-tune only).
+    checkpoint : path, optional
+        Written after every epoch (atomically); with ``resume=True`` an
+        existing checkpoint of the same config and data is continued.
+    """
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        pairs: ColumnDataset | None = None,
+        labelled: ColumnDataset | None = None,
+        *,
+        init_model: ProfileModel | None = None,
+        checkpoint=None,
+        resume: bool = False,
+        progress: bool = True,
+        on_stage_end=None,
+    ):
+        if pairs is None and labelled is None:
+            raise ValueError("nothing to train on: give stage-1 pairs and/or stage-2 columns")
+        if pairs is not None and pairs.profiles_um is None:
+            raise ValueError("stage-1 data set has no profiles_um")
+        if labelled is not None and (
+            labelled.linewidth_um is None or labelled.overspray_um is None
+        ):
+            raise ValueError("stage-2 data set needs linewidth_um and overspray_um labels")
+        self.config = config
+        self.pairs = pairs
+        self.labelled = labelled
+        self.checkpoint = Path(checkpoint) if checkpoint else None
+        self.progress = progress
+        self.on_stage_end = on_stage_end  # callback(stage, model) after each finished stage
+        set_threads(config.n_threads)
+        torch.use_deterministic_algorithms(True)
+        ref = pairs if pairs is not None else labelled
+        if init_model is not None:
+            self.model = init_model
+        else:
+            if pairs is None:
+                raise ValueError("training from scratch needs stage-1 pairs (or an init model)")
+            torch.manual_seed(config.seed)
+            net = ResNet18Profile(
+                NetworkConfig(n_pixels=ref.n_pixels, base_channels=config.base_channels)
+            )
+            scale = float(np.mean(np.max(pairs.profiles_um, axis=1)))
+            if not scale > 0:
+                raise ValueError("stage-1 profiles have no positive height")
+            self.model = ProfileModel(net, ref.um_per_px, scale)
+        for ds, name in ((pairs, "stage-1"), (labelled, "stage-2")):
+            if ds is not None and abs(ds.um_per_px - self.model.um_per_px) > 1e-9:
+                raise ValueError(
+                    f"{name} data at {ds.um_per_px} µm/px, model at {self.model.um_per_px} µm/px"
+                )
+        self.history: list[dict] = []
+        self.stage = 1
+        self.epoch = 0  # epochs completed in the current stage
+        self.optimizer = None
+        self.scheduler = None
+        self.fingerprint = data_fingerprint(pairs, labelled)
+        self.train_seconds = 0.0
+        self.stage_seconds = {"1": 0.0, "2": 0.0}
+        if resume and self.checkpoint and self.checkpoint.exists():
+            self._load_checkpoint()
+
+    # ------------------------------------------------------------ plumbing
+
+    def _stage_epochs(self, stage: int) -> int:
+        if stage == 1:
+            return self.config.stage1_epochs if self.pairs is not None else 0
+        return self.config.stage2_epochs if self.labelled is not None else 0
+
+    def _make_optimizer(self, stage: int):
+        lr = self.config.stage1_lr if stage == 1 else self.config.stage2_lr
+        opt = torch.optim.AdamW(
+            self.model.network.parameters(), lr=lr, weight_decay=self.config.weight_decay
+        )
+        data = self.pairs if stage == 1 else self.labelled
+        steps = max(1, self._stage_epochs(stage) * int(np.ceil(len(data) / self.config.batch_size)))
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps, eta_min=0.05 * lr)
+        return opt, sched
+
+    def _save_checkpoint(self):
+        if not self.checkpoint:
+            return
+        state = {
+            "model": self.model.state(),
+            "optimizer": self.optimizer.state_dict() if self.optimizer else None,
+            "scheduler": self.scheduler.state_dict() if self.scheduler else None,
+            "stage": self.stage,
+            "epoch": self.epoch,
+            "history": json.dumps(self.history),
+            "config": json.dumps(self.config.to_dict()),
+            "fingerprint": self.fingerprint,
+            "train_seconds": self.train_seconds,
+            "stage_seconds": json.dumps(self.stage_seconds),
+        }
+        self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.checkpoint.with_suffix(self.checkpoint.suffix + ".tmp")
+        torch.save(state, tmp)
+        tmp.replace(self.checkpoint)
+
+    def _load_checkpoint(self):
+        state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
+        saved_config = json.loads(state["config"])
+        mine = self.config.to_dict()
+        differs = {k for k in mine if k != "n_threads" and saved_config.get(k) != mine[k]}
+        if differs:
+            raise ValueError(
+                f"checkpoint {self.checkpoint} was made with different settings "
+                f"({', '.join(sorted(differs))}); use a new checkpoint path or the same settings"
+            )
+        if state["fingerprint"] != self.fingerprint:
+            raise ValueError(f"checkpoint {self.checkpoint} was made on different data")
+        self.model = ProfileModel.from_state(state["model"])
+        self.stage, self.epoch = int(state["stage"]), int(state["epoch"])
+        self.history = json.loads(state["history"])
+        self.train_seconds = float(state["train_seconds"])
+        self.stage_seconds = json.loads(state["stage_seconds"])
+        if state["optimizer"] is not None:
+            self.optimizer, self.scheduler = self._make_optimizer(self.stage)
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.scheduler.load_state_dict(state["scheduler"])
+
+    # ------------------------------------------------------------ losses
+
+    def _stage1_batch_loss(self, x, y_um):
+        pred = self.model.network(x)
+        loss = torch.mean((pred - y_um / self.model.height_scale_um) ** 2)
+        w = self.config.stage1_brightness_weight
+        if w > 0:
+            # also match the profile's look to the camera (slope → brightness), which
+            # is what linewidth and overspray are defined on
+            px = self.model.um_per_px
+            b_pred = feat.brightness_ratio(pred * self.model.height_scale_um, px)
+            b_true = feat.brightness_ratio(y_um, px)
+            loss = loss + w * torch.mean((b_pred - b_true) ** 2)
+        return loss
+
+    def _stage2_batch_loss(self, x, lw, ov):
+        h = self.model.forward_um(x)
+        lw_p, ov_p = feat.smooth_features(h, self.model.um_per_px)
+        # profiles whose features are undefined (no shoulder found, overspray
+        # leaving the column) carry no feature loss: skip those terms
+        err = torch.cat([lw_p - lw, ov_p - ov])
+        ok = torch.isfinite(err)
+        if not ok.any():
+            return err.sum()  # nan: the caller skips the batch
+        return torch.sum(err[ok] ** 2) / len(lw)
+
+    # ------------------------------------------------------------ loop
+
+    def run(self) -> ProfileModel:
+        """Train the remaining epochs of both stages; returns the model."""
+        while self.stage <= 2:
+            n_epochs = self._stage_epochs(self.stage)
+            if self.epoch >= n_epochs:
+                if self.on_stage_end is not None:
+                    self.model.network.eval()
+                    self.on_stage_end(self.stage, self.model)
+                self.stage, self.epoch = self.stage + 1, 0
+                self.optimizer = self.scheduler = None
+                continue
+            if self.optimizer is None:
+                self.optimizer, self.scheduler = self._make_optimizer(self.stage)
+            bar = tqdm(
+                total=n_epochs,
+                initial=self.epoch,
+                desc=f"stage {self.stage}",
+                unit="epoch",
+                disable=not self.progress,
+                leave=True,
+            )
+            while self.epoch < n_epochs:
+                t0 = time.perf_counter()
+                loss = self._run_epoch(self.stage, self.epoch)
+                dt = time.perf_counter() - t0
+                self.train_seconds += dt
+                self.stage_seconds[str(self.stage)] += dt
+                self.epoch += 1
+                self.history.append({"stage": self.stage, "epoch": self.epoch, "loss": loss})
+                bar.set_postfix(loss=f"{loss:.4g}")
+                bar.update(1)
+                self._save_checkpoint()
+            bar.close()
+        self.model.network.eval()
+        self.model.meta.update(
+            {
+                "train_config": self.config.to_dict(),
+                "history": self.history,
+                "train_seconds": round(self.train_seconds, 2),
+                "stage_seconds": {k: round(v, 2) for k, v in self.stage_seconds.items()},
+                "data_fingerprint": self.fingerprint,
+                "n_pairs": 0 if self.pairs is None else len(self.pairs),
+                "n_labelled": 0 if self.labelled is None else len(self.labelled),
+                "torch_threads": torch.get_num_threads(),
+            }
+        )
+        return self.model
+
+    def _run_epoch(self, stage: int, epoch: int) -> float:
+        gen = _epoch_generator(self.config.seed, stage, epoch)
+        data = self.pairs if stage == 1 else self.labelled
+        x_all = torch.from_numpy(normalize_columns(data.columns))
+        order = torch.randperm(len(data), generator=gen)
+        net = self.model.network
+        net.train()
+        total, count = 0.0, 0
+        bs = self.config.batch_size
+        replay = self.config.stage2_replay_weight if self.pairs is not None else 0.0
+        for start in range(0, len(order), bs):
+            idx = order[start : start + bs]
+            if len(idx) < 2:  # batch norm needs ≥ 2 samples
+                continue
+            x = x_all[idx]
+            if stage == 1:
+                y = torch.from_numpy(data.profiles_um)[idx]
+                if self.config.augment:
+                    x, (y,) = _augment(x, [y], gen, self.config.max_shift_px)
+                loss = self._stage1_batch_loss(x, y)
+            else:
+                lw = torch.from_numpy(data.linewidth_um)[idx]
+                ov = torch.from_numpy(data.overspray_um)[idx]
+                if self.config.augment:  # widths are invariant to mirror and shift
+                    x, _ = _augment(x, [], gen, self.config.max_shift_px)
+                loss = self._stage2_batch_loss(x, lw, ov)
+                if replay > 0:
+                    n_replay = max(4, len(idx) // 4)  # a quarter batch keeps stage 2 cheap
+                    pidx = torch.randint(0, len(self.pairs), (n_replay,), generator=gen)
+                    xp = torch.from_numpy(normalize_columns(self.pairs.columns[pidx.numpy()]))
+                    yp = torch.from_numpy(self.pairs.profiles_um[pidx.numpy()])
+                    loss = loss + replay * self._stage1_batch_loss(xp, yp)
+            self.optimizer.zero_grad(set_to_none=True)
+            if not torch.isfinite(loss):
+                continue  # every sample of the batch lacked a feature (nan): skip
+            loss.backward()
+            # the feature positions can be very sensitive to nm-level slopes: clip
+            torch.nn.utils.clip_grad_norm_(net.parameters(), self.config.grad_clip)
+            self.optimizer.step()
+            self.scheduler.step()
+            total += float(loss.detach()) * len(idx)
+            count += len(idx)
+        return total / max(count, 1)
+
+
+def train(
+    pairs: ColumnDataset | None,
+    labelled: ColumnDataset | None,
+    config: TrainConfig | None = None,
+    **kwargs,
+) -> ProfileModel:
+    """Train a :class:`ProfileModel` in two stages. See :class:`Trainer`."""
+    return Trainer(config or TrainConfig(), pairs, labelled, **kwargs).run()

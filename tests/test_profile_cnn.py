@@ -1,0 +1,425 @@
+"""Height-profile CNN (paper §5, SPEC §9): network, data, features, Q_m, training.
+
+Small, real instances only (a narrow network, a few epochs); the full 10-fold
+cross-validation is ``test_profile_cnn_slow.py`` (marked slow).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from ajtwin.profile_cnn.data import (
+    ColumnDataset,
+    level_profile,
+    load_dataset,
+    load_height_map,
+    normalize_columns,
+    register_profile,
+    save_dataset,
+)
+from ajtwin.profile_cnn.evaluate import fold_indices, summarize
+from ajtwin.profile_cnn.features import brightness_ratio, features_numpy, smooth_features
+from ajtwin.profile_cnn.flow import cross_section_area_um2, material_flow_ml_s
+from ajtwin.profile_cnn.infer import join_material_flow
+from ajtwin.profile_cnn.model import ProfileModel
+from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile, count_parameters
+from ajtwin.profile_cnn.train import TrainConfig, Trainer
+from ajtwin.vision.features import find_edges
+from ajtwin.vision.profile import brightness_from_slope, line_profile, profile_features
+
+PX = 0.75
+R_PX = (np.arange(200) - 99.5) * PX
+R_FINE = np.arange(-110.0, 110.0, 0.02)
+
+
+# ------------------------------------------------------------------ network
+
+
+def _resnet18_1d_parameter_count(c=64, k=3, n_out=200):
+    """Parameters of a 1-D ResNet-18, counted by hand from the paper's topology."""
+    total = 1 * c * 7 + 2 * c  # stem conv (7 taps, no bias) + BN
+    channels = [c, 2 * c, 4 * c, 8 * c]
+    prev = c
+    for i, ch in enumerate(channels):
+        for j in range(2):
+            cin = prev if j == 0 else ch
+            total += cin * ch * k + ch * ch * k + 2 * (2 * ch)  # two convs + two BNs
+            if j == 0 and (i > 0):
+                total += cin * ch + 2 * ch  # 1x1 projection + BN
+        prev = ch
+    return total + 8 * c * n_out + n_out  # linear head
+
+
+def test_resnet18_1d_topology_and_parameter_count():
+    net = ResNet18Profile()
+    assert count_parameters(net) == _resnet18_1d_parameter_count() == 3_946_504
+    stages = list(net.stages)
+    assert len(stages) == 4 and all(len(s) == 2 for s in stages)
+    assert [s[0].conv1.out_channels for s in stages] == [64, 128, 256, 512]
+    # temporal resolution: 200 -> stem/2 -> pool/2 = 50 -> 50, 25, 13, 7
+    x = torch.zeros(3, 1, 200)
+    lengths = []
+    h = net.stem(x)
+    for s in stages:
+        h = s(h)
+        lengths.append(h.shape[-1])
+    assert lengths == [50, 25, 13, 7]
+    assert net(torch.zeros(3, 200)).shape == (3, 200)
+    with pytest.raises(ValueError, match="199 pixels"):
+        net(torch.zeros(2, 199))
+
+
+# ------------------------------------------------------------------ Q_m
+
+
+def test_material_flow_by_hand():
+    h = np.zeros(200)
+    h[80:120] = 2.0  # 40 px x 0.75 µm x 2 µm = 60 µm²
+    assert cross_section_area_um2(h, 0.75) == pytest.approx(60.0)
+    # 60 µm² at 2 mm/s = 60 * 2000 µm³/s = 1.2e5 µm³/s = 1.2e-7 mL/s
+    assert material_flow_ml_s(h, 0.75, 2.0) == pytest.approx(1.2e-7, rel=1e-12)
+    both = material_flow_ml_s(np.stack([h, 2 * h]), 0.75, np.array([2.0, 1.0]))
+    np.testing.assert_allclose(both, [1.2e-7, 1.2e-7])
+    with pytest.raises(ValueError, match="platen speed"):
+        material_flow_ml_s(h, 0.75, -1.0)
+
+
+def test_material_flow_of_line_profile_matches_its_area():
+    # line_profile is built so that ∫h dr equals the requested area
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        h_fine = line_profile(R_FINE, 43.0, 29.0, 15.0)
+    h = register_profile(h_fine, 0.02, PX, level=False)
+    assert cross_section_area_um2(h, PX) == pytest.approx(15.0, rel=1e-3)
+    # SPEC §3 typical Q_m 1.5e-8 mL/s: 15 µm² at 1 mm/s
+    assert material_flow_ml_s(h, PX, 1.0) == pytest.approx(1.5e-8, rel=1e-3)
+
+
+# ------------------------------------------------------------------ registration
+
+
+def test_register_profile_preserves_area_and_box_averages():
+    # a triangle 0..20 µm wide (peak 1 µm at 10 µm), scan step 0.5 µm, camera 2 µm/px
+    x = np.arange(0, 60.5, 0.5)
+    h = np.clip(1 - np.abs(x - 30) / 10, 0, None)
+    g = register_profile(h, 0.5, 2.0, n_pixels=40, level=False, profile_center_um=30.0)
+    assert g.sum() * 2.0 == pytest.approx(10.0, rel=1e-12)  # triangle area 1/2·20·1
+    # the centre is at pixel 19.5: pixel 20 covers [0, 2] µm, mean of 1 - r/10 = 0.9;
+    # pixel 21 covers [2, 4] µm: 0.7
+    assert g[20] == pytest.approx(0.9, rel=1e-12)
+    assert g[21] == pytest.approx(0.7, rel=1e-12)
+    # symmetric about the centre of the column (between pixels 19 and 20)
+    np.testing.assert_allclose(g[:20], g[20:][::-1], atol=1e-12)
+
+
+def test_register_profile_levels_tilt_and_centres_the_line():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        x = np.arange(0.0, 220.0, 0.5)
+        base = line_profile(x, 43.0, 29.0, 15.0, center_um=110.0)
+        shifted = line_profile(x, 43.0, 29.0, 15.0, center_um=95.0)
+    tilted = shifted + 2e-3 * x + 0.7  # stage tilt and offset
+    g0 = register_profile(base, 0.5, PX, level=False)
+    g1 = register_profile(tilted, 0.5, PX)
+    assert np.max(np.abs(g1 - g0)) < 5e-3
+    assert g1.sum() * PX == pytest.approx(15.0, rel=5e-3)
+    assert np.abs(level_profile(2e-3 * x + 0.7)).max() < 1e-9
+
+
+def test_load_height_map_csv_with_header(tmp_path):
+    grid = np.arange(12.0).reshape(3, 4)
+    path = tmp_path / "scan.csv"
+    lines = ["Keyence VK-X export", "# pixel_size_um = 0.52", "unit,um"]
+    lines += [";".join(f"{v:g}" for v in row) for row in grid]
+    path.write_text("\n".join(lines) + "\n")
+    hm = load_height_map(path)
+    assert hm.pixel_size_um == 0.52
+    np.testing.assert_array_equal(hm.height_um, grid)
+    hm_nm = load_height_map(path, pixel_size_um=1.0, height_unit="nm")
+    np.testing.assert_allclose(hm_nm.height_um, grid * 1e-3)
+    np.testing.assert_allclose(load_height_map(path, across_axis=0).height_um, grid.T)
+
+
+def test_load_height_map_errors_name_file_and_line(tmp_path):
+    ragged = tmp_path / "ragged.csv"
+    ragged.write_text("1,2,3\n4,5\n")
+    with pytest.raises(ValueError, match=r"ragged.csv:2: row has 2 values"):
+        load_height_map(ragged, 1.0)
+    no_px = tmp_path / "nopx.csv"
+    no_px.write_text("1,2,3\n4,5,6\n")
+    with pytest.raises(ValueError, match="pixel size unknown"):
+        load_height_map(no_px)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("1,2,3\n4,x,6\n")
+    with pytest.raises(ValueError, match=r"bad.csv:2: non-numeric"):
+        load_height_map(bad, 1.0)
+
+
+def test_load_height_map_npz_and_nan_filling(tmp_path):
+    grid = np.tile(np.linspace(0, 1000, 10), (4, 1))  # nm
+    grid[1, 3] = np.nan  # one dropout: filled by interpolation
+    grid[2, :5] = np.nan  # half a row missing: dropped
+    path = tmp_path / "scan.npz"
+    np.savez(path, height=grid, pixel_size_um=0.25, height_unit="nm")
+    with pytest.warns(UserWarning, match="dropped 1 cross-section"):
+        hm = load_height_map(path)
+    assert hm.height_um.shape == (3, 10) and hm.pixel_size_um == 0.25
+    np.testing.assert_allclose(hm.height_um[1], np.linspace(0, 1, 10))
+
+
+def test_dataset_roundtrip_and_validation(tmp_path):
+    ds = ColumnDataset(
+        columns=np.ones((4, 200)),
+        um_per_px=PX,
+        linewidth_um=np.arange(4.0),
+        overspray_um=np.arange(4.0),
+        group=np.array([0, 0, 1, 1]),
+        extra={"true_linewidth_um": np.arange(4.0)},
+    )
+    back = load_dataset(save_dataset(ds, tmp_path / "d.npz"))
+    np.testing.assert_array_equal(back.linewidth_um, ds.linewidth_um)
+    np.testing.assert_array_equal(back.extra["true_linewidth_um"], np.arange(4.0))
+    assert back.um_per_px == PX and back.profiles_um is None
+    with pytest.raises(ValueError, match="overspray_um has NaN/inf at row 2"):
+        ColumnDataset(
+            np.ones((3, 200)),
+            PX,
+            linewidth_um=np.ones(3),
+            overspray_um=np.array([1.0, 1.0, np.nan]),
+        )
+
+
+def test_normalize_columns_is_exposure_invariant():
+    col = np.full(200, 170.0)
+    col[80:120] = 60.0
+    a, b = normalize_columns(col), normalize_columns(col * 0.6)
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    assert a[0] == pytest.approx(0.0) and a[100] == pytest.approx(60 / 170 - 1, rel=1e-5)
+    with pytest.raises(ValueError, match="NaN"):
+        normalize_columns(np.full(200, np.nan))
+
+
+def test_fold_indices_keep_groups_together():
+    groups = np.repeat(np.arange(25), 3)
+    folds = fold_indices(groups, 10, seed=0)
+    assert sorted(np.concatenate(folds).tolist()) == list(range(75))
+    for f in folds:
+        for g in np.unique(groups[f]):
+            assert set(np.flatnonzero(groups == g)) <= set(f)
+    assert summarize([{"a": {"x": 1.0}}, {"a": {"x": 3.0}}])["a.x.var"] == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------ features
+
+
+def _clean_profiles(n, seed):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        lw, ov = rng.uniform(32, 52), rng.uniform(16, 34)
+        area = rng.uniform(8, 25)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out.append((line_profile(R_FINE, lw, ov, area), line_profile(R_PX, lw, ov, area)))
+    return out
+
+
+def test_brightness_matches_vision_optics():
+    h = torch.tensor(_clean_profiles(1, 0)[0][1])
+    b = brightness_ratio(h[None], PX)[0].numpy()
+    expected = brightness_from_slope(np.diff(h.numpy()) / PX)
+    np.testing.assert_allclose(b, expected, atol=1e-6)
+
+
+def test_smooth_features_agree_with_profile_features():
+    """Stated tolerance on clean profiles at 0.75 µm/px: |Δlinewidth| ≤ 2.25 µm (3 px),
+    |Δoverspray| ≤ 1.5 µm (2 px), against the fine-grid (0.02 µm) reference."""
+    d_lw, d_ov = [], []
+    for fine, coarse in _clean_profiles(40, 1):
+        ref_lw, ref_ov = profile_features(R_FINE, fine)
+        lw, ov = smooth_features(torch.tensor(coarse), PX)
+        d_lw.append(float(lw) - ref_lw)
+        d_ov.append(float(ov) - ref_ov)
+    d_lw, d_ov = np.array(d_lw), np.array(d_ov)
+    assert np.all(np.isfinite(d_lw)) and np.all(np.isfinite(d_ov))
+    assert np.max(np.abs(d_lw)) <= 2.25
+    assert np.max(np.abs(d_ov)) <= 1.5
+    # and the typical error is well under a pixel
+    assert np.median(np.abs(d_lw)) < PX and np.median(np.abs(d_ov)) < PX
+
+
+def test_smooth_features_value_is_find_edges_on_the_pixel_grid():
+    profiles = np.array([c for _, c in _clean_profiles(8, 2)])
+    lw, ov = features_numpy(profiles, PX)
+    for h, a, b in zip(profiles, lw, ov, strict=True):
+        pts = find_edges(brightness_from_slope(np.diff(h) / PX), 1.0, threshold=0.95)
+        assert a == pytest.approx(pts.linewidth * PX, abs=1e-9)
+        assert b == pytest.approx(pts.overspray * PX, abs=1e-9)
+
+
+def test_smooth_features_gradient_matches_finite_differences():
+    # a smoothed line (like a network's output: the shoulder is a round peak, not the
+    # clean profile's cusp, where the clamped parabola vertex has no gradient)
+    from scipy.ndimage import gaussian_filter1d
+
+    fine = gaussian_filter1d(line_profile(R_FINE, 43.3, 27.1, 14.2), 1.0 / 0.02)
+    h0 = torch.tensor(np.interp(R_PX, R_FINE, fine))
+    for which in (0, 1):
+        jac = torch.autograd.functional.jacobian(
+            lambda h, which=which: smooth_features(h, PX)[which], h0
+        )
+        assert torch.isfinite(jac).all() and jac.abs().sum() > 0
+        k = int(torch.argmax(jac.abs()))
+        eps = 1e-7
+        up, down = h0.clone(), h0.clone()
+        up[k] += eps
+        down[k] -= eps
+        fd = (smooth_features(up, PX)[which] - smooth_features(down, PX)[which]) / (2 * eps)
+        assert float(jac[k]) == pytest.approx(float(fd), rel=1e-3)
+
+
+def test_smooth_features_nan_when_undefined():
+    flat = torch.zeros(1, 200, dtype=torch.float64)
+    lw, ov = smooth_features(flat, PX)
+    assert torch.isnan(lw).all() and torch.isnan(ov).all()
+
+
+# ------------------------------------------------------------------ training
+
+
+def _tiny_data(n=16, seed=0):
+    """Columns = 170·brightness of clean profiles (no renderer needed), profiles as truth."""
+    rng = np.random.default_rng(seed)
+    cols, profs, lws, ovs = [], [], [], []
+    for _ in range(n):
+        lw, ov, area = rng.uniform(35, 50), rng.uniform(18, 30), rng.uniform(10, 20)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fine = line_profile(R_FINE, lw, ov, area)
+        h = register_profile(fine, 0.02, PX, level=False)
+        b = np.r_[1.0, brightness_from_slope(np.diff(h) / PX)]
+        cols.append(170 * b + rng.normal(0, 1, 200))
+        profs.append(h)
+        lws.append(lw)
+        ovs.append(ov)
+    return ColumnDataset(
+        np.array(cols),
+        PX,
+        profiles_um=np.array(profs),
+        linewidth_um=np.array(lws),
+        overspray_um=np.array(ovs),
+    )
+
+
+SMALL = dict(base_channels=8, batch_size=8, stage1_brightness_weight=1.0, n_threads=1)
+
+
+def test_stage1_learns_and_stage2_runs():
+    data = _tiny_data()
+    trainer = Trainer(
+        TrainConfig(stage1_epochs=25, stage2_epochs=2, **SMALL), data, data, progress=False
+    )
+    before = []
+    trainer.on_stage_end = lambda stage, m: before.append(m.predict_um(data.columns))
+    model = trainer.run()
+    losses = [h["loss"] for h in trainer.history if h["stage"] == 1]
+    assert losses[-1] < 0.2 * losses[0]
+    stage1_pred = before[0]
+    rmse = np.sqrt(np.mean((stage1_pred - data.profiles_um) ** 2))
+    assert rmse < 0.5 * np.sqrt(np.mean(data.profiles_um**2))
+    # stage 2 changed the weights through the feature loss
+    assert not np.allclose(model.predict_um(data.columns), before[1], atol=1e-7)
+    assert len([h for h in trainer.history if h["stage"] == 2]) == 2
+
+
+def test_training_is_seeded_and_resume_is_exact(tmp_path):
+    data = _tiny_data(12, seed=1)
+    cfg = TrainConfig(stage1_epochs=2, stage2_epochs=1, **SMALL)
+    full = Trainer(cfg, data, data, progress=False).run()
+    ckpt = tmp_path / "ckpt.pt"
+    # interrupted after one epoch of stage 1 ...
+    part = Trainer(
+        TrainConfig(stage1_epochs=2, stage2_epochs=1, **SMALL),
+        data,
+        data,
+        checkpoint=ckpt,
+        progress=False,
+    )
+    part.optimizer, part.scheduler = part._make_optimizer(1)
+    part.history.append({"stage": 1, "epoch": 1, "loss": part._run_epoch(1, 0)})
+    part.epoch = 1
+    part._save_checkpoint()
+    # ... and resumed in a fresh trainer
+    resumed = Trainer(cfg, data, data, checkpoint=ckpt, resume=True, progress=False)
+    assert resumed.epoch == 1 and resumed.stage == 1
+    model = resumed.run()
+    for a, b in zip(
+        full.network.state_dict().values(), model.network.state_dict().values(), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    other = Trainer(
+        TrainConfig(stage1_epochs=2, stage2_epochs=1, **{**SMALL}, seed=5),
+        data,
+        data,
+        progress=False,
+    ).run()
+    assert not np.allclose(other.predict_um(data.columns), full.predict_um(data.columns))
+    # a checkpoint of other settings is refused
+    with pytest.raises(ValueError, match="different settings"):
+        Trainer(
+            TrainConfig(stage1_epochs=3, stage2_epochs=1, **SMALL),
+            data,
+            data,
+            checkpoint=ckpt,
+            resume=True,
+            progress=False,
+        )
+
+
+def test_model_save_load_roundtrip(tmp_path):
+    net = ResNet18Profile(NetworkConfig(base_channels=8))
+    model = ProfileModel(net, PX, 0.5, {"note": "x"})
+    cols = _tiny_data(3).columns
+    back = ProfileModel.load(model.save(tmp_path / "m.pt"))
+    np.testing.assert_array_equal(back.predict_um(cols), model.predict_um(cols))
+    assert back.meta == {"note": "x"} and back.height_scale_um == 0.5
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="junk.pt"):
+        ProfileModel.load(tmp_path / "junk.pt")
+
+
+# ------------------------------------------------------------------ join
+
+
+def test_join_material_flow_bins_like_the_vision_join():
+    import pandas as pd
+
+    rec = pd.DataFrame({"time_s": np.arange(4.0), "linewidth_um": 43.0})
+    qm = pd.DataFrame(
+        {
+            "time_s": [0.0, 0.5, 1.2, 3.9, 9.0, 2.5],
+            "material_flow_mL_s": [1e-8, 3e-8, 2e-8, 4e-8, 5e-8, np.nan],
+            "status": ["ok", "ok", "ok", "ok", "ok", "no_line"],
+        }
+    )
+    joined, summary = join_material_flow(rec, qm)
+    np.testing.assert_allclose(
+        joined["material_flow_mL_s"], [2e-8, 2e-8, np.nan, 4e-8], equal_nan=True
+    )
+    assert (joined["linewidth_um"] == 43.0).all()
+    assert summary == {
+        "seconds_filled": 3,
+        "seconds_without_frames": 1,
+        "frames_used": 4,
+        "frames_outside_record": 1,
+        "frames_not_ok": 1,
+    }
+    # a camera 1 mm behind the nozzle at 1 mm/s sees what was printed 1 s earlier
+    shifted, _ = join_material_flow(rec, qm, camera_offset_um=1000.0, platen_speed_mm_s=1.0)
+    np.testing.assert_allclose(
+        shifted["material_flow_mL_s"], [2e-8, np.nan, 4e-8, np.nan], equal_nan=True
+    )

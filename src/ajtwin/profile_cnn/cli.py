@@ -44,7 +44,7 @@ def _load_data(pairs_path, columns_path, synthetic, n_pairs, n_columns, seed, um
 def _training_options(f):
     options = [
         click.option("--seed", type=int, default=0, show_default=True),
-        click.option("--stage1-epochs", type=int, default=150, show_default=True),
+        click.option("--stage1-epochs", type=int, default=100, show_default=True),
         click.option("--stage2-epochs", type=int, default=50, show_default=True),
         click.option("--batch-size", type=int, default=32, show_default=True),
         click.option("--stage1-lr", type=float, default=1e-3, show_default=True),
@@ -282,6 +282,30 @@ def crossval(k, only, out, **kw):
         if f"{key}.mean" in s:
             click.echo(f"{key}: {s[key + '.mean']:.4g} (fold variance {s[key + '.var']:.3g})")
     click.echo(f"wrote {out}")
+
+
+@cnn.command("cv-summary")
+@click.argument("parts", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False), required=True)
+def cv_summary(parts, out):
+    """Merge cross-validation JSONs of folds run in separate processes (--only-fold)."""
+    from ajtwin.profile_cnn.evaluate import summarize
+
+    merged = None
+    for part in parts:
+        data = json.loads(Path(part).read_text())
+        if merged is None:
+            merged = {"k": data["k"], "config": data["config"], "folds": []}
+        elif data["config"] != merged["config"] or data["k"] != merged["k"]:
+            raise click.ClickException(f"{part}: made with other settings than {parts[0]}")
+        merged["folds"] += data["folds"]
+    folds = sorted({f["fold"] for f in merged["folds"]})
+    if len(folds) != len(merged["folds"]):
+        raise click.ClickException("the same fold appears in two parts")
+    merged["folds"].sort(key=lambda f: f["fold"])
+    merged["summary"] = summarize(merged["folds"])
+    Path(out).write_text(json.dumps(merged, indent=2))
+    click.echo(f"wrote {out} ({len(folds)} of {merged['k']} folds)")
 
 
 @cnn.command()

@@ -69,7 +69,7 @@ class TrainConfig:
     """
 
     seed: int = 0
-    stage1_epochs: int = 150
+    stage1_epochs: int = 100
     stage2_epochs: int = 50
     batch_size: int = 32
     stage1_lr: float = 1e-3

@@ -1,0 +1,238 @@
+"""``ajtwin machine add|show|history|list`` and ``ajtwin ingest`` (docs/registry.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+STATE_LABELS = (
+    ("droplet_diameter_um", "d_a", "µm"),
+    ("vial_volume_mL", "V_l", "mL"),
+    ("tube_deposition_um", "ΔR_T", "µm"),
+    ("nozzle_deposition_um", "ΔR_N", "µm"),
+    ("aerosol_fraction", "φ_A", "–"),
+)
+
+
+def store_option(func):
+    return click.option(
+        "--store",
+        "store",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        envvar="AJTWIN_STORE",
+        help="Registry file (default: $AJTWIN_STORE or ~/.local/share/ajtwin/registry.sqlite).",
+    )(func)
+
+
+def open_registry(store):
+    from ajtwin.store.registry import Registry, RegistryError
+
+    try:
+        return Registry(store)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _range(text):
+    if text is None:
+        return None
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected LOW,HIGH, got {text!r}") from None
+    return [low, high]
+
+
+@click.group()
+def machine():
+    """Machine registry: one twin per printer, carried from print to print."""
+
+
+@machine.command("add")
+@click.argument("name")
+@click.option("--current", "current_range", default=None, help="I_A limits LOW,HIGH [mA].")
+@click.option("--carrier", "carrier_range", default=None, help="Q_c limits LOW,HIGH [sccm].")
+@click.option("--sheath", "sheath_range", default=None, help="Q_s limits LOW,HIGH [sccm].")
+@click.option("--notes", default="", help="Free text (location, nozzle, ink...).")
+@store_option
+def add(name, current_range, carrier_range, sheath_range, notes, store):
+    """Register machine NAME (default limits: I_A 300–440 mA, Q_c 15–35, Q_s 30–80 sccm)."""
+    from ajtwin.store.registry import RegistryError
+
+    limits = {}
+    for key, text in (
+        ("atomizer_current_mA", current_range),
+        ("carrier_flow_sccm", carrier_range),
+        ("sheath_flow_sccm", sheath_range),
+    ):
+        value = _range(text)
+        if value is not None:
+            limits[key] = value
+    reg = open_registry(store)
+    try:
+        m = reg.add_machine(name, limits, notes)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"added machine {m['name']!r} to {reg.path}")
+    for key, (low, high) in m["limits"].items():
+        click.echo(f"  {key}: {low:g} – {high:g}")
+
+
+@machine.command("list")
+@store_option
+def list_machines(store):
+    """List the registered machines."""
+    reg = open_registry(store)
+    rows = reg.machines()
+    if not rows:
+        click.echo(f"no machines in {reg.path}")
+    for row in rows:
+        m = reg.machine(row["name"])
+        click.echo(f"{m['name']}  ({m['n_prints']} prints, added {m['created_at']})")
+
+
+@machine.command("show")
+@click.argument("name")
+@store_option
+def show(name, store):
+    """The machine's current twin: last state ± σ, θ, limits, recent anomalies."""
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        m = reg.machine(name)
+        last = reg.last_print(name)
+        anomalies = reg.anomalies(name)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"machine {m['name']}  (registry {reg.path})")
+    click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
+    for key, (low, high) in m["limits"].items():
+        click.echo(f"  limit {key}: {low:g} – {high:g}")
+    if last is None:
+        click.echo("  no prints yet: the first ingest starts from the initial-state fit")
+        return
+    click.echo(f"  last print: #{last['seq']} from {last['source']} ({last['ingested_at']})")
+    std = np.sqrt(np.diag(last["end_cov"]))
+    for i, (_, short, unit) in enumerate(STATE_LABELS):
+        click.echo(f"    {short:5s} = {last['end_mean'][i]:.4g} ± {std[i]:.2g} {unit}")
+    theta = ", ".join(f"{v:.3g}" for v in last["theta_after"])
+    click.echo(f"    θ [1/s] = [{theta}]")
+    if len(anomalies):
+        click.echo(f"  anomalies ({len(anomalies)}), latest:")
+        for _, row in anomalies.tail(5).iterrows():
+            click.echo(
+                f"    print #{row['seq']} at {row['detected_s']:.0f} s "
+                f"(onset ≈ {row['onset_s']:.0f} s): {row['description']}"
+            )
+
+
+@machine.command("history")
+@click.argument("name")
+@click.option(
+    "--csv",
+    "csv_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Also write the table as CSV.",
+)
+@store_option
+def history(name, csv_path, store):
+    """One row per print: end states, θ and anomaly count."""
+    import pandas as pd
+
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        table = reg.history(name)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    if table.empty:
+        click.echo(f"machine {name!r} has no prints yet")
+        return
+    show_cols = ["seq", "ingested_at", "duration_min", "anomalies"] + [
+        "end_" + key for key, _, _ in STATE_LABELS
+    ]
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        click.echo(table[show_cols].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if csv_path:
+        table.to_csv(csv_path, index=False)
+        click.echo(f"wrote {csv_path}")
+
+
+@click.command()
+@click.option("--machine", "machine_name", required=True, help="Registered machine name.")
+@click.argument("record", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option(
+    "--video",
+    type=click.Path(exists=True, path_type=Path),
+    default=None,
+    help="Alignment-camera video: fills linewidth/overspray (ajtwin.vision).",
+)
+@click.option("--um-per-px", type=float, default=None, help="Camera pixel size, µm (with --video).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@store_option
+def ingest(machine_name, record, video, um_per_px, progress, store):
+    """Run the machine's twin over RECORD (from its last state and θ) and store it."""
+    from tqdm import tqdm
+
+    from ajtwin.io.records import RecordError
+    from ajtwin.store.ingest import ingest_file
+    from ajtwin.store.registry import RegistryError
+
+    if video is not None and um_per_px is None:
+        raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")
+    reg = open_registry(store)
+    bar = None
+    state = {"done": 0}
+
+    def step(done):
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(unit="s", desc="twin", disable=not progress)
+        bar.update(done - state["done"])
+        state["done"] = done
+
+    try:
+        reg.machine(machine_name)
+        result = ingest_file(
+            reg,
+            machine_name,
+            record,
+            video=video,
+            um_per_px=um_per_px,
+            progress=step,
+            video_progress=progress,
+        )
+    except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    if result.duplicate:
+        click.echo(
+            f"{record}: already ingested as print #{result.seq} of {machine_name!r} "
+            "(same content hash); nothing changed"
+        )
+        return
+    click.echo(
+        f"ingested {record} as print #{result.seq} of {machine_name!r} "
+        f"({result.n_samples} s, {result.seconds:.1f} s wall, "
+        f"started from {result.summary['started_from']})"
+    )
+    end = result.summary["end_state"]
+    for key, short, unit in STATE_LABELS:
+        click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    if result.events:
+        click.echo(f"  {len(result.events)} anomaly event(s):")
+        for ev in result.events:
+            click.echo(
+                f"    detected {ev.detected_s:.0f} s (onset ≈ {ev.onset_s:.0f} s): "
+                f"{ev.description} [{', '.join(ev.detectors)}]"
+            )
+    else:
+        click.echo("  no anomalies")

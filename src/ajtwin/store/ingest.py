@@ -1,0 +1,254 @@
+"""Ingest a print into a machine's twin: run it from the machine's last state, store all.
+
+:func:`ingest_record` is the whole step: hash the print (duplicate → stop before any
+work), take the machine's last end state and θ (or the initial-state fit for its first
+print), optionally fill linewidth/overspray from the alignment-camera video, run the twin
+(EKF + EM), run the anomaly detectors on its innovations, and store everything in one
+transaction.
+
+Between prints the fast states restart (a new atomizer run: droplet size and aerosol
+fraction re-equilibrate within seconds to minutes), so their carried-over variance is
+widened by :data:`BETWEEN_PRINT_STD`; V_l, ΔR_T and ΔR_N carry over as they are.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ajtwin.store.registry import Registry, RegistryError, record_hash
+
+#: σ added between prints to d_a [µm] and φ_A [relative]; others carry over unchanged.
+BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.2}
+
+
+@dataclass
+class IngestResult:
+    machine: str
+    print_id: int
+    seq: int
+    duplicate: bool
+    content_hash: str
+    n_samples: int
+    events: list = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    run: object = None  # TwinRun (None for a duplicate)
+    detection: object = None  # DetectionResult (None for a duplicate)
+
+
+def carry_over(end_mean, end_cov) -> tuple[np.ndarray, np.ndarray]:
+    """Start state of the next print from the previous end state (see module docstring)."""
+    mean = np.asarray(end_mean, dtype=float).copy()
+    cov = np.asarray(end_cov, dtype=float).copy()
+    cov[0, 0] += BETWEEN_PRINT_STD["droplet_diameter_um"] ** 2
+    cov[4, 4] += (BETWEEN_PRINT_STD["aerosol_fraction_relative"] * mean[4]) ** 2
+    return mean, cov
+
+
+def join_video(record, video, um_per_px: float, *, progress: bool = True, fps=None):
+    """Fill the record's linewidth/overspray from an alignment-camera video (ajtwin.vision).
+
+    Returns the new record and the join summary.
+    """
+    import pandas as pd
+
+    from ajtwin.io.records import PrintRecord
+    from ajtwin.vision.extract import LineExtractor, open_source
+    from ajtwin.vision.join import join_features
+
+    from tqdm import tqdm
+
+    frames = open_source(video, fps=fps)
+    extractor = LineExtractor(um_per_px)
+    rows = [
+        extractor.process(gray, index=index, time_s=time_s).row()
+        for index, time_s, gray in tqdm(
+            frames, total=frames.count, unit="frame", desc="extract video", disable=not progress
+        )
+    ]
+    features = pd.DataFrame(rows)
+    if not features["status"].isin(("ok", "ok_std_fallback", "few_batches")).any():
+        counts = features["status"].value_counts().to_dict()
+        raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
+    joined, summary = join_features(
+        record.data,
+        features,
+        platen_speed_mm_s=float(record.meta.get("platen_speed_mm_s", 1.0)),
+    )
+    meta = dict(record.meta)
+    meta["vision"] = {"video": str(video), **summary}
+    return PrintRecord(joined, meta), summary
+
+
+def ingest_record(
+    registry: Registry,
+    machine: str,
+    record,
+    *,
+    source: str = "",
+    progress=None,
+    twin_overrides: dict | None = None,
+    detector_settings=None,
+) -> IngestResult:
+    """Run the machine's twin over one print and store the result (see module docstring).
+
+    Parameters
+    ----------
+    registry : Registry
+    machine : str
+        A registered machine name.
+    record : PrintRecord
+        The print (display units; NaN = not measured).
+    source : str
+        Where the print came from (file path), stored for the history.
+    progress : callable(int), optional
+        Steps done, for a progress bar.
+    twin_overrides : dict, optional
+        :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
+
+    Returns
+    -------
+    IngestResult (``duplicate=True`` and the existing print when it was ingested before).
+    """
+    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.estimation import Twin
+
+    t0 = time.perf_counter()
+    digest = record_hash(record)
+    existing = registry.find_print(machine, digest)
+    if existing is not None:
+        return IngestResult(
+            machine,
+            existing["id"],
+            existing["seq"],
+            True,
+            digest,
+            existing["n_samples"],
+            summary=existing["summary"],
+            seconds=time.perf_counter() - t0,
+        )
+    last = registry.last_print(machine)
+    twin = Twin.default(**(twin_overrides or {}))
+    if last is None:
+        start = None
+        expected = None
+    else:
+        start = carry_over(last["end_mean"], last["end_cov"])
+        twin.theta = np.asarray(last["theta_after"], dtype=float)
+        expected = last["seq"]
+    theta_before = twin.theta.copy()
+    run = twin.run(record, start=start, progress=progress)
+    detection = detect_run(run, record, detector_settings)
+
+    f = run.filtered
+    arrays = {
+        "time_s": run.time_s,
+        "means": run.means,
+        "stds": run.stds,
+        "covariances": np.asarray(f.covariances),
+        "predicted_outputs": np.asarray(f.predicted_outputs),
+        "innovation_variances": np.asarray(f.innovation_variances),
+        "measurements": record.outputs,
+        "inputs": record.inputs,
+        "nis": np.asarray(f.nis),
+        "n_measured": np.asarray(f.n_measured),
+        "theta_per_step": run.theta_per_step,
+    }
+    hist = run.theta_history
+    arrays["theta_history_time_s"] = hist["time_s"].to_numpy(float)
+    arrays["theta_history"] = hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(
+        float
+    )
+    summary = {
+        "end_state": dict(
+            zip(
+                (
+                    "droplet_diameter_um",
+                    "vial_volume_mL",
+                    "tube_deposition_um",
+                    "nozzle_deposition_um",
+                    "aerosol_fraction",
+                ),
+                np.asarray(run.end_mean).tolist(),
+            )
+        ),
+        "end_std": np.sqrt(np.diag(run.end_cov)).tolist(),
+        "mean_nis": float(np.nanmean(np.asarray(f.nis))),
+        "n_anomalies": len(detection.events),
+        "em_updates": int(len(hist)),
+        "started_from": "initial fit" if last is None else f"print {last['seq']}",
+    }
+    meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
+    if run.initial is not None:
+        start_mean, start_cov = run.start_mean, run.start_cov
+    else:
+        start_mean, start_cov = start
+    try:
+        print_id = registry.save_print(
+            machine,
+            content_hash=digest,
+            source=source,
+            meta=meta,
+            summary=summary,
+            n_samples=len(record),
+            duration_s=float(record.duration_s + 1.0),
+            start_mean=start_mean,
+            start_cov=start_cov,
+            end_mean=run.end_mean,
+            end_cov=run.end_cov,
+            theta_before=theta_before,
+            theta_after=twin.theta,
+            arrays=arrays,
+            anomalies=detection.events,
+            expected_last_seq=expected,
+        )
+    except RegistryError:
+        # a concurrent ingest of the same print may have won the race
+        existing = registry.find_print(machine, digest)
+        if existing is None:
+            raise
+        return IngestResult(
+            machine, existing["id"], existing["seq"], True, digest, existing["n_samples"]
+        )
+    seq = registry.get_print(print_id)["seq"]
+    return IngestResult(
+        machine,
+        print_id,
+        seq,
+        False,
+        digest,
+        len(record),
+        events=detection.events,
+        summary=summary,
+        seconds=time.perf_counter() - t0,
+        run=run,
+        detection=detection,
+    )
+
+
+def ingest_file(
+    registry: Registry,
+    machine: str,
+    path,
+    *,
+    video=None,
+    um_per_px=None,
+    progress=None,
+    video_progress: bool = True,
+) -> IngestResult:
+    """Read a print file (and optionally its video) and :func:`ingest_record` it."""
+    from ajtwin.io.records import read_record
+
+    path = Path(path)
+    record = read_record(path)
+    source = str(path)
+    if video is not None:
+        if um_per_px is None:
+            raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
+        record, _ = join_video(record, video, um_per_px, progress=video_progress)
+        source += f" + {video}"
+    return ingest_record(registry, machine, record, source=source, progress=progress)

@@ -168,6 +168,8 @@ def _synthetic_table(coef_lw, coef_lo, rng):
                 x = np.array([da, dr, dr**2, dr**3, qc, qs, 1.0])
                 rows.append(
                     {
+                        "case": f"dRN{dr}_Qc{qc}_Qs{qs}",
+                        "max_speed_m_s": 100.0 + 2.0 * dr,
                         "status": "ok",
                         "converged": True,
                         "nozzle_deposition_um": dr,
@@ -179,8 +181,26 @@ def _synthetic_table(coef_lw, coef_lo, rng):
                         "tip_resistance_pa_s_m3": 4e9 + 1e8 * dr + 2e6 * dr**2 + 3e4 * dr**3,
                     }
                 )
+    # a supersonic case with nonsense outputs: the Mach filter must keep it out of the fit
+    for da in (2.0, 3.0, 4.0):
+        rows.append(
+            {
+                "case": "dRN40_Qc23_Qs50",
+                "max_speed_m_s": 400.0,
+                "status": "ok",
+                "converged": True,
+                "nozzle_deposition_um": 40.0,
+                "carrier_flow_sccm": 23,
+                "sheath_flow_sccm": 50,
+                "droplet_diameter_um": da,
+                "linewidth_um": 1000.0,
+                "overspray_um": 1000.0,
+                "tip_resistance_pa_s_m3": 1e12,
+            }
+        )
     rows.append(
         {
+            "case": "dRN60_Qc23_Qs50",
             "status": "failed",
             "nozzle_deposition_um": 60.0,
             "carrier_flow_sccm": 23,
@@ -202,7 +222,8 @@ def test_fit_recovers_known_coefficients_and_keeps_alpha_phi(tmp_path):
         "linewidth": {"aerosol_fraction": 2e7},
         "overspray": {"aerosol_fraction": 1e7},
     }
-    fit = fit_output_model(table, reference)
+    fit = fit_output_model(table, reference, max_speed_m_s=209.0)
+    assert fit["excluded_cases"] == ["dRN40_Qc23_Qs50", "dRN60_Qc23_Qs50"]
     got = fit["linewidth"]
     assert got["droplet_diameter"] == pytest.approx(-3.0)
     assert got["nozzle_deposition_3"] == pytest.approx(0.001)
@@ -219,7 +240,8 @@ def test_fit_recovers_known_coefficients_and_keeps_alpha_phi(tmp_path):
         "linewidth_down_with_droplet": True,
         "linewidth_up_with_nozzle_deposition": True,
     }
-    resistance = fit_tip_resistance(table, (0.0, 23.0, 50.0))
+    resistance = fit_tip_resistance(table, (0.0, 23.0, 50.0), max_speed_m_s=209.0)
+    assert resistance["excluded_nozzle_deposition_um"] == [40.0]
     np.testing.assert_allclose(resistance["fit_coefficients"], [4e9, 1e8, 2e6, 3e4], rtol=1e-6)
     assert resistance["paper_a0_pa_s_m3"] == 4.57e9
     # the written file has the schema the twin loads

@@ -61,6 +61,7 @@ _SI_FACTORS: dict[str, float] = {
     "mm/s": 1e-3,
     "um3/s": UM3_IN_ML * ML_IN_M3,
     "deg": 3.141592653589793 / 180.0,
+    "m/s": 1.0,
 }
 
 

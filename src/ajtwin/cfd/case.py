@@ -116,7 +116,7 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     }
     uniform = "1"
     cone_grading = str(float(m["cone_grading"]))
-    gap_grading = "((0.5 0.5 4) (0.5 0.5 0.25))"
+    gap_grading = str(m.get("gap_grading", "((0.5 0.5 4) (0.5 0.5 0.25))"))
     blocks = []  # (name, (p0, p1, p2, p3), (nx, nr), (gx, gr))
 
     def quad(xa, xb, ra_top, rb_top, ra_bot, rb_bot):

@@ -229,9 +229,10 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference):
     table = pd.read_csv(summary)
     ref = fitting.read_toml(reference) if reference else _packaged_reference()
     meta = sweep_metadata(sweep_dir, table)
+    limit = _geometry(None).max_trusted_speed
     try:
-        result = fitting.fit_output_model(table, ref)
-        resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]))
+        result = fitting.fit_output_model(table, ref, limit)
+        resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     except ValueError as exc:
         raise click.ClickException(f"{summary}: {exc}") from None
     fitting.write_toml(fitting.coefficient_document(result, meta), coefficients_out)
@@ -273,9 +274,10 @@ def report(sweep_dir, fine_dir, json_out):
     sweep_dir = Path(sweep_dir)
     table = pd.read_csv(sweep_dir / "summary.csv")
     meta = reporting.sweep_metadata(sweep_dir, table)
+    limit = _geometry(None).max_trusted_speed
     ref = _packaged_reference()
-    fitted = fitting.fit_output_model(table, ref)
-    resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]))
+    fitted = fitting.fit_output_model(table, ref, limit)
+    resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     figures = {
         "sweep": {
             k: meta.get(k)
@@ -308,7 +310,7 @@ def report(sweep_dir, fine_dir, json_out):
     click.echo("signs: " + ", ".join(f"{k}={val}" for k, val in v["signs"].items()))
     if fine_dir:
         fine = pd.read_csv(Path(fine_dir) / "summary.csv")
-        comparison = reporting.mesh_comparison(table, fine, ref)
+        comparison = reporting.mesh_comparison(table, fine, ref, limit)
         figures["mesh_comparison"] = comparison
         click.echo(
             f"mesh study on {comparison['rows']} matched rows "

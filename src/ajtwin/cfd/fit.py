@@ -39,11 +39,25 @@ COEFFICIENT_KEYS = (
 _OUTPUT_COLUMN = {"linewidth": "linewidth_um", "overspray": "overspray_um"}
 
 
-def _usable(table: pd.DataFrame, column: str) -> pd.DataFrame:
+def _usable(table: pd.DataFrame, column: str, max_speed_m_s: float | None = None):
+    """Finished, converged rows with a finite ``column`` and peak gas speed ≤ the limit."""
     ok = table[(table["status"] == "ok") & np.isfinite(table[column].astype(float))]
     if "converged" in ok:
         ok = ok[ok["converged"].astype(bool)]
+    if max_speed_m_s is not None:
+        ok = ok[ok["max_speed_m_s"].astype(float) <= max_speed_m_s]
     return ok
+
+
+def excluded_cases(table: pd.DataFrame, max_speed_m_s: float | None) -> list[str]:
+    """Cases left out of the fits: failed, not converged, or faster than the limit."""
+    cases = table.groupby("case").first()
+    bad = cases["status"] != "ok"
+    if "converged" in cases:
+        bad |= ~cases["converged"].fillna(False).astype(bool)
+    if max_speed_m_s is not None and "max_speed_m_s" in cases:
+        bad |= ~(cases["max_speed_m_s"].astype(float) <= max_speed_m_s)
+    return sorted(cases.index[bad])
 
 
 def design_matrix(frame: pd.DataFrame) -> np.ndarray:
@@ -62,7 +76,9 @@ def design_matrix(frame: pd.DataFrame) -> np.ndarray:
     )
 
 
-def fit_output_model(table: pd.DataFrame, reference: dict) -> dict:
+def fit_output_model(
+    table: pd.DataFrame, reference: dict, max_speed_m_s: float | None = None
+) -> dict:
     """Least-squares output-model coefficients for linewidth and overspray.
 
     Parameters
@@ -71,6 +87,8 @@ def fit_output_model(table: pd.DataFrame, reference: dict) -> dict:
         The sweep summary (one row per case and d_a).
     reference : dict
         A coefficient file as read by tomllib (supplies α^φ and φ_A0).
+    max_speed_m_s : float, optional
+        Leave out cases whose peak gas speed exceeds this (compressible tip flow).
 
     Returns
     -------
@@ -83,7 +101,7 @@ def fit_output_model(table: pd.DataFrame, reference: dict) -> dict:
     )
     out = {}
     for output, column in _OUTPUT_COLUMN.items():
-        rows = _usable(table, column)
+        rows = _usable(table, column, max_speed_m_s)
         if len(rows) < 8:
             raise ValueError(f"only {len(rows)} usable rows for {output}; need ≥ 8 to fit 7 terms")
         a = design_matrix(rows)
@@ -106,6 +124,8 @@ def fit_output_model(table: pd.DataFrame, reference: dict) -> dict:
             "rows": int(len(rows)),
         }
     out["anchor_aerosol_fraction"] = anchor_fraction
+    out["max_speed_m_s"] = max_speed_m_s
+    out["excluded_cases"] = excluded_cases(table, max_speed_m_s)
     return out
 
 
@@ -133,15 +153,35 @@ def predict(
 
 
 def fit_tip_resistance(
-    table: pd.DataFrame, nominal: tuple[float, float, float], degree: int = 3
+    table: pd.DataFrame,
+    nominal: tuple[float, float, float],
+    degree: int = 3,
+    max_speed_m_s: float | None = None,
 ) -> dict:
-    """Cubic R_3^N(ΔR_N) [Pa s/m³, ΔR_N in µm] at the nominal flows, vs the paper's polynomial."""
+    """Cubic R_3^N(ΔR_N) [Pa s/m³, ΔR_N in µm] at the nominal flows, vs the paper's polynomial.
+
+    Cases faster than ``max_speed_m_s`` (compressible tip flow) are left out of the
+    fit but listed, with their values, under ``excluded_*``.
+    """
     _, qc, qs = nominal
-    rows = table[
+    at_nominal = table[
         (table["status"] == "ok")
         & np.isclose(table["carrier_flow_sccm"], qc)
         & np.isclose(table["sheath_flow_sccm"], qs)
     ]
+    if "converged" in at_nominal:
+        at_nominal = at_nominal[at_nominal["converged"].astype(bool)]
+    fast = (
+        at_nominal["max_speed_m_s"].astype(float) > max_speed_m_s
+        if max_speed_m_s is not None
+        else np.zeros(len(at_nominal), dtype=bool)
+    )
+    rows = at_nominal[~fast]
+    excluded = (
+        at_nominal[fast]
+        .groupby("nozzle_deposition_um")[["tip_resistance_pa_s_m3", "max_speed_m_s"]]
+        .first()
+    )
     per_case = rows.groupby("nozzle_deposition_um")["tip_resistance_pa_s_m3"].first()
     dr = per_case.index.to_numpy(float)
     r = per_case.to_numpy(float)
@@ -168,6 +208,10 @@ def fit_tip_resistance(
         "paper_a1_pa_s_m3_per_um": float(paper[1]),
         "a0_ratio_cfd_to_paper": float(coef[0] / paper[0]),
         "a1_ratio_cfd_to_paper": float(slope0 / paper[1]),
+        "max_speed_m_s_limit": max_speed_m_s,
+        "excluded_nozzle_deposition_um": excluded.index.to_numpy(float).tolist(),
+        "excluded_resistance_pa_s_m3": excluded["tip_resistance_pa_s_m3"].tolist(),
+        "excluded_max_speed_m_s": excluded["max_speed_m_s"].tolist(),
     }
 
 
@@ -213,6 +257,8 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
             "droplets_per_case_and_size": int(meta.get("n_droplets", 0)),
             "sweep_wall_time_s": float(meta.get("wall_time_s", 0.0)),
             "fit_date": created,
+            "fit_max_gas_speed_m_s": fit.get("max_speed_m_s") or 0.0,
+            "fit_excluded_cases": list(fit.get("excluded_cases", [])),
             "linewidth_fit_rms_um": fit["linewidth"]["rms_um"],
             "overspray_fit_rms_um": fit["overspray"]["rms_um"],
             "linewidth_fit_r2": fit["linewidth"]["r2"],

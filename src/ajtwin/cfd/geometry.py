@@ -45,7 +45,12 @@ _LENGTHS = (
 
 @dataclass(frozen=True)
 class Geometry:
-    """Deposition-head dimensions in SI (m, rad, kg/m³) plus mesh settings."""
+    """Deposition-head dimensions in SI (m, rad, kg/m³), gas sound speed, mesh settings."""
+
+    @property
+    def max_trusted_speed(self) -> float:
+        """Peak gas speed [m/s] up to which the incompressible solve is used in fits."""
+        return self.max_mach * self.sound_speed
 
     carrier_radius: float
     carrier_wall: float
@@ -61,6 +66,8 @@ class Geometry:
     sheath_angle: float
     wedge_angle: float
     gas_density: float
+    sound_speed: float = 349.0
+    max_mach: float = 0.6
     mesh: dict = field(default_factory=dict)
     source: str = "packaged geometry.toml"
 
@@ -170,7 +177,14 @@ def load_geometry(path: str | Path | None = None) -> Geometry:
         where = str(path)
     raw = tomllib.loads(text)
     values: dict[str, float] = {}
-    for name in (*_LENGTHS, "sheath_angle", "wedge_angle", "gas_density"):
+    for name in (
+        *_LENGTHS,
+        "sheath_angle",
+        "wedge_angle",
+        "gas_density",
+        "sound_speed",
+        "max_mach",
+    ):
         if name not in raw:
             raise ValueError(f"{where}: entry [{name}] is missing")
         entry = raw[name]

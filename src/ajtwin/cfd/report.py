@@ -99,13 +99,15 @@ def matched_rows(a: pd.DataFrame, b: pd.DataFrame) -> tuple[pd.DataFrame, pd.Dat
     return ka.loc[common].reset_index(drop=True), kb.loc[common].reset_index(drop=True)
 
 
-def mesh_comparison(coarse: pd.DataFrame, fine: pd.DataFrame, reference: dict) -> dict:
+def mesh_comparison(
+    coarse: pd.DataFrame, fine: pd.DataFrame, reference: dict, max_speed_m_s: float | None = None
+) -> dict:
     """Coefficients fitted to the same cases on two meshes, and their change."""
     from ajtwin.cfd.fit import COEFFICIENT_KEYS, fit_output_model
 
     a, b = matched_rows(coarse, fine)
-    fit_a = fit_output_model(a, reference)
-    fit_b = fit_output_model(b, reference)
+    fit_a = fit_output_model(a, reference, max_speed_m_s)
+    fit_b = fit_output_model(b, reference, max_speed_m_s)
     out = {
         "rows": len(a),
         "cells_coarse": int(a["cells"].max()),

@@ -55,12 +55,11 @@ def join_video(record, video, um_per_px: float, *, progress: bool = True, fps=No
     Returns the new record and the join summary.
     """
     import pandas as pd
+    from tqdm import tqdm
 
     from ajtwin.io.records import PrintRecord
     from ajtwin.vision.extract import LineExtractor, open_source
     from ajtwin.vision.join import join_features
-
-    from tqdm import tqdm
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)

@@ -1,0 +1,214 @@
+"""Input advice: settings that reach a target linewidth with least overspray.
+
+The paper's "process tolerance control" with a human in the loop: from the machine's
+current state estimate, find I_A, Q_c, Q_s within the machine's limits (and the validity
+range of H's fit, Q_c 15–35 sccm, I_A 300–440 mA) such that the forecast linewidth after a
+settling time equals the target, overspray is least (and below ``max_overspray_um`` when
+given). Each candidate is scored with :func:`ajtwin.apps.forecast.forecast` (the same EKF
+prediction the forecast uses), so the answer carries its uncertainty.
+
+Optimiser: SciPy SLSQP on inputs scaled to [0, 1], from several starts (the current
+inputs, the box centre and corners); the best feasible result wins. If the target cannot
+be reached, the settings that come closest are returned with ``reachable=False``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from ajtwin.apps.forecast import forecast
+from ajtwin.model import INPUT_NAMES
+
+#: validity range of H's Box–Behnken fit (SPEC §4 / paper App. B.3)
+H_FIT_LIMITS = {"atomizer_current_mA": (300.0, 440.0), "carrier_flow_sccm": (15.0, 35.0)}
+
+
+@dataclass
+class Advice:
+    inputs: np.ndarray  # (3,) recommended [I_A mA, Q_c sccm, Q_s sccm]
+    predicted: dict  # output name -> (mean, std) after the settling time
+    current_inputs: np.ndarray
+    current_predicted: dict
+    reachable: bool
+    target_linewidth_um: float
+    max_overspray_um: float | None
+    bounds: list
+    settle_s: int
+    message: str = ""
+    candidates: list = field(default_factory=list)
+    overspray_ok: bool = True  # predicted overspray within max_overspray_um
+
+    def rows(self):
+        names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
+        out = []
+        for i, name in enumerate(INPUT_NAMES):
+            out.append((name, float(self.current_inputs[i]), float(self.inputs[i]), None))
+        for name in names:
+            cm, cs = self.current_predicted[name]
+            m, s = self.predicted[name]
+            out.append((name, cm, m, s))
+        return out
+
+
+def effective_bounds(limits: dict | None) -> list[tuple[float, float]]:
+    """Machine limits ∩ H-fit validity, per input, as (low, high)."""
+    from ajtwin.store.registry import DEFAULT_LIMITS
+
+    limits = limits or DEFAULT_LIMITS
+    bounds = []
+    for name in INPUT_NAMES:
+        low, high = limits.get(name, DEFAULT_LIMITS[name])
+        if name in H_FIT_LIMITS:
+            low = max(low, H_FIT_LIMITS[name][0])
+            high = min(high, H_FIT_LIMITS[name][1])
+        if not low < high:
+            raise ValueError(f"no admissible range for {name}: [{low}, {high}]")
+        bounds.append((float(low), float(high)))
+    return bounds
+
+
+def advise(
+    twin,
+    mean,
+    cov,
+    current_inputs,
+    target_linewidth_um: float,
+    *,
+    max_overspray_um: float | None = None,
+    limits: dict | None = None,
+    settle_s: int = 120,
+    tolerance_um: float = 0.05,
+) -> Advice:
+    """Recommend inputs (see module docstring).
+
+    Parameters
+    ----------
+    twin : ajtwin.estimation.Twin (model, Σ_ξ, θ)
+    mean, cov : the machine's current state estimate (display units)
+    current_inputs : (3,) [mA, sccm, sccm]
+    target_linewidth_um : float
+    max_overspray_um : float, optional
+    limits : dict, optional
+        Machine limits {input name: [low, high]} (registry); default limits otherwise.
+    settle_s : int
+        Seconds after the change at which the outputs are judged.
+    tolerance_um : float
+        Accepted |L_w − target| for a solution to count as reaching the target.
+    """
+    if not np.isfinite(target_linewidth_um) or target_linewidth_um <= 0:
+        raise ValueError(f"target linewidth must be > 0 µm, got {target_linewidth_um}")
+    bounds = effective_bounds(limits)
+    lo = np.array([b[0] for b in bounds])
+    hi = np.array([b[1] for b in bounds])
+    span = hi - lo
+
+    def predict(u):
+        fc = forecast(twin, mean, cov, np.tile(u, (settle_s, 1)))
+        return fc.output_means[-1], fc.output_stds[-1]
+
+    cache: dict = {}
+
+    def outputs(z):
+        key = tuple(np.round(z, 12))
+        if key not in cache:
+            cache[key] = predict(lo + np.clip(z, 0, 1) * span)[0]
+        return cache[key]
+
+    def objective(z):
+        return outputs(z)[1]  # overspray, µm
+
+    current = np.asarray(current_inputs, dtype=float)
+    starts = [np.clip((current - lo) / span, 0, 1), np.full(3, 0.5)]
+    starts += [
+        np.array(c, dtype=float) for c in ((0.2, 0.2, 0.8), (0.8, 0.8, 0.2), (0.2, 0.8, 0.5))
+    ]
+    on_target = {"type": "eq", "fun": lambda z: outputs(z)[0] - target_linewidth_um}
+
+    def solve(constraints):
+        found = []
+        for z0 in starts:
+            res = optimize.minimize(
+                objective,
+                z0,
+                method="SLSQP",
+                bounds=[(0.0, 1.0)] * 3,
+                constraints=constraints,
+                options={"maxiter": 100, "ftol": 1e-6, "eps": 1e-4},
+            )
+            z = np.clip(res.x, 0, 1)
+            y = outputs(z)
+            hits = abs(y[0] - target_linewidth_um) <= tolerance_um
+            below = max_overspray_um is None or y[1] <= max_overspray_um + 1e-6
+            found.append(
+                {
+                    "z": z,
+                    "lw": float(y[0]),
+                    "lo": float(y[1]),
+                    "hits": bool(hits),
+                    "ok": bool(below),
+                }
+            )
+        return found
+
+    constraints = [on_target]
+    if max_overspray_um is not None:
+        constraints.append({"type": "ineq", "fun": lambda z: max_overspray_um - outputs(z)[1]})
+    candidates = solve(constraints)
+    feasible = [c for c in candidates if c["hits"] and c["ok"]]
+    if not feasible and max_overspray_um is not None:
+        # the linewidth may be reachable, only not within the overspray limit
+        candidates += solve([on_target])
+        feasible = [c for c in candidates if c["hits"]]
+    if feasible:
+        best = min(feasible, key=lambda c: c["lo"])
+        reachable = True
+        if best["ok"]:
+            message = "target reached"
+        else:
+            message = (
+                f"target linewidth reached, but the least overspray there is {best['lo']:.1f} µm "
+                f"> the limit {max_overspray_um:g} µm"
+            )
+    else:
+        # closest linewidth within the bounds
+        res = min(
+            (
+                optimize.minimize(
+                    lambda z: (outputs(z)[0] - target_linewidth_um) ** 2,
+                    z0,
+                    method="L-BFGS-B",
+                    bounds=[(0.0, 1.0)] * 3,
+                    options={"eps": 1e-4},
+                )
+                for z0 in starts
+            ),
+            key=lambda r: r.fun,
+        )
+        y = outputs(res.x)
+        best = {"z": np.clip(res.x, 0, 1), "lw": float(y[0]), "lo": float(y[1]), "ok": False}
+        reachable = False
+        message = (
+            f"target {target_linewidth_um:g} µm not reachable within the limits; "
+            f"closest linewidth {best['lw']:.2f} µm"
+        )
+    u_best = lo + best["z"] * span
+    names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
+    m, s = predict(u_best)
+    cm, cs = predict(current)
+    return Advice(
+        inputs=u_best,
+        predicted={n: (float(m[i]), float(s[i])) for i, n in enumerate(names)},
+        current_inputs=current,
+        current_predicted={n: (float(cm[i]), float(cs[i])) for i, n in enumerate(names)},
+        reachable=reachable,
+        target_linewidth_um=float(target_linewidth_um),
+        max_overspray_um=max_overspray_um,
+        bounds=bounds,
+        settle_s=settle_s,
+        message=message,
+        candidates=[{**c, "u": (lo + c["z"] * span).tolist()} for c in candidates],
+        overspray_ok=max_overspray_um is None or float(m[1]) <= max_overspray_um + 1e-6,
+    )

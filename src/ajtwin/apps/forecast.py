@@ -1,0 +1,225 @@
+"""Forecast outputs with uncertainty under an input schedule (paper §4 simulation engine).
+
+From a state estimate (mean, covariance) and θ, the EKF prediction step
+(:func:`ajtwin.estimation.twin.predict`: x̂ ← f_d(x̂, u; θ), P ← F P Fᵀ + Σ_ξ) is iterated
+over the planned inputs in a ``lax.scan``; outputs are g(x̂, u) with variance
+G P Gᵀ (G = ∂g/∂x), optionally plus the measurement noise (a band for what the sensors
+will read rather than for the true line).
+
+Schedules are written the way an operator says them: ``carrier_flow_sccm=26@+60s``
+(``Q_c`` to 26 sccm 60 s from now); names may be the column names or ``I_A``/``Q_c``/
+``Q_s``; times ``+90s``, ``+5min``, ``+1.5h`` or plain seconds.
+
+Examples
+--------
+>>> parse_change("Q_c=26@+1min")
+Change(time_s=60.0, input_index=1, value=26.0)
+>>> parse_duration("30min"), parse_duration("+90s"), parse_duration("2h")
+(1800.0, 90.0, 7200.0)
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from ajtwin._jax import jax, jnp
+from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+from ajtwin.model.system import check_input, output_function
+
+INPUT_ALIASES = {
+    "i_a": 0,
+    "current": 0,
+    "atomizer_current": 0,
+    "q_c": 1,
+    "carrier": 1,
+    "carrier_flow": 1,
+    "q_s": 2,
+    "sheath": 2,
+    "sheath_flow": 2,
+    **{name.lower(): i for i, name in enumerate(INPUT_NAMES)},
+}
+_UNITS_S = {"": 1.0, "s": 1.0, "sec": 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
+
+
+class Change(NamedTuple):
+    time_s: float  # seconds after the forecast start
+    input_index: int  # 0 I_A [mA], 1 Q_c [sccm], 2 Q_s [sccm]
+    value: float  # display units
+
+
+def parse_duration(text: str) -> float:
+    """``"30min"``, ``"+90s"``, ``"1.5h"``, ``"45"`` → seconds."""
+    m = re.fullmatch(r"\s*\+?\s*([0-9]*\.?[0-9]+)\s*([a-z]*)\s*", str(text).lower())
+    if not m or m.group(2) not in _UNITS_S:
+        raise ValueError(f"cannot read the duration {text!r} (use e.g. 90s, 30min, 1.5h)")
+    return float(m.group(1)) * _UNITS_S[m.group(2)]
+
+
+def parse_change(text: str) -> Change:
+    """``NAME=VALUE@+TIME`` → :class:`Change` (``@TIME`` defaults to now)."""
+    m = re.fullmatch(r"\s*([A-Za-z_]+)\s*=\s*([-+0-9.eE]+)\s*(?:@\s*(.+))?", text)
+    if not m:
+        raise ValueError(f"cannot read the input change {text!r} (use e.g. Q_c=26@+60s)")
+    name = m.group(1).lower()
+    if name not in INPUT_ALIASES:
+        raise ValueError(
+            f"unknown input {m.group(1)!r} in {text!r}; use one of {', '.join(INPUT_NAMES)} "
+            "or I_A, Q_c, Q_s"
+        )
+    value = float(m.group(2))
+    when = parse_duration(m.group(3)) if m.group(3) else 0.0
+    return Change(when, INPUT_ALIASES[name], value)
+
+
+def input_schedule(base_u, changes, horizon_s: float) -> np.ndarray:
+    """Inputs (T, 3), one row per second of the horizon, base inputs then the changes.
+
+    >>> u = input_schedule([375, 23, 50], [Change(2.0, 1, 26.0)], 4)
+    >>> u[:, 1].tolist()
+    [23.0, 23.0, 26.0, 26.0]
+    """
+    n = int(round(horizon_s))
+    if n < 1:
+        raise ValueError(f"horizon must be at least 1 s, got {horizon_s}")
+    u = np.tile(np.asarray(base_u, dtype=float), (n, 1))
+    for change in sorted(changes, key=lambda c: c.time_s):
+        if change.time_s >= n:
+            raise ValueError(
+                f"change of {INPUT_NAMES[change.input_index]} at +{change.time_s:g} s is after "
+                f"the horizon ({n} s)"
+            )
+        u[int(round(change.time_s)) :, change.input_index] = change.value
+    return check_input(u)
+
+
+@dataclass
+class Forecast:
+    """Forecast states and outputs, one row per second (t = 1 … T after the start)."""
+
+    time_s: np.ndarray  # (T,)
+    inputs: np.ndarray  # (T, 3)
+    state_means: np.ndarray  # (T, 5)
+    state_stds: np.ndarray  # (T, 5)
+    output_means: np.ndarray  # (T, 5)
+    output_stds: np.ndarray  # (T, 5)
+
+    def to_frame(self) -> pd.DataFrame:
+        frame = pd.DataFrame({"time_s": self.time_s})
+        for i, name in enumerate(INPUT_NAMES):
+            frame[name] = self.inputs[:, i]
+        for i, name in enumerate(OUTPUT_NAMES):
+            frame[name] = self.output_means[:, i]
+            frame[name + "_std"] = self.output_stds[:, i]
+        for i, name in enumerate(STATE_NAMES):
+            frame[name] = self.state_means[:, i]
+            frame[name + "_std"] = self.state_stds[:, i]
+        return frame
+
+
+def _forecast_scan(spec, mean, cov, inputs, theta, process_cov):
+    from ajtwin.estimation.twin import predict
+
+    def g(x, u):
+        return output_function(x, u, spec.params, spec.coefficients)
+
+    def body(carry, u):
+        m, p = carry
+        m, p = predict(spec, m, p, u, theta, process_cov)
+        y = g(m, u)
+        jac = jax.jacfwd(g)(m, u)
+        var = jnp.einsum("ij,jk,ik->i", jac, p, jac)
+        return (m, p), (m, jnp.diagonal(p), y, var)
+
+    _, out = jax.lax.scan(body, (mean, cov), inputs)
+    return out
+
+
+_forecast_scan = jax.jit(_forecast_scan)
+
+
+def forecast(
+    twin,
+    mean,
+    cov,
+    inputs,
+    theta=None,
+    *,
+    include_measurement_noise: bool = False,
+) -> Forecast:
+    """Propagate (mean, cov) through the model under ``inputs`` (T, 3), one step per second.
+
+    Parameters
+    ----------
+    twin : ajtwin.estimation.Twin
+        Model, process noise Σ_ξ and (default) θ.
+    mean : (5,) start state, display units; cov : (5, 5)
+    inputs : (T, 3) inputs [mA, sccm, sccm]; row k drives the step k → k+1
+    theta : (5,) θ [1/s], default ``twin.theta``
+    include_measurement_noise : bool
+        Add the sensors' σ² to the output variances.
+
+    Returns
+    -------
+    Forecast
+    """
+    inputs = check_input(np.asarray(inputs, dtype=float))
+    theta = twin.theta if theta is None else theta
+    m, pdiag, y, var = _forecast_scan(
+        twin.spec,
+        jnp.asarray(mean, dtype=float),
+        jnp.asarray(cov, dtype=float),
+        jnp.asarray(inputs),
+        jnp.asarray(theta, dtype=float),
+        jnp.asarray(twin.process_cov),
+    )
+    var = np.asarray(var)
+    if include_measurement_noise:
+        var = var + twin.measurement_var
+    return Forecast(
+        time_s=np.arange(1, len(inputs) + 1, dtype=float),
+        inputs=inputs,
+        state_means=np.asarray(m),
+        state_stds=np.sqrt(np.maximum(np.asarray(pdiag), 0.0)),
+        output_means=np.asarray(y),
+        output_stds=np.sqrt(np.maximum(var, 0.0)),
+    )
+
+
+def plot_forecast(fc: Forecast, path, title: str = "Forecast", history=None):
+    """L_w, L_o, P_c, P_s with ±2σ bands (and the recent history when given) → PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]")
+    fig, axes = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
+    t_min = fc.time_s / 60.0
+    for i, ax in enumerate(axes[:4]):
+        mu, sd = fc.output_means[:, i], fc.output_stds[:, i]
+        if history is not None:
+            th, yh = history
+            ax.plot(np.asarray(th) / 60.0, np.asarray(yh)[:, i], ".", ms=1.5, color="0.6")
+        ax.fill_between(t_min, mu - 2 * sd, mu + 2 * sd, alpha=0.3, label="±2σ")
+        ax.plot(t_min, mu, lw=1.5, label="forecast")
+        ax.set_ylabel(labels[i])
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=8)
+    ax = axes[4]
+    ax.plot(t_min, fc.inputs[:, 1], label="Q_c [sccm]")
+    ax.plot(t_min, fc.inputs[:, 2], label="Q_s [sccm]")
+    ax.plot(t_min, fc.inputs[:, 0] / 10.0, label="I_A / 10 [mA]")
+    ax.set_ylabel("inputs")
+    ax.set_xlabel("minutes from now")
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

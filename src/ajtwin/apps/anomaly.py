@@ -17,8 +17,9 @@ the pattern of innovation signs and state corrections (:func:`label_cause`).
 
 Thresholds are not the textbook ones: the twin's innovations are autocorrelated (the
 virtual printer is not the twin's model), so ``drift``/``threshold``/``alpha`` were set on
-clean prints (``exp1`` seeds 10–13, ``exp2`` and ``exp3`` seed 10; 7.5 h with input steps) and the false-alarm rate is measured on ``clean_long``
-(a different scenario and seed), see docs/anomalies.md.
+clean prints (``exp1`` seeds 10–13, ``exp2`` and ``exp3`` seed 10: 9 h with input
+steps) and the false-alarm rate is measured on ``clean_long`` (a different scenario and
+seed), see docs/anomalies.md.
 
 Examples
 --------
@@ -44,7 +45,9 @@ SHORT_STATE = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
 #: The likely-cause labels (paper §4; issue 8).
 CAUSES = {
     "nozzle_clog": "nozzle clog (both pressures and L_w/L_o rising, ΔR_N growing)",
-    "carrier_leak": "carrier leak, MFC drift or carrier-pressure sensor drift (P_c falling or alone)",
+    "carrier_leak": (
+        "carrier leak, MFC drift or carrier-pressure sensor drift (P_c falling or alone)"
+    ),
     "atomizer": "atomizer trouble (Q_m and φ_A falling)",
     "ink_low": "ink running out (V_l low)",
     "unexplained": "unexplained deviation",

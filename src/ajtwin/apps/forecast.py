@@ -43,6 +43,10 @@ INPUT_ALIASES = {
     "sheath_flow": 2,
     **{name.lower(): i for i, name in enumerate(INPUT_NAMES)},
 }
+#: beyond these the forecast leaves the range the model was built for (SPEC §3: ΔR_N
+#: 0–0.1 µm typical; the virtual printer's clog reaches ~0.45 µm) — flagged, not clipped
+MODEL_RANGE = {"nozzle_deposition_um": 0.5, "linewidth_um": 200.0}
+
 _UNITS_S = {"": 1.0, "s": 1.0, "sec": 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
 
 
@@ -107,6 +111,11 @@ class Forecast:
     state_stds: np.ndarray  # (T, 5)
     output_means: np.ndarray  # (T, 5)
     output_stds: np.ndarray  # (T, 5)
+    warnings: list = None  # texts: where the forecast leaves the model's range
+
+    def __post_init__(self):
+        if self.warnings is None:
+            self.warnings = range_warnings(self)
 
     def to_frame(self) -> pd.DataFrame:
         frame = pd.DataFrame({"time_s": self.time_s})
@@ -119,6 +128,24 @@ class Forecast:
             frame[name] = self.state_means[:, i]
             frame[name + "_std"] = self.state_stds[:, i]
         return frame
+
+
+def range_warnings(fc) -> list[str]:
+    """Where the forecast leaves :data:`MODEL_RANGE` (first time), as readable texts."""
+    out = []
+    checks = (
+        ("nozzle_deposition_um", fc.state_means[:, 3], "ΔR_N", "µm"),
+        ("linewidth_um", fc.output_means[:, 0], "L_w", "µm"),
+    )
+    for key, values, short, unit in checks:
+        beyond = np.flatnonzero(~(values <= MODEL_RANGE[key]))
+        if beyond.size:
+            k = beyond[0]
+            out.append(
+                f"{short} passes {MODEL_RANGE[key]:g} {unit} at +{fc.time_s[k] / 60:.1f} min: "
+                "beyond the range the output model was built for; later values are extrapolation"
+            )
+    return out
 
 
 def _forecast_scan(spec, mean, cov, inputs, theta, process_cov):

@@ -424,3 +424,25 @@ def test_join_material_flow_bins_like_the_vision_join():
     np.testing.assert_allclose(
         shifted["material_flow_mL_s"], [2e-8, np.nan, 4e-8, np.nan], equal_nan=True
     )
+
+
+def test_stage2_area_anchor_term_by_hand():
+    data = _tiny_data(8, seed=2)
+    cfg = TrainConfig(stage1_epochs=1, stage2_epochs=1, stage2_area_weight=100.0, **SMALL)
+    trainer = Trainer(cfg, data, data, progress=False)
+    net = trainer.model.network
+    net.eval()
+    x = torch.from_numpy(normalize_columns(data.columns))
+    lw = torch.from_numpy(data.linewidth_um)
+    ov = torch.from_numpy(data.overspray_um)
+    idx = torch.arange(len(data))
+    with torch.no_grad():
+        area = trainer.model.forward_um(x).sum(dim=1) * PX
+        plain = trainer._stage2_batch_loss(x, lw, ov, idx)  # no reference yet: no anchor
+        trainer.area_ref = area.clone()
+        same = trainer._stage2_batch_loss(x, lw, ov, idx)
+        trainer.area_ref = 2 * area
+        doubled = trainer._stage2_batch_loss(x, lw, ov, idx)
+    assert float(same) == pytest.approx(float(plain), rel=1e-6)
+    # ((A - 2A) / 2A)² = 1/4 for every column
+    assert float(doubled - plain) == pytest.approx(100.0 * 0.25, rel=1e-5)

@@ -64,6 +64,14 @@ def _training_options(f):
             help="Stage-1 profile loss mixed into stage 2 (0 = the paper's pure feature loss).",
         ),
         click.option(
+            "--area-weight",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Stage-2 anchor keeping each column's area (Q_m) at the stage-1 model's; "
+            "0 = the paper's pure feature loss.",
+        ),
+        click.option(
             "--width",
             "base_channels",
             type=int,
@@ -123,6 +131,7 @@ def _config(kw):
         stage2_lr=kw["stage2_lr"],
         stage1_brightness_weight=kw["stage1_brightness_weight"],
         stage2_replay_weight=kw["replay_weight"],
+        stage2_area_weight=kw["area_weight"],
         base_channels=kw["base_channels"],
         n_threads=kw["threads"],
     )

@@ -55,6 +55,14 @@ class TrainConfig:
         units of ``height_scale_um²``) mixed into each stage-2 step; the
         feature loss is in µm², so useful weights are 1e2–1e4. 0 = the
         paper's pure feature loss.
+    stage2_area_weight : float
+        Weight of an area anchor in stage 2: ``((A − A₁)/A₁)²`` per column,
+        where A is the cross-section area (∝ Q_m) of the predicted profile and
+        A₁ that of the stage-1 model on the same column (computed once when
+        stage 2 starts; no labels needed). The feature loss alone lets the
+        network raise heights to make edges visible, which inflates Q_m; the
+        anchor keeps the profilometer-grounded integral. Useful weights
+        1e3–1e5 (the feature loss is in µm²); 0 = the paper's pure feature loss.
     base_channels : int
         64 = ResNet-18 (64–512 channels); smaller only for tests.
     n_threads : int, optional
@@ -78,6 +86,7 @@ class TrainConfig:
     augment: bool = True
     max_shift_px: int = 6
     stage2_replay_weight: float = 0.0
+    stage2_area_weight: float = 0.0
     base_channels: int = 64
     n_threads: int | None = None
     grad_clip: float = 5.0
@@ -189,6 +198,7 @@ class Trainer:
         self.fingerprint = data_fingerprint(pairs, labelled)
         self.train_seconds = 0.0
         self.stage_seconds = {"1": 0.0, "2": 0.0}
+        self.area_ref: torch.Tensor | None = None  # stage-1 areas of the stage-2 columns
         if resume and self.checkpoint and self.checkpoint.exists():
             self._load_checkpoint()
 
@@ -223,6 +233,7 @@ class Trainer:
             "fingerprint": self.fingerprint,
             "train_seconds": self.train_seconds,
             "stage_seconds": json.dumps(self.stage_seconds),
+            "area_ref": self.area_ref,
         }
         self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.checkpoint.with_suffix(self.checkpoint.suffix + ".tmp")
@@ -246,6 +257,7 @@ class Trainer:
         self.history = json.loads(state["history"])
         self.train_seconds = float(state["train_seconds"])
         self.stage_seconds = json.loads(state["stage_seconds"])
+        self.area_ref = state.get("area_ref")
         if state["optimizer"] is not None:
             self.optimizer, self.scheduler = self._make_optimizer(self.stage)
             self.optimizer.load_state_dict(state["optimizer"])
@@ -266,7 +278,7 @@ class Trainer:
             loss = loss + w * torch.mean((b_pred - b_true) ** 2)
         return loss
 
-    def _stage2_batch_loss(self, x, lw, ov):
+    def _stage2_batch_loss(self, x, lw, ov, idx=None):
         h = self.model.forward_um(x)
         lw_p, ov_p = feat.smooth_features(h, self.model.um_per_px)
         # profiles whose features are undefined (no shoulder found, overspray
@@ -275,7 +287,12 @@ class Trainer:
         ok = torch.isfinite(err)
         if not ok.any():
             return err.sum()  # nan: the caller skips the batch
-        return torch.sum(err[ok] ** 2) / len(lw)
+        loss = torch.sum(err[ok] ** 2) / len(lw)
+        if self.area_ref is not None and idx is not None:
+            area = h.sum(dim=1) * self.model.um_per_px
+            ref = self.area_ref[idx].to(area.dtype).clamp(min=1e-6)
+            loss = loss + self.config.stage2_area_weight * torch.mean(((area - ref) / ref) ** 2)
+        return loss
 
     # ------------------------------------------------------------ loop
 
@@ -292,6 +309,9 @@ class Trainer:
                 continue
             if self.optimizer is None:
                 self.optimizer, self.scheduler = self._make_optimizer(self.stage)
+            if self.stage == 2 and self.config.stage2_area_weight > 0 and self.area_ref is None:
+                areas = self.model.predict_um(self.labelled.columns).sum(axis=1)
+                self.area_ref = torch.from_numpy(areas * self.model.um_per_px)
             bar = tqdm(
                 total=n_epochs,
                 initial=self.epoch,
@@ -334,6 +354,13 @@ class Trainer:
         order = torch.randperm(len(data), generator=gen)
         net = self.model.network
         net.train()
+        if stage == 2:
+            # fine-tune with the batch-norm statistics of stage 1 frozen: the
+            # network then computes in training what it computes at inference,
+            # and the CV-labelled columns do not re-centre the features
+            for module in net.modules():
+                if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                    module.eval()
         total, count = 0.0, 0
         bs = self.config.batch_size
         replay = self.config.stage2_replay_weight if self.pairs is not None else 0.0
@@ -352,7 +379,7 @@ class Trainer:
                 ov = torch.from_numpy(data.overspray_um)[idx]
                 if self.config.augment:  # widths are invariant to mirror and shift
                     x, _ = _augment(x, [], gen, self.config.max_shift_px)
-                loss = self._stage2_batch_loss(x, lw, ov)
+                loss = self._stage2_batch_loss(x, lw, ov, idx)
                 if replay > 0:
                     n_replay = max(4, len(idx) // 4)  # a quarter batch keeps stage 2 cheap
                     pidx = torch.randint(0, len(self.pairs), (n_replay,), generator=gen)

@@ -1,5 +1,6 @@
 """Geometry, case generation, droplet tracking on synthetic fields, and the fit (no OpenFOAM)."""
 
+import copy
 import math
 import re
 
@@ -129,12 +130,16 @@ def _uniform_axial_field(g, speed=10.0):
     )
 
 
-def test_droplets_in_plug_flow_land_where_they_start(geometry):
-    grid = VelocityGrid(_uniform_axial_field(geometry), geometry, 0.0)
+@pytest.fixture(scope="module")
+def plug_grid(geometry):
+    return VelocityGrid(_uniform_axial_field(geometry), geometry, 0.0)
+
+
+def test_droplets_in_plug_flow_land_where_they_start(geometry, plug_grid):
     params = load_cfd_parameters()
     start = np.array([0.0, 5e-6, 20e-6, 40e-6, 300e-6])
     diameters = np.full(start.size, 3.5e-6)
-    result = track_droplets(grid, diameters, start, params, geometry.gas_density)
+    result = track_droplets(plug_grid, diameters, start, params, geometry.gas_density)
     # no radial gas velocity: the first four go straight through the 75 µm bore ...
     assert np.all(result.status[:4] == LANDED)
     np.testing.assert_allclose(result.landing_radius[:4], start[:4], atol=1e-9)
@@ -144,19 +149,19 @@ def test_droplets_in_plug_flow_land_where_they_start(geometry):
     assert result.flight_time[0] == pytest.approx(geometry.substrate_x / 10.0, rel=0.02)
 
 
-def test_droplets_follow_a_uniform_radial_drift(geometry):
-    # plug flow with a small uniform radial component (away from the axis, where the
-    # mirrored field must make u_r odd); a droplet starting at the gas velocity keeps it
-    # (no slip to relax), so it lands at r0 + (u_r/u_x) · L
-    g = geometry
-    cells = _uniform_axial_field(g, speed=10.0)
-    cells.ur = np.full(cells.x.size, 0.001)
-    grid = VelocityGrid(cells, g, 0.0)
+def test_droplets_follow_a_uniform_radial_drift(geometry, plug_grid):
+    # plug flow plus a small outward radial component (odd in the signed r of the mirrored
+    # field); a droplet starting at the gas velocity keeps it (no slip to relax), so it
+    # lands at r0 + (u_r/u_x) · L
+    grid = copy.deepcopy(plug_grid)
+    moving = grid.ux != 0.0
+    r_nodes = np.broadcast_to(grid.r_nodes[None, :], grid.ux.shape)
+    grid.ur = np.where(moving, 0.001 * np.sign(r_nodes), 0.0)
     params = load_cfd_parameters()
     r0 = 30e-6
-    result = track_droplets(grid, np.array([1e-6]), np.array([r0]), params, g.gas_density)
+    result = track_droplets(grid, np.array([1e-6]), np.array([r0]), params, geometry.gas_density)
     assert result.status[0] == LANDED
-    drift = 0.001 / 10.0 * g.substrate_x  # 1.15 µm
+    drift = 0.001 / 10.0 * geometry.substrate_x  # 1.15 µm
     assert result.landing_radius[0] - r0 == pytest.approx(drift, rel=0.05)
 
 

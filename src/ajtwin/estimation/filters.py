@@ -45,6 +45,29 @@ STATE_SCALE = np.array([1.0, 1.0, 1e-3, 1e-2, 1e-7])
 OUTPUT_SCALE = np.array([1.0, 1.0, 1.0, 1.0, 1e-9])
 
 
+class ModelFunctions(NamedTuple):
+    """The model the filters run on (static, hashable).
+
+    ``step(x, u, theta, params, dt) -> x_next`` and
+    ``output(x, u, params, coefficients) -> y``, display units. The transition
+    must be linear in θ for the closed-form M-step.
+    """
+
+    step: object
+    output: object
+
+
+AJ_EULER = ModelFunctions(euler_step, output_function)
+AJ_RK4 = ModelFunctions(rk4_step, output_function)
+
+
+def model_functions(method: str) -> ModelFunctions:
+    """The AJ model with the Euler (default) or RK4 discretisation."""
+    if method not in ("euler", "rk4"):
+        raise ValueError(f"method {method!r}; choose 'euler' or 'rk4'")
+    return AJ_RK4 if method == "rk4" else AJ_EULER
+
+
 class Scaling(NamedTuple):
     state: jnp.ndarray  # (5,)
     output: jnp.ndarray  # (5,)
@@ -84,15 +107,14 @@ class SmootherResult(NamedTuple):
     lag_one_covariances: jnp.ndarray  # (T-1, 5, 5) Cov(x_{k+1}, x_k | all)
 
 
-def _scaled_functions(spec: ModelSpec, method: str = "euler"):
+def _scaled_functions(spec: ModelSpec, functions: ModelFunctions):
     s, r = spec.scaling.state, spec.scaling.output
-    step = rk4_step if method == "rk4" else euler_step
 
     def f_scaled(z, u, theta):
-        return step(z * s, u, theta, spec.params, spec.dt) / s
+        return functions.step(z * s, u, theta, spec.params, spec.dt) / s
 
     def g_scaled(z, u):
-        return output_function(z * s, u, spec.params, spec.coefficients) / r
+        return functions.output(z * s, u, spec.params, spec.coefficients) / r
 
     return f_scaled, g_scaled
 
@@ -114,7 +136,7 @@ def ekf(
     process_cov,
     measurement_cov,
     gate: float = jnp.inf,
-    method: str = "euler",
+    functions: ModelFunctions = AJ_EULER,
 ) -> FilterResult:
     """Run the EKF over a print.
 
@@ -137,25 +159,29 @@ def ekf(
         Diagonal of Σ_w, display units.
     gate : float
         Per-output innovation gate in standard deviations (inf: off).
+    functions : ModelFunctions
+        The model (default: the AJ model, Euler steps).
 
     Returns
     -------
     FilterResult
     """
     s, r = spec.scaling.state, spec.scaling.output
-    f_s, g_s = _scaled_functions(spec, method)
+    f_s, g_s = _scaled_functions(spec, functions)
     jac_f = jax.jacfwd(f_s, argnums=0)
     jac_g = jax.jacfwd(g_s, argnums=0)
 
     inputs = jnp.asarray(inputs, dtype=float)
     measurements = jnp.asarray(measurements, dtype=float)
     n_steps = inputs.shape[0]
-    thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_steps, 5))
+    n_x = jnp.asarray(prior_mean).shape[0]
+    n_theta = jnp.asarray(thetas).shape[-1]
+    thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_steps, n_theta))
     q = jnp.asarray(process_cov) / jnp.outer(s, s)
     r_diag = jnp.asarray(measurement_cov) / r**2
     z0 = jnp.asarray(prior_mean) / s
     p0 = jnp.asarray(prior_cov) / jnp.outer(s, s)
-    eye = jnp.eye(5)
+    eye = jnp.eye(n_x)
     log_2pi = jnp.log(2.0 * jnp.pi)
 
     def update(z_pred, p_pred, u, y):
@@ -208,7 +234,6 @@ def ekf(
     _, outs = jax.lax.scan(body, (z0, p0), (inputs, measurements, thetas))
     z_f, p_f, z_p, p_p, f_jacs, y_hat, s_diag, log_lik, nis, n_meas, reinit = outs
     ss = jnp.outer(s, s)
-    del n_steps
     return FilterResult(
         means=z_f * s,
         covariances=p_f * ss,
@@ -224,7 +249,7 @@ def ekf(
     )
 
 
-ekf = jax.jit(ekf, static_argnames=("method",))
+ekf = jax.jit(ekf, static_argnames=("functions",))
 
 
 def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:

@@ -25,14 +25,16 @@ from ajtwin.estimation.em import run_em
 from ajtwin.estimation.filters import (
     DEFAULT_SCALING,
     FilterResult,
+    ModelFunctions,
     ModelSpec,
     SmootherResult,
     ekf,
+    model_functions,
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
-from ajtwin.model.system import check_input, euler_step, rk4_step
+from ajtwin.model.system import check_input
 
 
 @dataclass(frozen=True)
@@ -135,9 +137,9 @@ class TwinRun:
         return frame
 
 
-def predict(spec, mean, cov, u, theta, process_cov, method="euler"):
+def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = None):
     """One EKF prediction x̂_{k+1|k}, P_{k+1|k} in display units."""
-    step = rk4_step if method == "rk4" else euler_step
+    step = (functions or model_functions("euler")).step
     s = spec.scaling.state
 
     def f_scaled(z):
@@ -149,7 +151,7 @@ def predict(spec, mean, cov, u, theta, process_cov, method="euler"):
     return f_scaled(z) * s, p * jnp.outer(s, s) + process_cov
 
 
-predict = jax.jit(predict, static_argnames=("method",))
+predict = jax.jit(predict, static_argnames=("functions",))
 
 
 def _concat(results: list[FilterResult]) -> FilterResult:
@@ -185,6 +187,7 @@ class Twin:
         self.config = config
         self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
         self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
+        self.functions = model_functions(config.method)
 
     @classmethod
     def default(cls, **config_overrides) -> Twin:
@@ -221,7 +224,7 @@ class Twin:
         )
 
     def _predict(self, mean, cov, u, theta):
-        m, p = predict(self.spec, mean, cov, u, theta, self.process_cov, self.config.method)
+        m, p = predict(self.spec, mean, cov, u, theta, self.process_cov, self.functions)
         return np.asarray(m), np.asarray(p)
 
     def _filter(self, mean, cov, inputs, measurements, thetas):
@@ -235,7 +238,7 @@ class Twin:
             self.process_cov,
             self.measurement_var,
             self.config.gate_sigma,
-            method=self.config.method,
+            functions=self.functions,
         )
 
     # ------------------------------------------------------------------ #
@@ -330,7 +333,7 @@ class Twin:
                         max_iterations=c.em_max_iterations,
                         tolerance=c.em_tolerance,
                         gate=c.gate_sigma,
-                        method=c.method,
+                        functions=self.functions,
                     )
                     theta = em.theta
                     last_mean = np.asarray(em.filtered.means[-1])

@@ -49,29 +49,52 @@ def carry_over(end_mean, end_cov) -> tuple[np.ndarray, np.ndarray]:
     return mean, cov
 
 
-def join_video(record, video, um_per_px: float, *, progress: bool = True, fps=None):
+def join_video(
+    record, video, um_per_px: float, *, progress: bool = True, fps=None, annotate_times=()
+):
     """Fill the record's linewidth/overspray from an alignment-camera video (ajtwin.vision).
 
-    Returns the new record and the join summary.
+    Parameters
+    ----------
+    record : PrintRecord
+    video : path of the video (or image folder)
+    um_per_px : float, camera pixel size on the substrate [µm]
+    annotate_times : sequence of float, optional
+        Video times [s] of frames to return annotated (paper's Fig. annotated_acam).
+
+    Returns
+    -------
+    record : PrintRecord with linewidth_um/overspray_um from the video (NaN where no frame)
+    summary : dict, the join counts
+    features : DataFrame, one row per frame (``ajtwin extract`` columns)
+    annotated : dict {frame time [s]: BGR image}
     """
     import pandas as pd
     from tqdm import tqdm
 
     from ajtwin.io.records import PrintRecord
-    from ajtwin.vision.extract import LineExtractor, open_source
+    from ajtwin.vision.extract import LineExtractor, annotate, open_source
     from ajtwin.vision.join import join_features
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)
-    rows = [
-        extractor.process(gray, index=index, time_s=time_s).row()
-        for index, time_s, gray in tqdm(
-            frames, total=frames.count, unit="frame", desc="extract video", disable=not progress
-        )
-    ]
+    wanted = sorted(float(t) for t in annotate_times)
+    annotated = {}
+    rows = []
+    for index, time_s, gray in tqdm(
+        frames, total=frames.count, unit="frame", desc="extract video", disable=not progress
+    ):
+        result = extractor.process(gray, index=index, time_s=time_s)
+        rows.append(result.row())
+        if wanted and time_s >= wanted[0]:
+            annotated[float(time_s)] = annotate(gray, result)
+            wanted.pop(0)
     features = pd.DataFrame(rows)
-    if not features["status"].isin(("ok", "ok_std_fallback", "few_batches")).any():
-        counts = features["status"].value_counts().to_dict()
+    if (
+        features.empty
+        or not features["status"].isin(("ok", "ok_std_fallback", "few_batches")).any()
+    ):
+        counts = features["status"].value_counts().to_dict() if len(features) else {}
         raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
     joined, summary = join_features(
         record.data,
@@ -80,7 +103,7 @@ def join_video(record, video, um_per_px: float, *, progress: bool = True, fps=No
     )
     meta = dict(record.meta)
     meta["vision"] = {"video": str(video), **summary}
-    return PrintRecord(joined, meta), summary
+    return PrintRecord(joined, meta), summary, features, annotated
 
 
 def ingest_record(
@@ -248,6 +271,6 @@ def ingest_file(
     if video is not None:
         if um_per_px is None:
             raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
-        record, _ = join_video(record, video, um_per_px, progress=video_progress)
+        record, *_ = join_video(record, video, um_per_px, progress=video_progress)
         source += f" + {video}"
     return ingest_record(registry, machine, record, source=source, progress=progress)

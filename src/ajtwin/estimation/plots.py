@@ -203,7 +203,15 @@ def exp3_figures(record, series, out: Path):
             series["y_uncal"][:, i],
             color="tab:orange",
             lw=1.5,
-            label="uncalibrated physics model",
+            label="uncalibrated physics model (open loop from t = 0)",
+        )
+        ax.plot(
+            after,
+            series["y_theta_only"][:, i],
+            color="tab:purple",
+            lw=1,
+            ls="--",
+            label="ablation: twin state at 37.6 min, θ = 0",
         )
         ax.plot(after, series["y_cal"][:, i], color="k", lw=1.5, label="twin calibrated by EM")
         ax.axvline(n_cal / 60, color="tab:blue", ls="--", lw=1)

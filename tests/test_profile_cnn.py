@@ -446,3 +446,43 @@ def test_stage2_area_anchor_term_by_hand():
     assert float(same) == pytest.approx(float(plain), rel=1e-6)
     # ((A - 2A) / 2A)² = 1/4 for every column
     assert float(doubled - plain) == pytest.approx(100.0 * 0.25, rel=1e-5)
+
+
+def test_pairs_from_manifest_registers_real_style_files(tmp_path):
+    import cv2
+
+    from ajtwin.profile_cnn.data import pairs_from_manifest
+    from ajtwin.vision.render import RenderSettings, render_frame
+
+    r = np.arange(-120.0, 120.0, 0.05)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        h = line_profile(r, 43.0, 29.0, 15.0)
+    frame = render_frame(
+        r,
+        h,
+        (300, 200),
+        RenderSettings.from_defaults(raggedness_um=0.0),
+        rng=np.random.default_rng(0),
+    )
+    cv2.imwrite(str(tmp_path / "frame.png"), frame)
+    # a Tencor-style scan: 0.5 µm pitch, heights in nm, two identical cross-sections
+    x = np.arange(0.0, 240.0, 0.5)
+    scan_nm = 1000 * np.interp(x - 120.0, r, h)
+    lines = ["Tencor P-7 export"] + [",".join(f"{v:.3f}" for v in scan_nm)] * 2
+    (tmp_path / "scan.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "m.csv").write_text(
+        "frame,column_px,line_row_px,scan,scan_row,scan_pixel_size_um,height_unit\n"
+        "frame.png,100,149.5,scan.csv,1,0.5,nm\n"
+    )
+    pairs = pairs_from_manifest(tmp_path / "m.csv", PX, half_width_px=5)
+    assert pairs.columns.shape == (1, 200) and pairs.profiles_um.shape == (1, 200)
+    assert pairs.profiles_um.sum() * PX == pytest.approx(15.0, rel=0.01)
+    # the darkest pixels of the column (steep flanks) sit where the profile is steepest
+    col, prof = pairs.columns[0], pairs.profiles_um[0]
+    steep = np.argsort(-np.abs(np.diff(prof)))[:4]
+    dark = np.argsort(col)[:4]
+    assert np.min(np.abs(dark[:, None] - steep[None, :]), axis=1).max() <= 3
+    (tmp_path / "bad.csv").write_text("frame,column_px\nframe.png,1\n")
+    with pytest.raises(ValueError, match="missing column"):
+        pairs_from_manifest(tmp_path / "bad.csv", PX)

@@ -314,6 +314,9 @@ def cv_summary(parts, out):
     merged["folds"].sort(key=lambda f: f["fold"])
     merged["summary"] = summarize(merged["folds"])
     Path(out).write_text(json.dumps(merged, indent=2))
+    from ajtwin.profile_cnn.evaluate import report_table
+
+    click.echo(report_table(merged["summary"]))
     click.echo(f"wrote {out} ({len(folds)} of {merged['k']} folds)")
 
 

@@ -168,3 +168,31 @@ def summarize(folds: list[dict]) -> dict:
         if times:
             summary[f"{key}_per_fold.mean"] = float(np.mean(times))
     return summary
+
+
+REPORT_ROWS = (
+    ("linewidth MAE vs CV labels (µm)", "columns", "mae_linewidth_vs_cv_um"),
+    ("overspray MAE vs CV labels (µm)", "columns", "mae_overspray_vs_cv_um"),
+    ("linewidth MAE vs truth (µm)", "columns", "mae_linewidth_vs_true_um"),
+    ("overspray MAE vs truth (µm)", "columns", "mae_overspray_vs_true_um"),
+    ("Q_m relative error, held-out pairs", "pairs", "qm_rel_error"),
+    ("Q_m relative bias, held-out pairs", "pairs", "qm_rel_bias"),
+    ("Q_m relative error, held-out columns", "columns", "qm_rel_error"),
+    ("features undefined (share of columns)", "columns", "feature_nan_fraction"),
+)
+
+
+def report_table(summary: dict) -> str:
+    """Markdown table: before/after fine-tuning, mean and variance across folds."""
+    lines = [
+        "| score | before (mean) | before (fold var) | after (mean) | after (fold var) |",
+        "|---|---|---|---|---|",
+    ]
+    for label, part, name in REPORT_ROWS:
+        cells = []
+        for tag in ("before", "after"):
+            key = f"{tag}_{part}.{name}"
+            mean, var = summary.get(f"{key}.mean"), summary.get(f"{key}.var")
+            cells += ["–", "–"] if mean is None else [f"{mean:.4g}", f"{var:.3g}"]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

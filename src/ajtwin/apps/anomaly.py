@@ -59,7 +59,9 @@ class DetectorSettings:
     """Thresholds of the detectors (normalised-innovation units unless said)."""
 
     cusum_drift: float = 0.35  # allowance k per step [σ]
-    cusum_threshold: float = 16.0  # decision interval h [σ]
+    cusum_threshold: float = 16.0  # decision interval h [σ] for L_w, L_o, P_c, P_s
+    # Q_m (CNN-based, log-normal noise, filter σ a rough 20 %): clean prints reach g ≈ 15–18
+    cusum_threshold_material_flow: float = 30.0
     nis_window_s: int = 120
     nis_alpha: float = 1e-9  # tail probability of the windowed NIS
     merge_s: float = 600.0  # alarms within this gap belong to one event
@@ -153,8 +155,8 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
         Normalised innovations.
     drift : float
         Allowance k per step (half the bias to detect, in σ).
-    threshold : float
-        Decision interval h.
+    threshold : float or (m,) array
+        Decision interval h (per column if an array).
     start : int
         Steps before ``start`` are not accumulated (filter warm-up).
 
@@ -169,6 +171,7 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
     n, m = e.shape
     g_pos = np.zeros((n, m))
     g_neg = np.zeros((n, m))
+    threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (m,))
     gp = np.zeros(m)
     gn = np.zeros(m)
     zero_p = np.full(m, start - 1)
@@ -316,7 +319,8 @@ def detect_anomalies(
     start = int(np.searchsorted(t, t[0] + s.warmup_s))
     p_step = nis_tail_probability(nis, n_measured)
     _, _, p_win = windowed_nis(nis, n_measured, s.nis_window_s)
-    g_pos, g_neg, alarms = cusum(e, s.cusum_drift, s.cusum_threshold, start=start)
+    thresholds = np.array([s.cusum_threshold] * 4 + [s.cusum_threshold_material_flow])
+    g_pos, g_neg, alarms = cusum(e, s.cusum_drift, thresholds, start=start)
 
     # raw alarms: (step, change_step, detector label)
     raw = [

@@ -128,7 +128,7 @@ def detectors_figure(detection, fault_onset_s=None) -> bytes:
     axes[0].set_ylim(-8, 8)
     for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m")):
         axes[1].plot(t, detection.cusum_pos[:, i] - detection.cusum_neg[:, i], lw=1, label=name)
-    h = detection.settings.cusum_threshold
+    h = detection.settings.cusum_threshold  # (Q_m: its own, higher threshold)
     axes[1].axhline(h, color="tab:red", ls=":")
     axes[1].axhline(-h, color="tab:red", ls=":")
     axes[1].set_ylabel("CUSUM g⁺ − g⁻")

@@ -139,8 +139,10 @@ def record_hash(record) -> str:
         h.update(column.encode())
         values = pd.to_numeric(data[column], errors="coerce").to_numpy(dtype=np.float64)
         h.update(np.ascontiguousarray(values).tobytes())
-    meta = {k: v for k, v in record.meta.items() if k != "assumed_defaults"}
-    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    # where the file was read from is not part of the print
+    meta = {k: v for k, v in record.meta.items() if k not in ("assumed_defaults", "source_file")}
+    meta = json.loads(json.dumps(meta, default=str))  # numpy scalars and tuples as in a file
+    h.update(json.dumps(meta, sort_keys=True).encode())
     return h.hexdigest()
 
 

@@ -1,0 +1,252 @@
+"""Machine registry: schema, idempotency, crash safety, concurrent reads, ingest, CLI."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ajtwin.store.registry import (
+    DEFAULT_LIMITS,
+    TEST_SLEEP_ENV,
+    Registry,
+    RegistryError,
+    default_store_path,
+    from_npy,
+    record_hash,
+    to_npy,
+)
+
+
+def _fake_print(reg, name, content_hash, expected, value=1.0):
+    """save_print with small hand-made arrays (no twin needed)."""
+    return reg.save_print(
+        name,
+        content_hash=content_hash,
+        source="test",
+        meta={"scenario": "test"},
+        summary={"note": "fake"},
+        n_samples=3,
+        duration_s=3.0,
+        start_mean=np.full(5, value),
+        start_cov=np.eye(5),
+        end_mean=np.full(5, value + 1),
+        end_cov=2 * np.eye(5),
+        theta_before=np.zeros(5),
+        theta_after=np.full(5, 1e-4),
+        arrays={"means": np.arange(15.0).reshape(3, 5)},
+        anomalies=[],
+        expected_last_seq=expected,
+    )
+
+
+def test_npy_roundtrip_exact():
+    a = np.random.default_rng(0).normal(size=(7, 5, 5))
+    assert np.array_equal(from_npy(to_npy(a)), a)
+
+
+def test_default_path_env(monkeypatch, tmp_path):
+    monkeypatch.setenv("AJTWIN_STORE", str(tmp_path / "x.sqlite"))
+    assert default_store_path() == tmp_path / "x.sqlite"
+    monkeypatch.delenv("AJTWIN_STORE")
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    assert default_store_path() == tmp_path / "data" / "ajtwin" / "registry.sqlite"
+
+
+def test_machines_and_history(tmp_path):
+    reg = Registry(tmp_path / "r.sqlite")
+    m = reg.add_machine("lab1", {"carrier_flow_sccm": [18, 30]})
+    assert m["limits"]["carrier_flow_sccm"] == [18.0, 30.0]
+    assert m["limits"]["sheath_flow_sccm"] == DEFAULT_LIMITS["sheath_flow_sccm"]
+    with pytest.raises(RegistryError, match="already exists"):
+        reg.add_machine("lab1")
+    with pytest.raises(RegistryError, match="unknown input"):
+        reg.add_machine("lab2", {"flow": [1, 2]})
+    with pytest.raises(RegistryError, match="no machine 'nope'.*known: lab1"):
+        reg.machine("nope")
+    assert _fake_print(reg, "lab1", "h1", None) > 0
+    assert _fake_print(reg, "lab1", "h2", 1, value=5.0) > 0
+    last = reg.last_print("lab1")
+    assert last["seq"] == 2
+    assert np.array_equal(last["end_mean"], np.full(5, 6.0))
+    hist = reg.history("lab1")
+    assert list(hist["seq"]) == [1, 2]
+    assert list(hist["end_droplet_diameter_um"]) == [2.0, 6.0]
+    arrays = reg.print_arrays(last["id"])
+    assert np.array_equal(arrays["means"], np.arange(15.0).reshape(3, 5))
+
+
+def test_duplicate_and_stale_start_rejected(tmp_path):
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m")
+    _fake_print(reg, "m", "same", None)
+    with pytest.raises(RegistryError, match="got print 1 while this ingest ran from print None"):
+        _fake_print(reg, "m", "same", None)
+    with pytest.raises(RegistryError, match="already print 1"):
+        _fake_print(reg, "m", "same", 1)
+    assert reg.machine("m")["n_prints"] == 1
+
+
+def test_record_hash_sensitive_and_stable(tmp_path):
+    from ajtwin.io.records import read_record, write_record
+    from ajtwin.simulation import simulate
+
+    rec = simulate("exp1", seed=1, duration_min=1.0)
+    h = record_hash(rec)
+    write_record(rec, tmp_path / "a.parquet")
+    assert record_hash(read_record(tmp_path / "a.parquet")) == h
+    rec.data.loc[5, "linewidth_um"] += 1e-9
+    assert record_hash(rec) != h
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys, numpy as np
+    sys.path.insert(0, {tests!r})
+    from test_store import _fake_print
+    from ajtwin.store.registry import Registry
+    reg = Registry({path!r})
+    _fake_print(reg, "m", "second", 1, value=9.0)
+    print("committed", flush=True)
+    """
+)
+
+
+def _start_writer(tmp_path, path, sleep_s):
+    env = dict(os.environ, **{TEST_SLEEP_ENV: str(sleep_s)})
+    script = WRITER.format(tests=os.path.dirname(__file__), path=str(path))
+    return subprocess.Popen(
+        [sys.executable, "-c", script], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+
+
+def _wait_for_write_lock(path, proc, timeout_s=60.0):
+    """Poll until the writer holds its transaction (a second writer is refused)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"writer ended early: {proc.stderr.read().decode()}")
+        conn = sqlite3.connect(str(path), timeout=0.0, isolation_level=None)
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            conn.execute("ROLLBACK")
+        except sqlite3.OperationalError:
+            return
+        finally:
+            conn.close()
+        time.sleep(0.05)
+    raise AssertionError("the writer never took its write lock")
+
+
+def test_killed_ingest_leaves_store_unchanged_and_reads_do_not_block(tmp_path):
+    path = tmp_path / "r.sqlite"
+    reg = Registry(path)
+    reg.add_machine("m")
+    _fake_print(reg, "m", "first", None)
+    proc = _start_writer(tmp_path, path, sleep_s=60)
+    try:
+        _wait_for_write_lock(path, proc)
+        # a reader that may not wait at all still sees the committed state
+        reader = Registry(path, timeout_s=0.0)
+        assert reader.machine("m")["n_prints"] == 1
+        assert reader.last_print("m")["seq"] == 1
+        assert len(reader.history("m")) == 1
+        reader.close()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reg.close()
+    after = Registry(path)
+    assert after.machine("m")["n_prints"] == 1
+    assert after.find_print("m", "second") is None
+    n_arrays = after._conn.execute("SELECT COUNT(*) FROM print_arrays").fetchone()[0]
+    assert n_arrays == 1  # only the first print's single array
+    # and the store still takes the next print
+    _fake_print(after, "m", "second", 1)
+    assert after.last_print("m")["seq"] == 2
+
+
+def test_writer_commits_without_hook(tmp_path):
+    path = tmp_path / "r.sqlite"
+    reg = Registry(path)
+    reg.add_machine("m")
+    _fake_print(reg, "m", "first", None)
+    proc = _start_writer(tmp_path, path, sleep_s=0)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err.decode()
+    assert b"committed" in out
+    assert reg.last_print("m")["seq"] == 2
+
+
+def test_ingest_chain_and_cli(tmp_path):
+    """Real twin on two short prints: the second starts from the first's end; CLI works."""
+    from ajtwin.io.records import write_record
+    from ajtwin.simulation import simulate
+    from ajtwin.store.cli import ingest, machine
+
+    first = simulate("exp1", seed=3, duration_min=3.0)
+    second = simulate("exp1", seed=4, duration_min=3.0, continue_from=first)
+    write_record(first, tmp_path / "p1.parquet")
+    write_record(second, tmp_path / "p2.parquet")
+    store = str(tmp_path / "r.sqlite")
+    runner = CliRunner()
+    res = runner.invoke(machine, ["add", "lab", "--carrier", "18,30", "--store", store])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(
+        ingest,
+        ["--machine", "lab", str(tmp_path / "p1.parquet"), "--store", store, "--no-progress"],
+    )
+    assert res.exit_code == 0, res.output
+    assert "print #1" in res.output and "initial fit" in res.output
+    res = runner.invoke(
+        ingest,
+        ["--machine", "lab", str(tmp_path / "p2.parquet"), "--store", store, "--no-progress"],
+    )
+    assert res.exit_code == 0, res.output
+    assert "started from print 1" in res.output
+    res = runner.invoke(
+        ingest,
+        ["--machine", "lab", str(tmp_path / "p1.parquet"), "--store", store, "--no-progress"],
+    )
+    assert res.exit_code == 0 and "already ingested as print #1" in res.output
+
+    reg = Registry(store)
+    p1, p2 = reg.get_print(1), reg.last_print("lab")
+    # print 2 started from print 1's end state (fast states' variance widened)
+    assert np.array_equal(p2["start_mean"], p1["end_mean"])
+    assert np.allclose(p2["start_cov"][1:4, 1:4], p1["end_cov"][1:4, 1:4])
+    assert p2["start_cov"][0, 0] > p1["end_cov"][0, 0]
+    assert np.array_equal(p2["theta_before"], p1["theta_after"])
+    # the twin tracks the truth's nozzle deposit to within 4σ at the end
+    truth_end = second.true_states[-1]
+    std = np.sqrt(np.diag(p2["end_cov"]))
+    assert abs(p2["end_mean"][3] - truth_end[3]) < 4 * std[3]
+    assert abs(p2["end_mean"][1] - truth_end[1]) < 0.05
+
+    res = runner.invoke(machine, ["show", "lab", "--store", store])
+    assert res.exit_code == 0 and "last print: #2" in res.output
+    res = runner.invoke(machine, ["history", "lab", "--store", store])
+    assert res.exit_code == 0 and res.output.count("\n") >= 3
+    res = runner.invoke(machine, ["show", "ghost", "--store", store])
+    assert res.exit_code != 0 and "no machine 'ghost'" in res.output
+    res = runner.invoke(
+        ingest, ["--machine", "ghost", str(tmp_path / "p1.parquet"), "--store", store]
+    )
+    assert res.exit_code != 0 and "no machine 'ghost'" in res.output
+
+
+def test_not_a_registry(tmp_path):
+    bad = tmp_path / "bad.sqlite"
+    bad.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(RegistryError, match="not a usable ajtwin registry"):
+        Registry(bad)

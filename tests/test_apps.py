@@ -1,0 +1,310 @@
+"""Anomaly detectors, forecast and advice (ajtwin.apps)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy import stats
+
+from ajtwin.apps.anomaly import (
+    DetectorSettings,
+    cusum,
+    detect_anomalies,
+    detection_delay,
+    label_cause,
+    nis_tail_probability,
+    normalised_innovations,
+    windowed_nis,
+)
+from ajtwin.apps.forecast import (
+    Change,
+    forecast,
+    input_schedule,
+    parse_change,
+    parse_duration,
+)
+
+# --------------------------------------------------------------------------- detectors
+
+
+def test_cusum_hand_computed():
+    e = np.array([0.0, 2.0, 2.0, -1.0, 3.0, 0.0])
+    g_pos, g_neg, alarms = cusum(e, drift=0.5, threshold=4.0)
+    # g+: 0, 1.5, 3.0, 1.5, 4.0 (not > 4), 3.5
+    assert np.allclose(g_pos[:, 0], [0, 1.5, 3.0, 1.5, 4.0, 3.5])
+    # g−: 0, 0, 0, 0.5, 0, 0
+    assert np.allclose(g_neg[:, 0], [0, 0, 0, 0.5, 0, 0])
+    assert alarms == []
+    _, _, alarms = cusum(e, drift=0.5, threshold=3.9)
+    assert [(a.step, a.change_step, a.direction) for a in alarms] == [(4, 0, 1)]
+
+
+def test_cusum_nan_leaves_state_and_restarts_after_alarm():
+    e = np.array([[2.0], [np.nan], [2.0], [2.0], [2.0]])
+    g_pos, _, alarms = cusum(e, drift=0.0, threshold=3.0)
+    assert np.allclose(g_pos[:, 0], [2, 2, 0, 2, 0])  # alarm at 2 and 4, reset to 0
+    assert [a.step for a in alarms] == [2, 4]
+
+
+def test_cusum_delay_matches_theory():
+    """A bias b: the alarm comes after ≈ h / (b − k) steps (noise-free)."""
+    e = np.zeros((400, 1))
+    e[100:] = 1.0
+    _, _, alarms = cusum(e, drift=0.35, threshold=16.0)
+    assert alarms[0].step - 99 == int(np.floor(16.0 / 0.65)) + 1
+    assert alarms[0].change_step == 99
+
+
+def test_nis_tail_and_window_against_scipy():
+    rng = np.random.default_rng(0)
+    nis = rng.chisquare(3, size=50)
+    n = np.full(50, 3)
+    assert np.allclose(nis_tail_probability(nis, n), stats.chi2.sf(nis, 3))
+    assert nis_tail_probability([5.0], [0])[0] == 1.0
+    total, dof, p = windowed_nis(nis, n, 10)
+    assert np.isclose(total[20], nis[11:21].sum())
+    assert dof[20] == 30 and dof[3] == 12
+    assert np.isclose(p[20], stats.chi2.sf(nis[11:21].sum(), 30))
+
+
+def test_normalised_innovations():
+    e = normalised_innovations([[3.0, np.nan]], [[1.0, 1.0]], [[4.0, 1.0]])
+    assert e[0, 0] == 1.0 and np.isnan(e[0, 1])
+
+
+@pytest.mark.parametrize(
+    ("mean", "shift", "vial", "expected"),
+    [
+        ([0.5, 0.5, 1.0, 1.0, 0.1], [0, 0, 0, 30, 2], 1.0, "nozzle_clog"),
+        ([0.0, 0.0, -1.7, -1.5, -0.8], [0, 0, 0, -100, -14], 1.0, "carrier_leak"),
+        ([0.0, 0.0, -0.5, 0.5, 0.1], [0, 0, 0, 0, 3], 1.0, "carrier_leak"),  # sensor drift
+        ([0.0, 0.0, 0.8, 0.0, 0.0], [0, 0, 0, 0, 0], 1.0, "carrier_leak"),  # P_c alone
+        ([-1.3, -0.7, 0.0, 0.0, -2.9], [16, -5, 0, 1, -79], 1.0, "atomizer"),
+        ([0.0, 0.0, 0.0, 0.0, 0.0], [0, 0, 0, 0, 0], 0.45, "ink_low"),
+        ([0.0, 0.0, 0.0, 0.0, 0.0], [0, 0, 0, 0, 0], 1.0, "unexplained"),
+    ],
+)
+def test_label_rules(mean, shift, vial, expected):
+    assert label_cause(mean, [120] * 5, shift, vial, DetectorSettings()) == expected
+
+
+def _synthetic(bias_from=None, bias=(0, 0, 0, 0, 0), n=3000, seed=0):
+    rng = np.random.default_rng(seed)
+    s = np.array([3.0, 5.0, 10.0, 10.0, 3e-9])
+    y_hat = np.tile([43.0, 29.0, 5661.0, 5641.0, 1.5e-8], (n, 1))
+    y = y_hat + rng.normal(size=(n, 5)) * s
+    if bias_from is not None:
+        y[bias_from:] += np.asarray(bias) * s
+    means = np.tile([3.5, 1.0, 0.0, 0.03, 4.6e-7], (n, 1))
+    cov = np.tile(np.diag([0.01, 1e-6, 1e-6, 1e-4, 1e-16]), (n, 1, 1))
+    e = (y - y_hat) / s
+    return dict(
+        time_s=np.arange(n, dtype=float),
+        measurements=y,
+        predicted_outputs=y_hat,
+        innovation_variances=np.tile(s**2, (n, 1)),
+        nis=(e**2).sum(axis=1),
+        n_measured=np.full(n, 5),
+        means=means,
+        predicted_means=means,
+        covariances=cov,
+    )
+
+
+def test_detect_white_noise_no_alarm_and_pressure_step_is_clog():
+    clean = detect_anomalies(**_synthetic(seed=1))
+    assert clean.events == []
+    data = _synthetic(bias_from=2000, bias=(0.5, 0.5, 1.0, 1.0, 0.0), seed=2)
+    data["predicted_means"] = data["means"].copy()
+    data["predicted_means"][2000:, 3] -= 1e-3  # the filter keeps pushing ΔR_N up
+    result = detect_anomalies(**data)
+    assert len(result.events) == 1
+    ev = result.events[0]
+    assert ev.cause == "nozzle_clog"
+    assert 2000 < ev.detected_s < 2000 + 16 / 0.65 + 20
+    assert 1980 <= ev.onset_s <= ev.detected_s
+    d = detection_delay(result, 2000.0)
+    assert d["delay_s"] == ev.detected_s - 2000 and d["false_alarms"] == 0
+    assert np.isnan(detection_delay(clean, 2000.0)["delay_s"])
+
+
+def test_real_nozzle_clog_detected_quickly():
+    """Virtual printer + default twin: a clog from 5 min is caught within 2 min, as a clog."""
+    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.estimation import Twin
+    from ajtwin.simulation import simulate
+
+    rec = simulate("nozzle_clog", seed=0, duration_min=10, overrides={"fault": {"onset_min": 5}})
+    run = Twin.default().run(rec)
+    result = detect_run(run, rec)
+    d = detection_delay(result, rec.meta["fault_onset_s"])
+    assert d["false_alarms"] == 0
+    assert d["delay_s"] <= 120
+    assert d["cause"] == "nozzle_clog"
+
+
+# --------------------------------------------------------------------------- forecast
+
+
+def test_parsers():
+    assert parse_change("carrier_flow_sccm=26@+60s") == Change(60.0, 1, 26.0)
+    assert parse_change("I_A=400@+2min") == Change(120.0, 0, 400.0)
+    assert parse_change("sheath=48") == Change(0.0, 2, 48.0)
+    assert parse_duration("1.5h") == 5400.0
+    with pytest.raises(ValueError, match="unknown input 'flow'"):
+        parse_change("flow=3@+1s")
+    with pytest.raises(ValueError, match="cannot read the duration"):
+        parse_duration("10 parsecs")
+    with pytest.raises(ValueError, match="after the horizon"):
+        input_schedule([375, 23, 50], [Change(100.0, 1, 26.0)], 50)
+    with pytest.raises(ValueError, match="outside the allowed range"):
+        input_schedule([375, 23, 50], [Change(1.0, 1, -5.0)], 50)
+
+
+@pytest.fixture(scope="module")
+def twin_and_state():
+    from ajtwin.estimation import Twin
+
+    twin = Twin.default()
+    phi = float(twin.model.steady_aerosol_fraction(np.array([375.0, 23.0, 50.0]), 1.0))
+    mean = np.array([3.5, 1.0, 1e-4, 0.05, phi])
+    cov = np.diag([0.05, 1e-4, 1e-8, 1e-4, (0.05 * phi) ** 2])
+    return twin, mean, cov
+
+
+def test_forecast_mean_is_the_open_loop_model(twin_and_state):
+    twin, mean, cov = twin_and_state
+    theta = np.array([0.0, 0.0, 0.0, 1e-4, -1e-5])
+    u = input_schedule([375, 23, 50], [parse_change("Q_c=26@+30s")], 120)
+    fc = forecast(twin, mean, cov, u, theta)
+    states = twin.model.simulate(mean, u, theta)  # independent: DigitalModel lax.scan
+    assert np.allclose(fc.state_means, states[1:], rtol=1e-10, atol=1e-18)
+    y = np.array([twin.model.outputs(states[k + 1], u[k]) for k in (0, 59, 119)])
+    assert np.allclose(fc.output_means[[0, 59, 119]], y, rtol=1e-10)
+
+
+def test_forecast_covariance_matches_monte_carlo(twin_and_state):
+    """No process noise: the propagated σ of L_w, P_c ≈ the spread of sampled runs."""
+    from ajtwin.estimation import Twin
+
+    _, mean, cov = twin_and_state
+    quiet = Twin.default(process_std=(0.0,) * 5)
+    u = np.tile([375.0, 23.0, 50.0], (60, 1))
+    fc = forecast(quiet, mean, cov / 100, u)
+    rng = np.random.default_rng(0)
+    samples = rng.multivariate_normal(mean, cov / 100, size=400)
+    samples[:, 2:4] = np.abs(samples[:, 2:4])
+    ys = np.array([quiet.model.outputs(quiet.model.simulate(x, u)[-1], u[-1]) for x in samples])
+    mc = ys.std(axis=0)
+    assert np.allclose(fc.output_stds[-1, :4], mc[:4], rtol=0.15)
+    # with process noise the band only widens
+    wide = forecast(twin_and_state[0], mean, cov / 100, u)
+    assert np.all(wide.output_stds[-1, :4] >= fc.output_stds[-1, :4])
+
+
+def test_forecast_flags_extrapolation(twin_and_state):
+    twin, mean, cov = twin_and_state
+    fc = forecast(
+        twin, mean, cov, np.tile([375.0, 23.0, 50.0], (600, 1)), np.array([0, 0, 0, 0.01, 0])
+    )
+    assert any("ΔR_N passes" in w for w in fc.warnings)
+    ok = forecast(twin, mean, cov, np.tile([375.0, 23.0, 50.0], (60, 1)), np.zeros(5))
+    assert ok.warnings == []
+
+
+# --------------------------------------------------------------------------- advice
+
+
+def test_advice_reaches_target_with_least_overspray(twin_and_state):
+    from ajtwin.apps.advise import advise
+
+    twin, mean, cov = twin_and_state
+    twin.theta = np.zeros(5)
+    limits = {
+        "atomizer_current_mA": [300, 440],
+        "carrier_flow_sccm": [15, 35],
+        "sheath_flow_sccm": [30, 80],
+    }
+    adv = advise(twin, mean, cov, [375, 23, 50], 40.0, limits=limits, settle_s=60)
+    assert adv.reachable and adv.message == "target reached"
+    # independent check: the model run open loop with the advised inputs
+    u = np.tile(adv.inputs, (60, 1))
+    y = twin.model.outputs(twin.model.simulate(mean, u)[-1], adv.inputs)
+    assert abs(y[0] - 40.0) < 0.06
+    assert np.all(adv.inputs >= [300, 15, 30]) and np.all(adv.inputs <= [440, 35, 80])
+    # no grid point that reaches 40 ± 0.5 µm has clearly less overspray
+    best = np.inf
+    for ia in np.linspace(300, 440, 5):
+        for qc in np.linspace(15, 35, 9):
+            for qs in np.linspace(30, 80, 11):
+                uu = np.array([ia, qc, qs])
+                yy = twin.model.outputs(twin.model.simulate(mean, np.tile(uu, (60, 1)))[-1], uu)
+                if abs(yy[0] - 40.0) < 0.5:
+                    best = min(best, yy[1] - (yy[0] - 40.0) * 0.7)
+    assert adv.predicted["overspray_um"][0] <= best + 0.5
+
+
+def test_advice_unreachable(twin_and_state):
+    from ajtwin.apps.advise import advise
+
+    twin, mean, cov = twin_and_state
+    adv = advise(twin, mean, cov, [375, 23, 50], 5.0, settle_s=30)
+    assert not adv.reachable and "not reachable" in adv.message
+
+
+def test_forecast_and_advise_cli(tmp_path):
+    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.store.registry import Registry
+
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("m")
+    runner = CliRunner()
+    res = runner.invoke(forecast, ["--machine", "m", "--store", str(store)])
+    assert res.exit_code != 0 and "no prints yet" in res.output
+    from ajtwin.estimation import Twin
+
+    twin = Twin.default()
+    phi = float(twin.model.steady_aerosol_fraction(np.array([375.0, 23.0, 50.0]), 1.0))
+    end = np.array([3.5, 1.0, 1e-4, 0.04, phi])
+    reg.save_print(
+        "m",
+        content_hash="x",
+        source="t",
+        meta={},
+        summary={},
+        n_samples=2,
+        duration_s=2.0,
+        start_mean=end,
+        start_cov=np.eye(5) * 1e-6,
+        end_mean=end,
+        end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
+        theta_before=np.zeros(5),
+        theta_after=np.zeros(5),
+        arrays={"inputs": np.tile([375.0, 23.0, 50.0], (2, 1))},
+        anomalies=[],
+        expected_last_seq=None,
+    )
+    out = tmp_path / "f.csv"
+    res = runner.invoke(
+        forecast,
+        [
+            "--machine", "m", "--set", "Q_c=26@+60s", "--horizon", "5min", "--store", str(store),
+            "--out", str(out), "--plot", str(tmp_path / "f.png"),
+        ],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    import pandas as pd
+
+    frame = pd.read_csv(out)
+    assert len(frame) == 300 and frame["carrier_flow_sccm"].iloc[59] == 23.0
+    assert frame["carrier_flow_sccm"].iloc[60] == 26.0
+    assert (tmp_path / "f.png").stat().st_size > 1000
+    res = runner.invoke(forecast, ["--machine", "m", "--set", "Q_x=1", "--store", str(store)])
+    assert res.exit_code != 0 and "unknown input" in res.output
+    res = runner.invoke(
+        advise, ["--machine", "m", "--target-linewidth", "45", "--store", str(store)]
+    )
+    assert res.exit_code == 0, res.output
+    assert "target reached" in res.output

@@ -96,7 +96,10 @@ def _fmt(v, digits=4):
     help="Folder for the demo's files (report.html, video, registry).",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the virtual prints.")
-def demo_command(out_dir, seed):
+@click.option("--clean-min", type=float, default=CLEAN_MIN, show_default=True, hidden=True)
+@click.option("--fault-min", type=float, default=FAULT_MIN, show_default=True, hidden=True)
+@click.option("--onset-min", type=float, default=FAULT_ONSET_MIN, show_default=True, hidden=True)
+def demo_command(out_dir, seed, clean_min, fault_min, onset_min):
     """Run the end-to-end demo: virtual print with a nozzle clog → camera video → vision →
     twin → alarm → forecast → advice → demo-output/report.html."""
     from ajtwin.apps import report
@@ -115,20 +118,22 @@ def demo_command(out_dir, seed):
 
     # 1 ---------------------------------------------------------------- virtual printer
     stages.start("virtual printer: a clean print, then a print whose nozzle clogs")
-    clean = simulate("exp1", seed=seed + 1, duration_min=CLEAN_MIN)
+    if not 0 < onset_min < fault_min or clean_min <= 0:
+        raise click.BadParameter("need 0 < onset-min < fault-min and clean-min > 0")
+    clean = simulate("exp1", seed=seed + 1, duration_min=clean_min)
     clean.meta["machine_id"] = MACHINE
     faulty = simulate(
         "nozzle_clog",
         seed=seed + 2,
-        duration_min=FAULT_MIN,
-        overrides={"fault": {"onset_min": FAULT_ONSET_MIN}},
+        duration_min=fault_min,
+        overrides={"fault": {"onset_min": onset_min}},
         continue_from=clean,
     )
     onset_s = float(faulty.meta["fault_onset_s"])
     write_record(clean, out / "print1_clean.parquet")
     write_record(faulty, out / "print2_nozzle_clog.parquet")
     click.echo(
-        f"      print 1: exp1, {CLEAN_MIN:g} min; print 2: nozzle_clog, {FAULT_MIN:g} min, "
+        f"      print 1: exp1, {clean_min:g} min; print 2: nozzle_clog, {fault_min:g} min, "
         f"clog from {onset_s / 60:g} min (deposition rate ×"
         f"{faulty.meta['scenario_config']['fault']['nozzle_deposition_multiplier']:g})"
         if "scenario_config" in faulty.meta
@@ -271,8 +276,8 @@ def demo_command(out_dir, seed):
     ]
     truth = faulty.true_states
     rows = []
-    for minute in (5, 15, 20, 25, 30, 35, 39.9):
-        k = min(int(minute * 60), len(truth) - 1)
+    for frac in (0.1, 0.3, 0.5, 0.6, 0.75, 0.9, 1.0):
+        k = min(int(frac * len(truth)), len(truth) - 1)
         m, s = second.run.means[k], second.run.stds[k]
         rows.append(
             [f"{k / 60:.1f}"]

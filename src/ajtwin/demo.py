@@ -246,6 +246,8 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min):
         max_overspray_um=35.0,
         limits=reg.machine(MACHINE)["limits"],
     )
+    if not advice.reachable and after and after[0].cause == "nozzle_clog":
+        advice.message += " — the nozzle is clogging: clean it, then advise again"
     click.echo(f"      advice for L_w {target:g} µm: {advice.message}")
 
     # 7 ---------------------------------------------------------------- report

@@ -233,6 +233,18 @@ def test_ingest_chain_and_cli(tmp_path):
     assert abs(p2["end_mean"][3] - truth_end[3]) < 4 * std[3]
     assert abs(p2["end_mean"][1] - truth_end[1]) < 0.05
 
+    # the stored arrays are enough to re-run the detectors: same events as stored
+    from ajtwin.apps.anomaly import detect_anomalies
+
+    a = reg.print_arrays(p2["id"])
+    again = detect_anomalies(
+        a["time_s"], a["measurements"], a["predicted_outputs"], a["innovation_variances"],
+        a["nis"], a["n_measured"], a["means"], a["predicted_means"], a["covariances"],
+    )  # fmt: skip
+    stored = reg.anomalies("lab")
+    assert len(again.events) == int((stored["seq"] == 2).sum())
+    assert a["means"].shape == (180, 5) and a["covariances"].shape == (180, 5, 5)
+
     res = runner.invoke(machine, ["show", "lab", "--store", store])
     assert res.exit_code == 0 and "last print: #2" in res.output
     res = runner.invoke(machine, ["history", "lab", "--store", store])

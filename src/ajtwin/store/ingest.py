@@ -172,6 +172,7 @@ def ingest_record(
         "means": run.means,
         "stds": run.stds,
         "covariances": np.asarray(f.covariances),
+        "predicted_means": np.asarray(f.predicted_means),
         "predicted_outputs": np.asarray(f.predicted_outputs),
         "innovation_variances": np.asarray(f.innovation_variances),
         "measurements": record.outputs,

@@ -132,8 +132,10 @@ def explain_linewidth_changes(twin: Twin, run: TwinRun, record, span_s: int = 30
     through the output model, with the nozzle term evaluated exactly.
     """
     inputs = record.inputs
-    steps = np.flatnonzero(np.any(np.abs(np.diff(_setpoints(inputs), axis=0)) > 0.5, axis=1)) + 1
-    edges = [0, *steps.tolist(), len(inputs)]
+    changed = np.flatnonzero(np.any(np.abs(np.diff(_setpoints(inputs), axis=0)) > 0.5, axis=1))
+    # one set-point change shows as a few adjacent indices after the median filter: keep the first
+    steps = [int(k) + 1 for n, k in enumerate(changed) if n == 0 or k - changed[n - 1] > 120]
+    edges = [0, *steps, len(inputs)]
     coeff = twin.model.coefficients.linewidth
     means = run.means
     out = []

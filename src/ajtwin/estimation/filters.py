@@ -168,8 +168,9 @@ def ekf(
     """
     s, r = spec.scaling.state, spec.scaling.output
     f_s, g_s = _scaled_functions(spec, functions)
-    jac_f = jax.jacfwd(f_s, argnums=0)
-    jac_g = jax.jacfwd(g_s, argnums=0)
+    # value and Jacobian from one forward-mode pass (the primal is not evaluated twice)
+    f_and_jac = jax.jacfwd(lambda z, u, th: (f_s(z, u, th), f_s(z, u, th)), has_aux=True)
+    g_and_jac = jax.jacfwd(lambda z, u: (g_s(z, u), g_s(z, u)), has_aux=True)
 
     inputs = jnp.asarray(inputs, dtype=float)
     measurements = jnp.asarray(measurements, dtype=float)
@@ -187,8 +188,7 @@ def ekf(
     def update(z_pred, p_pred, u, y):
         eta = y / r
         measured = jnp.isfinite(eta)
-        y_hat = g_s(z_pred, u)
-        h = jac_g(z_pred, u)
+        h, y_hat = g_and_jac(z_pred, u)
         innovation = jnp.where(measured, eta - y_hat, 0.0)
         s_full = h @ p_pred @ h.T + jnp.diag(r_diag)
         # per-output gate on the marginal innovation
@@ -224,8 +224,7 @@ def ekf(
         u, y, theta = inp
         z_post, p_post, y_hat, s_diag, log_lik, nis, n_meas = update(z_pred, p_pred, u, y)
         z_post, p_post, reinit = guard(z_post, p_post, z_pred)
-        f_jac = jac_f(z_post, u, theta)
-        z_next = f_s(z_post, u, theta)
+        f_jac, z_next = f_and_jac(z_post, u, theta)
         p_next = f_jac @ p_post @ f_jac.T + q
         p_next = 0.5 * (p_next + p_next.T)
         out = (z_post, p_post, z_pred, p_pred, f_jac, y_hat, s_diag, log_lik, nis, n_meas, reinit)

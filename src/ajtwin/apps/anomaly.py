@@ -40,6 +40,8 @@ from scipy import stats
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
 SHORT_OUTPUT = ("L_w", "L_o", "P_c", "P_s", "Q_m")
+#: the CUSUM channels: the five outputs and the common-mode pressure sum
+CUSUM_CHANNELS = (*SHORT_OUTPUT, "P_c+P_s")
 SHORT_STATE = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
 
 #: The likely-cause labels (paper §4; issue 8).
@@ -62,6 +64,10 @@ class DetectorSettings:
     cusum_threshold: float = 16.0  # decision interval h [σ] for L_w, L_o, P_c, P_s
     # Q_m (CNN-based, log-normal noise, filter σ a rough 20 %): clean prints reach g ≈ 15–18
     cusum_threshold_material_flow: float = 30.0
+    # common-mode pressure channel e_Pc + e_Ps (a nozzle deposit or a carrier change moves
+    # both pressures together; their innovations correlate ~0.8 in clean prints)
+    cusum_drift_pressure_sum: float = 0.7
+    cusum_threshold_pressure_sum: float = 16.0
     nis_window_s: int = 120
     nis_alpha: float = 1e-9  # tail probability of the windowed NIS
     merge_s: float = 600.0  # alarms within this gap belong to one event
@@ -153,8 +159,8 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
     ----------
     e : (T, m) array
         Normalised innovations.
-    drift : float
-        Allowance k per step (half the bias to detect, in σ).
+    drift : float or (m,) array
+        Allowance k per step (half the bias to detect, in σ), per column if an array.
     threshold : float or (m,) array
         Decision interval h (per column if an array).
     start : int
@@ -172,6 +178,7 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
     g_pos = np.zeros((n, m))
     g_neg = np.zeros((n, m))
     threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (m,))
+    drift = np.broadcast_to(np.asarray(drift, dtype=float), (m,))
     gp = np.zeros(m)
     gn = np.zeros(m)
     zero_p = np.full(m, start - 1)
@@ -261,8 +268,8 @@ class DetectionResult:
     normalised_innovations: np.ndarray  # (T, 5)
     nis_p: np.ndarray  # (T,) per-step χ² tail
     window_nis_p: np.ndarray  # (T,)
-    cusum_pos: np.ndarray  # (T, 5)
-    cusum_neg: np.ndarray  # (T, 5)
+    cusum_pos: np.ndarray  # (T, 6): CUSUM_CHANNELS
+    cusum_neg: np.ndarray  # (T, 6)
     events: list  # AnomalyEvent
     settings: DetectorSettings
 
@@ -319,12 +326,20 @@ def detect_anomalies(
     start = int(np.searchsorted(t, t[0] + s.warmup_s))
     p_step = nis_tail_probability(nis, n_measured)
     _, _, p_win = windowed_nis(nis, n_measured, s.nis_window_s)
-    thresholds = np.array([s.cusum_threshold] * 4 + [s.cusum_threshold_material_flow])
-    g_pos, g_neg, alarms = cusum(e, s.cusum_drift, thresholds, start=start)
+    channels = np.column_stack([e, e[:, 2] + e[:, 3]])  # + the common-mode pressure channel
+    thresholds = np.array(
+        [s.cusum_threshold] * 4 + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
+    )
+    drifts = np.array([s.cusum_drift] * 5 + [s.cusum_drift_pressure_sum])
+    g_pos, g_neg, alarms = cusum(channels, drifts, thresholds, start=start)
 
     # raw alarms: (step, change_step, detector label)
     raw = [
-        (a.step, a.change_step, f"cusum{'+' if a.direction > 0 else '−'} {SHORT_OUTPUT[a.output]}")
+        (
+            a.step,
+            a.change_step,
+            f"cusum{'+' if a.direction > 0 else '−'} {CUSUM_CHANNELS[a.output]}",
+        )
         for a in alarms
     ]
     win = np.asarray(s.nis_window_s, dtype=int)

@@ -126,7 +126,7 @@ def detectors_figure(detection, fault_onset_s=None) -> bytes:
         axes[0].plot(t[ok], e[ok, i], lw=0.6, label=name)
     axes[0].set_ylabel("normalised\ninnovation [σ]")
     axes[0].set_ylim(-8, 8)
-    for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m")):
+    for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m", "P_c+P_s")):
         axes[1].plot(t, detection.cusum_pos[:, i] - detection.cusum_neg[:, i], lw=1, label=name)
     h = detection.settings.cusum_threshold  # (Q_m: its own, higher threshold)
     axes[1].axhline(h, color="tab:red", ls=":")
@@ -140,7 +140,7 @@ def detectors_figure(detection, fault_onset_s=None) -> bytes:
         _marks(ax, fault_onset_s, detection.events)
         ax.grid(alpha=0.3)
     axes[0].legend(ncol=5, fontsize=8, loc="upper left")
-    axes[1].legend(ncol=5, fontsize=8, loc="upper left")
+    axes[1].legend(ncol=6, fontsize=8, loc="upper left")
     fig.suptitle("Anomaly detectors on the twin's innovations")
     fig.tight_layout()
     return figure_png(fig)

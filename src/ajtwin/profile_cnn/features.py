@@ -148,7 +148,7 @@ def smooth_features(h_um: torch.Tensor, um_per_px: float, *, opt: Optics | None 
     >>> h = torch.tensor(line_profile(r, 43.0, 29.0, 15.0))
     >>> lw, ov = smooth_features(h, 0.75)
     >>> round(float(lw), 1), round(float(ov), 1)
-    (43.7, 28.7)
+    (43.5, 28.7)
     """
     opt = opt or optics()
     if h_um.dim() == 1:

@@ -262,3 +262,39 @@ def test_not_a_registry(tmp_path):
     bad.write_bytes(b"this is not sqlite" * 100)
     with pytest.raises(RegistryError, match="not a usable ajtwin registry"):
         Registry(bad)
+
+
+def test_ingest_with_video_cli(tmp_path):
+    """--video fills L_w/L_o from the camera (ajtwin.vision) before the twin runs."""
+    from ajtwin.io.records import write_record
+    from ajtwin.simulation import simulate
+    from ajtwin.store.cli import ingest, machine
+    from ajtwin.vision.cli import render
+
+    rec = simulate("exp1", seed=7, duration_min=1.0)
+    write_record(rec, tmp_path / "p.parquet")
+    video = tmp_path / "cam.avi"
+    render.main(
+        [str(tmp_path / "p.parquet"), "--out", str(video), "--fps", "0.5", "--size", "640x400"],
+        standalone_mode=False,
+    )
+    store = str(tmp_path / "r.sqlite")
+    runner = CliRunner()
+    assert runner.invoke(machine, ["add", "cam", "--store", store]).exit_code == 0
+    res = runner.invoke(ingest, ["--machine", "cam", str(tmp_path / "p.parquet"), "--video",
+                                 str(video), "--store", store, "--no-progress"])  # fmt: skip
+    assert res.exit_code != 0 and "--um-per-px" in res.output
+    res = runner.invoke(ingest, ["--machine", "cam", str(tmp_path / "p.parquet"), "--video",
+                                 str(video), "--um-per-px", "0.75", "--store", store,
+                                 "--no-progress"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    reg = Registry(store)
+    p = reg.last_print("cam")
+    assert p["meta"]["vision"]["seconds_filled"] == 30
+    lw = reg.print_arrays(p["id"])["measurements"][:, 0]
+    assert np.isfinite(lw).sum() == 30  # one frame every 2 s
+    logged = rec.outputs[:, 0]
+    ok = np.isfinite(lw)
+    assert np.median(np.abs(lw[ok] - logged[ok])) < 1.5  # vision within ~1 µm of the line
+    res = runner.invoke(machine, ["list", "--store", store])
+    assert "cam  (1 prints" in res.output

@@ -257,6 +257,7 @@ def run_exp3(seed: int, twin_overrides: dict | None = None, em_iterations: int =
     )
     series = {
         "y_cal": y_cal,
+        "y_theta_only": y_theta_only,
         "y_uncal": y_uncal,
         "y_true": y_true,
         "y_meas": y_meas,

@@ -62,8 +62,10 @@ def _inference_rate(width, threads, n=2048):
     return n / (time.perf_counter() - t0)
 
 
-def _training_rates(width, data, epochs=2):
-    cfg = TrainConfig(stage1_epochs=epochs, stage2_epochs=epochs, base_channels=width, n_threads=1)
+def _training_rates(width, data, epochs=2, threads=1):
+    cfg = TrainConfig(
+        stage1_epochs=epochs, stage2_epochs=epochs, base_channels=width, n_threads=threads
+    )
     trainer = Trainer(cfg, data, data, progress=False)
     trainer.run()
     n = len(data) * epochs
@@ -85,6 +87,9 @@ def main() -> dict:
         figures[f"{tag}_default_model_train_time_estimate_min"] = round(
             (125 * 100 / s1 + 4000 * 50 / s2) / 60, 1
         )
+        s1_2, s2_2 = _training_rates(width, data, threads=2)
+        figures[f"{tag}_train_stage1_columns_per_s_2threads"] = round(s1_2, 1)
+        figures[f"{tag}_train_stage2_columns_per_s_2threads"] = round(s2_2, 1)
     torch.set_num_threads(1)
     return figures
 

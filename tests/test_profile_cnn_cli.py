@@ -221,3 +221,18 @@ def test_cv_summary_merges_parts(tmp_path):
     assert res.exit_code == 0, res.output
     s = json.loads((tmp_path / "cv.json").read_text())["summary"]
     assert s["after_pairs.x.mean"] == 2.0 and s["after_pairs.x.var"] == 1.0
+
+
+def test_cli_columns_from_video(video, tmp_path):
+    path, _ = video
+    res = run(
+        "cnn", "columns", path, "--um-per-px", PX, "--out", tmp_path / "c.npz", "--no-progress"
+    )
+    assert res.exit_code == 0, res.output
+    data = load_dataset(tmp_path / "c.npz")
+    assert data.columns.shape[1] == 200 and len(data) > 20
+    assert set(np.unique(data.group)) <= {0, 1, 2, 3}
+    # frames 0-1 show the 40 µm line, frames 2-3 the 46 µm one
+    first = data.linewidth_um[data.group < 2].mean()
+    second = data.linewidth_um[data.group >= 2].mean()
+    assert first == pytest.approx(40.0, abs=2.5) and second == pytest.approx(46.0, abs=2.5)

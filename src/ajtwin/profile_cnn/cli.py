@@ -186,6 +186,28 @@ def pairs(manifest, um_per_px, out, half_width_px):
 
 
 @cnn.command()
+@click.argument("video", type=click.Path(exists=True))
+@click.option("--um-per-px", type=float, required=True, help="Camera pixel size, µm.")
+@click.option("--out", type=click.Path(dir_okay=False), required=True)
+@click.option("--batch", type=int, default=50, show_default=True, help="Columns per batch.")
+@click.option("--fps", type=float, default=None, help="Frame rate override.")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def columns(video, um_per_px, out, batch, fps, progress):
+    """Stage-2 data from real VIDEO: batch columns labelled by the CV extractor."""
+    from ajtwin.profile_cnn.data import save_dataset
+    from ajtwin.profile_cnn.frames import labelled_columns_from_video
+    from ajtwin.vision.extract import VisionInputError
+
+    try:
+        data = labelled_columns_from_video(
+            video, um_per_px, batch=batch, fps=fps, progress=progress
+        )
+    except (ValueError, VisionInputError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {save_dataset(data, out)} ({len(data)} labelled columns)")
+
+
+@cnn.command()
 @_training_options
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Model file (.pt).")
 @click.option(

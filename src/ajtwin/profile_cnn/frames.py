@@ -110,3 +110,52 @@ def frame_columns(
     grid = np.arange(mean.shape[0])
     columns = np.stack([np.interp(rows, grid, mean[:, b]) for b in range(n_batches)])
     return FrameColumns(columns, float(center), result)
+
+
+def labelled_columns_from_video(
+    source,
+    um_per_px: float,
+    *,
+    batch: int = 50,
+    n_pixels: int = 200,
+    fps: float | None = None,
+    progress: bool = True,
+):
+    """Stage-2 data from real alignment-camera video: batch columns + their CV labels.
+
+    Every batch the extractor measured (status ok / std fallback) becomes one
+    labelled column; ``group`` is the frame number, so a frame never straddles
+    two cross-validation folds.
+
+    Returns
+    -------
+    ColumnDataset
+    """
+    from tqdm.auto import tqdm
+
+    from ajtwin.profile_cnn.data import ColumnDataset
+    from ajtwin.vision.extract import open_source
+
+    frames = open_source(source, fps)
+    extractor = LineExtractor(um_per_px, batch=batch)
+    cols, lws, ovs, groups = [], [], [], []
+    for index, time_s, frame in tqdm(
+        frames, total=frames.count, desc="frames", unit="frame", disable=not progress
+    ):
+        fc = frame_columns(frame, extractor, n_pixels=n_pixels, index=index, time_s=time_s)
+        if len(fc.columns) == 0:
+            continue
+        ok = fc.cv_ok & np.isfinite(fc.cv_linewidth_um) & np.isfinite(fc.cv_overspray_um)
+        cols.append(fc.columns[ok])
+        lws.append(fc.cv_linewidth_um[ok])
+        ovs.append(fc.cv_overspray_um[ok])
+        groups.append(np.full(int(ok.sum()), index))
+    if not cols or sum(len(c) for c in cols) == 0:
+        raise ValueError(f"{source}: the extractor measured no batch in any frame")
+    return ColumnDataset(
+        columns=np.concatenate(cols),
+        um_per_px=um_per_px,
+        linewidth_um=np.concatenate(lws),
+        overspray_um=np.concatenate(ovs),
+        group=np.concatenate(groups),
+    )

@@ -139,6 +139,21 @@ def test_cli_synth_train_resume_infer_join(video, tmp_path):
     ):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
+    res = run(
+        "cnn",
+        "score",
+        "--model",
+        model_path,
+        "--pairs",
+        data / "pairs.npz",
+        "--columns",
+        data / "columns.npz",
+    )
+    assert res.exit_code == 0, res.output
+    scores = json.loads(res.output)
+    assert scores["pairs"]["n_columns"] == 6 and "qm_rel_error" in scores["pairs"]
+    assert "mae_linewidth_vs_cv_um" in scores["columns"]
+
     record = tmp_path / "print.parquet"
     t = np.arange(3.0)
     df = pd.DataFrame(

@@ -315,6 +315,32 @@ def crossval(k, only, out, **kw):
     click.echo(f"wrote {out}")
 
 
+@cnn.command()
+@click.option("--model", "model_path", type=click.Path(exists=True, dir_okay=False), required=True)
+@click.option("--pairs", "pairs_path", type=click.Path(exists=True, dir_okay=False), default=None)
+@click.option(
+    "--columns", "columns_path", type=click.Path(exists=True, dir_okay=False), default=None
+)
+def score(model_path, pairs_path, columns_path):
+    """Score a model on held-out data sets (MAEs, Q_m error), as JSON."""
+    from ajtwin.profile_cnn.data import load_dataset
+    from ajtwin.profile_cnn.evaluate import score as score_model
+    from ajtwin.profile_cnn.model import ProfileModel, set_threads
+
+    if not pairs_path and not columns_path:
+        raise click.UsageError("give --pairs and/or --columns")
+    set_threads()
+    model = ProfileModel.load(model_path)
+    out = {}
+    try:
+        for name, path in (("pairs", pairs_path), ("columns", columns_path)):
+            if path:
+                out[name] = score_model(model, load_dataset(path))
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(json.dumps(out, indent=2))
+
+
 @cnn.command("cv-summary")
 @click.argument("parts", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
 @click.option("--out", type=click.Path(dir_okay=False), required=True)

@@ -20,6 +20,7 @@ def test_exp3_end_to_end(tmp_path):
     f = m["forecast_rmse_vs_noise_free_truth"]
     assert all(np.isfinite(v) and 0 < v < 10 for v in f.values())
     assert "linewidth_rmse_ratio" in result["summary"]
+    assert "linewidth_rmse_ratio_vs_theta_withheld_ablation" in result["summary"]
 
 
 def test_exp2_contributions_add_up(tmp_path):

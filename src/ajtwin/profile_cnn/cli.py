@@ -66,10 +66,10 @@ def _training_options(f):
         click.option(
             "--area-weight",
             type=float,
-            default=0.0,
+            default=1000.0,
             show_default=True,
             help="Stage-2 anchor keeping each column's area (Q_m) at the stage-1 model's; "
-            "0 = the paper's pure feature loss.",
+            "0 = the paper's pure feature loss (inflates Q_m; see docs/profile_cnn.md).",
         ),
         click.option(
             "--width",

@@ -44,6 +44,66 @@ def frame_print_times(
     return np.asarray(frame_time_s, dtype=float) + start_offset_s - lag_s
 
 
+def join_frame_columns(
+    record: pd.DataFrame,
+    frames: pd.DataFrame,
+    columns: tuple[str, ...],
+    *,
+    start_offset_s: float = 0.0,
+    camera_offset_um: float = 0.0,
+    platen_speed_mm_s: float = 1.0,
+) -> tuple[pd.DataFrame, dict]:
+    """Bin per-frame values onto a 1 Hz record: the one join every video reader uses.
+
+    Record second ``t`` gets, for each of ``columns``, the mean of the frames with a good
+    ``status`` whose print time (:func:`frame_print_times`) is in ``[t, t + 1)``; seconds
+    without such a frame get NaN. Everything else in the record is kept.
+
+    Returns
+    -------
+    joined : DataFrame
+        A copy of ``record`` with ``columns`` replaced.
+    summary : dict
+        ``seconds_filled`` (of the first column), ``seconds_without_frames``, ``frames_used``,
+        ``frames_outside_record``, ``frames_not_ok``.
+    """
+    for column in ("time_s", *columns, "status"):
+        if column not in frames.columns:
+            raise ValueError(f"frame table has no column {column!r}")
+    if "time_s" not in record.columns:
+        raise ValueError("print record has no column 'time_s'")
+    good = frames[frames["status"].isin(GOOD_STATUS)]
+    print_time = frame_print_times(
+        good["time_s"].to_numpy(dtype=float),
+        start_offset_s=start_offset_s,
+        camera_offset_um=camera_offset_um,
+        platen_speed_mm_s=platen_speed_mm_s,
+    )
+    record_time = record["time_s"].to_numpy(dtype=float)
+    # the record second each frame falls in (half-open bins [t, t + 1))
+    index = np.searchsorted(record_time, print_time, side="right") - 1
+    inside = (index >= 0) & (index < record_time.size)
+    offset = print_time - record_time[np.clip(index, 0, max(record_time.size - 1, 0))]
+    inside &= (offset >= 0) & (offset < 1.0)
+    joined = record.copy()
+    for column in columns:
+        values = good[column].to_numpy(dtype=float)
+        ok = inside & np.isfinite(values)
+        sums = np.bincount(index[ok], weights=values[ok], minlength=record_time.size)
+        counts = np.bincount(index[ok], minlength=record_time.size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            joined[column] = np.where(counts > 0, sums / counts, np.nan)
+    filled = int(np.isfinite(joined[columns[0]]).sum())
+    summary = {
+        "seconds_filled": filled,
+        "seconds_without_frames": int(record_time.size - filled),
+        "frames_used": int(inside.sum()),
+        "frames_outside_record": int((~inside).sum()),
+        "frames_not_ok": int(len(frames) - len(good)),
+    }
+    return joined, summary
+
+
 def join_features(
     record: pd.DataFrame,
     features: pd.DataFrame,
@@ -71,38 +131,14 @@ def join_features(
         Counts: seconds filled, seconds without frames, frames used, frames outside the
         record's time span.
     """
-    for column in ("time_s", "linewidth_um", "overspray_um", "status"):
-        if column not in features.columns:
-            raise ValueError(f"features table has no column {column!r}")
-    if "time_s" not in record.columns:
-        raise ValueError("print record has no column 'time_s'")
-    good = features[features["status"].isin(GOOD_STATUS)]
-    print_time = frame_print_times(
-        good["time_s"].to_numpy(),
-        start_offset_s=start_offset_s,
-        camera_offset_um=camera_offset_um,
-        platen_speed_mm_s=platen_speed_mm_s,
-    )
-    record_time = record["time_s"].to_numpy(dtype=float)
-    # the record second each frame falls in (half-open bins [t, t + 1))
-    index = np.searchsorted(record_time, print_time, side="right") - 1
-    inside = (index >= 0) & (index < record_time.size)
-    offset = print_time - record_time[np.clip(index, 0, record_time.size - 1)]
-    inside &= (offset >= 0) & (offset < 1.0)
-    joined = record.copy()
-    for column in ("linewidth_um", "overspray_um"):
-        values = good[column].to_numpy(dtype=float)
-        ok = inside & np.isfinite(values)
-        sums = np.bincount(index[ok], weights=values[ok], minlength=record_time.size)
-        counts = np.bincount(index[ok], minlength=record_time.size)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            joined[column] = np.where(counts > 0, sums / counts, np.nan)
-    filled = int(np.isfinite(joined["linewidth_um"]).sum())
-    summary = {
-        "seconds_filled": filled,
-        "seconds_without_frames": int(record_time.size - filled),
-        "frames_used": int(inside.sum()),
-        "frames_outside_record": int((~inside).sum()),
-        "frames_not_ok": int(len(features) - len(good)),
-    }
-    return joined, summary
+    try:
+        return join_frame_columns(
+            record,
+            features,
+            ("linewidth_um", "overspray_um"),
+            start_offset_s=start_offset_s,
+            camera_offset_um=camera_offset_um,
+            platen_speed_mm_s=platen_speed_mm_s,
+        )
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("frame table", "features table")) from None

@@ -17,7 +17,7 @@ from ajtwin.profile_cnn.flow import material_flow_ml_s
 from ajtwin.profile_cnn.frames import frame_columns
 from ajtwin.profile_cnn.model import ProfileModel
 from ajtwin.vision.extract import LineExtractor, open_source
-from ajtwin.vision.join import GOOD_STATUS, frame_print_times
+from ajtwin.vision.join import join_frame_columns
 
 QM_COLUMNS = (
     "frame",
@@ -130,35 +130,18 @@ def join_material_flow(
     >>> join_material_flow(rec, qm)[0]["material_flow_mL_s"].tolist()
     [2.0, nan, 5.0]
     """
-    for column in ("time_s", "material_flow_mL_s", "status"):
-        if column not in qm.columns:
-            raise ValueError(f"Q_m table has no column {column!r}")
-    if "time_s" not in record.columns:
-        raise ValueError("print record has no column 'time_s'")
-    good = qm[qm["status"].isin(GOOD_STATUS) & np.isfinite(qm["material_flow_mL_s"])]
-    print_time = frame_print_times(
-        good["time_s"].to_numpy(dtype=float),
-        start_offset_s=start_offset_s,
-        camera_offset_um=camera_offset_um,
-        platen_speed_mm_s=platen_speed_mm_s,
-    )
-    record_time = record["time_s"].to_numpy(dtype=float)
-    index = np.searchsorted(record_time, print_time, side="right") - 1
-    inside = (index >= 0) & (index < record_time.size)
-    offset = print_time - record_time[np.clip(index, 0, max(record_time.size - 1, 0))]
-    inside &= (offset >= 0) & (offset < 1.0)
-    values = good["material_flow_mL_s"].to_numpy(dtype=float)
-    sums = np.bincount(index[inside], weights=values[inside], minlength=record_time.size)
-    counts = np.bincount(index[inside], minlength=record_time.size)
-    joined = record.copy()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        joined["material_flow_mL_s"] = np.where(counts > 0, sums / counts, np.nan)
-    filled = int((counts > 0).sum())
-    summary = {
-        "seconds_filled": filled,
-        "seconds_without_frames": int(record_time.size - filled),
-        "frames_used": int(inside.sum()),
-        "frames_outside_record": int((~inside).sum()),
-        "frames_not_ok": int(len(qm) - len(good)),
-    }
+    # the frame→second binning is the vision join's; finite Q_m only, as before
+    finite = qm[np.isfinite(qm["material_flow_mL_s"])] if "material_flow_mL_s" in qm else qm
+    try:
+        joined, summary = join_frame_columns(
+            record,
+            finite,
+            ("material_flow_mL_s",),
+            start_offset_s=start_offset_s,
+            camera_offset_um=camera_offset_um,
+            platen_speed_mm_s=platen_speed_mm_s,
+        )
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("frame table", "Q_m table")) from None
+    summary["frames_not_ok"] += int(len(qm) - len(finite))
     return joined, summary

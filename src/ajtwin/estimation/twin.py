@@ -88,6 +88,13 @@ class TwinConfig:
         initial = {}
         if "vial_fill_std_mL" in noise["initial"]:
             initial["vial_fill_std_ml"] = noise["initial"]["vial_fill_std_mL"]
+        if noise["theta_prior"]:
+            initial["theta_prior_std"] = tuple(noise["theta_prior"][n] for n in STATE_NAMES)
+        prior = noise["prior_initial"]
+        if "tube_deposition_um" in prior:
+            initial["tube_prior_std_um"] = prior["tube_deposition_um"]
+        if "nozzle_deposition_um" in prior:
+            initial["nozzle_prior_std_um"] = prior["nozzle_deposition_um"]
         base = cls(process, measurement, noise_profile=noise_profile, **initial)
         return replace(base, **overrides)
 

@@ -188,4 +188,7 @@ def load_noise(path: str | Path | None = None, profile: str = "paper") -> dict:
         for group in ("process", "measurement")
     }
     out["initial"] = {n: float(v["value"]) for n, v in source.get("initial", {}).items()}
+    priors = raw.get("priors", {})
+    out["prior_initial"] = {n: float(v["value"]) for n, v in priors.get("initial", {}).items()}
+    out["theta_prior"] = {n: float(v["value"]) for n, v in priors.get("theta", {}).items()}
     return out

@@ -110,6 +110,11 @@ def m_to_um(length):
     return length / UM_IN_M
 
 
+def um_to_nm(length):
+    """Length in µm → nm (reports of nozzle deposition)."""
+    return length * 1e3
+
+
 def ml_to_m3(volume):
     return volume * ML_IN_M3
 

@@ -24,6 +24,7 @@ import numpy as np
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.twin import Twin, TwinRun
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
+from ajtwin.units import um_to_nm
 
 CHECK_MINUTES = (30, 60, 90)
 #: states whose closed-loop error is judged relative to truth (SPEC §10 / issue 4)
@@ -45,7 +46,7 @@ def state_errors(means, truth) -> dict:
             row[STATE_NAMES[i] + "_rel_pct"] = float(
                 100 * abs(means[k, i] - truth[k, i]) / abs(truth[k, i])
             )
-        row["nozzle_deposition_abs_nm"] = float(1e3 * abs(means[k, NOZZLE] - truth[k, NOZZLE]))
+        row["nozzle_deposition_abs_nm"] = float(um_to_nm(abs(means[k, NOZZLE] - truth[k, NOZZLE])))
         row["tube_deposition_abs_um"] = float(abs(means[k, 2] - truth[k, 2]))
         out[f"{minute}min"] = row
     return out

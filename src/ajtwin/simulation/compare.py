@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ajtwin.units import um_to_nm
+
 
 def difference_from_nominal(virtual_print, last_s: int = 300) -> dict:
     """Truth minus nominal open loop, averaged over the last ``last_s`` seconds.
@@ -41,7 +43,7 @@ def difference_from_nominal(virtual_print, last_s: int = 300) -> dict:
         "d_a_um": x[last, 0].mean() - nominal[last, 0].mean(),
         "phi_A_percent": 100 * (x[last, 4].mean() / nominal[last, 4].mean() - 1),
         "V_l_mL": x[-1, 1] - nominal[-1, 1],
-        "dR_N_nm": 1e3 * (x[-1, 3] - nominal[-1, 3]),
+        "dR_N_nm": um_to_nm(x[-1, 3] - nominal[-1, 3]),
         "L_w_um": np.nanmean(y[last, 0]) - y_nominal[last, 0].mean(),
         "L_o_um": np.nanmean(y[last, 1]) - y_nominal[last, 1].mean(),
         "P_c_Pa": np.nanmean(y[last, 2]) - y_nominal[last, 2].mean(),

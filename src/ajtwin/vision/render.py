@@ -35,6 +35,7 @@ import numpy as np
 import scipy.fft
 from scipy.ndimage import gaussian_filter1d
 
+from ajtwin.units import mm_per_s_to_um_per_s
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
 
 SUBSAMPLES_PER_PX = 4  # across-line samples per pixel in the brightness map
@@ -542,7 +543,7 @@ def render_video(
         raise OSError(f"{out_path}: OpenCV cannot open a video writer here")
     rng = np.random.default_rng(seed)
     substrate = Substrate(shape, settings, rng)
-    speed_um_s = platen_speed_mm_s * 1e3
+    speed_um_s = mm_per_s_to_um_per_s(platen_speed_mm_s)
     dr = float(r_um[1] - r_um[0]) if r_um.size > 1 else 1.0
     stride = max(1, int(round(truth_step_um / dr)))
     truth_profiles: list[dict] = []

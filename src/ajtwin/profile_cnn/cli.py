@@ -15,6 +15,8 @@ from pathlib import Path
 
 import click
 
+from ajtwin.io.cli_options import join_options
+
 
 def _synthetic(n_pairs, n_columns, seed, um_per_px, progress):
     from ajtwin.profile_cnn.synth import synthetic_labelled, synthetic_pairs
@@ -376,35 +378,7 @@ def cv_summary(parts, out):
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Q_m CSV.")
 @click.option("--batch", type=int, default=50, show_default=True, help="Columns per batch.")
 @click.option("--fps", type=float, default=None, help="Frame rate override.")
-@click.option(
-    "--join",
-    "join_record",
-    type=click.Path(exists=True, dir_okay=False),
-    default=None,
-    help="Print record whose material_flow_mL_s to fill.",
-)
-@click.option(
-    "--join-out",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Joined record path (default: RECORD_cnn.parquet).",
-)
-@click.option(
-    "--start-offset",
-    "start_offset_s",
-    type=float,
-    default=0.0,
-    show_default=True,
-    help="Print time (s) of the first video frame.",
-)
-@click.option(
-    "--camera-offset",
-    "camera_offset_um",
-    type=float,
-    default=0.0,
-    show_default=True,
-    help="Nozzle-to-camera distance along the print, µm.",
-)
+@join_options("material_flow_mL_s", "cnn", must_exist=True)
 @click.option("--threads", type=int, default=None, help="torch threads (default 1).")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def infer(

@@ -12,6 +12,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import join_options
+
 STATUS_HINTS = {
     "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",
     "blank_frame": "frames are featureless — nothing in focus?",
@@ -269,35 +271,7 @@ def render(
     default=None,
     help="Frame rate (videos: overrides the file's; image folders: default 1).",
 )
-@click.option(
-    "--join",
-    "join_record",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Print record whose linewidth_um/overspray_um to fill.",
-)
-@click.option(
-    "--join-out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Where to write the joined record (default: RECORD_vision.parquet).",
-)
-@click.option(
-    "--start-offset",
-    "start_offset_s",
-    type=float,
-    default=0.0,
-    show_default=True,
-    help="Print time (s) of the first video frame.",
-)
-@click.option(
-    "--camera-offset",
-    "camera_offset_um",
-    type=float,
-    default=0.0,
-    show_default=True,
-    help="Distance from nozzle to the camera's view centre along the print, µm.",
-)
+@join_options("linewidth_um/overspray_um", "vision", must_exist=False)
 @click.option(
     "--platen-speed",
     "platen_speed_mm_s",

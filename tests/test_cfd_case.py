@@ -287,3 +287,26 @@ def test_fit_refuses_too_few_rows():
         fit_output_model(
             table, {"linewidth": {"aerosol_fraction": 0.0}, "overspray": {"aerosol_fraction": 0.0}}
         )
+
+
+def test_fit_droplet_window_keeps_rows_outside_it_out_of_the_linear_term():
+    lw = np.array([-7.0, 0.8, 0.0, 0.0, 1.1, -0.3, 50.0])
+    lo = np.array([6.0, 0.0, 0.0, 0.0, 0.2, -0.07, -10.0])
+    table = _synthetic_table(lw, lo, np.random.default_rng(1))
+    # outside 3–4 µm the linewidth bends away from the line (as the CFD's does below 3 µm)
+    small = table["droplet_diameter_um"] < 3.0
+    table.loc[small, "linewidth_um"] -= 25.0
+    reference = {"linewidth": {"aerosol_fraction": 0.0}, "overspray": {"aerosol_fraction": 0.0}}
+    windowed = fit_output_model(table, reference, 209.0, droplet_range_um=(3.0, 4.0))
+    assert windowed["linewidth"]["droplet_diameter"] == pytest.approx(-7.0)
+    assert windowed["linewidth"]["rms_um"] < 1e-9
+    assert windowed["droplet_range_um"] == [3.0, 4.0]
+    everything = fit_output_model(table, reference, 209.0)
+    assert everything["linewidth"]["droplet_diameter"] > -7.0 + 1.0  # the bend biases it
+    assert everything["linewidth"]["rows"] > windowed["linewidth"]["rows"]
+
+
+def test_packaged_fit_window_is_the_operating_window():
+    from ajtwin.cfd.fit import fit_settings
+
+    assert fit_settings()["droplet_range_um"] == (3.0, 4.0)

@@ -215,8 +215,25 @@ def sweep(out, design, design_file, mesh_level, scheduler, workers, no_retry_fai
     type=click.Path(exists=True, dir_okay=False),
     help="Coefficient file supplying alpha^phi (default: the packaged one).",
 )
-def fit(sweep_dir, coefficients_out, resistance_out, reference):
-    """Fit output-model coefficients and R_3^N(ΔR_N) to a finished sweep."""
+@click.option(
+    "--table-record",
+    help="Where the sweep table is kept for the record (e.g. level2/summary.csv under "
+    "ajtwin/cfd/results); written into the coefficient file. Default: SWEEP_DIR/summary.csv.",
+)
+@click.option(
+    "--droplet-range",
+    nargs=2,
+    type=float,
+    help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
+    "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
+)
+def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, droplet_range):
+    """Fit output-model coefficients and R_3^N(ΔR_N) to a finished sweep.
+
+    To adopt a fit as the twin's output model, write it over
+    ajtwin/data/output_coefficients.toml (with --reference pointing at the
+    provisional file that supplies alpha^phi).
+    """
     import pandas as pd
 
     from ajtwin.cfd import fit as fitting
@@ -229,9 +246,12 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference):
     table = pd.read_csv(summary)
     ref = fitting.read_toml(reference) if reference else _packaged_reference()
     meta = sweep_metadata(sweep_dir, table)
+    meta["summary_table"] = table_record or str(summary)
     limit = _geometry(None).max_trusted_speed
     try:
-        result = fitting.fit_output_model(table, ref, limit)
+        window = tuple(droplet_range) if droplet_range else None
+        window = window or fitting.fit_settings()["droplet_range_um"]
+        result = fitting.fit_output_model(table, ref, limit, window)
         resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     except ValueError as exc:
         raise click.ClickException(f"{summary}: {exc}") from None
@@ -264,7 +284,14 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference):
     help="A sweep of (some of) the same cases on a finer mesh: coefficient change.",
 )
 @click.option("--json-out", type=click.Path(dir_okay=False), help="Also write the figures here.")
-def report(sweep_dir, fine_dir, json_out):
+@click.option(
+    "--droplet-range",
+    nargs=2,
+    type=float,
+    help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
+    "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
+)
+def report(sweep_dir, fine_dir, json_out, droplet_range):
     """Validation figures against the paper (and a mesh-independence comparison)."""
     import pandas as pd
 
@@ -276,7 +303,8 @@ def report(sweep_dir, fine_dir, json_out):
     meta = reporting.sweep_metadata(sweep_dir, table)
     limit = _geometry(None).max_trusted_speed
     ref = _packaged_reference()
-    fitted = fitting.fit_output_model(table, ref, limit)
+    window = tuple(droplet_range) if droplet_range else fitting.fit_settings()["droplet_range_um"]
+    fitted = fitting.fit_output_model(table, ref, limit, window)
     resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     figures = {
         "sweep": {
@@ -310,7 +338,7 @@ def report(sweep_dir, fine_dir, json_out):
     click.echo("signs: " + ", ".join(f"{k}={val}" for k, val in v["signs"].items()))
     if fine_dir:
         fine = pd.read_csv(Path(fine_dir) / "summary.csv")
-        comparison = reporting.mesh_comparison(table, fine, ref, limit)
+        comparison = reporting.mesh_comparison(table, fine, ref, limit, window)
         figures["mesh_comparison"] = comparison
         click.echo(
             f"mesh study on {comparison['rows']} matched rows "

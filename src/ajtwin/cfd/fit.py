@@ -39,9 +39,35 @@ COEFFICIENT_KEYS = (
 _OUTPUT_COLUMN = {"linewidth": "linewidth_um", "overspray": "overspray_um"}
 
 
-def _usable(table: pd.DataFrame, column: str, max_speed_m_s: float | None = None):
-    """Finished, converged rows with a finite ``column`` and peak gas speed ≤ the limit."""
+def fit_settings(path: str | Path | None = None) -> dict:
+    """The ``[fit]`` table of ``sweep.toml``: the droplet window of the linear d_a term."""
+    from importlib import resources
+
+    text = (
+        (resources.files("ajtwin") / "cfd" / "sweep.toml").read_text()
+        if path is None
+        else Path(path).read_text()
+    )
+    settings = tomllib.loads(text).get("fit", {})
+    lo, hi = (float(v) for v in settings.get("droplet_range_um", (0.0, np.inf)))
+    if not 0.0 <= lo < hi:
+        raise ValueError(f"[fit] droplet_range_um must be 0 ≤ low < high, got {lo}, {hi}")
+    return {"droplet_range_um": (lo, hi)}
+
+
+def _usable(
+    table: pd.DataFrame,
+    column: str,
+    max_speed_m_s: float | None = None,
+    droplet_range_um: tuple[float, float] | None = None,
+):
+    """Finished, converged rows with a finite ``column``, peak gas speed ≤ the limit and
+    d_a inside ``droplet_range_um`` (inclusive)."""
     ok = table[(table["status"] == "ok") & np.isfinite(table[column].astype(float))]
+    if droplet_range_um is not None:
+        lo, hi = droplet_range_um
+        d = ok["droplet_diameter_um"].astype(float)
+        ok = ok[(d >= lo - 1e-9) & (d <= hi + 1e-9)]
     if "converged" in ok:
         ok = ok[ok["converged"].astype(bool)]
     if max_speed_m_s is not None:
@@ -77,7 +103,10 @@ def design_matrix(frame: pd.DataFrame) -> np.ndarray:
 
 
 def fit_output_model(
-    table: pd.DataFrame, reference: dict, max_speed_m_s: float | None = None
+    table: pd.DataFrame,
+    reference: dict,
+    max_speed_m_s: float | None = None,
+    droplet_range_um: tuple[float, float] | None = None,
 ) -> dict:
     """Least-squares output-model coefficients for linewidth and overspray.
 
@@ -89,6 +118,10 @@ def fit_output_model(
         A coefficient file as read by tomllib (supplies α^φ and φ_A0).
     max_speed_m_s : float, optional
         Leave out cases whose peak gas speed exceeds this (compressible tip flow).
+    droplet_range_um : (float, float), optional
+        Fit only rows with d_a in this window [µm]. The model is linear in d_a, so
+        it is fitted where the twin's d_a lives (``[fit]`` in sweep.toml: 3.5 ± 0.5
+        µm); over 2–4.5 µm the CFD linewidth is not monotonic in d_a.
 
     Returns
     -------
@@ -101,7 +134,7 @@ def fit_output_model(
     )
     out = {}
     for output, column in _OUTPUT_COLUMN.items():
-        rows = _usable(table, column, max_speed_m_s)
+        rows = _usable(table, column, max_speed_m_s, droplet_range_um)
         if len(rows) < 8:
             raise ValueError(f"only {len(rows)} usable rows for {output}; need ≥ 8 to fit 7 terms")
         a = design_matrix(rows)
@@ -125,6 +158,7 @@ def fit_output_model(
         }
     out["anchor_aerosol_fraction"] = anchor_fraction
     out["max_speed_m_s"] = max_speed_m_s
+    out["droplet_range_um"] = None if droplet_range_um is None else list(droplet_range_um)
     out["excluded_cases"] = excluded_cases(table, max_speed_m_s)
     return out
 
@@ -251,6 +285,7 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
             "cells_nominal_case": int(meta.get("cells", 0)),
             "geometry": "ajtwin/cfd/geometry.toml",
             "sweep_design": meta.get("design", "?"),
+            "summary_table": str(meta.get("summary_table", "summary.csv")),
             "sweep_cases": int(meta.get("cases", 0)),
             "sweep_rows_used": int(fit["linewidth"]["rows"]),
             "droplet_diameters_um": list(meta.get("droplet_diameters_um", [])),
@@ -258,6 +293,7 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
             "sweep_wall_time_s": float(meta.get("wall_time_s", 0.0)),
             "fit_date": created,
             "fit_max_gas_speed_m_s": fit.get("max_speed_m_s") or 0.0,
+            "fit_droplet_range_um": list(fit.get("droplet_range_um") or []),
             "fit_excluded_cases": list(fit.get("excluded_cases", [])),
             "linewidth_fit_rms_um": fit["linewidth"]["rms_um"],
             "overspray_fit_rms_um": fit["overspray"]["rms_um"],

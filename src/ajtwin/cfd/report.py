@@ -100,14 +100,18 @@ def matched_rows(a: pd.DataFrame, b: pd.DataFrame) -> tuple[pd.DataFrame, pd.Dat
 
 
 def mesh_comparison(
-    coarse: pd.DataFrame, fine: pd.DataFrame, reference: dict, max_speed_m_s: float | None = None
+    coarse: pd.DataFrame,
+    fine: pd.DataFrame,
+    reference: dict,
+    max_speed_m_s: float | None = None,
+    droplet_range_um: tuple[float, float] | None = None,
 ) -> dict:
     """Coefficients fitted to the same cases on two meshes, and their change."""
     from ajtwin.cfd.fit import COEFFICIENT_KEYS, fit_output_model
 
     a, b = matched_rows(coarse, fine)
-    fit_a = fit_output_model(a, reference, max_speed_m_s)
-    fit_b = fit_output_model(b, reference, max_speed_m_s)
+    fit_a = fit_output_model(a, reference, max_speed_m_s, droplet_range_um)
+    fit_b = fit_output_model(b, reference, max_speed_m_s, droplet_range_um)
     out = {
         "rows": len(a),
         "cells_coarse": int(a["cells"].max()),

@@ -13,7 +13,7 @@ Examples
 7.5e-05
 >>> c = load_output_coefficients()
 >>> c.status
-'provisional'
+'fitted-cfd'
 """
 
 from __future__ import annotations

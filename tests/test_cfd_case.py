@@ -310,3 +310,15 @@ def test_packaged_fit_window_is_the_operating_window():
     from ajtwin.cfd.fit import fit_settings
 
     assert fit_settings()["droplet_range_um"] == (3.0, 4.0)
+
+
+def test_nominal_line_plot_is_a_png_and_needs_the_nominal_case(tmp_path):
+    from ajtwin.cfd.report import plot_nominal_line
+
+    lw = np.array([-7.0, 0.8, 0.0, 0.0, 1.1, -0.3, 50.0])
+    table = _synthetic_table(lw, lw, np.random.default_rng(2))
+    table["landing_radius_median_um"] = 18.0
+    out = plot_nominal_line({"a": table, "b": table}, tmp_path / "m.png", (0.0, 23.0, 50.0))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="no finished nominal case"):
+        plot_nominal_line({"a": table}, tmp_path / "n.png", (0.0, 99.0, 50.0))

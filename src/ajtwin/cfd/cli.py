@@ -291,7 +291,13 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
     help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
     "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
 )
-def report(sweep_dir, fine_dir, json_out, droplet_range):
+@click.option(
+    "--plot",
+    "plot_out",
+    type=click.Path(dir_okay=False),
+    help="PNG of L_w, L_o and landing radius vs d_a at the nominal case (both sweeps).",
+)
+def report(sweep_dir, fine_dir, json_out, droplet_range, plot_out):
     """Validation figures against the paper (and a mesh-independence comparison)."""
     import pandas as pd
 
@@ -359,6 +365,13 @@ def report(sweep_dir, fine_dir, json_out, droplet_range):
         )
     if json_out:
         Path(json_out).write_text(json.dumps(figures, indent=2, default=float))
+    if plot_out:
+        tables = {f"mesh level {meta['mesh_level']} ({meta['cells']} cells)": table}
+        if fine_dir:
+            fine_meta = reporting.sweep_metadata(Path(fine_dir), fine)
+            tables[f"mesh level {fine_meta['mesh_level']} ({fine_meta['cells']} cells)"] = fine
+        reporting.plot_nominal_line(tables, plot_out, tuple(meta["nominal"]))
+        click.echo(f"wrote {plot_out}")
 
 
 def _packaged_reference() -> dict:

@@ -134,3 +134,40 @@ def mesh_comparison(
         rel = (b[column] - a[column]) / a[column]
         out[f"{column}_max_rel_change"] = float(np.max(np.abs(rel)))
     return out
+
+
+def plot_nominal_line(tables: dict[str, pd.DataFrame], path, nominal=(0.0, 23.0, 50.0)):
+    """Figure: L_w, L_o and median landing radius vs d_a at the nominal case, one line
+    per sweep (e.g. per mesh level). Returns the written path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = (
+        ("linewidth_um", "linewidth L_w [µm]"),
+        ("overspray_um", "overspray L_o [µm]"),
+        ("landing_radius_median_um", "median landing radius [µm]"),
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), constrained_layout=True)
+    for label, table in tables.items():
+        ok = table[
+            (table["status"] == "ok")
+            & np.isclose(table["nozzle_deposition_um"], nominal[0])
+            & np.isclose(table["carrier_flow_sccm"], nominal[1])
+            & np.isclose(table["sheath_flow_sccm"], nominal[2])
+        ].sort_values("droplet_diameter_um")
+        if ok.empty:
+            raise ValueError(f"sweep {label!r} has no finished nominal case {nominal}")
+        for ax, (column, name) in zip(axes, columns, strict=True):
+            ax.plot(ok["droplet_diameter_um"], ok[column], "o-", label=label)
+            ax.set_xlabel("median droplet diameter d_a [µm]")
+            ax.set_ylabel(name)
+    axes[0].legend()
+    fig.suptitle(
+        f"CFD line at ΔR_N = {nominal[0]:g} µm, Q_c = {nominal[1]:g} sccm, "
+        f"Q_s = {nominal[2]:g} sccm"
+    )
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,6 +1,6 @@
 """CFD macro-model speed: one coarse OpenFOAM case end to end, split by stage.
 
-Times blockMesh + simpleFoam (mesh level 1, 3440 cells, 600 SIMPLE iterations),
+Times blockMesh + simpleFoam (mesh level 1, 4400 cells, 600 SIMPLE iterations),
 the velocity-grid resampling, droplet tracking (3000 droplets of d_a = 3.5 µm)
 and the SPEC §8 post-processing (32 azimuths per droplet).
 """

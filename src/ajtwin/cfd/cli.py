@@ -217,7 +217,7 @@ def sweep(out, design, design_file, mesh_level, scheduler, workers, no_retry_fai
 )
 @click.option(
     "--table-record",
-    help="Where the sweep table is kept for the record (e.g. level2/summary.csv under "
+    help="Where the sweep table is kept for the record (e.g. level2_u4/summary.csv under "
     "ajtwin/cfd/results); written into the coefficient file. Default: SWEEP_DIR/summary.csv.",
 )
 @click.option(

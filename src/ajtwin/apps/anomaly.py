@@ -46,7 +46,7 @@ SHORT_STATE = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
 
 #: The likely-cause labels (paper §4; issue 8).
 CAUSES = {
-    "nozzle_clog": "nozzle clog (both pressures and L_w/L_o rising, ΔR_N growing)",
+    "nozzle_clog": "nozzle clog (both pressures rising, ΔR_N growing)",
     "carrier_leak": (
         "carrier leak, MFC drift or carrier-pressure sensor drift (P_c falling or alone)"
     ),

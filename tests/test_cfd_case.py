@@ -306,19 +306,23 @@ def test_fit_droplet_window_keeps_rows_outside_it_out_of_the_linear_term():
     assert everything["linewidth"]["rows"] > windowed["linewidth"]["rows"]
 
 
-def test_packaged_fit_window_is_the_operating_window():
+def test_fit_settings_reject_a_bad_window_and_carry_the_paper_points(tmp_path):
     from ajtwin.cfd.fit import fit_settings
 
-    assert fit_settings()["droplet_range_um"] == (3.0, 4.0)
+    packaged = fit_settings()
+    assert packaged["paper_reference"]["max_speed_m_s_25_50"] == 91.7  # SPEC §8
+    assert packaged["paper_reference"]["linewidth_um"] == 43.0
+    bad = tmp_path / "sweep.toml"
+    bad.write_text("[fit]\ndroplet_range_um = [4.0, 3.0]\n")
+    with pytest.raises(ValueError, match="droplet_range_um"):
+        fit_settings(bad)
+    bad.write_text("format_version = 1\n")  # no [fit]: every d_a is used
+    assert fit_settings(bad)["droplet_range_um"] == (0.0, np.inf)
 
 
-def test_nominal_line_plot_is_a_png_and_needs_the_nominal_case(tmp_path):
-    from ajtwin.cfd.report import plot_nominal_line
-
-    lw = np.array([-7.0, 0.8, 0.0, 0.0, 1.1, -0.3, 50.0])
-    table = _synthetic_table(lw, lw, np.random.default_rng(2))
-    table["landing_radius_median_um"] = 18.0
-    out = plot_nominal_line({"a": table, "b": table}, tmp_path / "m.png", (0.0, 23.0, 50.0))
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(ValueError, match="no finished nominal case"):
-        plot_nominal_line({"a": table}, tmp_path / "n.png", (0.0, 99.0, 50.0))
+def test_fit_needs_phi_anchor_when_alpha_phi_is_nonzero():
+    lw = np.array([-3.0, 0.4, 0.0, 0.0, 0.9, -0.3, 40.0])
+    table = _synthetic_table(lw, lw, np.random.default_rng(3))
+    reference = {"linewidth": {"aerosol_fraction": 2e7}, "overspray": {"aerosol_fraction": 0.0}}
+    with pytest.raises(ValueError, match="anchor_aerosol_fraction"):
+        fit_output_model(table, reference, 209.0)

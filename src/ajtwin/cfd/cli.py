@@ -72,6 +72,22 @@ def _geometry(path):
         raise click.BadParameter(str(exc), param_hint="--geometry") from None
 
 
+_droplet_range_option = click.option(
+    "--droplet-range",
+    nargs=2,
+    type=float,
+    help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
+    "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
+)
+
+
+def _fit_window(droplet_range) -> tuple[float, float]:
+    """The d_a window of the fit: the option if given, else sweep.toml's [fit]."""
+    from ajtwin.cfd.fit import fit_settings
+
+    return tuple(droplet_range) if droplet_range else fit_settings()["droplet_range_um"]
+
+
 def _foam_errors(func):
     import functools
 
@@ -220,13 +236,7 @@ def sweep(out, design, design_file, mesh_level, scheduler, workers, no_retry_fai
     help="Where the sweep table is kept for the record (e.g. level2_u4/summary.csv under "
     "ajtwin/cfd/results); written into the coefficient file. Default: SWEEP_DIR/summary.csv.",
 )
-@click.option(
-    "--droplet-range",
-    nargs=2,
-    type=float,
-    help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
-    "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
-)
+@_droplet_range_option
 def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, droplet_range):
     """Fit output-model coefficients and R_3^N(ΔR_N) to a finished sweep.
 
@@ -249,9 +259,7 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
     meta["summary_table"] = table_record or str(summary)
     limit = _geometry(None).max_trusted_speed
     try:
-        window = tuple(droplet_range) if droplet_range else None
-        window = window or fitting.fit_settings()["droplet_range_um"]
-        result = fitting.fit_output_model(table, ref, limit, window)
+        result = fitting.fit_output_model(table, ref, limit, _fit_window(droplet_range))
         resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     except ValueError as exc:
         raise click.ClickException(f"{summary}: {exc}") from None
@@ -284,13 +292,7 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
     help="A sweep of (some of) the same cases on a finer mesh: coefficient change.",
 )
 @click.option("--json-out", type=click.Path(dir_okay=False), help="Also write the figures here.")
-@click.option(
-    "--droplet-range",
-    nargs=2,
-    type=float,
-    help="Fit the linear d_a term on sweep rows with LOW ≤ d_a ≤ HIGH µm "
-    "(default: [fit] droplet_range_um of sweep.toml, 3.0 4.0).",
-)
+@_droplet_range_option
 @click.option(
     "--plot",
     "plot_out",
@@ -309,7 +311,7 @@ def report(sweep_dir, fine_dir, json_out, droplet_range, plot_out):
     meta = reporting.sweep_metadata(sweep_dir, table)
     limit = _geometry(None).max_trusted_speed
     ref = _packaged_reference()
-    window = tuple(droplet_range) if droplet_range else fitting.fit_settings()["droplet_range_um"]
+    window = _fit_window(droplet_range)
     fitted = fitting.fit_output_model(table, ref, limit, window)
     resistance = fitting.fit_tip_resistance(table, tuple(meta["nominal"]), max_speed_m_s=limit)
     figures = {
@@ -338,8 +340,8 @@ def report(sweep_dir, fine_dir, json_out, droplet_range, plot_out):
     )
     click.echo(
         f"L_w 23/50 sccm, d_a 3.5 µm: CFD {v['linewidth_um_23_50_da3.5']:.1f} µm, fitted "
-        f"model {v['model_linewidth_um_23_50_da3.5']:.1f} µm (paper 43); L_o "
-        f"{v['overspray_um_23_50_da3.5']:.1f} µm"
+        f"model {v['model_linewidth_um_23_50_da3.5']:.1f} µm "
+        f"(paper {v['paper_linewidth_um']:g}); L_o {v['overspray_um_23_50_da3.5']:.1f} µm"
     )
     click.echo("signs: " + ", ".join(f"{k}={val}" for k, val in v["signs"].items()))
     if fine_dir:

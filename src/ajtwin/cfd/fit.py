@@ -40,7 +40,8 @@ _OUTPUT_COLUMN = {"linewidth": "linewidth_um", "overspray": "overspray_um"}
 
 
 def fit_settings(path: str | Path | None = None) -> dict:
-    """The ``[fit]`` table of ``sweep.toml``: the droplet window of the linear d_a term."""
+    """Fit settings from ``sweep.toml``: the droplet window of the linear d_a term
+    (``[fit]``) and the paper's reference points (``[paper_reference]``)."""
     from importlib import resources
 
     text = (
@@ -48,11 +49,13 @@ def fit_settings(path: str | Path | None = None) -> dict:
         if path is None
         else Path(path).read_text()
     )
-    settings = tomllib.loads(text).get("fit", {})
+    doc = tomllib.loads(text)
+    settings = doc.get("fit", {})
     lo, hi = (float(v) for v in settings.get("droplet_range_um", (0.0, np.inf)))
     if not 0.0 <= lo < hi:
         raise ValueError(f"[fit] droplet_range_um must be 0 ≤ low < high, got {lo}, {hi}")
-    return {"droplet_range_um": (lo, hi)}
+    paper = {k: float(v["value"]) for k, v in doc.get("paper_reference", {}).items()}
+    return {"droplet_range_um": (lo, hi), "paper_reference": paper}
 
 
 def _usable(
@@ -129,9 +132,14 @@ def fit_output_model(
         ``{"linewidth": {...}, "overspray": {...}}`` with the eight schema keys,
         plus per output ``rms_um``, ``r2``, ``rows``, ``max_abs_residual_um``.
     """
-    anchor_fraction = float(
-        reference.get("derivation", {}).get("anchor_aerosol_fraction", 4.619217391304347e-7)
-    )
+    alpha_phi_used = any(float(reference[o]["aerosol_fraction"]) for o in _OUTPUT_COLUMN)
+    anchor = reference.get("derivation", {}).get("anchor_aerosol_fraction")
+    if anchor is None and alpha_phi_used:
+        raise ValueError(
+            "the reference coefficient file has no [derivation] anchor_aerosol_fraction "
+            "(phi_A0), needed to move alpha^phi * phi_A0 into the offset"
+        )
+    anchor_fraction = float(anchor or 0.0)
     out = {}
     for output, column in _OUTPUT_COLUMN.items():
         rows = _usable(table, column, max_speed_m_s, droplet_range_um)

@@ -59,27 +59,23 @@ def case_value(
 
 
 def validation(table: pd.DataFrame, fit: dict, resistance: dict) -> dict:
-    """The issue's validation figures from one sweep (display units)."""
-    from ajtwin.cfd.fit import sensitivity_signs
+    """The issue's validation figures from one sweep (display units); the paper's
+    reference points come from ``[paper_reference]`` in sweep.toml."""
+    from ajtwin.cfd.fit import fit_settings, predict, sensitivity_signs
 
+    paper = fit_settings()["paper_reference"]
     return {
         "max_speed_m_s_25_50": case_value(table, "max_speed_m_s", 0.0, 25.0, 50.0),
-        "paper_max_speed_m_s_25_50": 91.7,
+        "paper_max_speed_m_s_25_50": paper["max_speed_m_s_25_50"],
         "tip_resistance_a0_pa_s_m3": resistance["cfd_a0_pa_s_m3"],
         "tip_resistance_a1_pa_s_m3_per_um": resistance["cfd_a1_pa_s_m3_per_um"],
         "paper_a0_pa_s_m3": resistance["paper_a0_pa_s_m3"],
         "paper_a1_pa_s_m3_per_um": resistance["paper_a1_pa_s_m3_per_um"],
         "linewidth_um_23_50_da3.5": case_value(table, "linewidth_um", 0.0, 23.0, 50.0, 3.5),
         "overspray_um_23_50_da3.5": case_value(table, "overspray_um", 0.0, 23.0, 50.0, 3.5),
-        "paper_linewidth_um": 43.0,
-        "model_linewidth_um_23_50_da3.5": None
-        if fit is None
-        else float(
-            fit["linewidth"]["droplet_diameter"] * 3.5
-            + fit["linewidth"]["carrier_flow"] * 23.0
-            + fit["linewidth"]["sheath_flow"] * 50.0
-            + fit["linewidth"]["offset"]
-            + fit["linewidth"]["aerosol_fraction"] * fit["anchor_aerosol_fraction"]
+        "paper_linewidth_um": paper["linewidth_um"],
+        "model_linewidth_um_23_50_da3.5": float(
+            predict(fit["linewidth"], 3.5, 0.0, 23.0, 50.0, fit["anchor_aerosol_fraction"])
         ),
         "signs": sensitivity_signs(fit),
     }

@@ -326,3 +326,15 @@ def test_fit_needs_phi_anchor_when_alpha_phi_is_nonzero():
     reference = {"linewidth": {"aerosol_fraction": 2e7}, "overspray": {"aerosol_fraction": 0.0}}
     with pytest.raises(ValueError, match="anchor_aerosol_fraction"):
         fit_output_model(table, reference, 209.0)
+
+
+def test_nominal_line_plot_is_a_png_and_needs_the_nominal_case(tmp_path):
+    from ajtwin.cfd.report import plot_nominal_line
+
+    lw = np.array([-7.0, 0.8, 0.0, 0.0, 1.1, -0.3, 50.0])
+    table = _synthetic_table(lw, lw, np.random.default_rng(2))
+    table["landing_radius_median_um"] = 18.0
+    out = plot_nominal_line({"a": table, "b": table}, tmp_path / "m.png", (0.0, 23.0, 50.0))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="no finished nominal case"):
+        plot_nominal_line({"a": table}, tmp_path / "n.png", (0.0, 99.0, 50.0))

@@ -126,6 +126,148 @@ def _is_valid_covariance(p):
     return finite & (eig_min > -1e-9 * jnp.max(jnp.abs(jnp.diag(sym)))) & jnp.all(jnp.diag(sym) > 0)
 
 
+class EKFCarry(NamedTuple):
+    """What the EKF carries from one step to the next (scaled coordinates z = x / s).
+
+    ``prior_*`` is where the divergence guard restarts (the start of the run).
+    """
+
+    predicted_mean: jnp.ndarray  # (5,) z_{k|k-1}
+    predicted_cov: jnp.ndarray  # (5, 5)
+    prior_mean: jnp.ndarray  # (5,) z₀
+    prior_cov: jnp.ndarray  # (5, 5)
+
+
+class EKFStep(NamedTuple):
+    """One EKF step's results, display units (one row of :class:`FilterResult`)."""
+
+    mean: jnp.ndarray  # (5,)
+    covariance: jnp.ndarray  # (5, 5)
+    predicted_mean: jnp.ndarray  # (5,)
+    predicted_covariance: jnp.ndarray  # (5, 5)
+    transition_jacobian: jnp.ndarray  # (5, 5) scaled coords
+    predicted_output: jnp.ndarray  # (5,)
+    innovation_variance: jnp.ndarray  # (5,)
+    log_likelihood: jnp.ndarray  # ()
+    nis: jnp.ndarray  # ()
+    n_measured: jnp.ndarray  # ()
+    reinitialised: jnp.ndarray  # ()
+
+
+def ekf_init(spec: ModelSpec, prior_mean, prior_cov) -> EKFCarry:
+    """The carry before the first step: prior x̂₀ (5,), P₀ (5, 5) in display units."""
+    s = spec.scaling.state
+    z0 = jnp.asarray(prior_mean, dtype=float) / s
+    p0 = jnp.asarray(prior_cov, dtype=float) / jnp.outer(s, s)
+    return EKFCarry(z0, p0, z0, p0)
+
+
+def ekf_step(
+    spec: ModelSpec,
+    carry: EKFCarry,
+    u,
+    y,
+    theta,
+    process_cov,
+    measurement_cov,
+    gate=jnp.inf,
+    functions: ModelFunctions = AJ_EULER,
+) -> tuple[EKFCarry, EKFStep]:
+    """One EKF step k: update with y_k, then predict to k+1 with u_k and θ_k.
+
+    The pure per-step function of :func:`ekf` (its ``lax.scan`` body) and of the
+    live engine; jit it with ``functions`` static, vmap it over machines.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    carry : EKFCarry
+        x̂_{k|k-1}, P_{k|k-1} and the guard's restart point (from :func:`ekf_init`
+        or the previous step).
+    u : array (3,)
+        u_k [mA, sccm, sccm].
+    y : array (5,)
+        y_k, NaN where not measured.
+    theta : array (5,)
+        θ of the step k → k+1.
+    process_cov : array (5, 5)
+        Σ_ξ, display units.
+    measurement_cov : array (5,)
+        Diagonal of Σ_w, display units.
+    gate : float
+        Per-output innovation gate in σ (inf: off).
+    functions : ModelFunctions
+
+    Returns
+    -------
+    carry : EKFCarry for step k+1
+    step : EKFStep (display units)
+    """
+    s, r = spec.scaling.state, spec.scaling.output
+    f_s, g_s = _scaled_functions(spec, functions)
+    # value and Jacobian from one forward-mode pass (the primal is not evaluated twice)
+    f_and_jac = jax.jacfwd(lambda z, u, th: (f_s(z, u, th), f_s(z, u, th)), has_aux=True)
+    g_and_jac = jax.jacfwd(lambda z, u: (g_s(z, u), g_s(z, u)), has_aux=True)
+    q = jnp.asarray(process_cov) / jnp.outer(s, s)
+    r_diag = jnp.asarray(measurement_cov) / r**2
+    z_pred, p_pred, z0, p0 = carry
+    eye = jnp.eye(z_pred.shape[0])
+    log_2pi = jnp.log(2.0 * jnp.pi)
+
+    # update with y_k
+    eta = y / r
+    measured = jnp.isfinite(eta)
+    h, y_hat = g_and_jac(z_pred, u)
+    innovation = jnp.where(measured, eta - y_hat, 0.0)
+    s_full = h @ p_pred @ h.T + jnp.diag(r_diag)
+    # per-output gate on the marginal innovation
+    keep = measured & (innovation**2 <= gate**2 * jnp.diag(s_full))
+    h_k = jnp.where(keep[:, None], h, 0.0)
+    nu = jnp.where(keep, innovation, 0.0)
+    r_k = jnp.where(keep, r_diag, 1.0)
+    s_k = h_k @ p_pred @ h_k.T + jnp.diag(r_k)
+    chol = jax.scipy.linalg.cho_factor(s_k, lower=True)
+    gain = jax.scipy.linalg.cho_solve(chol, h_k @ p_pred).T
+    z_post = z_pred + gain @ nu
+    i_kh = eye - gain @ h_k
+    p_post = i_kh @ p_pred @ i_kh.T + gain @ jnp.diag(r_k) @ gain.T
+    p_post = 0.5 * (p_post + p_post.T)
+    weighted = jax.scipy.linalg.cho_solve(chol, nu)
+    nis = nu @ weighted
+    # unit-variance dummies contribute log 1 = 0 to the determinant
+    log_det = 2.0 * jnp.sum(jnp.log(jnp.diag(chol[0])))
+    n_meas = jnp.sum(keep)
+    log_lik = -0.5 * (nis + log_det + n_meas * log_2pi) - jnp.sum(
+        jnp.where(keep, jnp.log(r), 0.0)
+    )
+    s_display = jnp.diag(s_full) * r**2
+
+    # divergence guard
+    ok = jnp.all(jnp.isfinite(z_post)) & _is_valid_covariance(p_post)
+    fallback = jnp.where(jnp.all(jnp.isfinite(z_pred)), z_pred, z0)
+    z_post, p_post, reinit = jnp.where(ok, z_post, fallback), jnp.where(ok, p_post, p0), ~ok
+
+    # predict to k+1
+    f_jac, z_next = f_and_jac(z_post, u, theta)
+    p_next = f_jac @ p_post @ f_jac.T + q
+    p_next = 0.5 * (p_next + p_next.T)
+    ss = jnp.outer(s, s)
+    step = EKFStep(
+        z_post * s,
+        p_post * ss,
+        z_pred * s,
+        p_pred * ss,
+        f_jac,
+        y_hat * r,
+        s_display,
+        log_lik,
+        nis,
+        n_meas,
+        reinit,
+    )
+    return EKFCarry(z_next, p_next, z0, p0), step
+
+
 def ekf(
     spec: ModelSpec,
     prior_mean,
@@ -138,7 +280,7 @@ def ekf(
     gate: float = jnp.inf,
     functions: ModelFunctions = AJ_EULER,
 ) -> FilterResult:
-    """Run the EKF over a print.
+    """Run the EKF over a print (:func:`ekf_step` in a ``lax.scan``).
 
     Parameters
     ----------
@@ -166,86 +308,21 @@ def ekf(
     -------
     FilterResult
     """
-    s, r = spec.scaling.state, spec.scaling.output
-    f_s, g_s = _scaled_functions(spec, functions)
-    # value and Jacobian from one forward-mode pass (the primal is not evaluated twice)
-    f_and_jac = jax.jacfwd(lambda z, u, th: (f_s(z, u, th), f_s(z, u, th)), has_aux=True)
-    g_and_jac = jax.jacfwd(lambda z, u: (g_s(z, u), g_s(z, u)), has_aux=True)
-
     inputs = jnp.asarray(inputs, dtype=float)
     measurements = jnp.asarray(measurements, dtype=float)
     n_steps = inputs.shape[0]
-    n_x = jnp.asarray(prior_mean).shape[0]
     n_theta = jnp.asarray(thetas).shape[-1]
     thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_steps, n_theta))
-    q = jnp.asarray(process_cov) / jnp.outer(s, s)
-    r_diag = jnp.asarray(measurement_cov) / r**2
-    z0 = jnp.asarray(prior_mean) / s
-    p0 = jnp.asarray(prior_cov) / jnp.outer(s, s)
-    eye = jnp.eye(n_x)
-    log_2pi = jnp.log(2.0 * jnp.pi)
-
-    def update(z_pred, p_pred, u, y):
-        eta = y / r
-        measured = jnp.isfinite(eta)
-        h, y_hat = g_and_jac(z_pred, u)
-        innovation = jnp.where(measured, eta - y_hat, 0.0)
-        s_full = h @ p_pred @ h.T + jnp.diag(r_diag)
-        # per-output gate on the marginal innovation
-        keep = measured & (innovation**2 <= gate**2 * jnp.diag(s_full))
-        h_k = jnp.where(keep[:, None], h, 0.0)
-        nu = jnp.where(keep, innovation, 0.0)
-        r_k = jnp.where(keep, r_diag, 1.0)
-        s_k = h_k @ p_pred @ h_k.T + jnp.diag(r_k)
-        chol = jax.scipy.linalg.cho_factor(s_k, lower=True)
-        gain = jax.scipy.linalg.cho_solve(chol, h_k @ p_pred).T
-        z_post = z_pred + gain @ nu
-        i_kh = eye - gain @ h_k
-        p_post = i_kh @ p_pred @ i_kh.T + gain @ jnp.diag(r_k) @ gain.T
-        p_post = 0.5 * (p_post + p_post.T)
-        weighted = jax.scipy.linalg.cho_solve(chol, nu)
-        nis = nu @ weighted
-        # unit-variance dummies contribute log 1 = 0 to the determinant
-        log_det = 2.0 * jnp.sum(jnp.log(jnp.diag(chol[0])))
-        n_meas = jnp.sum(keep)
-        log_lik = -0.5 * (nis + log_det + n_meas * log_2pi) - jnp.sum(
-            jnp.where(keep, jnp.log(r), 0.0)
-        )
-        s_display = jnp.diag(s_full) * r**2
-        return z_post, p_post, y_hat * r, s_display, log_lik, nis, n_meas
-
-    def guard(z_post, p_post, z_pred):
-        ok = jnp.all(jnp.isfinite(z_post)) & _is_valid_covariance(p_post)
-        fallback = jnp.where(jnp.all(jnp.isfinite(z_pred)), z_pred, z0)
-        return jnp.where(ok, z_post, fallback), jnp.where(ok, p_post, p0), ~ok
 
     def body(carry, inp):
-        z_pred, p_pred = carry
         u, y, theta = inp
-        z_post, p_post, y_hat, s_diag, log_lik, nis, n_meas = update(z_pred, p_pred, u, y)
-        z_post, p_post, reinit = guard(z_post, p_post, z_pred)
-        f_jac, z_next = f_and_jac(z_post, u, theta)
-        p_next = f_jac @ p_post @ f_jac.T + q
-        p_next = 0.5 * (p_next + p_next.T)
-        out = (z_post, p_post, z_pred, p_pred, f_jac, y_hat, s_diag, log_lik, nis, n_meas, reinit)
-        return (z_next, p_next), out
+        return ekf_step(
+            spec, carry, u, y, theta, process_cov, measurement_cov, gate, functions
+        )
 
-    _, outs = jax.lax.scan(body, (z0, p0), (inputs, measurements, thetas))
-    z_f, p_f, z_p, p_p, f_jacs, y_hat, s_diag, log_lik, nis, n_meas, reinit = outs
-    ss = jnp.outer(s, s)
-    return FilterResult(
-        means=z_f * s,
-        covariances=p_f * ss,
-        predicted_means=z_p * s,
-        predicted_covariances=p_p * ss,
-        transition_jacobians=f_jacs,
-        predicted_outputs=y_hat,
-        innovation_variances=s_diag,
-        log_likelihood=log_lik,
-        nis=nis,
-        n_measured=n_meas,
-        reinitialised=reinit,
-    )
+    carry = ekf_init(spec, prior_mean, prior_cov)
+    _, steps = jax.lax.scan(body, carry, (inputs, measurements, thetas))
+    return FilterResult(*steps)
 
 
 ekf = jax.jit(ekf, static_argnames=("functions",))

@@ -237,9 +237,7 @@ def ekf_step(
     # unit-variance dummies contribute log 1 = 0 to the determinant
     log_det = 2.0 * jnp.sum(jnp.log(jnp.diag(chol[0])))
     n_meas = jnp.sum(keep)
-    log_lik = -0.5 * (nis + log_det + n_meas * log_2pi) - jnp.sum(
-        jnp.where(keep, jnp.log(r), 0.0)
-    )
+    log_lik = -0.5 * (nis + log_det + n_meas * log_2pi) - jnp.sum(jnp.where(keep, jnp.log(r), 0.0))
     s_display = jnp.diag(s_full) * r**2
 
     # divergence guard
@@ -316,9 +314,7 @@ def ekf(
 
     def body(carry, inp):
         u, y, theta = inp
-        return ekf_step(
-            spec, carry, u, y, theta, process_cov, measurement_cov, gate, functions
-        )
+        return ekf_step(spec, carry, u, y, theta, process_cov, measurement_cov, gate, functions)
 
     carry = ekf_init(spec, prior_mean, prior_cov)
     _, steps = jax.lax.scan(body, carry, (inputs, measurements, thetas))

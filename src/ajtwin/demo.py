@@ -107,8 +107,9 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min):
     from ajtwin.apps.forecast import forecast, input_schedule, parse_change
     from ajtwin.estimation import Twin
     from ajtwin.io.records import write_record
+    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record, join_video
+    from ajtwin.store.ingest import join_video
     from ajtwin.store.registry import Registry
     from ajtwin.vision.cli import render
 

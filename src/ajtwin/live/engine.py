@@ -577,3 +577,216 @@ class TwinStream:
                 [[r[f"theta_{n}"] for n in STATE_NAMES] for r in hist], dtype=float
             ).reshape(-1, 5),
         }
+
+
+# --------------------------------------------------------------------------- #
+# Batch ingest and the registry (the same orchestration for a finished print)
+# --------------------------------------------------------------------------- #
+
+
+def print_summary(end_mean, end_cov, nis, n_anomalies: int, em_updates: int, started_from: str):
+    """The summary the registry keeps for a print."""
+    return {
+        "end_state": dict(zip(STATE_NAMES, np.asarray(end_mean, dtype=float).tolist())),
+        "end_std": np.sqrt(np.diag(np.asarray(end_cov, dtype=float))).tolist(),
+        "mean_nis": float(np.nanmean(np.asarray(nis, dtype=float))),
+        "n_anomalies": int(n_anomalies),
+        "em_updates": int(em_updates),
+        "started_from": started_from,
+    }
+
+
+def save_print(
+    registry,
+    machine: str,
+    record,
+    *,
+    digest: str,
+    source: str,
+    arrays: dict,
+    events: list,
+    start,
+    end,
+    theta_before,
+    theta_after,
+    expected_last_seq,
+    started_from: str,
+):
+    """Store a twin's run over one print in one registry transaction; (print id, summary)."""
+    summary = print_summary(
+        end[0],
+        end[1],
+        arrays["nis"],
+        len(events),
+        len(arrays["theta_history_time_s"]),
+        started_from,
+    )
+    meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
+    print_id = registry.save_print(
+        machine,
+        content_hash=digest,
+        source=source,
+        meta=meta,
+        summary=summary,
+        n_samples=len(record),
+        duration_s=float(record.duration_s + 1.0),
+        start_mean=start[0],
+        start_cov=start[1],
+        end_mean=end[0],
+        end_cov=end[1],
+        theta_before=theta_before,
+        theta_after=theta_after,
+        arrays=arrays,
+        anomalies=events,
+        expected_last_seq=expected_last_seq,
+    )
+    return print_id, summary
+
+
+def ingest_record(
+    registry,
+    machine: str,
+    record,
+    *,
+    source: str = "",
+    progress=None,
+    twin_overrides: dict | None = None,
+    detector_settings=None,
+):
+    """Run the machine's twin over one finished print and store the result.
+
+    Hash the print (duplicate → stop before any work), start from the machine's last end
+    state and θ (:func:`ajtwin.store.ingest.start_from_registry`; the initial-state fit
+    for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and the detectors
+    (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the arrays), and
+    store everything in one transaction.
+
+    Parameters
+    ----------
+    registry : Registry
+    machine : str
+        A registered machine name.
+    record : PrintRecord
+        The print (display units; NaN = not measured).
+    source : str
+        Where the print came from (file path), stored for the history.
+    progress : callable(int), optional
+        Steps done, for a progress bar.
+    twin_overrides : dict, optional
+        :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
+
+    Returns
+    -------
+    IngestResult (``duplicate=True`` and the existing print when it was ingested before).
+    """
+    import time
+
+    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.store.ingest import IngestResult, start_from_registry
+    from ajtwin.store.registry import RegistryError, record_hash
+
+    t0 = time.perf_counter()
+    digest = record_hash(record)
+    existing = registry.find_print(machine, digest)
+    if existing is not None:
+        return IngestResult(
+            machine,
+            existing["id"],
+            existing["seq"],
+            True,
+            digest,
+            existing["n_samples"],
+            summary=existing["summary"],
+            seconds=time.perf_counter() - t0,
+        )
+    start, theta, expected, last = start_from_registry(registry, machine)
+    twin = Twin.default(**(twin_overrides or {}))
+    if theta is not None:
+        twin.theta = theta
+    theta_before = twin.theta.copy()
+    run = twin.run(record, start=start, progress=progress)
+    detection = detect_run(run, record, detector_settings)
+
+    f = run.filtered
+    hist = run.theta_history
+    arrays = {
+        "time_s": run.time_s,
+        "means": run.means,
+        "stds": run.stds,
+        "covariances": np.asarray(f.covariances),
+        "predicted_means": np.asarray(f.predicted_means),
+        "predicted_outputs": np.asarray(f.predicted_outputs),
+        "innovation_variances": np.asarray(f.innovation_variances),
+        "measurements": record.outputs,
+        "inputs": record.inputs,
+        "nis": np.asarray(f.nis),
+        "n_measured": np.asarray(f.n_measured),
+        "theta_per_step": run.theta_per_step,
+        "theta_history_time_s": hist["time_s"].to_numpy(float),
+        "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
+    }
+    try:
+        print_id, summary = save_print(
+            registry,
+            machine,
+            record,
+            digest=digest,
+            source=source,
+            arrays=arrays,
+            events=detection.events,
+            start=(run.start_mean, run.start_cov),
+            end=(run.end_mean, run.end_cov),
+            theta_before=theta_before,
+            theta_after=twin.theta,
+            expected_last_seq=expected,
+            started_from="initial fit" if last is None else f"print {last['seq']}",
+        )
+    except RegistryError:
+        # a concurrent ingest of the same print may have won the race
+        existing = registry.find_print(machine, digest)
+        if existing is None:
+            raise
+        return IngestResult(
+            machine, existing["id"], existing["seq"], True, digest, existing["n_samples"]
+        )
+    seq = registry.get_print(print_id)["seq"]
+    return IngestResult(
+        machine,
+        print_id,
+        seq,
+        False,
+        digest,
+        len(record),
+        events=detection.events,
+        summary=summary,
+        seconds=time.perf_counter() - t0,
+        run=run,
+        detection=detection,
+    )
+
+
+def ingest_file(
+    registry,
+    machine: str,
+    path,
+    *,
+    video=None,
+    um_per_px=None,
+    progress=None,
+    video_progress: bool = True,
+):
+    """Read a print file (and optionally its video) and :func:`ingest_record` it."""
+    from pathlib import Path
+
+    from ajtwin.io.records import read_record
+    from ajtwin.store.ingest import join_video
+
+    path = Path(path)
+    record = read_record(path)
+    source = str(path)
+    if video is not None:
+        if um_per_px is None:
+            raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
+        record, *_ = join_video(record, video, um_per_px, progress=video_progress)
+        source += f" + {video}"
+    return ingest_record(registry, machine, record, source=source, progress=progress)

@@ -124,13 +124,37 @@ class Processes:
     draws: dict = field(default_factory=dict)  # seeded constants, for the metadata
 
 
-def draw_processes(scenario: Scenario, streams: dict) -> Processes:
-    """Draw the exogenous processes of a scenario (layer 1)."""
+def make_streams(seed: int) -> dict:
+    """The named random streams of one seed (fresh generators: each call starts over)."""
+    return dict(
+        zip(
+            STREAMS,
+            (
+                np.random.default_rng(s)
+                for s in np.random.SeedSequence(int(seed)).spawn(len(STREAMS))
+            ),
+            strict=True,
+        )
+    )
+
+
+def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Processes:
+    """Draw the exogenous processes of a scenario (layer 1).
+
+    ``setpoints`` (T, 3) replaces the scenario's schedule (a controller's commands). No
+    random draw depends on the set-points, so the same streams give the same noise
+    realisation under any schedule, and every process is causal in the set-points.
+    """
     cfg = scenario.config
     truth, meas, fault = cfg["truth"], cfg["measurement"], cfg["fault"]
     n = scenario.duration_s
     t = np.arange(n, dtype=float)
-    setpoints = scenario.setpoints(n)
+    if setpoints is None:
+        setpoints = scenario.setpoints(n)
+    else:
+        setpoints = np.asarray(setpoints, dtype=float)
+        if setpoints.shape != (n, 3):
+            raise ValueError(f"setpoints must be ({n}, 3); got {setpoints.shape}")
 
     # MFCs regulate around the set-point with a short correlation (AR(1)); the
     # atomizer current wanders sample to sample.
@@ -291,6 +315,32 @@ class VirtualPrint:
     generation_ml_s: np.ndarray
 
 
+def draw_line_coefficients(scenario: Scenario, streams: dict, nominal, params):
+    """Seeded factors (2, 7) on the output sensitivities and the true coefficients (2, 8)."""
+    factors = 1.0 + scenario.config["truth"]["line_coefficient_sd"] * streams[
+        "line_coefficients"
+    ].standard_normal((2, 7))
+    return factors, true_line_coefficients(nominal, factors, params)
+
+
+def true_initial_state(scenario: Scenario, processes: Processes, params) -> np.ndarray:
+    """True x0: the scenario's vial and deposits, φ_A in balance with the true generation."""
+    cfg = scenario.config
+    head0 = processes.head_inputs[0]
+    vial0 = float(cfg["initial"]["vial_volume_mL"])
+    generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
+    aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
+    return np.array(
+        [
+            processes.droplet_um[0],
+            vial0,
+            cfg["initial"]["tube_deposition_um"],
+            cfg["initial"]["nozzle_deposition_um"],
+            aerosol0,
+        ]
+    )
+
+
 def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> dict:
     """Start where a previous virtual print of the same machine ended (vial, deposits)."""
     if not previous.has_truth:
@@ -331,37 +381,11 @@ def run_virtual_print(
     params = load_parameters() if params is None else params
     coefficients = load_output_coefficients() if coefficients is None else coefficients
     nominal = coefficient_matrix(coefficients)
-    streams = dict(
-        zip(
-            STREAMS,
-            (
-                np.random.default_rng(s)
-                for s in np.random.SeedSequence(int(seed)).spawn(len(STREAMS))
-            ),
-            strict=True,
-        )
-    )
+    streams = make_streams(seed)
     processes = draw_processes(scenario, streams)
     cfg = scenario.config
-
-    line_factors = 1.0 + cfg["truth"]["line_coefficient_sd"] * streams[
-        "line_coefficients"
-    ].standard_normal((2, 7))
-    line_coefficients = true_line_coefficients(nominal, line_factors, params)
-
-    head0 = processes.head_inputs[0]
-    vial0 = float(cfg["initial"]["vial_volume_mL"])
-    generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
-    aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
-    x0 = np.array(
-        [
-            processes.droplet_um[0],
-            vial0,
-            cfg["initial"]["tube_deposition_um"],
-            cfg["initial"]["nozzle_deposition_um"],
-            aerosol0,
-        ]
-    )
+    line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
+    x0 = true_initial_state(scenario, processes, params)
     truth = integrate_truth(
         x0,
         processes.droplet_um,

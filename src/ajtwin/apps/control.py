@@ -50,6 +50,7 @@ import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy import optimize
@@ -137,8 +138,7 @@ class ControlSettings:
             raise ValueError(f"move_starts_s must start at 0 and increase; got {starts}")
         if starts[-1] >= self.horizon_s:
             raise ValueError(
-                f"the last move ({starts[-1]} s) must start inside the horizon "
-                f"({self.horizon_s} s)"
+                f"the last move ({starts[-1]} s) must start inside the horizon ({self.horizon_s} s)"
             )
         if self.period_s < 1 or self.period_s > self.horizon_s:
             raise ValueError(f"period_s = {self.period_s} must be in [1, horizon_s]")
@@ -323,6 +323,71 @@ class MPCSolution:
     notes: list = field(default_factory=list)
 
 
+class _PlanArrays(NamedTuple):
+    """The static shape of a plan as arrays (a pytree: one compilation for every MPC)."""
+
+    lo: jnp.ndarray  # (3,) lower input limits
+    span: jnp.ndarray  # (3,) upper − lower
+    block_index: jnp.ndarray  # (H,) which move holds at each second of the horizon
+    rates: jnp.ndarray  # (3,) rate limits per second
+    gaps: jnp.ndarray  # (M,) seconds between a move and the one before it
+    weights: jnp.ndarray  # (7,) w_t, w_b, w_o, L_o,ref, w_m, w_l, tol
+
+
+def plan_trajectory(z, plan, spec, mean, cov, theta, process_cov):
+    """Moves (M, 3) from scaled z (3M,), and over the horizon outputs (H, 5), variances (H, 5)."""
+    n_moves = plan.gaps.shape[0]
+    moves = plan.lo + z.reshape(n_moves, 3) * plan.span
+    inputs = moves[plan.block_index]
+    _, _, y, var = _forecast_scan(spec, mean, cov, inputs, theta, process_cov)
+    return moves, y, var
+
+
+def plan_outputs(z, plan, spec, mean, cov, theta, process_cov):
+    """[L̂_w (H,), L̂_o (H,), var L_w (H,)] stacked: what the cost needs of the model."""
+    _, y, var = plan_trajectory(z, plan, spec, mean, cov, theta, process_cov)
+    return jnp.concatenate([y[:, 0], y[:, 1], var[:, 0]])
+
+
+def plan_cost(z, outputs, plan, u_prev, target, max_overspray):
+    """The cost J (module docstring) of moves z given the model's outputs over H."""
+    w_t, w_b, w_o, lo_ref, w_m, w_l, tol = (plan.weights[i] for i in range(7))
+    h = plan.block_index.shape[0]
+    n_moves = plan.gaps.shape[0]
+    moves = plan.lo + z.reshape(n_moves, 3) * plan.span
+    lw, lo_, var = outputs[:h], outputs[h : 2 * h], outputs[2 * h :]
+    sd = jnp.sqrt(jnp.maximum(var, 0.0) + 1e-12)
+    err = (lw - target) / tol
+    # |e| smoothed (1e-3 µm) so the gradient exists on target
+    band = jnp.maximum(0.0, (jnp.sqrt((lw - target) ** 2 + 1e-6) + 2.0 * sd - tol) / tol)
+    over = jnp.maximum(0.0, lo_ - max_overspray)
+    stage = w_t * err**2 + w_b * band**2 + w_o * (lo_ / lo_ref) ** 2 + w_l * over**2
+    previous = jnp.concatenate([u_prev[None], moves[:-1]], axis=0)
+    step = (moves - previous) / (plan.rates * plan.gaps[:, None])
+    return jnp.mean(stage) + w_m * jnp.sum(step**2)
+
+
+def _linearise(z, plan, spec, mean, cov, theta, process_cov):
+    args = (plan, spec, mean, cov, theta, process_cov)
+    return plan_outputs(z, *args), jax.jacfwd(plan_outputs)(z, *args)
+
+
+def _linear_cost(z, z0, out0, jac, plan, u_prev, target, max_overspray):
+    """The cost on the model linearised at z0 (outputs ≈ out0 + J (z − z0))."""
+    return plan_cost(z, out0 + jac @ (z - z0), plan, u_prev, target, max_overspray)
+
+
+def _exact_cost(z, plan, spec, mean, cov, theta, process_cov, u_prev, target, max_overspray):
+    outputs = plan_outputs(z, plan, spec, mean, cov, theta, process_cov)
+    return plan_cost(z, outputs, plan, u_prev, target, max_overspray)
+
+
+_linearise_jit = jax.jit(_linearise)
+_linear_objective = jax.jit(jax.value_and_grad(_linear_cost))
+_exact_cost_jit = jax.jit(_exact_cost)
+_trajectory_jit = jax.jit(plan_trajectory)
+
+
 class MPC:
     """Move-blocked MPC over the twin's model (see the module docstring).
 
@@ -353,63 +418,35 @@ class MPC:
         self.move_gaps = np.diff(np.concatenate([[starts[0] - s.period_s], starts])).astype(float)
         self.rates = np.asarray(s.rate_limits, dtype=float)
         self.max_linearisations = 3
-        self._linearise = jax.jit(
-            lambda z, mean, cov, theta: (
-                self._outputs(z, mean, cov, theta),
-                jax.jacfwd(self._outputs)(z, mean, cov, theta),
-            )
+        self.plan_arrays = _PlanArrays(
+            jnp.asarray(self.lo),
+            jnp.asarray(self.span),
+            jnp.asarray(self.block_index),
+            jnp.asarray(self.rates),
+            jnp.asarray(self.move_gaps),
+            jnp.asarray(
+                [
+                    s.weight_tracking,
+                    s.weight_band,
+                    s.weight_overspray,
+                    s.overspray_scale_um,
+                    s.weight_move,
+                    s.weight_overspray_limit,
+                    s.tolerance_um,
+                ]
+            ),
         )
-        self._linear_objective = jax.jit(jax.value_and_grad(self._linear_cost))
-        self._exact_cost = jax.jit(self._cost)
-        self._predict = jax.jit(self._trajectory)
         self._warm: np.ndarray | None = None
 
-    # -- the pure core -------------------------------------------------------------
-    def _trajectory(self, z, mean, cov, theta):
-        """Moves (M, 3) and, over the horizon, outputs (H, 5) and their variances (H, 5)."""
-        moves = self.lo + z.reshape(self.n_moves, 3) * self.span
-        inputs = moves[self.block_index]
-        _, _, y, var = _forecast_scan(
-            self.twin.spec, mean, cov, inputs, theta, jnp.asarray(self.twin.process_cov)
+    def _model_args(self, mean, cov, theta):
+        return (
+            self.plan_arrays,
+            self.twin.spec,
+            jnp.asarray(mean, dtype=float),
+            jnp.asarray(cov, dtype=float),
+            jnp.asarray(theta, dtype=float),
+            jnp.asarray(self.twin.process_cov),
         )
-        return moves, y, var
-
-    def _outputs(self, z, mean, cov, theta):
-        """[L̂_w (H,), L̂_o (H,), var L_w (H,)] stacked: what the cost needs of the model."""
-        _, y, var = self._trajectory(z, mean, cov, theta)
-        return jnp.concatenate([y[:, 0], y[:, 1], var[:, 0]])
-
-    def _cost_of(self, z, outputs, u_prev, target, max_overspray):
-        """The cost J (module docstring) of moves z given the model's outputs over H."""
-        s = self.settings
-        h = s.horizon_s
-        moves = self.lo + z.reshape(self.n_moves, 3) * self.span
-        lw, lo_, var = outputs[:h], outputs[h : 2 * h], outputs[2 * h :]
-        sd = jnp.sqrt(jnp.maximum(var, 0.0) + 1e-12)
-        tol = s.tolerance_um
-        err = (lw - target) / tol
-        # |e| smoothed (1e-3 µm) so the gradient exists on target
-        band = jnp.maximum(0.0, (jnp.sqrt((lw - target) ** 2 + 1e-6) + 2.0 * sd - tol) / tol)
-        over = jnp.maximum(0.0, lo_ - max_overspray)
-        stage = (
-            s.weight_tracking * err**2
-            + s.weight_band * band**2
-            + s.weight_overspray * (lo_ / s.overspray_scale_um) ** 2
-            + s.weight_overspray_limit * over**2
-        )
-        previous = jnp.concatenate([u_prev[None], moves[:-1]], axis=0)
-        step = (moves - previous) / (self.rates * self.move_gaps[:, None])
-        return jnp.mean(stage) + s.weight_move * jnp.sum(step**2)
-
-    def _cost(self, z, mean, cov, theta, u_prev, target, max_overspray):
-        """The exact cost: the model's outputs under the moves z."""
-        return self._cost_of(
-            z, self._outputs(z, mean, cov, theta), u_prev, target, max_overspray
-        )
-
-    def _linear_cost(self, z, z0, out0, jac, u_prev, target, max_overspray):
-        """The cost on the model linearised at z0 (outputs ≈ out0 + J (z − z0))."""
-        return self._cost_of(z, out0 + jac @ (z - z0), u_prev, target, max_overspray)
 
     # -- the solve -----------------------------------------------------------------
     def rate_constraints(self, u_prev, scale: float = 1.0):
@@ -445,14 +482,11 @@ class MPC:
     ) -> MPCSolution:
         """Optimise the moves from (mean, cov, θ) with the command in force ``u_prev``."""
         t0 = time.process_time()
-        s = self.settings
         u_prev = np.asarray(u_prev, dtype=float)
-        mean_j = jnp.asarray(mean, dtype=float)
-        cov_j = jnp.asarray(cov, dtype=float)
-        theta_j = jnp.asarray(theta, dtype=float)
+        model_args = self._model_args(mean, cov, theta)
         u_prev_j = jnp.asarray(u_prev)
         max_over = np.inf if self.max_overspray_um is None else float(self.max_overspray_um)
-        args = (mean_j, cov_j, theta_j, u_prev_j, float(target_um), max_over)
+        plan = self.plan_arrays
 
         z_hold = np.clip((u_prev - self.lo) / self.span, 0.0, 1.0)
         if warm_start and self._warm is not None:
@@ -467,11 +501,11 @@ class MPC:
         # the plan still moves (the model is mildly nonlinear; the next solve, one period
         # later, re-linearises anyway)
         for _ in range(self.max_linearisations):
-            out0, jac = self._linearise(jnp.asarray(z0), mean_j, cov_j, theta_j)
-            lin_args = (jnp.asarray(z0), out0, jac, u_prev_j, float(target_um), max_over)
+            out0, jac = _linearise_jit(jnp.asarray(z0), *model_args)
+            lin_args = (jnp.asarray(z0), out0, jac, plan, u_prev_j, float(target_um), max_over)
 
             def fun(z, lin_args=lin_args):
-                value, grad = self._linear_objective(jnp.asarray(z), *lin_args)
+                value, grad = _linear_objective(jnp.asarray(z), *lin_args)
                 return float(value), np.asarray(grad, dtype=float)
 
             result = optimize.minimize(
@@ -491,7 +525,7 @@ class MPC:
                 break
         z = z0
         self._warm = z.reshape(self.n_moves, 3)
-        moves, y, var = self._predict(jnp.asarray(z), mean_j, cov_j, theta_j)
+        moves, y, var = _trajectory_jit(jnp.asarray(z), *model_args)
         moves = np.asarray(moves)
         command = clip_command(
             moves[0], u_prev, self.bounds, step_scale * self.rates * self.move_gaps[0]
@@ -502,7 +536,9 @@ class MPC:
             predicted_linewidth=np.asarray(y[:, 0]),
             predicted_linewidth_std=np.sqrt(np.maximum(np.asarray(var[:, 0]), 0.0)),
             predicted_overspray=np.asarray(y[:, 1]),
-            cost=float(self._exact_cost(jnp.asarray(z), *args)),
+            cost=float(
+                _exact_cost_jit(jnp.asarray(z), *model_args, u_prev_j, float(target_um), max_over)
+            ),
             solve_s=time.process_time() - t0,
             iterations=iterations,
             success=bool(result.success),

@@ -559,3 +559,12 @@ class MPC:
     def reset(self):
         """Forget the warm start (a new print, or after a hold)."""
         self._warm = None
+
+    def warm_up(self):
+        """Compile the solver's functions now (once per process), so solve times are solves."""
+        u = (self.lo + self.hi) / 2.0
+        phi = float(self.twin.model.steady_aerosol_fraction(u, 1.0))
+        mean = np.array([3.5, 1.0, 0.0, 0.0, phi])
+        cov = np.diag([1e-2, 1e-4, 1e-8, 1e-4, (0.05 * phi) ** 2])
+        self.solve(mean, cov, np.zeros(5), u, 60.0, warm_start=False)
+        self.reset()

@@ -204,6 +204,7 @@ class _MPCStrategy:
         self.settings = settings
         self.target = target
         self.mpc = MPC(twin, settings, limits, max_overspray_um)
+        self.mpc.warm_up()
         from ajtwin.model.limits import StateLimits
 
         self.state_limits = StateLimits.load(twin.model.params)

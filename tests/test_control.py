@@ -349,3 +349,19 @@ def test_converges_after_a_step_disturbance(control_settings):
     assert abs(np.mean(twin_lw[-180:]) - 65.0) < 0.75
     assert runs["mpc_twin"].metrics["inside_limits"]
     assert runs["mpc_twin"].metrics["rate_limits_respected"]
+
+
+@pytest.mark.slow
+def test_full_comparison_exp1(tmp_path):
+    """The comparison on exp1, seeds 1–5 (~10 min on 2 idle cores): the MPC on the twin is
+    ≥ 3× below the open loop in RMS error and inside every limit. (The issue's second aim,
+    ≥ 1.5× below PI, is not met — docs/control.md says why — so it is not asserted.)"""
+    from ajtwin.apps.control_sim import compare
+
+    results = compare(["exp1"], range(1, 6), 65.0, tmp_path, log=lambda _: None)
+    summary = results["scenarios"]["exp1"]["summary"]
+    assert summary["ratio_rms_open_loop_over_mpc_twin"] >= 3.0
+    for strategy in ("open_loop", "pi", "mpc_nominal", "mpc_twin"):
+        assert summary[strategy]["all_inside_limits"]
+        assert summary[strategy]["all_rate_limits_respected"]
+    assert summary["mpc_twin"]["within_2um_fraction_mean"] > 0.95

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin.io.files import read_toml_file
 from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
 
 SCENARIO_DIR = resources.files("ajtwin.simulation") / "scenarios"
@@ -44,6 +45,10 @@ FAULT_FIELDS = {
 
 
 def _read_toml(source) -> dict:
+    """A packaged scenario (a resource) or a user's file (a regular file of bounded size)."""
+    if isinstance(source, Path):
+        # a directory, FIFO or /dev/zero must be refused before it is opened (hang, no end)
+        return read_toml_file(source, what="scenario")
     try:
         with source.open("rb") as fh:
             return tomllib.load(fh)

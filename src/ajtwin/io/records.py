@@ -84,6 +84,9 @@ RECORD_COLUMNS = (
 #: Columns a record must have. material_flow_mL_s may be absent (no height-profile
 #: CNN on that machine): it is then added as all-NaN with a warning.
 REQUIRED_COLUMNS = tuple(c for c in RECORD_COLUMNS if c != "material_flow_mL_s")
+#: The alignment camera's columns: a log may lack both (a machine without a camera; they
+#: are added as all-NaN with a warning), but not one of them (a camera gives both).
+CAMERA_COLUMNS = ("linewidth_um", "overspray_um")
 
 UNITS = {
     "time_s": "s",
@@ -348,6 +351,14 @@ def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
 
 
 def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
+    if not any(c in df.columns for c in CAMERA_COLUMNS):
+        # a machine without an alignment camera: both line columns absent is a valid log
+        warnings.warn(
+            f"{where}: no {' or '.join(map(repr, CAMERA_COLUMNS))} column (no camera); added "
+            "as all-NaN — the twin starts droplet size and aerosol fraction from priors",
+            stacklevel=3,
+        )
+        df = df.assign(**{c: np.nan for c in CAMERA_COLUMNS})
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
     if missing:
         raise RecordError(

@@ -161,7 +161,9 @@ def test_regular_file_check_uses_stat_only(tmp_path):
 def _cut_last_line(table, keep_fields=4, keep_chars=3) -> str:
     lines = table.to_csv(index=False).splitlines()
     cells = lines[-1].split(",")
-    return "\n".join(lines[:-1] + [",".join(cells[:keep_fields] + [cells[keep_fields][:keep_chars]])])
+    return "\n".join(
+        lines[:-1] + [",".join(cells[:keep_fields] + [cells[keep_fields][:keep_chars]])]
+    )
 
 
 def test_S1_csv_cut_mid_line_drops_the_row_and_names_the_line(tmp_path, table):
@@ -198,7 +200,9 @@ def test_S2_material_flow_in_microlitres_is_refused(tmp_path, table):
     path = tmp_path / "qm.csv"
     table.to_csv(path, index=False)
     record = read_record(path)  # inside the reader's wide range …
-    with pytest.raises(RecordError, match=r"qm\.csv: column 'material_flow_mL_s': median .*× what the model"):
+    with pytest.raises(
+        RecordError, match=r"qm\.csv: column 'material_flow_mL_s': median .*× what the model"
+    ):
         Twin.default(em=False).run(record)  # … but 1000× what the machine can give
 
 
@@ -336,8 +340,8 @@ def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypa
     joined, *_ = join_video(record, video, 0.75, progress=False)
     from ajtwin.vision.cli import extract
 
-    result = CliRunner().invoke(extract, [str(video), "--um-per-px", "1e300", "--out",
-                                          str(video.with_suffix(".csv")), "--no-progress"])  # fmt: skip
+    argv = [str(video), "--um-per-px", "1e300", "--out", str(video.with_suffix(".csv"))]
+    result = CliRunner().invoke(extract, [*argv, "--no-progress"])
     assert result.exit_code == 1 and "implausible" in result.output
     assert len(calls) == 2  # ingest's join_video and extract both went through it
     assert np.nanmax(joined.outputs[:, 0]) < 200
@@ -388,7 +392,10 @@ def test_vague_binary_utf16_parquet_named_csv(tmp_path, table, virtual_print):
         "utf16le.csv": (text.encode("utf-16-le"), "UTF-16"),
         "bin.csv": (bytes(range(256)) * 8, "binary data"),
         "latin1.csv": (("# é\n" + text).encode("latin-1"), "line 1: not UTF-8"),
-        "late.csv": ((text + "1,2,3,4,5,6,7,8,\xe9\n").encode("latin-1"), rf"line {len(table) + 2}"),
+        "late.csv": (
+            (text + "1,2,3,4,5,6,7,8,\xe9\n").encode("latin-1"),
+            rf"line {len(table) + 2}",
+        ),
     }
     write_record(virtual_print, tmp_path / "pq.parquet")
     cases["pq.csv"] = ((tmp_path / "pq.parquet").read_bytes(), "Parquet file with a .csv name")

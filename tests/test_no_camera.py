@@ -31,7 +31,9 @@ def _blind(record, columns, start=None, stop=None) -> PrintRecord:
 @pytest.fixture(scope="module")
 def clog_print():
     """A nozzle clog (ΔR_N grows through the print): the deposit has something to track."""
-    return simulate("nozzle_clog", seed=3, duration_min=30.0, overrides={"fault": {"onset_min": 5.0}})
+    return simulate(
+        "nozzle_clog", seed=3, duration_min=30.0, overrides={"fault": {"onset_min": 5.0}}
+    )
 
 
 @pytest.fixture(scope="module")

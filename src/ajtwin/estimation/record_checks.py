@@ -20,10 +20,11 @@ produce and what the filter needs:
 Examples
 --------
 >>> import numpy as np
->>> check_model_inputs(np.array([[375.0, 23.0, np.nan]] * 3), "p.csv")
-Traceback (most recent call last):
-...
-ajtwin.io.records.RecordError: p.csv: row 1 (t = 0 s), column 'sheath_flow_sccm': input is missing (NaN); the model needs all three inputs every second — fill them (e.g. hold the last set-point)
+>>> try:
+...     check_model_inputs(np.array([[375.0, 23.0, np.nan]] * 3), "p.csv")
+... except ValueError as exc:
+...     print(str(exc)[:57])
+p.csv: row 1, column 'sheath_flow_sccm': input is missing
 """
 
 from __future__ import annotations

@@ -91,7 +91,9 @@ def read_bounded_bytes(path: str | Path, what: str, max_bytes: int) -> bytes:
     with open(path, "rb") as fh:
         data = fh.read(max_bytes + 1)
     if len(data) > max_bytes:
-        raise InputFileError(f"{path}: larger than any {what} file ajtwin reads ({max_bytes} bytes)")
+        raise InputFileError(
+            f"{path}: larger than any {what} file ajtwin reads ({max_bytes} bytes)"
+        )
     return data
 
 

@@ -328,15 +328,31 @@ def _row_label(df: pd.DataFrame, position: int, row_offset: int) -> str:
     return label
 
 
+def _as_text(series: pd.Series, where: str, column) -> pd.Series:
+    """A column as stripped text; bytes that are not UTF-8 (a binary column) are refused."""
+    try:
+        return series.astype("string").str.strip()
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise RecordError(
+            f"{where}: column {column!r} holds values that are not text or numbers "
+            f"({type(exc).__name__}: {str(exc)[:80]})"
+        ) from None
+
+
 def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
     out = {}
     for column in df.columns:
         series = df[column]
+        if pd.api.types.is_bool_dtype(series) or pd.api.types.is_complex_dtype(series):
+            # True/False or a+bj is no measurement, though NumPy would turn it into a number
+            raise RecordError(
+                f"{where}: column {column!r} has type {series.dtype}; expected real numbers"
+            )
         if pd.api.types.is_numeric_dtype(series):
             out[column] = series.astype(float)
             continue
         # empty strings / "nan" / "NA" are missing values; anything else must be a number
-        text = series.astype("string").str.strip()
+        text = _as_text(series, where, column)
         blank = text.isna() | text.str.lower().isin(["", "nan", "na", "n/a", "none", "null"])
         numbers = pd.to_numeric(text.where(~blank), errors="coerce")
         bad = numbers.isna() & ~blank
@@ -424,7 +440,7 @@ def _check_time(df: pd.DataFrame, where: str, row_offset: int) -> np.ndarray:
         position = int(np.flatnonzero(missing)[0])
         raise RecordError(
             f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': "
-            f"time stamp {t[position]!r} is missing; every row needs a time"
+            f"time stamp {float(t[position])} is missing; every row needs a time"
         )
     steps = np.diff(t)
     bad = steps <= 0
@@ -451,10 +467,22 @@ def _datetimes_to_seconds(df: pd.DataFrame, where: str) -> pd.DataFrame:
     if pd.api.types.is_datetime64_any_dtype(column):
         stamps = column
     else:
-        text = column.astype("string").str.strip()
+        text = _as_text(column, where, TIME_COLUMN)
         if pd.to_numeric(text, errors="coerce").notna().all():
             return df  # numbers stored as text; _to_numeric handles them
-        stamps = pd.to_datetime(text, errors="coerce", format="ISO8601")
+        # a zone (Z or ±hh:mm) on some stamps and not on others is ambiguous: refuse
+        zoned = text.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True).fillna(False)
+        if zoned.any() and not zoned.all():
+            with_zone = int(np.flatnonzero(zoned.to_numpy())[0])
+            without = int(np.flatnonzero(~zoned.to_numpy())[0])
+            raise RecordError(
+                f"{where}: column 'time_s': row {with_zone + 1} has a time zone and row "
+                f"{without + 1} has none; give every time stamp the same zone (or none)"
+            )
+        try:
+            stamps = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(zoned.any()))
+        except (ValueError, TypeError, OverflowError):
+            return df  # not dates pandas can read: let _to_numeric name the offending row
         if stamps.isna().any():
             return df  # not all dates: let _to_numeric name the offending row
     seconds = (stamps - stamps.iloc[0]).dt.total_seconds()
@@ -596,9 +624,10 @@ def _sniff_text(path: Path, head: bytes) -> None:
     if head.startswith(b"PAR1"):
         raise RecordError(f"{path}: this is a Parquet file with a .csv name; rename it to .parquet")
     half = max(len(head) // 2, 1)
-    utf16 = head.startswith((b"\xff\xfe", b"\xfe\xff")) or max(
-        head[0::2].count(0), head[1::2].count(0)
-    ) > 0.6 * half
+    utf16 = (
+        head.startswith((b"\xff\xfe", b"\xfe\xff"))
+        or max(head[0::2].count(0), head[1::2].count(0)) > 0.6 * half
+    )
     if utf16:
         raise RecordError(
             f"{path}: the text is UTF-16 encoded; save the CSV as UTF-8 (e.g. Excel's "
@@ -644,7 +673,7 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
                     if not isinstance(value, dict):
                         raise RecordError(
                             f"{path}: line {header_lines}: metadata must be a JSON object "
-                            f"{{\"key\": value, ...}}, got {type(value).__name__} {value!r:.60}"
+                            f'{{"key": value, ...}}, got {type(value).__name__} {value!r:.60}'
                         )
                     meta.update(value)
             else:

@@ -439,3 +439,16 @@ def test_records_written_by_pandas_round_trip_unchanged(tmp_path, virtual_print)
     path = write_record(virtual_print, tmp_path / "p.csv")
     back = read_record(path)
     pd.testing.assert_frame_equal(back.data, virtual_print.data, check_exact=True)
+
+
+def test_video_and_parameter_paths_are_checked_before_open(tmp_path):
+    """The same regular-file check guards the camera reader and the parameter loader."""
+    from ajtwin.model.parameters import load_parameters
+    from ajtwin.vision.extract import VisionInputError, open_source
+
+    fifo = tmp_path / "cam.png"
+    os.mkfifo(fifo)
+    with pytest.raises(VisionInputError, match="cam.png: is a FIFO"):
+        _no_hang(lambda: open_source(fifo), fifo=fifo)
+    with pytest.raises(InputFileError, match="is a directory, not a parameter file"):
+        load_parameters(tmp_path)

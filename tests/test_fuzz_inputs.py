@@ -21,7 +21,9 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import warnings
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -40,6 +42,21 @@ from ajtwin.io.records import (
 )
 
 CORPUS = Path(__file__).parent / "fuzz_corpus"
+#: Outcome counts of the record fuzzers; written as JSON lines to $AJTWIN_FUZZ_REPORT (if set)
+#: after each test, for docs/reliability.md.
+OUTCOMES: Counter = Counter()
+
+
+@pytest.fixture(autouse=True)
+def _report_outcomes(request):
+    OUTCOMES.clear()
+    yield
+    target = os.environ.get("AJTWIN_FUZZ_REPORT")
+    if target and OUTCOMES:
+        with open(target, "a") as fh:
+            fh.write(json.dumps({"test": request.node.name, **dict(OUTCOMES)}) + "\n")
+
+
 _COMMON = dict(
     deadline=None,
     derandomize=False,
@@ -84,9 +101,21 @@ def read_outcome(path: Path):
             record = read_record(path)
         except RecordError as exc:
             assert str(path) in str(exc), f"error does not name the file: {exc}"
+            OUTCOMES["error: " + _kind_of(str(exc), path)] += 1
             return "error", str(exc), None
     assert_valid_record(record)
+    OUTCOMES["valid record" + (" (with warnings)" if caught else "")] += 1
     return "ok", record, [str(w.message) for w in caught]
+
+
+def _kind_of(message: str, path: Path) -> str:
+    """The gist of an error for the outcome counts: quotes, brackets and numbers blanked."""
+    import re
+
+    text = message.replace(str(path), "").lstrip(": ")
+    text = re.sub(r"'[^']*'|\"[^\"]*\"|\([^)]*\)", "…", text)
+    text = re.sub(r"(?<![A-Za-z\d.-])[-+]?\d[\d.e+-]*", "N", text)
+    return " ".join(text.split()[:7])
 
 
 def base_table(n: int, seed: int) -> pd.DataFrame:
@@ -444,7 +473,9 @@ def test_fuzz_scenario_loader(profile, tmp_path):
             raise
         except ValueError as exc:  # InputFileError is one
             assert str(path) in str(exc), f"error does not name the file: {exc}"
+            OUTCOMES["error: " + _kind_of(str(exc), path)] += 1
             return
+        OUTCOMES["valid scenario"] += 1
         u = scenario.setpoints(30)
         assert np.all(np.isfinite(u))
         for i, name in enumerate(INPUT_NAMES):
@@ -523,7 +554,9 @@ def test_fuzz_estimate_options(profile, tmp_path):
             ctx = estimate.make_context("estimate", argv)
         except click.exceptions.UsageError as exc:  # BadParameter is one
             assert exc.exit_code == 2
+            OUTCOMES["usage error"] += 1
             return
+        OUTCOMES["parsed"] += 1
         p = ctx.params
         assert p["gate"] > 0 and not math.isnan(p["gate"])
         assert 0 < p["vial_ml"] < capacity and math.isfinite(p["vial_ml"])
@@ -572,7 +605,9 @@ def test_fuzz_every_command_parses_or_says_usage(profile):
         try:
             command.make_context(name, list(argv))
         except (click.exceptions.UsageError, click.exceptions.Exit):
+            OUTCOMES["usage error"] += 1
             return
+        OUTCOMES["parsed"] += 1
 
     run()
 

@@ -459,6 +459,13 @@ def open_source(path: str | Path, fps: float | None = None) -> FrameSource:
     path = Path(path)
     if not path.exists():
         raise VisionInputError(f"{path}: no such file or folder")
+    if not path.is_dir():
+        from ajtwin.io.files import InputFileError, check_regular_file
+
+        try:  # a FIFO or device would block OpenCV's open forever
+            check_regular_file(path, "video or image")
+        except InputFileError as exc:
+            raise VisionInputError(str(exc)) from None
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise VisionInputError(f"--fps must be > 0, got {fps}")
     if path.is_dir():

@@ -666,9 +666,10 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
                 if line.startswith(CSV_META_PREFIX):
                     try:
                         value = json.loads(line[len(CSV_META_PREFIX) :])
-                    except json.JSONDecodeError as exc:
+                    except (json.JSONDecodeError, RecursionError) as exc:
                         raise RecordError(
-                            f"{path}: line {header_lines}: metadata is not valid JSON: {exc}"
+                            f"{path}: line {header_lines}: metadata is not valid JSON "
+                            f"(or nested too deeply): {str(exc)[:120]}"
                         ) from None
                     if not isinstance(value, dict):
                         raise RecordError(
@@ -803,7 +804,7 @@ def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
     if raw:
         try:
             meta = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise RecordError(
                 f"{path}: the 'ajtwin' metadata in the Parquet schema is not valid JSON: {exc}"
             ) from None

@@ -4,8 +4,9 @@ A print-hour of raw ``.npy`` blobs cost ~1.9 MB, 57 % of it the full 5×5 covari
 every second. The policy keeps what later commands need and drops what they do not:
 
 * **exact** (float64 / int, lossless): the raw samples (``measurements``, ``inputs``,
-  ``time_s``), the states' means, θ per step and θ history, ``n_measured``;
-* **float32** (7 significant digits, far below any σ): ``stds``, ``predicted_outputs``,
+  ``time_s``), θ per step and θ history, ``n_measured``, the guard's firings;
+* **float32** (7 significant digits, far below any σ; the print row keeps the end state
+  exactly): the states' ``means`` and ``stds``, ``predicted_outputs``,
   ``innovation_variances``, ``nis`` and the filter's state corrections
   x̂_k − x̂_{k|k−1} (``predicted_means`` is rebuilt from the means and corrections, so the
   corrections the detectors sum keep their relative precision);
@@ -59,6 +60,7 @@ class StoragePolicy:
 
     covariance_every_s: float = 60.0
     float32: tuple = (
+        "means",
         "stds",
         "predicted_outputs",
         "innovation_variances",
@@ -67,18 +69,42 @@ class StoragePolicy:
     )
 
 
-def encode(array, dtype=None) -> tuple[str, bytes]:
-    """(codec, blob) of ``array`` (cast to ``dtype`` first if given): shuffled + zlib."""
-    a = np.ascontiguousarray(np.asarray(array, dtype=dtype))
-    if a.dtype.kind not in _KINDS:
-        raise ValueError(f"cannot store a {a.dtype} array (numeric or boolean only)")
-    a = a.astype(a.dtype.newbyteorder("<"), copy=False)
-    header = json.dumps({"dtype": a.dtype.str, "shape": list(a.shape)}).encode()
-    raw = np.frombuffer(a.tobytes(), np.uint8)
+def _uint(dtype) -> np.dtype:
+    return np.dtype(f"<u{dtype.itemsize}")
+
+
+def _pack(a: np.ndarray, delta: bool) -> bytes:
+    """Column-major, optionally delta-coded (on the integer view, exactly reversible),
+    byte-shuffled, zlib-compressed bytes of ``a``."""
+    cols = int(np.prod(a.shape[1:], dtype=np.int64)) if a.ndim > 1 else 1
+    table = a.reshape(a.shape[0] if a.ndim else 1, cols)
+    if delta:
+        table = table.view(_uint(a.dtype))
+        table = np.concatenate([table[:1], np.diff(table, axis=0)])  # wraps modulo 2^bits
+    raw = np.frombuffer(np.ascontiguousarray(table.T).tobytes(), np.uint8)
     if a.dtype.itemsize > 1 and raw.size:
         # byte-shuffle: high bytes of neighbouring values are alike and compress well
         raw = raw.reshape(-1, a.dtype.itemsize).T
-    payload = zlib.compress(np.ascontiguousarray(raw).tobytes(), 6)
+    return zlib.compress(np.ascontiguousarray(raw).tobytes(), 6)
+
+
+def encode(array, dtype=None) -> tuple[str, bytes]:
+    """(codec, blob) of ``array`` (cast to ``dtype`` first if given), lossless for its dtype.
+
+    Floats are stored as they are or delta-coded over time (axis 0), whichever is
+    smaller: smooth series (σ, innovation variances) shrink by a third delta-coded.
+    """
+    a = np.asarray(array, dtype=dtype)
+    a = a if a.flags.c_contiguous else a.copy(order="C")  # (ascontiguousarray makes 0-d 1-d)
+    if a.dtype.kind not in _KINDS:
+        raise ValueError(f"cannot store a {a.dtype} array (numeric or boolean only)")
+    a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+    payload, delta = _pack(a, False), False
+    if a.dtype.kind in "fiu" and a.ndim and a.shape[0] > 2:
+        other = _pack(a, True)
+        if len(other) < len(payload):
+            payload, delta = other, True
+    header = json.dumps({"dtype": a.dtype.str, "shape": list(a.shape), "delta": delta}).encode()
     return ZSHUF, _MAGIC + struct.pack("<H", len(header)) + header + payload
 
 
@@ -105,6 +131,7 @@ def decode(blob, codec: str = ZSHUF) -> np.ndarray:
         header = json.loads(blob[6 : 6 + n_header])
         dtype = np.dtype(str(header["dtype"]))
         shape = tuple(int(v) for v in header["shape"])
+        delta = bool(header.get("delta", False))
     except Exception as exc:
         raise ValueError(f"unreadable array header ({exc})") from None
     if dtype.kind not in _KINDS or dtype.hasobject or any(v < 0 for v in shape):
@@ -119,10 +146,18 @@ def decode(blob, codec: str = ZSHUF) -> np.ndarray:
         raise ValueError(f"compressed data damaged ({exc})") from None
     if len(raw) != n_bytes or inflater.unconsumed_tail:
         raise ValueError(f"{len(raw)} bytes of data for a {dtype} {shape} array")
+    if not inflater.eof:  # the stream's end (and its checksum) is missing
+        raise ValueError("compressed data damaged (cut short)")
     data = np.frombuffer(raw, np.uint8)
     if dtype.itemsize > 1 and data.size:
         data = data.reshape(dtype.itemsize, -1).T
-    return np.frombuffer(np.ascontiguousarray(data).tobytes(), dtype).reshape(shape).copy()
+    rows = shape[0] if shape else 1
+    cols = int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
+    stored = _uint(dtype) if delta else dtype
+    table = np.frombuffer(np.ascontiguousarray(data).tobytes(), stored).reshape(cols, rows).T
+    if delta:
+        table = np.cumsum(table, axis=0, dtype=stored)  # undoes the wrapped differences
+    return np.ascontiguousarray(table).view(dtype).reshape(shape).copy()
 
 
 def keyframe_steps(n_steps: int, time_s, every_s: float, alarm_times=()) -> np.ndarray:

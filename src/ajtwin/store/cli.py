@@ -194,17 +194,18 @@ def history(name, csv_path, store):
 def drop(name, seq, reason, store):
     """Take print SEQ out of NAME's chain (kept for history; the next ingest starts from
     the newest print still in the chain)."""
+    from ajtwin.store.chain import chain_start
     from ajtwin.store.registry import STATUS_DROPPED, RegistryError
 
     reg = open_registry(store)
     try:
         p = reg.set_status(name, seq, STATUS_DROPPED, reason)
-        last = reg.last_print(name)
+        chain = chain_start(reg, name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"print #{p['seq']} of {_safe(name)!r} dropped from the chain ({_safe(reason)})")
-    start = "the initial-state fit" if last is None else f"print #{last['seq']}'s end state"
-    click.echo(f"  the next ingest starts from {start}")
+    start = "the initial-state fit" if chain.from_seq is None else f"print #{chain.from_seq}'s end"
+    click.echo(f"  the next ingest starts from {start} state")
 
 
 @machine.command("restore")

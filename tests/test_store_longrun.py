@@ -65,9 +65,7 @@ def test_week_long_print_through_the_twin():
 
 def _check_machine_soak(table, n):
     assert len(table) == n and (table["status"] == "ok").all()
-    assert table["started_from"].tolist() == ["initial fit"] + [
-        f"print {k}" for k in range(1, n)
-    ]
+    assert table["started_from"].tolist() == ["initial fit"] + [f"print {k}" for k in range(1, n)]
     # the twin follows the machine over its life: vial and nozzle deposit at every print's end
     assert (np.abs(table["end_1"] - table["true_1"]) < 0.01).all()
     assert (np.abs(table["end_3"] - table["true_3"]) < 0.02).all()

@@ -104,9 +104,10 @@ def _write_v1(path, prints=()):
         cur = conn.execute(
             "INSERT INTO prints (machine_id, seq, content_hash, ingested_at, source, n_samples,"
             " duration_s, meta_json, summary_json, start_mean, start_cov, end_mean, end_cov,"
-            " theta_before, theta_after) VALUES (1, ?, ?, '2025-01-0%dT00:00:00+00:00', 'f', ?,"
-            " ?, '{}', '{}', ?, ?, ?, ?, ?, ?)" % seq,
-            (seq, f"h{seq}", n, float(n), _npy(end), _npy(cov), _npy(end), _npy(cov),
+            " theta_before, theta_after) VALUES (1, ?, ?, ?, 'f', ?,"
+            " ?, '{}', '{}', ?, ?, ?, ?, ?, ?)",
+            (seq, f"h{seq}", f"2025-01-0{seq}T00:00:00+00:00", n, float(n), _npy(end),
+             _npy(cov), _npy(end), _npy(cov),
              _npy(np.zeros(5)), _npy(np.zeros(5))),
         )  # fmt: skip
         arrays = {
@@ -160,8 +161,14 @@ def _fake_print(reg, name, content_hash, end, expected, status="ok", n=240, alar
             "inputs": np.tile([375.0, 23.0, 50.0], (n, 1)),
         },
         anomalies=[
-            SimpleNamespace(detected_s=t, onset_s=t - 20, cause="nozzle_clog",
-                            description="nozzle clog", detectors=["x"], evidence={})
+            SimpleNamespace(
+                detected_s=t,
+                onset_s=t - 20,
+                cause="nozzle_clog",
+                description="nozzle clog",
+                detectors=["x"],
+                evidence={},
+            )
             for t in alarms
         ],  # fmt: skip
         expected_last_seq=expected,
@@ -424,8 +431,12 @@ def test_bad_print_does_not_poison_the_next_one(tmp_path):
 
     clean = simulate("exp1", seed=1, duration_min=4.0)
     ext = simulate("exp1", seed=1, duration_min=4.0)
-    for column, value in (("linewidth_um", 4999.0), ("overspray_um", 0.6),
-                          ("carrier_pressure_Pa", 9.9e5), ("sheath_pressure_Pa", 101.0)):
+    for column, value in (
+        ("linewidth_um", 4999.0),
+        ("overspray_um", 0.6),
+        ("carrier_pressure_Pa", 9.9e5),
+        ("sheath_pressure_Pa", 101.0),
+    ):
         ext.data[column] = value  # fmt: skip
     nxt = simulate("exp1", seed=3, duration_min=4.0)
     for name, rec in (("ext", ext), ("next", nxt)):
@@ -586,15 +597,23 @@ def test_import_refuses_damaged_or_foreign_archives(tmp_path):
     cases = {
         "not a tar": None,
         "traversal": [("manifest.json", good_manifest, reg_file), ("../evil.sqlite", db, reg_file)],
-        "absolute": [("manifest.json", good_manifest, reg_file), ("/tmp/x/machine.sqlite", db,
-                                                                   reg_file)],  # fmt: skip
-        "symlink": [("manifest.json", good_manifest, reg_file),
-                    ("machine.sqlite", b"/etc/passwd", tarfile.SYMTYPE)],  # fmt: skip
-        "checksum": [("manifest.json", good_manifest, reg_file),
-                     ("machine.sqlite", db[:-100] + b"\0" * 100, reg_file)],  # fmt: skip
+        "absolute": [
+            ("manifest.json", good_manifest, reg_file),
+            ("/tmp/x/machine.sqlite", db, reg_file),
+        ],  # fmt: skip
+        "symlink": [
+            ("manifest.json", good_manifest, reg_file),
+            ("machine.sqlite", b"/etc/passwd", tarfile.SYMTYPE),
+        ],  # fmt: skip
+        "checksum": [
+            ("manifest.json", good_manifest, reg_file),
+            ("machine.sqlite", db[:-100] + b"\0" * 100, reg_file),
+        ],  # fmt: skip
         "newer": [("manifest.json", newer, reg_file), ("machine.sqlite", db, reg_file)],
-        "foreign manifest": [("manifest.json", b'{"a": 1}', reg_file),
-                             ("machine.sqlite", db, reg_file)],  # fmt: skip
+        "foreign manifest": [
+            ("manifest.json", b'{"a": 1}', reg_file),
+            ("machine.sqlite", db, reg_file),
+        ],  # fmt: skip
     }
     messages = {
         "not a tar": "not a tar archive",

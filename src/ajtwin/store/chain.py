@@ -137,9 +137,7 @@ def judge_run(run) -> tuple[str, str]:
     first = limits.first_violation_index(means)
     if first is not None:
         t = float(np.asarray(run.time_s)[first])
-        return STATUS_EXCLUDED, f"state at {t:.0f} s: " + "; ".join(
-            limits.violations(means[first])
-        )
+        return STATUS_EXCLUDED, f"state at {t:.0f} s: " + "; ".join(limits.violations(means[first]))
     problems = _bad_covariance(run.end_cov)
     if problems:
         return STATUS_EXCLUDED, "; ".join(problems)

@@ -208,9 +208,7 @@ def _insert(dst, table, row: dict, columns) -> int:
 def copy_machine(src: sqlite3.Connection, dst: sqlite3.Connection, name: str, new_name: str):
     """Copy machine ``name`` with every machine- and print-scoped row from ``src`` into
     ``dst`` as ``new_name`` in one transaction of ``dst`` (ids renumbered)."""
-    src_tables = {
-        r[0] for r in src.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
-    }
+    src_tables = {r[0] for r in src.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     machine = src.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
     if machine is None:
         raise RegistryError(f"no machine {printable(name)!r} to copy")

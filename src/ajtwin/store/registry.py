@@ -159,8 +159,8 @@ def _migrate_to_2(conn):
     # prints of a version-1 registry whose end state is impossible leave the chain
     from ajtwin.store.chain import state_violations
 
-    rows = conn.execute("SELECT id, seq, end_mean FROM prints").fetchall()
-    for print_id, seq, blob in rows:
+    rows = conn.execute("SELECT id, end_mean FROM prints").fetchall()
+    for print_id, blob in rows:
         try:
             problems = state_violations(_arrays.decode(blob, _arrays.NPY))
         except ValueError as exc:

@@ -431,21 +431,30 @@ def test_bad_print_does_not_poison_the_next_one(tmp_path):
 
     clean = simulate("exp1", seed=1, duration_min=4.0)
     ext = simulate("exp1", seed=1, duration_min=4.0)
+    # the findings' ext.parquet also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
+    # what the model gives at its inputs, which the input check now refuses before the twin
+    # runs (tests/test_bad_inputs.py); L_w/L_o alone still give d_a 534 µm, for the chain
+    full = simulate("exp1", seed=1, duration_min=4.0)
     for column, value in (
         ("linewidth_um", 4999.0),
         ("overspray_um", 0.6),
         ("carrier_pressure_Pa", 9.9e5),
         ("sheath_pressure_Pa", 101.0),
     ):
-        ext.data[column] = value  # fmt: skip
+        full.data[column] = value  # fmt: skip
+        if column in ("linewidth_um", "overspray_um"):
+            ext.data[column] = value  # fmt: skip
     nxt = simulate("exp1", seed=3, duration_min=4.0)
-    for name, rec in (("ext", ext), ("next", nxt)):
+    for name, rec in (("ext", ext), ("next", nxt), ("full", full)):
         write_record(rec, tmp_path / f"{name}.parquet")
     runner = CliRunner()
     stores = {k: str(tmp_path / f"{k}.sqlite") for k in ("po", "cl")}
     for store in stores.values():
         assert run_cli("add", "M", "--store", store).exit_code == 0
     args = ["--machine", "M", "--no-progress", "--store", stores["po"]]
+    res = runner.invoke(ingest, args + [str(tmp_path / "full.parquet")])
+    assert res.exit_code == 1 and "column 'carrier_pressure_Pa'" in res.output
+    assert Registry(stores["po"]).last_print("M") is None
     res = runner.invoke(ingest, args + [str(tmp_path / "ext.parquet")])
     assert res.exit_code == 0, res.output
     assert "EXCLUDED from the machine's chain" in res.output

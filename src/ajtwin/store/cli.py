@@ -369,6 +369,8 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
     end = result.summary["end_state"]
     for key, short, unit in STATE_LABELS:
         click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    for note in result.run.visibility_notes() if result.run is not None else ():
+        click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
     if result.events:
         click.echo(f"  {len(result.events)} anomaly event(s):")
         for ev in result.events:

@@ -115,21 +115,39 @@ def test_machine_many_prints_carry_over_exactly(twenty_prints):
         assert "SCAN" not in plan.replace("SCAN CONSTANT ROW", ""), (query, plan)
 
 
-def test_machine_vial_band_covers_the_truth(twenty_prints):
-    """The vial over many short prints: the truth inside ±3σ at every print's end (before
-    main a71da6a's EKF the estimate stayed near 1 mL with σ ~0.7 µL, 20σ off)."""
+def _vial_within_band(store, table, k_sigma=3.0):
     from ajtwin.store.registry import Registry
 
-    store, table = twenty_prints
     reg = Registry(store)
     sd = np.array([np.sqrt(reg.print_by_seq("soak", k)["end_cov"][1, 1]) for k in table["seq"]])
-    assert (np.abs(table["end_1"] - table["true_1"]) < 3 * sd).all()
+    return np.abs(table["end_1"] - table["true_1"]).to_numpy() < k_sigma * sd
+
+
+def test_machine_vial_band_covers_the_truth(twenty_prints):
+    """The vial over 20 short prints: the truth inside ±3σ at every print's end."""
+    assert _vial_within_band(*twenty_prints).all()
+
+
+@pytest.fixture(scope="module")
+def year_of_prints(tmp_path_factory):
+    store = tmp_path_factory.mktemp("year") / "year.sqlite"
+    return store, soak_machine(365, print_min=3.0, store=store, seed=1000)
 
 
 @pytest.mark.slow
-def test_machine_year_of_daily_prints(tmp_path):
-    table = soak_machine(365, print_min=3.0, store=tmp_path / "year.sqlite", seed=1000)
+def test_machine_year_of_daily_prints(year_of_prints):
+    _, table = year_of_prints
     # vial: 0.02 mL (2 % of the vial), not 0.01: the estimator's V_l bias over many short
-    # prints reached 0.014 mL in this run (xfail test above; docs/reliability.md)
+    # prints reached 0.014 mL in this run (xfail test below; docs/reliability.md)
     _check_machine_soak(table, 365, vial_tol_ml=0.02)
-    table.to_csv(tmp_path / "year.csv", index=False)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="estimator: over hundreds of short prints the vial estimate stays near 1 mL while "
+    "the truth empties (error up to 0.014 mL) and its σ (~0.7 µL) does not cover it "
+    "(docs/reliability.md, Long runs)",
+)
+def test_machine_year_vial_band_covers_the_truth(year_of_prints):
+    assert _vial_within_band(*year_of_prints).all()

@@ -8,6 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import BoundedFloat
+
 STATE_LABELS = (
     ("droplet_diameter_um", "d_a", "µm"),
     ("vial_volume_mL", "V_l", "mL"),
@@ -313,7 +315,12 @@ def import_command(archive, as_name, store):
     default=None,
     help="Alignment-camera video: fills linewidth/overspray (ajtwin.vision).",
 )
-@click.option("--um-per-px", type=float, default=None, help="Camera pixel size, µm (with --video).")
+@click.option(
+    "--um-per-px",
+    type=BoundedFloat(0.0, None),
+    default=None,
+    help="Camera pixel size, µm (with --video).",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @store_option
 def ingest(machine_name, record, video, um_per_px, progress, store):

@@ -642,6 +642,25 @@ def test_import_refuses_damaged_or_foreign_archives(tmp_path):
     assert sorted(p.name for p in work.iterdir()) == sorted(f"{c}.tar" for c in cases)
 
 
+def test_import_refuses_an_archive_with_damaged_blobs(tmp_path):
+    src = Registry(tmp_path / "a.sqlite")
+    src.add_machine("lab")
+    _fake_print(src, "lab", "p1", GOOD, None)
+    src._conn.execute("UPDATE print_arrays SET npy = x'00' WHERE name = 'means'")
+    db = tmp_path / "crafted.sqlite"
+    src._conn.execute("VACUUM INTO ?", (str(db),))
+    data = db.read_bytes()
+    manifest = {"format": "ajtwin-machine-export", "format_version": 1, "schema_version": 2,
+                "machine": "lab", "database_sha256": hashlib.sha256(data).hexdigest()}  # fmt: skip
+    archive = tmp_path / "crafted.tar"
+    _tar(archive, [("manifest.json", json.dumps(manifest).encode(), tarfile.REGTYPE),
+                   ("machine.sqlite", data, tarfile.REGTYPE)])  # fmt: skip
+    dst = tmp_path / "b.sqlite"
+    res = run_cli("import", archive, "--store", dst)
+    assert res.exit_code == 1 and "registry damaged at print 1" in res.output
+    assert "array means" in res.output and Registry(dst).machines() == []
+
+
 def test_exported_version1_machine_is_migrated_on_import(tmp_path):
     old = tmp_path / "v1.sqlite"
     _write_v1(old, [GOOD])

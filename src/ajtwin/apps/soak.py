@@ -18,8 +18,8 @@ Two soaks (issue 14, "Long runs"):
 
 Example
 -------
->>> rep = soak_print(hours=0.2, chunk_min=6)            # doctest: +SKIP
->>> rep.healthy, rep.guard_firings
+>>> rep = soak_print(hours=0.2, chunk_min=6)  # doctest: +SKIP
+>>> rep.healthy, rep.guard_firings  # doctest: +SKIP
 (True, 0)
 """
 

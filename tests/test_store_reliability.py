@@ -708,3 +708,14 @@ def test_guard_firings_are_counted_and_stored(tmp_path):
     steps = np.flatnonzero(fired)
     assert result.summary["guard_reinitialisations"] == len(steps) >= 1
     assert 100 <= steps[0] <= 102
+    # what float32 cannot hold is stored as float64, not as inf
+    stored = reg.print_arrays(result.print_id)
+    assert stored["measurements"][100, 0] == 1e300
+    run = result.run
+    for key, exact in (
+        ("predicted_outputs", run.filtered.predicted_outputs),
+        ("innovation_variances", run.filtered.innovation_variances),
+    ):
+        exact = np.asarray(exact)
+        assert np.array_equal(np.isfinite(stored[key]), np.isfinite(exact)), key
+        np.testing.assert_allclose(stored[key], exact, rtol=1.2e-7)

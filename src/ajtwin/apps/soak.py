@@ -18,8 +18,8 @@ Two soaks (issue 14, "Long runs"):
 
 Example
 -------
->>> rep = soak_print(hours=0.2, chunk_min=6)            # doctest: +SKIP
->>> rep.healthy, rep.guard_firings
+>>> rep = soak_print(hours=0.2, chunk_min=6)  # doctest: +SKIP
+>>> rep.healthy, rep.guard_firings  # doctest: +SKIP
 (True, 0)
 """
 
@@ -180,9 +180,13 @@ def soak_machine(
     store=None,
     scenario: str = "exp1",
     seed: int = 0,
+    twin_overrides: dict | None = None,
     progress=None,
 ):
     """Ingest ``n_prints`` short virtual prints of one machine into a registry.
+
+    ``twin_overrides`` go to the twin's config (e.g. a short EM window so that θ is
+    learned within short prints and its carry-over is exercised).
 
     Each print continues the virtual machine (``continue_from``): the vial and deposits
     carry on in the truth, as the chain carries them in the twin.
@@ -216,7 +220,9 @@ def soak_machine(
                               continue_from=previous)  # fmt: skip
             record.meta["machine_id"] = "soak"
             cpu0 = time.process_time()
-            result = ingest_record(reg, "soak", record, source=f"virtual print {i + 1}")
+            result = ingest_record(
+                reg, "soak", record, source=f"virtual print {i + 1}", twin_overrides=twin_overrides
+            )
             cpu_ingest = time.process_time() - cpu0
             cpu0 = time.process_time()
             reg.history("soak")

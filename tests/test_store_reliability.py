@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.io.records import RecordError
 from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
 from ajtwin.store.cli import ingest, machine
@@ -429,26 +430,31 @@ def test_bad_print_does_not_poison_the_next_one(tmp_path):
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
 
-    # S3's file: its pressures are refused before the twin runs (record checks); its
-    # linewidth/overspray alone still pass every check and drive d_a out of range
-    s3 = simulate("exp1", seed=1, duration_min=4.0)
     ext = simulate("exp1", seed=1, duration_min=4.0)
-    for rec in (s3, ext):
-        rec.data["linewidth_um"] = 4999.0
-        rec.data["overspray_um"] = 0.6
-    s3.data["carrier_pressure_Pa"] = 9.9e5
-    s3.data["sheath_pressure_Pa"] = 101.0
+    # the findings' ext.parquet also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
+    # what the model gives at its inputs, which the input check now refuses before the twin
+    # runs (tests/test_bad_inputs.py); L_w/L_o alone still give d_a 534 µm, for the chain
+    full = simulate("exp1", seed=1, duration_min=4.0)
+    for column, value in (
+        ("linewidth_um", 4999.0),
+        ("overspray_um", 0.6),
+        ("carrier_pressure_Pa", 9.9e5),
+        ("sheath_pressure_Pa", 101.0),
+    ):
+        full.data[column] = value  # fmt: skip
+        if column in ("linewidth_um", "overspray_um"):
+            ext.data[column] = value  # fmt: skip
     nxt = simulate("exp1", seed=3, duration_min=4.0)
-    for name, rec in (("s3", s3), ("ext", ext), ("next", nxt)):
+    for name, rec in (("ext", ext), ("next", nxt), ("full", full)):
         write_record(rec, tmp_path / f"{name}.parquet")
     runner = CliRunner()
     stores = {k: str(tmp_path / f"{k}.sqlite") for k in ("po", "cl")}
     for store in stores.values():
         assert run_cli("add", "M", "--store", store).exit_code == 0
     args = ["--machine", "M", "--no-progress", "--store", stores["po"]]
-    res = runner.invoke(ingest, args + [str(tmp_path / "s3.parquet")])
-    assert res.exit_code == 1 and "Traceback" not in res.output
-    assert Registry(stores["po"]).machine("M")["n_prints"] == 0
+    res = runner.invoke(ingest, args + [str(tmp_path / "full.parquet")])
+    assert res.exit_code == 1 and "column 'carrier_pressure_Pa'" in res.output
+    assert Registry(stores["po"]).last_print("M") is None
     res = runner.invoke(ingest, args + [str(tmp_path / "ext.parquet")])
     assert res.exit_code == 0, res.output
     assert "EXCLUDED from the machine's chain" in res.output
@@ -701,7 +707,16 @@ def test_guard_firings_are_counted_and_stored(tmp_path):
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("M")
     rec = simulate("exp1", seed=1, duration_min=3.0)
-    rec.data.iloc[100, rec.data.columns.get_loc("linewidth_um")] = 1e300
+    whole = rec.data.copy()
+    # Q_m in µL/s over the whole print is now refused before the twin runs (its median is
+    # ~1000x the model's: tests/test_bad_inputs.py); over the first 31 s only (a unit
+    # switch mid-log) the median is sound, and the guard fires as it did for the finding
+    rec.data["material_flow_mL_s"] = whole["material_flow_mL_s"] * 1000
+    with pytest.raises(RecordError, match="column 'material_flow_mL_s'"):
+        ingest_record(reg, "M", rec)
+    assert reg.last_print("M") is None
+    rec.data["material_flow_mL_s"] = whole["material_flow_mL_s"]
+    rec.data.loc[:30, "material_flow_mL_s"] *= 1000
     result = ingest_record(reg, "M", rec)
     fired = reg.print_arrays(result.print_id)["reinitialised"]
     assert fired.dtype == bool and fired.shape == (180,)

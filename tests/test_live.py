@@ -101,3 +101,64 @@ def test_clean_sample_bad_wire_data():
     assert np.isnan(s.inputs).all() and "atomizer_current_mA" in problems[0]
     s, problems = clean_sample("x", [375, 23, 50], [90, 150, 2000, 1500, 1e-9])
     assert s is None and "not a number" in problems[0]
+
+
+def test_engine_many_machines_batched_equals_single(clog_record):
+    from ajtwin.live.engine import LiveEngine
+
+    rec = clog_record.window(0, 200)
+    engine = LiveEngine(twin_overrides=FAST_EM, asynchronous=False)
+    got = []
+    engine.subscribe(got.append)
+    names = ["a", "b", "c"]
+    for k in range(len(rec)):
+        # machine c lags by a sample: mixed batches of ordinary steps and boundaries
+        items = [(n, Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k])) for n in names[:2]]
+        if k > 0:
+            items.append(("c", Sample(rec.time_s[k - 1], rec.inputs[k - 1], rec.outputs[k - 1])))
+        engine.feed_many(items)
+    single = TwinStream.new("s", twin_overrides=FAST_EM, asynchronous=False)
+    _feed_all(single, rec)
+    for n in names:
+        arrays = engine.sessions[n].stream.arrays()
+        length = len(arrays["means"])
+        assert length == len(rec) - (n == "c")
+        assert _relative(arrays["means"], single.arrays()["means"][:length]) < 1e-9
+    assert {m["machine"] for m in got} == set(names)
+    engine.shutdown()
+
+
+def test_kill_and_resume_from_registry(clog_record, tmp_path):
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 240)
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=True, commit_every_s=0)
+    for k in range(150):
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    engine.poll_and_publish()
+    while engine.sessions["m1"].stream.em_running:  # bounded: EM on 60 samples
+        engine.sessions["m1"].stream._em_future.result(timeout=120)
+        engine.poll_and_publish()
+    committed = engine.sessions["m1"].stream.n_committed
+    engine.shutdown()
+    del engine  # "killed": the object is gone, only the database remains
+
+    log = LiveLog(registry.path)
+    sid = log.open_session_of("m1")["id"]
+    assert log.n_steps(sid) == committed
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    stream = engine.open("m1")
+    assert stream.n_committed == committed
+    for k in range(100, len(rec)):  # a re-read from before the kill: old samples dropped
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    print_id = engine.close("m1")
+    assert log.open_session_of("m1") is None
+    steps = [m["step"] for m in log.states(sid)]
+    assert steps == list(range(len(rec)))  # nothing lost, nothing twice
+    stored = registry.print_arrays(print_id)
+    run = Twin.default(**FAST_EM).run(rec)
+    assert _relative(stored["means"], run.means) < 1e-9
+    assert registry.last_print("m1")["seq"] == 1

@@ -889,6 +889,37 @@ class LiveEngine:
         self.sessions: dict[str, _Session] = {}
         self._subscribers: list = []
 
+    def warm_up(self, n_machines: int = 1) -> None:
+        """Compile the step functions (single and batched) before the first real sample."""
+        twin = Twin.default(**self.twin_overrides)
+        u = np.array([375.0, 23.0, 50.0])
+        y = np.array(twin.model.outputs(np.array([3.5, 1.0, 0.0, 0.03, 1e-7]), u))
+        inputs, outputs = np.tile(u, (10, 1)), np.tile(y, (10, 1))
+        fit = twin.initial_state(inputs, outputs)
+        stream = TwinStream(
+            "warm-up",
+            twin,
+            (fit.mean, fit.covariance),
+            self.detector_settings,
+            asynchronous=False,
+        )
+        for k in range(3):
+            stream.feed(Sample(float(k), u, y))
+        stream._restart_chunk(2, stream.theta)
+        if n_machines > 1:
+            plain = []
+            for i in range(n_machines):
+                s = TwinStream(
+                    f"w{i}",
+                    twin,
+                    (fit.mean, fit.covariance),
+                    self.detector_settings,
+                    asynchronous=False,
+                )
+                s.feed(Sample(0.0, u, y))
+                plain.append((s, s.take_plain(Sample(1.0, u, y))))
+            self._step_batched(plain)
+
     # ------------------------------------------------------------------ #
     def subscribe(self, callback) -> callable:
         """Call ``callback(message)`` for every message; returns a function that unsubscribes."""

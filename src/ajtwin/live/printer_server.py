@@ -53,7 +53,7 @@ log = logging.getLogger("ajtwin.printer")
 
 #: rows of the SampleBuffer (a client that misses notifications for < this many
 #: simulated seconds loses nothing)
-BUFFER_ROWS = 120
+BUFFER_ROWS = 300
 
 
 @dataclass
@@ -248,7 +248,9 @@ class PrinterServer:
         private_key=None,
         trusted=None,
         tick_s: float = 0.1,
+        buffer_rows: int = BUFFER_ROWS,
     ):
+        self.buffer_rows = int(buffer_rows)
         self.endpoint = endpoint
         self.machines = {m.name: m for m in machines}
         self.users = dict(users or {})
@@ -341,7 +343,7 @@ class PrinterServer:
         nodes["buffer"] = await process.add_variable(
             nid("Monitoring", "Process", "SampleBuffer"),
             f"{idx}:SampleBuffer",
-            ua.Variant(machine.rows(0, BUFFER_ROWS).ravel().tolist(), ua.VariantType.Double),
+            ua.Variant(machine.rows(0, self.buffer_rows).ravel().tolist(), ua.VariantType.Double),
         )
         setpoints = await monitoring.add_object(nid("Monitoring", "SetPoints"), f"{idx}:SetPoints")
         nodes["setpoints"] = {}
@@ -462,7 +464,9 @@ class PrinterServer:
             for column, *_ in PROCESS_VARIABLES.values():
                 await nodes[column].write_value(float(data[column]))
             await nodes["buffer"].write_value(
-                ua.Variant(machine.rows(stop, BUFFER_ROWS).ravel().tolist(), ua.VariantType.Double)
+                ua.Variant(
+                    machine.rows(stop, self.buffer_rows).ravel().tolist(), ua.VariantType.Double
+                )
             )
             await nodes["time"].write_value(float(row[0]))
             if stop >= n:

@@ -47,6 +47,8 @@ REFUSALS = {
     "BadSecurityChecksFailed": "the server refused our certificate or security settings",
     "BadCertificateInvalid": "the server found our certificate invalid",
     "BadSecurityPolicyRejected": "the server does not offer this --security policy",
+    "No matching endpoints": "the server offers no endpoint with this security "
+    "(an encrypted server needs --security Basic256Sha256_SignAndEncrypt)",
 }
 
 

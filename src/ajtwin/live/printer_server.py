@@ -94,24 +94,24 @@ class VirtualMachine:
 
         if self.limits is None:
             self.limits = copy.deepcopy(DEFAULT_LIMITS)
-        self.simulate()
+        self.record = self.simulate(self.schedule)
         self._t0 = None
 
-    def simulate(self) -> None:
-        """(Re)simulate the print with the set-point schedule written so far."""
+    def simulate(self, schedule: dict):
+        """The print simulated with a set-point schedule {column: [[minute, value], …]}."""
         from ajtwin.simulation import simulate
         from ajtwin.simulation.scenarios import load_scenario
 
         overrides = copy.deepcopy(self.overrides or {})
-        if self.schedule:
+        if schedule:
             base = load_scenario(self.scenario, overrides).config["inputs"]
             inputs = {k: [list(step) for step in v] for k, v in base.items()}
-            for column, steps in self.schedule.items():
+            for column, steps in schedule.items():
                 inputs[column] = sorted(
                     [s for s in inputs[column] if s[0] < steps[0][0]] + [list(s) for s in steps]
                 )
             overrides["inputs"] = inputs
-        self.record = simulate(self.scenario, self.seed, self.duration_min, overrides)
+        return simulate(self.scenario, self.seed, self.duration_min, overrides)
 
     def start(self, now: float) -> None:
         self._t0 = now - self.start_s / self.speed
@@ -140,10 +140,13 @@ class VirtualMachine:
         if not np.isfinite(value) or not (low <= value <= high):
             return f"{self.name}: {column} = {value!r} outside the machine limits [{low}, {high}]"
         minute = float(np.ceil(at_s + 1.0)) / 60.0
-        self.schedule[column] = [s for s in self.schedule.get(column, []) if s[0] < minute] + [
+        schedule = copy.deepcopy(self.schedule)
+        schedule[column] = [s for s in schedule.get(column, []) if s[0] < minute] + [
             [minute, float(value)]
         ]
-        self.simulate()
+        # the new print replaces the old one only once it exists
+        self.record = self.simulate(schedule)
+        self.schedule = schedule
         return None
 
 

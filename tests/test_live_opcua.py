@@ -296,3 +296,92 @@ def test_anonymous_cannot_write_setpoints_but_may_publish_health(tmp_path):
             await asyncio.wait_for(task, 30)
 
     asyncio.run(main())
+
+
+def _steps_in(path: Path) -> int:
+    if not path.exists():
+        return 0
+    return sum(1 for line in path.read_text().splitlines() if '"step"' in line)
+
+
+def _wait(predicate, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+@pytest.mark.slow
+def test_client_kill_and_server_restart_lose_nothing(tmp_path):
+    from ajtwin.estimation import Twin
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    store = tmp_path / "registry.sqlite"
+
+    def start_live(n):
+        return _ajtwin(
+            "live",
+            "--machine",
+            "aj300-01",
+            "--opcua",
+            url,
+            "--store",
+            str(store),
+            "--messages",
+            str(tmp_path / f"messages{n}.jsonl"),
+            "--max-backoff",
+            "1",
+            log_path=tmp_path / f"live{n}.log",
+        )
+
+    server = _serve(url, tmp_path / "server1.log", "--duration-min", "9")
+    live = start_live(1)
+    procs = [server, live]
+    try:
+
+        def stored_steps():
+            if not store.exists():
+                return 0
+            session = LiveLog(store).open_session_of("aj300-01")
+            return 0 if session is None else LiveLog(store).n_steps(session["id"])
+
+        _wait(lambda: stored_steps() >= 60, 180, "first committed steps")
+        os.kill(live.pid, signal.SIGKILL)  # mid-print, no goodbye
+        live.wait(timeout=20)
+        log = LiveLog(store)
+        session = log.open_session_of("aj300-01")
+        committed = log.states(session["id"])
+        assert len(committed) >= 60
+        live = start_live(2)
+        procs.append(live)
+        _wait(lambda: _steps_in(tmp_path / "messages2.jsonl") >= 20, 180, "resumed steps")
+        # the server goes away and comes back later in the same print
+        t_stop = json.loads((tmp_path / "messages2.jsonl").read_text().splitlines()[-1])["time_s"]
+        _stop(server)
+        time.sleep(3)
+        server = _serve(
+            url, tmp_path / "server2.log", "--duration-min", "9", "--start-s", str(t_stop + 60)
+        )
+        procs.append(server)
+        _wait(lambda: live.poll() is not None, 240, "the end of the print")
+        assert live.returncode == 0, (tmp_path / "live2.log").read_text()
+        assert "reconnecting" in (tmp_path / "live2.log").read_text()
+    finally:
+        for p in procs:
+            _stop(p)
+
+    states = log.states(session["id"])
+    assert [m["step"] for m in states] == list(range(len(states)))  # nothing twice
+    assert states[: len(committed)] == committed  # nothing committed lost or changed
+    registry = Registry(store)
+    arrays = registry.print_arrays(registry.last_print("aj300-01")["id"])
+    assert len(arrays["time_s"]) == 9 * 60
+    run = Twin.default().run(
+        inputs=arrays["inputs"], measurements=arrays["measurements"], time_s=arrays["time_s"]
+    )
+    assert (np.abs(arrays["means"] - run.means) / np.abs(run.means)).max() < 1e-9

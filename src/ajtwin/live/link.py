@@ -188,6 +188,8 @@ class OpcUaLink:
                     )
             if not nodes:
                 raise LinkRefused(f"{self.url}: none of the machines {self.machines} is served")
+            for name in nodes:
+                self.engine.open(name, source=self.url)  # resumes an open live session
             queue: asyncio.Queue = asyncio.Queue()
             by_node = {n["buffer"].nodeid: name for name, n in nodes.items()}
             by_node.update({n["state"].nodeid: name for name, n in nodes.items()})
@@ -270,6 +272,9 @@ class OpcUaLink:
                 log.warning("%s: SampleBuffer has the wrong shape; ignored", name)
                 continue
             last = self.last_time.get(name, -np.inf)
+            session = self.engine.sessions.get(name)
+            if session is not None and session.stream.last_time is not None:
+                last = max(last, session.stream.last_time)  # resumed: skip what is stored
             for row in rows:
                 if not np.isfinite(row[0]) or row[0] <= last:
                     continue

@@ -339,7 +339,7 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
             log_path=tmp_path / f"live{n}.log",
         )
 
-    server = _serve(url, tmp_path / "server1.log", "--duration-min", "9")
+    server = _serve(url, tmp_path / "server1.log", "--duration-min", "15")
     live = start_live(1)
     procs = [server, live]
     try:
@@ -365,7 +365,7 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         _stop(server)
         time.sleep(3)
         server = _serve(
-            url, tmp_path / "server2.log", "--duration-min", "9", "--start-s", str(t_stop + 60)
+            url, tmp_path / "server2.log", "--duration-min", "15", "--start-s", str(t_stop + 60)
         )
         procs.append(server)
         _wait(lambda: live.poll() is not None, 240, "the end of the print")
@@ -380,7 +380,7 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
     assert states[: len(committed)] == committed  # nothing committed lost or changed
     registry = Registry(store)
     arrays = registry.print_arrays(registry.last_print("aj300-01")["id"])
-    assert len(arrays["time_s"]) == 9 * 60
+    assert len(arrays["time_s"]) == 15 * 60
     run = Twin.default().run(
         inputs=arrays["inputs"], measurements=arrays["measurements"], time_s=arrays["time_s"]
     )

@@ -162,3 +162,45 @@ def test_kill_and_resume_from_registry(clog_record, tmp_path):
     run = Twin.default(**FAST_EM).run(rec)
     assert _relative(stored["means"], run.means) < 1e-9
     assert registry.last_print("m1")["seq"] == 1
+
+
+def test_follow_growing_csv(clog_record, tmp_path, caplog):
+    import asyncio
+
+    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.live.link import follow_csv
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 90)
+    columns = ["time_s", *INPUT_COLUMNS, *OUTPUT_COLUMNS]
+    rows = rec.data[columns].to_numpy(float)
+    lines = [",".join(columns)] + [",".join(repr(float(v)) for v in row) for row in rows]
+    lines[31] = lines[31].replace(lines[31].split(",")[6], "oops", 1)  # a garbled row
+    path = tmp_path / "print.csv"
+    path.write_text("\n".join(lines[:41]) + "\n" + lines[41][:10])  # a half-written line
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, asynchronous=False, commit_every_s=0)
+
+    async def main():
+        async def grow():
+            await asyncio.sleep(1.0)
+            path.write_text("\n".join(lines) + "\n")
+
+        writer = asyncio.create_task(grow())
+        print_id = await asyncio.wait_for(
+            follow_csv(path, "m1", engine, poll_s=0.1, idle_timeout_s=2.0), 120
+        )
+        await writer
+        return print_id
+
+    print_id = asyncio.run(main())
+    arrays = registry.print_arrays(print_id)
+    assert np.array_equal(arrays["time_s"], rec.time_s)
+    y = rec.outputs.copy()
+    u = rec.inputs.copy()
+    y[30] = np.nan  # the garbled line: a missing sample (inputs held)
+    u[30] = u[29]
+    run = Twin.default().run(inputs=u, measurements=y, time_s=rec.time_s)
+    assert _relative(arrays["means"], run.means) < 1e-9
+    assert "line 32: not numbers" in caplog.text

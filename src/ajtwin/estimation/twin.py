@@ -161,12 +161,13 @@ def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = 
 predict = jax.jit(predict, static_argnames=("functions",))
 
 
+# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def _concat(results: list[FilterResult]) -> FilterResult:
-    return FilterResult(*[jnp.concatenate(parts, axis=0) for parts in zip(*results)])
+    return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
 
 
 def _slice(result: FilterResult, stop: int) -> FilterResult:
-    return FilterResult(*[part[:stop] for part in result])
+    return FilterResult(*[np.asarray(part)[:stop] for part in result])
 
 
 def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
@@ -324,9 +325,10 @@ class Twin:
                 pos = end
                 if pos >= window and pos < n:
                     w0 = pos - window
-                    full = _concat(pieces)
-                    prior_mean = np.asarray(full.predicted_means[w0])
-                    prior_cov = np.asarray(full.predicted_covariances[w0])
+                    # the piece holding step w0 (pieces are `every` long but the last)
+                    piece, offset = divmod(w0, every)
+                    prior_mean = pieces[piece].predicted_means[offset]
+                    prior_cov = pieces[piece].predicted_covariances[offset]
                     em = run_em(
                         self.spec,
                         prior_mean,
@@ -343,8 +345,8 @@ class Twin:
                         functions=self.functions,
                     )
                     theta = em.theta
-                    last_mean = np.asarray(em.filtered.means[-1])
-                    last_cov = np.asarray(em.filtered.covariances[-1])
+                    last_mean = np.asarray(em.filtered.means)[-1]
+                    last_cov = np.asarray(em.filtered.covariances)[-1]
                     history.append(
                         {
                             "time_s": float(time_s[pos - 1]),

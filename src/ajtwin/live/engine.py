@@ -598,6 +598,7 @@ class TwinStream:
             "inputs": h.array("inputs").reshape(-1, 3),
             "nis": h.array("nis"),
             "n_measured": h.array("n_measured"),
+            "reinitialised": np.asarray(h.reinitialised, dtype=bool),
             "theta_per_step": h.array("theta_per_step").reshape(-1, 5),
             "theta_history_time_s": np.array([r["time_s"] for r in hist], dtype=float),
             "theta_history": np.array(
@@ -611,7 +612,17 @@ class TwinStream:
 # --------------------------------------------------------------------------- #
 
 
-def print_summary(end_mean, end_cov, nis, n_anomalies: int, em_updates: int, started_from: str):
+def print_summary(
+    end_mean,
+    end_cov,
+    nis,
+    reinitialised,
+    n_anomalies: int,
+    em_updates: int,
+    started_from: str,
+    status: str,
+    status_reason: str,
+):
     """The summary the registry keeps for a print."""
     return {
         "end_state": dict(zip(STATE_NAMES, np.asarray(end_mean, dtype=float).tolist())),
@@ -619,7 +630,10 @@ def print_summary(end_mean, end_cov, nis, n_anomalies: int, em_updates: int, sta
         "mean_nis": float(np.nanmean(np.asarray(nis, dtype=float))),
         "n_anomalies": int(n_anomalies),
         "em_updates": int(em_updates),
+        "guard_reinitialisations": int(np.asarray(reinitialised).sum()),
         "started_from": started_from,
+        "status": status,
+        "status_reason": status_reason,
     }
 
 
@@ -638,15 +652,23 @@ def save_print(
     theta_after,
     expected_last_seq,
     started_from: str,
+    status: str,
+    status_reason: str,
 ):
-    """Store a twin's run over one print in one registry transaction; (print id, summary)."""
+    """Store a twin's run over one print in one registry transaction; (print id, summary).
+
+    ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run.
+    """
     summary = print_summary(
         end[0],
         end[1],
         arrays["nis"],
+        arrays["reinitialised"],
         len(events),
         len(arrays["theta_history_time_s"]),
         started_from,
+        status,
+        status_reason,
     )
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     print_id = registry.save_print(
@@ -666,6 +688,8 @@ def save_print(
         arrays=arrays,
         anomalies=events,
         expected_last_seq=expected_last_seq,
+        status=status,
+        status_reason=status_reason,
     )
     return print_id, summary
 
@@ -682,11 +706,12 @@ def ingest_record(
 ):
     """Run the machine's twin over one finished print and store the result.
 
-    Hash the print (duplicate → stop before any work), start from the machine's last end
-    state and θ (:func:`ajtwin.store.ingest.start_from_registry`; the initial-state fit
-    for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and the detectors
-    (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the arrays), and
-    store everything in one transaction.
+    Hash the print (duplicate → stop before any work), start from the machine's chain
+    (:func:`ajtwin.store.chain.chain_start`: the newest good print's end state and θ; the
+    initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
+    the detectors (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the
+    arrays), judge the run (:func:`ajtwin.store.chain.judge_run`) and store everything in
+    one transaction.
 
     Parameters
     ----------
@@ -709,7 +734,8 @@ def ingest_record(
     import time
 
     from ajtwin.apps.anomaly import detect_run
-    from ajtwin.store.ingest import IngestResult, start_from_registry
+    from ajtwin.store.chain import chain_start, judge_run
+    from ajtwin.store.ingest import IngestResult
     from ajtwin.store.registry import RegistryError, record_hash
 
     t0 = time.perf_counter()
@@ -726,12 +752,14 @@ def ingest_record(
             summary=existing["summary"],
             seconds=time.perf_counter() - t0,
         )
-    start, theta, expected, last = start_from_registry(registry, machine)
+    chain = chain_start(registry, machine)
     twin = Twin.default(**(twin_overrides or {}))
-    if theta is not None:
-        twin.theta = theta
+    start, expected = chain.start, chain.latest_seq
+    if chain.theta is not None:
+        twin.theta = chain.theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
+    status, status_reason = judge_run(run)
     detection = detect_run(run, record, detector_settings)
 
     f = run.filtered
@@ -748,6 +776,7 @@ def ingest_record(
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
+        "reinitialised": np.asarray(f.reinitialised),
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
@@ -766,7 +795,9 @@ def ingest_record(
             theta_before=theta_before,
             theta_after=twin.theta,
             expected_last_seq=expected,
-            started_from="initial fit" if last is None else f"print {last['seq']}",
+            started_from=chain.description,
+            status=status,
+            status_reason=status_reason,
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race
@@ -960,7 +991,7 @@ class LiveEngine:
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
         resumed = None
         if self.registry is not None:
-            from ajtwin.store.ingest import start_from_registry
+            from ajtwin.store.chain import chain_start
 
             try:
                 self.registry.machine(machine)
@@ -973,9 +1004,9 @@ class LiveEngine:
                 expected, session_id = resumed["expected_last_seq"], resumed["id"]
                 started_from = "initial fit" if expected is None else f"print {expected}"
             else:
-                start, theta, expected, last = start_from_registry(self.registry, machine)
-                if last is not None:
-                    started_from = f"print {last['seq']}"
+                chain = chain_start(self.registry, machine)
+                start, theta, expected = chain.start, chain.theta, chain.latest_seq
+                started_from = chain.description
                 session_id = self.log.open_session(
                     machine,
                     source=source,
@@ -1116,6 +1147,19 @@ class LiveEngine:
         print_id = None
         arrays = stream.arrays()
         if len(arrays["time_s"]) >= 2:
+            from types import SimpleNamespace
+
+            from ajtwin.store.chain import judge_run
+
+            status, reason = judge_run(
+                SimpleNamespace(
+                    means=arrays["means"],
+                    time_s=arrays["time_s"],
+                    start_mean=stream.start_mean,
+                    end_mean=arrays["means"][-1],
+                    end_cov=arrays["covariances"][-1],
+                )
+            )
             data = {"time_s": arrays["time_s"]}
             data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
             data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
@@ -1141,6 +1185,8 @@ class LiveEngine:
                 theta_after=stream.theta,
                 expected_last_seq=session.expected_last_seq,
                 started_from=session.started_from,
+                status=status,
+                status_reason=reason,
             )
         self.log.close_session(session.session_id, print_id)
         return print_id

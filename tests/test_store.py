@@ -248,7 +248,8 @@ def test_ingest_chain_and_cli(tmp_path):
     assert a["means"].shape == (180, 5) and a["stds"].shape == (180, 5)
     assert {0, 60, 120, 179} <= set(a["covariance_steps"].tolist())
     assert np.array_equal(a["covariance_keyframes"][-1], p2["end_cov"])
-    assert np.array_equal(a["means"][-1], p2["end_mean"])
+    # means are kept as float32 (7 digits); the print row keeps the end state exactly
+    np.testing.assert_allclose(a["means"][-1], p2["end_mean"], rtol=1.2e-7, atol=0)
 
     res = runner.invoke(machine, ["show", "lab", "--store", store])
     assert res.exit_code == 0 and "last print: #2" in res.output

@@ -657,3 +657,21 @@ def test_exported_version1_machine_is_migrated_on_import(tmp_path):
     assert "archive: " in res.output and "schema 1 → 2" in res.output
     new = Registry(tmp_path / "new.sqlite")
     assert new.print_arrays(new.last_print("old")["id"])["covariances"].shape == (600, 5, 5)
+
+
+def test_guard_firings_are_counted_and_stored(tmp_path):
+    """Finding S2 (Q_m in µL/s): the divergence guard re-initialises the filter again and
+    again; the ingest counts it, stores each firing, and keeps the print out of the chain."""
+    from ajtwin.simulation import simulate
+    from ajtwin.store.ingest import ingest_record
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("M")
+    rec = simulate("exp1", seed=1, duration_min=3.0)
+    rec.data["material_flow_mL_s"] *= 1000
+    result = ingest_record(reg, "M", rec)
+    fired = reg.print_arrays(result.print_id)["reinitialised"]
+    assert fired.dtype == bool and fired.shape == (180,)
+    assert result.summary["guard_reinitialisations"] == int(fired.sum()) > 10
+    assert reg.get_print(result.print_id)["status"] == "excluded"
+    assert reg.last_print("M") is None  # nothing in the chain: the next starts from a fit

@@ -244,6 +244,8 @@ def restore(name, seq, store):
 @store_option
 def compact_command(name, keep_covariances_days, store):
     """Apply the storage policy and covariance retention to NAME, then VACUUM."""
+    import sqlite3
+
     from ajtwin.store.maintenance import compact
     from ajtwin.store.registry import RegistryError
 
@@ -252,6 +254,8 @@ def compact_command(name, keep_covariances_days, store):
         stats = compact(reg, name, keep_covariances_days)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
+    except sqlite3.Error as exc:  # e.g. VACUUM while another process holds a lock
+        raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
     click.echo(
         f"compacted {_safe(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
         f"re-encoded, {stats['thinned']} with covariance key frames dropped; registry "

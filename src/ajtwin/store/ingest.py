@@ -60,7 +60,7 @@ def join_video(
 
     from ajtwin.io.records import PrintRecord
     from ajtwin.vision.extract import LineExtractor, annotate, open_source
-    from ajtwin.vision.join import join_features
+    from ajtwin.vision.join import check_linewidth_scale, join_features
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)
@@ -82,6 +82,8 @@ def join_video(
     ):
         counts = features["status"].value_counts().to_dict() if len(features) else {}
         raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
+    good = features["status"].isin(("ok", "ok_std_fallback", "few_batches"))
+    check_linewidth_scale(features.loc[good, "linewidth_um"], um_per_px, video)
     joined, summary = join_features(
         record.data,
         features,

@@ -501,6 +501,8 @@ class Registry:
             "theta_before",
             "theta_after",
         ):
+            if key not in out:  # a query that selected only some columns
+                continue
             try:
                 value = _arrays.decode(out[key], _arrays.NPY)
                 expected = (5, 5) if key.endswith("_cov") else (5,)
@@ -510,6 +512,8 @@ class Registry:
                 raise self._damaged(row, key, exc) from None
             out[key] = value
         for key, column in (("meta", "meta_json"), ("summary", "summary_json")):
+            if column not in out:
+                continue
             try:
                 out[key] = json.loads(out.pop(column))
             except (ValueError, TypeError) as exc:
@@ -618,7 +622,9 @@ class Registry:
 
         machine = self.machine(name)
         rows = self._conn.execute(
-            "SELECT p.*, (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
+            "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json, p.status,"
+            " p.status_reason, p.end_mean, p.theta_after,"
+            " (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
             " FROM prints p WHERE machine_id = ? ORDER BY seq",
             (machine["id"],),
         ).fetchall()

@@ -195,7 +195,7 @@ def live(
         raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
-    registry = open_registry(store)
+    registry = open_registry(store, create=True)  # the live twin writes
     engine = LiveEngine(registry)
     engine.warm_up(len(machines))
     out = None

@@ -221,6 +221,7 @@ class TwinStream:
         self._em_done: int | None = None  # boundary whose EM result is in force
         self._spec_carry: EKFCarry | None = None  # speculative carry while EM runs
         self._lock = threading.Lock()
+        self._device_constants = None
         self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0}
         self.missing_inserted = 0
 
@@ -459,18 +460,27 @@ class TwinStream:
         self._spec_carry, step = self._run_step(self._spec_carry, sample)
         return self._message(self.n_committed + len(self._pending) - 1, sample, step, None, True)
 
+    def _constants(self):
+        """Σ_ξ, σ_w², gate as device arrays, made once (a conversion per step costs more
+        than the step)."""
+        if self._device_constants is None:
+            twin = self.twin
+            self._device_constants = (
+                jnp.asarray(twin.process_cov),
+                jnp.asarray(twin.measurement_var),
+                jnp.asarray(float(twin.config.gate_sigma)),
+            )
+        return self._device_constants
+
     def _run_step(self, carry, sample):
-        twin = self.twin
         carry, step = _step(
-            twin.spec,
+            self.twin.spec,
             carry,
-            jnp.asarray(sample.inputs),
-            jnp.asarray(sample.outputs),
-            jnp.asarray(self.theta),
-            jnp.asarray(twin.process_cov),
-            jnp.asarray(twin.measurement_var),
-            float(twin.config.gate_sigma),
-            functions=twin.functions,
+            np.asarray(sample.inputs, dtype=float),
+            np.asarray(sample.outputs, dtype=float),
+            self.theta,
+            *self._constants(),
+            functions=self.twin.functions,
         )
         return carry, jax.device_get(step)
 
@@ -1071,12 +1081,10 @@ class LiveEngine:
         carries, steps = _step_many(
             twin.spec,
             carries,
-            jnp.asarray(np.array([x.inputs for _, x in plain])),
-            jnp.asarray(np.array([x.outputs for _, x in plain])),
-            jnp.asarray(np.array([s.theta for s, _ in plain])),
-            jnp.asarray(twin.process_cov),
-            jnp.asarray(twin.measurement_var),
-            float(twin.config.gate_sigma),
+            np.array([x.inputs for _, x in plain]),
+            np.array([x.outputs for _, x in plain]),
+            np.array([s.theta for s, _ in plain]),
+            *plain[0][0]._constants(),
             functions=twin.functions,
         )
         steps = jax.device_get(steps)

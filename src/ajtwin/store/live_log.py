@@ -138,6 +138,15 @@ class LiveLog:
         out["theta_before"] = from_npy(row["theta_before"])
         return out
 
+    def sessions(self, machine: str) -> list[dict]:
+        """All sessions of a machine (id, started_at, source, status, print_id), oldest first."""
+        rows = self._conn.execute(
+            "SELECT id, started_at, source, status, print_id FROM live_sessions "
+            "WHERE machine = ? ORDER BY id",
+            (machine,),
+        ).fetchall()
+        return [dict(r) for r in rows]
+
     def append(self, session_id: int, steps: list, events: list) -> None:
         """Commit steps [(step, time_s, inputs, outputs, message)] and events in ONE transaction.
 

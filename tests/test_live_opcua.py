@@ -388,3 +388,62 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
     )
     means = np.array([list(m["states"].values()) for m in states])  # float64, as published
     assert (np.abs(means - run.means) / np.abs(run.means)).max() < 1e-9
+
+
+@pytest.mark.slow
+def test_fleet_of_printers_followed_by_one_process(tmp_path):
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    store = tmp_path / "registry.sqlite"
+    names = ["aj300-01", "aj300-02", "aj300-03"]
+    server = _serve(url, tmp_path / "server.log", "--machines", "3")
+    args = []
+    for name in names:
+        args += ["--machine", name]
+    live = _ajtwin(
+        "live",
+        *args,
+        "--opcua",
+        url,
+        "--store",
+        str(store),
+        "--messages",
+        str(tmp_path / "m.jsonl"),
+        "--max-backoff",
+        "1",
+        log_path=tmp_path / "live.log",
+    )
+    try:
+        _wait(lambda: live.poll() is not None, 300, "the end of the prints")
+        assert live.returncode == 0, (tmp_path / "live.log").read_text()
+    finally:
+        _stop(live)
+        _stop(server)
+    from ajtwin.store.registry import Registry
+
+    registry = Registry(store)
+    lines = [json.loads(x) for x in (tmp_path / "m.jsonl").read_text().splitlines()]
+    for name in names:
+        assert registry.last_print(name)["n_samples"] >= 300
+        raised = [
+            e
+            for m in lines
+            if m.get("machine") == name
+            for e in m.get("events", [])
+            if e["state"] == "raised"
+        ]
+        assert raised and raised[0]["cause"] == "nozzle_clog", name
+
+
+@pytest.mark.slow
+def test_demo_live(tmp_path):
+    from click.testing import CliRunner
+
+    from ajtwin.demo import demo_command
+
+    result = CliRunner().invoke(demo_command, ["--live", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "live_summary.json").read_text())
+    assert summary["alarm"]["cause"] == "nozzle_clog"
+    assert 0 <= summary["delay_s"] <= 60
+    assert any(e["state"] == "raised" for e in summary["events_received_by_second_client"])

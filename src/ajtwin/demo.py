@@ -409,7 +409,12 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live):
 
 
 def _live_demo(out_dir, seed):
+    import logging
+
     from ajtwin.live.demo import run_live_demo
+
+    logging.basicConfig(level=logging.WARNING, format="      %(message)s")
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
 
     click.echo(click.style("live twin over OPC UA", bold=True))
     summary = run_live_demo(out_dir, seed, echo=click.echo)

@@ -206,6 +206,7 @@ class OpcUaLink:
             await sub.subscribe_data_change([n["state"] for n in nodes.values()])
             self._set_status(f"connected, following {', '.join(nodes)}")
             states = {name: "printing" for name in nodes}
+            buffered: set[str] = set()  # machines whose buffer came in this session
             last_check = time.monotonic()
             while stop is None or not stop.is_set():
                 try:
@@ -225,11 +226,13 @@ class OpcUaLink:
                         states[name] = str(value)
                     else:
                         buffers[name] = value
+                buffered.update(buffers)
                 messages = self._feed(buffers)
                 messages += self.engine.poll_and_publish()
                 await self._publish(client, nodes, messages)
                 for name in list(nodes):
-                    if states.get(name) == "finished" and name not in buffers:
+                    # finished, and its final buffer has been read (not only the state)
+                    if states.get(name) == "finished" and name in buffered and name not in buffers:
                         if self.close_finished and name in self.engine.sessions:
                             final = self.engine.close(name)
                             log.info("%s: print finished, stored as registry print %s", name, final)

@@ -50,7 +50,6 @@ Examples
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -220,7 +219,6 @@ class TwinStream:
         self._em_pos: int | None = None
         self._em_done: int | None = None  # boundary whose EM result is in force
         self._spec_carry: EKFCarry | None = None  # speculative carry while EM runs
-        self._lock = threading.Lock()
         self._device_constants = None
         self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0}
         self.missing_inserted = 0

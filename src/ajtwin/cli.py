@@ -35,6 +35,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("ajtwin.store.cli:ingest", "Ingest a print into a machine's twin."),
     "forecast": ("ajtwin.apps.cli:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
+    "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
+    "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
 }
 
 

@@ -12,7 +12,7 @@ Two soaks (issue 14, "Long runs"):
   VmHWM from ``/proc/self/status``). Days are simulated one by one with
   ``continue_from`` (the atomizer restarts each day, the vial and deposits carry on).
 * :func:`soak_machine` — many short prints of one machine back to back through the
-  registry (:func:`ajtwin.store.ingest.ingest_record`): the chain carries the state and
+  registry (:func:`ajtwin.live.engine.ingest_record`): the chain carries the state and
   θ; records per print the end state, θ and the time ``machine history``/``machine show``
   take as the registry grows.
 
@@ -202,8 +202,8 @@ def soak_machine(
 
     import pandas as pd
 
+    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     folder = None

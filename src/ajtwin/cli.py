@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("ajtwin.store.cli:ingest", "Ingest a print into a machine's twin."),
     "forecast": ("ajtwin.apps.cli:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
+    "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
 }
 
 

@@ -322,8 +322,8 @@ def create_app(
 
     # ------------------------------------------------------------------ machine
     def _known(name: str) -> bool:
-        return name in {m["name"] for m in view.registry.machines()} or bool(
-            publisher.snapshot(name)
+        return name in {m["name"] for m in view.registry.machines()} or (
+            name in publisher.machines()
         )
 
     @app.get("/machine/{name}", response_class=HTMLResponse)
@@ -337,7 +337,7 @@ def create_app(
         registered = name in {m["name"] for m in view.registry.machines()}
         if registered:
             out = view.machine(name)
-        elif publisher.snapshot(name):
+        elif name in publisher.machines():
             out = {"name": name, "prints": [], "alarms": [], "last": None, "names": NAMES,
                    "live_only": True}  # fmt: skip
         else:
@@ -506,7 +506,7 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
 
 def _status(entry: dict, publisher: LivePublisher) -> str:
     name = entry["name"]
-    if publisher.alarms(name) and publisher.is_printing(name):
+    if publisher.alarms(name):  # the live print (running or the last one) raised an alarm
         return "alarm"
     if publisher.is_printing(name):
         return "printing"

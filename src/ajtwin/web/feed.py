@@ -163,6 +163,7 @@ class VirtualPrintFeed:
             self.done.set()
 
     def start(self) -> VirtualPrintFeed:
+        self.publisher.open_print(self.machine)
         self._thread = threading.Thread(target=self._run, name="virtual-print-feed", daemon=True)
         self._thread.start()
         return self

@@ -123,6 +123,12 @@ class LivePublisher:
             self._last_seen[name] = time.monotonic()
         self._broadcast(event)
 
+    def open_print(self, machine: str) -> None:
+        """Announce a live print of ``machine`` before its first sample (pages may open it)."""
+        with self._lock:
+            self._samples.setdefault(machine, deque(maxlen=self.history))
+        self._broadcast({"type": "print_start", "machine": machine, "published_at": time.time()})
+
     def end_print(self, machine: str) -> None:
         """The live print of ``machine`` ended (its buffer is kept until the next one)."""
         with self._lock:

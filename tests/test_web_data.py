@@ -241,3 +241,43 @@ def test_access_rules(store):
     assert res.exit_code == 2 and "at least 8 characters" in res.output
     res = runner.invoke(dashboard, ["--store", str(store.parent / "none.sqlite")])
     assert res.exit_code == 1 and "no registry at" in res.output
+
+
+def test_in_process_server_pushes_published_samples(store):
+    """Path (b): a live engine in this process publishes; a websocket client receives."""
+    import json
+    import urllib.request
+
+    from websockets.sync.client import connect
+
+    from ajtwin.web.server import BackgroundServer
+
+    pub = LivePublisher()
+    server = BackgroundServer(store, pub, port=0)
+    try:
+        with urllib.request.urlopen(server.url + "api/fleet", timeout=10) as r:
+            assert [m["name"] for m in json.loads(r.read())["machines"]] == [
+                "alpha", "beta", "gamma"
+            ]  # fmt: skip
+        url = server.url.replace("http", "ws") + "ws?machine=alpha"
+        with connect(url, open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["type"] == "hello"
+            pub.publish({"machine": "gamma", "time_s": 1.0})  # another machine: filtered out
+            pub.publish({"machine": "alpha", "time_s": 2.0, "states": [3.5, 1, 0, 0.1, 4e-7]})
+            event = json.loads(ws.recv(timeout=10))
+        assert event["machine"] == "alpha" and event["time_s"] == 2.0
+        assert event["states"][3] == 0.1 and event["type"] == "sample"
+        with urllib.request.urlopen(server.url + "api/fleet", timeout=10) as r:
+            fleet = {m["name"]: m for m in json.loads(r.read())["machines"]}
+        assert fleet["alpha"]["status"] == "printing"
+        assert fleet["alpha"]["states"][2]["mean"] == 0.1  # ΔR_N now, from the live sample
+    finally:
+        server.stop()
+    with pytest.raises(click_usage_error()):
+        BackgroundServer(store, pub, host="0.0.0.0", port=0)
+
+
+def click_usage_error():
+    import click
+
+    return click.UsageError

@@ -478,7 +478,7 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
         return
     if printing:
         entry["live"] = {"time_s": latest["time_s"]}
-        if latest.get("states") is not None and latest.get("state_stds") is not None:
+        if latest.get("states") is not None:
             from ajtwin.web.data import KEY_STATES, STATE_UNITS, json_list
 
             samples = publisher.snapshot(name)
@@ -492,7 +492,7 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
                         "symbol": NAMES["states"][k],
                         "unit": STATE_UNITS[k],
                         "mean": latest["states"][k],
-                        "std": latest["state_stds"][k],
+                        "std": (latest.get("state_stds") or [None] * 5)[k],
                         "trend": {"t": json_list(trend_t), "v": json_list(trend_v)},
                     }  # fmt: skip
                 )

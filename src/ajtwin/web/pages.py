@@ -129,10 +129,10 @@ def fleet_rows(machines: list[dict]) -> str:
             if s is None:
                 state_cells.append('<td class="num dim">—</td>')
                 continue
+            band = "" if s.get("std") is None else f" ± {fmt(2 * s['std'])}"
             state_cells.append(
                 f'<td class="num"><span class="val">{fmt(s["mean"], s["unit"])}</span>'
-                f'<span class="dim"> ± {fmt(2 * s["std"])}</span><br>{sparkline(s.get("trend"))}'
-                "</td>"
+                f'<span class="dim">{band}</span><br>{sparkline(s.get("trend"))}</td>'
             )
         care = []
         for key, label in (

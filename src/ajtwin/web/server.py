@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -134,6 +135,50 @@ class DashboardProcess:
 
     def __exit__(self, *exc):
         self.stop()
+
+
+class BackgroundServer:
+    """The dashboard served from a thread of the calling process (a live engine's).
+
+    ``ajtwin live … --dashboard`` runs its twin in its own process; it creates a
+    :class:`~ajtwin.web.publisher.LivePublisher`, starts this, and calls
+    ``publisher.publish(sample)`` for every sample. Same access rule as the CLI: another
+    host than the loopback needs a token.
+
+    Parameters
+    ----------
+    store : registry path; publisher : LivePublisher
+    host, port, token : as ``ajtwin dashboard`` (port 0: a free one)
+    startup_timeout_s : bound on the wait until it listens
+    """
+
+    def __init__(self, store, publisher, *, host="127.0.0.1", port=8050, token=None,
+                 startup_timeout_s: float = 30.0):  # fmt: skip
+        import uvicorn
+
+        from ajtwin.web.app import create_app
+        from ajtwin.web.cli import check_access
+
+        check_access(host, token)
+        self.port = free_port() if not port else int(port)
+        self.url = f"http://{host}:{self.port}/"
+        app = create_app(store, token=token, publisher=publisher)
+        config = uvicorn.Config(
+            app, host=host, port=self.port, log_level="warning", ws="websockets-sansio"
+        )
+        self._server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._server.run, name="dashboard", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + startup_timeout_s
+        while not self._server.started:
+            if time.monotonic() > deadline or not self._thread.is_alive():
+                self.stop()
+                raise RuntimeError(f"dashboard did not start on {host}:{self.port}")
+            time.sleep(0.05)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self._server.should_exit = True
+        self._thread.join(timeout_s)
 
 
 def launch_chromium(playwright, user_data_dir=None):

@@ -1,0 +1,152 @@
+"""Figures of the browser dashboard (Debian chromium through Playwright).
+
+    .venv/bin/python benchmarks/bench_dashboard.py        # ~2 min; needs /usr/bin/chromium
+
+* **Fleet page with 50 machines**: a registry of 50 machines, each with one 30-min print
+  (the arrays of one real twin run, stored 50 times — the same bytes per print as real
+  prints), opened in the browser 5 times: time from navigation start to the load event
+  (all scripts, plotly.js included) and until the table is in the DOM; the server's time
+  for the HTML alone (urllib, 10 requests).
+* **Live latency**: a virtual print (nozzle clog) published at 10 samples/s by the
+  in-process publisher; the page stamps each sample when its plots have been extended
+  (``Plotly.extendTraces`` returned): latency = that time − the time ``publish`` was called
+  (same machine clock). Median, 95th percentile and maximum over the print; and the same
+  for the clog alarm.
+
+The twin's own time per sample is not part of this figure (the virtual-print feed runs the
+twin before replaying; the live engine's step time is measured by its own benchmark).
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def make_fleet(store: Path, n_machines: int = 50) -> None:
+    from ajtwin.simulation import simulate
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    reg = Registry(store)
+    reg.add_machine("m00")
+    record = simulate("exp1", seed=7, duration_min=30)
+    ingest_record(reg, "m00", record)
+    p = reg.last_print("m00")
+    arrays = reg.print_arrays(p["id"])
+    for k in range(1, n_machines):
+        name = f"m{k:02d}"
+        reg.add_machine(name)
+        reg.save_print(
+            name,
+            content_hash=f"bench-{k}",
+            source="bench copy of m00 print 1",
+            meta=p["meta"],
+            summary=p["summary"],
+            n_samples=p["n_samples"],
+            duration_s=p["duration_s"],
+            start_mean=p["start_mean"],
+            start_cov=p["start_cov"],
+            end_mean=p["end_mean"],
+            end_cov=p["end_cov"],
+            theta_before=p["theta_before"],
+            theta_after=p["theta_after"],
+            arrays=arrays,
+            anomalies=[],
+            expected_last_seq=None,
+        )
+    reg.close()
+
+
+def fleet_figures(store: Path, context) -> dict:
+    from ajtwin.web.server import DashboardProcess
+
+    out = {}
+    with DashboardProcess(store) as dash:
+        server_s = []
+        for _ in range(10):
+            t0 = time.perf_counter()
+            status, body = dash.get("")
+            server_s.append(time.perf_counter() - t0)
+            assert status == 200 and body.count(b"<tr data-machine=") == 50
+        page = context.new_page()
+        load_ms, dom_ms = [], []
+        for _ in range(5):
+            page.goto(dash.page_url("/"), wait_until="load")
+            assert page.locator("#fleet-rows tr").count() == 50
+            timing = page.evaluate(
+                "(() => { const n = performance.getEntriesByType('navigation')[0];"
+                " return [n.loadEventEnd - n.startTime,"
+                " n.domContentLoadedEventEnd - n.startTime]; })()"
+            )
+            load_ms.append(timing[0])
+            dom_ms.append(timing[1])
+        page.close()
+    out["fleet_50_machines_page_load_ms_median"] = round(statistics.median(load_ms), 1)
+    out["fleet_50_machines_page_load_ms_max"] = round(max(load_ms), 1)
+    out["fleet_50_machines_dom_ready_ms_median"] = round(statistics.median(dom_ms), 1)
+    out["fleet_50_machines_server_html_ms_median"] = round(1e3 * statistics.median(server_s), 1)
+    return out
+
+
+def live_figures(store: Path, context) -> dict:
+    from ajtwin.web.server import DashboardProcess
+
+    args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm",
+            "--virtual-minutes", "5", "--virtual-onset", "3", "--virtual-rate", "10",
+            "--virtual-wait", "180"]  # fmt: skip
+    with DashboardProcess(store, extra_args=args) as dash:
+        page = context.new_page()
+        page.goto(dash.page_url("/machine/vm"))
+        # the print is 300 samples at 10/s: wait for its end (bounded)
+        page.wait_for_function(
+            "window.__ajtwin.latencies.length >= 290", timeout=240_000, polling=500
+        )
+        latencies = np.asarray(page.evaluate("window.__ajtwin.latencies"), dtype=float)
+        alarms = page.evaluate("window.__ajtwin.alarmsShown")
+        page.close()
+    out = {
+        "live_samples_measured": int(latencies.size),
+        "live_sample_to_page_ms_median": round(float(np.median(latencies)), 1),
+        "live_sample_to_page_ms_p95": round(float(np.percentile(latencies, 95)), 1),
+        "live_sample_to_page_ms_max": round(float(latencies.max()), 1),
+    }
+    if alarms:
+        out["live_alarm_to_page_ms"] = round(
+            1e3 * (alarms[0]["shown_at"] - alarms[0]["published_at"]), 1
+        )
+        out["live_alarm_cause"] = alarms[0]["cause"]
+    return out
+
+
+def main() -> dict:
+    from playwright.sync_api import sync_playwright
+
+    from ajtwin.web.server import launch_chromium
+
+    out = {"load_average_1min_at_start": round(os.getloadavg()[0], 2)}
+    with tempfile.TemporaryDirectory() as tmp:
+        store = Path(tmp) / "fleet50.sqlite"
+        t0 = time.perf_counter()
+        make_fleet(store)
+        out["make_50_machine_registry_s"] = round(time.perf_counter() - t0, 1)
+        out["registry_MB"] = round(store.stat().st_size / 1e6, 1)
+        with sync_playwright() as p:
+            context = launch_chromium(p, user_data_dir=Path(tmp) / "profile")
+            try:
+                out.update(fleet_figures(store, context))
+                out.update(live_figures(store, context))
+            finally:
+                context.close()
+    out["load_average_1min_at_end"] = round(os.getloadavg()[0], 2)
+    return out
+
+
+if __name__ == "__main__":
+    for key, value in main().items():
+        print(f"{key}: {value}")

@@ -5,8 +5,9 @@
 * **Fleet page with 50 machines**: a registry of 50 machines, each with one 30-min print
   (the arrays of one real twin run, stored 50 times — the same bytes per print as real
   prints), opened in the browser 5 times: time from navigation start to the load event
-  (all scripts, plotly.js included) and until the table is in the DOM; the server's time
-  for the HTML alone (urllib, 10 requests).
+  (the fleet page needs no plotly.js), first with an empty browser cache, then 5 more times,
+  and until the table is in the DOM; the server's time for the HTML alone (urllib, 10
+  requests).
 * **Live latency**: a virtual print (nozzle clog) published at 10 samples/s by the
   in-process publisher; the page stamps each sample when its plots have been extended
   (``Plotly.extendTraces`` returned): latency = that time − the time ``publish`` was called
@@ -76,7 +77,7 @@ def fleet_figures(store: Path, context) -> dict:
             assert status == 200 and body.count(b"<tr data-machine=") == 50
         page = context.new_page()
         load_ms, dom_ms = [], []
-        for _ in range(5):
+        for _ in range(6):
             page.goto(dash.page_url("/"), wait_until="load")
             assert page.locator("#fleet-rows tr").count() == 50
             timing = page.evaluate(
@@ -87,8 +88,9 @@ def fleet_figures(store: Path, context) -> dict:
             load_ms.append(timing[0])
             dom_ms.append(timing[1])
         page.close()
-    out["fleet_50_machines_page_load_ms_median"] = round(statistics.median(load_ms), 1)
-    out["fleet_50_machines_page_load_ms_max"] = round(max(load_ms), 1)
+    out["fleet_50_machines_page_load_ms_first"] = round(load_ms[0], 1)  # empty browser cache
+    out["fleet_50_machines_page_load_ms_median_next5"] = round(statistics.median(load_ms[1:]), 1)
+    out["fleet_50_machines_page_load_ms_max_next5"] = round(max(load_ms[1:]), 1)
     out["fleet_50_machines_dom_ready_ms_median"] = round(statistics.median(dom_ms), 1)
     out["fleet_50_machines_server_html_ms_median"] = round(1e3 * statistics.median(server_s), 1)
     return out
@@ -108,6 +110,7 @@ def live_figures(store: Path, context) -> dict:
             "window.__ajtwin.latencies.length >= 290", timeout=240_000, polling=500
         )
         latencies = np.asarray(page.evaluate("window.__ajtwin.latencies"), dtype=float)
+        arrivals = np.asarray(page.evaluate("window.__ajtwin.arrivals"), dtype=float)
         alarms = page.evaluate("window.__ajtwin.alarmsShown")
         page.close()
     out = {
@@ -115,6 +118,9 @@ def live_figures(store: Path, context) -> dict:
         "live_sample_to_page_ms_median": round(float(np.median(latencies)), 1),
         "live_sample_to_page_ms_p95": round(float(np.percentile(latencies, 95)), 1),
         "live_sample_to_page_ms_max": round(float(latencies.max()), 1),
+        # of which: publisher → websocket → message handler in the page (no drawing)
+        "live_sample_to_browser_ms_median": round(float(np.median(arrivals)), 1),
+        "live_sample_to_browser_ms_p95": round(float(np.percentile(arrivals, 95)), 1),
     }
     if alarms:
         out["live_alarm_to_page_ms"] = round(

@@ -278,14 +278,21 @@ def create_app(
 
     @app.get("/static/plotly.min.js", include_in_schema=False)
     def plotly_js():
-        return FileResponse(plotly_js_path(), media_type="text/javascript")
+        # the file changes only with the installed plotly version: let browsers keep it
+        return FileResponse(
+            plotly_js_path(),
+            media_type="text/javascript",
+            headers={"Cache-Control": "public, max-age=86400"},
+        )
 
     @app.get("/static/{name}", include_in_schema=False)
     def static(name: str):
         files = {"dashboard.js": "text/javascript", "dashboard.css": "text/css"}
         if name not in files:
             return PlainTextResponse("not found", status_code=404)
-        return FileResponse(STATIC / name, media_type=files[name])
+        return FileResponse(
+            STATIC / name, media_type=files[name], headers={"Cache-Control": "no-cache"}
+        )
 
     # ------------------------------------------------------------------ fleet
     def fleet_summaries() -> list[dict]:

@@ -57,16 +57,19 @@ def check_access(host: str, token: str | None) -> None:
     help="Also stream a live print of the virtual printer through the twin "
     "(e.g. nozzle_clog), as `ajtwin live` will.",
 )
-@click.option("--virtual-machine", default="virtual-1", show_default=True, hidden=True)
+@click.option(
+    "--virtual-machine", default="virtual-1", show_default=True, help="Name of the virtual machine."
+)
 @click.option("--virtual-seed", type=int, default=1, show_default=True, hidden=True)
-@click.option("--virtual-minutes", type=float, default=8.0, show_default=True, hidden=True)
+@click.option(
+    "--virtual-minutes", type=float, default=8.0, show_default=True, help="Virtual print length."
+)
 @click.option("--virtual-onset", type=float, default=3.0, show_default=True, hidden=True)
 @click.option(
     "--virtual-rate",
     type=float,
     default=10.0,
     show_default=True,
-    hidden=True,
     help="Virtual-print samples per second (1 = real time).",
 )
 @click.option(

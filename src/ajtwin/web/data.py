@@ -48,6 +48,8 @@ KEY_STATES = (0, 4, 3, 1)
 #: points per trace sent to a page (longer prints are decimated; CUSUM/NIS keep peaks)
 MAX_POINTS = 1500
 SPARK_POINTS = 60
+#: prints whose plot series are kept in memory (a page per viewer asks for the same print)
+SERIES_CACHE = 16
 
 NAMES = {
     "states": list(STATE_SYMBOLS),
@@ -144,6 +146,7 @@ class RegistryView:
         # one connection shared by the server's worker threads: serialise its use
         self._lock = threading.Lock()
         self._truth_cache: dict[int, np.ndarray | None] = {}
+        self._series_cache: dict[tuple, dict] = {}
 
     def close(self):
         self.registry.close()
@@ -338,6 +341,9 @@ class RegistryView:
         """
         from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings, detect_anomalies
 
+        key = (name, int(seq), int(max_points))
+        if key in self._series_cache:  # a stored print never changes: reuse its series
+            return self._series_cache[key]
         with self._lock:
             machine = self.registry.machine(name)
             row = self.registry._conn.execute(
@@ -414,6 +420,9 @@ class RegistryView:
                 }
                 for ev in det.events
             ]
+        if len(self._series_cache) >= SERIES_CACHE:
+            self._series_cache.pop(next(iter(self._series_cache)))
+        self._series_cache[key] = out
         return out
 
     def forecast_start(self, name: str, nominal_theta: bool = False):

@@ -30,14 +30,15 @@ STATUS_TEXT = {
 }
 
 
-def _page(title: str, body: str, page: str, machine: str = "") -> str:
+def _page(title: str, body: str, page: str, machine: str = "", plots: bool = True) -> str:
+    # the fleet page draws no plotly figure: it skips the 4.8 MB script
+    plotly = '<script src="/static/plotly.min.js"></script>\n' if plots else ""
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <title>{escape(title)} — ajtwin</title>
 <link rel="stylesheet" href="/static/dashboard.css">
-<script src="/static/plotly.min.js"></script>
-<script src="/static/dashboard.js" defer></script>
+{plotly}<script src="/static/dashboard.js" defer></script>
 </head>
 <body data-page="{escape(page)}" data-machine="{escape(machine)}">
 <header><a class="brand" href="/">ajtwin</a><nav><a href="/">Fleet</a></nav>
@@ -170,7 +171,7 @@ def fleet_page(machines: list[dict], store: str) -> str:
 model as not matching the machine. States are the twin's estimate at the end of the last print
 (live: now); the line is their course over that print.</p>
 """
-    return _page("Fleet", body, "fleet")
+    return _page("Fleet", body, "fleet", plots=False)
 
 
 def machine_page(name: str) -> str:
@@ -209,6 +210,6 @@ def whatif_page(name: str, limits: dict, inputs_now, last_seq: int | None) -> st
     return _page(f"What-if {name}", body, "whatif", name)
 
 
-def message_page(title: str, message: str, status_code: int = 200) -> str:
+def message_page(title: str, message: str) -> str:
     body = f'<h1>{escape(title)}</h1><p class="error">{escape(message)}</p>'
     return _page(title, body, "message")

@@ -2,7 +2,8 @@
 // events pushed over the websocket. No framework; each page has one entry function.
 "use strict";
 
-const A = (window.__ajtwin = { latencies: [], alarmsShown: [], events: 0 });
+// latencies: publish → drawn (ms); arrivals: publish → message received (ms)
+const A = (window.__ajtwin = { latencies: [], arrivals: [], alarmsShown: [], events: 0 });
 const COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"];
 const PLOT_CONFIG = { displaylogo: false, responsive: true };
 const LIVE_MAX_POINTS = 7200;
@@ -30,7 +31,12 @@ function connect(machine, onEvent) {
       (machine ? "?machine=" + encodeURIComponent(machine) : "");
     const ws = new WebSocket(url);
     ws.onopen = () => { delay = 1000; conn.textContent = "● live"; conn.classList.add("up"); };
-    ws.onmessage = (msg) => { A.events += 1; onEvent(JSON.parse(msg.data)); };
+    ws.onmessage = (msg) => {
+      const ev = JSON.parse(msg.data);
+      A.events += 1;
+      if (ev.type === "sample" && A.arrivals.length < 10000) A.arrivals.push(Date.now() - ev.published_at * 1000);
+      onEvent(ev);
+    };
     ws.onclose = () => {
       conn.textContent = "○ reconnecting"; conn.classList.remove("up");
       setTimeout(open, delay); delay = Math.min(delay * 2, 10000);  // bounded back-off

@@ -148,13 +148,14 @@ def test_new_print_appears_without_reload(server, page):
     n = 30
     t = np.arange(n, dtype=float)
     means = np.tile([3.5, 1.0, 0.0, 0.02, 4.6e-7], (n, 1))
+    stds = np.array([0.03, 0.003, 1e-3, 1e-3, 1e-8])
     with Registry(server.store) as reg:
         reg.save_print(
             "lab2", content_hash="watcher-test", source="test", meta={}, summary={},
             n_samples=n, duration_s=float(n), start_mean=means[0], start_cov=np.eye(5),
-            end_mean=means[-1], end_cov=np.eye(5) * 1e-4, theta_before=np.zeros(5),
+            end_mean=means[-1], end_cov=np.diag(stds**2), theta_before=np.zeros(5),
             theta_after=np.zeros(5), anomalies=[], expected_last_seq=None,
-            arrays={"time_s": t, "means": means, "stds": np.full((n, 5), 0.01)},
+            arrays={"time_s": t, "means": means, "stds": np.tile(stds, (n, 1))},
         )  # fmt: skip
     page.wait_for_function("window.__ajtwin.lastPrintEvent === 1", timeout=15_000)
     page.wait_for_function("window.__ajtwin.drawnPrint === 1", timeout=15_000)
@@ -229,6 +230,10 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
             page.goto(dash.page_url("/"))
             row = page.locator('tr[data-machine="vm-live"]')
             assert row.get_attribute("data-status") == "alarm"
+            # the live-only machine keeps its last live ΔR_N, which grew with the clog
+            assert "live print ended" in row.inner_text()
+            dr_n = float(row.locator("td").nth(6).locator(".val").inner_text().split()[0])
+            assert dr_n > 0.04
             page.screenshot(path=shots / "fleet_live.png", full_page=True)
         finally:
             page.close()

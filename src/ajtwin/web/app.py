@@ -483,8 +483,10 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
     printing = publisher.is_printing(name)
     if latest is None:
         return
-    if printing:
-        entry["live"] = {"time_s": latest["time_s"]}
+    # a registered machine shows its live state while printing; a live-only machine keeps
+    # showing its last live state after the print ended (it has nothing else)
+    if printing or entry.get("live_only"):
+        entry["live"] = {"time_s": latest["time_s"], "printing": printing}
         if latest.get("states") is not None:
             from ajtwin.web.data import KEY_STATES, STATE_UNITS, json_list
 

@@ -82,6 +82,19 @@ def fmt(value, unit: str = "") -> str:
     return f"{text} {unit}".strip() if unit and unit != "–" else text
 
 
+def duration(seconds: float) -> str:
+    """``"45 s"``, ``"6 min"``, ``"2.5 h"``.
+
+    >>> duration(30), duration(360), duration(9000)
+    ('30 s', '6 min', '2.5 h')
+    """
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 def _when(iso: str | None) -> str:
     if not iso:
         return "—"
@@ -106,10 +119,11 @@ def fleet_rows(machines: list[dict]) -> str:
         badge = f'<span class="status {status}">{escape(STATUS_TEXT.get(status, status))}</span>'
         last = m.get("last_print")
         if m.get("live"):
-            last_cell = f"live: {m['live']['time_s'] / 60:.1f} min"
+            now = "live" if m["live"].get("printing") else "live print ended"
+            last_cell = f"{now}: {m['live']['time_s'] / 60:.1f} min"
         elif last:
             last_cell = (
-                f"#{last['seq']} · {last['duration_s'] / 60:.0f} min<br>"
+                f"#{last['seq']} · {duration(last['duration_s'])}<br>"
                 f'<span class="dim">{_when(last["ingested_at"])}</span>'
             )
         else:
@@ -135,6 +149,8 @@ def fleet_rows(machines: list[dict]) -> str:
                 f'<td class="num"><span class="val">{fmt(s["mean"], s["unit"])}</span>'
                 f'<span class="dim">{band}</span><br>{sparkline(s.get("trend"))}</td>'
             )
+        # what-if needs a registered machine with a print (its state and limits)
+        whatif = f'<a href="/whatif/{name}">what-if</a>' if last else ""
         care = []
         for key, label in (
             ("commissioned_at", "commissioned"),
@@ -148,7 +164,7 @@ def fleet_rows(machines: list[dict]) -> str:
             f'<tr data-machine="{name}" data-status="{escape(status)}">'
             f'<td><a href="/machine/{name}">{name}</a></td><td>{badge}</td>'
             f"<td>{last_cell}</td><td>{alarm_cell}</td>{''.join(state_cells)}"
-            f'<td>{care_cell}</td><td><a href="/whatif/{name}">what-if</a></td></tr>'
+            f"<td>{care_cell}</td><td>{whatif}</td></tr>"
         )
     return "\n".join(rows)
 

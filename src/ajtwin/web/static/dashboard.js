@@ -102,13 +102,14 @@ function ax(r) { return r ? "y" + (r + 1) : "y"; }
 function buildOutputs(s) {
   const n = s.names, t = s.time_s.map(minutes), traces = [], map = { meas: [], pred: [] };
   for (let i = 0; i < 5; i++) {
-    map.meas.push(traces.length);
-    traces.push({ x: t, y: s.measured ? s.measured.map((r) => r[i]) : [], mode: "markers",
-      marker: { size: 2.5, color: "#888" }, name: "measured", legendgroup: "m",
-      showlegend: i === 0, yaxis: ax(i) });
+    // the prediction first, the measurements drawn over it (else a close fit hides them)
     map.pred.push(traces.length);
     traces.push({ x: t, y: s.predicted ? s.predicted.map((r) => r[i]) : [], mode: "lines",
       line: { width: 1.4, color: COLORS[0] }, name: "one-step prediction", legendgroup: "p",
+      showlegend: i === 0, yaxis: ax(i) });
+    map.meas.push(traces.length);
+    traces.push({ x: t, y: s.measured ? s.measured.map((r) => r[i]) : [], mode: "markers",
+      marker: { size: 2.5, color: "#555" }, name: "measured", legendgroup: "m",
       showlegend: i === 0, yaxis: ax(i) });
   }
   const titles = n.outputs.map((o, i) => o + " [" + n.output_units[i] + "]");
@@ -441,6 +442,7 @@ function machinePage() {
 // ---------------------------------------------------------------- what-if page
 function whatifPage() {
   const name = document.body.dataset.machine;
+  document.getElementById("conn").textContent = "";  // nothing is pushed to this page
   const tbody = document.querySelector("#changes tbody");
   const template = tbody.querySelector("tr.change").cloneNode(true);
   function wireRemove(tr) { tr.querySelector(".remove").onclick = () => tr.remove(); }

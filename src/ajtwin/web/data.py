@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
-from ajtwin.store.registry import Registry, RegistryError, from_npy
+from ajtwin.store import arrays as _arrays
+from ajtwin.store.registry import Registry, RegistryError
 
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
 STATE_UNITS = ("µm", "mL", "µm", "µm", "–")
@@ -137,12 +138,8 @@ class RegistryView:
 
     def __init__(self, path):
         self.path = Path(path)
-        if not self.path.is_file():
-            raise RegistryError(
-                f"no registry at {self.path}; create one with `ajtwin machine add NAME "
-                f"--store {self.path}` and `ajtwin ingest`"
-            )
-        self.registry = Registry(self.path)
+        # never creates a file (an older registry is migrated on open, as by every command)
+        self.registry = Registry(self.path, create=False)
         # one connection shared by the server's worker threads: serialise its use
         self._lock = threading.Lock()
         self._truth_cache: dict[int, np.ndarray | None] = {}
@@ -184,10 +181,12 @@ class RegistryView:
 
     # ------------------------------------------------------------------ fleet
     def _array(self, print_id: int, name: str) -> np.ndarray | None:
+        """One stored array of a print, decoded (without loading the others)."""
         row = self.registry._conn.execute(
-            "SELECT npy FROM print_arrays WHERE print_id = ? AND name = ?", (print_id, name)
+            "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
+            (print_id, name),
         ).fetchone()
-        return None if row is None else from_npy(row[0])
+        return None if row is None else _arrays.decode(row[0], row[1])
 
     def fleet(self) -> list[dict]:
         """One summary per machine: status, last print, last alarm, key states with trend."""
@@ -197,12 +196,11 @@ class RegistryView:
             out = []
             for m in machines:
                 row = dict(m)
-                last = conn.execute(
-                    "SELECT id, seq, ingested_at, duration_s, meta_json, summary_json, "
-                    "end_mean, end_cov FROM prints WHERE machine_id = ? "
-                    "ORDER BY seq DESC LIMIT 1",
-                    (row["id"],),
-                ).fetchone()
+                # the twin's current state: the last print in the chain (registry rule)
+                last = self.registry.last_print(row["name"])
+                latest_seq = conn.execute(
+                    "SELECT MAX(seq) FROM prints WHERE machine_id = ?", (row["id"],)
+                ).fetchone()[0]
                 alarm = conn.execute(
                     "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
                     "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
@@ -223,8 +221,8 @@ class RegistryView:
                     "status": "idle",
                 }
                 if last is not None:
-                    mean = from_npy(last["end_mean"])
-                    std = np.sqrt(np.maximum(np.diag(from_npy(last["end_cov"])), 0.0))
+                    mean = last["end_mean"]
+                    std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
                     means = self._array(last["id"], "means")
                     time_s = self._array(last["id"], "time_s")
                     entry["last_print"] = {
@@ -250,7 +248,7 @@ class RegistryView:
                         )
                 if alarm is not None:
                     entry["last_alarm"] = dict(alarm)
-                    if last is not None and alarm["seq"] == last["seq"]:
+                    if alarm["seq"] == latest_seq:  # the machine's latest print alarmed
                         entry["status"] = "alarm"
                 entry.update(optional_machine_fields(self.registry, row))
                 if entry.get("mismatch") and entry["status"] != "alarm":
@@ -283,6 +281,9 @@ class RegistryView:
                         "source": rec["source"],
                         "anomalies": int(rec["anomalies"]),
                         "mean_nis": mean_nis,
+                        # in the chain ("ok") or kept for history only (excluded/dropped)
+                        "status": rec.get("status", "ok"),
+                        "status_reason": rec.get("status_reason", ""),
                     }
                 )
             row = dict(
@@ -345,14 +346,13 @@ class RegistryView:
         if key in self._series_cache:  # a stored print never changes: reuse its series
             return self._series_cache[key]
         with self._lock:
-            machine = self.registry.machine(name)
-            row = self.registry._conn.execute(
-                "SELECT * FROM prints WHERE machine_id = ? AND seq = ?", (machine["id"], seq)
-            ).fetchone()
-            if row is None:
-                raise RegistryError(f"machine {name!r} has no print #{seq}")
-            p = self.registry._print_row(row)
+            p = self.registry.print_by_seq(name, seq)
             a = self.registry.print_arrays(p["id"])
+            detector_inputs = None
+            needed = ("measurements", "predicted_outputs", "innovation_variances", "nis")
+            if all(k in a for k in needed):
+                # P_k's diagonal where only key frames of P are kept (the registry's rule)
+                detector_inputs = self.registry.detector_inputs(p["id"])
         t = a["time_s"]
         idx = decimate(len(t), max_points)
         out = {
@@ -376,29 +376,9 @@ class RegistryView:
         truth = self._truth(p)
         if truth is not None:
             out["truth"] = json_list(truth[idx])
-        needed = (
-            "measurements",
-            "predicted_outputs",
-            "innovation_variances",
-            "nis",
-            "n_measured",
-            "predicted_means",
-            "covariances",
-        )
-        if all(k in a for k in needed):
+        if detector_inputs is not None:
             s = DetectorSettings()
-            det = detect_anomalies(
-                t,
-                a["measurements"],
-                a["predicted_outputs"],
-                a["innovation_variances"],
-                a["nis"],
-                a["n_measured"],
-                a["means"],
-                a["predicted_means"],
-                a["covariances"],
-                s,
-            )
+            det = detect_anomalies(**detector_inputs, settings=s)
             g = np.maximum(det.cusum_pos, det.cusum_neg)
             with np.errstate(divide="ignore"):
                 log_p = -np.log10(np.maximum(det.window_nis_p, 1e-300))

@@ -268,7 +268,8 @@ function machinePage() {
       tr.append(el("td", {}, "#" + p.seq));
       tr.append(el("td", {}, p.ingested_at.replace("T", " ").replace("+00:00", " UTC")));
       tr.append(el("td", {}, fmt(p.duration_min, 3) + " min"));
-      tr.append(el("td", { class: "dim" }, (p.scenario ? p.scenario + " · " : "") + p.source));
+      const kept = p.status && p.status !== "ok" ? " · " + p.status + (p.status_reason ? ": " + p.status_reason : "") + " (not the twin's start)" : "";
+      tr.append(el("td", { class: "dim" }, (p.scenario ? p.scenario + " · " : "") + p.source + kept));
       tr.append(el("td", {}, fmt(p.mean_nis, 3)));
       tr.append(el("td", p.anomalies ? { class: "cause" } : {}, String(p.anomalies)));
       const b = el("button", {}, "show"); b.onclick = () => loadPrint(p.seq);

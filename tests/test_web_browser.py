@@ -123,7 +123,8 @@ def test_machine_page_states_with_bands_and_truth(server, registry, page, shots)
         arrays = reg.print_arrays(reg.last_print("lab1")["id"])
     t_min = np.asarray(bands[3]["x"], dtype=float)
     k = np.round(t_min * 60).astype(int)
-    expected = arrays["means"][k, 3] + 2 * arrays["stds"][k, 3]
+    # (the registry may keep means/σ as float32: add them in float64 as the page does)
+    expected = arrays["means"][k, 3].astype(float) + 2 * arrays["stds"][k, 3].astype(float)
     np.testing.assert_allclose(np.asarray(bands[3]["y"], dtype=float), expected, rtol=1e-12)
     # truth is the virtual printer's, read from the print's file
     np.testing.assert_allclose(

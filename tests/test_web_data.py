@@ -281,3 +281,42 @@ def click_usage_error():
     import click
 
     return click.UsageError
+
+
+def test_engine_messages_become_samples():
+    """The live engine's message format (dicts by name, raised events) → dashboard samples."""
+    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.web.publisher import sample_from_engine
+
+    states = dict(zip(STATE_NAMES, [3.5, 0.99, 1e-4, 0.05, 4.6e-7]))
+    message = {
+        "machine": "aj1", "step": 200, "time_s": 200.0, "provisional": False,
+        "states": states, "stds": dict(zip(STATE_NAMES, [0.03, 0.003, 1e-3, 6e-4, 1e-8])),
+        "predicted_outputs": dict(zip(OUTPUT_NAMES, [75.0, 8.0, 5800.0, 5750.0, 1.5e-8])),
+        "measured_outputs": dict(zip(OUTPUT_NAMES, [76.0, 8.1, 5810.0, float("nan"), 1.4e-8])),
+        "inputs": dict(zip(INPUT_NAMES, [375.0, 23.0, 50.0])), "nis": 4.2,
+        "theta": dict(zip(STATE_NAMES, [0.0] * 5)), "window_nis_p": 1e-12,
+        "cusum": {"L_w": 1.0, "L_o": 0.5, "P_c": 17.0, "P_s": 12.0, "Q_m": 3.0, "P_c+P_s": 20.0},
+        "status": "alarm",
+        "events": [
+            {"state": "raised", "detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
+             "description": "nozzle clog", "detectors": ["cusum+ P_c", "cusum+ P_c+P_s"]},
+            {"state": "final", "detected_s": 90.0, "onset_s": 80.0, "cause": "unexplained",
+             "description": "old", "detectors": []},
+        ],
+    }  # fmt: skip
+    s = sample_from_engine(message)
+    assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
+    assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
+    assert s["detectors"]["cusum"] == [1.0, 0.5, 17.0, 12.0, 3.0, 20.0]
+    assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 16.0, 16.0, 30.0, 16.0]
+    assert s["detectors"]["window_nis_log10p"] == pytest.approx(12.0)
+    assert s["alarms"] == [
+        {"detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
+         "description": "nozzle clog", "detectors": "cusum+ P_c, cusum+ P_c+P_s"}
+    ]  # fmt: skip
+    assert sample_from_engine({**message, "provisional": True}) is None
+    pub = LivePublisher()
+    pub.publish_engine(message)
+    assert pub.latest("aj1")["measured"][3] is None  # NaN → None for JSON
+    assert pub.alarms("aj1")[0]["cause"] == "nozzle_clog"

@@ -46,6 +46,60 @@ import time
 from collections import deque
 
 
+def sample_from_engine(message: dict) -> dict | None:
+    """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
+    ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
+    as a dashboard sample (module docstring). Provisional steps give None: the committed
+    step for the same time follows and is the one drawn.
+    """
+    from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings
+    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.web.data import detector_thresholds
+
+    if message.get("provisional"):
+        return None
+
+    def ordered(key, names):
+        value = message.get(key)
+        if isinstance(value, dict):
+            return [value.get(n) for n in names]
+        return value
+
+    sample = {
+        "machine": message["machine"],
+        "time_s": message["time_s"],
+        "states": ordered("states", STATE_NAMES),
+        "state_stds": ordered("stds", STATE_NAMES),
+        "predicted": ordered("predicted_outputs", OUTPUT_NAMES),
+        "measured": ordered("measured_outputs", OUTPUT_NAMES),
+        "inputs": ordered("inputs", INPUT_NAMES),
+        "theta": ordered("theta", STATE_NAMES),
+        "nis": message.get("nis"),
+        "engine_status": message.get("status"),
+    }
+    if isinstance(message.get("cusum"), dict):
+        settings = DetectorSettings()
+        p = message.get("window_nis_p")
+        sample["detectors"] = {
+            "cusum": [message["cusum"].get(c) for c in CUSUM_CHANNELS],
+            "cusum_thresholds": detector_thresholds(settings),
+            "window_nis_log10p": None if p is None else -math.log10(max(float(p), 1e-300)),
+            "window_nis_threshold": -math.log10(settings.nis_alpha),
+        }
+    sample["alarms"] = [
+        {
+            "detected_s": ev.get("detected_s"),
+            "onset_s": ev.get("onset_s"),
+            "cause": ev.get("cause"),
+            "description": ev.get("description"),
+            "detectors": ", ".join(ev.get("detectors") or []),
+        }
+        for ev in message.get("events") or []
+        if ev.get("state", "raised") == "raised"
+    ]
+    return sample
+
+
 class Subscription:
     """One listener (a page's websocket): an asyncio queue fed thread-safely.
 
@@ -128,6 +182,12 @@ class LivePublisher:
         with self._lock:
             self._samples.setdefault(machine, deque(maxlen=self.history))
         self._broadcast({"type": "print_start", "machine": machine, "published_at": time.time()})
+
+    def publish_engine(self, message: dict) -> None:
+        """Publish a message of the live engine (:func:`sample_from_engine`); thread-safe."""
+        sample = sample_from_engine(message)
+        if sample is not None:
+            self.publish(sample)
 
     def end_print(self, machine: str) -> None:
         """The live print of ``machine`` ended (its buffer is kept until the next one)."""

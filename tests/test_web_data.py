@@ -241,6 +241,12 @@ def test_access_rules(store):
     assert res.exit_code == 2 and "at least 8 characters" in res.output
     res = runner.invoke(dashboard, ["--store", str(store.parent / "none.sqlite")])
     assert res.exit_code == 1 and "no registry at" in res.output
+    assert not (store.parent / "none.sqlite").exists()  # the dashboard never creates one
+    res = runner.invoke(
+        dashboard,
+        ["--store", str(store), "--virtual-print", "nozzle_clog", "--virtual-minutes", "2"],
+    )
+    assert res.exit_code == 2 and "onset 3 min must lie within the 2-min print" in res.output
 
 
 def test_in_process_server_pushes_published_samples(store):

@@ -64,7 +64,13 @@ def check_access(host: str, token: str | None) -> None:
 @click.option(
     "--virtual-minutes", type=float, default=8.0, show_default=True, help="Virtual print length."
 )
-@click.option("--virtual-onset", type=float, default=3.0, show_default=True, hidden=True)
+@click.option(
+    "--virtual-onset",
+    type=float,
+    default=3.0,
+    show_default=True,
+    help="Fault onset of the virtual print [min].",
+)
 @click.option(
     "--virtual-rate",
     type=float,
@@ -112,7 +118,19 @@ def dashboard(
     publisher = LivePublisher()
     feeds = []
     if virtual_scenario:
+        from ajtwin.simulation import load_scenario
         from ajtwin.web.feed import VirtualPrintFeed
+
+        try:
+            has_fault = load_scenario(virtual_scenario).fault_kind != "none"
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            raise click.BadParameter(str(exc), param_hint="--virtual-print") from None
+        if has_fault and not 0 <= virtual_onset < virtual_minutes:
+            raise click.BadParameter(
+                f"the fault onset {virtual_onset:g} min must lie within the "
+                f"{virtual_minutes:g}-min print",
+                param_hint="--virtual-onset",
+            )
 
         feeds.append(
             VirtualPrintFeed(

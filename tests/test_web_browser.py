@@ -231,8 +231,11 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
             page.goto(dash.page_url("/"))
             row = page.locator('tr[data-machine="vm-live"]')
             assert row.get_attribute("data-status") == "alarm"
-            # the live-only machine keeps its last live ΔR_N, which grew with the clog
-            assert "live print ended" in row.inner_text()
+            # when the print ends the fleet row says so (pushed, no reload) and keeps the
+            # live-only machine's last ΔR_N, which grew with the clog
+            ended = page.locator('tr[data-machine="vm-live"]', has_text="live print ended")
+            ended.wait_for(timeout=60_000)
+            assert row.get_attribute("data-status") == "alarm"
             dr_n = float(row.locator("td").nth(6).locator(".val").inner_text().split()[0])
             assert dr_n > 0.04
             page.screenshot(path=shots / "fleet_live.png", full_page=True)

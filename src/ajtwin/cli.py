@@ -37,6 +37,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
     "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
     "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
+    "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
 }
 
 

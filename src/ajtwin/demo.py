@@ -404,6 +404,10 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live):
     )
     click.echo(f"  total wall time {stages.elapsed:.0f} s")
     click.echo(f"  report: {out / 'report.html'}")
+    click.echo(
+        f"  dashboard: ajtwin dashboard --store {store_path}  → open http://127.0.0.1:8050/ "
+        "(add --virtual-print nozzle_clog to watch a live print)"
+    )
     if shutil.which("xdg-open") is None:
         pass
 

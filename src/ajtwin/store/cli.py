@@ -328,7 +328,7 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
     from tqdm import tqdm
 
     from ajtwin.io.records import RecordError
-    from ajtwin.store.ingest import ingest_file
+    from ajtwin.live.engine import ingest_file
     from ajtwin.store.registry import RegistryError
 
     if video is not None and um_per_px is None:

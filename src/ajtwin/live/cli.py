@@ -165,6 +165,14 @@ def serve(
 )
 @click.option("--messages", type=click.Path(path_type=Path), default=None, help="JSON lines out.")
 @click.option("--max-backoff", type=float, default=10.0, show_default=True, help="Reconnect [s].")
+@click.option(
+    "--dashboard",
+    "dashboard_port",
+    type=click.IntRange(min=0, max=65535),
+    default=None,
+    metavar="PORT",
+    help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
+)
 @click.option("--verbose", is_flag=True)
 @store_option
 def live(
@@ -181,6 +189,7 @@ def live(
     security,
     messages,
     max_backoff,
+    dashboard_port,
     verbose,
     store,
 ):
@@ -202,6 +211,18 @@ def live(
     if messages is not None:
         out = messages.open("a", encoding="utf-8")
         engine.subscribe(lambda m: out.write(json.dumps(m, default=str) + "\n") or out.flush())
+    dashboard = None
+    if dashboard_port is not None:
+        # the dashboard in a thread of this process; every engine message is pushed to it
+        from ajtwin.web.publisher import LivePublisher
+        from ajtwin.web.server import BackgroundServer
+
+        publisher = LivePublisher()
+        engine.subscribe(publisher.publish_engine)
+        for name in machines:
+            publisher.open_print(name)
+        dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
+        click.echo(f"dashboard: open {dashboard.url}", err=True)
     if generate_certificate:
         from ajtwin.live.printer_server import ensure_certificate
 
@@ -242,3 +263,5 @@ def live(
         engine.shutdown()
         if out is not None:
             out.close()
+        if dashboard is not None:
+            dashboard.stop()

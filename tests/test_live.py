@@ -8,6 +8,7 @@ import pytest
 from ajtwin.apps.anomaly import detect_run
 from ajtwin.estimation import Twin
 from ajtwin.live.engine import Sample, TwinStream, clean_sample
+from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 
 # short EM cadence so a few minutes of print cross several EM updates
@@ -101,3 +102,113 @@ def test_clean_sample_bad_wire_data():
     assert np.isnan(s.inputs).all() and "atomizer_current_mA" in problems[0]
     s, problems = clean_sample("x", [375, 23, 50], [90, 150, 2000, 1500, 1e-9])
     assert s is None and "not a number" in problems[0]
+
+
+def test_engine_many_machines_batched_equals_single(clog_record):
+    from ajtwin.live.engine import LiveEngine
+
+    rec = clog_record.window(0, 200)
+    engine = LiveEngine(twin_overrides=FAST_EM, asynchronous=False)
+    got = []
+    engine.subscribe(got.append)
+    names = ["a", "b", "c"]
+    for k in range(len(rec)):
+        # machine c lags by a sample: mixed batches of ordinary steps and boundaries
+        items = [(n, Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k])) for n in names[:2]]
+        if k > 0:
+            items.append(("c", Sample(rec.time_s[k - 1], rec.inputs[k - 1], rec.outputs[k - 1])))
+        engine.feed_many(items)
+    single = TwinStream.new("s", twin_overrides=FAST_EM, asynchronous=False)
+    _feed_all(single, rec)
+    for n in names:
+        arrays = engine.sessions[n].stream.arrays()
+        length = len(arrays["means"])
+        assert length == len(rec) - (n == "c")
+        assert _relative(arrays["means"], single.arrays()["means"][:length]) < 1e-9
+    assert {m["machine"] for m in got} == set(names)
+    engine.shutdown()
+
+
+def test_kill_and_resume_from_registry(clog_record, tmp_path):
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 240)
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=True, commit_every_s=0)
+    for k in range(150):
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    engine.poll_and_publish()
+    while engine.sessions["m1"].stream.em_running:  # bounded: EM on 60 samples
+        engine.sessions["m1"].stream._em_future.result(timeout=120)
+        engine.poll_and_publish()
+    committed = engine.sessions["m1"].stream.n_committed
+    engine.shutdown()
+    del engine  # "killed": the object is gone, only the database remains
+
+    log = LiveLog(registry.path)
+    sid = log.open_session_of("m1")["id"]
+    assert log.n_steps(sid) == committed
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    stream = engine.open("m1")
+    assert stream.n_committed == committed
+    for k in range(100, len(rec)):  # a re-read from before the kill: old samples dropped
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    print_id = engine.close("m1")
+    assert log.open_session_of("m1") is None
+    steps = [m["step"] for m in log.states(sid)]
+    assert steps == list(range(len(rec)))  # nothing lost, nothing twice
+    run = Twin.default(**FAST_EM).run(rec)
+    # the live log keeps the published float64 states (the registry's print keeps float32)
+    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in log.states(sid)])
+    assert _relative(means, run.means) < 1e-9
+    stored = registry.print_arrays(print_id)
+    assert _relative(stored["means"], run.means) < 1e-6
+    assert registry.last_print("m1")["seq"] == 1
+
+
+def test_follow_growing_csv(clog_record, tmp_path, caplog):
+    import asyncio
+
+    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.live.link import follow_csv
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 90)
+    columns = ["time_s", *INPUT_COLUMNS, *OUTPUT_COLUMNS]
+    rows = rec.data[columns].to_numpy(float)
+    lines = [",".join(columns)] + [",".join(repr(float(v)) for v in row) for row in rows]
+    lines[31] = lines[31].replace(lines[31].split(",")[6], "oops", 1)  # a garbled row
+    path = tmp_path / "print.csv"
+    path.write_text("\n".join(lines[:41]) + "\n" + lines[41][:10])  # a half-written line
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, asynchronous=False, commit_every_s=0)
+
+    async def main():
+        async def grow():
+            await asyncio.sleep(1.0)
+            path.write_text("\n".join(lines) + "\n")
+
+        writer = asyncio.create_task(grow())
+        print_id = await asyncio.wait_for(
+            follow_csv(path, "m1", engine, poll_s=0.1, idle_timeout_s=2.0), 120
+        )
+        await writer
+        return print_id
+
+    print_id = asyncio.run(main())
+    arrays = registry.print_arrays(print_id)
+    assert np.array_equal(arrays["time_s"], rec.time_s)
+    session = max(LiveLog(registry.path).sessions("m1"), key=lambda r: r["id"])
+    states = LiveLog(registry.path).states(session["id"])
+    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in states])
+    y = rec.outputs.copy()
+    u = rec.inputs.copy()
+    y[30] = np.nan  # the garbled line: a missing sample (inputs held)
+    u[30] = u[29]
+    run = Twin.default().run(inputs=u, measurements=y, time_s=rec.time_s)
+    assert _relative(means, run.means) < 1e-9
+    assert "line 32: not numbers" in caplog.text

@@ -8,6 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import BoundedFloat, check_vial_fill
+
 
 def _parse_seeds(text: str) -> list[int]:
     seeds = []
@@ -36,13 +38,22 @@ def _parse_seeds(text: str) -> list[int]:
     "--em/--no-em", default=True, show_default=True, help="Learn θ by EM while filtering."
 )
 @click.option("--smooth", is_flag=True, help="Write RTS-smoothed states instead of filtered.")
-@click.option("--window", default=600, show_default=True, help="EM window T [s].")
-@click.option("--every", default=300, show_default=True, help="EM update interval [s].")
+@click.option(
+    "--window", type=click.IntRange(min=2), default=600, show_default=True, help="EM window T [s]."
+)
+@click.option(
+    "--every",
+    type=click.IntRange(min=1),
+    default=300,
+    show_default=True,
+    help="EM update interval [s].",
+)
 @click.option(
     "--gate",
+    type=BoundedFloat(0.0, float("inf"), allow_inf=True),
     default=float("inf"),
     show_default=True,
-    help="Per-output innovation gate [σ]; inf = off.",
+    help="Per-output innovation gate [σ], > 0; inf = off.",
 )
 @click.option(
     "--noise",
@@ -52,7 +63,14 @@ def _parse_seeds(text: str) -> list[int]:
     show_default=True,
     help="Filter tuning profile (noise.toml).",
 )
-@click.option("--vial-ml", default=1.0, show_default=True, help="Vial fill level at the start.")
+@click.option(
+    "--vial-ml",
+    type=BoundedFloat(0.0, None),
+    callback=check_vial_fill,
+    default=1.0,
+    show_default=True,
+    help="Vial fill level at the start [mL], in (0, V_v).",
+)
 @click.option(
     "--theta-out",
     type=click.Path(dir_okay=False),
@@ -123,6 +141,8 @@ def estimate(
         click.echo(
             f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True
         )
+    for note in run.visibility_notes():
+        click.echo(note, err=True)
     if plot_path:
         from ajtwin.estimation.plots import estimate_figure
 

@@ -33,7 +33,13 @@ from ajtwin.estimation.filters import (
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.estimation.record_checks import (
+    check_model_inputs,
+    check_output_scales,
+    observed_states,
+)
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
+from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import check_input
 
 
@@ -56,6 +62,10 @@ class TwinConfig:
     vial_fill_std_ml: float = 3e-3
     nozzle_prior_std_um: float = 0.05
     tube_prior_std_um: float = 1e-3
+    # priors of d_a and φ_A for a print without line outputs (no camera); None = refuse it
+    droplet_prior_um: float | None = None
+    droplet_prior_std_um: float | None = None
+    aerosol_prior_relative_std: float | None = None
     method: str = "euler"
 
     noise_profile: str = "calibrated"
@@ -95,6 +105,10 @@ class TwinConfig:
             initial["tube_prior_std_um"] = prior["tube_deposition_um"]
         if "nozzle_deposition_um" in prior:
             initial["nozzle_prior_std_um"] = prior["nozzle_deposition_um"]
+        if "droplet_diameter_mean_um" in prior:
+            initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
+            initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
+            initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
         base = cls(process, measurement, noise_profile=noise_profile, **initial)
         return replace(base, **overrides)
 
@@ -113,6 +127,43 @@ class TwinRun:
     start_cov: np.ndarray
     end_mean: np.ndarray = field(default=None)
     end_cov: np.ndarray = field(default=None)
+    #: (T, 5) bool: some output measured at that second responds to the state
+    #: (record_checks.observed_states); False rows run on the model and priors alone.
+    seen: np.ndarray | None = None
+
+    def visibility_notes(self) -> list[str]:
+        """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
+        notes = []
+        if self.initial is not None and self.initial.states_from_prior:
+            notes.append(f"warning: {self.initial.message}")
+        n = len(self.time_s)
+        unseen = self.unseen_summary()
+        never = [name for name, count in unseen.items() if count == n]
+        sometimes = {name: count for name, count in unseen.items() if count < n}
+        if never:
+            notes.append(
+                f"warning: no output in this record measures {', '.join(never)} (no linewidth, "
+                "overspray or material flow): the twin cannot see them; their estimates follow "
+                "the model from the priors and their bands stay wide (columns seen_* = 0)"
+            )
+        if sometimes:
+            parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
+            notes.append(
+                f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the "
+                "model alone and the bands widen (columns seen_* = 0)"
+            )
+        return notes
+
+    def unseen_summary(self) -> dict[str, int]:
+        """State → seconds in which no measured output saw it (V_l, never measured, left out)."""
+        if self.seen is None:
+            return {}
+        counts = (~np.asarray(self.seen)).sum(axis=0)
+        return {
+            name: int(counts[i])
+            for i, name in enumerate(STATE_NAMES)
+            if counts[i] and name != "vial_volume_mL"
+        }
 
     @property
     def means(self) -> np.ndarray:
@@ -141,6 +192,9 @@ class TwinRun:
         frame["n_measured"] = np.asarray(self.filtered.n_measured)
         frame["log_likelihood"] = np.asarray(self.filtered.log_likelihood)
         frame["reinitialised"] = np.asarray(self.filtered.reinitialised)
+        if self.seen is not None:
+            for i, name in enumerate(STATE_NAMES):
+                frame["seen_" + name] = np.asarray(self.seen)[:, i]
         return frame
 
 
@@ -161,12 +215,13 @@ def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = 
 predict = jax.jit(predict, static_argnames=("functions",))
 
 
+# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def _concat(results: list[FilterResult]) -> FilterResult:
-    return FilterResult(*[jnp.concatenate(parts, axis=0) for parts in zip(*results)])
+    return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
 
 
 def _slice(result: FilterResult, stop: int) -> FilterResult:
-    return FilterResult(*[part[:stop] for part in result])
+    return FilterResult(*[np.asarray(part)[:stop] for part in result])
 
 
 def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
@@ -195,6 +250,7 @@ class Twin:
         self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
         self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
         self.functions = model_functions(config.method)
+        self.limits = StateLimits.load(model.params)
 
     @classmethod
     def default(cls, **config_overrides) -> Twin:
@@ -228,6 +284,9 @@ class Twin:
             vial_fill_std_ml=c.vial_fill_std_ml,
             tube_prior_std_um=c.tube_prior_std_um,
             nozzle_prior_std_um=c.nozzle_prior_std_um,
+            droplet_prior_um=c.droplet_prior_um,
+            droplet_prior_std_um=c.droplet_prior_std_um,
+            aerosol_prior_relative_std=c.aerosol_prior_relative_std,
         )
 
     def _predict(self, mean, cov, u, theta):
@@ -275,6 +334,16 @@ class Twin:
         """
         if record is not None:
             inputs, measurements, time_s = record.inputs, record.outputs, record.time_s
+            where = str(record.meta.get("source_file", "<record>"))
+            check_model_inputs(inputs, where, time_s)
+            check_output_scales(
+                self.model.params,
+                self.spec.coefficients,
+                inputs,
+                measurements,
+                self.config.vial_fill_ml,
+                where,
+            )
         inputs = check_input(np.asarray(inputs, dtype=float))
         measurements = np.asarray(measurements, dtype=float)
         n = len(inputs)
@@ -291,6 +360,15 @@ class Twin:
         else:
             mean, cov = (np.asarray(a, dtype=float) for a in start)
         start_mean, start_cov = mean.copy(), cov.copy()
+        seen = observed_states(
+            self.model.params,
+            self.spec.coefficients,
+            start_mean,
+            self.limits.upper - self.limits.lower,
+            inputs,
+            measurements,
+            self.config.measurement_std,
+        )
         c = self.config
         theta = self.theta.copy()
         history = []
@@ -324,9 +402,10 @@ class Twin:
                 pos = end
                 if pos >= window and pos < n:
                     w0 = pos - window
-                    full = _concat(pieces)
-                    prior_mean = np.asarray(full.predicted_means[w0])
-                    prior_cov = np.asarray(full.predicted_covariances[w0])
+                    # the piece holding step w0 (pieces are `every` long but the last)
+                    piece, offset = divmod(w0, every)
+                    prior_mean = pieces[piece].predicted_means[offset]
+                    prior_cov = pieces[piece].predicted_covariances[offset]
                     em = run_em(
                         self.spec,
                         prior_mean,
@@ -343,8 +422,8 @@ class Twin:
                         functions=self.functions,
                     )
                     theta = em.theta
-                    last_mean = np.asarray(em.filtered.means[-1])
-                    last_cov = np.asarray(em.filtered.covariances[-1])
+                    last_mean = np.asarray(em.filtered.means)[-1]
+                    last_cov = np.asarray(em.filtered.covariances)[-1]
                     history.append(
                         {
                             "time_s": float(time_s[pos - 1]),
@@ -380,4 +459,5 @@ class Twin:
             start_cov=start_cov,
             end_mean=np.asarray(filtered.means[-1]),
             end_cov=np.asarray(filtered.covariances[-1]),
+            seen=seen,
         )

@@ -50,7 +50,7 @@ Examples
 from __future__ import annotations
 
 import logging
-import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -219,7 +219,7 @@ class TwinStream:
         self._em_pos: int | None = None
         self._em_done: int | None = None  # boundary whose EM result is in force
         self._spec_carry: EKFCarry | None = None  # speculative carry while EM runs
-        self._lock = threading.Lock()
+        self._device_constants = None
         self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0}
         self.missing_inserted = 0
 
@@ -274,6 +274,30 @@ class TwinStream:
         for s in grid:
             out += self._accept(s)
         return out
+
+    def take_plain(self, sample: Sample) -> Sample | None:
+        """If ``sample`` is an ordinary next step (no gap, boundary, EM or start), book it
+        and return it for a batched step (:class:`LiveEngine`); else None, nothing changed."""
+        c = self.config
+        k = self.n_committed
+        if (
+            self.carry is None
+            or self._em_future is not None
+            or self._waiting
+            or self.last_time is None
+            or int(round(float(sample.time_s) - self.last_time)) != 1
+            or sample.inputs is None
+            or not np.all(np.isfinite(sample.inputs))
+            or (c.em and k % int(c.every_s) == 0 and k != self._em_done)
+        ):
+            return None
+        sample = Sample(
+            self.last_time + 1, np.asarray(sample.inputs, float), np.asarray(sample.outputs, float)
+        )
+        self.last_time = sample.time_s
+        self.last_inputs = sample.inputs
+        self.n_received += 1
+        return sample
 
     def _accept(self, sample: Sample) -> list[dict]:
         u = None if sample.inputs is None else np.asarray(sample.inputs, dtype=float)
@@ -434,25 +458,36 @@ class TwinStream:
         self._spec_carry, step = self._run_step(self._spec_carry, sample)
         return self._message(self.n_committed + len(self._pending) - 1, sample, step, None, True)
 
+    def _constants(self):
+        """Σ_ξ, σ_w², gate as device arrays, made once (a conversion per step costs more
+        than the step)."""
+        if self._device_constants is None:
+            twin = self.twin
+            self._device_constants = (
+                jnp.asarray(twin.process_cov),
+                jnp.asarray(twin.measurement_var),
+                jnp.asarray(float(twin.config.gate_sigma)),
+            )
+        return self._device_constants
+
     def _run_step(self, carry, sample):
-        twin = self.twin
         carry, step = _step(
-            twin.spec,
+            self.twin.spec,
             carry,
-            jnp.asarray(sample.inputs),
-            jnp.asarray(sample.outputs),
-            jnp.asarray(self.theta),
-            jnp.asarray(twin.process_cov),
-            jnp.asarray(twin.measurement_var),
-            float(twin.config.gate_sigma),
-            functions=twin.functions,
+            np.asarray(sample.inputs, dtype=float),
+            np.asarray(sample.outputs, dtype=float),
+            self.theta,
+            *self._constants(),
+            functions=self.twin.functions,
         )
         return carry, jax.device_get(step)
 
-    def _commit(self, sample: Sample, step=None) -> dict:
+    def _commit(self, sample: Sample, step=None, carry=None) -> dict:
         """Committed step: kept, given to the detectors, stored and published."""
         if step is None:
             self.carry, step = self._run_step(self.carry, sample)
+        else:
+            self.carry = carry
         h = self.history
         k = len(h)
         h.time_s.append(sample.time_s)
@@ -571,6 +606,7 @@ class TwinStream:
             "inputs": h.array("inputs").reshape(-1, 3),
             "nis": h.array("nis"),
             "n_measured": h.array("n_measured"),
+            "reinitialised": np.asarray(h.reinitialised, dtype=bool),
             "theta_per_step": h.array("theta_per_step").reshape(-1, 5),
             "theta_history_time_s": np.array([r["time_s"] for r in hist], dtype=float),
             "theta_history": np.array(
@@ -584,7 +620,17 @@ class TwinStream:
 # --------------------------------------------------------------------------- #
 
 
-def print_summary(end_mean, end_cov, nis, n_anomalies: int, em_updates: int, started_from: str):
+def print_summary(
+    end_mean,
+    end_cov,
+    nis,
+    reinitialised,
+    n_anomalies: int,
+    em_updates: int,
+    started_from: str,
+    status: str,
+    status_reason: str,
+):
     """The summary the registry keeps for a print."""
     return {
         "end_state": dict(zip(STATE_NAMES, np.asarray(end_mean, dtype=float).tolist())),
@@ -592,7 +638,10 @@ def print_summary(end_mean, end_cov, nis, n_anomalies: int, em_updates: int, sta
         "mean_nis": float(np.nanmean(np.asarray(nis, dtype=float))),
         "n_anomalies": int(n_anomalies),
         "em_updates": int(em_updates),
+        "guard_reinitialisations": int(np.asarray(reinitialised).sum()),
         "started_from": started_from,
+        "status": status,
+        "status_reason": status_reason,
     }
 
 
@@ -611,15 +660,23 @@ def save_print(
     theta_after,
     expected_last_seq,
     started_from: str,
+    status: str,
+    status_reason: str,
 ):
-    """Store a twin's run over one print in one registry transaction; (print id, summary)."""
+    """Store a twin's run over one print in one registry transaction; (print id, summary).
+
+    ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run.
+    """
     summary = print_summary(
         end[0],
         end[1],
         arrays["nis"],
+        arrays["reinitialised"],
         len(events),
         len(arrays["theta_history_time_s"]),
         started_from,
+        status,
+        status_reason,
     )
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     print_id = registry.save_print(
@@ -639,6 +696,8 @@ def save_print(
         arrays=arrays,
         anomalies=events,
         expected_last_seq=expected_last_seq,
+        status=status,
+        status_reason=status_reason,
     )
     return print_id, summary
 
@@ -655,11 +714,12 @@ def ingest_record(
 ):
     """Run the machine's twin over one finished print and store the result.
 
-    Hash the print (duplicate → stop before any work), start from the machine's last end
-    state and θ (:func:`ajtwin.store.ingest.start_from_registry`; the initial-state fit
-    for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and the detectors
-    (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the arrays), and
-    store everything in one transaction.
+    Hash the print (duplicate → stop before any work), start from the machine's chain
+    (:func:`ajtwin.store.chain.chain_start`: the newest good print's end state and θ; the
+    initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
+    the detectors (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the
+    arrays), judge the run (:func:`ajtwin.store.chain.judge_run`) and store everything in
+    one transaction.
 
     Parameters
     ----------
@@ -682,7 +742,8 @@ def ingest_record(
     import time
 
     from ajtwin.apps.anomaly import detect_run
-    from ajtwin.store.ingest import IngestResult, start_from_registry
+    from ajtwin.store.chain import chain_start, judge_run
+    from ajtwin.store.ingest import IngestResult
     from ajtwin.store.registry import RegistryError, record_hash
 
     t0 = time.perf_counter()
@@ -699,12 +760,14 @@ def ingest_record(
             summary=existing["summary"],
             seconds=time.perf_counter() - t0,
         )
-    start, theta, expected, last = start_from_registry(registry, machine)
+    chain = chain_start(registry, machine)
     twin = Twin.default(**(twin_overrides or {}))
-    if theta is not None:
-        twin.theta = theta
+    start, expected = chain.start, chain.latest_seq
+    if chain.theta is not None:
+        twin.theta = chain.theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
+    status, status_reason = judge_run(run)
     detection = detect_run(run, record, detector_settings)
 
     f = run.filtered
@@ -721,6 +784,7 @@ def ingest_record(
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
+        "reinitialised": np.asarray(f.reinitialised),
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
@@ -739,7 +803,9 @@ def ingest_record(
             theta_before=theta_before,
             theta_after=twin.theta,
             expected_last_seq=expected,
-            started_from="initial fit" if last is None else f"print {last['seq']}",
+            started_from=chain.description,
+            status=status,
+            status_reason=status_reason,
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race
@@ -790,3 +856,356 @@ def ingest_file(
         record, *_ = join_video(record, video, um_per_px, progress=video_progress)
         source += f" + {video}"
     return ingest_record(registry, machine, record, source=source, progress=progress)
+
+
+# --------------------------------------------------------------------------- #
+# Many machines, the registry log, subscribers
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class _Session:
+    stream: TwinStream
+    session_id: int | None
+    expected_last_seq: int | None
+    started_from: str
+    source: str
+    unsaved: list
+    unsaved_events: list
+    last_flush: float
+
+
+class LiveEngine:
+    """Live twins of many machines in one process: samples in, messages out.
+
+    Each machine has a :class:`TwinStream`; ordinary steps of several machines that
+    arrive together are run as one vmapped :func:`ekf_step` (:meth:`feed_many`). With a
+    registry, every committed step, its sample and the alarms are written to the live
+    log as they go (:class:`ajtwin.store.live_log.LiveLog`, a transaction every
+    ``commit_every_s`` seconds), a restarted process resumes each machine's open session
+    by replaying its stored samples, and :meth:`close` stores the finished print as an
+    ordinary registry print (the next print starts from its end state).
+
+    Subscribers (:meth:`subscribe`, :meth:`queue`) receive every message as a plain dict
+    (see the module docstring).
+
+    Parameters
+    ----------
+    registry : Registry, optional
+        Where machines, live sessions and finished prints are kept (None: memory only).
+    twin_overrides : dict, optional
+        TwinConfig fields for every machine's twin.
+    detector_settings : DetectorSettings, optional
+    asynchronous : bool
+        EM in worker threads (live) or inline (tests, replays).
+    em_workers : int
+        Threads for EM (shared by all machines).
+    commit_every_s : float
+        Longest time committed steps wait before they are written (0: every step).
+    """
+
+    def __init__(
+        self,
+        registry=None,
+        *,
+        twin_overrides: dict | None = None,
+        detector_settings: DetectorSettings | None = None,
+        asynchronous: bool = True,
+        em_workers: int = 1,
+        commit_every_s: float = 1.0,
+    ):
+        self.registry = registry
+        self.log = None
+        if registry is not None:
+            from ajtwin.store.live_log import LiveLog
+
+            self.log = LiveLog(registry.path)
+        self.twin_overrides = dict(twin_overrides or {})
+        self.detector_settings = detector_settings
+        self.asynchronous = asynchronous
+        self.commit_every_s = float(commit_every_s)
+        self._executor = ThreadPoolExecutor(max(1, int(em_workers)), thread_name_prefix="em")
+        self.sessions: dict[str, _Session] = {}
+        self._subscribers: list = []
+
+    def warm_up(self, n_machines: int = 1) -> None:
+        """Compile the step functions (single and batched) before the first real sample."""
+        twin = Twin.default(**self.twin_overrides)
+        u = np.array([375.0, 23.0, 50.0])
+        y = np.array(twin.model.outputs(np.array([3.5, 1.0, 0.0, 0.03, 1e-7]), u))
+        inputs, outputs = np.tile(u, (10, 1)), np.tile(y, (10, 1))
+        fit = twin.initial_state(inputs, outputs)
+        stream = TwinStream(
+            "warm-up",
+            twin,
+            (fit.mean, fit.covariance),
+            self.detector_settings,
+            asynchronous=False,
+        )
+        for k in range(3):
+            stream.feed(Sample(float(k), u, y))
+        stream._restart_chunk(2, stream.theta)
+        if n_machines > 1:
+            plain = []
+            for i in range(n_machines):
+                s = TwinStream(
+                    f"w{i}",
+                    twin,
+                    (fit.mean, fit.covariance),
+                    self.detector_settings,
+                    asynchronous=False,
+                )
+                s.feed(Sample(0.0, u, y))
+                plain.append((s, s.take_plain(Sample(1.0, u, y))))
+            self._step_batched(plain)
+
+    # ------------------------------------------------------------------ #
+    def subscribe(self, callback) -> callable:
+        """Call ``callback(message)`` for every message; returns a function that unsubscribes."""
+        self._subscribers.append(callback)
+        return lambda: self._subscribers.remove(callback)
+
+    def queue(self, maxsize: int = 0, loop=None):
+        """An asyncio.Queue that receives every message (thread-safe put into ``loop``)."""
+        import asyncio
+
+        loop = loop or asyncio.get_event_loop()
+        q: asyncio.Queue = asyncio.Queue(maxsize)
+
+        def put(message):
+            def put_now():
+                if q.full():  # a slow subscriber loses the oldest, never blocks the twin
+                    q.get_nowait()
+                q.put_nowait(message)
+
+            loop.call_soon_threadsafe(put_now)
+
+        self.subscribe(put)
+        return q
+
+    def _publish(self, messages: list[dict]) -> None:
+        for message in messages:
+            for callback in list(self._subscribers):
+                try:
+                    callback(message)
+                except Exception:  # a broken subscriber must not stop the twin
+                    log.exception("subscriber %r failed", callback)
+
+    # ------------------------------------------------------------------ #
+    def open(self, machine: str, source: str = "live") -> TwinStream:
+        """The machine's stream: its open live session resumed, or a new one."""
+        if machine in self.sessions:
+            return self.sessions[machine].stream
+        start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
+        resumed = None
+        if self.registry is not None:
+            from ajtwin.store.chain import chain_start
+
+            try:
+                self.registry.machine(machine)
+            except Exception:
+                self.registry.add_machine(machine, notes="added by ajtwin live")
+                log.info("machine %r added to the registry", machine)
+            resumed = self.log.open_session_of(machine)
+            if resumed is not None:
+                start, theta = resumed["start"], resumed["theta_before"]
+                expected, session_id = resumed["expected_last_seq"], resumed["id"]
+                started_from = "initial fit" if expected is None else f"print {expected}"
+            else:
+                chain = chain_start(self.registry, machine)
+                start, theta, expected = chain.start, chain.theta, chain.latest_seq
+                started_from = chain.description
+                session_id = self.log.open_session(
+                    machine,
+                    source=source,
+                    start=start,
+                    theta=np.zeros(5) if theta is None else theta,
+                    expected_last_seq=expected,
+                )
+        stream = TwinStream.new(
+            machine,
+            start=start,
+            theta=theta,
+            twin_overrides=self.twin_overrides,
+            detector_settings=self.detector_settings,
+            asynchronous=False,
+            executor=self._executor,
+        )
+        if resumed is not None:
+            t, u, y = self.log.samples(session_id)
+            for k in range(len(t)):
+                stream.feed(Sample(t[k], u[k], y[k]))
+            log.info(
+                "%s: resumed live session %d at step %d (t = %s s)",
+                machine,
+                session_id,
+                stream.n_received,
+                None if not len(t) else f"{t[-1]:g}",
+            )
+        stream.asynchronous = self.asynchronous
+        self.sessions[machine] = _Session(
+            stream, session_id, expected, started_from, source, [], [], time.monotonic()
+        )
+        return stream
+
+    def feed(self, machine: str, sample: Sample) -> list[dict]:
+        """One sample of one machine (opens the machine on first use)."""
+        return self.feed_many([(machine, sample)])
+
+    def feed_many(self, items) -> list[dict]:
+        """Samples of several machines [(machine, Sample)]; ordinary steps run batched."""
+        messages: list[dict] = []
+        plain = []
+        for machine, sample in items:
+            stream = self.open(machine)
+            taken = stream.take_plain(sample)
+            if taken is None:
+                messages += stream.feed(sample)
+            else:
+                plain.append((stream, taken))
+        if len(plain) == 1:
+            stream, sample = plain[0]
+            messages.append(stream._commit(sample))
+        elif plain:
+            messages += self._step_batched(plain)
+        messages += self.poll()
+        self._record(messages)
+        self._publish(messages)
+        return messages
+
+    def _step_batched(self, plain) -> list[dict]:
+        twin = plain[0][0].twin
+        carries = EKFCarry(*[jnp.stack(parts) for parts in zip(*[s.carry for s, _ in plain])])
+        carries, steps = _step_many(
+            twin.spec,
+            carries,
+            np.array([x.inputs for _, x in plain]),
+            np.array([x.outputs for _, x in plain]),
+            np.array([s.theta for s, _ in plain]),
+            *plain[0][0]._constants(),
+            functions=twin.functions,
+        )
+        steps = jax.device_get(steps)
+        out = []
+        for i, (stream, sample) in enumerate(plain):
+            carry = EKFCarry(*[part[i] for part in carries])
+            step = type(steps)(*[part[i] for part in steps])
+            out.append(stream._commit(sample, step, carry))
+        return out
+
+    def poll(self) -> list[dict]:
+        """Messages from EM results that landed (replayed held samples), all machines."""
+        out = []
+        for session in self.sessions.values():
+            out += session.stream.poll()
+        return out
+
+    def poll_and_publish(self) -> list[dict]:
+        messages = self.poll()
+        self._record(messages)
+        self._publish(messages)
+        return messages
+
+    # ------------------------------------------------------------------ #
+    def _record(self, messages: list[dict]) -> None:
+        if self.log is None:
+            return
+        now = time.monotonic()
+        for m in messages:
+            session = self.sessions.get(m.get("machine"))
+            if session is None or m.get("provisional") or "step" not in m:
+                continue
+            u = np.array(list(m["inputs"].values()), dtype=float)
+            y = np.array(list(m["measured_outputs"].values()), dtype=float)
+            session.unsaved.append((m["step"], m["time_s"], u, y, m))
+            session.unsaved_events += m.get("events", [])
+        for session in self.sessions.values():
+            if session.unsaved and now - session.last_flush >= self.commit_every_s:
+                self._flush(session)
+
+    def _flush(self, session: _Session) -> None:
+        if self.log is None or session.session_id is None:
+            return
+        self.log.append(session.session_id, session.unsaved, session.unsaved_events)
+        session.unsaved, session.unsaved_events = [], []
+        session.last_flush = time.monotonic()
+
+    def flush(self) -> None:
+        """Write every committed step not yet stored."""
+        for session in self.sessions.values():
+            self._flush(session)
+
+    def close(self, machine: str) -> int | None:
+        """End of the machine's print: finish the twin, store the print; its registry id."""
+        import pandas as pd
+
+        from ajtwin.io.records import PrintRecord
+        from ajtwin.store.registry import record_hash
+
+        session = self.sessions.pop(machine)
+        stream = session.stream
+        messages = stream.finish()
+        self._record_into(session, messages)
+        self._flush(session)
+        self._publish(messages)
+        if self.registry is None or session.session_id is None:
+            return None
+        print_id = None
+        arrays = stream.arrays()
+        if len(arrays["time_s"]) >= 2:
+            from types import SimpleNamespace
+
+            from ajtwin.store.chain import judge_run
+
+            status, reason = judge_run(
+                SimpleNamespace(
+                    means=arrays["means"],
+                    time_s=arrays["time_s"],
+                    start_mean=stream.start_mean,
+                    end_mean=arrays["means"][-1],
+                    end_cov=arrays["covariances"][-1],
+                )
+            )
+            data = {"time_s": arrays["time_s"]}
+            data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
+            data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
+            record = PrintRecord(
+                pd.DataFrame(data),
+                {
+                    "machine_id": machine,
+                    "source": session.source,
+                    "live_session": session.session_id,
+                },
+            )
+            print_id, _ = save_print(
+                self.registry,
+                machine,
+                record,
+                digest=record_hash(record),
+                source=f"live session {session.session_id} ({session.source})",
+                arrays=arrays,
+                events=list(stream.detector.events),
+                start=(stream.start_mean, stream.start_cov),
+                end=(arrays["means"][-1], arrays["covariances"][-1]),
+                theta_before=stream.theta_before,
+                theta_after=stream.theta,
+                expected_last_seq=session.expected_last_seq,
+                started_from=session.started_from,
+                status=status,
+                status_reason=reason,
+            )
+        self.log.close_session(session.session_id, print_id)
+        return print_id
+
+    def _record_into(self, session: _Session, messages: list[dict]) -> None:
+        for m in messages:
+            if "step" in m and not m.get("provisional"):
+                u = np.array(list(m["inputs"].values()), dtype=float)
+                y = np.array(list(m["measured_outputs"].values()), dtype=float)
+                session.unsaved.append((m["step"], m["time_s"], u, y, m))
+            session.unsaved_events += m.get("events", [])
+
+    def shutdown(self) -> None:
+        """Write what is committed and stop the EM workers (sessions stay open: resumable)."""
+        self.flush()
+        self._executor.shutdown(wait=False, cancel_futures=True)

@@ -5,21 +5,19 @@ engine, :func:`ajtwin.live.engine.ingest_record`, shared with the live twin;
 ``ingest_record``/``ingest_file`` here are compatibility wrappers. :func:`join_video`
 fills a record's linewidth/overspray from the alignment-camera video.
 
-Between prints the fast states restart (a new atomizer run: droplet size and aerosol
-fraction re-equilibrate within seconds to minutes), so their carried-over variance is
-widened by :data:`BETWEEN_PRINT_STD`; V_l, ΔR_T and ΔR_N carry over as they are.
+Which print the next one starts from, how the fast states' variance is widened between
+prints and when a print is kept out of the chain (a state outside the physical range):
+:mod:`ajtwin.store.chain`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-
+from ajtwin.store.chain import BETWEEN_PRINT_STD, carry_over
 from ajtwin.store.registry import Registry
 
-#: σ added between prints to d_a [µm] and φ_A [relative]; others carry over unchanged.
-BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.2}
+__all__ = ["BETWEEN_PRINT_STD", "carry_over", "ingest_record", "ingest_file", "join_video"]
 
 
 @dataclass
@@ -35,15 +33,6 @@ class IngestResult:
     seconds: float = 0.0
     run: object = None  # TwinRun (None for a duplicate)
     detection: object = None  # DetectionResult (None for a duplicate)
-
-
-def carry_over(end_mean, end_cov) -> tuple[np.ndarray, np.ndarray]:
-    """Start state of the next print from the previous end state (see module docstring)."""
-    mean = np.asarray(end_mean, dtype=float).copy()
-    cov = np.asarray(end_cov, dtype=float).copy()
-    cov[0, 0] += BETWEEN_PRINT_STD["droplet_diameter_um"] ** 2
-    cov[4, 4] += (BETWEEN_PRINT_STD["aerosol_fraction_relative"] * mean[4]) ** 2
-    return mean, cov
 
 
 def join_video(
@@ -71,7 +60,7 @@ def join_video(
 
     from ajtwin.io.records import PrintRecord
     from ajtwin.vision.extract import LineExtractor, annotate, open_source
-    from ajtwin.vision.join import join_features
+    from ajtwin.vision.join import check_linewidth_scale, join_features
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)
@@ -93,6 +82,8 @@ def join_video(
     ):
         counts = features["status"].value_counts().to_dict() if len(features) else {}
         raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
+    good = features["status"].isin(("ok", "ok_std_fallback", "few_batches"))
+    check_linewidth_scale(features.loc[good, "linewidth_um"], um_per_px, video)
     joined, summary = join_features(
         record.data,
         features,
@@ -101,19 +92,6 @@ def join_video(
     meta = dict(record.meta)
     meta["vision"] = {"video": str(video), **summary}
     return PrintRecord(joined, meta), summary, features, annotated
-
-
-def start_from_registry(registry: Registry, machine: str):
-    """Where a machine's next print starts: (start, theta, expected_last_seq, last print).
-
-    ``start`` is the carried-over (mean, cov) of the last print (None: no print yet, the
-    twin fits the initial state), ``theta`` the last θ (None: zeros).
-    """
-    last = registry.last_print(machine)
-    if last is None:
-        return None, None, None, None
-    start = carry_over(last["end_mean"], last["end_cov"])
-    return start, np.asarray(last["theta_after"], dtype=float), last["seq"], last
 
 
 def ingest_record(registry: Registry, machine: str, record, **kwargs):

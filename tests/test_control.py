@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from importlib import resources
 
 import numpy as np
 import pytest
@@ -20,7 +21,6 @@ from ajtwin.apps.control import (
     reachable_linewidth,
 )
 from ajtwin.estimation import Twin
-from ajtwin.estimation.twin import predict
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import euler_step, output_function
 
@@ -240,11 +240,7 @@ def test_settings_file_is_validated(tmp_path):
     s = ControlSettings.load()
     assert s.period_s == 10 and s.move_starts_s == (0, 10, 30)
     bad = tmp_path / "c.toml"
-    text = (
-        __import__("importlib.resources", fromlist=["files"]).files("ajtwin")
-        / "data"
-        / "control.toml"
-    ).read_text()
+    text = (resources.files("ajtwin") / "data" / "control.toml").read_text()
     bad.write_text(text.replace("move_starts_s = [0, 10, 30]", "move_starts_s = [0, 30, 10]"))
     with pytest.raises(ValueError, match="move_starts_s"):
         ControlSettings.load(bad)

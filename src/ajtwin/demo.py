@@ -427,6 +427,11 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live, port, kee
         pass
 
 
+def _wait_for_ctrl_c():
+    while True:
+        time.sleep(1.0)
+
+
 def _live_demo(out_dir, seed, port=0, keep_open=False):
     import logging
 
@@ -457,8 +462,7 @@ def _live_demo(out_dir, seed, port=0, keep_open=False):
             # the dashboard thread serves on; this thread only waits for Ctrl-C
             click.echo(f"  dashboard still at {summary['dashboard_url']}; Ctrl-C stops it")
             try:
-                while True:
-                    time.sleep(1.0)
+                _wait_for_ctrl_c()
             except KeyboardInterrupt:
                 click.echo("  stopped")
         else:

@@ -187,19 +187,28 @@ class Twin:
     config : TwinConfig
     theta : array (5,), optional
         Starting drift parameters (the machine's learned θ; default zeros).
+    calibration : Calibration, optional
+        The machine's calibration of the output model (SPEC §11); None = the nominal
+        machine (the packaged model exactly).
     """
 
-    def __init__(self, model: DigitalModel, config: TwinConfig, theta=None):
+    def __init__(self, model: DigitalModel, config: TwinConfig, theta=None, calibration=None):
         self.model = model
         self.config = config
         self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
-        self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
+        self.calibration = calibration
+        coefficients = jnp.asarray(model.coefficient_matrix)
+        if calibration is not None:
+            from ajtwin.model.calibration import CalibratedCoefficients
+
+            coefficients = CalibratedCoefficients(coefficients, calibration)
+        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING)
         self.functions = model_functions(config.method)
 
     @classmethod
-    def default(cls, **config_overrides) -> Twin:
+    def default(cls, calibration=None, **config_overrides) -> Twin:
         model = DigitalModel.default()
-        return cls(model, TwinConfig.default(model, **config_overrides))
+        return cls(model, TwinConfig.default(model, **config_overrides), calibration=calibration)
 
     # ------------------------------------------------------------------ #
     @property
@@ -207,8 +216,17 @@ class Twin:
         return np.diag(np.asarray(self.config.process_std) ** 2)
 
     @property
+    def measurement_std(self) -> np.ndarray:
+        std = np.asarray(self.config.measurement_std, dtype=float)
+        if self.calibration is not None:
+            # σ_Qm is relative to the nominal Q_m (noise.toml): it scales with the gain
+            std = std.copy()
+            std[4] *= abs(float(self.calibration.material_flow_gain))
+        return std
+
+    @property
     def measurement_var(self) -> np.ndarray:
-        return np.asarray(self.config.measurement_std) ** 2
+        return self.measurement_std**2
 
     @property
     def theta_prior_precision(self) -> np.ndarray:
@@ -219,10 +237,10 @@ class Twin:
         c = self.config
         return fit_initial_state(
             self.model.params,
-            jnp.asarray(self.model.coefficient_matrix),
+            self.spec.coefficients,
             inputs,
             measurements,
-            np.asarray(c.measurement_std),
+            self.measurement_std,
             n_samples=c.initial_samples,
             vial_fill_ml=c.vial_fill_ml,
             vial_fill_std_ml=c.vial_fill_std_ml,

@@ -54,6 +54,14 @@ def _parse_seeds(text: str) -> list[int]:
 )
 @click.option("--vial-ml", default=1.0, show_default=True, help="Vial fill level at the start.")
 @click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="The machine's calibration TOML (`ajtwin machine commission --out`); default: "
+    "the nominal model.",
+)
+@click.option(
     "--theta-out",
     type=click.Path(dir_okay=False),
     default=None,
@@ -76,6 +84,7 @@ def estimate(
     gate,
     noise_profile,
     vial_ml,
+    calibration_path,
     theta_out,
     plot_path,
 ):
@@ -89,7 +98,16 @@ def estimate(
         record = read_record(record_path)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
+    calibration = None
+    if calibration_path is not None:
+        from ajtwin.model.calibration import read_calibration_file
+
+        try:
+            calibration, _ = read_calibration_file(calibration_path)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
     twin = Twin.default(
+        calibration=calibration,
         noise_profile=noise_profile,
         em=em,
         window_s=window,

@@ -91,6 +91,7 @@ class CommissioningResult:
     mean_nis: float
     end_state: np.ndarray
     end_state_std: np.ndarray
+    end_state_cov: np.ndarray = None  # (5, 5): the machine's state when commissioning ended
     notes: list = field(default_factory=list)
 
     def table(self) -> list[dict]:
@@ -367,5 +368,6 @@ def commission(
         mean_nis=float(np.mean(nis / n_meas)),
         end_state=end[:N_STATES],
         end_state_std=np.sqrt(np.maximum(np.diag(end_cov)[:N_STATES], 0.0)),
+        end_state_cov=end_cov[:N_STATES, :N_STATES],
         notes=notes,
     )

@@ -112,6 +112,10 @@ def show(name, store):
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
+    from ajtwin.store.calibration_cli import describe_calibration
+
+    for line in describe_calibration(reg, name):
+        click.echo(line)
     if last is None:
         click.echo("  no prints yet: the first ingest starts from the initial-state fit")
         return
@@ -236,3 +240,11 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
             )
     else:
         click.echo("  no anomalies")
+
+
+# commissioning, maintenance and calibration history (SPEC §11; ajtwin.store.calibration_cli)
+from ajtwin.store.calibration_cli import calibrations, commission, maintain  # noqa: E402
+
+machine.add_command(commission)
+machine.add_command(maintain)
+machine.add_command(calibrations)

@@ -153,15 +153,39 @@ def ingest_record(
             summary=existing["summary"],
             seconds=time.perf_counter() - t0,
         )
+    from ajtwin.store.calibration import active_calibration, apply_maintenance, pending_maintenance
+
     last = registry.last_print(machine)
-    twin = Twin.default(**(twin_overrides or {}))
+    # the machine's calibration (SPEC §11): None = never commissioned, the nominal model
+    active = active_calibration(registry, machine)
+    overrides = dict(twin_overrides or {})
+    calibration = None if active is None else active["calibration"]
+    started_from = "initial fit" if last is None else f"print {last['seq']}"
     if last is None:
         start = None
         expected = None
     else:
         start = carry_over(last["end_mean"], last["end_cov"])
-        twin.theta = np.asarray(last["theta_after"], dtype=float)
         expected = last["seq"]
+    theta = np.zeros(5) if last is None else np.asarray(last["theta_after"], dtype=float)
+    since = 0.0
+    if active is not None and (last is None or active["after_print_seq"] >= last["seq"]):
+        # commissioned since the last print: start where commissioning left the machine
+        start = carry_over(active["end_mean"], active["end_cov"])
+        since = active["created_unix"]
+        started_from = f"commissioning {active['id']}"
+    events = pending_maintenance(registry, machine, since)
+    if events:
+        if start is None:
+            refills = [e["vial_refilled_ml"] for e in events if e["vial_refilled_ml"] is not None]
+            if refills:
+                overrides.setdefault("vial_fill_ml", refills[-1])
+        else:
+            mean, cov, theta = apply_maintenance(start[0], start[1], theta, events)
+            start = (mean, cov)
+        started_from += " + maintenance"
+    twin = Twin.default(calibration=calibration, **overrides)
+    twin.theta = theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
     detection = detect_run(run, record, detector_settings)
@@ -203,7 +227,9 @@ def ingest_record(
         "mean_nis": float(np.nanmean(np.asarray(f.nis))),
         "n_anomalies": len(detection.events),
         "em_updates": int(len(hist)),
-        "started_from": "initial fit" if last is None else f"print {last['seq']}",
+        "started_from": started_from,
+        "calibration_id": None if active is None else int(active["id"]),
+        "maintenance": events,
     }
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     if run.initial is not None:

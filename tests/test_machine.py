@@ -41,7 +41,9 @@ def test_identity_calibration_gives_the_nominal_outputs_exactly(model):
             rng.uniform(1e-7, 1e-6, 20),
         ]
     )
-    u = np.column_stack([rng.uniform(300, 440, 20), rng.uniform(15, 35, 20), rng.uniform(40, 60, 20)])
+    u = np.column_stack(
+        [rng.uniform(300, 440, 20), rng.uniform(15, 35, 20), rng.uniform(40, 60, 20)]
+    )
     matrix = model.coefficient_matrix
     plain = np.asarray(output_function(x, u, model.params, matrix))
     calibrated = np.asarray(

@@ -126,6 +126,11 @@ def estimate(
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
     frame = run.to_frame(smoothed=smooth)
+    from ajtwin.apps.mismatch import assess_run
+
+    # the guard: never return states from a model that does not fit without saying so
+    mismatch = assess_run(run, record)
+    frame["mismatch"] = mismatch.flags
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(out, index=False)
@@ -137,6 +142,15 @@ def estimate(
     click.echo(f"end state: {end}")
     mean_nis = float(np.nanmean(frame["nis"] / np.maximum(frame["n_measured"], 1)))
     click.echo(f"mean NIS per measured output: {mean_nis:.2f} (1 = consistent)")
+    if mismatch.mismatch:
+        click.echo(f"WARNING {mismatch.message}", err=True)
+        click.echo(
+            "         the states above are not trustworthy for this machine "
+            "(column 'mismatch' marks the seconds)",
+            err=True,
+        )
+    else:
+        click.echo("model–machine fit: ok (no mismatch found)")
     if reinit:
         click.echo(
             f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True

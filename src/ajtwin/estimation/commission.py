@@ -114,11 +114,15 @@ def parse_known(items) -> dict:
     known = {}
     for item in items or ():
         if "=" not in item:
-            raise ValueError(f"--known {item!r}: write NAME=VALUE±STD, e.g. droplet_diameter_um=3.5±0.2")
+            raise ValueError(
+                f"--known {item!r}: write NAME=VALUE±STD, e.g. droplet_diameter_um=3.5±0.2"
+            )
         name, value = item.split("=", 1)
         name = name.strip()
         if name not in STATE_NAMES:
-            raise ValueError(f"--known {item!r}: unknown state {name!r} (known: {', '.join(STATE_NAMES)})")
+            raise ValueError(
+                f"--known {item!r}: unknown state {name!r} (known: {', '.join(STATE_NAMES)})"
+            )
         text = value.replace("+-", "±").replace("+/-", "±")
         mean_text, _, std_text = text.partition("±")
         try:
@@ -127,7 +131,9 @@ def parse_known(items) -> dict:
         except ValueError:
             raise ValueError(f"--known {item!r}: VALUE and STD must be numbers") from None
         if std is None or not std > 0:
-            raise ValueError(f"--known {item!r}: give a positive uncertainty, e.g. {name}={mean}±0.1")
+            raise ValueError(
+                f"--known {item!r}: give a positive uncertainty, e.g. {name}={mean}±0.1"
+            )
         known[name] = (mean, std)
     return known
 
@@ -177,9 +183,7 @@ def check_commissioning_print(inputs, measurements, checks: dict, where: str = "
                 f"{checks['min_pressure_samples']})"
             )
     if problems:
-        raise CommissioningError(
-            f"{where} cannot commission this machine: " + "; ".join(problems)
-        )
+        raise CommissioningError(f"{where} cannot commission this machine: " + "; ".join(problems))
 
 
 def residual_inflation(result, measurements) -> np.ndarray:
@@ -330,9 +334,9 @@ def commission(
         cal_mean = end[N_STATES:]
     end_cov = np.asarray(result.covariances[-1])
     inflation = residual_inflation(result, measurements)
-    cal_std = np.sqrt(np.maximum(np.diag(end_cov)[N_STATES:], 0.0)) * inflation[
-        list(PARAMETER_OUTPUT)
-    ]
+    cal_std = (
+        np.sqrt(np.maximum(np.diag(end_cov)[N_STATES:], 0.0)) * inflation[list(PARAMETER_OUTPUT)]
+    )
     # φ_A is held near H/Q_c by the model, so the filter's σ of the Q_m gain ignores that
     # the generation model itself is uncertain: add that (the aerosol prior) in quadrature
     if "aerosol_fraction" not in known:
@@ -340,7 +344,9 @@ def commission(
         relative = prior["aerosol_fraction_relative_std"]["value"]
         cal_std[gain_index] = np.hypot(cal_std[gain_index], relative * cal_mean[gain_index])
     ratio = float(checks["determined_ratio"])
-    determined = {n: bool(cal_std[i] < ratio * cal_prior_std[i]) for i, n in enumerate(CALIBRATION_NAMES)}
+    determined = {
+        n: bool(cal_std[i] < ratio * cal_prior_std[i]) for i, n in enumerate(CALIBRATION_NAMES)
+    }
     notes = []
     for name in ("linewidth_offset_um", "overspray_offset_um"):
         if "droplet_diameter_um" not in known:

@@ -62,8 +62,7 @@ import click
     "--machine",
     "machine_profile",
     default=None,
-    help="A machine profile instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or "
-    "'nominal'.",
+    help="A machine profile instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or 'nominal'.",
 )
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
 def simulate(

@@ -228,6 +228,9 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
         f"({result.n_samples} s, {result.seconds:.1f} s wall, "
         f"started from {result.summary['started_from']})"
     )
+    status = result.summary.get("mismatch", {})
+    if status.get("mismatch"):
+        click.echo(f"  WARNING {status['message']}", err=True)
     end = result.summary["end_state"]
     for key, short, unit in STATE_LABELS:
         click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")

@@ -189,6 +189,11 @@ def ingest_record(
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
     detection = detect_run(run, record, detector_settings)
+    from ajtwin.apps.mismatch import assess_run, relabel_events
+
+    # a model that does not fit the machine is reported as such, never as a fault
+    mismatch = assess_run(run, record)
+    detection.events = relabel_events(detection.events, mismatch)
 
     f = run.filtered
     arrays = {
@@ -204,6 +209,7 @@ def ingest_record(
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
         "theta_per_step": run.theta_per_step,
+        "mismatch": mismatch.flags,
     }
     hist = run.theta_history
     arrays["theta_history_time_s"] = hist["time_s"].to_numpy(float)
@@ -230,6 +236,7 @@ def ingest_record(
         "started_from": started_from,
         "calibration_id": None if active is None else int(active["id"]),
         "maintenance": events,
+        "mismatch": mismatch.to_dict(),
     }
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     if run.initial is not None:

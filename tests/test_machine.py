@@ -175,3 +175,25 @@ def test_parse_known():
         parse_known(["droplet=3.5±0.2"])
     with pytest.raises(ValueError, match="positive uncertainty"):
         parse_known(["droplet_diameter_um=3.5"])
+
+
+def test_second_truth_generator_is_different_reproducible_and_conserves_ink():
+    from ajtwin.model import load_parameters
+
+    alt = run_virtual_print("exp1", seed=9, duration_min=20.0, truth_generator="alt")
+    again = run_virtual_print("exp1", seed=9, duration_min=20.0, truth_generator="alt")
+    first = run_virtual_print("exp1", seed=9, duration_min=20.0)
+    assert alt.record.data.equals(again.record.data)
+    assert alt.record.meta["truth_generator"] == "alt"
+    assert not np.allclose(alt.states[:, 0], first.states[:, 0])
+    # ink balance: what left the vial is in the tube, in the nozzle or on the substrate
+    p = load_parameters()
+    s = alt.states
+    r_t, r_n = p.tube_radius, p.nozzle_radius
+    tube = np.pi * p.tube_length * (r_t**2 - (r_t - s[:, 2] * 1e-6) ** 2) * 1e6  # mL
+    nozzle = np.pi * p.nozzle_length * (r_n**2 - (r_n - s[:, 3] * 1e-6) ** 2) * 1e6
+    left_vial = s[0, 1] - s[:, 1]
+    balance = left_vial - tube - nozzle - alt.substrate_ink_mL
+    assert np.max(np.abs(balance)) < 1e-3 * left_vial[-1]
+    with pytest.raises(ValueError, match="truth generator"):
+        run_virtual_print("exp1", seed=9, duration_min=1.0, truth_generator="other")

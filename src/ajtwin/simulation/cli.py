@@ -64,6 +64,15 @@ import click
     default=None,
     help="A machine profile instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or 'nominal'.",
 )
+@click.option(
+    "--truth",
+    "truth_generator",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="Truth generator: 'alt' is the second, structurally different one (evaluation only; "
+    "ajtwin.simulation.truth_alt).",
+)
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
 def simulate(
     scenario,
@@ -74,6 +83,7 @@ def simulate(
     continue_from,
     machine_seed,
     machine_profile,
+    truth_generator,
     list_only,
 ):
     """Virtual printer: simulate one print with known truth into a record file.
@@ -111,6 +121,7 @@ def simulate(
             continue_from=previous,
             machine=machine_profile,
             machine_seed=machine_seed,
+            truth_generator=truth_generator,
         )
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -323,6 +323,7 @@ def run_virtual_print(
     coefficients=None,
     machine=None,
     machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> VirtualPrint:
     """Simulate one print and keep the full truth (see :func:`simulate`)."""
     if continue_from is not None:
@@ -350,6 +351,12 @@ def run_virtual_print(
         )
     )
     processes = draw_processes(scenario, streams)
+    if truth_generator not in ("model", "alt"):
+        raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_processes
+
+        processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
 
     line_factors = 1.0 + cfg["truth"]["line_coefficient_sd"] * streams[
@@ -370,22 +377,44 @@ def run_virtual_print(
             aerosol0,
         ]
     )
-    truth = integrate_truth(
-        x0,
-        processes.droplet_um,
-        processes.head_inputs,
-        processes.drivers,
-        params,
-        line_coefficients,
-        substeps=int(cfg["truth"]["integration_substeps"]),
-    )
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import integrate_alt_truth
+
+        truth = integrate_alt_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+        )
+        truth["generation_ml_s"] = np.asarray(
+            true_generation(
+                processes.head_inputs, truth["states"][:, 1], processes.drivers[:, 0], params
+            )
+        )
+    else:
+        truth = integrate_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+            substeps=int(cfg["truth"]["integration_substeps"]),
+        )
     states = truth["states"]
     if not np.isfinite(states).all():
         raise FloatingPointError(f"scenario {scenario.name!r}: the true states became non-finite")
     outputs_true = truth["outputs"]
     # this machine's plumbing, gauges, line model and camera (identity: nominal machine)
     outputs_true = deviation.apply(outputs_true, states, processes.head_inputs, params)
-    inputs, outputs = measure(scenario, processes, outputs_true, streams)
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_measure
+
+        inputs, outputs = alt_measure(scenario, processes, outputs_true, int(seed))
+    else:
+        inputs, outputs = measure(scenario, processes, outputs_true, streams)
 
     n = scenario.duration_s
     columns = {TIME_COLUMN: np.arange(n, dtype=float)}
@@ -414,6 +443,8 @@ def run_virtual_print(
         },
         "scenario_config": cfg,
     }
+    if truth_generator != "model":
+        meta["truth_generator"] = truth_generator
     if not deviation.is_nominal:
         meta["machine"] = deviation.as_dict()
         if meta["machine_id"] == "virtual-aj300-01":
@@ -440,6 +471,7 @@ def simulate(
     continue_from: PrintRecord | None = None,
     machine=None,
     machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> PrintRecord:
     """Simulate one print on the virtual printer.
 
@@ -467,6 +499,9 @@ def simulate(
         an explicit deviation (:mod:`ajtwin.simulation.machine`). Default: nominal machine.
     machine_seed : int, optional
         Draw the machine's deviations from this seed (independent of ``seed``).
+    truth_generator : {"model", "alt"}
+        ``"alt"``: the second, structurally different truth generator
+        (:mod:`ajtwin.simulation.truth_alt`), for evaluation only.
 
     Returns
     -------
@@ -489,4 +524,5 @@ def simulate(
         continue_from,
         machine=machine,
         machine_seed=machine_seed,
+        truth_generator=truth_generator,
     ).record

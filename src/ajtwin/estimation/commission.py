@@ -92,6 +92,7 @@ class CommissioningResult:
     end_state: np.ndarray
     end_state_std: np.ndarray
     end_state_cov: np.ndarray = None  # (5, 5): the machine's state when commissioning ended
+    calibration_cov: np.ndarray = None  # (11, 11): Σ_c with the standard errors above
     notes: list = field(default_factory=list)
 
     def table(self) -> list[dict]:
@@ -343,6 +344,11 @@ def commission(
         gain_index = CALIBRATION_NAMES.index("material_flow_gain")
         relative = prior["aerosol_fraction_relative_std"]["value"]
         cal_std[gain_index] = np.hypot(cal_std[gain_index], relative * cal_mean[gain_index])
+    # Σ_c: the filter's correlations with the (inflated) standard errors
+    block = end_cov[N_STATES:, N_STATES:]
+    raw_std = np.sqrt(np.maximum(np.diag(block), 1e-300))
+    correlation = block / np.outer(raw_std, raw_std)
+    calibration_cov = correlation * np.outer(cal_std, cal_std)
     ratio = float(checks["determined_ratio"])
     determined = {
         n: bool(cal_std[i] < ratio * cal_prior_std[i]) for i, n in enumerate(CALIBRATION_NAMES)
@@ -375,5 +381,6 @@ def commission(
         end_state=end[:N_STATES],
         end_state_std=np.sqrt(np.maximum(np.diag(end_cov)[:N_STATES], 0.0)),
         end_state_cov=end_cov[:N_STATES, :N_STATES],
+        calibration_cov=calibration_cov,
         notes=notes,
     )

@@ -48,7 +48,8 @@ CREATE TABLE IF NOT EXISTS calibrations (
     priors_json TEXT NOT NULL,
     notes_json TEXT NOT NULL,
     end_mean_json TEXT NOT NULL,
-    end_cov_json TEXT NOT NULL
+    end_cov_json TEXT NOT NULL,
+    calibration_cov_json TEXT NOT NULL
 );
 CREATE TABLE IF NOT EXISTS maintenance_events (
     id INTEGER PRIMARY KEY,
@@ -93,7 +94,8 @@ def save_calibration(registry, machine: str, result, source: str) -> int:
     cur = registry._conn.execute(
         "INSERT INTO calibrations (machine_id, created_at, created_unix, source, after_print_seq,"
         " calibration_json, std_json, prior_std_json, determined_json, priors_json, notes_json,"
-        " end_mean_json, end_cov_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        " end_mean_json, end_cov_json, calibration_cov_json)"
+        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         (
             machine_id,
             created_at,
@@ -108,6 +110,7 @@ def save_calibration(registry, machine: str, result, source: str) -> int:
             json.dumps(result.notes),
             json.dumps(np.asarray(result.end_state, float).tolist()),
             json.dumps(np.asarray(result.end_state_cov, float).tolist()),
+            json.dumps(np.asarray(result.calibration_cov, float).tolist()),
         ),
     )
     return int(cur.lastrowid)
@@ -121,6 +124,7 @@ def _calibration_row(row) -> dict:
     out["calibration"] = calibration_from_dict(out["calibration"], "registry calibration")
     out["end_mean"] = np.asarray(out["end_mean"], float)
     out["end_cov"] = np.asarray(out["end_cov"], float)
+    out["calibration_cov"] = np.asarray(out["calibration_cov"], float)
     return out
 
 

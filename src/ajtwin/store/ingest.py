@@ -184,7 +184,8 @@ def ingest_record(
             mean, cov, theta = apply_maintenance(start[0], start[1], theta, events)
             start = (mean, cov)
         started_from += " + maintenance"
-    twin = Twin.default(calibration=calibration, **overrides)
+    calibration_cov = None if active is None else active["calibration_cov"]
+    twin = Twin.default(calibration=calibration, calibration_cov=calibration_cov, **overrides)
     twin.theta = theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)

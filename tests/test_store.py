@@ -236,14 +236,20 @@ def test_ingest_chain_and_cli(tmp_path):
     # the stored arrays are enough to re-run the detectors: same events as stored
     from ajtwin.apps.anomaly import detect_anomalies
 
-    a = reg.print_arrays(p2["id"])
-    again = detect_anomalies(
-        a["time_s"], a["measurements"], a["predicted_outputs"], a["innovation_variances"],
-        a["nis"], a["n_measured"], a["means"], a["predicted_means"], a["covariances"],
-    )  # fmt: skip
+    again = detect_anomalies(**reg.detector_inputs(p2["id"]))
     stored = reg.anomalies("lab")
-    assert len(again.events) == int((stored["seq"] == 2).sum())
-    assert a["means"].shape == (180, 5) and a["covariances"].shape == (180, 5, 5)
+    stored = stored[stored["seq"] == 2]
+    assert len(again.events) == len(stored)
+    assert [ev.detected_s for ev in again.events] == stored["detected_s"].tolist()
+    assert [ev.description for ev in again.events] == stored["description"].tolist()
+    # storage policy: every step's mean and σ, full covariances at key frames (every 60 s,
+    # the end, alarms); the last key frame is the stored end covariance, bit for bit
+    a = reg.print_arrays(p2["id"])
+    assert a["means"].shape == (180, 5) and a["stds"].shape == (180, 5)
+    assert {0, 60, 120, 179} <= set(a["covariance_steps"].tolist())
+    assert np.array_equal(a["covariance_keyframes"][-1], p2["end_cov"])
+    # means are kept as float32 (7 digits); the print row keeps the end state exactly
+    np.testing.assert_allclose(a["means"][-1], p2["end_mean"], rtol=1.2e-7, atol=0)
 
     res = runner.invoke(machine, ["show", "lab", "--store", store])
     assert res.exit_code == 0 and "last print: #2" in res.output

@@ -1,16 +1,101 @@
-"""JAX set-up shared by every JAX-using module: 64-bit floats on the CPU.
+"""JAX set-up shared by every JAX-using module: 64-bit floats on the CPU, and a
+persistent compilation cache.
 
 Import this module (``from ajtwin._jax import jax, jnp``) instead of ``jax``
-directly so that x64 is enabled before any array is created.
+directly so that x64 and the cache are set before any array is created.
+
+Compilation cache
+-----------------
+Every new process would otherwise compile the same filter, smoother and EM
+functions again (most of the wall time of ``ajtwin estimate``). The compiled
+executables are kept in the user's cache directory, one sub-directory per
+ajtwin and JAX version (an upgrade never reads stale entries), created with
+mode 0700 (not world-writable: a cache entry is executable code).
+
+* ``AJTWIN_NO_CACHE=1`` switches the cache off.
+* ``AJTWIN_CACHE_DIR`` replaces the base directory (default
+  ``$XDG_CACHE_HOME/ajtwin`` or ``~/.cache/ajtwin``; ``~/Library/Caches/ajtwin``
+  on macOS, ``%LOCALAPPDATA%\\ajtwin`` on Windows).
+
+Every compiled function is written (minimum compile time 0 s, minimum size
+0 bytes): the many small functions of an EM run add up to seconds otherwise.
+
+Examples
+--------
+>>> from ajtwin._jax import compilation_cache_dir
+>>> compilation_cache_dir() is None or compilation_cache_dir().name.startswith("jax-")
+True
 """
 
 import os
+import stat
+import sys
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
+from ajtwin import __version__  # noqa: E402
+
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["jax", "jnp"]
+_CACHE_DIR: Path | None = None
+
+
+def _user_cache_base() -> Path:
+    override = os.environ.get("AJTWIN_CACHE_DIR")
+    if override:
+        return Path(override).expanduser()
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "ajtwin"
+    if sys.platform.startswith("win"):
+        local = os.environ.get("LOCALAPPDATA")
+        return (Path(local) if local else Path.home() / "AppData" / "Local") / "ajtwin"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "ajtwin"
+
+
+def _private_directory(path: Path) -> bool:
+    """Create ``path`` (and parents) with mode 0700; False if it is not ours or is shared."""
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = path.stat()
+    if hasattr(os, "getuid") and info.st_uid != os.getuid():
+        return False
+    if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        os.chmod(path, 0o700)  # tighten a directory we own that someone made writable
+    return True
+
+
+def enable_compilation_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at the user's cache directory.
+
+    Returns the directory in use, or None when switched off (``AJTWIN_NO_CACHE``)
+    or when the directory cannot be created or is not owned by this user.
+    """
+    global _CACHE_DIR
+    if os.environ.get("AJTWIN_NO_CACHE", "").strip() not in ("", "0"):
+        return None
+    directory = _user_cache_base() / f"jax-{jax.__version__}-ajtwin-{__version__}"
+    try:
+        if not (_private_directory(directory.parent) and _private_directory(directory)):
+            return None
+    except OSError:
+        return None  # read-only home etc.: run without the cache
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    # write every entry: EM runs compile many small functions, each far below 1 s
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _CACHE_DIR = directory
+    return directory
+
+
+def compilation_cache_dir() -> Path | None:
+    """The persistent compilation cache directory in use (None: off)."""
+    return _CACHE_DIR
+
+
+enable_compilation_cache()
+
+__all__ = ["jax", "jnp", "compilation_cache_dir", "enable_compilation_cache"]

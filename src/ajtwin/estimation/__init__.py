@@ -3,11 +3,15 @@
 from ajtwin.estimation.em import m_step, run_em
 from ajtwin.estimation.filters import (
     DEFAULT_SCALING,
+    EKFCarry,
+    EKFStepOutput,
     FilterResult,
     ModelSpec,
     Scaling,
     SmootherResult,
     ekf,
+    ekf_init,
+    ekf_step,
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
@@ -15,6 +19,10 @@ from ajtwin.estimation.twin import Twin, TwinConfig, TwinRun
 
 __all__ = [
     "ekf",
+    "ekf_step",
+    "ekf_init",
+    "EKFCarry",
+    "EKFStepOutput",
     "rts_smoother",
     "run_em",
     "m_step",

@@ -8,6 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import BoundedFloat, check_vial_fill
+
 
 def _parse_seeds(text: str) -> list[int]:
     seeds = []
@@ -36,13 +38,22 @@ def _parse_seeds(text: str) -> list[int]:
     "--em/--no-em", default=True, show_default=True, help="Learn θ by EM while filtering."
 )
 @click.option("--smooth", is_flag=True, help="Write RTS-smoothed states instead of filtered.")
-@click.option("--window", default=600, show_default=True, help="EM window T [s].")
-@click.option("--every", default=300, show_default=True, help="EM update interval [s].")
+@click.option(
+    "--window", type=click.IntRange(min=2), default=600, show_default=True, help="EM window T [s]."
+)
+@click.option(
+    "--every",
+    type=click.IntRange(min=1),
+    default=300,
+    show_default=True,
+    help="EM update interval [s].",
+)
 @click.option(
     "--gate",
+    type=BoundedFloat(0.0, float("inf"), allow_inf=True),
     default=float("inf"),
     show_default=True,
-    help="Per-output innovation gate [σ]; inf = off.",
+    help="Per-output innovation gate [σ], > 0; inf = off.",
 )
 @click.option(
     "--noise",
@@ -52,7 +63,14 @@ def _parse_seeds(text: str) -> list[int]:
     show_default=True,
     help="Filter tuning profile (noise.toml).",
 )
-@click.option("--vial-ml", default=1.0, show_default=True, help="Vial fill level at the start.")
+@click.option(
+    "--vial-ml",
+    type=BoundedFloat(0.0, None),
+    callback=check_vial_fill,
+    default=1.0,
+    show_default=True,
+    help="Vial fill level at the start [mL], in (0, V_v).",
+)
 @click.option(
     "--calibration",
     "calibration_path",
@@ -155,11 +173,35 @@ def estimate(
         click.echo(
             f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True
         )
+    _report_unseen(run, n)
     if plot_path:
         from ajtwin.estimation.plots import estimate_figure
 
         estimate_figure(record, run, plot_path)
         click.echo(f"wrote {plot_path}")
+
+
+def _report_unseen(run, n: int) -> None:
+    """Say plainly which states no measured output saw (no camera, camera dropouts)."""
+    if run.initial is not None and run.initial.states_from_prior:
+        click.echo(f"warning: {run.initial.message}", err=True)
+    unseen = run.unseen_summary()
+    never = [name for name, count in unseen.items() if count == n]
+    sometimes = {name: count for name, count in unseen.items() if count < n}
+    if never:
+        click.echo(
+            f"warning: no output in this record measures {', '.join(never)} (no linewidth, "
+            "overspray or material flow): the twin cannot see them; their estimates follow "
+            "the model from the priors and their bands stay wide (columns seen_* = 0)",
+            err=True,
+        )
+    if sometimes:
+        parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
+        click.echo(
+            f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the model "
+            "alone and the bands widen (columns seen_* = 0)",
+            err=True,
+        )
 
 
 @click.command("experiment")

@@ -133,7 +133,10 @@ def run_em(
 
     Iterates E-step (EKF + RTS with θ⁽ⁱ⁾) and M-step until the change of the
     window's log-likelihood is below ``tolerance`` (absolute, nats per step)
-    or ``max_iterations`` is reached.
+    or ``max_iterations`` is reached. A non-finite θ or log-likelihood ends the
+    iterations and keeps the last good θ. The whole loop is one compiled
+    function (:func:`em_loop`), so a new process loads one executable from the
+    compilation cache instead of tracing every iteration's pieces.
 
     Returns
     -------
@@ -143,30 +146,92 @@ def run_em(
     """
     if theta_prior_precision is None:
         theta_prior_precision = np.zeros(np.asarray(theta0).shape[-1])
-    precision = jnp.asarray(theta_prior_precision, dtype=float)
-    theta = jnp.asarray(theta0, dtype=float)
-    n_steps = np.asarray(inputs).shape[0]
-    args = (prior_mean, prior_cov, inputs, measurements)
+    theta, iterations, converged, log_lik, filtered, smoothed = em_loop(
+        spec,
+        jnp.asarray(prior_mean, dtype=float),
+        jnp.asarray(prior_cov, dtype=float),
+        jnp.asarray(inputs, dtype=float),
+        jnp.asarray(measurements, dtype=float),
+        jnp.asarray(theta0, dtype=float),
+        jnp.asarray(process_cov, dtype=float),
+        jnp.asarray(measurement_cov, dtype=float),
+        jnp.asarray(theta_prior_precision, dtype=float),
+        jnp.asarray(max_iterations, dtype=int),
+        jnp.asarray(tolerance, dtype=float),
+        jnp.asarray(gate, dtype=float),
+        functions=functions,
+    )
+    return EMStep(
+        np.asarray(theta), int(iterations), bool(converged), float(log_lik), filtered, smoothed
+    )
+
+
+def em_loop(
+    spec,
+    prior_mean,
+    prior_cov,
+    inputs,
+    measurements,
+    theta0,
+    process_cov,
+    measurement_cov,
+    theta_prior_precision,
+    max_iterations,
+    tolerance,
+    gate,
+    functions=AJ_EULER,
+):
+    """The EM iterations of :func:`run_em` as a ``lax.while_loop`` (pure, jit-able).
+
+    State: (i, θ, filtered, smoothed, ℓ, stop, converged). Each pass runs the
+    M-step from the current smoother, then the E-step under the new θ; the new
+    iterate is accepted when θ and ℓ are finite, and the loop stops on a
+    rejected iterate, on |Δℓ|/T < ``tolerance``, or after ``max_iterations``.
+
+    Returns
+    -------
+    (θ (n_θ,), iterations, converged, ℓ, FilterResult, SmootherResult)
+    """
+    n_steps = inputs.shape[0]
+    data = (prior_mean, prior_cov, inputs, measurements)
     noise = (process_cov, measurement_cov, gate)
-    converged = False
-    iterations = 0
-    filtered, smoothed, log_lik = e_step(spec, *args, theta, *noise, functions=functions)
-    log_lik = float(log_lik)
-    for iteration in range(1, max_iterations + 1):
-        iterations = iteration
-        theta_new = m_step(spec, smoothed, inputs, process_cov, precision, functions)
+    filtered, smoothed, log_lik = e_step(spec, *data, theta0, *noise, functions=functions)
+    false = jnp.asarray(False)
+
+    def keep_going(state):
+        iteration, _, _, _, _, stop, _ = state
+        return ~stop & (iteration < max_iterations)
+
+    def one_iteration(state):
+        iteration, theta, filtered, smoothed, log_lik, _, _ = state
+        theta_new = m_step(spec, smoothed, inputs, process_cov, theta_prior_precision, functions)
         filtered_new, smoothed_new, log_lik_new = e_step(
-            spec, *args, theta_new, *noise, functions=functions
+            spec, *data, theta_new, *noise, functions=functions
         )
-        log_lik_new = float(log_lik_new)
-        if not np.isfinite(log_lik_new) or not np.all(np.isfinite(np.asarray(theta_new))):
-            break  # keep the last good θ
-        change = abs(log_lik_new - log_lik) / n_steps
-        theta, filtered, smoothed, log_lik = theta_new, filtered_new, smoothed_new, log_lik_new
-        if change < tolerance:
-            converged = True
-            break
-    return EMStep(np.asarray(theta), iterations, converged, log_lik, filtered, smoothed)
+        accept = jnp.isfinite(log_lik_new) & jnp.all(jnp.isfinite(theta_new))
+        converged = accept & (jnp.abs(log_lik_new - log_lik) / n_steps < tolerance)
+
+        def pick(new, old):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)
+
+        return (
+            iteration + 1,
+            pick(theta_new, theta),
+            pick(filtered_new, filtered),
+            pick(smoothed_new, smoothed),
+            pick(log_lik_new, log_lik),
+            ~accept | converged,
+            converged,
+        )
+
+    state = (jnp.asarray(0), theta0, filtered, smoothed, log_lik, false, false)
+    iterations, theta, filtered, smoothed, log_lik, _, converged = jax.lax.while_loop(
+        keep_going, one_iteration, state
+    )
+    return theta, iterations, converged, log_lik, filtered, smoothed
+
+
+em_loop = jax.jit(em_loop, static_argnames=("functions",))
 
 
 def e_step(

@@ -6,6 +6,12 @@ over the first n = 10 samples, with physical bounds. g does not depend on the
 vial level V_l at all, so the data cannot fix it: V_l is held at the operator's
 fill level (``vial_fill_ml``) with a prior standard deviation, which is also
 what the returned covariance says about it. Missing samples are skipped.
+
+A machine without a camera logs no L_w, L_o or Q_m: nothing then constrains d_a and φ_A.
+Given priors (``droplet_prior_um`` ± ``droplet_prior_std_um`` from ``noise.toml``), the
+fit starts them from those instead of refusing the print — d_a at its prior, φ_A at the
+generation model's steady state φ_ss(u₀, V_l) with a relative σ — and says so in
+``states_from_prior``; the deposits keep their priors as always (the pressures find them).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ class InitialFit(NamedTuple):
     n_samples: int
     success: bool
     message: str
+    states_from_prior: tuple = ()  # states no early sample constrained (prior start)
 
 
 _PHI_SCALE = 1e-7
@@ -58,6 +65,9 @@ def fit_initial_state(
     vial_fill_std_ml: float = 0.05,
     tube_prior_std_um: float = 1e-3,
     nozzle_prior_std_um: float = 0.05,
+    droplet_prior_um: float | None = None,
+    droplet_prior_std_um: float | None = None,
+    aerosol_prior_relative_std: float | None = None,
 ) -> InitialFit:
     """Weighted least-squares fit of x₀ over the first ``n_samples`` samples.
 
@@ -75,6 +85,9 @@ def fit_initial_state(
         Prior σ of the deposits, which the fit holds at 0 (A x₀ = 0): the
         EKF's initial covariance uses them so a machine whose nozzle is not
         clean can still be found from the pressures.
+    droplet_prior_um, droplet_prior_std_um, aerosol_prior_relative_std
+        Priors for a print with no line output in the first samples (module
+        docstring); without them such a print is refused.
 
     Returns
     -------
@@ -86,6 +99,19 @@ def fit_initial_state(
     y = np.asarray(measurements, dtype=float)[:n_samples]
     sigma = np.asarray(measurement_std, dtype=float)
     measured = np.isfinite(y)
+    if not measured[:, [0, 1, 4]].any() and droplet_prior_um is not None:
+        return _prior_start(
+            params,
+            u,
+            n_samples=len(y),
+            vial_fill_ml=vial_fill_ml,
+            vial_fill_std_ml=vial_fill_std_ml,
+            tube_prior_std_um=tube_prior_std_um,
+            nozzle_prior_std_um=nozzle_prior_std_um,
+            droplet_prior_um=droplet_prior_um,
+            droplet_prior_std_um=droplet_prior_std_um,
+            aerosol_prior_relative_std=aerosol_prior_relative_std,
+        )
     if not measured[:, [0, 1, 4]].any():
         raise ValueError(
             f"no linewidth, overspray or material-flow measurement in the first {len(y)} samples:"
@@ -142,4 +168,53 @@ def fit_initial_state(
         n_samples=int(len(y)),
         success=bool(result.success),
         message=str(result.message),
+    )
+
+
+def _prior_start(
+    params,
+    u,
+    *,
+    n_samples,
+    vial_fill_ml,
+    vial_fill_std_ml,
+    tube_prior_std_um,
+    nozzle_prior_std_um,
+    droplet_prior_um,
+    droplet_prior_std_um,
+    aerosol_prior_relative_std,
+) -> InitialFit:
+    """x₀ from priors alone: d_a ~ N(prior, σ²), φ_A ~ N(φ_ss(u₀, V_l), (rel σ · φ_ss)²)."""
+    if not (droplet_prior_std_um and droplet_prior_std_um > 0):
+        raise ValueError("a prior start needs droplet_prior_std_um > 0")
+    if not (aerosol_prior_relative_std and aerosol_prior_relative_std > 0):
+        raise ValueError("a prior start needs aerosol_prior_relative_std > 0")
+    phi = float(steady_aerosol_fraction(jnp.asarray(u[0]), vial_fill_ml, params))
+    if not (np.isfinite(phi) and AEROSOL_BOUNDS[0] <= phi <= AEROSOL_BOUNDS[1]):
+        raise ValueError(
+            f"the generation model's steady aerosol fraction {phi:.3g} at the first inputs "
+            f"{u[0].tolist()} is outside [{AEROSOL_BOUNDS[0]:g}, {AEROSOL_BOUNDS[1]:g}]: "
+            "no prior start"
+        )
+    mean = np.array([float(droplet_prior_um), vial_fill_ml, 0.0, 0.0, phi])
+    cov = np.diag(
+        [
+            float(droplet_prior_std_um) ** 2,
+            vial_fill_std_ml**2,
+            tube_prior_std_um**2,
+            nozzle_prior_std_um**2,
+            (float(aerosol_prior_relative_std) * phi) ** 2,
+        ]
+    )
+    return InitialFit(
+        mean=mean,
+        covariance=cov,
+        cost=0.0,
+        n_samples=int(n_samples),
+        success=True,
+        message=(
+            f"no linewidth, overspray or material-flow measurement in the first {n_samples} "
+            "samples: droplet diameter and aerosol fraction start from their priors"
+        ),
+        states_from_prior=("droplet_diameter_um", "aerosol_fraction"),
     )

@@ -33,7 +33,13 @@ from ajtwin.estimation.filters import (
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.estimation.record_checks import (
+    check_model_inputs,
+    check_output_scales,
+    observed_states,
+)
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
+from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import check_input
 
 
@@ -56,6 +62,10 @@ class TwinConfig:
     vial_fill_std_ml: float = 3e-3
     nozzle_prior_std_um: float = 0.05
     tube_prior_std_um: float = 1e-3
+    # priors of d_a and φ_A for a print without line outputs (no camera); None = refuse it
+    droplet_prior_um: float | None = None
+    droplet_prior_std_um: float | None = None
+    aerosol_prior_relative_std: float | None = None
     method: str = "euler"
 
     noise_profile: str = "calibrated"
@@ -98,6 +108,10 @@ class TwinConfig:
             initial["tube_prior_std_um"] = prior["tube_deposition_um"]
         if "nozzle_deposition_um" in prior:
             initial["nozzle_prior_std_um"] = prior["nozzle_deposition_um"]
+        if "droplet_diameter_mean_um" in prior:
+            initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
+            initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
+            initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
         base = cls(process, measurement, noise_profile=noise_profile, **initial)
         return replace(base, **overrides)
 
@@ -118,6 +132,20 @@ class TwinRun:
     end_cov: np.ndarray = field(default=None)
     # (T, 5, 5): what the calibration's own uncertainty adds (None: exact / uncalibrated)
     calibration_covariances: np.ndarray = field(default=None)
+    #: (T, 5) bool: some output measured at that second responds to the state
+    #: (record_checks.observed_states); False rows run on the model and priors alone.
+    seen: np.ndarray | None = None
+
+    def unseen_summary(self) -> dict[str, int]:
+        """State → seconds in which no measured output saw it (V_l, never measured, left out)."""
+        if self.seen is None:
+            return {}
+        counts = (~np.asarray(self.seen)).sum(axis=0)
+        return {
+            name: int(counts[i])
+            for i, name in enumerate(STATE_NAMES)
+            if counts[i] and name != "vial_volume_mL"
+        }
 
     @property
     def means(self) -> np.ndarray:
@@ -153,6 +181,9 @@ class TwinRun:
         frame["n_measured"] = np.asarray(self.filtered.n_measured)
         frame["log_likelihood"] = np.asarray(self.filtered.log_likelihood)
         frame["reinitialised"] = np.asarray(self.filtered.reinitialised)
+        if self.seen is not None:
+            for i, name in enumerate(STATE_NAMES):
+                frame["seen_" + name] = np.asarray(self.seen)[:, i]
         return frame
 
 
@@ -173,12 +204,13 @@ def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = 
 predict = jax.jit(predict, static_argnames=("functions",))
 
 
+# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def _concat(results: list[FilterResult]) -> FilterResult:
-    return FilterResult(*[jnp.concatenate(parts, axis=0) for parts in zip(*results)])
+    return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
 
 
 def _slice(result: FilterResult, stop: int) -> FilterResult:
-    return FilterResult(*[part[:stop] for part in result])
+    return FilterResult(*[np.asarray(part)[:stop] for part in result])
 
 
 def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
@@ -229,6 +261,7 @@ class Twin:
             coefficients = CalibratedCoefficients(coefficients, calibration)
         self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING)
         self.functions = model_functions(config.method)
+        self.limits = StateLimits.load(model.params)
 
     @classmethod
     def default(cls, calibration=None, calibration_cov=None, **config_overrides) -> Twin:
@@ -309,6 +342,9 @@ class Twin:
             vial_fill_std_ml=c.vial_fill_std_ml,
             tube_prior_std_um=c.tube_prior_std_um,
             nozzle_prior_std_um=c.nozzle_prior_std_um,
+            droplet_prior_um=c.droplet_prior_um,
+            droplet_prior_std_um=c.droplet_prior_std_um,
+            aerosol_prior_relative_std=c.aerosol_prior_relative_std,
         )
 
     def _predict(self, mean, cov, u, theta):
@@ -356,6 +392,16 @@ class Twin:
         """
         if record is not None:
             inputs, measurements, time_s = record.inputs, record.outputs, record.time_s
+            where = str(record.meta.get("source_file", "<record>"))
+            check_model_inputs(inputs, where, time_s)
+            check_output_scales(
+                self.model.params,
+                self.spec.coefficients,
+                inputs,
+                measurements,
+                self.config.vial_fill_ml,
+                where,
+            )
         inputs = check_input(np.asarray(inputs, dtype=float))
         measurements = np.asarray(measurements, dtype=float)
         n = len(inputs)
@@ -372,6 +418,15 @@ class Twin:
         else:
             mean, cov = (np.asarray(a, dtype=float) for a in start)
         start_mean, start_cov = mean.copy(), cov.copy()
+        seen = observed_states(
+            self.model.params,
+            self.spec.coefficients,
+            start_mean,
+            self.limits.upper - self.limits.lower,
+            inputs,
+            measurements,
+            self.config.measurement_std,
+        )
         c = self.config
         theta = self.theta.copy()
         history = []
@@ -405,9 +460,10 @@ class Twin:
                 pos = end
                 if pos >= window and pos < n:
                     w0 = pos - window
-                    full = _concat(pieces)
-                    prior_mean = np.asarray(full.predicted_means[w0])
-                    prior_cov = np.asarray(full.predicted_covariances[w0])
+                    # the piece holding step w0 (pieces are `every` long but the last)
+                    piece, offset = divmod(w0, every)
+                    prior_mean = pieces[piece].predicted_means[offset]
+                    prior_cov = pieces[piece].predicted_covariances[offset]
                     em = run_em(
                         self.spec,
                         prior_mean,
@@ -427,8 +483,8 @@ class Twin:
                     learned = {}
                     if c.learn_line_offsets or c.learn_output_noise:
                         learned = self._output_em(em.smoothed, inputs[w0:pos], measurements[w0:pos])
-                    last_mean = np.asarray(em.filtered.means[-1])
-                    last_cov = np.asarray(em.filtered.covariances[-1])
+                    last_mean = np.asarray(em.filtered.means)[-1]
+                    last_cov = np.asarray(em.filtered.covariances)[-1]
                     history.append(
                         {
                             "time_s": float(time_s[pos - 1]),
@@ -480,4 +536,5 @@ class Twin:
             end_mean=np.asarray(filtered.means[-1]),
             end_cov=np.asarray(filtered.covariances[-1]),
             calibration_covariances=calibration_covariances,
+            seen=seen,
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import click
@@ -57,3 +58,69 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
         return command
 
     return decorate
+
+
+class BoundedFloat(click.ParamType):
+    """A float inside (low, high) (or [low, high] with ``closed``); NaN is always refused.
+
+    ``inf`` passes only when ``high`` is ``inf`` and ``allow_inf`` is set (e.g. ``--gate inf``
+    = off). Click's FloatRange lets NaN through (every comparison with NaN is false), which
+    made ``--gate nan`` silently drop every measurement.
+
+    Examples
+    --------
+    >>> BoundedFloat(0.0, float("inf"), allow_inf=True).convert("inf", None, None)
+    inf
+    """
+
+    name = "float"
+
+    def __init__(
+        self,
+        low: float | None = None,
+        high: float | None = None,
+        *,
+        closed: bool = False,
+        allow_inf: bool = False,
+    ):
+        self.low, self.high, self.closed, self.allow_inf = low, high, closed, allow_inf
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, float | int) and not isinstance(value, bool):
+            number = float(value)
+        else:
+            try:
+                number = float(str(value).strip())
+            except ValueError:
+                self.fail(f"{value!r} is not a number", param, ctx)
+        if math.isnan(number):
+            self.fail("NaN is not a value", param, ctx)
+        if math.isinf(number) and not (self.allow_inf and number > 0):
+            self.fail(f"{number} is not a finite number", param, ctx)
+        low_ok = self.low is None or (number >= self.low if self.closed else number > self.low)
+        high_ok = (
+            self.high is None
+            or (math.isinf(number) and self.allow_inf)
+            or (number <= self.high if self.closed else number < self.high)
+        )
+        if not (low_ok and high_ok):
+            left, right = ("[", "]") if self.closed else ("(", ")")
+            low = "-inf" if self.low is None else f"{self.low:g}"
+            high = "inf" if self.high is None else f"{self.high:g}"
+            self.fail(f"{number:g} is outside {left}{low}, {high}{right}", param, ctx)
+        return number
+
+
+def check_vial_fill(ctx, param, value):
+    """Click callback: the vial fill level must be in (0, V_v) mL (V_v from parameters.toml)."""
+    if value is None:
+        return value
+    from ajtwin import units
+    from ajtwin.model import load_parameters
+
+    capacity = units.m3_to_ml(load_parameters().vial_volume)
+    if not 0.0 < value < capacity:
+        raise click.BadParameter(
+            f"{value:g} mL is outside (0, {capacity:g}) mL (the vial's capacity V_v)"
+        )
+    return value

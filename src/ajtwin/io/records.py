@@ -34,6 +34,7 @@ Examples
 from __future__ import annotations
 
 import copy
+import csv
 import json
 import math
 import tomllib
@@ -44,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from ajtwin.io.files import InputFileError, check_regular_file, read_toml_file
 
 FORMAT_VERSION = 1
 PARQUET_META_KEY = b"ajtwin"
@@ -81,6 +84,9 @@ RECORD_COLUMNS = (
 #: Columns a record must have. material_flow_mL_s may be absent (no height-profile
 #: CNN on that machine): it is then added as all-NaN with a warning.
 REQUIRED_COLUMNS = tuple(c for c in RECORD_COLUMNS if c != "material_flow_mL_s")
+#: The alignment camera's columns: a log may lack both (a machine without a camera; they
+#: are added as all-NaN with a warning), but not one of them (a camera gives both).
+CAMERA_COLUMNS = ("linewidth_um", "overspray_um")
 
 UNITS = {
     "time_s": "s",
@@ -158,6 +164,17 @@ PLAUSIBLE_RANGES = {
 # Columns with a lower bound of 0 can still reveal a unit slip through their median:
 # overspray of a real line is micrometres, not 0.03 (mm).
 MEDIAN_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
+
+#: Largest record file read (a week at 1 Hz is ~0.1 GB as CSV) and most rows a record may
+#: hold (~116 days at 1 Hz): bounds on memory, so a wrong file can never take the RAM.
+MAX_RECORD_BYTES = 4 << 30
+MAX_RECORD_ROWS = 10_000_000
+#: Fastest platen a record's metadata may state [mm/s]: AJ stages move ≤ ~200 mm/s.
+MAX_PLATEN_SPEED_MM_S = 1000.0
+#: Resampling may grow a table by at most this factor plus MAX_RESAMPLE_EXTRA_S grid
+#: seconds (real logs have gaps of minutes, not a time stamp in another clock or unit).
+MAX_RESAMPLE_GROWTH = 10
+MAX_RESAMPLE_EXTRA_S = 6 * 3600
 
 #: Time stamps closer than this to the 1 s grid count as regular.
 TIME_TOLERANCE_S = 1e-6
@@ -260,21 +277,19 @@ def load_aliases(path: str | Path | None = None) -> dict[str, str]:
     with (resources.files("ajtwin.io") / "aliases.toml").open("rb") as fh:
         tables.append(tomllib.load(fh))
     if path is not None:
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"alias file not found: {path}")
-        with path.open("rb") as fh:
-            try:
-                tables.append(tomllib.load(fh))
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{path}: not valid TOML: {exc}") from None
+        tables.append(read_toml_file(Path(path), what="alias"))
     mapping: dict[str, str] = {c.lower(): c for c in UNITS}
     for table in tables:
-        for canonical, names in table.get("aliases", {}).items():
+        aliases = table.get("aliases", {})
+        if not isinstance(aliases, dict):
+            raise ValueError(f"alias file {path}: [aliases] must be a table")
+        for canonical, names in aliases.items():
             if canonical not in UNITS:
                 raise ValueError(
                     f"alias file names unknown column {canonical!r}; known: {', '.join(UNITS)}"
                 )
+            if not isinstance(names, list):
+                raise ValueError(f"alias file {path}: aliases.{canonical} must be a list of names")
             for name in names:
                 mapping[str(name).strip().lower()] = canonical
     return mapping
@@ -313,15 +328,31 @@ def _row_label(df: pd.DataFrame, position: int, row_offset: int) -> str:
     return label
 
 
+def _as_text(series: pd.Series, where: str, column) -> pd.Series:
+    """A column as stripped text; bytes that are not UTF-8 (a binary column) are refused."""
+    try:
+        return series.astype("string").str.strip()
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise RecordError(
+            f"{where}: column {column!r} holds values that are not text or numbers "
+            f"({type(exc).__name__}: {str(exc)[:80]})"
+        ) from None
+
+
 def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
     out = {}
     for column in df.columns:
         series = df[column]
+        if pd.api.types.is_bool_dtype(series) or pd.api.types.is_complex_dtype(series):
+            # True/False or a+bj is no measurement, though NumPy would turn it into a number
+            raise RecordError(
+                f"{where}: column {column!r} has type {series.dtype}; expected real numbers"
+            )
         if pd.api.types.is_numeric_dtype(series):
             out[column] = series.astype(float)
             continue
         # empty strings / "nan" / "NA" are missing values; anything else must be a number
-        text = series.astype("string").str.strip()
+        text = _as_text(series, where, column)
         blank = text.isna() | text.str.lower().isin(["", "nan", "na", "n/a", "none", "null"])
         numbers = pd.to_numeric(text.where(~blank), errors="coerce")
         bad = numbers.isna() & ~blank
@@ -336,6 +367,14 @@ def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
 
 
 def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
+    if not any(c in df.columns for c in CAMERA_COLUMNS):
+        # a machine without an alignment camera: both line columns absent is a valid log
+        warnings.warn(
+            f"{where}: no {' or '.join(map(repr, CAMERA_COLUMNS))} column (no camera); added "
+            "as all-NaN — the twin starts droplet size and aerosol fraction from priors",
+            stacklevel=3,
+        )
+        df = df.assign(**{c: np.nan for c in CAMERA_COLUMNS})
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
     if missing:
         raise RecordError(
@@ -401,7 +440,7 @@ def _check_time(df: pd.DataFrame, where: str, row_offset: int) -> np.ndarray:
         position = int(np.flatnonzero(missing)[0])
         raise RecordError(
             f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': "
-            f"time stamp {t[position]!r} is missing; every row needs a time"
+            f"time stamp {float(t[position])} is missing; every row needs a time"
         )
     steps = np.diff(t)
     bad = steps <= 0
@@ -428,10 +467,22 @@ def _datetimes_to_seconds(df: pd.DataFrame, where: str) -> pd.DataFrame:
     if pd.api.types.is_datetime64_any_dtype(column):
         stamps = column
     else:
-        text = column.astype("string").str.strip()
+        text = _as_text(column, where, TIME_COLUMN)
         if pd.to_numeric(text, errors="coerce").notna().all():
             return df  # numbers stored as text; _to_numeric handles them
-        stamps = pd.to_datetime(text, errors="coerce", format="ISO8601")
+        # a zone (Z or ±hh:mm) on some stamps and not on others is ambiguous: refuse
+        zoned = text.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True).fillna(False)
+        if zoned.any() and not zoned.all():
+            with_zone = int(np.flatnonzero(zoned.to_numpy())[0])
+            without = int(np.flatnonzero(~zoned.to_numpy())[0])
+            raise RecordError(
+                f"{where}: column 'time_s': row {with_zone + 1} has a time zone and row "
+                f"{without + 1} has none; give every time stamp the same zone (or none)"
+            )
+        try:
+            stamps = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(zoned.any()))
+        except (ValueError, TypeError, OverflowError):
+            return df  # not dates pandas can read: let _to_numeric name the offending row
         if stamps.isna().any():
             return df  # not all dates: let _to_numeric name the offending row
     seconds = (stamps - stamps.iloc[0]).dt.total_seconds()
@@ -441,6 +492,26 @@ def _datetimes_to_seconds(df: pd.DataFrame, where: str) -> pd.DataFrame:
         stacklevel=3,
     )
     return df.assign(**{TIME_COLUMN: seconds.to_numpy(dtype=float)})
+
+
+def _check_resample_size(t: np.ndarray, where: str, df: pd.DataFrame, row_offset: int) -> None:
+    """Refuse a time column whose 1 s grid would be far larger than the table.
+
+    One time stamp in another clock or unit (epoch seconds, 1e300) would otherwise make
+    the resampler allocate a grid of billions of seconds; name the row of the largest jump.
+    """
+    n_grid = math.floor(t[-1] + TIME_TOLERANCE_S) - math.ceil(t[0] - TIME_TOLERANCE_S) + 1
+    limit = MAX_RESAMPLE_GROWTH * len(t) + MAX_RESAMPLE_EXTRA_S
+    if n_grid <= limit:
+        return
+    steps = np.diff(t)
+    position = int(np.argmax(steps)) + 1
+    raise RecordError(
+        f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': time stamp "
+        f"{t[position]:.6g} s jumps {steps[position - 1]:.6g} s after the previous row "
+        f"({t[position - 1]:.6g} s; median step {np.median(steps):.3g} s): a 1 s grid over "
+        f"{n_grid:.3g} s from {len(t)} rows is refused; is that row in another clock or unit?"
+    )
 
 
 def resample_to_seconds(
@@ -502,6 +573,7 @@ def validate_table(
         and abs(t[0] - round(t[0])) <= TIME_TOLERANCE_S
     )
     if not on_grid:
+        _check_resample_size(t, where, df, row_offset)
         df, summary = resample_to_seconds(df.reset_index(drop=True))
         warnings.warn(
             f"{where}: irregular time stamps (steps {steps.min():g}–{steps.max():g} s); "
@@ -547,26 +619,164 @@ def _json_safe(meta: dict) -> dict:
     return convert(meta)
 
 
-def _read_csv(path: Path) -> tuple[pd.DataFrame, dict, int]:
+def _sniff_text(path: Path, head: bytes) -> None:
+    """Refuse a file that is plainly not UTF-8 CSV text, saying what it looks like."""
+    if head.startswith(b"PAR1"):
+        raise RecordError(f"{path}: this is a Parquet file with a .csv name; rename it to .parquet")
+    half = max(len(head) // 2, 1)
+    utf16 = (
+        head.startswith((b"\xff\xfe", b"\xfe\xff"))
+        or max(head[0::2].count(0), head[1::2].count(0)) > 0.6 * half
+    )
+    if utf16:
+        raise RecordError(
+            f"{path}: the text is UTF-16 encoded; save the CSV as UTF-8 (e.g. Excel's "
+            "'CSV UTF-8') and read it again"
+        )
+    if b"\x00" in head:
+        line = head[: head.index(b"\x00")].count(b"\n") + 1
+        raise RecordError(f"{path}: line {line}: binary data (a NUL byte), not a CSV text file")
+
+
+def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bool]:
+    """Metadata, header lines, column names, data-row count and whether the last row is cut.
+
+    One streaming pass with the ``csv`` module (never the whole file in memory). Every
+    data line must have as many fields as the header: a short line in the middle is an
+    error naming the line; a short last line without a line end is a write that was cut
+    off (the logger died mid-line) and is dropped with a warning naming the line.
+    """
     meta: dict = {}
     header_lines = 0
-    with path.open("r", encoding="utf-8-sig") as fh:
-        for line in fh:
-            if not line.startswith("#"):
-                break
-            header_lines += 1
-            if line.startswith(CSV_META_PREFIX):
-                try:
-                    meta.update(json.loads(line[len(CSV_META_PREFIX) :]))
-                except json.JSONDecodeError as exc:
-                    raise RecordError(
-                        f"{path}: line {header_lines}: metadata is not valid JSON: {exc}"
-                    ) from None
+    line_number = 0
+    with path.open("rb") as raw:
+        _sniff_text(path, raw.read(4096))
+        if size:
+            raw.seek(size - 1)
+            ends_with_newline = raw.read(1) in (b"\n", b"\r")
+        else:
+            ends_with_newline = True
     try:
-        df = pd.read_csv(path, skiprows=header_lines, encoding="utf-8-sig")
+        with path.open("r", encoding="utf-8-sig", newline="") as fh:
+            for line in fh:
+                line_number += 1
+                if not line.startswith("#"):
+                    break
+                header_lines += 1
+                if line.startswith(CSV_META_PREFIX):
+                    try:
+                        value = json.loads(line[len(CSV_META_PREFIX) :])
+                    except (json.JSONDecodeError, RecursionError) as exc:
+                        raise RecordError(
+                            f"{path}: line {header_lines}: metadata is not valid JSON "
+                            f"(or nested too deeply): {str(exc)[:120]}"
+                        ) from None
+                    if not isinstance(value, dict):
+                        raise RecordError(
+                            f"{path}: line {header_lines}: metadata must be a JSON object "
+                            f'{{"key": value, ...}}, got {type(value).__name__} {value!r:.60}'
+                        )
+                    meta.update(value)
+            else:
+                raise RecordError(f"{path}: no table after the header")
+            header_line = header_lines + 1
+            columns = next(csv.reader([line]), [])
+            n_fields = len(columns)
+            reader = csv.reader(fh)
+            rows = 0
+            last_short = None
+            for fields in reader:
+                if not fields:
+                    continue  # blank line; pandas skips it too
+                line_number = header_line + reader.line_num
+                rows += 1
+                if len(fields) != n_fields:
+                    if last_short is not None:
+                        break
+                    last_short = (line_number, len(fields))
+                    continue
+                if last_short is not None:
+                    break
+            else:
+                line_number = None
+            if last_short is not None:
+                where, count = last_short
+                is_last = line_number is None
+                if not (is_last and not ends_with_newline and count < n_fields):
+                    raise RecordError(
+                        f"{path}: line {where} has {count} fields but the header (line "
+                        f"{header_line}) has {n_fields}; a cut, merged or shifted line"
+                    )
+                warnings.warn(
+                    f"{path}: line {where} (the last) has {count} of {n_fields} fields and no "
+                    "line end: the file was cut while being written; that row is dropped",
+                    stacklevel=4,
+                )
+                rows -= 1
+    except UnicodeDecodeError:
+        line, byte = _first_non_utf8(path)
+        raise RecordError(
+            f"{path}: line {line}: not UTF-8 text (byte 0x{byte:02x}); save the CSV as UTF-8"
+        ) from None
+    except csv.Error as exc:
+        raise RecordError(f"{path}: line {line_number + 1}: not a valid CSV line: {exc}") from None
+    _check_duplicate_names(columns, str(path))
+    if not ends_with_newline and (last_short is None):
+        warnings.warn(
+            f"{path}: the file does not end with a line end; if it was cut while being "
+            "written, the last value of the last row may be incomplete",
+            stacklevel=4,
+        )
+    return meta, header_lines, columns, rows, not ends_with_newline
+
+
+def _first_non_utf8(path: Path) -> tuple[int, int]:
+    """File line (from 1) and value of the first byte that is not valid UTF-8."""
+    import codecs
+
+    decoder = codecs.getincrementaldecoder("utf-8")()
+    lines = 1
+    with path.open("rb") as fh:
+        while chunk := fh.read(1 << 16):
+            try:
+                decoder.decode(chunk)
+            except UnicodeDecodeError as exc:
+                # the decoder may hold up to 3 bytes of the previous chunk: count only ours
+                start = max(exc.start - (len(exc.object) - len(chunk)), 0)
+                return lines + chunk[:start].count(b"\n"), chunk[start]
+            lines += chunk.count(b"\n")
+    return lines, 0
+
+
+def _check_duplicate_names(columns, where: str) -> None:
+    """Two columns with the same name: refuse, naming both (never rename one silently)."""
+    seen: dict[str, int] = {}
+    for number, name in enumerate(columns, start=1):
+        key = str(name).strip()
+        if key in seen:
+            raise RecordError(
+                f"{where}: columns {seen[key]} and {number} are both named {key!r}; "
+                "rename or remove one"
+            )
+        seen[key] = number
+
+
+def _read_csv(path: Path) -> tuple[pd.DataFrame, dict, int]:
+    size = check_regular_file(path, "print record", MAX_RECORD_BYTES)
+    meta, header_lines, columns, rows, _ = _csv_structure(path, size)
+    if rows > MAX_RECORD_ROWS:
+        raise RecordError(f"{path}: {rows} rows is more than a record may hold ({MAX_RECORD_ROWS})")
+    try:
+        df = pd.read_csv(
+            path,
+            skiprows=header_lines,
+            nrows=rows,
+            encoding="utf-8-sig",
+            index_col=False,
+        )
     except pd.errors.EmptyDataError:
         raise RecordError(f"{path}: no table after the header") from None
-    except pd.errors.ParserError as exc:
+    except (pd.errors.ParserError, ValueError) as exc:
         raise RecordError(f"{path}: not a valid CSV table: {exc}") from None
     # file line of data row 1 = comment lines + the column-name line + 1
     return df, meta, header_lines + 1
@@ -575,13 +785,108 @@ def _read_csv(path: Path) -> tuple[pd.DataFrame, dict, int]:
 def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
     import pyarrow.parquet as pq
 
+    check_regular_file(path, "print record", MAX_RECORD_BYTES)
     try:
-        table = pq.read_table(path)
+        parquet = pq.ParquetFile(path)
+        n_rows = parquet.metadata.num_rows
+        if n_rows > MAX_RECORD_ROWS:
+            raise RecordError(
+                f"{path}: {n_rows} rows is more than a record may hold ({MAX_RECORD_ROWS})"
+            )
+        _check_duplicate_names(parquet.schema_arrow.names, str(path))
+        table = parquet.read()
+    except RecordError:
+        raise
     except Exception as exc:  # pyarrow raises several types for a corrupt file
         raise RecordError(f"{path}: not a readable Parquet file: {exc}") from None
     raw = (table.schema.metadata or {}).get(PARQUET_META_KEY)
-    meta = json.loads(raw.decode()) if raw else {}
-    return table.to_pandas(), meta
+    meta = {}
+    if raw:
+        try:
+            meta = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raise RecordError(
+                f"{path}: the 'ajtwin' metadata in the Parquet schema is not valid JSON: {exc}"
+            ) from None
+        if not isinstance(meta, dict):
+            raise RecordError(
+                f"{path}: the 'ajtwin' metadata in the Parquet schema must be a JSON object, "
+                f"got {type(meta).__name__} {meta!r:.60}"
+            )
+    try:
+        df = table.to_pandas()
+    except Exception as exc:  # e.g. a column type pandas cannot hold
+        raise RecordError(f"{path}: columns cannot be read as a table: {exc}") from None
+    for column in df.columns:
+        if not (
+            pd.api.types.is_numeric_dtype(df[column])
+            or pd.api.types.is_datetime64_any_dtype(df[column])
+            or pd.api.types.is_string_dtype(df[column])
+            or df[column].dtype == object
+        ):
+            raise RecordError(
+                f"{path}: column {column!r} has type {df[column].dtype}; expected numbers"
+            )
+    return df, meta
+
+
+def validate_meta(meta, where: str = "<record>") -> dict:
+    """Check a record's metadata: types and ranges of the keys ajtwin uses.
+
+    ``platen_speed_mm_s`` a number in (0, :data:`MAX_PLATEN_SPEED_MM_S`], ``seed`` an integer
+    or null, ``fault_onset_s`` a number ≥ 0 or null, ``machine_id``/``scenario``/``fault_kind``
+    text, ``units`` an object of column → unit text. Other keys are kept as they are.
+
+    Raises
+    ------
+    RecordError
+        Naming ``where`` and the key.
+    """
+    if not isinstance(meta, dict):
+        raise RecordError(f"{where}: metadata must be a JSON object, got {type(meta).__name__}")
+
+    def bad(key, expected):
+        return RecordError(f"{where}: metadata {key!r} = {meta[key]!r:.60}: expected {expected}")
+
+    def is_number(value):
+        return isinstance(value, int | float) and not isinstance(value, bool)
+
+    if "platen_speed_mm_s" in meta:
+        speed = meta["platen_speed_mm_s"]
+        if not (is_number(speed) and math.isfinite(speed) and 0 < speed <= MAX_PLATEN_SPEED_MM_S):
+            raise bad("platen_speed_mm_s", f"a number in (0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s")
+    if meta.get("seed") is not None and not (
+        isinstance(meta["seed"], int) and not isinstance(meta["seed"], bool)
+    ):
+        raise bad("seed", "an integer or null")
+    onset = meta.get("fault_onset_s")
+    if onset is not None and not (is_number(onset) and math.isfinite(onset) and onset >= 0):
+        raise bad("fault_onset_s", "a number of seconds ≥ 0, or null for a clean print")
+    for key in ("machine_id", "scenario", "fault_kind"):
+        if key in meta and not isinstance(meta[key], str):
+            raise bad(key, "text")
+    if "format_version" in meta and not (
+        isinstance(meta["format_version"], int)
+        and not isinstance(meta["format_version"], bool)
+        and 1 <= meta["format_version"] <= FORMAT_VERSION
+    ):
+        raise bad("format_version", f"an integer 1..{FORMAT_VERSION} (this ajtwin's format)")
+    if "units" in meta:
+        units = meta["units"]
+        if not isinstance(units, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in units.items()
+        ):
+            raise bad("units", 'an object of column → unit text, e.g. {"linewidth_um": "um"}')
+        for column, unit in units.items():
+            if column in UNITS and unit not in (
+                UNITS[column],
+                "µm" if UNITS[column] == "um" else UNITS[column],
+            ):
+                raise RecordError(
+                    f"{where}: column {column!r} declared in unit {unit!r}; "
+                    f"records use {UNITS[column]!r} — convert before writing"
+                )
+    return meta
 
 
 def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRecord:
@@ -620,8 +925,10 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
     ('exp1', (5400, 3))
     """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"print record not found: {path}")
+    try:
+        check_regular_file(path, "print record", MAX_RECORD_BYTES)
+    except InputFileError as exc:
+        raise RecordError(str(exc)) from None
     suffix = path.suffix.lower()
     if suffix in (".parquet", ".pq"):
         df, meta = _read_parquet(path)
@@ -630,18 +937,8 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
         df, meta, row_offset = _read_csv(path)
     else:
         raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
+    meta = validate_meta(dict(meta), str(path))
     data = validate_table(df, str(path), aliases=aliases, row_offset=row_offset)
-    if "units" in meta:
-        for column, unit in meta["units"].items():
-            if column in UNITS and unit not in (
-                UNITS[column],
-                "µm" if UNITS[column] == "um" else UNITS[column],
-            ):
-                raise RecordError(
-                    f"{path}: column {column!r} declared in unit {unit!r}; "
-                    f"records use {UNITS[column]!r} — convert before writing"
-                )
-    meta = dict(meta)
     meta["source_file"] = str(path)
     return PrintRecord(data, meta)
 

@@ -100,14 +100,9 @@ def _read_toml(path: Path | None, default_name: str) -> dict:
     if path is None:
         with (DATA / default_name).open("rb") as fh:
             return tomllib.load(fh)
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"parameter file not found: {path}")
-    with path.open("rb") as fh:
-        try:
-            return tomllib.load(fh)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{path}: not valid TOML: {exc}") from None
+    from ajtwin.io.files import read_toml_file  # a regular file of bounded size: no hang
+
+    return read_toml_file(Path(path), what="parameter")
 
 
 def parameter_records(path: str | Path | None = None) -> list[ParameterRecord]:

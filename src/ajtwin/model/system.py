@@ -27,6 +27,7 @@ from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.model.atomizer import aerosol_fraction_rate, net_droplet_generation, vial_volume_rate
 from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
+from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
 from ajtwin.model.line_output import line_feature, material_flow
 from ajtwin.model.parameters import (
@@ -35,7 +36,11 @@ from ajtwin.model.parameters import (
     load_output_coefficients,
     load_parameters,
 )
-from ajtwin.model.transport import nozzle_deposition_rate, tube_deposition_rate
+from ajtwin.model.transport import (
+    CRITICAL_RADIUS_NEWTON_STEPS,
+    nozzle_deposition_rate,
+    tube_deposition_rate,
+)
 
 STATE_NAMES = (
     "droplet_diameter_um",
@@ -63,7 +68,15 @@ def coefficient_matrix(coefficients: OutputCoefficients) -> np.ndarray:
     return np.array([list(coefficients.linewidth), list(coefficients.overspray)], dtype=float)
 
 
-def transition_rates(x, u, theta, params: PhysicalParameters):
+def transition_rates(
+    x,
+    u,
+    theta,
+    params: PhysicalParameters,
+    *,
+    quadrature_order: int = QUADRATURE_ORDER,
+    newton_steps: int = CRITICAL_RADIUS_NEWTON_STEPS,
+):
     """Continuous-time transition f(x, u; θ): per-second rates in display units.
 
     dd_a/dt  = θ_da d_a
@@ -82,6 +95,9 @@ def transition_rates(x, u, theta, params: PhysicalParameters):
         Drift parameters [1/s].
     params : PhysicalParameters
         SI parameters.
+    quadrature_order, newton_steps : int, keyword-only, static
+        Resolution of the droplet integrals and of the critical radius x_c
+        (defaults: converged over the operating box; raise them for a reference).
 
     Returns
     -------
@@ -102,11 +118,20 @@ def transition_rates(x, u, theta, params: PhysicalParameters):
     d_droplet = theta[..., 0] * droplet_um
     d_vial = vial_volume_rate(aerosol, carrier_ml_s, vial_ml, theta[..., 1])
     d_tube = theta[..., 2] * tube_um + units.m_to_um(
-        tube_deposition_rate(aerosol, droplet_m, units.um_to_m(tube_um), carrier_m3_s, params)
+        tube_deposition_rate(
+            aerosol, droplet_m, units.um_to_m(tube_um), carrier_m3_s, params, quadrature_order
+        )
     )
     d_nozzle = theta[..., 3] * nozzle_um + units.m_to_um(
         nozzle_deposition_rate(
-            aerosol, droplet_m, units.um_to_m(nozzle_um), carrier_m3_s, sheath_m3_s, params
+            aerosol,
+            droplet_m,
+            units.um_to_m(nozzle_um),
+            carrier_m3_s,
+            sheath_m3_s,
+            params,
+            quadrature_order,
+            newton_steps,
         )
     )
     generation = net_droplet_generation(carrier_sccm, vial_ml, current_ma, params.generation_fit)

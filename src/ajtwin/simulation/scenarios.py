@@ -28,9 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin.io.files import read_toml_file
 from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
 
 SCENARIO_DIR = resources.files("ajtwin.simulation") / "scenarios"
+
+#: Longest virtual print [min]: 31 days of 1 s samples (a week's soak fits, a typo's 1e9 not).
+MAX_DURATION_MIN = 31 * 24 * 60.0
 
 #: Fault kinds and the [fault] keys each one needs (besides kind and onset_min).
 FAULT_FIELDS = {
@@ -44,6 +48,10 @@ FAULT_FIELDS = {
 
 
 def _read_toml(source) -> dict:
+    """A packaged scenario (a resource) or a user's file (a regular file of bounded size)."""
+    if isinstance(source, Path):
+        # a directory, FIFO or /dev/zero must be refused before it is opened (hang, no end)
+        return read_toml_file(source, what="scenario")
     try:
         with source.open("rb") as fh:
             return tomllib.load(fh)
@@ -76,6 +84,7 @@ def _merge(base: dict, override: dict, where: str, path: str = "") -> dict:
             if path != "fault":
                 known = ", ".join(sorted(base))
                 raise ValueError(f"{where}: unknown key {here!r} (known here: {known})")
+            _check_type(0.0, value, where, here)  # every kind-specific fault key is a number
             merged[key] = value
             continue
         if isinstance(base[key], dict):
@@ -83,8 +92,24 @@ def _merge(base: dict, override: dict, where: str, path: str = "") -> dict:
                 raise ValueError(f"{where}: {here!r} must be a table")
             merged[key] = _merge(base[key], value, where, here)
         else:
+            _check_type(base[key], value, where, here)
             merged[key] = value
     return merged
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _check_type(default, value, where: str, key: str) -> None:
+    """A key takes the kind of value base.toml gives it: a finite number, text or a list."""
+    if _is_number(default):
+        if not (_is_number(value) and math.isfinite(value)):
+            raise ValueError(f"{where}: {key} = {value!r} must be a finite number")
+    elif isinstance(default, str) and not isinstance(value, str):
+        raise ValueError(f"{where}: {key} = {value!r} must be text")
+    elif isinstance(default, list) and not isinstance(value, list):
+        raise ValueError(f"{where}: {key} = {value!r} must be a list of [time_min, value] pairs")
 
 
 @dataclass(frozen=True)
@@ -144,12 +169,33 @@ class Scenario:
 
 def _validate(config: dict, where: str) -> None:
     duration = config["scenario"]["duration_min"]
-    if not (isinstance(duration, int | float) and duration > 0 and math.isfinite(duration)):
+    if not (_is_number(duration) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"{where}: scenario.duration_min = {duration!r} must be > 0")
+    if not 1.0 / 60.0 <= duration <= MAX_DURATION_MIN:
+        raise ValueError(
+            f"{where}: scenario.duration_min = {duration!r} must be in "
+            f"[1/60, {MAX_DURATION_MIN:g}] min (one 1 s sample to {MAX_DURATION_MIN / 1440:g} days)"
+        )
+    substeps = config["truth"]["integration_substeps"]
+    if not (float(substeps).is_integer() and 1 <= substeps <= 100):
+        raise ValueError(
+            f"{where}: truth.integration_substeps = {substeps!r} must be an integer in [1, 100]"
+        )
     for name in INPUT_NAMES:
         steps = config["inputs"][name]
-        if not steps or any(not isinstance(s, list | tuple) or len(s) != 2 for s in steps):
-            raise ValueError(f"{where}: inputs.{name} must be a list of [time_min, value] pairs")
+        if (
+            not isinstance(steps, list | tuple)
+            or not steps
+            or any(
+                not isinstance(s, list | tuple)
+                or len(s) != 2
+                or not all(_is_number(v) and math.isfinite(v) for v in s)
+                for s in steps
+            )
+        ):
+            raise ValueError(
+                f"{where}: inputs.{name} must be a list of [time_min, value] pairs of numbers"
+            )
         times = [float(s[0]) for s in steps]
         if times[0] != 0.0:
             raise ValueError(f"{where}: inputs.{name} must start with a step at time 0")
@@ -163,10 +209,10 @@ def _validate(config: dict, where: str) -> None:
                     f"({low:g}, {high:g}]"
                 )
     vial = config["initial"]["vial_volume_mL"]
-    if not 0.0 < vial < 3.0:
+    if not (_is_number(vial) and 0.0 < vial < 3.0):
         raise ValueError(f"{where}: initial.vial_volume_mL = {vial!r} must be in (0, 3) mL")
     for key, value in config["truth"].items():
-        if not isinstance(value, int | float) or not math.isfinite(value):
+        if not _is_number(value) or not math.isfinite(value):
             raise ValueError(f"{where}: truth.{key} = {value!r} must be a finite number")
         if (
             key.endswith("_sd")
@@ -176,7 +222,7 @@ def _validate(config: dict, where: str) -> None:
         ) and value < 0:
             raise ValueError(f"{where}: truth.{key} = {value!r} must be ≥ 0")
     for key, value in config["measurement"].items():
-        if not isinstance(value, int | float) or value < 0:
+        if not _is_number(value) or not math.isfinite(value) or value < 0:
             raise ValueError(f"{where}: measurement.{key} = {value!r} must be a number ≥ 0")
         if key.endswith("_fraction") and value >= 1:
             raise ValueError(f"{where}: measurement.{key} = {value!r} must be < 1")

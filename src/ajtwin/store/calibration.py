@@ -82,7 +82,8 @@ def _now() -> tuple[str, float]:
 
 
 def _last_seq(registry, machine: str) -> int:
-    last = registry.last_print(machine)
+    # the newest print, in the chain or not: events and calibrations come after it
+    last = registry.last_print(machine, in_chain=False)
     return 0 if last is None else int(last["seq"])
 
 

@@ -1,4 +1,5 @@
-"""``ajtwin machine add|show|history|list`` and ``ajtwin ingest`` (docs/registry.md)."""
+"""``ajtwin machine add|show|history|list|drop|restore|compact|export|import`` and
+``ajtwin ingest`` (docs/registry.md)."""
 
 from __future__ import annotations
 
@@ -27,13 +28,23 @@ def store_option(func):
     )(func)
 
 
-def open_registry(store):
+def open_registry(store, create: bool = False):
+    """The registry at ``store``; read-only commands (the default) never create it."""
     from ajtwin.store.registry import Registry, RegistryError
 
     try:
-        return Registry(store)
+        reg = Registry(store, create=create)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
+    for message in reg.migrated:
+        click.echo(message, err=True)
+    return reg
+
+
+def _safe(text) -> str:
+    from ajtwin.store.registry import printable
+
+    return printable(text)
 
 
 def _range(text):
@@ -71,12 +82,12 @@ def add(name, current_range, carrier_range, sheath_range, notes, store):
         value = _range(text)
         if value is not None:
             limits[key] = value
-    reg = open_registry(store)
+    reg = open_registry(store, create=True)
     try:
         m = reg.add_machine(name, limits, notes)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"added machine {m['name']!r} to {reg.path}")
+    click.echo(f"added machine {_safe(m['name'])!r} to {reg.path}")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  {key}: {low:g} – {high:g}")
 
@@ -91,7 +102,7 @@ def list_machines(store):
         click.echo(f"no machines in {reg.path}")
     for row in rows:
         m = reg.machine(row["name"])
-        click.echo(f"{m['name']}  ({m['n_prints']} prints, added {m['created_at']})")
+        click.echo(f"{_safe(m['name'])}  ({m['n_prints']} prints, added {m['created_at']})")
 
 
 @machine.command("show")
@@ -105,10 +116,11 @@ def show(name, store):
     try:
         m = reg.machine(name)
         last = reg.last_print(name)
+        newest = reg.last_print(name, in_chain=False)
         anomalies = reg.anomalies(name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"machine {m['name']}  (registry {reg.path})")
+    click.echo(f"machine {_safe(m['name'])}  (registry {reg.path})")
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
@@ -116,10 +128,18 @@ def show(name, store):
 
     for line in describe_calibration(reg, name):
         click.echo(line)
+    if newest is not None and (last is None or newest["seq"] != last["seq"]):
+        click.echo(
+            f"  newest print #{newest['seq']} is {newest['status']} (not in the chain): "
+            f"{_safe(newest['status_reason'])}"
+        )
     if last is None:
-        click.echo("  no prints yet: the first ingest starts from the initial-state fit")
+        click.echo("  no print in the chain: the next ingest starts from the initial-state fit")
         return
-    click.echo(f"  last print: #{last['seq']} from {last['source']} ({last['ingested_at']})")
+    click.echo(
+        f"  last print: #{last['seq']} from {_safe(last['source'])} "
+        f"({last['ingested_at']}), the twin's current state:"
+    )
     std = np.sqrt(np.diag(last["end_cov"]))
     for i, (_, short, unit) in enumerate(STATE_LABELS):
         click.echo(f"    {short:5s} = {last['end_mean'][i]:.4g} ± {std[i]:.2g} {unit}")
@@ -130,7 +150,7 @@ def show(name, store):
         for _, row in anomalies.tail(5).iterrows():
             click.echo(
                 f"    print #{row['seq']} at {row['detected_s']:.0f} s "
-                f"(onset ≈ {row['onset_s']:.0f} s): {row['description']}"
+                f"(onset ≈ {row['onset_s']:.0f} s): {_safe(row['description'])}"
             )
 
 
@@ -156,16 +176,136 @@ def history(name, csv_path, store):
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     if table.empty:
-        click.echo(f"machine {name!r} has no prints yet")
+        click.echo(f"machine {_safe(name)!r} has no prints yet")
         return
-    show_cols = ["seq", "ingested_at", "duration_min", "anomalies"] + [
+    show_cols = ["seq", "ingested_at", "duration_min", "anomalies", "status"] + [
         "end_" + key for key, _, _ in STATE_LABELS
     ]
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         click.echo(table[show_cols].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    for _, row in table[table["status"] != "ok"].iterrows():
+        click.echo(f"  #{row['seq']} {row['status']}: {_safe(row['status_reason'])}")
     if csv_path:
         table.to_csv(csv_path, index=False)
         click.echo(f"wrote {csv_path}")
+
+
+@machine.command("drop")
+@click.argument("name")
+@click.option("--print", "seq", type=click.IntRange(min=1), required=True, help="Print number.")
+@click.option("--reason", default="dropped by hand", show_default=True, help="Why (kept).")
+@store_option
+def drop(name, seq, reason, store):
+    """Take print SEQ out of NAME's chain (kept for history; the next ingest starts from
+    the newest print still in the chain)."""
+    from ajtwin.store.chain import chain_start
+    from ajtwin.store.registry import STATUS_DROPPED, RegistryError
+
+    reg = open_registry(store)
+    try:
+        p = reg.set_status(name, seq, STATUS_DROPPED, reason)
+        chain = chain_start(reg, name)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"print #{p['seq']} of {_safe(name)!r} dropped from the chain ({_safe(reason)})")
+    start = "the initial-state fit" if chain.from_seq is None else f"print #{chain.from_seq}'s end"
+    click.echo(f"  the next ingest starts from {start} state")
+
+
+@machine.command("restore")
+@click.argument("name")
+@click.option("--print", "seq", type=click.IntRange(min=1), required=True, help="Print number.")
+@store_option
+def restore(name, seq, store):
+    """Put a dropped or excluded print SEQ back into NAME's chain."""
+    from ajtwin.store.chain import state_violations
+    from ajtwin.store.registry import STATUS_OK, RegistryError
+
+    reg = open_registry(store)
+    try:
+        p = reg.print_by_seq(name, seq)
+        problems = state_violations(p["end_mean"])
+        if problems:
+            raise click.ClickException(
+                f"print #{seq} ends in an impossible state ({'; '.join(problems)}); "
+                "it cannot start the next print"
+            )
+        reg.set_status(name, seq, STATUS_OK, "")
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"print #{seq} of {_safe(name)!r} is back in the chain")
+
+
+@machine.command("compact")
+@click.argument("name")
+@click.option(
+    "--keep-covariances-days",
+    type=click.FloatRange(min=0),
+    default=30.0,
+    show_default=True,
+    help="Older prints keep covariances only at their end and alarms.",
+)
+@store_option
+def compact_command(name, keep_covariances_days, store):
+    """Apply the storage policy and covariance retention to NAME, then VACUUM."""
+    import sqlite3
+
+    from ajtwin.store.maintenance import compact
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        stats = compact(reg, name, keep_covariances_days)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    except sqlite3.Error as exc:  # e.g. VACUUM while another process holds a lock
+        raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
+    click.echo(
+        f"compacted {_safe(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
+        f"re-encoded, {stats['thinned']} with covariance key frames dropped; registry "
+        f"{stats['bytes_before'] / 1e6:.2f} MB → {stats['bytes_after'] / 1e6:.2f} MB"
+    )
+
+
+@machine.command("export")
+@click.argument("name")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
+@store_option
+def export_command(name, out, store):
+    """Write machine NAME (all prints, arrays, anomalies) to a tar archive."""
+    from ajtwin.store.maintenance import export_machine
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        manifest = export_machine(reg, name, out)
+    except (RegistryError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(
+        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, schema "
+        f"{manifest['schema_version']}) to {out}"
+    )
+
+
+@machine.command("import")
+@click.argument("archive", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--as", "as_name", default=None, help="Name in this registry (default: as exported).")
+@store_option
+def import_command(archive, as_name, store):
+    """Add the machine of an `ajtwin machine export` ARCHIVE to the registry."""
+    from ajtwin.store.maintenance import import_machine
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store, create=True)
+    try:
+        result = import_machine(reg, archive, as_name=as_name)
+    except (RegistryError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    for message in result["migrated"]:
+        click.echo(f"archive: {message}", err=True)
+    click.echo(
+        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints) into {reg.path}"
+    )
 
 
 @click.command()
@@ -224,13 +364,19 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
         )
         return
     click.echo(
-        f"ingested {record} as print #{result.seq} of {machine_name!r} "
+        f"ingested {record} as print #{result.seq} of {_safe(machine_name)!r} "
         f"({result.n_samples} s, {result.seconds:.1f} s wall, "
         f"started from {result.summary['started_from']})"
     )
     status = result.summary.get("mismatch", {})
     if status.get("mismatch"):
         click.echo(f"  WARNING {status['message']}", err=True)
+    if result.summary.get("status", "ok") != "ok":
+        click.echo(
+            f"  WARNING: stored but EXCLUDED from the machine's chain (the next print will not "
+            f"start from it): {result.summary['status_reason']}",
+            err=True,
+        )
     end = result.summary["end_state"]
     for key, short, unit in STATE_LABELS:
         click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")

@@ -6,9 +6,9 @@ print), optionally fill linewidth/overspray from the alignment-camera video, run
 (EKF + EM), run the anomaly detectors on its innovations, and store everything in one
 transaction.
 
-Between prints the fast states restart (a new atomizer run: droplet size and aerosol
-fraction re-equilibrate within seconds to minutes), so their carried-over variance is
-widened by :data:`BETWEEN_PRINT_STD`; V_l, ΔR_T and ΔR_N carry over as they are.
+Which print the next one starts from, how the fast states' variance is widened between
+prints and when a print is kept out of the chain (a state outside the physical range):
+:mod:`ajtwin.store.chain`.
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin.store.chain import BETWEEN_PRINT_STD, carry_over, chain_start, judge_run
 from ajtwin.store.registry import Registry, RegistryError, record_hash
 
-#: σ added between prints to d_a [µm] and φ_A [relative]; others carry over unchanged.
-BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.2}
+__all__ = ["BETWEEN_PRINT_STD", "carry_over", "ingest_record", "ingest_file", "join_video"]
 
 
 @dataclass
@@ -38,15 +38,6 @@ class IngestResult:
     seconds: float = 0.0
     run: object = None  # TwinRun (None for a duplicate)
     detection: object = None  # DetectionResult (None for a duplicate)
-
-
-def carry_over(end_mean, end_cov) -> tuple[np.ndarray, np.ndarray]:
-    """Start state of the next print from the previous end state (see module docstring)."""
-    mean = np.asarray(end_mean, dtype=float).copy()
-    cov = np.asarray(end_cov, dtype=float).copy()
-    cov[0, 0] += BETWEEN_PRINT_STD["droplet_diameter_um"] ** 2
-    cov[4, 4] += (BETWEEN_PRINT_STD["aerosol_fraction_relative"] * mean[4]) ** 2
-    return mean, cov
 
 
 def join_video(
@@ -74,7 +65,7 @@ def join_video(
 
     from ajtwin.io.records import PrintRecord
     from ajtwin.vision.extract import LineExtractor, annotate, open_source
-    from ajtwin.vision.join import join_features
+    from ajtwin.vision.join import check_linewidth_scale, join_features
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)
@@ -96,6 +87,8 @@ def join_video(
     ):
         counts = features["status"].value_counts().to_dict() if len(features) else {}
         raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
+    good = features["status"].isin(("ok", "ok_std_fallback", "few_batches"))
+    check_linewidth_scale(features.loc[good, "linewidth_um"], um_per_px, video)
     joined, summary = join_features(
         record.data,
         features,
@@ -155,21 +148,18 @@ def ingest_record(
         )
     from ajtwin.store.calibration import active_calibration, apply_maintenance, pending_maintenance
 
-    last = registry.last_print(machine)
+    # --- chain (ajtwin.store.chain): start from the newest good print, never a bad one
+    chain = chain_start(registry, machine)
+    start, expected = chain.start, chain.latest_seq
+    theta = np.zeros(5) if chain.theta is None else np.asarray(chain.theta, dtype=float)
+    started_from = chain.description
     # the machine's calibration (SPEC §11): None = never commissioned, the nominal model
     active = active_calibration(registry, machine)
     overrides = dict(twin_overrides or {})
     calibration = None if active is None else active["calibration"]
-    started_from = "initial fit" if last is None else f"print {last['seq']}"
-    if last is None:
-        start = None
-        expected = None
-    else:
-        start = carry_over(last["end_mean"], last["end_cov"])
-        expected = last["seq"]
-    theta = np.zeros(5) if last is None else np.asarray(last["theta_after"], dtype=float)
+    latest = 0 if chain.latest_seq is None else chain.latest_seq
     since = 0.0
-    if active is not None and (last is None or active["after_print_seq"] >= last["seq"]):
+    if active is not None and active["after_print_seq"] >= latest:
         # commissioned since the last print: start where commissioning left the machine
         start = carry_over(active["end_mean"], active["end_cov"])
         since = active["created_unix"]
@@ -189,6 +179,8 @@ def ingest_record(
     twin.theta = theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
+    status, status_reason = judge_run(run)
+    # --- end chain
     detection = detect_run(run, record, detector_settings)
     from ajtwin.apps.mismatch import assess_run, relabel_events
 
@@ -209,6 +201,7 @@ def ingest_record(
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
+        "reinitialised": np.asarray(f.reinitialised),
         "theta_per_step": run.theta_per_step,
         "mismatch": mismatch.flags,
     }
@@ -234,7 +227,10 @@ def ingest_record(
         "mean_nis": float(np.nanmean(np.asarray(f.nis))),
         "n_anomalies": len(detection.events),
         "em_updates": int(len(hist)),
+        "guard_reinitialisations": int(np.asarray(f.reinitialised).sum()),
         "started_from": started_from,
+        "status": status,
+        "status_reason": status_reason,
         "calibration_id": None if active is None else int(active["id"]),
         "maintenance": events,
         "mismatch": mismatch.to_dict(),
@@ -262,6 +258,8 @@ def ingest_record(
             arrays=arrays,
             anomalies=detection.events,
             expected_last_seq=expected,
+            status=status,
+            status_reason=status_reason,
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race

@@ -2,9 +2,12 @@
 
 Each machine has a history of ingested prints. A print row keeps the print's metadata,
 its content hash (idempotency), the twin's start and end state (mean, covariance), θ
-before and after, and a summary; the per-second estimates (states, σ, covariances,
-predicted outputs, NIS, θ history) are stored as ``.npy`` blobs; anomalies as rows.
-The next print of a machine starts from the last print's end state and θ.
+before and after, a summary and a chain status; the per-second estimates (states, σ,
+predicted outputs, NIS, θ history, covariance key frames) are stored as compressed
+array blobs (:mod:`ajtwin.store.arrays`); anomalies as rows. The next print of a machine
+starts from the end state and θ of the last print *in the chain* (``status = 'ok'``): a
+print whose states left the physical range is kept for history but marked
+``excluded`` and never becomes a start (:mod:`ajtwin.store.chain`).
 
 Guarantees
 ----------
@@ -14,6 +17,30 @@ Guarantees
   detected before the twin runs.
 * **Readable while written**: WAL journal mode; readers see the last committed state and
   never wait for a writer.
+* **Never takes over another database**: a file that is not an ajtwin registry (an
+  unrelated SQLite database, a FIFO, a directory) is refused with a message and left
+  untouched (no table added, journal mode unchanged). Read-only commands never create a
+  file or folder (``create=False``).
+* **Versioned**: ``info.schema_version``; an older registry is migrated in one
+  transaction on open (with a message in :attr:`Registry.migrated`), a newer one refused.
+
+Adding a migration (how to change the schema)
+---------------------------------------------
+The schema is the version-1 statements (:data:`_SCHEMA_V1`, what ajtwin 0.x wrote) plus
+every entry of :data:`MIGRATIONS` in order; a new registry runs them all, an old one the
+missing ones, so a table you add exists in both. To add one:
+
+1. Write ``def _migrate_to_N(conn): ...`` using ``CREATE TABLE IF NOT EXISTS`` /
+   ``ALTER TABLE ... ADD COLUMN`` (with a ``DEFAULT`` so old rows stay valid). It runs
+   inside the migration's transaction: never ``COMMIT``, never ``executescript``.
+2. Append ``(N, "one line saying what it adds", _migrate_to_N)`` to :data:`MIGRATIONS`,
+   N = last version + 1 (if two branches both added N, the merge renumbers one of them).
+   :data:`SCHEMA_VERSION` follows automatically.
+3. A machine-scoped table (a ``machine_id`` column) must be added to
+   :data:`MACHINE_TABLES` (a print-scoped one, ``print_id``, to :data:`PRINT_TABLES`) so
+   that ``machine export/import`` carry it.
+4. Test it in tests/test_store_reliability.py: a registry of the previous version opens,
+   migrates and keeps its prints.
 
 Location: ``--store PATH`` / ``AJTWIN_STORE`` / ``$XDG_DATA_HOME/ajtwin/registry.sqlite``
 (default ``~/.local/share/ajtwin/registry.sqlite``).
@@ -36,15 +63,20 @@ import io
 import json
 import os
 import sqlite3
+import stat
 import time
+import unicodedata
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-SCHEMA_VERSION = 1
+from ajtwin.store import arrays as _arrays
+
 #: environment variable: seconds to sleep inside the ingest transaction (crash tests only)
 TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
+#: ``info.application`` of an ajtwin registry (schema ≥ 2)
+APPLICATION = "ajtwin-registry"
 
 #: Default operating limits of a machine: the validity range of H's Box–Behnken fit
 #: (Q_c 15–35 sccm, I_A 300–440 mA; SPEC §4) and an assumed sheath range around the
@@ -55,7 +87,8 @@ DEFAULT_LIMITS = {
     "sheath_flow_sccm": [30.0, 80.0],
 }
 
-_SCHEMA = """
+#: Version 1 (ajtwin before the reliability work): never edit, add a migration instead.
+_SCHEMA_V1 = """
 CREATE TABLE IF NOT EXISTS info (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS machines (
     id INTEGER PRIMARY KEY,
@@ -101,6 +134,53 @@ CREATE TABLE IF NOT EXISTS anomalies (
     evidence_json TEXT NOT NULL
 );
 """
+_V1_TABLES = {"info", "machines", "prints", "print_arrays", "anomalies"}
+
+#: Chain status of a print: in the chain, or kept for history only.
+STATUS_OK = "ok"
+STATUS_EXCLUDED = "excluded"  # its states left the physical range (set at ingest)
+STATUS_DROPPED = "dropped"  # taken out by `ajtwin machine drop`
+
+
+def _execute_all(conn, script: str):
+    # executescript would COMMIT: run each statement inside the caller's transaction
+    for statement in script.split(";"):
+        if statement.strip():
+            conn.execute(statement)
+
+
+def _migrate_to_2(conn):
+    """Print chain status, array codecs, the anomaly index, the application marker."""
+    conn.execute(f"ALTER TABLE prints ADD COLUMN status TEXT NOT NULL DEFAULT '{STATUS_OK}'")
+    conn.execute("ALTER TABLE prints ADD COLUMN status_reason TEXT NOT NULL DEFAULT ''")
+    conn.execute(f"ALTER TABLE print_arrays ADD COLUMN codec TEXT NOT NULL DEFAULT '{_arrays.NPY}'")
+    conn.execute("CREATE INDEX IF NOT EXISTS anomalies_by_print ON anomalies(print_id)")
+    conn.execute("INSERT OR REPLACE INTO info VALUES ('application', ?)", (APPLICATION,))
+    # prints of a version-1 registry whose end state is impossible leave the chain
+    from ajtwin.store.chain import state_violations
+
+    rows = conn.execute("SELECT id, end_mean FROM prints").fetchall()
+    for print_id, blob in rows:
+        try:
+            problems = state_violations(_arrays.decode(blob, _arrays.NPY))
+        except ValueError as exc:
+            problems = [f"unreadable end state ({exc})"]
+        if problems:
+            conn.execute(
+                "UPDATE prints SET status = ?, status_reason = ? WHERE id = ?",
+                (STATUS_EXCLUDED, "migration: end state " + "; ".join(problems), print_id),
+            )
+
+
+#: (version, what it adds, function(conn)); append only (see the module docstring).
+MIGRATIONS: list[tuple[int, str, object]] = [
+    (2, "print chain status, compressed arrays, anomaly index", _migrate_to_2),
+]
+SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
+
+#: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
+MACHINE_TABLES = ["prints"]
+PRINT_TABLES = ["print_arrays", "anomalies"]
 
 
 class RegistryError(RuntimeError):
@@ -146,6 +226,37 @@ def record_hash(record) -> str:
     return h.hexdigest()
 
 
+def clean_name(name: str) -> str:
+    """A machine name as stored and looked up: stripped; control characters refused.
+
+    Raises RegistryError for an empty name or one with control/format characters (ANSI
+    escapes, newlines, bidi overrides), which would garble or fake terminal output.
+    """
+    name = str(name).strip()
+    if not name:
+        raise RegistryError("a machine needs a non-empty name")
+    bad = [c for c in name if unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp")]
+    if bad:
+        shown = ", ".join(sorted({repr(c) for c in bad}))
+        raise RegistryError(
+            f"machine name {printable(name)!r} contains control characters ({shown}); "
+            "use letters, digits, '-', '_', '.'"
+        )
+    return name
+
+
+def printable(text) -> str:
+    """``text`` with control/format characters escaped (``\\x1b``), safe for a terminal."""
+    out = []
+    for c in str(text):
+        if unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp"):
+            code = ord(c)
+            out.append(f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}")
+        else:
+            out.append(c)
+    return "".join(out)
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
@@ -156,53 +267,166 @@ class Registry:
     Parameters
     ----------
     path : str or Path, optional
-        Database file (created with its folder); default :func:`default_store_path`.
+        Database file; default :func:`default_store_path`.
     timeout_s : float
         How long a writer waits for another writer's transaction.
+    create : bool
+        Create the file (and its folder) when it does not exist; read-only commands pass
+        False and get a :class:`RegistryError` instead.
+    policy : arrays.StoragePolicy, optional
+        How per-second arrays are stored (default :class:`ajtwin.store.arrays.StoragePolicy`).
+
+    Attributes
+    ----------
+    migrated : list of str
+        One message per migration applied while opening (empty when none).
     """
 
-    def __init__(self, path=None, timeout_s: float = 30.0):
+    def __init__(self, path=None, timeout_s: float = 30.0, *, create: bool = True, policy=None):
         self.path = Path(path) if path is not None else default_store_path()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._conn = sqlite3.connect(
-            str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
-        )
-        self._conn.row_factory = sqlite3.Row
-        try:
-            self._conn.execute("PRAGMA journal_mode=WAL")
-            self._conn.execute("PRAGMA foreign_keys=ON")
-            self._conn.execute("PRAGMA synchronous=NORMAL")
-            if not self._has_schema():
-                self._conn.execute("BEGIN IMMEDIATE")
-                try:
-                    # executescript would commit; run the statements inside this transaction
-                    for statement in _SCHEMA.split(";"):
-                        if statement.strip():
-                            self._conn.execute(statement)
-                except Exception:
-                    self._conn.execute("ROLLBACK")
-                    raise
-                self._conn.execute(
-                    "INSERT OR IGNORE INTO info VALUES ('schema_version', ?)",
-                    (str(SCHEMA_VERSION),),
+        self.policy = policy or _arrays.StoragePolicy()
+        self.migrated: list[str] = []
+        self._conn = None
+        exists = os.path.lexists(self.path)
+        if exists:
+            try:
+                mode = os.stat(self.path).st_mode
+            except OSError as exc:
+                raise RegistryError(f"{self.path}: cannot open the registry ({exc})") from None
+            if not stat.S_ISREG(mode):
+                kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+                raise RegistryError(
+                    f"{self.path}: is {kind} (a FIFO, device or socket?); "
+                    "a registry must be an ordinary file"
                 )
-                self._conn.execute("COMMIT")
-        except sqlite3.DatabaseError as exc:
+        elif not create:
+            raise RegistryError(
+                f"no registry at {self.path}; create one with `ajtwin machine add NAME "
+                f"--store {self.path}` (read-only commands never create it)"
+            )
+        else:
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise RegistryError(f"{self.path}: cannot create its folder ({exc})") from None
+        try:
+            self._conn = sqlite3.connect(
+                str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
+            )
+            self._conn.row_factory = sqlite3.Row
+            self._open(create)
+        except sqlite3.Error as exc:
+            self.close()
             raise RegistryError(f"{self.path}: not a usable ajtwin registry ({exc})") from None
-        version = self._conn.execute(
-            "SELECT value FROM info WHERE key = 'schema_version'"
-        ).fetchone()
-        if version is None or int(version[0]) != SCHEMA_VERSION:
-            raise RegistryError(f"{self.path}: unknown registry schema version {version}")
+        except RegistryError:
+            self.close()
+            raise
 
-    def _has_schema(self) -> bool:
-        row = self._conn.execute(
-            "SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'prints'"
-        ).fetchone()
-        return row is not None
+    # ------------------------------------------------------------------ opening
+    def _tables(self) -> set[str]:
+        rows = self._conn.execute(
+            "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'"
+        ).fetchall()
+        return {r[0] for r in rows}
+
+    def _info(self, key: str):
+        row = self._conn.execute("SELECT value FROM info WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def _recognise(self, tables: set[str]) -> int | None:
+        """Schema version of an ajtwin registry, None for an empty database; refuse others."""
+        if not tables:
+            return None
+        if "info" not in tables:
+            raise RegistryError(self._foreign(tables))
+        try:
+            version_text = self._info("schema_version")
+            application = self._info("application")
+        except sqlite3.Error:
+            raise RegistryError(self._foreign(tables)) from None
+        if application is None and not (_V1_TABLES <= tables and version_text == "1"):
+            # version 1 had no application marker: recognise it by its exact tables
+            raise RegistryError(self._foreign(tables))
+        if application is not None and application != APPLICATION:
+            raise RegistryError(self._foreign(tables))
+        if not _V1_TABLES <= tables:
+            raise RegistryError(
+                f"{self.path}: registry damaged: tables {sorted(_V1_TABLES - tables)} are "
+                "missing; restore it from a backup (`ajtwin machine import`)"
+            )
+        try:
+            version = int(str(version_text))
+        except ValueError:
+            raise RegistryError(
+                f"{self.path}: registry damaged: schema_version {printable(version_text)!r} "
+                "is not a number; restore it from a backup (`ajtwin machine import`)"
+            ) from None
+        if version > SCHEMA_VERSION:
+            raise RegistryError(
+                f"{self.path}: written by a newer ajtwin (registry schema {version}; this one "
+                f"knows up to {SCHEMA_VERSION}); upgrade ajtwin to open it"
+            )
+        if version < 1:
+            raise RegistryError(f"{self.path}: registry damaged: schema_version {version}")
+        return version
+
+    def _foreign(self, tables) -> str:
+        shown = ", ".join(sorted(printable(t) for t in tables)[:8])
+        return (
+            f"{self.path}: an SQLite database but not an ajtwin registry (tables: {shown}); "
+            "refusing to change it; give another --store path"
+        )
+
+    def _open(self, create: bool):
+        version = self._recognise(self._tables())
+        if version is None and not create:
+            raise RegistryError(
+                f"no registry in {self.path} (an empty file); create one with "
+                f"`ajtwin machine add NAME --store {self.path}`"
+            )
+        # only now, on our own file, change its journal mode
+        self._conn.execute("PRAGMA journal_mode=WAL")
+        self._conn.execute("PRAGMA foreign_keys=ON")
+        self._conn.execute("PRAGMA synchronous=NORMAL")
+        if version == SCHEMA_VERSION:
+            return
+        self._conn.execute("BEGIN IMMEDIATE")
+        try:
+            # another process may have created or migrated it while we waited
+            version = self._recognise(self._tables())
+            fresh = version is None
+            if fresh:
+                _execute_all(self._conn, _SCHEMA_V1)
+                self._conn.execute("INSERT INTO info VALUES ('schema_version', '1')")
+                version = 1
+            for target, what, function in MIGRATIONS:
+                if target <= version:
+                    continue
+                function(self._conn)
+                self._conn.execute(
+                    "UPDATE info SET value = ? WHERE key = 'schema_version'", (str(target),)
+                )
+                if not fresh:
+                    self.migrated.append(
+                        f"{self.path}: migrated registry schema {version} → {target} ({what})"
+                    )
+                version = target
+            if not fresh:
+                missing = _V1_TABLES - self._tables()
+                if missing:
+                    raise RegistryError(
+                        f"{self.path}: registry damaged: tables {sorted(missing)} are missing"
+                    )
+            self._conn.execute("COMMIT")
+        except BaseException:
+            self._conn.execute("ROLLBACK")
+            self.migrated = []
+            raise
 
     def close(self):
-        self._conn.close()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
 
     def __enter__(self):
         return self
@@ -213,9 +437,7 @@ class Registry:
     # ------------------------------------------------------------------ machines
     def add_machine(self, name: str, limits: dict | None = None, notes: str = "") -> dict:
         """Register a machine; ``limits`` maps input names to [low, high] (display units)."""
-        name = name.strip()
-        if not name:
-            raise RegistryError("a machine needs a non-empty name")
+        name = clean_name(name)
         merged = {k: list(v) for k, v in DEFAULT_LIMITS.items()}
         for key, value in (limits or {}).items():
             if key not in DEFAULT_LIMITS:
@@ -230,19 +452,28 @@ class Registry:
                 (name, _now(), json.dumps(merged), notes),
             )
         except sqlite3.IntegrityError:
-            raise RegistryError(f"machine {name!r} already exists in {self.path}") from None
+            raise RegistryError(
+                f"machine {printable(name)!r} already exists in {self.path}"
+            ) from None
         return self.machine(name)
 
     def machine(self, name: str) -> dict:
+        name = str(name).strip()
         row = self._conn.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
         if row is None:
-            known = ", ".join(m["name"] for m in self.machines()) or "none"
+            known = ", ".join(printable(m["name"]) for m in self.machines()) or "none"
             raise RegistryError(
-                f"no machine {name!r} in {self.path} (known: {known}); "
-                f"add it with `ajtwin machine add {name}`"
+                f"no machine {printable(name)!r} in {self.path} (known: {known}); "
+                f"add it with `ajtwin machine add {printable(name)}`"
             )
         out = dict(row)
-        out["limits"] = json.loads(out.pop("limits_json"))
+        try:
+            out["limits"] = json.loads(out.pop("limits_json"))
+        except ValueError as exc:
+            raise RegistryError(
+                f"{self.path}: registry damaged at machine {printable(name)!r}, "
+                f"column limits_json ({exc})"
+            ) from None
         count = self._conn.execute(
             "SELECT COUNT(*) FROM prints WHERE machine_id = ?", (out["id"],)
         ).fetchone()[0]
@@ -254,6 +485,12 @@ class Registry:
         return [dict(r) for r in rows]
 
     # ------------------------------------------------------------------ prints
+    def _damaged(self, row, column, exc) -> RegistryError:
+        return RegistryError(
+            f"{self.path}: registry damaged at print {row['seq']} (id {row['id']}), "
+            f"column {column}: {exc}; drop it with `ajtwin machine drop` or restore a backup"
+        )
+
     def _print_row(self, row) -> dict:
         out = dict(row)
         for key in (
@@ -264,18 +501,48 @@ class Registry:
             "theta_before",
             "theta_after",
         ):
-            out[key] = from_npy(out[key])
-        out["meta"] = json.loads(out.pop("meta_json"))
-        out["summary"] = json.loads(out.pop("summary_json"))
+            if key not in out:  # a query that selected only some columns
+                continue
+            try:
+                value = _arrays.decode(out[key], _arrays.NPY)
+                expected = (5, 5) if key.endswith("_cov") else (5,)
+                if value.shape != expected or value.dtype.kind != "f":
+                    raise ValueError(f"expected float {expected}, got {value.dtype} {value.shape}")
+            except ValueError as exc:
+                raise self._damaged(row, key, exc) from None
+            out[key] = value
+        for key, column in (("meta", "meta_json"), ("summary", "summary_json")):
+            if column not in out:
+                continue
+            try:
+                out[key] = json.loads(out.pop(column))
+            except (ValueError, TypeError) as exc:
+                raise self._damaged(row, column, exc) from None
+        out.setdefault("status", STATUS_OK)
+        out.setdefault("status_reason", "")
         return out
 
-    def last_print(self, name: str) -> dict | None:
-        """The machine's latest print (end state, θ, ...), or None."""
+    def last_print(self, name: str, *, in_chain: bool = True) -> dict | None:
+        """The machine's latest print in the chain (its end state is the twin's current
+        state), or with ``in_chain=False`` the latest of all; None when there is none."""
         machine = self.machine(name)
+        where = " AND status = ?" if in_chain else ""
+        args = (machine["id"], STATUS_OK) if in_chain else (machine["id"],)
         row = self._conn.execute(
-            "SELECT * FROM prints WHERE machine_id = ? ORDER BY seq DESC LIMIT 1", (machine["id"],)
+            f"SELECT * FROM prints WHERE machine_id = ?{where} ORDER BY seq DESC LIMIT 1", args
         ).fetchone()
         return None if row is None else self._print_row(row)
+
+    def chain_prints(self, name: str, below_seq: int | None = None):
+        """Prints in the chain, newest first (a generator; stops where the caller stops)."""
+        machine = self.machine(name)
+        query = "SELECT * FROM prints WHERE machine_id = ? AND status = ?"
+        args = [machine["id"], STATUS_OK]
+        if below_seq is not None:
+            query += " AND seq < ?"
+            args.append(below_seq)
+        for row in self._conn.execute(query + " ORDER BY seq DESC", args).fetchall():
+            yield self._print_row(row)
 
     def find_print(self, name: str, content_hash: str) -> dict | None:
         machine = self.machine(name)
@@ -291,19 +558,73 @@ class Registry:
             raise RegistryError(f"no print with id {print_id}")
         return self._print_row(row)
 
+    def print_by_seq(self, name: str, seq: int) -> dict:
+        machine = self.machine(name)
+        row = self._conn.execute(
+            "SELECT * FROM prints WHERE machine_id = ? AND seq = ?", (machine["id"], int(seq))
+        ).fetchone()
+        if row is None:
+            raise RegistryError(
+                f"machine {printable(machine['name'])!r} has no print #{seq} "
+                f"(it has {machine['n_prints']})"
+            )
+        return self._print_row(row)
+
     def print_arrays(self, print_id: int) -> dict[str, np.ndarray]:
+        """The print's per-second arrays, decoded (see :mod:`ajtwin.store.arrays`).
+
+        ``predicted_means`` is rebuilt from the stored means and corrections; covariances
+        are ``covariance_keyframes`` (K, 5, 5) at ``covariance_steps`` (K,) unless the
+        print was stored with the whole sequence (``covariances``, T × 5 × 5).
+        """
         rows = self._conn.execute(
-            "SELECT name, npy FROM print_arrays WHERE print_id = ?", (print_id,)
+            "SELECT name, npy, codec FROM print_arrays WHERE print_id = ?", (print_id,)
         ).fetchall()
-        return {r["name"]: from_npy(r["npy"]) for r in rows}
+        out = {}
+        for r in rows:
+            try:
+                out[r["name"]] = _arrays.decode(r["npy"], r["codec"])
+            except ValueError as exc:
+                seq = self._conn.execute(
+                    "SELECT seq FROM prints WHERE id = ?", (print_id,)
+                ).fetchone()
+                raise RegistryError(
+                    f"{self.path}: registry damaged at print {seq[0] if seq else '?'} "
+                    f"(id {print_id}), array {printable(r['name'])}: {exc}"
+                ) from None
+        return _arrays.expand(out)
+
+    def detector_inputs(self, print_id: int) -> dict:
+        """Keyword arguments of :func:`ajtwin.apps.anomaly.detect_anomalies` for a stored
+        print: what re-running the detectors needs (they use P_k's diagonal only, so
+        where the full sequence is not kept it is diag(σ_k²) from the stored σ)."""
+        a = self.print_arrays(print_id)
+        if "covariances" in a:
+            covariances = a["covariances"]
+        else:
+            covariances = np.einsum("ti,ij->tij", a["stds"] ** 2, np.eye(a["stds"].shape[1]))
+        return {
+            "time_s": a["time_s"],
+            "measurements": a["measurements"],
+            "predicted_outputs": a["predicted_outputs"],
+            "innovation_variances": a["innovation_variances"],
+            "nis": a["nis"],
+            "n_measured": a["n_measured"],
+            "means": a["means"],
+            "predicted_means": a["predicted_means"],
+            "covariances": covariances,
+        }
 
     def history(self, name: str) -> pd.DataFrame:
-        """One row per print: seq, id, time, duration, source, end states, θ, anomaly count."""
+        """One row per print: seq, id, time, duration, source, status, end states, θ,
+        anomaly count."""
         from ajtwin.model import STATE_NAMES
 
         machine = self.machine(name)
         rows = self._conn.execute(
-            "SELECT p.*, (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
+            "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json, p.status,"
+            " p.status_reason, p.end_mean, p.theta_after,"
+            " (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
             " FROM prints p WHERE machine_id = ? ORDER BY seq",
             (machine["id"],),
         ).fetchall()
@@ -316,8 +637,10 @@ class Registry:
                 "ingested_at": p["ingested_at"],
                 "source": p["source"],
                 "duration_min": p["duration_s"] / 60.0,
-                "scenario": p["meta"].get("scenario"),
+                "scenario": p["meta"].get("scenario") if isinstance(p["meta"], dict) else None,
                 "anomalies": int(row["n_anomalies"]),
+                "status": p["status"],
+                "status_reason": p["status_reason"],
             }
             for i, state in enumerate(STATE_NAMES):
                 rec["end_" + state] = float(p["end_mean"][i])
@@ -339,6 +662,20 @@ class Registry:
             columns=["seq", "detected_s", "onset_s", "cause", "description", "detectors"],
         )
 
+    def set_status(self, name: str, seq: int, status: str, reason: str = "") -> dict:
+        """Put print ``seq`` in (``ok``) or out of (``dropped``/``excluded``) the chain.
+
+        The print and its arrays stay (history); only the next ingest's start changes.
+        """
+        if status not in (STATUS_OK, STATUS_EXCLUDED, STATUS_DROPPED):
+            raise RegistryError(f"unknown print status {status!r}")
+        p = self.print_by_seq(name, seq)
+        self._conn.execute(
+            "UPDATE prints SET status = ?, status_reason = ? WHERE id = ?",
+            (status, reason, p["id"]),
+        )
+        return self.get_print(p["id"])
+
     def save_print(
         self,
         name: str,
@@ -358,14 +695,23 @@ class Registry:
         arrays: dict,
         anomalies: list,
         expected_last_seq: int | None,
+        status: str = STATUS_OK,
+        status_reason: str = "",
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
-        ``expected_last_seq`` is the seq of the print the twin started from (None: none);
-        if another ingest of the same machine committed in between, nothing is written
-        and :class:`RegistryError` says so (the run started from a stale state).
+        ``expected_last_seq`` is the seq of the machine's latest print (in the chain or
+        not) when the twin started (None: none); if another ingest of the same machine
+        committed in between, nothing is written and :class:`RegistryError` says so (the
+        run started from a stale state). ``arrays`` are stored by :attr:`policy`
+        (full covariances only at key frames, alarms and the end; see
+        :mod:`ajtwin.store.arrays`).
         """
         machine = self.machine(name)
+        if status not in (STATUS_OK, STATUS_EXCLUDED, STATUS_DROPPED):
+            raise RegistryError(f"unknown print status {status!r}")
+        alarm_times = [t for ev in anomalies for t in (ev.detected_s, ev.onset_s)]
+        encoded = _arrays.encode_all(arrays, self.policy, alarm_times)
         conn = self._conn
         conn.execute("BEGIN IMMEDIATE")
         try:
@@ -375,21 +721,21 @@ class Registry:
             last = row[0]
             if last != expected_last_seq:
                 raise RegistryError(
-                    f"machine {name!r} got print {last} while this ingest ran from print "
-                    f"{expected_last_seq}; ingest again"
+                    f"machine {printable(name)!r} got print {last} while this ingest ran from "
+                    f"print {expected_last_seq}; ingest again"
                 )
             dup = conn.execute(
                 "SELECT seq FROM prints WHERE machine_id = ? AND content_hash = ?",
                 (machine["id"], content_hash),
             ).fetchone()
             if dup is not None:
-                raise RegistryError(f"this print is already print {dup[0]} of {name!r}")
+                raise RegistryError(f"this print is already print {dup[0]} of {printable(name)!r}")
             seq = 1 if last is None else last + 1
             cur = conn.execute(
                 "INSERT INTO prints (machine_id, seq, content_hash, ingested_at, source, "
                 "n_samples, duration_s, meta_json, summary_json, start_mean, start_cov, "
-                "end_mean, end_cov, theta_before, theta_after) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "end_mean, end_cov, theta_before, theta_after, status, status_reason) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     machine["id"],
                     seq,
@@ -400,18 +746,20 @@ class Registry:
                     float(duration_s),
                     json.dumps(meta, default=str),
                     json.dumps(summary, default=str),
-                    to_npy(start_mean),
-                    to_npy(start_cov),
-                    to_npy(end_mean),
-                    to_npy(end_cov),
-                    to_npy(theta_before),
-                    to_npy(theta_after),
+                    to_npy(np.asarray(start_mean, dtype=float)),
+                    to_npy(np.asarray(start_cov, dtype=float)),
+                    to_npy(np.asarray(end_mean, dtype=float)),
+                    to_npy(np.asarray(end_cov, dtype=float)),
+                    to_npy(np.asarray(theta_before, dtype=float)),
+                    to_npy(np.asarray(theta_after, dtype=float)),
+                    status,
+                    status_reason,
                 ),
             )
             print_id = cur.lastrowid
             conn.executemany(
-                "INSERT INTO print_arrays (print_id, name, npy) VALUES (?, ?, ?)",
-                [(print_id, key, to_npy(value)) for key, value in arrays.items()],
+                "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
+                [(print_id, key, blob, codec) for key, (codec, blob) in encoded.items()],
             )
             conn.executemany(
                 "INSERT INTO anomalies (print_id, detected_s, onset_s, cause, description, "

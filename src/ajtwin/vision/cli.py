@@ -25,7 +25,6 @@ STATUS_HINTS = {
     "no_shoulder": "no shoulder peak (iii) in the brightness profile",
     "overspray_outside_frame": "the overspray does not end inside the analysed band",
 }
-PLAUSIBLE_LINEWIDTH_UM = (1.0, 5000.0)  # same bounds as the print-record reader
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -307,6 +306,7 @@ def extract(
 
     from ajtwin.vision.extract import LineExtractor, VisionInputError, open_source
     from ajtwin.vision.extract import annotate as draw
+    from ajtwin.vision.join import check_linewidth_scale
 
     try:
         frames = open_source(source, fps)
@@ -411,13 +411,10 @@ def extract(
             f"{k} ({v} frames): {STATUS_HINTS.get(k, k)}" for k, v in statuses.most_common()
         )
         raise click.ClickException(f"no frame of {source} gave a linewidth — {reasons}")
-    median = float(np.median(widths))
-    low, high = PLAUSIBLE_LINEWIDTH_UM
-    if not low <= median <= high:
-        raise click.ClickException(
-            f"median linewidth {median:.3g} µm with --um-per-px {um_per_px} is implausible "
-            f"(expected {low:g}–{high:g} µm): check the pixel size"
-        )
+    try:
+        check_linewidth_scale(widths, um_per_px, source)
+    except VisionInputError as exc:
+        raise click.ClickException(str(exc)) from None
     if join_record is not None:
         _join(
             join_record,

@@ -26,6 +26,7 @@ Frames are processed one at a time (videos are streamed, never loaded whole).
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +51,10 @@ MIN_LINE_CONTRAST = 0.08  # a line's dark streak is at least this much below the
 
 class VisionInputError(ValueError):
     """Input the extractor cannot use (unreadable/empty video, wrong pixel size, ...)."""
+
+
+class TruncatedVideoWarning(UserWarning):
+    """A video decoded fewer frames than its container announces (a cut-off file)."""
 
 
 @dataclass
@@ -421,6 +426,15 @@ class FrameSource:
                 capture.release()
             if index == 0:
                 raise VisionInputError(f"{self.path}: no frame could be decoded")
+            if self.count and index < self.count:
+                # the container announced more frames than decode: a cut-off file
+                warnings.warn(
+                    f"{self.path}: decoded {index} of the {self.count} frames the video "
+                    "header announces; the file looks truncated (frames after "
+                    f"{index / self.fps:.3g} s are missing)",
+                    TruncatedVideoWarning,
+                    stacklevel=2,
+                )
         else:
             files = [self.path] if self.kind == "image" else _image_files(self.path)
             for index, file in enumerate(files):
@@ -445,6 +459,13 @@ def open_source(path: str | Path, fps: float | None = None) -> FrameSource:
     path = Path(path)
     if not path.exists():
         raise VisionInputError(f"{path}: no such file or folder")
+    if not path.is_dir():
+        from ajtwin.io.files import InputFileError, check_regular_file
+
+        try:  # a FIFO or device would block OpenCV's open forever
+            check_regular_file(path, "video or image")
+        except InputFileError as exc:
+            raise VisionInputError(str(exc)) from None
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise VisionInputError(f"--fps must be > 0, got {fps}")
     if path.is_dir():

@@ -142,3 +142,38 @@ def join_features(
         )
     except ValueError as exc:
         raise ValueError(str(exc).replace("frame table", "features table")) from None
+
+
+def check_linewidth_scale(widths_um, um_per_px: float, source) -> float:
+    """Refuse extracted linewidths whose median no real line has: a wrong ``--um-per-px``.
+
+    The one plausibility check of every video reader (``ajtwin extract`` and ``ajtwin
+    ingest --video``): the median of the finite linewidths must lie in the print-record
+    reader's plausible linewidth range (``PLAUSIBLE_RANGES["linewidth_um"]``), so a pixel
+    size off by orders of magnitude never reaches a record or the registry.
+
+    Returns
+    -------
+    float
+        The median linewidth [µm].
+
+    Raises
+    ------
+    VisionInputError
+        No finite linewidth, or a median outside the range (naming the source and pixel size).
+    """
+    from ajtwin.io.records import PLAUSIBLE_RANGES
+    from ajtwin.vision.extract import VisionInputError
+
+    low, high = PLAUSIBLE_RANGES["linewidth_um"][:2]
+    widths = np.asarray(widths_um, dtype=float)
+    widths = widths[np.isfinite(widths)]
+    if widths.size == 0:
+        raise VisionInputError(f"{source}: no frame gave a finite linewidth")
+    median = float(np.median(widths))
+    if not low <= median <= high:
+        raise VisionInputError(
+            f"{source}: median linewidth {median:.3g} µm with --um-per-px {um_per_px:g} is "
+            f"implausible (expected {low:g}–{high:g} µm): check the pixel size"
+        )
+    return median

@@ -1,0 +1,109 @@
+"""Start-up: the persistent compilation cache and import hygiene of the CLI.
+
+Each check runs in a fresh interpreter (the cache is configured at import of
+``ajtwin._jax``, once per process).
+"""
+
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+
+
+def _python(code: str, **env_extra) -> str:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AJTWIN_")}
+    env.update(PYTHONPATH=SRC, JAX_PLATFORMS="cpu", **env_extra)
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip().splitlines()[-1]
+
+
+_CACHE_PROBE = """
+import json
+from ajtwin._jax import jax, jnp, compilation_cache_dir
+f = jax.jit(lambda x: jnp.sin(x) * 3.0 + x**2)
+f(jnp.arange(7.0)).block_until_ready()
+d = compilation_cache_dir()
+print(json.dumps({"dir": None if d is None else str(d),
+                  "entries": 0 if d is None else len(list(d.iterdir())),
+                  "x64": bool(jax.config.jax_enable_x64)}))
+"""
+
+
+def test_compilation_cache_is_private_versioned_and_written(tmp_path):
+    base = tmp_path / "cache"
+    first = json.loads(_python(_CACHE_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert first["x64"]
+    directory = Path(first["dir"])
+    assert directory.parent == base
+    import jax
+
+    from ajtwin import __version__
+
+    assert directory.name == f"jax-{jax.__version__}-ajtwin-{__version__}"
+    # entries are executable code: the directories are the user's alone
+    for path in (base, directory):
+        mode = stat.S_IMODE(path.stat().st_mode)
+        assert mode & (stat.S_IRWXG | stat.S_IRWXO) == 0, oct(mode)
+    # thresholds low enough that a tiny function is written
+    assert first["entries"] >= 1
+    second = json.loads(_python(_CACHE_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert second["entries"] == first["entries"]  # hit, nothing new written
+
+
+def test_compilation_cache_switch_off(tmp_path):
+    base = tmp_path / "cache"
+    probe = json.loads(_python(_CACHE_PROBE, AJTWIN_CACHE_DIR=str(base), AJTWIN_NO_CACHE="1"))
+    assert probe["dir"] is None
+    assert not base.exists()
+
+
+def test_group_writable_cache_directory_is_tightened(tmp_path):
+    base = tmp_path / "cache"
+    base.mkdir()
+    os.chmod(base, 0o777)
+    probe = json.loads(_python(_CACHE_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert probe["dir"] is not None
+    assert stat.S_IMODE(base.stat().st_mode) == 0o700
+
+
+_IMPORTS_PROBE = """
+import json, sys
+from click.testing import CliRunner
+from ajtwin.cli import main
+result = CliRunner().invoke(main, {args!r})
+heavy = ("jax", "pandas", "scipy", "torch", "cv2", "matplotlib", "ajtwin.simulation")
+print(json.dumps({{"code": result.exit_code, "output": result.output,
+                  "loaded": sorted(m for m in heavy if m in sys.modules)}}))
+"""
+
+
+def test_help_lists_every_command_without_heavy_imports():
+    from ajtwin.cli import SUBCOMMANDS
+
+    probe = json.loads(_python(_IMPORTS_PROBE.format(args=["--help"])))
+    assert probe["code"] == 0
+    for name in SUBCOMMANDS:
+        assert f"  {name} " in probe["output"], name
+    assert probe["loaded"] == []
+
+
+def test_estimate_help_does_not_load_torch_opencv_or_matplotlib():
+    probe = json.loads(_python(_IMPORTS_PROBE.format(args=["estimate", "--help"])))
+    assert probe["code"] == 0
+    assert not {"torch", "cv2", "matplotlib"} & set(probe["loaded"])
+
+
+def test_estimate_path_does_not_load_torch_opencv_or_matplotlib():
+    code = (
+        "import sys, json\n"
+        "import ajtwin.estimation.twin, ajtwin.io.records, ajtwin.estimation.cli\n"
+        "print(json.dumps(sorted(m for m in ('torch', 'cv2', 'matplotlib') if m in sys.modules)))"
+    )
+    assert json.loads(_python(code)) == []

@@ -12,7 +12,9 @@ innovations vanish, K_k (G_k δc − H_k δx) = 0, so
 
 with H_k = ∂g/∂x, G_k = ∂g/∂c at the filtered state, K_k = P_{k|k−1} Hᵀ S⁻¹ the filter's
 gain, ⁺ a pseudo-inverse that drops the directions the outputs do not see (those states
-are not moved by a calibration error). The reported covariance is P_k + C_k.
+are not moved by a calibration error). The vial, seen by no output, integrates the
+aerosol (dV_l/dt = −φ_A Q_c), so its row is A_k[V_l] = −Σ_{j<k} A_j[φ_A] Q_c,j Δt.
+The reported covariance is P_k + C_k.
 Computed in the filter's scaled coordinates (states span 15 orders of magnitude).
 """
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.model.calibration import (
     CalibratedCoefficients,
@@ -71,10 +74,17 @@ def calibration_state_covariance(
     p_pred = np.asarray(filtered.predicted_covariances) / np.outer(s, s)[None]
     r_s = np.diag(np.asarray(measurement_var, float) / r**2)
     cal_cov = np.asarray(calibration_cov, dtype=float)
-    out = np.zeros_like(p_pred)
+    sensitivity = np.zeros((len(p_pred), len(s), cal_cov.shape[0]))  # A_k, scaled states
     for k in range(len(p_pred)):
         hk, pk = h_s[k], p_pred[k]
         gain = np.linalg.solve(hk @ pk @ hk.T + r_s, hk @ pk).T  # K = P Hᵀ S⁻¹
-        a = np.linalg.pinv(gain @ hk, rcond=RCOND) @ gain @ g_s[k]
-        out[k] = a @ cal_cov @ a.T
+        sensitivity[k] = np.linalg.pinv(gain @ hk, rcond=RCOND) @ gain @ g_s[k]
+    # the vial is seen by no output, but it integrates the aerosol: dV_l/dt = −φ_A Q_c, so
+    # a calibration error that biases φ_A drains the estimated vial by Σ δφ_A Q_c Δt
+    carrier_ml_s = np.asarray(units.sccm_to_ml_per_s(np.asarray(inputs, dtype=float)[:, 1]))
+    dt = float(spec.dt)
+    drain = np.cumsum(sensitivity[:, 4, :] * (s[4] * carrier_ml_s * dt)[:, None], axis=0)
+    drain = np.concatenate([np.zeros_like(drain[:1]), drain[:-1]])
+    sensitivity[:, 1, :] -= drain / s[1]
+    out = np.einsum("tic,cd,tjd->tij", sensitivity, cal_cov, sensitivity)
     return out * np.outer(s, s)[None]

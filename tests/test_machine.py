@@ -197,3 +197,23 @@ def test_second_truth_generator_is_different_reproducible_and_conserves_ink():
     assert np.max(np.abs(balance)) < 1e-3 * left_vial[-1]
     with pytest.raises(ValueError, match="truth generator"):
         run_virtual_print("exp1", seed=9, duration_min=1.0, truth_generator="other")
+
+
+def test_calibration_uncertainty_widens_the_bands_by_the_hand_computed_amount():
+    from ajtwin.estimation.twin import Twin
+
+    record = simulate("exp1", seed=12, duration_min=3.0)
+    cov = np.zeros((len(CALIBRATION_NAMES), len(CALIBRATION_NAMES)))
+    i = CALIBRATION_NAMES.index("linewidth_offset_um")
+    cov[i, i] = 2.0**2  # the L_w offset known to ±2 µm, nothing else uncertain
+    plain = Twin.default(calibration=Calibration.identity()).run(record)
+    banded = Twin.default(calibration=Calibration.identity(), calibration_cov=cov).run(record)
+    assert np.array_equal(plain.means, banded.means)  # the estimate itself is unchanged
+    extra = banded.calibration_covariances[-60:]
+    alpha_da = DigitalModel.default().coefficient_matrix[0, 0]  # ∂L_w/∂d_a, µm/µm
+    # L_w carries ~99 % of the d_a information: δd_a ≈ δo / α^da
+    assert np.sqrt(extra[:, 0, 0]).mean() == pytest.approx(2.0 / alpha_da, rel=0.15)
+    # the pressures pin ΔR_N and the vial is not seen by L_w: no extra width there
+    assert np.sqrt(extra[:, 3, 3]).max() < 1e-3
+    assert np.sqrt(extra[:, 1, 1]).max() < 1e-6
+    assert np.all(banded.stds[:, 0] >= plain.stds[:, 0])

@@ -108,7 +108,11 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
     start = carry_over(result.end_state, result.end_state_cov)
     checks = [m for m in CHECK_MIN if m <= minutes]
     after_run, after_status, after_events, after_cpu = _run(
-        Twin.default(calibration=result.calibration, calibration_cov=result.calibration_cov),
+        Twin.default(
+            calibration=result.calibration,
+            calibration_cov=result.calibration_cov,
+            noise_factors=result.noise_factors,
+        ),
         nxt.record,
         start,
     )
@@ -145,7 +149,11 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
             truth_generator="alt",
         )
         _, clog_status, clog_events, _ = _run(
-            Twin.default(calibration=result.calibration, calibration_cov=result.calibration_cov),
+            Twin.default(
+                calibration=result.calibration,
+                calibration_cov=result.calibration_cov,
+                noise_factors=result.noise_factors,
+            ),
             clog_print.record,
             start,
         )

@@ -217,3 +217,23 @@ def test_calibration_uncertainty_widens_the_bands_by_the_hand_computed_amount():
     assert np.sqrt(extra[:, 3, 3]).max() < 1e-3
     assert np.sqrt(extra[:, 1, 1]).max() < 1e-6
     assert np.all(banded.stds[:, 0] >= plain.stds[:, 0])
+
+
+def test_commissioning_fits_the_machines_output_noise_and_files_keep_it(tmp_path, commissioned):
+    from ajtwin.model import OUTPUT_NAMES
+
+    vp, result = commissioned
+    # seed 3 prints 1.37× wider lines: the camera's relative noise is larger in µm
+    assert vp.machine.calibration().linewidth_gain > 1.3
+    assert result.noise_factors[0] > 1.2
+    assert 0.5 <= result.noise_factors[2] <= 1.5  # same gauges' noise as the tuning
+    path = write_calibration_file(
+        tmp_path / "cal.toml",
+        result.calibration,
+        result.std,
+        covariance=result.calibration_cov,
+        noise_factors=dict(zip(OUTPUT_NAMES, result.noise_factors.tolist())),
+    )
+    _, data = read_calibration_file(path)
+    assert np.allclose(data["covariance"]["matrix"], result.calibration_cov, rtol=1e-12)
+    assert data["noise_factor"]["linewidth_um"] == pytest.approx(result.noise_factors[0])

@@ -116,16 +116,24 @@ def estimate(
         record = read_record(record_path)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
-    calibration = None
+    calibration = calibration_cov = noise_factors = None
     if calibration_path is not None:
+        from ajtwin.model import OUTPUT_NAMES
         from ajtwin.model.calibration import read_calibration_file
 
         try:
-            calibration, _ = read_calibration_file(calibration_path)
+            calibration, content = read_calibration_file(calibration_path)
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
+        if "covariance" in content:
+            calibration_cov = np.asarray(content["covariance"]["matrix"], dtype=float)
+        if "noise_factor" in content:
+            factors = content["noise_factor"]
+            noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
     twin = Twin.default(
         calibration=calibration,
+        calibration_cov=calibration_cov,
+        noise_factors=noise_factors,
         noise_profile=noise_profile,
         em=em,
         window_s=window,

@@ -93,6 +93,8 @@ class CommissioningResult:
     end_state_std: np.ndarray
     end_state_cov: np.ndarray = None  # (5, 5): the machine's state when commissioning ended
     calibration_cov: np.ndarray = None  # (11, 11): Σ_c with the standard errors above
+    # (5,): this machine's output noise σ / the tuned σ (its camera, gauges, CNN)
+    noise_factors: np.ndarray = None
     notes: list = field(default_factory=list)
 
     def table(self) -> list[dict]:
@@ -185,6 +187,24 @@ def check_commissioning_print(inputs, measurements, checks: dict, where: str = "
             )
     if problems:
         raise CommissioningError(f"{where} cannot commission this machine: " + "; ".join(problems))
+
+
+def noise_factors(result, measurements, bounds=(0.5, 3.0)) -> np.ndarray:
+    """Per-output factor (5,) on the tuned σ_w that makes this machine's innovations unit.
+
+    A machine's camera, gauges and CNN have their own noise (a line printed 1.4× wider
+    carries 1.4× the relative camera noise): σ_w,machine = σ_w · sqrt(mean ν²/S), bounded.
+    Learned at commissioning only; online only the line outputs may adapt (em_calibration).
+    """
+    predicted = np.asarray(result.predicted_outputs)
+    variance = np.asarray(result.innovation_variances)
+    nu2 = (np.asarray(measurements) - predicted) ** 2 / np.maximum(variance, 1e-300)
+    factors = np.ones(nu2.shape[1])
+    for j in range(nu2.shape[1]):
+        finite = np.isfinite(nu2[:, j])
+        if finite.sum() >= 10:
+            factors[j] = np.sqrt(np.mean(nu2[finite, j]))
+    return np.clip(factors, *bounds)
 
 
 def residual_inflation(result, measurements) -> np.ndarray:
@@ -382,5 +402,6 @@ def commission(
         end_state_std=np.sqrt(np.maximum(np.diag(end_cov)[:N_STATES], 0.0)),
         end_state_cov=end_cov[:N_STATES, :N_STATES],
         calibration_cov=calibration_cov,
+        noise_factors=noise_factors(result, measurements),
         notes=notes,
     )

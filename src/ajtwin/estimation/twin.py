@@ -237,6 +237,8 @@ class Twin:
     calibration_cov : array (11, 11), optional
         Its covariance from commissioning: the reported state σ then include what the
         calibration's error adds (:mod:`ajtwin.estimation.calibration_uncertainty`).
+    noise_factors : array (5,), optional
+        This machine's output noise relative to the tuned σ_w (fitted at commissioning).
     """
 
     def __init__(
@@ -246,8 +248,10 @@ class Twin:
         theta=None,
         calibration=None,
         calibration_cov=None,
+        noise_factors=None,
     ):
         self.model = model
+        self.noise_factors = None if noise_factors is None else np.asarray(noise_factors, float)
         self.calibration_cov = None if calibration_cov is None else np.asarray(calibration_cov)
         self.config = config
         self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
@@ -264,13 +268,16 @@ class Twin:
         self.limits = StateLimits.load(model.params)
 
     @classmethod
-    def default(cls, calibration=None, calibration_cov=None, **config_overrides) -> Twin:
+    def default(
+        cls, calibration=None, calibration_cov=None, noise_factors=None, **config_overrides
+    ) -> Twin:
         model = DigitalModel.default()
         return cls(
             model,
             TwinConfig.default(model, **config_overrides),
             calibration=calibration,
             calibration_cov=calibration_cov,
+            noise_factors=noise_factors,
         )
 
     # ------------------------------------------------------------------ #
@@ -285,6 +292,8 @@ class Twin:
             # σ_Qm is relative to the nominal Q_m (noise.toml): it scales with the gain
             std = std.copy()
             std[4] *= abs(float(self.calibration.material_flow_gain))
+        if self.noise_factors is not None:
+            std = std * self.noise_factors
         return std
 
     @property

@@ -180,9 +180,17 @@ def _toml_value(value) -> str:
 
 
 def write_calibration_file(
-    path, calibration: Calibration, std: dict | None = None, provenance: dict | None = None
+    path,
+    calibration: Calibration,
+    std: dict | None = None,
+    provenance: dict | None = None,
+    *,
+    covariance=None,
+    noise_factors: dict | None = None,
 ) -> Path:
-    """Write a calibration TOML: ``[calibration]``, ``[standard_error]``, ``[provenance]``."""
+    """Write a calibration TOML: ``[calibration]``, ``[standard_error]``, ``[provenance]``,
+    and optionally ``covariance`` (11 × 11, :data:`CALIBRATION_NAMES` order) and
+    ``[noise_factor]`` (output name → σ_w factor)."""
     path = Path(path)
     lines = ["format_version = 1", ""]
     prov = {"written": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
@@ -201,6 +209,13 @@ def write_calibration_file(
     if std:
         lines += ["", "[standard_error]"]
         lines += [f"{k} = {_toml_value(float(v))}" for k, v in std.items()]
+    if noise_factors:
+        lines += ["", "[noise_factor]"]
+        lines += [f"{k} = {_toml_value(float(v))}" for k, v in noise_factors.items()]
+    if covariance is not None:
+        rows = [[float(v) for v in row] for row in np.asarray(covariance, dtype=float)]
+        lines += ["", "[covariance]", f"order = {_toml_value(list(CALIBRATION_NAMES))}"]
+        lines += ["matrix = [", *[f"    {_toml_value(r)}," for r in rows], "]"]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path

@@ -49,7 +49,8 @@ CREATE TABLE IF NOT EXISTS calibrations (
     notes_json TEXT NOT NULL,
     end_mean_json TEXT NOT NULL,
     end_cov_json TEXT NOT NULL,
-    calibration_cov_json TEXT NOT NULL
+    calibration_cov_json TEXT NOT NULL,
+    noise_factors_json TEXT NOT NULL DEFAULT 'null'
 );
 CREATE TABLE IF NOT EXISTS maintenance_events (
     id INTEGER PRIMARY KEY,
@@ -95,8 +96,8 @@ def save_calibration(registry, machine: str, result, source: str) -> int:
     cur = registry._conn.execute(
         "INSERT INTO calibrations (machine_id, created_at, created_unix, source, after_print_seq,"
         " calibration_json, std_json, prior_std_json, determined_json, priors_json, notes_json,"
-        " end_mean_json, end_cov_json, calibration_cov_json)"
-        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        " end_mean_json, end_cov_json, calibration_cov_json, noise_factors_json)"
+        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         (
             machine_id,
             created_at,
@@ -112,6 +113,9 @@ def save_calibration(registry, machine: str, result, source: str) -> int:
             json.dumps(np.asarray(result.end_state, float).tolist()),
             json.dumps(np.asarray(result.end_state_cov, float).tolist()),
             json.dumps(np.asarray(result.calibration_cov, float).tolist()),
+            json.dumps(
+                None if result.noise_factors is None else np.asarray(result.noise_factors).tolist()
+            ),
         ),
     )
     return int(cur.lastrowid)

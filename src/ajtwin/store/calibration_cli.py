@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import numpy as np
 
 from ajtwin.store.cli import open_registry, store_option
 
@@ -75,6 +76,8 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
     for note in result.notes:
         click.echo(f"  note: {note}")
     click.echo(f"  mean NIS per output {result.mean_nis:.2f} (1 = the calibrated model fits)")
+    factors = ", ".join(f"{v:.2f}" for v in np.asarray(result.noise_factors))
+    click.echo(f"  output noise of this machine / tuned σ (L_w, L_o, P_c, P_s, Q_m): {factors}")
     provenance = {
         "machine": name,
         "print": str(record),
@@ -83,7 +86,16 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
         "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
     }
     if out_path is not None:
-        write_calibration_file(out_path, result.calibration, result.std, provenance)
+        from ajtwin.model import OUTPUT_NAMES
+
+        write_calibration_file(
+            out_path,
+            result.calibration,
+            result.std,
+            provenance,
+            covariance=result.calibration_cov,
+            noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(result.noise_factors).tolist())),
+        )
         click.echo(f"wrote {out_path}")
     if reg is not None:
         cal_id = save_calibration(reg, name, result, str(record))

@@ -175,7 +175,13 @@ def ingest_record(
             start = (mean, cov)
         started_from += " + maintenance"
     calibration_cov = None if active is None else active["calibration_cov"]
-    twin = Twin.default(calibration=calibration, calibration_cov=calibration_cov, **overrides)
+    noise_factors = None if active is None else active.get("noise_factors")
+    twin = Twin.default(
+        calibration=calibration,
+        calibration_cov=calibration_cov,
+        noise_factors=noise_factors,
+        **overrides,
+    )
     twin.theta = theta
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)

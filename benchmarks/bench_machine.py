@@ -334,6 +334,7 @@ if __name__ == "__main__":
 
     results = run_all(quick=quick, n_machines=n_machines, checkpoint=checkpoint)
     (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
+    (OUT / f"{name}.partial.json").unlink(missing_ok=True)  # the whole run is in name.json
     command = "python benchmarks/bench_machine.py" + (" --quick" if quick else "")
     if n_machines:
         command += f" --machines {n_machines}"

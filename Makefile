@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench lint openfoam clean
+.PHONY: demo test test-all bench lint openfoam chromium clean
 
 $(VENV): $(STAMP)
 
@@ -28,16 +28,26 @@ openfoam:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq openfoam >/dev/null; \
 	fi
 
+# Debian's chromium, driven by Playwright in the dashboard's browser tests (Playwright's own
+# browser download is not possible here); skipped when already present.
+chromium:
+	@if [ -x /usr/bin/chromium ]; then \
+		echo "chromium: present"; \
+	else \
+		echo "chromium: installing Debian package (apt-get)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	fi
+
 demo: $(STAMP)
 	$(VENV)/bin/ajtwin demo
 
-test: $(STAMP) openfoam
+test: $(STAMP) openfoam chromium
 	$(PY) -m pytest -m "not slow" -q
 
-test-all: $(STAMP) openfoam
+test-all: $(STAMP) openfoam chromium
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
+bench: $(STAMP) chromium
 	$(PY) benchmarks/run_all.py
 
 lint: $(STAMP)

@@ -69,8 +69,8 @@ def _cpu(fn, repeat=5):
 
 
 def main() -> dict:
+    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.maintenance import compact, file_bytes
     from ajtwin.store.registry import Registry
 

@@ -452,3 +452,25 @@ def test_video_and_parameter_paths_are_checked_before_open(tmp_path):
         _no_hang(lambda: open_source(fifo), fifo=fifo)
     with pytest.raises(InputFileError, match="is a directory, not a parameter file"):
         load_parameters(tmp_path)
+
+
+def test_nul_byte_in_a_path_is_a_clear_error():
+    with pytest.raises(RecordError, match="not a usable path"):
+        read_record("bad\x00name.csv")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "--out", "r.avi", "--fps", "nan"],  # was a ValueError traceback
+        ["render", "--out", "r.avi", "--noise", "nan"],  # was accepted: a NaN-noise video
+        ["render", "--out", "r.avi", "--tilt", "inf"],
+        ["extract", "cam.avi", "--um-per-px", "0.75", "--out", "f.csv", "--start-offset", "nan"],
+        ["simulate", "--scenario", "exp1", "--out", "x.parquet", "--duration-min", "nan"],
+    ],
+)
+def test_float_options_refuse_nan_and_inf(tmp_path, argv):
+    from ajtwin.cli import main
+
+    result = CliRunner().invoke(main, argv)
+    assert result.exit_code == 2 and "Invalid value for" in result.output, result.output

@@ -28,6 +28,8 @@ def test_demo_small_instance(tmp_path):
     result = CliRunner().invoke(demo_command, args)
     assert result.exit_code == 0, result.output
     assert "[7/7]" in result.output and "re-ingest detected as duplicate: True" in result.output
+    # the demo ends by telling how to open the dashboard on its registry
+    assert f"ajtwin dashboard --store {out / 'registry.sqlite'}" in result.output
     page = _check_report(out)
     assert "nozzle starts to clog at <b>3.0 min</b>" in page
     from ajtwin.store.registry import Registry

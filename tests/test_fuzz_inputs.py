@@ -592,6 +592,13 @@ def test_fuzz_every_command_parses_or_says_usage(profile):
                         "--help",
                         "--",
                         "-x",
+                        "--noise",
+                        "--blur",
+                        "--tilt",
+                        "--start-offset",
+                        "--camera-offset",
+                        "--platen-speed",
+                        "--duration",
                     ]
                 ),  # fmt: skip
             ),
@@ -599,15 +606,21 @@ def test_fuzz_every_command_parses_or_says_usage(profile):
         ),
     )
     def run(name, argv):
+        # a shell cannot pass a NUL byte (argv strings end at one); click's own path check
+        # raises ValueError on it, which no user can reach
+        argv = [a.replace("\x00", "") for a in argv]
         command = main.get_command(None, name)
         if "--help" in argv:
             return  # prints and exits: not parsing
         try:
-            command.make_context(name, list(argv))
+            ctx = command.make_context(name, list(argv))
         except (click.exceptions.UsageError, click.exceptions.Exit):
             OUTCOMES["usage error"] += 1
             return
         OUTCOMES["parsed"] += 1
+        for key, value in ctx.params.items():  # no NaN or inf reaches a command (but --gate inf)
+            if isinstance(value, float) and not (key == "gate" and value == math.inf):
+                assert math.isfinite(value), (name, key, value)
 
     run()
 
@@ -660,3 +673,46 @@ def test_corpus(path, tmp_path):
         outcome, text = result[0], result[1] if result[0] == "error" else ""
     assert outcome == expected["outcome"], text
     assert expected.get("message", "") in text
+
+
+FLOAT_OPTIONS = {
+    "render": (["--out", "r.avi"], ["--fps", "--um-per-px", "--tilt", "--noise", "--blur",
+                                    "--raggedness", "--linewidth", "--overspray", "--area",
+                                    "--duration", "--start", "--platen-speed"]),
+    "extract": (["src.avi", "--um-per-px", "0.75", "--out", "f.csv"],
+                ["--um-per-px", "--fps", "--start-offset", "--camera-offset", "--platen-speed"]),
+    "simulate": (["--scenario", "exp1", "--out", "x.parquet"], ["--duration-min"]),
+    "estimate": (None, ["--gate", "--vial-ml"]),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_fuzz_float_options_never_pass_nan_or_inf(profile, tmp_path):
+    """Commands with their required arguments and any float option text: the value that
+    reaches the command is finite (and in its range), or the parse is a usage error."""
+    from ajtwin.cli import main
+
+    record = tmp_path / "p.csv"
+    base_table(5, 0).to_csv(record, index=False)
+    commands = dict(FLOAT_OPTIONS)
+    commands["estimate"] = ([str(record), "--out", "s.csv"], FLOAT_OPTIONS["estimate"][1])
+
+    @settings(settings.get_profile(profile))
+    @given(data=st.data(), name=st.sampled_from(sorted(commands)))
+    def run(data, name):
+        base, options = commands[name]
+        chosen = data.draw(st.dictionaries(st.sampled_from(options), number_text, max_size=3))
+        argv = list(base)
+        for key, value in chosen.items():
+            argv += [key, value.replace("\x00", "")]  # a shell cannot pass NUL
+        try:
+            ctx = main.get_command(None, name).make_context(name, argv)
+        except click.exceptions.UsageError:
+            OUTCOMES["usage error"] += 1
+            return
+        OUTCOMES["parsed"] += 1
+        for key, value in ctx.params.items():
+            if isinstance(value, float) and not (key == "gate" and value == math.inf):
+                assert math.isfinite(value), (name, key, value)
+
+    run()

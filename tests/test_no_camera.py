@@ -127,3 +127,16 @@ def test_estimate_cli_on_a_camera_less_record(tmp_path, clog_print):
     frame = pd.read_csv(tmp_path / "s.csv")
     assert frame.filter(like="droplet").notna().all().all()
     assert (frame["seen_droplet_diameter_um"] == 0).all()
+
+
+def test_ingest_cli_on_a_camera_less_record(tmp_path, clog_print):
+    from ajtwin.store.cli import ingest, machine
+
+    record = _blind(clog_print.window(0, 300), LINE_COLUMNS)
+    path = write_record(record, tmp_path / "nocam.parquet")
+    store = str(tmp_path / "r.sqlite")
+    runner = CliRunner()
+    assert runner.invoke(machine, ["add", "M", "--store", store]).exit_code == 0
+    result = runner.invoke(ingest, ["--machine", "M", "--store", store, str(path), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert "start from their priors" in result.output and "cannot see them" in result.output

@@ -79,7 +79,9 @@ def _check_machine_soak(table, n, vial_tol_ml=0.01):
 @pytest.fixture(scope="module")
 def twenty_prints(tmp_path_factory):
     store = tmp_path_factory.mktemp("soak") / "r.sqlite"
-    return store, soak_machine(20, print_min=2.0, store=store, seed=30)
+    # a 60-s EM window so that θ is learned within 2-min prints and carried over
+    overrides = {"window_s": 60, "every_s": 30}
+    return store, soak_machine(20, print_min=2.0, store=store, seed=30, twin_overrides=overrides)
 
 
 def test_machine_many_prints_carry_over_exactly(twenty_prints):
@@ -93,6 +95,7 @@ def test_machine_many_prints_carry_over_exactly(twenty_prints):
     _check_machine_soak(table, n)
     reg = Registry(store)
     prints = [reg.print_by_seq("soak", k) for k in range(1, n + 1)]
+    assert np.any(table[[f"theta_{k}" for k in range(5)]].to_numpy() != 0)  # θ is learned
     for before, after in zip(prints, prints[1:]):
         mean, cov = carry_over(before["end_mean"], before["end_cov"])
         assert np.array_equal(after["start_mean"], mean)

@@ -28,10 +28,16 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "extract": ("ajtwin.vision.cli:extract", "Linewidth/overspray from alignment-camera video."),
     "cnn": ("ajtwin.profile_cnn.cli:cnn", "Height-profile CNN: train and infer Q_m."),
     "cfd": ("ajtwin.cfd.cli:cfd", "CFD macro-model with OpenFOAM: case, run, sweep, fit."),
-    "machine": ("ajtwin.store.cli:machine", "Machine registry: add, show, history."),
+    "machine": (
+        "ajtwin.store.cli:machine",
+        "Machine registry: add, show, history, drop, compact, backup.",
+    ),
     "ingest": ("ajtwin.store.cli:ingest", "Ingest a print into a machine's twin."),
     "forecast": ("ajtwin.apps.cli:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
+    "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
+    "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
+    "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
 }
 
 

@@ -32,10 +32,11 @@ Examples
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
@@ -132,35 +133,111 @@ def nis_tail_probability(nis, n_measured) -> np.ndarray:
     """
     nis = np.asarray(nis, dtype=float)
     dof = np.asarray(n_measured, dtype=float)
-    return np.where(dof > 0, stats.chi2.sf(nis, np.maximum(dof, 1)), 1.0)
+    # chdtrc is what scipy.stats.chi2.sf evaluates, without its per-call overhead (live steps)
+    return np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), nis), 1.0)
+
+
+class WindowedNIS:
+    """Rolling Σε and Σn over the last ``window`` steps, one step at a time.
+
+    Keeps running sums C_k = Σ_{j≤k} ε_j (NaN counted as 0) and the last ``window + 1``
+    of them, so Σ_{k−w<j≤k} ε_j = C_k − C_{k−w}: the same sums a batch ``cumsum`` gives.
+
+    >>> w = WindowedNIS(2)
+    >>> [w.update(x, 1)[0] for x in (1.0, 2.0, 3.0)]
+    [1.0, 3.0, 5.0]
+    """
+
+    def __init__(self, window: int):
+        self.window = int(window)
+        self._c_nis = deque([0.0], maxlen=self.window + 1)
+        self._c_dof = deque([0.0], maxlen=self.window + 1)
+
+    def update(self, nis: float, n_measured: float) -> tuple[float, float, float]:
+        """Add step k; returns (Σε, Σn, χ² tail probability) over the window ending at k."""
+        nis = float(nis)
+        self._c_nis.append(self._c_nis[-1] + (nis if np.isfinite(nis) else 0.0))
+        self._c_dof.append(self._c_dof[-1] + float(n_measured))
+        total = self._c_nis[-1] - self._c_nis[0]
+        n = self._c_dof[-1] - self._c_dof[0]
+        p = float(special.chdtrc(max(n, 1.0), total)) if n > 0 else 1.0
+        return total, n, p
 
 
 def windowed_nis(nis, n_measured, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rolling Σε and Σn over the last ``window`` steps, and its χ² tail probability.
 
+    :class:`WindowedNIS` run over the arrays.
+
     Returns
     -------
     total, dof, p : (T,) arrays; the first ``window − 1`` steps use what exists so far.
     """
-    nis = np.nan_to_num(np.asarray(nis, dtype=float))
+    nis = np.asarray(nis, dtype=float)
     dof = np.asarray(n_measured, dtype=float)
-    c_nis = np.concatenate([[0.0], np.cumsum(nis)])
-    c_dof = np.concatenate([[0.0], np.cumsum(dof)])
-    idx = np.arange(1, len(nis) + 1)
-    lo = np.maximum(idx - int(window), 0)
-    total = c_nis[idx] - c_nis[lo]
-    n = c_dof[idx] - c_dof[lo]
-    p = np.where(n > 0, stats.chi2.sf(total, np.maximum(n, 1)), 1.0)
-    return total, n, p
+    rolling = WindowedNIS(window)
+    out = np.array([rolling.update(a, b) for a, b in zip(nis, dof)]).reshape(-1, 3)
+    return out[:, 0], out[:, 1], out[:, 2]
+
+
+class Cusum:
+    """Two-sided CUSUM over m channels, one step at a time (see module docstring).
+
+    Parameters
+    ----------
+    drift : float or (m,) array
+        Allowance k per step [σ].
+    threshold : float or (m,) array
+        Decision interval h.
+    m : int
+        Number of channels.
+    """
+
+    def __init__(self, drift, threshold, m: int):
+        self.drift = np.broadcast_to(np.asarray(drift, dtype=float), (m,)).copy()
+        self.threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (m,)).copy()
+        self.g_pos = np.zeros(m)
+        self.g_neg = np.zeros(m)
+        self.zero_pos = np.zeros(m, dtype=int)
+        self.zero_neg = np.zeros(m, dtype=int)
+        self.started = False
+
+    def update(self, k: int, e_k) -> list[CusumAlarm]:
+        """Accumulate step k's normalised innovations (m,); NaN leaves a channel as it was.
+
+        The first call starts the statistics (change points before it: k − 1).
+        """
+        if not self.started:
+            self.zero_pos[:] = k - 1
+            self.zero_neg[:] = k - 1
+            self.started = True
+        ek = np.asarray(e_k, dtype=float)
+        ok = np.isfinite(ek)
+        e0 = np.where(ok, ek, 0.0)
+        gp = np.where(ok, np.maximum(0.0, self.g_pos + e0 - self.drift), self.g_pos)
+        gn = np.where(ok, np.maximum(0.0, self.g_neg - e0 - self.drift), self.g_neg)
+        self.zero_pos = np.where(gp == 0.0, k, self.zero_pos)
+        self.zero_neg = np.where(gn == 0.0, k, self.zero_neg)
+        alarms = []
+        for j in np.flatnonzero(gp > self.threshold):
+            alarms.append(CusumAlarm(k, int(self.zero_pos[j]), int(j), 1))
+            gp[j] = 0.0
+            self.zero_pos[j] = k
+        for j in np.flatnonzero(gn > self.threshold):
+            alarms.append(CusumAlarm(k, int(self.zero_neg[j]), int(j), -1))
+            gn[j] = 0.0
+            self.zero_neg[j] = k
+        self.g_pos, self.g_neg = gp, gn
+        return alarms
 
 
 def cusum(e, drift: float, threshold: float, start: int = 0):
-    """Two-sided CUSUM per column of ``e`` (T, m); NaN entries leave g unchanged.
+    """Two-sided CUSUM per column of ``e`` (T, m): :class:`Cusum` run over the array.
 
     Parameters
     ----------
     e : (T, m) array
-        Normalised innovations.
+        Normalised innovations; NaN entries leave g unchanged.
     drift : float or (m,) array
         Allowance k per step (half the bias to detect, in σ), per column if an array.
     threshold : float or (m,) array
@@ -179,30 +256,12 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
     n, m = e.shape
     g_pos = np.zeros((n, m))
     g_neg = np.zeros((n, m))
-    threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (m,))
-    drift = np.broadcast_to(np.asarray(drift, dtype=float), (m,))
-    gp = np.zeros(m)
-    gn = np.zeros(m)
-    zero_p = np.full(m, start - 1)
-    zero_n = np.full(m, start - 1)
+    detector = Cusum(drift, threshold, m)
     alarms = []
     for k in range(start, n):
-        ek = e[k]
-        ok = np.isfinite(ek)
-        gp = np.where(ok, np.maximum(0.0, gp + np.where(ok, ek, 0.0) - drift), gp)
-        gn = np.where(ok, np.maximum(0.0, gn - np.where(ok, ek, 0.0) - drift), gn)
-        zero_p = np.where(gp == 0.0, k, zero_p)
-        zero_n = np.where(gn == 0.0, k, zero_n)
-        for j in np.flatnonzero(gp > threshold):
-            alarms.append(CusumAlarm(k, int(zero_p[j]), int(j), 1))
-            gp[j] = 0.0
-            zero_p[j] = k
-        for j in np.flatnonzero(gn > threshold):
-            alarms.append(CusumAlarm(k, int(zero_n[j]), int(j), -1))
-            gn[j] = 0.0
-            zero_n[j] = k
-        g_pos[k] = gp
-        g_neg[k] = gn
+        alarms += detector.update(k, e[k])
+        g_pos[k] = detector.g_pos
+        g_neg[k] = detector.g_neg
     return g_pos, g_neg, alarms
 
 
@@ -293,6 +352,193 @@ class DetectionResult:
         )
 
 
+@dataclass
+class DetectorStep:
+    """What the detectors say after one step (one row of :class:`DetectionResult`)."""
+
+    step: int
+    time_s: float
+    normalised_innovation: np.ndarray  # (5,)
+    nis_p: float
+    window_nis_p: float
+    cusum_pos: np.ndarray  # (6,)
+    cusum_neg: np.ndarray  # (6,)
+    alarms: list  # detector labels that fired at this step
+    raised: list  # AnomalyEvent opened at this step (label from the evidence so far)
+    finalised: list  # AnomalyEvent whose evidence window closed at this step (final label)
+
+
+class AnomalyDetector:
+    """NIS, windowed-NIS and CUSUM tests, one EKF step at a time, alarms → labelled events.
+
+    The batch :func:`detect_anomalies` runs this over arrays, so a live twin and a finished
+    print give the same events. An event is *raised* at its first alarm with the cause
+    read from the evidence so far and *finalised* once ``evidence_s`` seconds after the
+    detection have been seen (or at :meth:`finish`), with the batch label.
+
+    Parameters
+    ----------
+    settings : DetectorSettings, optional
+    """
+
+    def __init__(self, settings: DetectorSettings | None = None):
+        s = self.settings = settings or DetectorSettings()
+        thresholds = np.array(
+            [s.cusum_threshold] * 4
+            + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
+        )
+        drifts = np.array([s.cusum_drift] * 5 + [s.cusum_drift_pressure_sum])
+        self.cusum = Cusum(drifts, thresholds, len(CUSUM_CHANNELS))
+        self.window = WindowedNIS(s.nis_window_s)
+        self.window_steps = int(np.asarray(s.nis_window_s, dtype=int))
+        self.k = -1
+        self.start = None  # first step past the warm-up
+        self.t0 = None
+        self.time: list[float] = []
+        self.e: list[np.ndarray] = []
+        self.corrections: list[np.ndarray] = []
+        self.stds: list[np.ndarray] = []
+        self.vial: list[float] = []
+        self.groups: list[list] = []  # raw alarms (step, change_step, label) per event
+        self.events: list[AnomalyEvent] = []  # one per group
+        self.final: list[bool] = []
+        self._crossing = False
+        self._vial_low = False
+
+    def update(
+        self,
+        time_s,
+        measurement,
+        predicted_output,
+        innovation_variance,
+        nis,
+        n_measured,
+        mean,
+        predicted_mean,
+        covariance,
+    ) -> DetectorStep:
+        """Step k: the EKF outputs of one sample (display units; see :func:`detect_anomalies`)."""
+        s = self.settings
+        self.k += 1
+        k = self.k
+        t = float(time_s)
+        if self.t0 is None:
+            self.t0 = t
+        if self.start is None and t >= self.t0 + s.warmup_s:
+            self.start = k
+        e = normalised_innovations(
+            np.asarray(measurement, dtype=float)[None],
+            np.asarray(predicted_output, dtype=float)[None],
+            np.asarray(innovation_variance, dtype=float)[None],
+        )[0]
+        mean = np.asarray(mean, dtype=float)
+        self.time.append(t)
+        self.e.append(e)
+        self.corrections.append(mean - np.asarray(predicted_mean, dtype=float))
+        self.stds.append(np.sqrt(np.maximum(np.diag(np.asarray(covariance, dtype=float)), 1e-300)))
+        self.vial.append(float(mean[1]))
+        p_step = float(nis_tail_probability([nis], [n_measured])[0])
+        _, _, p_win = self.window.update(nis, n_measured)
+
+        raw = []
+        if self.start is not None:
+            channels = np.append(e, e[2] + e[3])  # + the common-mode pressure channel
+            for a in self.cusum.update(k, channels):
+                sign = "+" if a.direction > 0 else "−"
+                raw.append((a.step, a.change_step, f"cusum{sign} {CUSUM_CHANNELS[a.output]}"))
+        crossing = (
+            self.start is not None and p_win < s.nis_alpha and k >= self.start + self.window_steps
+        )
+        if crossing and not self._crossing:  # the first step of a run of crossings
+            raw.append((k, max(k - self.window_steps, 0), "windowed NIS"))
+        self._crossing = crossing
+        if self.start is not None and not self._vial_low and mean[1] < s.vial_low_mL:
+            self._vial_low = True
+            raw.append((k, k, "V_l low"))
+        raw.sort()
+
+        raised = []
+        for alarm in raw:
+            last = self.groups[-1][-1][0] if self.groups else None
+            if last is not None and t - self.time[last] <= s.merge_s:
+                self.groups[-1].append(alarm)
+            else:
+                self.groups.append([alarm])
+                self.events.append(None)
+                self.final.append(False)
+                raised.append(len(self.groups) - 1)
+        finalised = []
+        for i, group in enumerate(self.groups):
+            if self.final[i]:
+                continue
+            k_end = self._evidence_end(group[0][0])
+            if k_end is not None:
+                self.final[i] = True
+                finalised.append(i)
+            self.events[i] = self._event(group, k_end)
+        return DetectorStep(
+            k,
+            t,
+            e,
+            p_step,
+            p_win,
+            self.cusum.g_pos.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
+            self.cusum.g_neg.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
+            [name for _, _, name in raw],
+            [self.events[i] for i in raised],
+            [self.events[i] for i in finalised],
+        )
+
+    def finish(self) -> list[AnomalyEvent]:
+        """End of the print: finalise the open events with the data there is; all events."""
+        for i, group in enumerate(self.groups):
+            if not self.final[i]:
+                self.events[i] = self._event(group, self.k + 1)
+                self.final[i] = True
+        return list(self.events)
+
+    def _evidence_end(self, k_det: int) -> int | None:
+        """First step at or after detection + evidence_s, if it has been seen."""
+        target = self.time[k_det] + self.settings.evidence_s
+        if self.time[-1] < target:
+            return None
+        return int(np.searchsorted(np.asarray(self.time), target))
+
+    def _event(self, group: list, k_end: int | None) -> AnomalyEvent:
+        """The event of a group of alarms, from the evidence up to ``k_end`` (None: so far)."""
+        s = self.settings
+        n = self.k + 1
+        if k_end is None:
+            k_end = n
+        k_det = group[0][0]
+        # the first alarm's own change point: later alarms may have found older drifts
+        k_on = min(k for step, k, _ in group if step == k_det)
+        span = slice(max(k_on, 0), min(max(k_end, k_det + 1), n))
+        seg = np.asarray(self.e[span])
+        counts = np.isfinite(seg).sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            mean_e = np.where(counts > 0, np.nansum(seg, axis=0) / np.maximum(counts, 1), 0.0)
+        shift = np.asarray(self.corrections[span]).sum(axis=0) / self.stds[span.stop - 1]
+        vial = self.vial[span.stop - 1]
+        cause = label_cause(mean_e, counts, shift, vial, s)
+        detectors = []
+        for step, _, name in group:
+            if step <= k_end and name not in detectors:
+                detectors.append(name)
+        return AnomalyEvent(
+            detected_s=self.time[k_det],
+            onset_s=self.time[k_on],
+            cause=cause,
+            description=CAUSES[cause],
+            detectors=detectors,
+            evidence={
+                "mean_normalised_innovation": dict(zip(SHORT_OUTPUT, np.round(mean_e, 3).tolist())),
+                "state_correction_sigma": dict(zip(SHORT_STATE, np.round(shift, 3).tolist())),
+                "vial_mL": float(vial),
+            },
+        )
+
+
 def detect_anomalies(
     time_s,
     measurements,
@@ -306,6 +552,8 @@ def detect_anomalies(
     settings: DetectorSettings | None = None,
 ) -> DetectionResult:
     """Run NIS, windowed-NIS and CUSUM tests and group alarms into labelled events.
+
+    :class:`AnomalyDetector` run over the arrays, step by step.
 
     Parameters
     ----------
@@ -321,85 +569,36 @@ def detect_anomalies(
     -------
     DetectionResult
     """
-    s = settings or DetectorSettings()
+    detector = AnomalyDetector(settings)
     t = np.asarray(time_s, dtype=float)
-    n = len(t)
-    e = normalised_innovations(measurements, predicted_outputs, innovation_variances)
-    start = int(np.searchsorted(t, t[0] + s.warmup_s))
-    p_step = nis_tail_probability(nis, n_measured)
-    _, _, p_win = windowed_nis(nis, n_measured, s.nis_window_s)
-    channels = np.column_stack([e, e[:, 2] + e[:, 3]])  # + the common-mode pressure channel
-    thresholds = np.array(
-        [s.cusum_threshold] * 4 + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
+    columns = (
+        measurements,
+        predicted_outputs,
+        innovation_variances,
+        nis,
+        n_measured,
+        means,
+        predicted_means,
+        covariances,
     )
-    drifts = np.array([s.cusum_drift] * 5 + [s.cusum_drift_pressure_sum])
-    g_pos, g_neg, alarms = cusum(channels, drifts, thresholds, start=start)
+    columns = [np.asarray(c, dtype=float) for c in columns]
+    rows = [detector.update(t[k], *(c[k] for c in columns)) for k in range(len(t))]
+    events = detector.finish()
+    n_channels = len(CUSUM_CHANNELS)
 
-    # raw alarms: (step, change_step, detector label)
-    raw = [
-        (
-            a.step,
-            a.change_step,
-            f"cusum{'+' if a.direction > 0 else '−'} {CUSUM_CHANNELS[a.output]}",
-        )
-        for a in alarms
-    ]
-    win = np.asarray(s.nis_window_s, dtype=int)
-    crossing = np.flatnonzero((p_win < s.nis_alpha) & (np.arange(n) >= start + win))
-    if crossing.size:
-        # only the first step of each run of consecutive windowed-NIS alarms
-        firsts = crossing[np.concatenate([[True], np.diff(crossing) > 1])]
-        raw += [(int(k), int(max(k - win, 0)), "windowed NIS") for k in firsts]
-    means = np.asarray(means, dtype=float)
-    predicted_means = np.asarray(predicted_means, dtype=float)
-    vial = means[:, 1]
-    low = np.flatnonzero((vial < s.vial_low_mL) & (np.arange(n) >= start))
-    if low.size:
-        raw.append((int(low[0]), int(low[0]), "V_l low"))
-    raw.sort()
+    def stack(name, shape):
+        return np.array([getattr(r, name) for r in rows]).reshape(shape)
 
-    events: list[AnomalyEvent] = []
-    groups: list[list] = []
-    for alarm in raw:
-        if groups and t[alarm[0]] - t[groups[-1][-1][0]] <= s.merge_s:
-            groups[-1].append(alarm)
-        else:
-            groups.append([alarm])
-    corrections = means - predicted_means
-    stds = np.sqrt(np.maximum(np.diagonal(np.asarray(covariances), 0, 1, 2), 1e-300))
-    for group in groups:
-        k_det = group[0][0]
-        # the first alarm's own change point: later alarms may have found older drifts
-        k_on = min(k for step, k, _ in group if step == k_det)
-        k_end = int(np.searchsorted(t, t[k_det] + s.evidence_s))
-        span = slice(max(k_on, 0), min(max(k_end, k_det + 1), n))
-        seg = e[span]
-        counts = np.isfinite(seg).sum(axis=0)
-        with np.errstate(invalid="ignore"):
-            mean_e = np.where(counts > 0, np.nansum(seg, axis=0) / np.maximum(counts, 1), 0.0)
-        shift = corrections[span].sum(axis=0) / stds[min(span.stop, n) - 1]
-        cause = label_cause(mean_e, counts, shift, float(vial[span.stop - 1]), s)
-        detectors = []
-        for step, _, name in group:
-            if step <= k_end and name not in detectors:
-                detectors.append(name)
-        events.append(
-            AnomalyEvent(
-                detected_s=float(t[k_det]),
-                onset_s=float(t[k_on]),
-                cause=cause,
-                description=CAUSES[cause],
-                detectors=detectors,
-                evidence={
-                    "mean_normalised_innovation": dict(
-                        zip(SHORT_OUTPUT, np.round(mean_e, 3).tolist())
-                    ),
-                    "state_correction_sigma": dict(zip(SHORT_STATE, np.round(shift, 3).tolist())),
-                    "vial_mL": float(vial[span.stop - 1]),
-                },
-            )
-        )
-    return DetectionResult(t, e, p_step, p_win, g_pos, g_neg, events, s)
+    return DetectionResult(
+        t,
+        stack("normalised_innovation", (len(t), 5)),
+        stack("nis_p", (len(t),)),
+        stack("window_nis_p", (len(t),)),
+        stack("cusum_pos", (len(t), n_channels)),
+        stack("cusum_neg", (len(t), n_channels)),
+        events,
+        detector.settings,
+    )
 
 
 def detect_run(run, record, settings: DetectorSettings | None = None) -> DetectionResult:
@@ -442,7 +641,11 @@ def detection_delay(result: DetectionResult, fault_onset_s: float | None) -> dic
 
 __all__ = [
     "CAUSES",
+    "AnomalyDetector",
     "AnomalyEvent",
+    "Cusum",
+    "DetectorStep",
+    "WindowedNIS",
     "CusumAlarm",
     "DetectionResult",
     "DetectorSettings",

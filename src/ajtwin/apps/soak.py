@@ -12,14 +12,14 @@ Two soaks (issue 14, "Long runs"):
   VmHWM from ``/proc/self/status``). Days are simulated one by one with
   ``continue_from`` (the atomizer restarts each day, the vial and deposits carry on).
 * :func:`soak_machine` — many short prints of one machine back to back through the
-  registry (:func:`ajtwin.store.ingest.ingest_record`): the chain carries the state and
+  registry (:func:`ajtwin.live.engine.ingest_record`): the chain carries the state and
   θ; records per print the end state, θ and the time ``machine history``/``machine show``
   take as the registry grows.
 
 Example
 -------
->>> rep = soak_print(hours=0.2, chunk_min=6)            # doctest: +SKIP
->>> rep.healthy, rep.guard_firings
+>>> rep = soak_print(hours=0.2, chunk_min=6)  # doctest: +SKIP
+>>> rep.healthy, rep.guard_firings  # doctest: +SKIP
 (True, 0)
 """
 
@@ -180,9 +180,13 @@ def soak_machine(
     store=None,
     scenario: str = "exp1",
     seed: int = 0,
+    twin_overrides: dict | None = None,
     progress=None,
 ):
     """Ingest ``n_prints`` short virtual prints of one machine into a registry.
+
+    ``twin_overrides`` go to the twin's config (e.g. a short EM window so that θ is
+    learned within short prints and its carry-over is exercised).
 
     Each print continues the virtual machine (``continue_from``): the vial and deposits
     carry on in the truth, as the chain carries them in the twin.
@@ -198,8 +202,8 @@ def soak_machine(
 
     import pandas as pd
 
+    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     folder = None
@@ -216,7 +220,9 @@ def soak_machine(
                               continue_from=previous)  # fmt: skip
             record.meta["machine_id"] = "soak"
             cpu0 = time.process_time()
-            result = ingest_record(reg, "soak", record, source=f"virtual print {i + 1}")
+            result = ingest_record(
+                reg, "soak", record, source=f"virtual print {i + 1}", twin_overrides=twin_overrides
+            )
             cpu_ingest = time.process_time() - cpu0
             cpu0 = time.process_time()
             reg.history("soak")

@@ -181,35 +181,13 @@ def estimate(
         click.echo(
             f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True
         )
-    _report_unseen(run, n)
+    for note in run.visibility_notes():
+        click.echo(note, err=True)
     if plot_path:
         from ajtwin.estimation.plots import estimate_figure
 
         estimate_figure(record, run, plot_path)
         click.echo(f"wrote {plot_path}")
-
-
-def _report_unseen(run, n: int) -> None:
-    """Say plainly which states no measured output saw (no camera, camera dropouts)."""
-    if run.initial is not None and run.initial.states_from_prior:
-        click.echo(f"warning: {run.initial.message}", err=True)
-    unseen = run.unseen_summary()
-    never = [name for name, count in unseen.items() if count == n]
-    sometimes = {name: count for name, count in unseen.items() if count < n}
-    if never:
-        click.echo(
-            f"warning: no output in this record measures {', '.join(never)} (no linewidth, "
-            "overspray or material flow): the twin cannot see them; their estimates follow "
-            "the model from the priors and their bands stay wide (columns seen_* = 0)",
-            err=True,
-        )
-    if sometimes:
-        parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
-        click.echo(
-            f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the model "
-            "alone and the bands widen (columns seen_* = 0)",
-            err=True,
-        )
 
 
 @click.command("experiment")

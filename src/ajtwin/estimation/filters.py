@@ -371,11 +371,14 @@ def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:
     p_p = filtered.predicted_covariances / ss
     f_jacs = filtered.transition_jacobians
 
+    # J_k = P_k Fᵀ P_{k+1|k}⁻¹ depends on the filter's output only, not on the backward
+    # pass: all gains in one batched solve, outside the scan (a per-step solve inside
+    # the scan costs a factorisation call per step)
+    gains = jnp.swapaxes(jnp.linalg.solve(p_p[1:], f_jacs[:-1] @ p_f[:-1]), -1, -2)  # (T-1, 5, 5)
+
     def body(carry, inp):
         z_next_s, p_next_s = carry
-        z_k, p_k, f_k, z_next_p, p_next_p = inp
-        # J = P_k Fᵀ P_{k+1|k}⁻¹ via a symmetric solve
-        gain = jnp.linalg.solve(p_next_p, f_k @ p_k).T
+        z_k, p_k, gain, z_next_p, p_next_p = inp
         z_s = z_k + gain @ (z_next_s - z_next_p)
         p_s = p_k + gain @ (p_next_s - p_next_p) @ gain.T
         p_s = 0.5 * (p_s + p_s.T)
@@ -383,7 +386,7 @@ def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:
         return (z_s, p_s), (z_s, p_s, lag_one)
 
     last = (z_f[-1], p_f[-1])
-    seq = (z_f[:-1], p_f[:-1], f_jacs[:-1], z_p[1:], p_p[1:])
+    seq = (z_f[:-1], p_f[:-1], gains, z_p[1:], p_p[1:])
     _, (z_s, p_s, lag) = jax.lax.scan(body, last, seq, reverse=True)
     z_s = jnp.concatenate([z_s, z_f[-1:]], axis=0)
     p_s = jnp.concatenate([p_s, p_f[-1:]], axis=0)

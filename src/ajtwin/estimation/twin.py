@@ -136,6 +136,29 @@ class TwinRun:
     #: (record_checks.observed_states); False rows run on the model and priors alone.
     seen: np.ndarray | None = None
 
+    def visibility_notes(self) -> list[str]:
+        """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
+        notes = []
+        if self.initial is not None and self.initial.states_from_prior:
+            notes.append(f"warning: {self.initial.message}")
+        n = len(self.time_s)
+        unseen = self.unseen_summary()
+        never = [name for name, count in unseen.items() if count == n]
+        sometimes = {name: count for name, count in unseen.items() if count < n}
+        if never:
+            notes.append(
+                f"warning: no output in this record measures {', '.join(never)} (no linewidth, "
+                "overspray or material flow): the twin cannot see them; their estimates follow "
+                "the model from the priors and their bands stay wide (columns seen_* = 0)"
+            )
+        if sometimes:
+            parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
+            notes.append(
+                f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the "
+                "model alone and the bands widen (columns seen_* = 0)"
+            )
+        return notes
+
     def unseen_summary(self) -> dict[str, int]:
         """State → seconds in which no measured output saw it (V_l, never measured, left out)."""
         if self.seen is None:

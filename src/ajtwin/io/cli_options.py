@@ -7,6 +7,10 @@ from pathlib import Path
 
 import click
 
+from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
+
+__all__ = ["MAX_PLATEN_SPEED_MM_S", "BoundedFloat", "check_vial_fill", "join_options"]
+
 
 def join_options(filled: str, suffix: str, must_exist: bool = False):
     """``--join/--join-out/--start-offset/--camera-offset`` for a video reader.
@@ -37,7 +41,7 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
         click.option(
             "--start-offset",
             "start_offset_s",
-            type=float,
+            type=BoundedFloat(),
             default=0.0,
             show_default=True,
             help="Print time (s) of the first video frame.",
@@ -45,7 +49,7 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
         click.option(
             "--camera-offset",
             "camera_offset_um",
-            type=float,
+            type=BoundedFloat(),
             default=0.0,
             show_default=True,
             help="Distance from nozzle to the camera's view centre along the print, µm.",

@@ -61,6 +61,8 @@ def check_regular_file(path: str | Path, what: str = "input", max_bytes: int | N
         raise FileNotFoundError(f"{what} file not found: {path}") from None
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read this {what} file: {exc.strerror}") from None
+    except ValueError as exc:  # e.g. a NUL byte in the path
+        raise InputFileError(f"{str(path)!r}: not a usable path: {exc}") from None
     mode = info.st_mode
     if stat.S_ISDIR(mode):
         raise InputFileError(f"{path}: is a directory, not a {what} file")

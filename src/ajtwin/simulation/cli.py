@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from ajtwin.io.cli_options import BoundedFloat
+
 
 @click.command()
 @click.option(
@@ -33,7 +35,7 @@ import click
 )
 @click.option(
     "--duration-min",
-    type=click.FloatRange(min=0, min_open=True),
+    type=BoundedFloat(0.0, None),  # click's FloatRange lets NaN through
     default=None,
     help="Override the scenario's duration [min].",
 )

@@ -197,8 +197,15 @@ def encode_all(arrays: dict, policy: StoragePolicy, alarm_times=(), every_s=None
     for name, value in arrays.items():
         value = np.asarray(value)
         cast = np.float32 if name in policy.float32 and value.dtype.kind == "f" else None
+        if cast is not None and not _fits_float32(value):
+            cast = None  # a value beyond float32's range would become inf: keep float64
         out[name] = encode(value, cast)
     return out
+
+
+def _fits_float32(value: np.ndarray) -> bool:
+    finite = np.abs(value[np.isfinite(value)])
+    return not finite.size or float(finite.max()) <= float(np.finfo(np.float32).max)
 
 
 def expand(stored: dict) -> dict:

@@ -8,6 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import BoundedFloat
+
 STATE_LABELS = (
     ("droplet_diameter_um", "d_a", "µm"),
     ("vial_volume_mL", "V_l", "mL"),
@@ -317,7 +319,12 @@ def import_command(archive, as_name, store):
     default=None,
     help="Alignment-camera video: fills linewidth/overspray (ajtwin.vision).",
 )
-@click.option("--um-per-px", type=float, default=None, help="Camera pixel size, µm (with --video).")
+@click.option(
+    "--um-per-px",
+    type=BoundedFloat(0.0, None),
+    default=None,
+    help="Camera pixel size, µm (with --video).",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @store_option
 def ingest(machine_name, record, video, um_per_px, progress, store):
@@ -325,7 +332,7 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
     from tqdm import tqdm
 
     from ajtwin.io.records import RecordError
-    from ajtwin.store.ingest import ingest_file
+    from ajtwin.live.engine import ingest_file
     from ajtwin.store.registry import RegistryError
 
     if video is not None and um_per_px is None:
@@ -380,6 +387,8 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
     end = result.summary["end_state"]
     for key, short, unit in STATE_LABELS:
         click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    for note in result.run.visibility_notes() if result.run is not None else ():
+        click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
     if result.events:
         click.echo(f"  {len(result.events)} anomaly event(s):")
         for ev in result.events:

@@ -385,6 +385,14 @@ def import_machine(registry: Registry, archive, as_name: str | None = None) -> d
             raise _bad(archive, str(exc)) from None
         try:
             part.machine(source_name)
+            # every print and array must decode before anything is copied
+            for (print_id,) in part._conn.execute("SELECT id FROM prints").fetchall():
+                part.get_print(print_id)
+                part.print_arrays(print_id)
+        except RegistryError as exc:
+            part.close()
+            raise _bad(archive, str(exc)) from None
+        try:
             n_prints = copy_machine(part._conn, registry._conn, source_name, new_name)
         except sqlite3.Error as exc:
             raise _bad(archive, f"machine.sqlite: {exc}") from None

@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import join_options
+from ajtwin.io.cli_options import MAX_PLATEN_SPEED_MM_S, BoundedFloat, join_options
 
 STATUS_HINTS = {
     "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",
@@ -52,25 +52,46 @@ def _parse_size(text: str) -> tuple[int, int]:
     default=None,
     help="Ground-truth JSON (default: next to the video, .json).",
 )
-@click.option("--fps", type=float, default=1.0, show_default=True, help="Video frame rate.")
-@click.option("--size", default="1280x1024", show_default=True, help="Frame WIDTHxHEIGHT.")
-@click.option("--um-per-px", type=float, default=None, help="Pixel size, µm (optics.toml).")
 @click.option(
-    "--tilt", "tilt_deg", type=float, default=0.0, show_default=True, help="Line tilt, degrees."
+    "--fps", type=BoundedFloat(0.0, None), default=1.0, show_default=True, help="Video frame rate."
 )
-@click.option("--noise", "noise_gray", type=float, default=None, help="Read noise, gray levels.")
-@click.option("--blur", "blur_px", type=float, default=None, help="Blur sigma, pixels.")
+@click.option("--size", default="1280x1024", show_default=True, help="Frame WIDTHxHEIGHT.")
+@click.option(
+    "--um-per-px", type=BoundedFloat(0.0, None), default=None, help="Pixel size, µm (optics.toml)."
+)
+@click.option(
+    "--tilt",
+    "tilt_deg",
+    type=BoundedFloat(-90.0, 90.0, closed=True),
+    default=0.0,
+    show_default=True,
+    help="Line tilt, degrees.",
+)
+@click.option(
+    "--noise",
+    "noise_gray",
+    type=BoundedFloat(0.0, None, closed=True),
+    default=None,
+    help="Read noise, gray levels.",
+)
+@click.option(
+    "--blur",
+    "blur_px",
+    type=BoundedFloat(0.0, None, closed=True),
+    default=None,
+    help="Blur sigma, pixels.",
+)
 @click.option(
     "--raggedness",
     "raggedness_um",
-    type=float,
+    type=BoundedFloat(0.0, None, closed=True),
     default=None,
     help="Edge raggedness along the line, µm (1 sigma).",
 )
 @click.option(
     "--linewidth",
     "linewidth_um",
-    type=float,
+    type=BoundedFloat(0.0, None),
     default=43.0,
     show_default=True,
     help="Without RECORD: linewidth, µm.",
@@ -78,7 +99,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 @click.option(
     "--overspray",
     "overspray_um",
-    type=float,
+    type=BoundedFloat(0.0, None, closed=True),
     default=29.0,
     show_default=True,
     help="Without RECORD: one-sided overspray, µm.",
@@ -86,7 +107,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 @click.option(
     "--area",
     "area_um2",
-    type=float,
+    type=BoundedFloat(0.0, None, closed=True),
     default=15.0,
     show_default=True,
     help="Without RECORD (or where its material flow is NaN): cross-section, µm².",
@@ -94,14 +115,14 @@ def _parse_size(text: str) -> tuple[int, int]:
 @click.option(
     "--duration",
     "duration_s",
-    type=float,
+    type=BoundedFloat(0.0, None),
     default=None,
     help="Seconds of print to render (default: whole record, or 10 s).",
 )
 @click.option(
     "--start",
     "start_s",
-    type=float,
+    type=BoundedFloat(),
     default=0.0,
     show_default=True,
     help="Print time of the first frame, s.",
@@ -109,7 +130,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 @click.option(
     "--platen-speed",
     "platen_speed_mm_s",
-    type=float,
+    type=BoundedFloat(0.0, MAX_PLATEN_SPEED_MM_S, closed=True),
     default=None,
     help="Platen speed, mm/s (default: the record's, else 1).",
 )
@@ -242,7 +263,11 @@ def render(
 @click.command()
 @click.argument("source", type=click.Path(path_type=Path))
 @click.option(
-    "--um-per-px", "um_per_px", type=float, required=True, help="Pixel size on the substrate, µm."
+    "--um-per-px",
+    "um_per_px",
+    type=BoundedFloat(0.0, None),
+    required=True,
+    help="Pixel size on the substrate, µm.",
 )
 @click.option(
     "--out",
@@ -266,7 +291,7 @@ def render(
 )
 @click.option(
     "--fps",
-    type=float,
+    type=BoundedFloat(0.0, None),
     default=None,
     help="Frame rate (videos: overrides the file's; image folders: default 1).",
 )
@@ -274,7 +299,7 @@ def render(
 @click.option(
     "--platen-speed",
     "platen_speed_mm_s",
-    type=float,
+    type=BoundedFloat(0.0, MAX_PLATEN_SPEED_MM_S, closed=True),
     default=None,
     help="Platen speed, mm/s (default: the record's).",
 )

@@ -1,0 +1,431 @@
+"""Machine links of the live twin: an OPC UA client and a CSV tail (``ajtwin live``).
+
+:class:`OpcUaLink` subscribes to each machine's ``Monitoring/Process/SampleBuffer``
+(the last samples as rows, so a notification that coalesces several samples loses none),
+feeds new samples to a :class:`~ajtwin.live.engine.LiveEngine` (batched over machines),
+and writes the twin's states ± σ, status and cause back to ``Monitoring/Health``; every
+raised or finalised alarm is written to ``Health/Alarm``, which the server turns into a
+``TwinAlarmEventType`` event. When a machine's ``PrintState`` says ``finished`` and its
+last sample is in, the print is closed (stored as a registry print).
+
+Faults: a lost connection is retried with exponential back-off (the samples the server
+no longer buffers become a gap = missing data; the status is logged for the operator);
+a refused login or certificate stops the link with a clear message (retrying cannot
+help); a missing node or bad values are logged and the sample treated as missing.
+
+:func:`follow_csv` tails a growing CSV in the record format.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ajtwin.live.engine import LiveEngine, Sample, clean_sample
+from ajtwin.live.opcua import (
+    HEALTH_STATES,
+    NAMESPACE_URI,
+    SAMPLE_WIDTH,
+    node_path,
+    security_string,
+)
+
+log = logging.getLogger("ajtwin.live")
+
+#: server answers that retrying cannot fix
+REFUSALS = {
+    "BadUserAccessDenied": "the server refused the user name or password",
+    "BadIdentityTokenInvalid": "the server refused the user identity",
+    "BadIdentityTokenRejected": "the server does not accept this kind of login "
+    "(anonymous access may be off: give --username/--password)",
+    "BadCertificateUntrusted": "the server does not trust our certificate",
+    "BadSecurityChecksFailed": "the server refused our certificate or security settings",
+    "BadCertificateInvalid": "the server found our certificate invalid",
+    "BadSecurityPolicyRejected": "the server does not offer this --security policy",
+    "No matching endpoints": "the server offers no endpoint with this security "
+    "(an encrypted server needs --security Basic256Sha256_SignAndEncrypt)",
+}
+
+
+class LinkRefused(RuntimeError):
+    """The server refused us for good (credentials, certificate, policy)."""
+
+
+class OpcUaLink:
+    """Follow machines on one OPC UA server (see module docstring).
+
+    Parameters
+    ----------
+    url : str
+        ``opc.tcp://host:port``.
+    machines : list of str
+        Machine names under ``Machines/``.
+    engine : LiveEngine
+    username, password : str, optional
+    security : str, optional
+        e.g. ``Basic256Sha256_SignAndEncrypt`` (needs ``certificate``, ``private_key``).
+    certificate, private_key : path, optional
+        Our certificate (DER/PEM) and key (PEM).
+    server_certificate : path, optional
+        Pin the server's certificate.
+    publish_ms : int
+        Subscription publishing interval.
+    max_backoff_s : float
+        Longest wait between reconnection attempts.
+    close_finished : bool
+        Store a machine's print when its PrintState says finished.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        machines: list[str],
+        engine: LiveEngine,
+        *,
+        username: str | None = None,
+        password: str | None = None,
+        security: str | None = None,
+        certificate=None,
+        private_key=None,
+        server_certificate=None,
+        publish_ms: int = 100,
+        max_backoff_s: float = 10.0,
+        close_finished: bool = True,
+        timeout_s: float = 4.0,
+    ):
+        self.url = url
+        self.machines = list(machines)
+        self.engine = engine
+        self.username, self.password = username, password
+        self.security = security
+        self.certificate, self.private_key = certificate, private_key
+        self.server_certificate = server_certificate
+        self.publish_ms = int(publish_ms)
+        self.max_backoff_s = float(max_backoff_s)
+        self.close_finished = close_finished
+        self.timeout_s = float(timeout_s)
+        self.status = "starting"
+        self.finished: set[str] = set()
+        self.last_time: dict[str, float] = {}
+        self.first_published: float | None = None
+        self.reconnects = 0
+
+    def _set_status(self, status: str, level=logging.INFO):
+        if status != self.status:
+            self.status = status
+            log.log(level, "link %s: %s", self.url, status)
+
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        """Follow until every machine's print is finished (or ``stop`` is set)."""
+        backoff = 0.5
+        while (stop is None or not stop.is_set()) and len(self.finished) < len(self.machines):
+            try:
+                await self._session(stop)
+                backoff = 0.5
+            except LinkRefused:
+                raise
+            except (asyncio.CancelledError, KeyboardInterrupt):
+                raise
+            except Exception as exc:  # network faults, server restarts: retry
+                refusal = _refusal(exc)
+                if refusal:
+                    self._set_status(f"refused: {refusal}", logging.ERROR)
+                    raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
+                self.engine.flush()
+                self._set_status(
+                    f"disconnected ({type(exc).__name__}: {exc}); reconnecting in {backoff:g} s",
+                    logging.WARNING,
+                )
+                self.reconnects += 1
+                try:
+                    await asyncio.wait_for(
+                        stop.wait() if stop else asyncio.sleep(backoff), timeout=backoff
+                    )
+                except TimeoutError:
+                    pass
+                backoff = min(2 * backoff, self.max_backoff_s)
+        self.engine.flush()
+
+    async def _client(self):
+        from asyncua import Client
+
+        client = Client(self.url, timeout=self.timeout_s)
+        client.session_timeout = 30000
+        if self.username:
+            client.set_user(self.username)
+            client.set_password(self.password or "")
+        if self.security:
+            await client.set_security_string(
+                security_string(
+                    self.security, self.certificate, self.private_key, self.server_certificate
+                )
+            )
+            client.application_uri = "urn:ajtwin:live-client"
+        elif self.certificate:
+            raise LinkRefused("--certificate given without --security")
+        return client
+
+    async def _session(self, stop):
+        from asyncua import ua
+
+        client = await self._client()
+        async with client:
+            idx = await client.get_namespace_index(NAMESPACE_URI)
+            nodes = {}
+            for name in self.machines:
+                if name in self.finished:
+                    continue
+                try:
+                    nodes[name] = await self._nodes(client, idx, name)
+                except ua.UaStatusCodeError as exc:
+                    log.error(
+                        "machine %r: node missing on %s (%s); not followed", name, self.url, exc
+                    )
+            if not nodes:
+                raise LinkRefused(f"{self.url}: none of the machines {self.machines} is served")
+            for name in nodes:
+                self.engine.open(name, source=self.url)  # resumes an open live session
+            queue: asyncio.Queue = asyncio.Queue()
+            by_node = {n["buffer"].nodeid: name for name, n in nodes.items()}
+            by_node.update({n["state"].nodeid: name for name, n in nodes.items()})
+
+            class Handler:
+                def datachange_notification(self, node, value, data):
+                    queue.put_nowait((by_node.get(node.nodeid), node.nodeid, value))
+
+                def status_change_notification(self, status):
+                    queue.put_nowait((None, "status", status))
+
+            sub = await client.create_subscription(self.publish_ms, Handler())
+            await sub.subscribe_data_change([n["buffer"] for n in nodes.values()])
+            await sub.subscribe_data_change([n["state"] for n in nodes.values()])
+            self._set_status(f"connected, following {', '.join(nodes)}")
+            states = {name: "printing" for name in nodes}
+            buffered: set[str] = set()  # machines whose buffer came in this session
+            last_check = time.monotonic()
+            while stop is None or not stop.is_set():
+                try:
+                    item = await asyncio.wait_for(queue.get(), timeout=0.5)
+                except TimeoutError:
+                    item = None
+                batch = [item] if item else []
+                while not queue.empty():
+                    batch.append(queue.get_nowait())
+                buffers = {}
+                for name, nodeid, value in batch:
+                    if nodeid == "status":
+                        raise ConnectionError(f"subscription status {value}")
+                    if name is None:
+                        continue
+                    if nodeid == nodes[name]["state"].nodeid:
+                        states[name] = str(value)
+                    else:
+                        buffers[name] = value
+                buffered.update(buffers)
+                messages = self._feed(buffers)
+                messages += self.engine.poll_and_publish()
+                await self._publish(client, nodes, messages)
+                for name in list(nodes):
+                    # finished, and its final buffer has been read (not only the state)
+                    if states.get(name) == "finished" and name in buffered and name not in buffers:
+                        if self.close_finished and name in self.engine.sessions:
+                            final = self.engine.close(name)
+                            log.info("%s: print finished, stored as registry print %s", name, final)
+                        self.finished.add(name)
+                        nodes.pop(name)
+                if not nodes:
+                    return
+                if time.monotonic() - last_check > 2.0:
+                    await client.check_connection()
+                    last_check = time.monotonic()
+
+    async def _nodes(self, client, idx, name) -> dict:
+        from asyncua import ua
+
+        def node(*parts):
+            return client.get_node(ua.NodeId(node_path(name, *parts), idx))
+
+        out = {
+            "buffer": node("Monitoring", "Process", "SampleBuffer"),
+            "state": node("Monitoring", "Process", "PrintState"),
+            "alarm": node("Monitoring", "Health", "Alarm"),
+            "health": {},
+        }
+        for key in ("Status", "Cause", "NIS", "TwinTime", "Theta"):
+            out["health"][key] = node("Monitoring", "Health", key)
+        for key in HEALTH_STATES:
+            out["health"][key] = node("Monitoring", "Health", key)
+            out["health"][key + "Std"] = node("Monitoring", "Health", key + "Std")
+        for n in (out["buffer"], out["state"], out["alarm"]):
+            await n.read_browse_name()  # raises BadNodeIdUnknown when missing
+        return out
+
+    def _feed(self, buffers: dict) -> list[dict]:
+        """New rows of each machine's buffer → samples, fed in time order, batched."""
+        by_time: dict[float, list] = {}
+        for name, value in buffers.items():
+            try:
+                rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
+            except (TypeError, ValueError):
+                log.warning("%s: SampleBuffer has the wrong shape; ignored", name)
+                continue
+            last = self.last_time.get(name, -np.inf)
+            session = self.engine.sessions.get(name)
+            if session is not None and session.stream.last_time is not None:
+                last = max(last, session.stream.last_time)  # resumed: skip what is stored
+            for row in rows:
+                if not np.isfinite(row[0]) or row[0] <= last:
+                    continue
+                sample, problems = clean_sample(row[0], row[1:4], row[4:], where=name)
+                for p in problems:
+                    log.warning(p)
+                if sample is None:
+                    continue
+                by_time.setdefault(sample.time_s, []).append((name, sample))
+                last = sample.time_s
+            self.last_time[name] = last
+        messages = []
+        for t in sorted(by_time):
+            messages += self.engine.feed_many(by_time[t])
+        return messages
+
+    async def _publish(self, client, nodes, messages):
+        from asyncua import ua
+
+        latest = {}
+        for m in messages:
+            if "step" in m:
+                latest[m["machine"]] = m
+        for name, m in latest.items():
+            if name not in nodes:
+                continue
+            h = nodes[name]["health"]
+            targets, values = [], []
+            for key, (state, *_) in HEALTH_STATES.items():
+                targets += [h[key], h[key + "Std"]]
+                values += [m["states"][state], m["stds"][state]]
+            targets += [h["NIS"], h["TwinTime"]]
+            values += [m["nis"], m["time_s"]]
+            variants = [ua.Variant(float(v), ua.VariantType.Double) for v in values]
+            targets += [h["Status"], h["Cause"], h["Theta"]]
+            variants += [
+                ua.Variant(m["status"], ua.VariantType.String),
+                ua.Variant(m["cause"], ua.VariantType.String),
+                ua.Variant(list(m["theta"].values()), ua.VariantType.Double),
+            ]
+            await client.write_values(targets, [ua.DataValue(v) for v in variants])
+            if self.first_published is None:
+                self.first_published = time.monotonic()
+        for m in messages:
+            for event in m.get("events", []):
+                if m["machine"] not in nodes:
+                    continue
+                await nodes[m["machine"]]["alarm"].write_value(
+                    ua.Variant(json.dumps(event, default=str), ua.VariantType.String)
+                )
+                log.warning(
+                    "%s: ALARM %s at t = %g s (onset %g s): %s",
+                    m["machine"],
+                    event["state"],
+                    event["detected_s"],
+                    event["onset_s"],
+                    event["description"],
+                )
+                await asyncio.sleep(0.15)  # one server-side notification per alarm
+
+
+def _refusal(exc) -> str | None:
+    name = type(exc).__name__
+    text = f"{name} {exc}"
+    for code, message in REFUSALS.items():
+        if code in text:
+            return message
+    return None
+
+
+async def follow_csv(
+    path,
+    machine: str,
+    engine: LiveEngine,
+    *,
+    poll_s: float = 0.5,
+    idle_timeout_s: float | None = None,
+    stop: asyncio.Event | None = None,
+) -> int | None:
+    """Tail a growing CSV in the record format; feed each complete line to the engine.
+
+    Returns the registry print id when the print was closed after ``idle_timeout_s``
+    seconds without a new line (None: stopped, the session stays open and resumable).
+    """
+    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
+
+    path = Path(path)
+    header = None
+    position = 0
+    line_no = 0
+    last_new = time.monotonic()
+    columns = None
+    engine.open(machine, source=str(path))
+    while stop is None or not stop.is_set():
+        new = False
+        if path.exists():
+            with path.open("r", encoding="utf-8", newline="") as fh:
+                fh.seek(position)
+                while True:
+                    line = fh.readline()
+                    if not line or not line.endswith("\n"):
+                        break  # a partly written line: read it next time
+                    position = fh.tell()
+                    line_no += 1
+                    text = line.strip()
+                    if not text or text.startswith("#"):
+                        continue
+                    cells = text.split(",")
+                    if header is None:
+                        header = [c.strip() for c in cells]
+                        missing = [
+                            c
+                            for c in (TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS)
+                            if c not in header
+                        ]
+                        if missing:
+                            raise ValueError(f"{path}: line {line_no}: no column(s) {missing}")
+                        columns = [
+                            header.index(c) for c in (TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS)
+                        ]
+                        continue
+                    try:
+                        values = [
+                            float(cells[i]) if i < len(cells) and cells[i].strip() else np.nan
+                            for i in columns
+                        ]
+                    except ValueError:
+                        log.warning("%s: line %d: not numbers; treated as missing", path, line_no)
+                        continue
+                    sample, problems = clean_sample(
+                        values[0], values[1:4], values[4:], where=f"{path}: line {line_no}"
+                    )
+                    for p in problems:
+                        log.warning(p)
+                    if sample is not None:
+                        engine.feed(machine, sample)
+                        new = True
+        engine.poll_and_publish()
+        if new:
+            last_new = time.monotonic()
+        elif idle_timeout_s is not None and time.monotonic() - last_new > idle_timeout_s:
+            return engine.close(machine)
+        try:
+            await asyncio.wait_for(stop.wait() if stop else asyncio.sleep(poll_s), poll_s)
+        except TimeoutError:
+            pass
+    engine.flush()
+    return None
+
+
+__all__ = ["LinkRefused", "OpcUaLink", "Sample", "follow_csv"]

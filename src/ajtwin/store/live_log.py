@@ -1,0 +1,222 @@
+"""The live twin's log: samples and published states of prints still running.
+
+A live session (one machine, one print as it happens) writes its samples, the twin's
+committed states and its alarms here as it goes, in small transactions, next to the
+registry's tables (same SQLite file, own tables). A client killed mid-print restarts,
+finds the open session and replays its samples through the twin: what was committed is
+kept, and nothing is written twice (``PRIMARY KEY (session_id, step)``). When the print
+ends the engine stores it as an ordinary print of the registry and closes the session.
+
+Tables: ``live_sessions`` (machine, start state, θ, status), ``live_samples`` (step,
+time, inputs, outputs), ``live_states`` (the published message of each committed step,
+JSON), ``live_events`` (raised/final alarms, JSON).
+
+Examples
+--------
+>>> import tempfile, os, numpy as np
+>>> log = LiveLog(os.path.join(tempfile.mkdtemp(), "r.sqlite"))
+>>> sid = log.open_session("m1", source="test", start=None, theta=np.zeros(5))
+>>> log.append(sid, [(0, 0.0, np.ones(3), np.ones(5), {"step": 0})], [])
+>>> log.n_steps(sid), log.open_session_of("m1")["id"] == sid
+(1, True)
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ajtwin.store.registry import from_npy, to_npy
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS live_sessions (
+    id INTEGER PRIMARY KEY,
+    machine TEXT NOT NULL,
+    started_at REAL NOT NULL,
+    source TEXT NOT NULL,
+    status TEXT NOT NULL,
+    start_mean BLOB,
+    start_cov BLOB,
+    theta_before BLOB NOT NULL,
+    expected_last_seq INTEGER,
+    print_id INTEGER,
+    closed_at REAL
+);
+CREATE TABLE IF NOT EXISTS live_samples (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    step INTEGER NOT NULL,
+    time_s REAL NOT NULL,
+    inputs BLOB NOT NULL,
+    outputs BLOB NOT NULL,
+    PRIMARY KEY (session_id, step)
+);
+CREATE TABLE IF NOT EXISTS live_states (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    step INTEGER NOT NULL,
+    message_json TEXT NOT NULL,
+    PRIMARY KEY (session_id, step)
+);
+CREATE TABLE IF NOT EXISTS live_events (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    detected_s REAL NOT NULL,
+    state TEXT NOT NULL,
+    event_json TEXT NOT NULL,
+    PRIMARY KEY (session_id, detected_s, state)
+);
+"""
+
+
+class LiveLog:
+    """Live sessions in the registry's SQLite file (see module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        The registry database (``Registry.path``).
+    """
+
+    def __init__(self, path, timeout_s: float = 30.0):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._conn = sqlite3.connect(
+            str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
+        )
+        self._conn.row_factory = sqlite3.Row
+        self._conn.execute("PRAGMA journal_mode=WAL")
+        self._conn.execute("PRAGMA synchronous=NORMAL")
+        self._conn.execute("BEGIN IMMEDIATE")
+        try:
+            for statement in _SCHEMA.split(";"):
+                if statement.strip():
+                    self._conn.execute(statement)
+        except BaseException:
+            self._conn.execute("ROLLBACK")
+            raise
+        self._conn.execute("COMMIT")
+
+    def close(self):
+        self._conn.close()
+
+    # ------------------------------------------------------------------ #
+    def open_session(
+        self, machine: str, *, source: str, start, theta, expected_last_seq=None
+    ) -> int:
+        """A new open session for ``machine``; ``start`` (mean, cov) or None (initial fit)."""
+        cur = self._conn.execute(
+            "INSERT INTO live_sessions (machine, started_at, source, status, start_mean, "
+            "start_cov, theta_before, expected_last_seq) VALUES (?, ?, ?, 'open', ?, ?, ?, ?)",
+            (
+                machine,
+                time.time(),
+                source,
+                None if start is None else to_npy(start[0]),
+                None if start is None else to_npy(start[1]),
+                to_npy(np.asarray(theta, dtype=float)),
+                expected_last_seq,
+            ),
+        )
+        return int(cur.lastrowid)
+
+    def open_session_of(self, machine: str) -> dict | None:
+        """The machine's open session (the latest), or None."""
+        row = self._conn.execute(
+            "SELECT * FROM live_sessions WHERE machine = ? AND status = 'open' "
+            "ORDER BY id DESC LIMIT 1",
+            (machine,),
+        ).fetchone()
+        if row is None:
+            return None
+        out = dict(row)
+        start = None
+        if row["start_mean"] is not None:
+            start = (from_npy(row["start_mean"]), from_npy(row["start_cov"]))
+        out["start"] = start
+        out["theta_before"] = from_npy(row["theta_before"])
+        return out
+
+    def sessions(self, machine: str) -> list[dict]:
+        """All sessions of a machine (id, started_at, source, status, print_id), oldest first."""
+        rows = self._conn.execute(
+            "SELECT id, started_at, source, status, print_id FROM live_sessions "
+            "WHERE machine = ? ORDER BY id",
+            (machine,),
+        ).fetchall()
+        return [dict(r) for r in rows]
+
+    def append(self, session_id: int, steps: list, events: list) -> None:
+        """Commit steps [(step, time_s, inputs, outputs, message)] and events in ONE transaction.
+
+        Steps already stored are ignored (a replay after a restart writes nothing twice).
+        """
+        if not steps and not events:
+            return
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn.executemany(
+                "INSERT OR IGNORE INTO live_samples VALUES (?, ?, ?, ?, ?)",
+                [
+                    (session_id, int(k), float(t), to_npy(np.asarray(u)), to_npy(np.asarray(y)))
+                    for k, t, u, y, _ in steps
+                ],
+            )
+            conn.executemany(
+                "INSERT OR IGNORE INTO live_states VALUES (?, ?, ?)",
+                [(session_id, int(k), json.dumps(m, default=float)) for k, _, _, _, m in steps],
+            )
+            conn.executemany(
+                "INSERT OR REPLACE INTO live_events VALUES (?, ?, ?, ?)",
+                [
+                    (session_id, float(e["detected_s"]), e["state"], json.dumps(e, default=str))
+                    for e in events
+                ],
+            )
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+
+    def n_steps(self, session_id: int) -> int:
+        row = self._conn.execute(
+            "SELECT COUNT(*) FROM live_samples WHERE session_id = ?", (session_id,)
+        ).fetchone()
+        return int(row[0])
+
+    def samples(self, session_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(time_s (T,), inputs (T, 3), outputs (T, 5)) of a session, in step order."""
+        rows = self._conn.execute(
+            "SELECT step, time_s, inputs, outputs FROM live_samples WHERE session_id = ? "
+            "ORDER BY step",
+            (session_id,),
+        ).fetchall()
+        steps = [r["step"] for r in rows]
+        if steps != list(range(len(steps))):
+            raise RuntimeError(f"live session {session_id}: stored steps are not contiguous")
+        t = np.array([r["time_s"] for r in rows], dtype=float)
+        u = np.array([from_npy(r["inputs"]) for r in rows], dtype=float).reshape(-1, 3)
+        y = np.array([from_npy(r["outputs"]) for r in rows], dtype=float).reshape(-1, 5)
+        return t, u, y
+
+    def states(self, session_id: int) -> list[dict]:
+        rows = self._conn.execute(
+            "SELECT message_json FROM live_states WHERE session_id = ? ORDER BY step",
+            (session_id,),
+        ).fetchall()
+        return [json.loads(r[0]) for r in rows]
+
+    def events(self, session_id: int) -> list[dict]:
+        rows = self._conn.execute(
+            "SELECT event_json FROM live_events WHERE session_id = ? ORDER BY detected_s, state",
+            (session_id,),
+        ).fetchall()
+        return [json.loads(r[0]) for r in rows]
+
+    def close_session(self, session_id: int, print_id: int | None) -> None:
+        self._conn.execute(
+            "UPDATE live_sessions SET status = 'closed', print_id = ?, closed_at = ? WHERE id = ?",
+            (print_id, time.time(), session_id),
+        )

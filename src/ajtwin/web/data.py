@@ -1,0 +1,435 @@
+"""What the dashboard reads from the machine registry — the one adapter to its schema.
+
+Every page and the registry watcher get their data through :class:`RegistryView`, so a
+change of the registry's schema (migrations, new per-machine fields) touches this module
+only. Values are in SPEC §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
+plain lists with NaN → ``None`` (JSON has no NaN).
+
+Fields other branches add to the registry (commissioning/calibration, maintenance,
+model–machine mismatch) are optional: :func:`optional_machine_fields` picks them up when
+the machine row or the :class:`~ajtwin.store.registry.Registry` offers them and the pages
+show them only when present.
+
+Parameters of the view
+----------------------
+path : str or Path
+    An existing registry file (``ajtwin machine add`` creates one).
+
+Example
+-------
+>>> import os, tempfile
+>>> from ajtwin.store.registry import Registry
+>>> path = os.path.join(tempfile.mkdtemp(), "r.sqlite")
+>>> Registry(path).add_machine("lab1")["name"]
+'lab1'
+>>> view = RegistryView(path)
+>>> [(m["name"], m["status"]) for m in view.fleet()]
+[('lab1', 'idle')]
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.store import arrays as _arrays
+from ajtwin.store.registry import Registry, RegistryError
+
+OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
+STATE_UNITS = ("µm", "mL", "µm", "µm", "–")
+OUTPUT_UNITS = ("µm", "µm", "Pa", "Pa", "mL/s")
+INPUT_UNITS = ("mA", "sccm", "sccm")
+#: the hidden states shown on the fleet page, in this order: d_a, φ_A, ΔR_N, V_l
+KEY_STATES = (0, 4, 3, 1)
+#: points per trace sent to a page (longer prints are decimated; CUSUM/NIS keep peaks)
+MAX_POINTS = 1500
+SPARK_POINTS = 60
+#: prints whose plot series are kept in memory (a page per viewer asks for the same print)
+SERIES_CACHE = 16
+
+NAMES = {
+    "states": list(STATE_SYMBOLS),
+    "state_units": list(STATE_UNITS),
+    "outputs": list(OUTPUT_SYMBOLS),
+    "output_units": list(OUTPUT_UNITS),
+    "inputs": list(INPUT_SYMBOLS),
+    "input_units": list(INPUT_UNITS),
+    "key_states": list(KEY_STATES),
+}
+
+# Optional per-machine fields from other branches of the registry, by the names they are
+# expected under (machine row key or Registry method taking the machine name).
+_OPTIONAL_ROW_KEYS = {
+    "commissioned_at": "commissioned_at",
+    "calibrated_at": "calibrated_at",
+    "last_maintenance": "last_maintenance_at",
+    "mismatch": "mismatch",
+}
+_OPTIONAL_METHODS = {
+    "last_calibration": "calibrated_at",
+    "last_maintenance": "last_maintenance_at",
+    "maintenance_events": "maintenance_events",
+    "mismatch": "mismatch",
+    "mismatch_status": "mismatch",
+}
+
+
+def json_list(array, digits: int | None = None):
+    """A NumPy array as nested lists, NaN/inf → None (JSON), optionally rounded."""
+    a = np.asarray(array, dtype=float)
+    if digits is not None:
+        with np.errstate(invalid="ignore"):
+            a = np.round(a, digits)
+    out = a.astype(object)
+    out[~np.isfinite(a)] = None
+    return out.tolist()
+
+
+def decimate(n: int, max_points: int = MAX_POINTS) -> np.ndarray:
+    """Indices of at most ``max_points`` evenly spaced samples of ``n``, last included.
+
+    >>> decimate(10, 4).tolist()
+    [0, 3, 6, 9]
+    """
+    if n <= max_points:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, max_points).round().astype(int))
+
+
+def binned_max(values, index) -> np.ndarray:
+    """Max of ``values`` (T, …) over each bin that ends at ``index[i]`` (peaks survive)."""
+    values = np.asarray(values, dtype=float)
+    starts = np.concatenate([[0], np.asarray(index)[:-1] + 1])
+    return np.stack([np.nanmax(values[s : e + 1], axis=0) for s, e in zip(starts, index)])
+
+
+def optional_machine_fields(registry, row: dict) -> dict:
+    """Commissioning/maintenance/mismatch fields, when this registry has them."""
+    out = {}
+    for key, label in _OPTIONAL_ROW_KEYS.items():
+        if row.get(key) not in (None, ""):
+            out[label] = row[key]
+    for method, label in _OPTIONAL_METHODS.items():
+        func = getattr(registry, method, None)
+        if callable(func) and label not in out:
+            try:
+                value = func(row["name"])
+            except (RegistryError, TypeError, ValueError, sqlite3.Error):
+                continue
+            if value is not None and not (hasattr(value, "empty") and value.empty):
+                out[label] = value.to_dict("records") if hasattr(value, "to_dict") else value
+    return out
+
+
+def _source_file(source: str) -> Path | None:
+    path = Path(str(source).split(" + ")[0].strip())
+    if path.suffix.lower() in (".parquet", ".csv") and path.is_file():
+        return path
+    return None
+
+
+class RegistryView:
+    """Read-only view of a registry for the pages (see module docstring)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        # never creates a file (an older registry is migrated on open, as by every command)
+        self.registry = Registry(self.path, create=False)
+        # one connection shared by the server's worker threads: serialise its use
+        self._lock = threading.Lock()
+        self._truth_cache: dict[int, np.ndarray | None] = {}
+        self._series_cache: dict[tuple, dict] = {}
+
+    def close(self):
+        self.registry.close()
+
+    # ------------------------------------------------------------------ changes
+    def change_marker(self) -> tuple[int, int, int]:
+        """(PRAGMA data_version, last print id, last machine id): changes on any commit."""
+        conn = self.registry._conn
+        with self._lock:
+            version = conn.execute("PRAGMA data_version").fetchone()[0]
+            last_print = conn.execute("SELECT COALESCE(MAX(id), 0) FROM prints").fetchone()[0]
+            last_machine = conn.execute("SELECT COALESCE(MAX(id), 0) FROM machines").fetchone()[0]
+        return int(version), int(last_print), int(last_machine)
+
+    def prints_after(self, print_id: int) -> list[dict]:
+        """Prints committed with an id above ``print_id``: machine, seq, id, anomalies."""
+        with self._lock:
+            rows = self.registry._conn.execute(
+                "SELECT p.id, p.seq, m.name, p.duration_s, "
+                "(SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies "
+                "FROM prints p JOIN machines m ON p.machine_id = m.id WHERE p.id > ? "
+                "ORDER BY p.id",
+                (int(print_id),),
+            ).fetchall()
+        return [
+            {
+                "print_id": int(r["id"]),
+                "seq": int(r["seq"]),
+                "machine": r["name"],
+                "duration_s": float(r["duration_s"]),
+                "anomalies": int(r["n_anomalies"]),
+            }
+            for r in rows
+        ]
+
+    # ------------------------------------------------------------------ fleet
+    def _array(self, print_id: int, name: str) -> np.ndarray | None:
+        """One stored array of a print, decoded (without loading the others)."""
+        row = self.registry._conn.execute(
+            "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
+            (print_id, name),
+        ).fetchone()
+        return None if row is None else _arrays.decode(row[0], row[1])
+
+    def fleet(self) -> list[dict]:
+        """One summary per machine: status, last print, last alarm, key states with trend."""
+        conn = self.registry._conn
+        with self._lock:
+            machines = conn.execute("SELECT * FROM machines ORDER BY name").fetchall()
+            out = []
+            for m in machines:
+                row = dict(m)
+                # the twin's current state: the last print in the chain (registry rule)
+                last = self.registry.last_print(row["name"])
+                latest_seq = conn.execute(
+                    "SELECT MAX(seq) FROM prints WHERE machine_id = ?", (row["id"],)
+                ).fetchone()[0]
+                alarm = conn.execute(
+                    "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
+                    "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
+                    "WHERE p.machine_id = ? ORDER BY p.seq DESC, a.detected_s DESC LIMIT 1",
+                    (row["id"],),
+                ).fetchone()
+                n_prints = conn.execute(
+                    "SELECT COUNT(*) FROM prints WHERE machine_id = ?", (row["id"],)
+                ).fetchone()[0]
+                entry = {
+                    "name": row["name"],
+                    "created_at": row["created_at"],
+                    "notes": row.get("notes", ""),
+                    "n_prints": int(n_prints),
+                    "last_print": None,
+                    "last_alarm": None,
+                    "states": None,
+                    "status": "idle",
+                }
+                if last is not None:
+                    mean = last["end_mean"]
+                    std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
+                    means = self._array(last["id"], "means")
+                    time_s = self._array(last["id"], "time_s")
+                    entry["last_print"] = {
+                        "seq": int(last["seq"]),
+                        "ingested_at": last["ingested_at"],
+                        "duration_s": float(last["duration_s"]),
+                    }
+                    entry["states"] = []
+                    for k in KEY_STATES:
+                        trend = None
+                        if means is not None and len(means) > 1:
+                            idx = decimate(len(means), SPARK_POINTS)
+                            t = time_s[idx] if time_s is not None else idx.astype(float)
+                            trend = {"t": json_list(t), "v": json_list(means[idx, k])}
+                        entry["states"].append(
+                            {
+                                "symbol": STATE_SYMBOLS[k],
+                                "unit": STATE_UNITS[k],
+                                "mean": float(mean[k]),
+                                "std": float(std[k]),
+                                "trend": trend,
+                            }
+                        )
+                if alarm is not None:
+                    entry["last_alarm"] = dict(alarm)
+                    if alarm["seq"] == latest_seq:  # the machine's latest print alarmed
+                        entry["status"] = "alarm"
+                entry.update(optional_machine_fields(self.registry, row))
+                if entry.get("mismatch") and entry["status"] != "alarm":
+                    entry["status"] = "mismatch"
+                out.append(entry)
+        return out
+
+    # ------------------------------------------------------------------ one machine
+    def machine(self, name: str) -> dict:
+        """The machine row, print history, alarms, last state ± σ and θ."""
+        with self._lock:
+            machine = self.registry.machine(name)
+            history = self.registry.history(name)
+            anomalies = self.registry.anomalies(name)
+            last = self.registry.last_print(name)
+            prints = []
+            conn = self.registry._conn
+            for rec in history.to_dict("records"):
+                summary = conn.execute(
+                    "SELECT summary_json FROM prints WHERE id = ?", (rec["print_id"],)
+                ).fetchone()[0]
+                mean_nis = json.loads(summary).get("mean_nis")
+                prints.append(
+                    {
+                        "seq": int(rec["seq"]),
+                        "print_id": int(rec["print_id"]),
+                        "ingested_at": rec["ingested_at"],
+                        "duration_min": float(rec["duration_min"]),
+                        "scenario": rec.get("scenario"),
+                        "source": rec["source"],
+                        "anomalies": int(rec["anomalies"]),
+                        "mean_nis": mean_nis,
+                        # in the chain ("ok") or kept for history only (excluded/dropped)
+                        "status": rec.get("status", "ok"),
+                        "status_reason": rec.get("status_reason", ""),
+                    }
+                )
+            row = dict(
+                self.registry._conn.execute(
+                    "SELECT * FROM machines WHERE name = ?", (name,)
+                ).fetchone()
+            )
+            optional = optional_machine_fields(self.registry, row)
+        out = {
+            "name": machine["name"],
+            "created_at": machine["created_at"],
+            "notes": machine.get("notes", ""),
+            "limits": machine["limits"],
+            "prints": prints,
+            "alarms": [
+                {k: (None if v != v else v) for k, v in a.items()}
+                for a in anomalies.to_dict("records")
+            ],
+            "last": None,
+            "names": NAMES,
+            **optional,
+        }
+        if last is not None:
+            out["last"] = {
+                "seq": int(last["seq"]),
+                "mean": json_list(last["end_mean"]),
+                "std": json_list(np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))),
+                "theta": json_list(last["theta_after"]),
+            }
+        return out
+
+    def _truth(self, print_row: dict) -> np.ndarray | None:
+        """True states (T, 5) from the print's source file, when it is a virtual print."""
+        pid = int(print_row["id"])
+        if pid not in self._truth_cache:
+            truth = None
+            path = _source_file(print_row["source"])
+            if path is not None:
+                try:
+                    from ajtwin.io.records import read_record
+
+                    record = read_record(path)
+                    if record.has_truth and len(record) == int(print_row["n_samples"]):
+                        truth = np.asarray(record.true_states, dtype=float)
+                except (OSError, ValueError, KeyError):
+                    truth = None
+            self._truth_cache[pid] = truth
+        return self._truth_cache[pid]
+
+    def print_series(self, name: str, seq: int, max_points: int = MAX_POINTS) -> dict:
+        """Per-second arrays of one print for the plots, decimated to ``max_points``.
+
+        Returns time [s], states ± σ (and truth when known), measured and one-step
+        predicted outputs, inputs, θ per step, the detectors (CUSUM g per channel with
+        thresholds, windowed-NIS −log₁₀ p with its threshold) and the print's alarms.
+        """
+        from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings, detect_anomalies
+
+        key = (name, int(seq), int(max_points))
+        if key in self._series_cache:  # a stored print never changes: reuse its series
+            return self._series_cache[key]
+        with self._lock:
+            p = self.registry.print_by_seq(name, seq)
+            a = self.registry.print_arrays(p["id"])
+            detector_inputs = None
+            needed = ("measurements", "predicted_outputs", "innovation_variances", "nis")
+            if all(k in a for k in needed):
+                # P_k's diagonal where only key frames of P are kept (the registry's rule)
+                detector_inputs = self.registry.detector_inputs(p["id"])
+        t = a["time_s"]
+        idx = decimate(len(t), max_points)
+        out = {
+            "machine": name,
+            "seq": int(seq),
+            "n_samples": int(len(t)),
+            "time_s": json_list(t[idx]),
+            "means": json_list(a["means"][idx]),
+            "stds": json_list(a["stds"][idx]),
+            "measured": json_list(a["measurements"][idx]) if "measurements" in a else None,
+            "predicted": json_list(a["predicted_outputs"][idx])
+            if "predicted_outputs" in a
+            else None,
+            "inputs": json_list(a["inputs"][idx]) if "inputs" in a else None,
+            "theta": json_list(a["theta_per_step"][idx]) if "theta_per_step" in a else None,
+            "truth": None,
+            "detectors": None,
+            "alarms": [],
+            "names": NAMES,
+        }
+        truth = self._truth(p)
+        if truth is not None:
+            out["truth"] = json_list(truth[idx])
+        if detector_inputs is not None:
+            s = DetectorSettings()
+            det = detect_anomalies(**detector_inputs, settings=s)
+            g = np.maximum(det.cusum_pos, det.cusum_neg)
+            with np.errstate(divide="ignore"):
+                log_p = -np.log10(np.maximum(det.window_nis_p, 1e-300))
+            out["detectors"] = {
+                "channels": list(CUSUM_CHANNELS),
+                "cusum": json_list(binned_max(g, idx), 3),
+                "cusum_thresholds": detector_thresholds(s),
+                "window_nis_log10p": json_list(binned_max(log_p, idx), 3),
+                "window_nis_threshold": float(-np.log10(s.nis_alpha)),
+                "window_s": s.nis_window_s,
+            }
+            out["alarms"] = [
+                {
+                    "detected_s": ev.detected_s,
+                    "onset_s": ev.onset_s,
+                    "cause": ev.cause,
+                    "description": ev.description,
+                    "detectors": ", ".join(ev.detectors),
+                }
+                for ev in det.events
+            ]
+        if len(self._series_cache) >= SERIES_CACHE:
+            self._series_cache.pop(next(iter(self._series_cache)))
+        self._series_cache[key] = out
+        return out
+
+    def forecast_start(self, name: str, nominal_theta: bool = False):
+        """(twin with the machine's θ, mean, cov, inputs now, limits, last seq): the start
+        ``ajtwin forecast``/``advise`` use, from the same function
+        (:func:`ajtwin.apps.cli.machine_twin`)."""
+        import click
+
+        from ajtwin.apps.cli import machine_twin
+
+        with self._lock:
+            try:
+                twin, mean, cov, u_now, machine, last = machine_twin(
+                    self.registry, name, nominal_theta
+                )
+            except click.ClickException as exc:
+                raise RegistryError(exc.message) from None
+        return twin, mean, cov, np.asarray(u_now, float), machine["limits"], int(last["seq"])
+
+
+def detector_thresholds(settings) -> list[float]:
+    """CUSUM decision intervals h per channel (L_w, L_o, P_c, P_s, Q_m, P_c+P_s)."""
+    s = settings
+    return [s.cusum_threshold] * 4 + [
+        s.cusum_threshold_material_flow,
+        s.cusum_threshold_pressure_sum,
+    ]
+
+
+__all__ = ["RegistryView", "NAMES", "KEY_STATES", "STATE_NAMES", "json_list", "decimate"]

@@ -1,0 +1,252 @@
+"""In-process publish/subscribe between a live twin and the dashboard's open pages.
+
+A live engine (``ajtwin live … --dashboard``) or the virtual-print feed
+(:mod:`ajtwin.web.feed`) calls :meth:`LivePublisher.publish` once per sample, from any
+thread; every open page's websocket holds a :class:`Subscription` (an asyncio queue) and
+receives the sample as JSON within one event-loop turn. The registry watcher announces
+committed prints through the same object, so a page has one stream to listen to.
+
+Sample (a dict; keys beyond ``machine`` and ``time_s`` are optional, extra keys pass
+through unchanged)::
+
+    machine      str                       machine name (registry name when registered)
+    time_s       float                     seconds since the print started
+    states       [5] d_a µm, V_l mL, ΔR_T µm, ΔR_N µm, φ_A –   (filtered x̂_k)
+    state_stds   [5] σ of the same
+    truth        [5] true states (virtual printer only)
+    predicted    [5] one-step predicted outputs L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s
+    measured     [5] measured outputs (None = not measured)
+    inputs       [3] I_A mA, Q_c sccm, Q_s sccm
+    nis          float   normalised innovation squared of this step
+    theta        [5] θ in force [1/s]
+    detectors    {"cusum": [6] g per channel (L_w, L_o, P_c, P_s, Q_m, P_c+P_s),
+                  "cusum_thresholds": [6], "window_nis_log10p": float,
+                  "window_nis_threshold": float}
+    alarms       [{"detected_s", "onset_s", "cause", "description", "detectors"}]
+                 alarms the twin raised at this sample
+
+The publisher stamps ``published_at`` (Unix time, s) on each event so a page (same
+machine clock) can measure how long delivery took.
+
+Example
+-------
+>>> pub = LivePublisher(history=3)
+>>> for k in range(5):
+...     pub.publish({"machine": "vm1", "time_s": float(k)})
+>>> [s["time_s"] for s in pub.snapshot("vm1")]
+[2.0, 3.0, 4.0]
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from collections import deque
+
+
+def sample_from_engine(message: dict) -> dict | None:
+    """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
+    ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
+    as a dashboard sample (module docstring). Provisional steps give None: the committed
+    step for the same time follows and is the one drawn.
+    """
+    from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings
+    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.web.data import detector_thresholds
+
+    if message.get("provisional"):
+        return None
+
+    def ordered(key, names):
+        value = message.get(key)
+        if isinstance(value, dict):
+            return [value.get(n) for n in names]
+        return value
+
+    sample = {
+        "machine": message["machine"],
+        "time_s": message["time_s"],
+        "states": ordered("states", STATE_NAMES),
+        "state_stds": ordered("stds", STATE_NAMES),
+        "predicted": ordered("predicted_outputs", OUTPUT_NAMES),
+        "measured": ordered("measured_outputs", OUTPUT_NAMES),
+        "inputs": ordered("inputs", INPUT_NAMES),
+        "theta": ordered("theta", STATE_NAMES),
+        "nis": message.get("nis"),
+        "engine_status": message.get("status"),
+    }
+    if isinstance(message.get("cusum"), dict):
+        settings = DetectorSettings()
+        p = message.get("window_nis_p")
+        sample["detectors"] = {
+            "cusum": [message["cusum"].get(c) for c in CUSUM_CHANNELS],
+            "cusum_thresholds": detector_thresholds(settings),
+            "window_nis_log10p": None if p is None else -math.log10(max(float(p), 1e-300)),
+            "window_nis_threshold": -math.log10(settings.nis_alpha),
+        }
+    sample["alarms"] = [
+        {
+            "detected_s": ev.get("detected_s"),
+            "onset_s": ev.get("onset_s"),
+            "cause": ev.get("cause"),
+            "description": ev.get("description"),
+            "detectors": ", ".join(ev.get("detectors") or []),
+        }
+        for ev in message.get("events") or []
+        if ev.get("state", "raised") == "raised"
+    ]
+    return sample
+
+
+class Subscription:
+    """One listener (a page's websocket): an asyncio queue fed thread-safely.
+
+    A slow page loses its oldest events rather than holding up the publisher or
+    growing without bound (``maxsize`` events are kept).
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, maxsize: int = 2000):
+        self.loop = loop
+        self.queue: asyncio.Queue = asyncio.Queue(maxsize=maxsize)
+        self.dropped = 0
+
+    def _put(self, event: dict) -> None:  # runs in the subscriber's loop
+        if self.queue.full():
+            self.queue.get_nowait()
+            self.dropped += 1
+        self.queue.put_nowait(event)
+
+    async def get(self) -> dict:
+        return await self.queue.get()
+
+
+def _clean(value):
+    """NaN/inf → None recursively, so every event is valid JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if hasattr(value, "tolist"):  # NumPy arrays and scalars
+        return _clean(value.tolist())
+    return value
+
+
+class LivePublisher:
+    """Fan-out of live samples and registry events to the dashboard's pages.
+
+    Parameters
+    ----------
+    history : int
+        Samples kept per machine, so a page opened mid-print shows the print so far.
+    printing_timeout_s : float
+        A machine counts as printing while its last sample is younger than this.
+    """
+
+    def __init__(self, history: int = 7200, printing_timeout_s: float = 30.0):
+        self.history = int(history)
+        self.printing_timeout_s = float(printing_timeout_s)
+        self._lock = threading.Lock()
+        self._subscribers: set[Subscription] = set()
+        self._samples: dict[str, deque] = {}
+        self._alarms: dict[str, list] = {}
+        self._last_seen: dict[str, float] = {}
+        self._ended: set[str] = set()
+
+    # ------------------------------------------------------------------ publishing
+    def publish(self, sample: dict) -> None:
+        """Deliver one sample (see module docstring) to every page; thread-safe."""
+        if "machine" not in sample or "time_s" not in sample:
+            raise ValueError("a live sample needs at least 'machine' and 'time_s'")
+        event = _clean(dict(sample))
+        event["type"] = "sample"
+        event["published_at"] = time.time()
+        name = str(event["machine"])
+        with self._lock:
+            buffer = self._samples.setdefault(name, deque(maxlen=self.history))
+            if name in self._ended:  # a new print on this machine
+                buffer.clear()
+                self._alarms[name] = []
+                self._ended.discard(name)
+            buffer.append(event)
+            if event.get("alarms"):
+                self._alarms.setdefault(name, []).extend(event["alarms"])
+            self._last_seen[name] = time.monotonic()
+        self._broadcast(event)
+
+    def open_print(self, machine: str) -> None:
+        """Announce a live print of ``machine`` before its first sample (pages may open it)."""
+        with self._lock:
+            self._samples.setdefault(machine, deque(maxlen=self.history))
+        self._broadcast({"type": "print_start", "machine": machine, "published_at": time.time()})
+
+    def publish_engine(self, message: dict) -> None:
+        """Publish a message of the live engine (:func:`sample_from_engine`); thread-safe."""
+        sample = sample_from_engine(message)
+        if sample is not None:
+            self.publish(sample)
+
+    def end_print(self, machine: str) -> None:
+        """The live print of ``machine`` ended (its buffer is kept until the next one)."""
+        with self._lock:
+            self._ended.add(machine)
+            self._last_seen.pop(machine, None)
+        self._broadcast({"type": "print_end", "machine": machine, "published_at": time.time()})
+
+    def announce(self, event: dict) -> None:
+        """Broadcast a non-sample event (e.g. ``{"type": "print", "machine": …}``)."""
+        event = _clean(dict(event))
+        event.setdefault("published_at", time.time())
+        self._broadcast(event)
+
+    def _broadcast(self, event: dict) -> None:
+        with self._lock:
+            subscribers = list(self._subscribers)
+        for sub in subscribers:
+            try:
+                sub.loop.call_soon_threadsafe(sub._put, event)
+            except RuntimeError:  # that page's loop is closed
+                self.unsubscribe(sub)
+
+    # ------------------------------------------------------------------ listening
+    def subscribe(self, loop: asyncio.AbstractEventLoop | None = None) -> Subscription:
+        sub = Subscription(loop or asyncio.get_running_loop())
+        with self._lock:
+            self._subscribers.add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            self._subscribers.discard(sub)
+
+    @property
+    def n_subscribers(self) -> int:
+        with self._lock:
+            return len(self._subscribers)
+
+    # ------------------------------------------------------------------ state
+    def snapshot(self, machine: str) -> list[dict]:
+        """The samples of the machine's current (or last) live print."""
+        with self._lock:
+            return list(self._samples.get(machine, ()))
+
+    def alarms(self, machine: str) -> list[dict]:
+        with self._lock:
+            return list(self._alarms.get(machine, ()))
+
+    def machines(self) -> list[str]:
+        with self._lock:
+            return sorted(self._samples)
+
+    def is_printing(self, machine: str) -> bool:
+        with self._lock:
+            seen = self._last_seen.get(machine)
+        return seen is not None and time.monotonic() - seen < self.printing_timeout_s
+
+    def latest(self, machine: str) -> dict | None:
+        with self._lock:
+            buffer = self._samples.get(machine)
+            return buffer[-1] if buffer else None

@@ -1,0 +1,198 @@
+"""Run the dashboard in a child process (tests, benchmarks, scripts) and a headless browser.
+
+:class:`DashboardProcess` starts ``ajtwin dashboard`` on 127.0.0.1 and a free port, waits
+(bounded) until it answers, and stops it by its own PID. :func:`launch_chromium` opens
+Debian's ``/usr/bin/chromium`` through Playwright (``playwright install`` cannot download
+a browser here) with a fresh profile and no background networking.
+
+Example
+-------
+>>> with DashboardProcess("registry.sqlite") as dash:            # doctest: +SKIP
+...     print(dash.url)
+http://127.0.0.1:40123/
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class DashboardProcess:
+    """``ajtwin dashboard`` in a child process on 127.0.0.1 (module docstring).
+
+    Parameters
+    ----------
+    store : registry path
+    token : str, optional, passed as ``--token``
+    extra_args : list of str, more ``ajtwin dashboard`` options
+    startup_timeout_s : float, bound on the wait for the first answer
+    log_path : where the server's output goes (default: a temporary file)
+    """
+
+    def __init__(
+        self,
+        store,
+        *,
+        token: str | None = None,
+        extra_args=(),
+        startup_timeout_s: float = 120.0,
+        log_path=None,
+    ):
+        self.store = str(store)
+        self.token = token
+        self.port = free_port()
+        self.host = "127.0.0.1"
+        self.url = f"http://{self.host}:{self.port}/"
+        self.extra_args = list(extra_args)
+        self.startup_timeout_s = float(startup_timeout_s)
+        self.log_path = Path(log_path) if log_path else Path(tempfile.mkstemp(suffix=".log")[1])
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> DashboardProcess:
+        cmd = [sys.executable, "-m", "ajtwin.cli", "dashboard", "--store", self.store]
+        cmd += ["--host", self.host, "--port", str(self.port), *self.extra_args]
+        if self.token:
+            cmd += ["--token", self.token]
+        env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONUNBUFFERED="1")
+        self._log = open(self.log_path, "wb")  # noqa: SIM115 (closed in stop)
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
+        deadline = time.monotonic() + self.startup_timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(
+                    f"dashboard exited with {self.proc.returncode}: {self.log_path.read_text()}"
+                )
+            try:
+                self.get("api/fleet", timeout=2.0)
+                return self
+            except (urllib.error.URLError, ConnectionError, TimeoutError):
+                time.sleep(0.2)
+        self.stop()
+        raise TimeoutError(f"dashboard did not answer within {self.startup_timeout_s:g} s")
+
+    def get(self, path: str, timeout: float = 10.0, token: str | None = None):
+        """(status, body bytes) of GET ``path``; the server's token unless ``token`` says."""
+        req = urllib.request.Request(self.url + path.lstrip("/"))
+        use = self.token if token is None else token
+        if use:
+            req.add_header("Authorization", f"Bearer {use}")
+        try:
+            with urllib.request.urlopen(req, timeout=timeout) as r:
+                return r.status, r.read()
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.read()
+
+    def page_url(self, path: str = "") -> str:
+        """Address a browser opens (carries the token once; the server sets a cookie)."""
+        url = self.url + path.lstrip("/")
+        if self.token:
+            url += ("&" if "?" in url else "?") + f"token={self.token}"
+        return url
+
+    def stop(self, timeout_s: float = 15.0) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.kill(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(timeout=timeout_s)
+        if getattr(self, "_log", None) is not None:
+            self._log.close()
+            self._log = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+class BackgroundServer:
+    """The dashboard served from a thread of the calling process (a live engine's).
+
+    ``ajtwin live … --dashboard`` runs its twin in its own process; it creates a
+    :class:`~ajtwin.web.publisher.LivePublisher`, starts this, and calls
+    ``publisher.publish(sample)`` for every sample. Same access rule as the CLI: another
+    host than the loopback needs a token.
+
+    Parameters
+    ----------
+    store : registry path; publisher : LivePublisher
+    host, port, token : as ``ajtwin dashboard`` (port 0: a free one)
+    startup_timeout_s : bound on the wait until it listens
+    """
+
+    def __init__(self, store, publisher, *, host="127.0.0.1", port=8050, token=None,
+                 startup_timeout_s: float = 30.0):  # fmt: skip
+        import uvicorn
+
+        from ajtwin.web.app import create_app
+        from ajtwin.web.cli import check_access
+
+        check_access(host, token)
+        self.port = free_port() if not port else int(port)
+        self.url = f"http://{host}:{self.port}/"
+        app = create_app(store, token=token, publisher=publisher)
+        config = uvicorn.Config(
+            app, host=host, port=self.port, log_level="warning", ws="websockets-sansio"
+        )
+        self._server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._server.run, name="dashboard", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + startup_timeout_s
+        while not self._server.started:
+            if time.monotonic() > deadline or not self._thread.is_alive():
+                self.stop()
+                raise RuntimeError(f"dashboard did not start on {host}:{self.port}")
+            time.sleep(0.05)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self._server.should_exit = True
+        self._thread.join(timeout_s)
+
+
+def launch_chromium(playwright, user_data_dir=None):
+    """A headless Debian chromium (persistent context in a fresh profile folder).
+
+    Returns the Playwright BrowserContext; close it when done.
+    """
+    if not Path(CHROMIUM).exists():
+        raise FileNotFoundError(f"{CHROMIUM} not found: run `make chromium`")
+    profile = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
+    return playwright.chromium.launch_persistent_context(
+        str(profile),
+        executable_path=CHROMIUM,
+        args=CHROMIUM_ARGS,
+        headless=True,
+        viewport={"width": 1400, "height": 900},
+    )

@@ -1,0 +1,214 @@
+"""The live twin: streaming engine ≡ batch twin + detectors; sample-order handling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ajtwin.apps.anomaly import detect_run
+from ajtwin.estimation import Twin
+from ajtwin.live.engine import Sample, TwinStream, clean_sample
+from ajtwin.model import STATE_NAMES
+from ajtwin.simulation import simulate
+
+# short EM cadence so a few minutes of print cross several EM updates
+FAST_EM = {"window_s": 60, "every_s": 30}
+
+
+@pytest.fixture(scope="module")
+def clog_record():
+    return simulate(
+        "nozzle_clog",
+        seed=5,
+        duration_min=6.0,
+        overrides={"fault": {"onset_min": 3.0, "nozzle_deposition_multiplier": 400.0}},
+    )
+
+
+def _relative(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))
+
+
+def _feed_all(stream, record):
+    messages = []
+    for t, u, y in zip(record.time_s, record.inputs, record.outputs):
+        messages += stream.feed(Sample(t, u, y))
+    messages += stream.finish()
+    return messages
+
+
+@pytest.mark.parametrize("asynchronous", [False, True])
+def test_stream_equals_batch(clog_record, asynchronous):
+    rec = clog_record
+    batch_twin = Twin.default(**FAST_EM)
+    run = batch_twin.run(rec)
+    detection = detect_run(run, rec)
+    assert len(run.theta_history) >= 5
+
+    stream = TwinStream.new("m", twin_overrides=FAST_EM, asynchronous=asynchronous)
+    messages = _feed_all(stream, rec)
+    arrays = stream.arrays()
+    assert arrays["means"].shape == run.means.shape
+    assert _relative(arrays["means"], run.means) < 1e-9
+    assert _relative(arrays["covariances"], np.asarray(run.filtered.covariances)) < 1e-9
+    assert _relative(arrays["nis"] + 1e-12, np.asarray(run.filtered.nis) + 1e-12) < 1e-9
+    assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
+    assert _relative(stream.theta, batch_twin.theta) < 1e-9
+    hist = run.theta_history
+    assert np.array_equal(arrays["theta_history_time_s"], hist["time_s"].to_numpy(float))
+    events = [e.to_dict() for e in stream.detector.events]
+    assert events == [e.to_dict() for e in detection.events]
+    assert any(e["cause"] == "nozzle_clog" for e in events)
+    # every committed step published once, in order
+    steps = [m["step"] for m in messages if "step" in m and not m["provisional"]]
+    assert steps == list(range(len(rec)))
+    if asynchronous:
+        raised = [e for m in messages for e in m.get("events", []) if e["state"] == "raised"]
+        assert raised and raised[0]["detected_s"] == detection.events[0].detected_s
+
+
+def test_gaps_duplicates_and_old_samples(clog_record):
+    rec = clog_record.window(0, 120)
+    keep = [k for k in range(len(rec)) if k not in (40, 41, 42)]  # a 3 s gap
+    stream = TwinStream.new("m", twin_overrides={"em": False}, asynchronous=False)
+    for k in keep:
+        stream.feed(Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+        if k == 50:
+            stream.feed(Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))  # duplicate
+            stream.feed(Sample(rec.time_s[20], rec.inputs[20], rec.outputs[20]))  # old
+    stream.finish()
+    assert stream.dropped == {"duplicate": 1, "out_of_order": 1, "bad": 0}
+    assert stream.missing_inserted == 3
+    arrays = stream.arrays()
+    assert np.array_equal(arrays["time_s"], rec.time_s)
+    # the gap is missing data: batch on the record with NaN outputs there is the same
+    y = rec.outputs.copy()
+    y[40:43] = np.nan
+    u = rec.inputs.copy()
+    u[40:43] = u[39]
+    run = Twin.default(em=False).run(inputs=u, measurements=y, time_s=rec.time_s)
+    assert _relative(arrays["means"], run.means) < 1e-9
+    assert np.all(arrays["n_measured"][40:43] == 0)
+
+
+def test_clean_sample_bad_wire_data():
+    ok, problems = clean_sample(3.0, [375, 23, 50], [90, 150, 2000, 1500, 1e-9])
+    assert problems == [] and np.all(np.isfinite(ok.outputs))
+    s, problems = clean_sample(3.0, [375, 23, 50], [np.nan, -5.0, np.inf, 1500, 1e-9])
+    assert np.isnan(s.outputs[:3]).all() and s.outputs[3] == 1500
+    assert len(problems) == 2 and "overspray_um" in problems[0]
+    s, problems = clean_sample(3.0, [np.nan, 23, 50], [90, 150, 2000, 1500, 1e-9])
+    assert np.isnan(s.inputs).all() and "atomizer_current_mA" in problems[0]
+    s, problems = clean_sample("x", [375, 23, 50], [90, 150, 2000, 1500, 1e-9])
+    assert s is None and "not a number" in problems[0]
+
+
+def test_engine_many_machines_batched_equals_single(clog_record):
+    from ajtwin.live.engine import LiveEngine
+
+    rec = clog_record.window(0, 200)
+    engine = LiveEngine(twin_overrides=FAST_EM, asynchronous=False)
+    got = []
+    engine.subscribe(got.append)
+    names = ["a", "b", "c"]
+    for k in range(len(rec)):
+        # machine c lags by a sample: mixed batches of ordinary steps and boundaries
+        items = [(n, Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k])) for n in names[:2]]
+        if k > 0:
+            items.append(("c", Sample(rec.time_s[k - 1], rec.inputs[k - 1], rec.outputs[k - 1])))
+        engine.feed_many(items)
+    single = TwinStream.new("s", twin_overrides=FAST_EM, asynchronous=False)
+    _feed_all(single, rec)
+    for n in names:
+        arrays = engine.sessions[n].stream.arrays()
+        length = len(arrays["means"])
+        assert length == len(rec) - (n == "c")
+        assert _relative(arrays["means"], single.arrays()["means"][:length]) < 1e-9
+    assert {m["machine"] for m in got} == set(names)
+    engine.shutdown()
+
+
+def test_kill_and_resume_from_registry(clog_record, tmp_path):
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 240)
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=True, commit_every_s=0)
+    for k in range(150):
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    engine.poll_and_publish()
+    while engine.sessions["m1"].stream.em_running:  # bounded: EM on 60 samples
+        engine.sessions["m1"].stream._em_future.result(timeout=120)
+        engine.poll_and_publish()
+    committed = engine.sessions["m1"].stream.n_committed
+    engine.shutdown()
+    del engine  # "killed": the object is gone, only the database remains
+
+    log = LiveLog(registry.path)
+    sid = log.open_session_of("m1")["id"]
+    assert log.n_steps(sid) == committed
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    stream = engine.open("m1")
+    assert stream.n_committed == committed
+    for k in range(100, len(rec)):  # a re-read from before the kill: old samples dropped
+        engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    print_id = engine.close("m1")
+    assert log.open_session_of("m1") is None
+    steps = [m["step"] for m in log.states(sid)]
+    assert steps == list(range(len(rec)))  # nothing lost, nothing twice
+    run = Twin.default(**FAST_EM).run(rec)
+    # the live log keeps the published float64 states (the registry's print keeps float32)
+    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in log.states(sid)])
+    assert _relative(means, run.means) < 1e-9
+    stored = registry.print_arrays(print_id)
+    assert _relative(stored["means"], run.means) < 1e-6
+    assert registry.last_print("m1")["seq"] == 1
+
+
+def test_follow_growing_csv(clog_record, tmp_path, caplog):
+    import asyncio
+
+    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.live.link import follow_csv
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    rec = clog_record.window(0, 90)
+    columns = ["time_s", *INPUT_COLUMNS, *OUTPUT_COLUMNS]
+    rows = rec.data[columns].to_numpy(float)
+    lines = [",".join(columns)] + [",".join(repr(float(v)) for v in row) for row in rows]
+    lines[31] = lines[31].replace(lines[31].split(",")[6], "oops", 1)  # a garbled row
+    path = tmp_path / "print.csv"
+    path.write_text("\n".join(lines[:41]) + "\n" + lines[41][:10])  # a half-written line
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry, asynchronous=False, commit_every_s=0)
+
+    async def main():
+        async def grow():
+            await asyncio.sleep(1.0)
+            path.write_text("\n".join(lines) + "\n")
+
+        writer = asyncio.create_task(grow())
+        print_id = await asyncio.wait_for(
+            follow_csv(path, "m1", engine, poll_s=0.1, idle_timeout_s=2.0), 120
+        )
+        await writer
+        return print_id
+
+    print_id = asyncio.run(main())
+    arrays = registry.print_arrays(print_id)
+    assert np.array_equal(arrays["time_s"], rec.time_s)
+    session = max(LiveLog(registry.path).sessions("m1"), key=lambda r: r["id"])
+    states = LiveLog(registry.path).states(session["id"])
+    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in states])
+    y = rec.outputs.copy()
+    u = rec.inputs.copy()
+    y[30] = np.nan  # the garbled line: a missing sample (inputs held)
+    u[30] = u[29]
+    run = Twin.default().run(inputs=u, measurements=y, time_s=rec.time_s)
+    assert _relative(means, run.means) < 1e-9
+    assert "line 32: not numbers" in caplog.text

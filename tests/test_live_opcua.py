@@ -1,0 +1,449 @@
+"""The live twin over OPC UA on loopback: virtual printer server → ``ajtwin live``.
+
+Servers bind 127.0.0.1 on a free port, are stopped by their own PID, and every wait is
+bounded in time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+asyncua = pytest.importorskip("asyncua")
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+ONSET_S = 240.0  # --fault-onset-min 4
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ajtwin(*args, log_path: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.Popen(
+        [sys.executable, "-m", "ajtwin.cli", *args],
+        stdout=log_path.open("w"),
+        stderr=subprocess.STDOUT,
+        env=env,
+    )
+
+
+def _stop(proc: subprocess.Popen, sig=signal.SIGTERM) -> None:
+    if proc.poll() is None:
+        os.kill(proc.pid, sig)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=20)
+
+
+def _serve(url, log_path, *extra):
+    return _ajtwin(
+        "printer",
+        "serve",
+        "--scenario",
+        "nozzle_clog",
+        "--speed",
+        "30",
+        "--duration-min",
+        "7",
+        "--fault-onset-min",
+        str(ONSET_S / 60),
+        "--endpoint",
+        url,
+        *extra,
+        log_path=log_path,
+    )
+
+
+async def _collect_events(url: str, events: list, done: asyncio.Event, timeout_s: float):
+    """A second client: subscribe to the server's twin alarm events until ``done``."""
+    from asyncua import Client
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            async with Client(url, timeout=4) as client:
+                idx = await client.get_namespace_index("urn:ajtwin:aerosol-jet")
+                etype = await client.nodes.base_event_type.get_child(f"{idx}:TwinAlarmEventType")
+
+                class Handler:
+                    def event_notification(self, event):
+                        events.append(event)
+
+                sub = await client.create_subscription(50, Handler())
+                await sub.subscribe_events(client.nodes.server, etype)
+                while not done.is_set() and time.monotonic() < deadline:
+                    await asyncio.sleep(0.2)
+                await asyncio.sleep(1.0)  # the last notifications
+                return
+        except (OSError, TimeoutError, asyncua.ua.UaError):
+            await asyncio.sleep(0.5)
+
+
+def test_live_twin_raises_clog_alarm_over_opcua(tmp_path):
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    store = tmp_path / "registry.sqlite"
+    messages = tmp_path / "messages.jsonl"
+    live = _ajtwin(
+        "live",
+        "--machine",
+        "aj300-01",
+        "--opcua",
+        url,
+        "--store",
+        str(store),
+        "--messages",
+        str(messages),
+        "--max-backoff",
+        "1",
+        log_path=tmp_path / "live.log",
+    )
+    server = _serve(url, tmp_path / "server.log")
+    events: list = []
+    try:
+
+        async def main():
+            done = asyncio.Event()
+            collector = asyncio.create_task(_collect_events(url, events, done, 240))
+            deadline = time.monotonic() + 240
+            while live.poll() is None and time.monotonic() < deadline:
+                await asyncio.sleep(0.5)
+            done.set()
+            await collector
+
+        asyncio.run(main())
+        log = (tmp_path / "live.log").read_text()
+        assert live.returncode == 0, log
+    finally:
+        _stop(live)
+        _stop(server)
+
+    lines = [json.loads(line) for line in messages.read_text().splitlines()]
+    raised = [e for m in lines for e in m.get("events", []) if e["state"] == "raised"]
+    assert raised, "no alarm"
+    first = raised[0]
+    assert first["cause"] == "nozzle_clog"
+    assert ONSET_S <= first["detected_s"] <= ONSET_S + 60
+    # the second client got it as an OPC UA event
+    causes = [(e.Machine, e.Cause, e.AlarmState) for e in events]
+    assert ("aj300-01", "nozzle_clog", "raised") in causes
+
+    # the registry holds the print; batch twin on the recorded samples gives the same states
+    from ajtwin.estimation import Twin
+    from ajtwin.store.registry import Registry
+
+    registry = Registry(store)
+    last = registry.last_print("aj300-01")
+    arrays = registry.print_arrays(last["id"])
+    run = Twin.default().run(
+        inputs=arrays["inputs"], measurements=arrays["measurements"], time_s=arrays["time_s"]
+    )
+    committed = [m for m in lines if "step" in m and not m["provisional"]]
+    means = np.array([list(m["states"].values()) for m in committed])
+    assert [m["step"] for m in committed] == list(range(len(run.means)))
+    assert (np.abs(means - run.means) / np.abs(run.means)).max() < 1e-9
+    assert len(arrays["time_s"]) >= 300
+    assert registry.anomalies("aj300-01")["cause"].iloc[0] == "nozzle_clog"
+
+
+# --------------------------------------------------------------------------- #
+# Security, in-process (one server, several clients)
+# --------------------------------------------------------------------------- #
+
+
+def test_security_refusals_and_setpoints(tmp_path):
+    from asyncua import Client, ua
+
+    from ajtwin.live.engine import LiveEngine
+    from ajtwin.live.link import LinkRefused, OpcUaLink
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine, ensure_certificate
+
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    server_cert, server_key = tmp_path / "server.der", tmp_path / "server.pem"
+    client_cert, client_key = tmp_path / "client.der", tmp_path / "client.pem"
+    other_cert, other_key = tmp_path / "other.der", tmp_path / "other.pem"
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+
+    async def main():
+        await ensure_certificate(server_cert, server_key, "127.0.0.1", "urn:ajtwin:virtual-printer")
+        await ensure_certificate(client_cert, client_key, "localhost", "urn:ajtwin:live-client")
+        await ensure_certificate(other_cert, other_key, "localhost", "urn:ajtwin:live-client")
+        (trusted / "client.der").write_bytes(client_cert.read_bytes())
+        machine = VirtualMachine("m1", "exp1", seed=1, speed=1.0, duration_min=30)
+        server = PrinterServer(
+            url,
+            [machine],
+            users={"operator": "s3cret"},
+            certificate=server_cert,
+            private_key=server_key,
+            trusted=trusted,
+        )
+        stop, ready = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(server.serve(stop, ready.set))
+        await asyncio.wait_for(ready.wait(), 120)
+        security = "Basic256Sha256_SignAndEncrypt"
+
+        def link(**kw):
+            return OpcUaLink(url, ["m1"], LiveEngine(asynchronous=False), timeout_s=4, **kw)
+
+        try:
+            # no encryption: the server offers none
+            with pytest.raises(LinkRefused):
+                await asyncio.wait_for(link(username="operator", password="s3cret").run(), 60)
+            # encrypted, wrong password
+            with pytest.raises(LinkRefused, match="user name or password"):
+                await asyncio.wait_for(
+                    link(
+                        username="operator",
+                        password="wrong",
+                        security=security,
+                        certificate=client_cert,
+                        private_key=client_key,
+                    ).run(),
+                    60,
+                )
+            # encrypted with a certificate the server does not trust
+            with pytest.raises(LinkRefused):
+                await asyncio.wait_for(
+                    link(
+                        username="operator",
+                        password="s3cret",
+                        security=security,
+                        certificate=other_cert,
+                        private_key=other_key,
+                    ).run(),
+                    60,
+                )
+            # accepted: encrypted, trusted certificate, right password; writes a set-point
+            client = Client(url, timeout=4)
+            client.set_user("operator")
+            client.set_password("s3cret")
+            client.application_uri = "urn:ajtwin:live-client"
+            await client.set_security_string(
+                f"Basic256Sha256,SignAndEncrypt,{client_cert},{client_key}"
+            )
+            async with client:
+                idx = await client.get_namespace_index("urn:ajtwin:aerosol-jet")
+                node = client.get_node(
+                    ua.NodeId("m1/Monitoring/SetPoints/CarrierFlowSetpoint", idx)
+                )
+                await node.write_value(27.0)
+                for _ in range(100):  # bounded: the server re-simulates the print
+                    if machine.schedule:
+                        break
+                    await asyncio.sleep(0.1)
+                assert machine.schedule["carrier_flow_sccm"][-1][1] == 27.0
+                assert np.isclose(machine.record.data["carrier_flow_sccm"].iloc[-1], 27.0, atol=1)
+                # out of the machine's limits: refused, value restored
+                await node.write_value(80.0)
+                for _ in range(100):
+                    if await node.read_value() != 80.0:
+                        break
+                    await asyncio.sleep(0.1)
+                assert await node.read_value() == 27.0
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 30)
+
+    asyncio.run(main())
+
+
+def test_anonymous_cannot_write_setpoints_but_may_publish_health(tmp_path):
+    from asyncua import Client, ua
+
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine
+
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+
+    async def main():
+        machine = VirtualMachine("m1", "exp1", seed=1, speed=1.0, duration_min=30)
+        server = PrinterServer(url, [machine])
+        stop, ready = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(server.serve(stop, ready.set))
+        await asyncio.wait_for(ready.wait(), 120)
+        try:
+            async with Client(url, timeout=4) as client:
+                idx = await client.get_namespace_index("urn:ajtwin:aerosol-jet")
+                setpoint = client.get_node(
+                    ua.NodeId("m1/Monitoring/SetPoints/CarrierFlowSetpoint", idx)
+                )
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await setpoint.write_value(25.0)
+                status = client.get_node(ua.NodeId("m1/Monitoring/Health/Status", idx))
+                await status.write_value("ok")
+                assert await status.read_value() == "ok"
+                eu = client.get_node(ua.NodeId("m1/Monitoring/Process/CarrierPressure/EU", idx))
+                assert (await eu.read_value()).DisplayName.Text == "Pa"
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 30)
+
+    asyncio.run(main())
+
+
+def _steps_in(path: Path) -> int:
+    if not path.exists():
+        return 0
+    return sum(1 for line in path.read_text().splitlines() if '"step"' in line)
+
+
+def _wait(predicate, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+@pytest.mark.slow
+def test_client_kill_and_server_restart_lose_nothing(tmp_path):
+    from ajtwin.estimation import Twin
+    from ajtwin.store.live_log import LiveLog
+    from ajtwin.store.registry import Registry
+
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    store = tmp_path / "registry.sqlite"
+
+    def start_live(n):
+        return _ajtwin(
+            "live",
+            "--machine",
+            "aj300-01",
+            "--opcua",
+            url,
+            "--store",
+            str(store),
+            "--messages",
+            str(tmp_path / f"messages{n}.jsonl"),
+            "--max-backoff",
+            "1",
+            log_path=tmp_path / f"live{n}.log",
+        )
+
+    server = _serve(url, tmp_path / "server1.log", "--duration-min", "15")
+    live = start_live(1)
+    procs = [server, live]
+    try:
+
+        def stored_steps():
+            if not store.exists():
+                return 0
+            session = LiveLog(store).open_session_of("aj300-01")
+            return 0 if session is None else LiveLog(store).n_steps(session["id"])
+
+        _wait(lambda: stored_steps() >= 60, 180, "first committed steps")
+        os.kill(live.pid, signal.SIGKILL)  # mid-print, no goodbye
+        live.wait(timeout=20)
+        log = LiveLog(store)
+        session = log.open_session_of("aj300-01")
+        committed = log.states(session["id"])
+        assert len(committed) >= 60
+        live = start_live(2)
+        procs.append(live)
+        _wait(lambda: _steps_in(tmp_path / "messages2.jsonl") >= 20, 180, "resumed steps")
+        # the server goes away and comes back later in the same print
+        t_stop = json.loads((tmp_path / "messages2.jsonl").read_text().splitlines()[-1])["time_s"]
+        _stop(server)
+        time.sleep(3)
+        server = _serve(
+            url, tmp_path / "server2.log", "--duration-min", "15", "--start-s", str(t_stop + 60)
+        )
+        procs.append(server)
+        _wait(lambda: live.poll() is not None, 240, "the end of the print")
+        assert live.returncode == 0, (tmp_path / "live2.log").read_text()
+        assert "reconnecting" in (tmp_path / "live2.log").read_text()
+    finally:
+        for p in procs:
+            _stop(p)
+
+    states = log.states(session["id"])
+    assert [m["step"] for m in states] == list(range(len(states)))  # nothing twice
+    assert states[: len(committed)] == committed  # nothing committed lost or changed
+    registry = Registry(store)
+    arrays = registry.print_arrays(registry.last_print("aj300-01")["id"])
+    assert len(arrays["time_s"]) == 15 * 60
+    run = Twin.default().run(
+        inputs=arrays["inputs"], measurements=arrays["measurements"], time_s=arrays["time_s"]
+    )
+    means = np.array([list(m["states"].values()) for m in states])  # float64, as published
+    assert (np.abs(means - run.means) / np.abs(run.means)).max() < 1e-9
+
+
+@pytest.mark.slow
+def test_fleet_of_printers_followed_by_one_process(tmp_path):
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    store = tmp_path / "registry.sqlite"
+    names = ["aj300-01", "aj300-02", "aj300-03"]
+    server = _serve(url, tmp_path / "server.log", "--machines", "3")
+    args = []
+    for name in names:
+        args += ["--machine", name]
+    live = _ajtwin(
+        "live",
+        *args,
+        "--opcua",
+        url,
+        "--store",
+        str(store),
+        "--messages",
+        str(tmp_path / "m.jsonl"),
+        "--max-backoff",
+        "1",
+        log_path=tmp_path / "live.log",
+    )
+    try:
+        _wait(lambda: live.poll() is not None, 300, "the end of the prints")
+        assert live.returncode == 0, (tmp_path / "live.log").read_text()
+    finally:
+        _stop(live)
+        _stop(server)
+    from ajtwin.store.registry import Registry
+
+    registry = Registry(store)
+    lines = [json.loads(x) for x in (tmp_path / "m.jsonl").read_text().splitlines()]
+    for name in names:
+        assert registry.last_print(name)["n_samples"] >= 300
+        raised = [
+            e
+            for m in lines
+            if m.get("machine") == name
+            for e in m.get("events", [])
+            if e["state"] == "raised"
+        ]
+        assert raised and raised[0]["cause"] == "nozzle_clog", name
+
+
+@pytest.mark.slow
+def test_demo_live(tmp_path):
+    from click.testing import CliRunner
+
+    from ajtwin.demo import demo_command
+
+    result = CliRunner().invoke(demo_command, ["--live", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "live_summary.json").read_text())
+    assert summary["alarm"]["cause"] == "nozzle_clog"
+    assert 0 <= summary["delay_s"] <= 60
+    assert any(e["state"] == "raised" for e in summary["events_received_by_second_client"])

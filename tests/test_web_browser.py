@@ -1,0 +1,278 @@
+"""The dashboard in a real browser: Debian's chromium driven by Playwright.
+
+Servers run as child processes (``ajtwin dashboard``) on 127.0.0.1 and a free port and
+are stopped by their PID; every wait is bounded. Screenshots of each page are saved under
+the test's temporary folder (and copied to ``$AJTWIN_SCREENSHOT_DIR`` when set, which is
+how docs/dashboard/ was made).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ajtwin.web.server import CHROMIUM, DashboardProcess, launch_chromium
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="run `make chromium`")
+TIMEOUT_MS = 120_000
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("screenshots")
+    yield folder
+    target = os.environ.get("AJTWIN_SCREENSHOT_DIR")
+    if target:
+        Path(target).mkdir(parents=True, exist_ok=True)
+        for png in folder.glob("*.png"):
+            shutil.copy(png, Path(target) / png.name)
+
+
+@pytest.fixture(scope="module")
+def registry(tmp_path_factory):
+    """A registry with a real twin run: 'lab1' printed 6 min with a nozzle clog from 3 min
+    (virtual printer; the record file stays, so the truth is known), 'lab2' has no prints."""
+    from ajtwin.io.records import write_record
+    from ajtwin.simulation import simulate
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    folder = tmp_path_factory.mktemp("registry")
+    record = simulate(
+        "nozzle_clog", seed=1, duration_min=6.0, overrides={"fault": {"onset_min": 3}}
+    )
+    path = folder / "lab1_print1.parquet"
+    write_record(record, path)
+    store = folder / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("lab1", notes="bench A")
+    reg.add_machine("lab2")
+    result = ingest_record(reg, "lab1", record, source=str(path))
+    reg.close()
+    assert result.events, "the virtual clog should have raised an alarm during ingest"
+    return {"store": store, "record": record, "result": result}
+
+
+@pytest.fixture(scope="module")
+def server(registry, tmp_path_factory):
+    log = tmp_path_factory.mktemp("server") / "dashboard.log"
+    with DashboardProcess(registry["store"], log_path=log) as dash:
+        yield dash
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        context = launch_chromium(p)
+        context.set_default_timeout(TIMEOUT_MS)
+        yield context
+        context.close()
+
+
+@pytest.fixture
+def page(browser):
+    page = browser.new_page()
+    errors = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    yield page
+    page.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+def test_fleet_page_lists_the_registry(server, registry, page, shots):
+    from ajtwin.store.registry import Registry
+
+    page.goto(server.page_url("/"))
+    rows = page.locator("#fleet-rows tr")
+    assert rows.count() == 2
+    assert page.locator("#fleet-rows tr").nth(0).get_attribute("data-machine") == "lab1"
+    lab1 = page.locator('tr[data-machine="lab1"]')
+    lab2 = page.locator('tr[data-machine="lab2"]')
+    assert lab1.get_attribute("data-status") == "alarm"
+    assert "nozzle clog" in lab1.inner_text()
+    assert "no prints" in lab2.inner_text() and lab2.get_attribute("data-status") == "idle"
+    # the state shown is the registry's end state (d_a, 4 significant digits)
+    with Registry(registry["store"]) as reg:
+        end = reg.last_print("lab1")["end_mean"]
+    assert f"{end[0]:.4g} µm" in lab1.locator("td").nth(4).inner_text()
+    assert lab1.locator("svg.spark").count() == 4  # a trend per key state
+    page.wait_for_function("document.getElementById('conn').classList.contains('up')")
+    page.screenshot(path=shots / "fleet.png", full_page=True)
+
+
+def test_machine_page_states_with_bands_and_truth(server, registry, page, shots):
+    from ajtwin.store.registry import Registry
+
+    page.goto(server.page_url("/machine/lab1"))
+    page.wait_for_function("window.__ajtwin.drawnPrint === 1")
+    traces = page.evaluate(
+        "document.getElementById('plot-states').data.map(t => "
+        "({name: t.name, fill: t.fill || null, x: t.x, y: t.y}))"
+    )
+    bands = [t for t in traces if t["fill"] == "tonexty"]
+    truth = [t for t in traces if t["name"] == "truth (virtual printer)"]
+    assert len(bands) == 5 and len(truth) == 5
+    # the upper band of ΔR_N is x̂ + 2σ from the registry's arrays, at the plotted times
+    with Registry(registry["store"]) as reg:
+        arrays = reg.print_arrays(reg.last_print("lab1")["id"])
+    t_min = np.asarray(bands[3]["x"], dtype=float)
+    k = np.round(t_min * 60).astype(int)
+    # (the registry may keep means/σ as float32: add them in float64 as the page does)
+    expected = arrays["means"][k, 3].astype(float) + 2 * arrays["stds"][k, 3].astype(float)
+    np.testing.assert_allclose(np.asarray(bands[3]["y"], dtype=float), expected, rtol=1e-12)
+    # truth is the virtual printer's, read from the print's file
+    np.testing.assert_allclose(
+        np.asarray(truth[3]["y"], dtype=float), registry["record"].true_states[k, 3], rtol=1e-12
+    )
+    # detectors with thresholds; the stored alarm with its cause; the history
+    detector_names = page.evaluate("document.getElementById('plot-detectors').data.map(t=>t.name)")
+    assert "CUSUM P_c+P_s (h=16)" in detector_names and "windowed NIS (120 s)" in detector_names
+    assert "nozzle clog" in page.locator("#alarms").inner_text()
+    assert page.locator("#history tbody tr").count() == 1
+    assert page.locator("#status").inner_text() == "alarm"
+    page.screenshot(path=shots / "machine.png", full_page=True)
+
+
+def test_new_print_appears_without_reload(server, page):
+    """The registry watcher pushes a print committed by another process to an open page."""
+    page.goto(server.page_url("/machine/lab2"))
+    page.wait_for_function("document.getElementById('conn').classList.contains('up')")
+    page.evaluate("window.__notReloaded = true")
+    from ajtwin.store.registry import Registry
+
+    n = 30
+    t = np.arange(n, dtype=float)
+    means = np.tile([3.5, 1.0, 0.0, 0.02, 4.6e-7], (n, 1))
+    stds = np.array([0.03, 0.003, 1e-3, 1e-3, 1e-8])
+    with Registry(server.store) as reg:
+        reg.save_print(
+            "lab2", content_hash="watcher-test", source="test", meta={}, summary={},
+            n_samples=n, duration_s=float(n), start_mean=means[0], start_cov=np.eye(5),
+            end_mean=means[-1], end_cov=np.diag(stds**2), theta_before=np.zeros(5),
+            theta_after=np.zeros(5), anomalies=[], expected_last_seq=None,
+            arrays={"time_s": t, "means": means, "stds": np.tile(stds, (n, 1))},
+        )  # fmt: skip
+    page.wait_for_function("window.__ajtwin.lastPrintEvent === 1", timeout=15_000)
+    page.wait_for_function("window.__ajtwin.drawnPrint === 1", timeout=15_000)
+    assert page.evaluate("window.__notReloaded") is True
+    assert "#1" in page.locator("#history tbody").inner_text()
+
+
+def test_whatif_forecast_and_advice(server, registry, page, shots):
+    from ajtwin.apps.forecast import Change, forecast, input_schedule
+    from ajtwin.web.data import RegistryView
+
+    page.goto(server.page_url("/whatif/lab1"))
+    page.fill("#horizon", "10min")
+    page.click("#run-forecast")
+    page.wait_for_function("window.__ajtwin.forecastDrawn >= 1")
+    traces = page.evaluate(
+        "document.getElementById('plot-forecast').data.map(t => ({name: t.name, y: t.y}))"
+    )
+    mean_lw = np.asarray([t for t in traces if t["name"] == "forecast"][0]["y"], dtype=float)
+    # the same numbers as the forecast function behind `ajtwin forecast`, called here
+    view = RegistryView(registry["store"])
+    twin, mean, cov, u_now, limits, _ = view.forecast_start("lab1")
+    schedule = input_schedule(u_now, [Change(60.0, 1, 26.0)], 600)
+    fc = forecast(twin, mean, cov, schedule)
+    assert len(mean_lw) == 600
+    np.testing.assert_allclose(mean_lw, fc.output_means[:, 0], rtol=1e-9)
+    page.fill("#target", "70")
+    page.click("#run-advise")
+    page.wait_for_selector("#advice-table")
+    assert "target reached" in page.locator("#advice").inner_text()
+    page.screenshot(path=shots / "whatif.png", full_page=True)
+
+
+def test_bad_form_value_shows_a_message(server, page, shots):
+    statuses = []
+    page.on("response", lambda r: statuses.append(r.status) if "/api/" in r.url else None)
+    page.goto(server.page_url("/whatif/lab1"))
+    page.fill("#changes tr.change [name=value]", "60")
+    page.click("#run-forecast")
+    error = page.locator("#forecast-error")
+    error.wait_for(state="visible")
+    assert error.inner_text() == "change 1: Q_c 60 sccm is outside this machine's limits 15–35 sccm"
+    page.fill("#target", "abc")
+    page.click("#run-advise")
+    page.locator("#advise-error").wait_for(state="visible")
+    assert "target linewidth: 'abc' is not a number" in page.locator("#advise-error").inner_text()
+    assert statuses.count(422) == 2 and 500 not in statuses
+    page.screenshot(path=shots / "whatif_error.png", full_page=True)
+
+
+def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
+    """A live virtual print (twin + detectors) with a nozzle clog from 3 min: the alarm is
+    on the page within seconds of the twin raising it, labelled as a clog, after the onset."""
+    args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-live",
+            "--virtual-minutes", "5", "--virtual-onset", "3", "--virtual-rate", "25",
+            "--virtual-wait", "120"]  # fmt: skip
+    with DashboardProcess(registry["store"], extra_args=args, log_path=tmp_path / "s.log") as dash:
+        page = browser.new_page()
+        try:
+            page.goto(dash.page_url("/machine/vm-live"))
+            page.locator("#alarm-banner").wait_for(state="visible", timeout=TIMEOUT_MS)
+            shown = page.evaluate("window.__ajtwin.alarmsShown")
+            assert shown and shown[0]["cause"] == "nozzle_clog"
+            assert 180.0 < shown[0]["detected_s"] < 180.0 + 90.0  # after the true onset
+            delay = shown[0]["shown_at"] - shown[0]["published_at"]
+            assert 0.0 <= delay < 3.0, f"alarm took {delay:.2f} s from the twin to the page"
+            assert "nozzle clog" in page.locator("#alarm-banner").inner_text()
+            # states with bands were drawn live, and the page was never reloaded
+            assert page.evaluate("document.getElementById('plot-states').data.length") == 20
+            assert len(page.evaluate("window.__ajtwin.latencies")) > 10
+            page.screenshot(path=shots / "machine_live.png", full_page=True)
+            page.goto(dash.page_url("/"))
+            row = page.locator('tr[data-machine="vm-live"]')
+            assert row.get_attribute("data-status") == "alarm"
+            # when the print ends the fleet row says so (pushed, no reload) and keeps the
+            # live-only machine's last ΔR_N, which grew with the clog
+            ended = page.locator('tr[data-machine="vm-live"]', has_text="live print ended")
+            ended.wait_for(timeout=60_000)
+            assert row.get_attribute("data-status") == "alarm"
+            dr_n = float(row.locator("td").nth(6).locator(".val").inner_text().split()[0])
+            assert dr_n > 0.04
+            page.screenshot(path=shots / "fleet_live.png", full_page=True)
+        finally:
+            page.close()
+
+
+def test_token_required(registry, tmp_path, browser):
+    token = "t0ken-for-the-test"
+    with DashboardProcess(registry["store"], token=token, log_path=tmp_path / "s.log") as dash:
+        for path in ("", "api/fleet", "machine/lab1", "static/dashboard.js"):
+            status, body = dash.get(path, token="")
+            assert status == 401, path
+        assert dash.get("api/fleet", token="wrong-token-value")[0] == 401
+        status, body = dash.get("api/fleet")
+        assert status == 200 and {m["name"] for m in json.loads(body)["machines"]} == {
+            "lab1",
+            "lab2",
+        }
+        page = browser.new_page()
+        try:
+            # without the token the browser gets 401; with it once, the cookie carries on
+            assert page.goto(dash.url).status == 401
+            assert page.goto(dash.page_url("/")).status == 200
+            assert page.goto(dash.url + "machine/lab1").status == 200
+            page.wait_for_function("document.getElementById('conn').classList.contains('up')")
+        finally:
+            page.close()
+        # the websocket refuses a connection without the token, accepts one with it
+        from websockets.exceptions import InvalidStatus
+        from websockets.sync.client import connect
+
+        url = dash.url.replace("http", "ws") + "ws"
+        with pytest.raises(InvalidStatus, match="403"):
+            with connect(url, open_timeout=10):
+                pass
+        with connect(
+            url, open_timeout=10, additional_headers={"Authorization": f"Bearer {token}"}
+        ) as ws:
+            assert json.loads(ws.recv(timeout=10)) == {"type": "hello"}

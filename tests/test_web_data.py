@@ -1,0 +1,328 @@
+"""Dashboard without a browser: registry adapter, publisher, watcher, input checks, CLI."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ajtwin.apps.anomaly import AnomalyEvent
+from ajtwin.store.registry import Registry, RegistryError
+from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
+from ajtwin.web.cli import check_access, dashboard, is_loopback
+from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
+from ajtwin.web.publisher import LivePublisher
+from ajtwin.web.watcher import RegistryWatcher
+
+
+def hand_print(reg, name, *, seq_before, n=50, end=None, anomalies=(), tag="a"):
+    """A print with hand-made arrays (no twin): means ramp linearly, σ constant."""
+    t = np.arange(n, dtype=float)
+    base = np.array([3.5, 1.0, 0.0, 0.02, 4.6e-7])
+    slope = np.array([1e-3, -1e-4, 1e-6, 1e-3, 1e-10])
+    means = base + np.outer(t, slope)
+    end_mean = means[-1] if end is None else np.asarray(end, float)
+    cov = np.diag([0.01, 1e-4, 1e-8, 1e-6, 1e-16])
+    return reg.save_print(
+        name,
+        content_hash=f"{name}-{tag}",
+        source="hand-made",
+        meta={"scenario": "hand"},
+        summary={"mean_nis": 5.0},
+        n_samples=n,
+        duration_s=float(n),
+        start_mean=means[0],
+        start_cov=cov,
+        end_mean=end_mean,
+        end_cov=cov,
+        theta_before=np.zeros(5),
+        theta_after=np.full(5, 1e-6),
+        arrays={"time_s": t, "means": means, "stds": np.tile(np.sqrt(np.diag(cov)), (n, 1))},
+        anomalies=list(anomalies),
+        expected_last_seq=seq_before,
+    )
+
+
+@pytest.fixture
+def store(tmp_path):
+    path = tmp_path / "r.sqlite"
+    reg = Registry(path)
+    for name in ("alpha", "beta", "gamma"):
+        reg.add_machine(name)
+    hand_print(reg, "alpha", seq_before=None)
+    clog = AnomalyEvent(40.0, 31.0, "nozzle_clog", "nozzle clog (both pressures rising)", ["x"])
+    hand_print(reg, "beta", seq_before=None, tag="1")
+    hand_print(reg, "beta", seq_before=1, anomalies=[clog], tag="2", end=[3.9, 0.9, 0, 0.3, 4e-7])
+    reg.close()
+    return path
+
+
+def test_fleet_summaries_from_registry(store):
+    view = RegistryView(store)
+    fleet = {m["name"]: m for m in view.fleet()}
+    assert sorted(fleet) == ["alpha", "beta", "gamma"]
+    assert fleet["gamma"]["status"] == "idle" and fleet["gamma"]["last_print"] is None
+    assert fleet["alpha"]["status"] == "idle" and fleet["alpha"]["last_alarm"] is None
+    beta = fleet["beta"]
+    assert beta["status"] == "alarm" and beta["last_print"]["seq"] == 2
+    assert beta["last_alarm"]["cause"] == "nozzle_clog" and beta["last_alarm"]["detected_s"] == 40
+    # key states in the order d_a, φ_A, ΔR_N, V_l: the end state written above, 2σ from cov
+    assert [s["symbol"] for s in beta["states"]] == ["d_a", "φ_A", "ΔR_N", "V_l"]
+    assert [s["mean"] for s in beta["states"]] == [3.9, 4e-7, 0.3, 0.9]
+    assert beta["states"][0]["std"] == pytest.approx(0.1)
+    # the trend is the last print's estimate, decimated: first and last samples kept
+    trend = fleet["alpha"]["states"][2]["trend"]
+    assert trend["t"][0] == 0 and trend["t"][-1] == 49
+    assert trend["v"][-1] == pytest.approx(0.02 + 49e-3)
+
+
+def test_machine_detail_and_missing(store):
+    view = RegistryView(store)
+    m = view.machine("beta")
+    assert [p["seq"] for p in m["prints"]] == [1, 2]
+    assert m["prints"][1]["anomalies"] == 1 and m["prints"][0]["mean_nis"] == 5.0
+    assert m["alarms"][0]["description"].startswith("nozzle clog")
+    assert m["last"]["theta"] == [1e-6] * 5
+    with pytest.raises(RegistryError, match="no machine 'nope'"):
+        view.machine("nope")
+    with pytest.raises(RegistryError, match="no registry at"):
+        RegistryView(store.parent / "missing.sqlite")
+
+
+def test_decimation_keeps_peaks():
+    idx = decimate(10_000)
+    assert len(idx) <= MAX_POINTS and idx[0] == 0 and idx[-1] == 9_999
+    values = np.zeros(10_000)
+    values[1235] = 7.0  # a one-sample CUSUM peak between kept samples
+    assert 1235 not in idx
+    assert binned_max(values, idx).max() == 7.0
+    assert json_list([1.0, np.nan, np.inf]) == [1.0, None, None]
+
+
+def test_publisher_fans_out_across_threads():
+    pub = LivePublisher(history=5)
+
+    async def main():
+        a, b = pub.subscribe(), pub.subscribe()
+
+        def produce():
+            for k in range(8):
+                sample = {"machine": "vm", "time_s": float(k), "nis": np.nan, "states": np.ones(5)}
+                pub.publish(sample)
+
+        thread = threading.Thread(target=produce)
+        thread.start()
+        got_a = [await asyncio.wait_for(a.get(), 5) for _ in range(8)]
+        got_b = [await asyncio.wait_for(b.get(), 5) for _ in range(8)]
+        thread.join(5)
+        pub.unsubscribe(a)
+        pub.unsubscribe(b)
+        return got_a, got_b
+
+    got_a, got_b = asyncio.run(main())
+    assert (
+        [e["time_s"] for e in got_a] == [float(k) for k in range(8)] == [e["time_s"] for e in got_b]
+    )
+    assert got_a[0]["nis"] is None and got_a[0]["states"] == [1.0] * 5  # JSON-safe
+    assert all(e["type"] == "sample" and e["published_at"] > 0 for e in got_a)
+    assert [s["time_s"] for s in pub.snapshot("vm")] == [3.0, 4.0, 5.0, 6.0, 7.0]
+    assert pub.is_printing("vm") and pub.n_subscribers == 0
+    with pytest.raises(ValueError, match="machine"):
+        pub.publish({"time_s": 1.0})
+
+
+def test_slow_subscriber_is_bounded():
+    pub = LivePublisher()
+
+    async def main():
+        sub = pub.subscribe()
+        sub.queue = asyncio.Queue(maxsize=3)
+        for k in range(10):
+            pub.publish({"machine": "vm", "time_s": float(k)})
+        await asyncio.sleep(0.05)  # let call_soon_threadsafe callbacks run
+        return [(await sub.get())["time_s"] for _ in range(3)], sub.dropped
+
+    kept, dropped = asyncio.run(main())
+    assert kept == [7.0, 8.0, 9.0] and dropped == 7
+
+
+def test_live_alarm_and_new_print_after_end():
+    pub = LivePublisher()
+    alarm = {"detected_s": 3.0, "onset_s": 1.0, "cause": "nozzle_clog", "description": "d"}
+    pub.publish({"machine": "vm", "time_s": 3.0, "alarms": [alarm]})
+    assert pub.alarms("vm") == [alarm]
+    pub.end_print("vm")
+    assert not pub.is_printing("vm")
+    pub.publish({"machine": "vm", "time_s": 0.0})  # the next print starts clean
+    assert pub.alarms("vm") == [] and len(pub.snapshot("vm")) == 1
+
+
+def test_watcher_sees_commits_of_another_connection(store):
+    view = RegistryView(store)
+    pub = LivePublisher()
+    watcher = RegistryWatcher(view, pub, poll_s=0.1)
+    assert watcher.check() == []
+    other = Registry(store)  # another connection, like `ajtwin ingest` in another process
+    pid = hand_print(other, "alpha", seq_before=1, tag="2")
+    events = watcher.check()
+    assert events == [
+        {"type": "print", "print_id": pid, "seq": 2, "machine": "alpha", "duration_s": 50.0,
+         "anomalies": 0}
+    ]  # fmt: skip
+    assert watcher.check() == []
+    other.add_machine("delta")
+    assert watcher.check() == [{"type": "machines"}]
+    other.close()
+
+
+LIMITS = {
+    "atomizer_current_mA": [300.0, 440.0],
+    "carrier_flow_sccm": [15.0, 35.0],
+    "sheath_flow_sccm": [30.0, 80.0],
+}
+
+
+def test_forecast_request_schedule():
+    body = {
+        "changes": [{"input": "Q_c", "value": "26", "at": "60s"},
+                    {"input": "I_A", "value": 400, "at": "2min"}],
+        "horizon": "3min",
+    }  # fmt: skip
+    schedule, changes, horizon, options = parse_forecast_request(body, LIMITS, [375, 23, 50])
+    assert horizon == 180 and schedule.shape == (180, 3)
+    assert schedule[59].tolist() == [375, 23, 50] and schedule[60].tolist() == [375, 26, 50]
+    assert schedule[120].tolist() == [400, 26, 50] and schedule[-1].tolist() == [400, 26, 50]
+    assert options == {"nominal_theta": False, "with_sensor_noise": False}
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ({"changes": [{"input": "Q_c", "value": "60", "at": "60s"}]},
+         "change 1: Q_c 60 sccm is outside this machine's limits 15–35 sccm"),
+        ({"changes": [{"input": "Q_c", "value": "abc", "at": "60s"}]}, "'abc' is not a number"),
+        ({"changes": [{"input": "Q_x", "value": "20", "at": "60s"}]}, "unknown input 'Q_x'"),
+        ({"changes": [{"input": "Q_c", "value": "20", "at": "soon"}]}, "cannot read 'soon'"),
+        ({"changes": [{"input": "Q_c", "value": "20", "at": "40min"}]}, "not before the end"),
+        ({"horizon": "9h"}, "horizon must be between"),
+        ({"inputs_now": [375, 23]}, "three values"),
+        ("Q_c=26", "JSON object"),
+    ],
+)  # fmt: skip
+def test_forecast_request_errors_are_sentences(body, message):
+    with pytest.raises(InputError, match=message.replace("(", r"\(")):
+        parse_forecast_request(body, LIMITS, [375, 23, 50])
+
+
+def test_advise_request():
+    ok = parse_advise_request({"target": "40", "max_overspray": "", "settle": "2min"})
+    assert ok == {"target": 40.0, "max_overspray": None, "settle_s": 120, "nominal_theta": False}
+    with pytest.raises(InputError, match="outside the output model's range 1–200 µm"):
+        parse_advise_request({"target": "-3"})
+    with pytest.raises(InputError, match="max overspray must be > 0"):
+        parse_advise_request({"target": "40", "max_overspray": "0"})
+    with pytest.raises(InputError, match="target linewidth: 'x' is not a number"):
+        parse_advise_request({"target": "x"})
+
+
+def test_access_rules(store):
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5")
+    check_access("127.0.0.1", None)
+    check_access("0.0.0.0", "a-long-token")
+    runner = CliRunner()
+    # beyond localhost without a token: refused before anything is bound
+    res = runner.invoke(dashboard, ["--store", str(store), "--host", "0.0.0.0"])
+    assert res.exit_code == 2 and "give an access token with --token" in res.output
+    res = runner.invoke(dashboard, ["--store", str(store), "--host", "0.0.0.0", "--token", "x"])
+    assert res.exit_code == 2 and "at least 8 characters" in res.output
+    res = runner.invoke(dashboard, ["--store", str(store.parent / "none.sqlite")])
+    assert res.exit_code == 1 and "no registry at" in res.output
+    assert not (store.parent / "none.sqlite").exists()  # the dashboard never creates one
+    res = runner.invoke(
+        dashboard,
+        ["--store", str(store), "--virtual-print", "nozzle_clog", "--virtual-minutes", "2"],
+    )
+    assert res.exit_code == 2 and "onset 3 min must lie within the 2-min print" in res.output
+
+
+def test_in_process_server_pushes_published_samples(store):
+    """Path (b): a live engine in this process publishes; a websocket client receives."""
+    import json
+    import urllib.request
+
+    from websockets.sync.client import connect
+
+    from ajtwin.web.server import BackgroundServer
+
+    pub = LivePublisher()
+    server = BackgroundServer(store, pub, port=0)
+    try:
+        with urllib.request.urlopen(server.url + "api/fleet", timeout=10) as r:
+            assert [m["name"] for m in json.loads(r.read())["machines"]] == [
+                "alpha", "beta", "gamma"
+            ]  # fmt: skip
+        url = server.url.replace("http", "ws") + "ws?machine=alpha"
+        with connect(url, open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["type"] == "hello"
+            pub.publish({"machine": "gamma", "time_s": 1.0})  # another machine: filtered out
+            pub.publish({"machine": "alpha", "time_s": 2.0, "states": [3.5, 1, 0, 0.1, 4e-7]})
+            event = json.loads(ws.recv(timeout=10))
+        assert event["machine"] == "alpha" and event["time_s"] == 2.0
+        assert event["states"][3] == 0.1 and event["type"] == "sample"
+        with urllib.request.urlopen(server.url + "api/fleet", timeout=10) as r:
+            fleet = {m["name"]: m for m in json.loads(r.read())["machines"]}
+        assert fleet["alpha"]["status"] == "printing"
+        assert fleet["alpha"]["states"][2]["mean"] == 0.1  # ΔR_N now, from the live sample
+    finally:
+        server.stop()
+    with pytest.raises(click_usage_error()):
+        BackgroundServer(store, pub, host="0.0.0.0", port=0)
+
+
+def click_usage_error():
+    import click
+
+    return click.UsageError
+
+
+def test_engine_messages_become_samples():
+    """The live engine's message format (dicts by name, raised events) → dashboard samples."""
+    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.web.publisher import sample_from_engine
+
+    states = dict(zip(STATE_NAMES, [3.5, 0.99, 1e-4, 0.05, 4.6e-7]))
+    message = {
+        "machine": "aj1", "step": 200, "time_s": 200.0, "provisional": False,
+        "states": states, "stds": dict(zip(STATE_NAMES, [0.03, 0.003, 1e-3, 6e-4, 1e-8])),
+        "predicted_outputs": dict(zip(OUTPUT_NAMES, [75.0, 8.0, 5800.0, 5750.0, 1.5e-8])),
+        "measured_outputs": dict(zip(OUTPUT_NAMES, [76.0, 8.1, 5810.0, float("nan"), 1.4e-8])),
+        "inputs": dict(zip(INPUT_NAMES, [375.0, 23.0, 50.0])), "nis": 4.2,
+        "theta": dict(zip(STATE_NAMES, [0.0] * 5)), "window_nis_p": 1e-12,
+        "cusum": {"L_w": 1.0, "L_o": 0.5, "P_c": 17.0, "P_s": 12.0, "Q_m": 3.0, "P_c+P_s": 20.0},
+        "status": "alarm",
+        "events": [
+            {"state": "raised", "detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
+             "description": "nozzle clog", "detectors": ["cusum+ P_c", "cusum+ P_c+P_s"]},
+            {"state": "final", "detected_s": 90.0, "onset_s": 80.0, "cause": "unexplained",
+             "description": "old", "detectors": []},
+        ],
+    }  # fmt: skip
+    s = sample_from_engine(message)
+    assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
+    assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
+    assert s["detectors"]["cusum"] == [1.0, 0.5, 17.0, 12.0, 3.0, 20.0]
+    assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 16.0, 16.0, 30.0, 16.0]
+    assert s["detectors"]["window_nis_log10p"] == pytest.approx(12.0)
+    assert s["alarms"] == [
+        {"detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
+         "description": "nozzle clog", "detectors": "cusum+ P_c, cusum+ P_c+P_s"}
+    ]  # fmt: skip
+    assert sample_from_engine({**message, "provisional": True}) is None
+    pub = LivePublisher()
+    pub.publish_engine(message)
+    assert pub.latest("aj1")["measured"][3] is None  # NaN → None for JSON
+    assert pub.alarms("aj1")[0]["cause"] == "nozzle_clog"

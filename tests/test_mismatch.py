@@ -159,3 +159,27 @@ def test_cli_commission_refuses_and_maintain_needs_an_action(tmp_path):
         main, ["machine", "commission", "aj", str(path), "--known", "d=1", "--store", store]
     )
     assert out.exit_code != 0 and "unknown state" in out.output
+
+
+def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
+    from ajtwin.apps.cli import machine_twin
+    from ajtwin.store.calibration import calibration_history, save_calibration
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m3")
+    commissioning = simulate("commissioning", seed=41, duration_min=8.0, machine_seed=3)
+    first = commission(commissioning)
+    save_calibration(reg, "m3", first, "comm1.parquet")
+    second = commission(commissioning, known={"droplet_diameter_um": (3.4, 0.1)})
+    save_calibration(reg, "m3", second, "comm2.parquet")  # re-commissioning keeps history
+    assert calibration_history(reg, "m3")["source"].tolist() == ["comm1.parquet", "comm2.parquet"]
+    nxt = simulate("exp1", seed=42, duration_min=3.0, continue_from=commissioning)
+    result = ingest_record(reg, "m3", nxt)
+    assert result.summary["calibration_id"] == 2
+    assert result.summary["started_from"] == "commissioning 2"
+    assert np.allclose(reg.get_print(result.print_id)["start_mean"][:4], second.end_state[:4])
+    assert result.summary["mismatch"]["mismatch"] is False
+    twin, *_ = machine_twin(reg, "m3")
+    assert twin.calibration == second.calibration

@@ -1014,7 +1014,9 @@ class LiveEngine:
             return self.sessions[machine].stream
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
         resumed = None
+        twin_kwargs = self.twin_overrides
         if self.registry is not None:
+            from ajtwin.store.calibration import machine_start
             from ajtwin.store.chain import chain_start
 
             try:
@@ -1023,14 +1025,17 @@ class LiveEngine:
                 self.registry.add_machine(machine, notes="added by ajtwin live")
                 log.info("machine %r added to the registry", machine)
             resumed = self.log.open_session_of(machine)
+            # the machine's calibration, commissioning start and maintenance (SPEC §11)
+            chain = chain_start(self.registry, machine)
+            begin = machine_start(self.registry, machine, chain, self.twin_overrides)
+            twin_kwargs = begin["twin_kwargs"]
             if resumed is not None:
                 start, theta = resumed["start"], resumed["theta_before"]
                 expected, session_id = resumed["expected_last_seq"], resumed["id"]
                 started_from = "initial fit" if expected is None else f"print {expected}"
             else:
-                chain = chain_start(self.registry, machine)
-                start, theta, expected = chain.start, chain.theta, chain.latest_seq
-                started_from = chain.description
+                start, theta, expected = begin["start"], begin["theta"], chain.latest_seq
+                started_from = begin["started_from"]
                 session_id = self.log.open_session(
                     machine,
                     source=source,
@@ -1042,7 +1047,7 @@ class LiveEngine:
             machine,
             start=start,
             theta=theta,
-            twin_overrides=self.twin_overrides,
+            twin_overrides=twin_kwargs,
             detector_settings=self.detector_settings,
             asynchronous=False,
             executor=self._executor,

@@ -66,6 +66,20 @@ CREATE TABLE IF NOT EXISTS maintenance_events (
 def ensure_tables(registry) -> None:
     """Create the calibration tables if this registry does not have them yet."""
     conn = registry._conn
+    have = {
+        row[0]
+        for row in conn.execute(
+            "SELECT name FROM sqlite_master WHERE type = 'table' AND name IN "
+            "('calibrations', 'maintenance_events')"
+        ).fetchall()
+    }
+    if len(have) == 2:
+        return
+    if conn.in_transaction:  # inside a caller's transaction: add them there
+        for statement in _TABLES.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        return
     conn.execute("BEGIN IMMEDIATE")
     try:
         for statement in _TABLES.split(";"):

@@ -264,7 +264,8 @@ def compact_command(name, keep_covariances_days, store):
         raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
     click.echo(
         f"compacted {_safe(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
-        f"re-encoded, {stats['thinned']} with covariance key frames dropped; registry "
+        f"re-encoded, {stats['thinned']} with covariance key frames dropped, "
+        f"{stats['live_steps_dropped']} steps of finished live sessions dropped; registry "
         f"{stats['bytes_before'] / 1e6:.2f} MB → {stats['bytes_after'] / 1e6:.2f} MB"
     )
 
@@ -274,7 +275,7 @@ def compact_command(name, keep_covariances_days, store):
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
 @store_option
 def export_command(name, out, store):
-    """Write machine NAME (all prints, arrays, anomalies) to a tar archive."""
+    """Write machine NAME (all prints, arrays, anomalies, live sessions) to a tar archive."""
     from ajtwin.store.maintenance import export_machine
     from ajtwin.store.registry import RegistryError
 
@@ -284,8 +285,9 @@ def export_command(name, out, store):
     except (RegistryError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
-        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, schema "
-        f"{manifest['schema_version']}) to {out}"
+        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, "
+        f"{manifest['live_sessions']} live sessions of which {manifest['open_live_sessions']} "
+        f"open, schema {manifest['schema_version']}) to {out}"
     )
 
 
@@ -306,7 +308,9 @@ def import_command(archive, as_name, store):
     for message in result["migrated"]:
         click.echo(f"archive: {message}", err=True)
     click.echo(
-        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints) into {reg.path}"
+        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints, "
+        f"{result['live_sessions']} live sessions of which {result['open_live_sessions']} "
+        f"open) into {reg.path}"
     )
 
 

@@ -798,7 +798,6 @@ def ingest_record(
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
-        "mismatch": mismatch.flags,
     }
     try:
         print_id, summary = save_print(

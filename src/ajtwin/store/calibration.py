@@ -63,17 +63,19 @@ CREATE TABLE IF NOT EXISTS maintenance_events (
 """
 
 
+def _has_tables(registry) -> bool:
+    rows = registry._conn.execute(
+        "SELECT name FROM sqlite_master WHERE type = 'table' AND name IN "
+        "('calibrations', 'maintenance_events')"
+    ).fetchall()
+    return len(rows) == 2
+
+
 def ensure_tables(registry) -> None:
-    """Create the calibration tables if this registry does not have them yet."""
+    """Create the calibration tables if this registry does not have them yet (writers only:
+    a machine never commissioned or maintained costs no storage)."""
     conn = registry._conn
-    have = {
-        row[0]
-        for row in conn.execute(
-            "SELECT name FROM sqlite_master WHERE type = 'table' AND name IN "
-            "('calibrations', 'maintenance_events')"
-        ).fetchall()
-    }
-    if len(have) == 2:
+    if _has_tables(registry):
         return
     if conn.in_transaction:  # inside a caller's transaction: add them there
         for statement in _TABLES.split(";"):
@@ -149,8 +151,9 @@ def _calibration_row(row) -> dict:
 
 def active_calibration(registry, machine: str) -> dict | None:
     """The newest calibration of a machine (dict with ``calibration``, provenance) or None."""
-    ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return None
     row = registry._conn.execute(
         "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id DESC LIMIT 1", (machine_id,)
     ).fetchone()
@@ -159,8 +162,9 @@ def active_calibration(registry, machine: str) -> dict | None:
 
 def calibration_history(registry, machine: str) -> pd.DataFrame:
     """One row per commissioning (oldest first): date, source, parameters, std errors."""
-    ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return pd.DataFrame()
     rows = registry._conn.execute(
         "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id", (machine_id,)
     ).fetchall()
@@ -209,8 +213,9 @@ def record_maintenance(
 
 
 def maintenance_history(registry, machine: str) -> pd.DataFrame:
-    ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return pd.DataFrame()
     rows = registry._conn.execute(
         "SELECT * FROM maintenance_events WHERE machine_id = ? ORDER BY id", (machine_id,)
     ).fetchall()
@@ -225,8 +230,9 @@ def maintenance_history(registry, machine: str) -> pd.DataFrame:
 
 def pending_maintenance(registry, machine: str, since_unix: float = 0.0) -> list[dict]:
     """Maintenance events done after the machine's last print (and after ``since_unix``)."""
-    ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return []
     rows = registry._conn.execute(
         "SELECT * FROM maintenance_events WHERE machine_id = ? AND after_print_seq = ? "
         "AND created_unix >= ? ORDER BY id",

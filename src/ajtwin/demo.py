@@ -360,6 +360,15 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live, port, kee
     )
     sections = [
         ("Summary", summary_html),
+        (
+            "Model–machine fit (mismatch guard, docs/calibration.md)",
+            report.mismatch_html(
+                [
+                    ("print 1", first.summary.get("mismatch")),
+                    ("print 2", second.summary.get("mismatch")),
+                ]
+            ),
+        ),
         ("Alarms", alarm_table),
         ("Outputs", report.img_tag(report.outputs_figure(runs), "outputs")),
         ("Hidden states", report.img_tag(report.states_figure(runs), "states") + state_table),

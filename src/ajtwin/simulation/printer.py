@@ -41,6 +41,7 @@ from ajtwin.io.records import (
 )
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
 from ajtwin.model.system import output_function
+from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
 
@@ -313,6 +314,7 @@ class VirtualPrint:
     substrate_ink_mL: np.ndarray
     line_coefficients: np.ndarray
     generation_ml_s: np.ndarray
+    machine: MachineDeviation = field(default_factory=MachineDeviation)
 
 
 def draw_line_coefficients(scenario: Scenario, streams: dict, nominal, params):
@@ -369,10 +371,17 @@ def run_virtual_print(
     continue_from: PrintRecord | None = None,
     params=None,
     coefficients=None,
+    machine=None,
+    machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> VirtualPrint:
     """Simulate one print and keep the full truth (see :func:`simulate`)."""
     if continue_from is not None:
         overrides = _continuation_overrides(continue_from, overrides)
+        # the same machine prints again unless another is named
+        if machine is None and machine_seed is None and "machine" in continue_from.meta:
+            machine = continue_from.meta["machine"]
+    deviation = resolve_machine(machine, machine_seed)
     scenario = load_scenario(scenario, overrides)
     if duration_min is not None:
         scenario = scenario.with_duration(duration_min)
@@ -383,23 +392,53 @@ def run_virtual_print(
     nominal = coefficient_matrix(coefficients)
     streams = make_streams(seed)
     processes = draw_processes(scenario, streams)
+    if truth_generator not in ("model", "alt"):
+        raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_processes
+
+        processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
     x0 = true_initial_state(scenario, processes, params)
-    truth = integrate_truth(
-        x0,
-        processes.droplet_um,
-        processes.head_inputs,
-        processes.drivers,
-        params,
-        line_coefficients,
-        substeps=int(cfg["truth"]["integration_substeps"]),
-    )
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import integrate_alt_truth
+
+        truth = integrate_alt_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+        )
+        truth["generation_ml_s"] = np.asarray(
+            true_generation(
+                processes.head_inputs, truth["states"][:, 1], processes.drivers[:, 0], params
+            )
+        )
+    else:
+        truth = integrate_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+            substeps=int(cfg["truth"]["integration_substeps"]),
+        )
     states = truth["states"]
     if not np.isfinite(states).all():
         raise FloatingPointError(f"scenario {scenario.name!r}: the true states became non-finite")
     outputs_true = truth["outputs"]
-    inputs, outputs = measure(scenario, processes, outputs_true, streams)
+    # this machine's plumbing, gauges, line model and camera (identity: nominal machine)
+    outputs_true = deviation.apply(outputs_true, states, processes.head_inputs, params)
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_measure
+
+        inputs, outputs = alt_measure(scenario, processes, outputs_true, int(seed))
+    else:
+        inputs, outputs = measure(scenario, processes, outputs_true, streams)
 
     n = scenario.duration_s
     columns = {TIME_COLUMN: np.arange(n, dtype=float)}
@@ -428,6 +467,12 @@ def run_virtual_print(
         },
         "scenario_config": cfg,
     }
+    if truth_generator != "model":
+        meta["truth_generator"] = truth_generator
+    if not deviation.is_nominal:
+        meta["machine"] = deviation.as_dict()
+        if meta["machine_id"] == "virtual-aj300-01":
+            meta["machine_id"] = f"virtual-aj300-{deviation.name}"
     record = PrintRecord(data, meta)
     return VirtualPrint(
         record,
@@ -438,6 +483,7 @@ def run_virtual_print(
         truth["substrate_ink_mL"],
         line_coefficients,
         truth["generation_ml_s"],
+        deviation,
     )
 
 
@@ -447,6 +493,9 @@ def simulate(
     duration_min: float | None = None,
     overrides: dict | None = None,
     continue_from: PrintRecord | None = None,
+    machine=None,
+    machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> PrintRecord:
     """Simulate one print on the virtual printer.
 
@@ -467,7 +516,16 @@ def simulate(
         A previous virtual print of the same machine: this print starts with its final
         vial level and tube/nozzle deposits (and its machine id). The droplet size and
         the generation start afresh (a new print, a new atomizer run); seed the two
-        prints differently. Explicit ``overrides["initial"]`` keys win.
+        prints differently. Explicit ``overrides["initial"]`` keys win. The machine of the
+        previous print is kept unless ``machine``/``machine_seed`` name another.
+    machine : str, dict or MachineDeviation, optional
+        A machine profile (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
+        an explicit deviation (:mod:`ajtwin.simulation.machine`). Default: nominal machine.
+    machine_seed : int, optional
+        Draw the machine's deviations from this seed (independent of ``seed``).
+    truth_generator : {"model", "alt"}
+        ``"alt"``: the second, structurally different truth generator
+        (:mod:`ajtwin.simulation.truth_alt`), for evaluation only.
 
     Returns
     -------
@@ -482,4 +540,13 @@ def simulate(
     >>> len(rec), rec.meta["fault_kind"], rec.has_truth
     (120, 'none', True)
     """
-    return run_virtual_print(scenario, seed, duration_min, overrides, continue_from).record
+    return run_virtual_print(
+        scenario,
+        seed,
+        duration_min,
+        overrides,
+        continue_from,
+        machine=machine,
+        machine_seed=machine_seed,
+        truth_generator=truth_generator,
+    ).record

@@ -126,6 +126,10 @@ def show(name, store):
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
+    from ajtwin.store.calibration_cli import describe_calibration
+
+    for line in describe_calibration(reg, name):
+        click.echo(line)
     if newest is not None and (last is None or newest["seq"] != last["seq"]):
         click.echo(
             f"  newest print #{newest['seq']} is {newest['status']} (not in the chain): "
@@ -375,6 +379,9 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
         f"({result.n_samples} s, {result.seconds:.1f} s wall, "
         f"started from {result.summary['started_from']})"
     )
+    status = result.summary.get("mismatch", {})
+    if status.get("mismatch"):
+        click.echo(f"  WARNING {status['message']}", err=True)
     if result.summary.get("status", "ok") != "ok":
         click.echo(
             f"  WARNING: stored but EXCLUDED from the machine's chain (the next print will not "
@@ -395,3 +402,11 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
             )
     else:
         click.echo("  no anomalies")
+
+
+# commissioning, maintenance and calibration history (SPEC §11; ajtwin.store.calibration_cli)
+from ajtwin.store.calibration_cli import calibrations, commission, maintain  # noqa: E402
+
+machine.add_command(commission)
+machine.add_command(maintain)
+machine.add_command(calibrations)

@@ -1,7 +1,7 @@
 """Per-machine calibrations and maintenance events in the registry (SPEC §11).
 
-Two tables beside the registry's own (added on first use, ``CREATE TABLE IF NOT EXISTS``:
-an additive migration that leaves older registries readable):
+Two tables of the registry (schema migration 4 of :mod:`ajtwin.store.registry`; export,
+import and compact carry them like the prints):
 
 * ``calibrations`` — every commissioning of a machine with its provenance: the print it
   was fitted from, when, the priors, the standard errors, which parameters the print
@@ -32,35 +32,10 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.model.calibration import Calibration, calibration_from_dict, calibration_to_dict
+from ajtwin.store.registry import _CALIBRATION_SCHEMA
 
-_TABLES = """
-CREATE TABLE IF NOT EXISTS calibrations (
-    id INTEGER PRIMARY KEY,
-    machine_id INTEGER NOT NULL REFERENCES machines(id),
-    created_at TEXT NOT NULL,
-    created_unix REAL NOT NULL,
-    source TEXT NOT NULL,
-    after_print_seq INTEGER NOT NULL,
-    calibration_json TEXT NOT NULL,
-    std_json TEXT NOT NULL,
-    prior_std_json TEXT NOT NULL,
-    determined_json TEXT NOT NULL,
-    priors_json TEXT NOT NULL,
-    notes_json TEXT NOT NULL,
-    end_mean_json TEXT NOT NULL,
-    end_cov_json TEXT NOT NULL,
-    calibration_cov_json TEXT NOT NULL,
-    noise_factors_json TEXT NOT NULL DEFAULT 'null'
-);
-CREATE TABLE IF NOT EXISTS maintenance_events (
-    id INTEGER PRIMARY KEY,
-    machine_id INTEGER NOT NULL REFERENCES machines(id),
-    created_at TEXT NOT NULL,
-    created_unix REAL NOT NULL,
-    after_print_seq INTEGER NOT NULL,
-    event_json TEXT NOT NULL
-);
-"""
+# created by the registry's schema migration 4; kept here for registries opened before it
+_TABLES = _CALIBRATION_SCHEMA
 
 
 def _has_tables(registry) -> bool:
@@ -72,8 +47,9 @@ def _has_tables(registry) -> bool:
 
 
 def ensure_tables(registry) -> None:
-    """Create the calibration tables if this registry does not have them yet (writers only:
-    a machine never commissioned or maintained costs no storage)."""
+    """Create the calibration tables if this registry does not have them (every registry
+    opened by :class:`~ajtwin.store.registry.Registry` has them since schema 4; this
+    covers a connection whose tables were dropped or a hand-made registry)."""
     conn = registry._conn
     if _has_tables(registry):
         return

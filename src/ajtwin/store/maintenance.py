@@ -14,7 +14,10 @@ registry holding that machine only) into an uncompressed tar; ``import_machine``
 the archive strictly (exactly those two regular files, sizes, checksum, versions), reads
 the members into a private temporary folder under its own file names (never
 ``extract``: no path traversal, no links) and copies the machine in one transaction.
-Export and import carry the machine's live-twin sessions too (:mod:`ajtwin.store.live_log`):
+Export and import carry the machine's calibration history (provenance, standard errors)
+and maintenance events (:mod:`ajtwin.store.calibration`; compact leaves them as they are),
+so the importing registry starts the machine's next print exactly as the exporting one
+would. They carry the machine's live-twin sessions too (:mod:`ajtwin.store.live_log`):
 closed ones as history, and an open one (a print still running, or a client that was
 stopped mid-print) whole, so ``ajtwin live`` on the importing registry resumes it.
 
@@ -290,7 +293,9 @@ def _copy_machine(src, dst, name, new_name) -> dict:
                 continue
             columns = _columns(dst, table)
             drop_id = _has_integer_id(dst, table)
-            cursor = src.execute(f"SELECT * FROM {table} WHERE machine_id = ?", (machine["id"],))
+            cursor = src.execute(
+                f"SELECT * FROM {table} WHERE machine_id = ? ORDER BY rowid", (machine["id"],)
+            )
             for r in cursor:
                 row = dict(zip(r.keys(), r))
                 old_id = row.get("id")
@@ -353,7 +358,8 @@ def _sha256(path) -> str:
 
 
 def export_machine(registry: Registry, name: str, out) -> dict:
-    """Write machine ``name`` (every print, array, anomaly) to the tar ``out``.
+    """Write machine ``name`` (every print, array, anomaly, calibration, maintenance event
+    and live session) to the tar ``out``.
 
     Returns the manifest. The tar is written to a temporary name and renamed, so a killed
     export never leaves a half archive under ``out``.

@@ -220,15 +220,61 @@ def _migrate_to_3(conn):
     _execute_all(conn, _LIVE_SCHEMA)
 
 
+#: A machine's calibrations (one row per commissioning, the newest active) and its
+#: maintenance events (:mod:`ajtwin.store.calibration`, SPEC §11). Never edit: add a migration.
+_CALIBRATION_SCHEMA = """
+CREATE TABLE IF NOT EXISTS calibrations (
+    id INTEGER PRIMARY KEY,
+    machine_id INTEGER NOT NULL REFERENCES machines(id),
+    created_at TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    source TEXT NOT NULL,
+    after_print_seq INTEGER NOT NULL,
+    calibration_json TEXT NOT NULL,
+    std_json TEXT NOT NULL,
+    prior_std_json TEXT NOT NULL,
+    determined_json TEXT NOT NULL,
+    priors_json TEXT NOT NULL,
+    notes_json TEXT NOT NULL,
+    end_mean_json TEXT NOT NULL,
+    end_cov_json TEXT NOT NULL,
+    calibration_cov_json TEXT NOT NULL,
+    noise_factors_json TEXT NOT NULL DEFAULT 'null'
+);
+CREATE TABLE IF NOT EXISTS maintenance_events (
+    id INTEGER PRIMARY KEY,
+    machine_id INTEGER NOT NULL REFERENCES machines(id),
+    created_at TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    after_print_seq INTEGER NOT NULL,
+    event_json TEXT NOT NULL
+)
+"""
+
+
+def _migrate_to_4(conn):
+    """Calibrations and maintenance events. A schema-3 registry that already has them
+    (ajtwin's calibration code created them on first write) keeps its rows; one written
+    before ``noise_factors_json`` existed gets that column with its default."""
+    _execute_all(conn, _CALIBRATION_SCHEMA)
+    columns = {r[1] for r in conn.execute("PRAGMA table_info(calibrations)").fetchall()}
+    if "noise_factors_json" not in columns:
+        conn.execute(
+            "ALTER TABLE calibrations ADD COLUMN noise_factors_json TEXT NOT NULL DEFAULT 'null'"
+        )
+
+
 #: (version, what it adds, function(conn)); append only (see the module docstring).
 MIGRATIONS: list[tuple[int, str, object]] = [
     (2, "print chain status, compressed arrays, anomaly index", _migrate_to_2),
     (3, "live twin sessions: live_sessions, live_samples, live_states, live_events", _migrate_to_3),
+    (4, "per-machine calibrations and maintenance events", _migrate_to_4),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
 #: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
-MACHINE_TABLES = ["prints"]
+#: Copied in this order, each in its ``id`` order (the newest calibration stays active).
+MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
 PRINT_TABLES = ["print_arrays", "anomalies"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with

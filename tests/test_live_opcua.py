@@ -246,12 +246,20 @@ def test_security_refusals_and_setpoints(tmp_path):
                     ua.NodeId("m1/Monitoring/SetPoints/CarrierFlowSetpoint", idx)
                 )
                 await node.write_value(27.0)
-                for _ in range(100):  # bounded: the server re-simulates the print
+                for _ in range(100):  # bounded: the server applies it in an executor
                     if machine.schedule:
                         break
                     await asyncio.sleep(0.1)
-                assert machine.schedule["carrier_flow_sccm"][-1][1] == 27.0
+                minute, value = machine.schedule["carrier_flow_sccm"][-1]
+                assert value == 27.0
+                applied = round(minute * 60)
+                for _ in range(100):  # bounded: until the print is 2 s past the change
+                    if machine.printer.k > applied + 2:
+                        break
+                    await asyncio.sleep(0.1)
                 assert np.isclose(machine.record.data["carrier_flow_sccm"].iloc[-1], 27.0, atol=1)
+                assert np.all(machine.printer.schedule[applied:, 1] == 27.0)
+                assert np.all(machine.printer.schedule[:applied, 1] == 23.0)
                 # out of the machine's limits: refused, value restored
                 await node.write_value(80.0)
                 for _ in range(100):

@@ -1,12 +1,14 @@
 """The virtual printer as a live OPC UA server (``ajtwin printer serve``).
 
-Each served machine is a virtual print (:func:`ajtwin.simulation.simulate`) played out in
-real or accelerated time (``speed`` simulated seconds per wall second) into the address
-space of :mod:`ajtwin.live.opcua`. A write to a set-point within the machine's limits
-changes that input from the current simulated second on: the print is simulated again
-with the same seed and a new step in its input schedule (every random process is causal
-and has its own stream, so the past stays as it was). A write outside the limits is
-refused (``BadOutOfRange``).
+Each served machine is a virtual print played out in real or accelerated time (``speed``
+simulated seconds per wall second) into the address space of :mod:`ajtwin.live.opcua`.
+The print is made by the stepped virtual printer
+(:class:`ajtwin.simulation.stepper.SteppedPrinter`, the one the closed-loop simulation
+``ajtwin control simulate`` uses), advanced as far as it is published. A write to a
+set-point within the machine's limits changes that input from the next unpublished
+second on; nothing already printed changes, and a print without writes is
+:func:`ajtwin.simulation.simulate`'s. A write outside the limits is refused (the old
+value is written back).
 
 Security: with users configured, anonymous sessions are refused; a wrong password is
 ``BadUserAccessDenied``. With ``certificate``/``private_key`` the server offers only the
@@ -30,12 +32,14 @@ import asyncio
 import copy
 import json
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ajtwin.io.records import INPUT_COLUMNS
 from ajtwin.live.opcua import (
     ALARM_EVENT_TYPE,
     HEALTH_STATES,
@@ -43,6 +47,7 @@ from ajtwin.live.opcua import (
     MACHINES_FOLDER,
     NAMESPACE_URI,
     PROCESS_VARIABLES,
+    SAMPLE_COLUMNS,
     SAMPLE_WIDTH,
     SETPOINTS,
     node_path,
@@ -86,32 +91,23 @@ class VirtualMachine:
     overrides: dict | None = None
     start_s: float = 0.0
     limits: dict | None = None
-    record: object = field(default=None, repr=False)
     schedule: dict = field(default_factory=dict, repr=False)
 
+    #: largest block of seconds simulated in one call (powers of two up to this: few
+    #: compilations of the stepper's scan whatever the publishing rhythm)
+    MAX_BLOCK_S = 64
+
     def __post_init__(self):
+        from ajtwin.simulation.stepper import SteppedPrinter
         from ajtwin.store.registry import DEFAULT_LIMITS
 
         if self.limits is None:
             self.limits = copy.deepcopy(DEFAULT_LIMITS)
-        self.record = self.simulate(self.schedule)
+        self.printer = SteppedPrinter(self.scenario, self.seed, self.duration_min, self.overrides)
+        # the served samples (rows of SAMPLE_COLUMNS), filled as the print advances
+        self._samples = np.full((self.printer.n, SAMPLE_WIDTH), np.nan)
+        self._lock = threading.Lock()  # set-point writes run in an executor thread
         self._t0 = None
-
-    def simulate(self, schedule: dict):
-        """The print simulated with a set-point schedule {column: [[minute, value], …]}."""
-        from ajtwin.simulation import simulate
-        from ajtwin.simulation.scenarios import load_scenario
-
-        overrides = copy.deepcopy(self.overrides or {})
-        if schedule:
-            base = load_scenario(self.scenario, overrides).config["inputs"]
-            inputs = {k: [list(step) for step in v] for k, v in base.items()}
-            for column, steps in schedule.items():
-                inputs[column] = sorted(
-                    [s for s in inputs[column] if s[0] < steps[0][0]] + [list(s) for s in steps]
-                )
-            overrides["inputs"] = inputs
-        return simulate(self.scenario, self.seed, self.duration_min, overrides)
 
     def start(self, now: float) -> None:
         self._t0 = now - self.start_s / self.speed
@@ -121,32 +117,67 @@ class VirtualMachine:
 
     @property
     def n_samples(self) -> int:
-        return len(self.record)
+        return self.printer.n
+
+    @property
+    def setpoints(self) -> np.ndarray:
+        """The commands in force now [I_A mA, Q_c sccm, Q_s sccm]."""
+        return self.printer.schedule[min(self.printer.k, self.printer.n - 1)].copy()
+
+    @property
+    def record(self):
+        """The print so far (measured columns and truth) as a record."""
+        with self._lock:
+            return self.printer.record()
+
+    @property
+    def true_outputs(self) -> np.ndarray:
+        """Noise-free outputs (k, 5) printed so far (what a test compares a controller to)."""
+        return self.printer.true_outputs
+
+    def advance_to(self, stop: int) -> None:
+        """Print up to (not including) second ``stop``."""
+        with self._lock:
+            self._advance_to(stop)
+
+    def _advance_to(self, stop: int) -> None:
+        printer = self.printer
+        stop = min(int(stop), printer.n)
+        while printer.k < stop:
+            block = min(self.MAX_BLOCK_S, 1 << int(np.log2(stop - printer.k)))
+            chunk = printer.advance(block)
+            rows = chunk.time_s.astype(int)
+            self._samples[rows, 0] = chunk.time_s
+            self._samples[rows, 1:4] = chunk.inputs
+            self._samples[rows, 4:] = chunk.outputs
 
     def rows(self, stop: int, count: int) -> np.ndarray:
         """The last ``count`` samples before index ``stop``, (n, 9) with NaN padding."""
-        from ajtwin.live.opcua import SAMPLE_COLUMNS
-
-        data = self.record.data
+        self.advance_to(stop)
         lo = max(0, stop - count)
         block = np.full((count, SAMPLE_WIDTH), np.nan)
         if stop > lo:
-            block[count - (stop - lo) :] = data[list(SAMPLE_COLUMNS)].to_numpy(float)[lo:stop]
+            block[count - (stop - lo) :] = self._samples[lo:stop]
         return block
 
     def set_point(self, column: str, value: float, at_s: float) -> str | None:
-        """Apply a set-point from simulated time ``at_s``; a refusal message or None."""
+        """Apply a set-point from simulated second ceil(at_s + 1); a refusal message or None.
+
+        The print is advanced to that second and the stepper takes the command from
+        there (the other two inputs keep their schedule).
+        """
         low, high = self.limits[column]
         if not np.isfinite(value) or not (low <= value <= high):
             return f"{self.name}: {column} = {value!r} outside the machine limits [{low}, {high}]"
-        minute = float(np.ceil(at_s + 1.0)) / 60.0
-        schedule = copy.deepcopy(self.schedule)
-        schedule[column] = [s for s in schedule.get(column, []) if s[0] < minute] + [
-            [minute, float(value)]
-        ]
-        # the new print replaces the old one only once it exists
-        self.record = self.simulate(schedule)
-        self.schedule = schedule
+        second = int(np.ceil(at_s + 1.0))
+        with self._lock:
+            if second >= self.printer.n:
+                return f"{self.name}: the print is over; {column} not changed"
+            self._advance_to(second)
+            second = self.printer.k  # a write that arrives late applies from now
+            self.printer.set_input(INPUT_COLUMNS.index(column), float(value))
+        self.schedule[column] = [s for s in self.schedule.get(column, []) if s[0] * 60 < second]
+        self.schedule[column].append([second / 60.0, float(value)])
         return None
 
 
@@ -350,7 +381,7 @@ class PrinterServer:
         )
         setpoints = await monitoring.add_object(nid("Monitoring", "SetPoints"), f"{idx}:SetPoints")
         nodes["setpoints"] = {}
-        first = machine.record.inputs[0]
+        first = machine.setpoints
         for i, (key, (column, unit, code)) in enumerate(SETPOINTS.items()):
             var = await setpoints.add_variable(
                 nid("Monitoring", "SetPoints", key), f"{idx}:{key}", float(first[i])
@@ -462,14 +493,12 @@ class PrinterServer:
             if stop <= self._sent.get(name, 0):
                 continue
             self._sent[name] = stop
-            row = machine.rows(stop, 1)[0]
-            data = machine.record.data.iloc[stop - 1]
+            block = machine.rows(stop, self.buffer_rows)
+            row = block[-1]
             for column, *_ in PROCESS_VARIABLES.values():
-                await nodes[column].write_value(float(data[column]))
+                await nodes[column].write_value(float(row[SAMPLE_COLUMNS.index(column)]))
             await nodes["buffer"].write_value(
-                ua.Variant(
-                    machine.rows(stop, self.buffer_rows).ravel().tolist(), ua.VariantType.Double
-                )
+                ua.Variant(block.ravel().tolist(), ua.VariantType.Double)
             )
             await nodes["time"].write_value(float(row[0]))
             if stop >= n:

@@ -130,6 +130,18 @@ class SteppedPrinter:
             self.schedule[self.k :] = u
             self._dirty = True
 
+    def set_input(self, index: int, value: float) -> None:
+        """Command one input (0 = I_A mA, 1 = Q_c sccm, 2 = Q_s sccm) from now on; the
+        other two keep their schedule (steps planned by the scenario included)."""
+        if self.done:
+            raise RuntimeError("the print is over; no more set-points")
+        u = self.schedule[self.k].copy()
+        u[index] = value
+        check_input(u)
+        if not np.all(self.schedule[self.k :, index] == value):
+            self.schedule[self.k :, index] = value
+            self._dirty = True
+
     def advance(self, seconds: int) -> Chunk:
         """Print ``seconds`` more seconds (fewer at the end of the print)."""
         seconds = int(seconds)

@@ -46,3 +46,143 @@ def test_served_write_is_the_print_with_that_step():
     np.testing.assert_array_equal(served[:66], unchanged[:66])  # the past stays
     assert np.nanmean(served[70:, 3]) == pytest.approx(44.0, abs=0.2)  # reported Q_s
     assert np.nanmean(unchanged[70:, 3]) == pytest.approx(50.0, abs=0.2)
+
+
+# --------------------------------------------------------------------------- #
+# ajtwin control against the served virtual printer, in-process, loopback
+# --------------------------------------------------------------------------- #
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_control_writes_reach_the_printer_and_steer_the_line():
+    """×30 on exp1 (nominal line ~74 µm at 23/50 sccm), target 65 µm: the controller's
+    writes arrive, stay inside the limits and rate limits, and the true line moves to it.
+
+    The machine's atomizer current is limited to 365–385 mA (its registry limits and the
+    server's EURange), so the flows must do the work and the limits bind. Seed 2: on seed 1
+    a Q_c step of −2 sccm at 75 s makes the twin raise a false "atomizer" alarm ~2 min later
+    (offline too, without the server), and the controller then holds, as it must."""
+    import asyncio
+
+    pytest.importorskip("asyncua")
+    from ajtwin.apps.control import ControlSettings
+    from ajtwin.live.control_link import ControlLink
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine
+    from ajtwin.store.registry import DEFAULT_LIMITS
+
+    url = f"opc.tcp://127.0.0.1:{_free_port()}"
+    settings = ControlSettings.load()
+    target = 65.0
+    limits = {k: list(v) for k, v in DEFAULT_LIMITS.items()}
+    limits["atomizer_current_mA"] = [365.0, 385.0]
+
+    async def main():
+        link = ControlLink(
+            url, "m1", target, limits=limits, username="operator", password="pw", timeout_s=4
+        )
+        link.prepare()  # compile before the served print's clock starts
+        machine = VirtualMachine("m1", "exp1", seed=2, speed=30, duration_min=8, limits=limits)
+        server = PrinterServer(url, [machine], users={"operator": "pw"})
+        stop, ready = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(server.serve(stop, ready.set))
+        try:
+            await asyncio.wait_for(ready.wait(), 60)
+            await asyncio.wait_for(link.run(), 120)  # ends when the print is finished
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 30)
+        return link, machine
+
+    link, machine = asyncio.run(main())
+    written = [d for d in link.decisions if d.written]
+    assert written, [(d.time_s, d.status, d.reason) for d in link.decisions]
+    # the writes arrived: the served print's schedule holds them
+    schedule = machine.printer.schedule[: machine.printer.k]
+    changes = np.flatnonzero(np.any(np.diff(schedule, axis=0) != 0, axis=1)) + 1
+    in_print = [d for d in written if d.time_s < machine.n_samples - 10]  # later: print over
+    assert len(changes) >= len(in_print) > 10
+    for k in changes:  # every change of the served schedule is one of the controller's commands
+        assert any(np.allclose(schedule[k], d.command, rtol=0, atol=1e-12) for d in written)
+    # inside the machine's limits, every second of the print
+    for i, column in enumerate(("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")):
+        low, high = limits[column]
+        assert np.all((schedule[:, i] >= low) & (schedule[:, i] <= high)), column
+    # the rate limits, between the decisions (print time) and between what the server applied
+    rates = np.asarray(settings.rate_limits)
+    commands = np.array([d.command for d in link.decisions])
+    times = np.array([d.time_s for d in link.decisions])
+    assert np.all(np.diff(times) >= settings.period_s - 1e-9)
+    assert np.all(np.abs(np.diff(commands, axis=0)) <= rates * settings.period_s + 1e-9)
+    # applied by the server a period apart (the controller waits for a period on the
+    # machine's SampleTime, which lags the server's clock by up to one 0.1 s publishing
+    # tick = 3 s of print at ×30) less the 1 s rounding of the applying second
+    steps = np.abs(np.diff(schedule[np.r_[0, changes]], axis=0))
+    gaps = np.diff(np.r_[0, changes])
+    assert np.all(steps <= rates * np.minimum(gaps[:, None] + 4.0, settings.period_s) + 1e-9)
+    # the true line moved toward the target
+    lw = machine.true_outputs[:, 0]
+    before, after = lw[:60].mean(), lw[-60:].mean()
+    print(f"true L_w first minute {before:.2f} µm, last minute {after:.2f} µm")
+    assert before > target + 6
+    assert abs(after - target) < 0.5 * abs(before - target)
+
+
+def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
+    """An anonymous session may not write set-points (docs/opcua.md): `ajtwin control`
+    stops before any control with a message that says what to give."""
+    import asyncio
+    import threading
+
+    pytest.importorskip("asyncua")
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main as cli
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine
+
+    url = f"opc.tcp://127.0.0.1:{_free_port()}"
+    machine = VirtualMachine("m1", "exp1", seed=1, speed=1, duration_min=5)
+    server = PrinterServer(url, [machine])  # no users: anonymous reads, no set-point writes
+    ready = threading.Event()
+    state = {}
+
+    def serve():
+        async def run():
+            state["loop"], state["stop"] = asyncio.get_running_loop(), asyncio.Event()
+            await server.serve(state["stop"], ready.set)
+
+        asyncio.run(run())
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        assert ready.wait(60), "the server did not start"
+        result = CliRunner().invoke(
+            cli,
+            [
+                "control",
+                "--machine",
+                "m1",
+                "--target-linewidth",
+                "65",
+                "--opcua",
+                url,
+                "--store",
+                str(tmp_path / "none.sqlite"),
+            ],
+        )
+    finally:
+        if "loop" in state:
+            state["loop"].call_soon_threadsafe(state["stop"].set)
+        thread.join(30)
+    assert not thread.is_alive()
+    assert result.exit_code == 1, result.output
+    assert "BadUserAccessDenied" in result.output
+    assert "authenticated user" in result.output and "--username/--password" in result.output
+    assert machine.schedule == {}  # nothing was written

@@ -1,12 +1,17 @@
 """``ajtwin control``: closed-loop control of linewidth (docs/control.md).
 
 ``ajtwin control simulate`` runs the strategies in closed loop with the virtual printer.
-The live variant (``--machine … --opcua …``) waits for the OPC UA client of the live link.
+``ajtwin control --machine M --target-linewidth W --opcua URL`` controls a live machine
+over OPC UA (:mod:`ajtwin.live.control_link`).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
+
+from ajtwin.store.cli import store_option
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -32,9 +37,167 @@ def _parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-@click.group()
-def control():
-    """Closed-loop control of linewidth: MPC from the twin's state (docs/control.md)."""
+def _parse_horizon(text) -> int | None:
+    """``120s``, ``2min`` or ``120`` → seconds."""
+    if text is None:
+        return None
+    raw = str(text).strip().lower()
+    scale = 1
+    for suffix, factor in (("min", 60), ("s", 1)):
+        if raw.endswith(suffix):
+            raw, scale = raw[: -len(suffix)].strip(), factor
+            break
+    try:
+        seconds = float(raw) * scale
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: give e.g. 120s or 2min") from None
+    if not seconds >= 1 or seconds != int(seconds):
+        raise click.BadParameter(f"{text!r}: a whole number of seconds ≥ 1")
+    return int(seconds)
+
+
+@click.group(invoke_without_command=True)
+@click.option("--machine", default=None, help="Machine name (live control; see docs/control.md).")
+@click.option("--target-linewidth", "target", type=float, default=None, help="Target L_w [µm].")
+@click.option("--max-overspray", type=float, default=None, help="Soft limit on L_o [µm].")
+@click.option("--horizon", default=None, help="MPC horizon, e.g. 120s (default: control.toml).")
+@click.option("--opcua", "url", default=None, help="Server endpoint, opc.tcp://host:port.")
+@click.option("--username", default=None)
+@click.option("--password", default=None, envvar="AJTWIN_OPCUA_PASSWORD")
+@click.option("--security", default=None, help="e.g. Basic256Sha256_SignAndEncrypt.")
+@click.option("--certificate", type=click.Path(path_type=Path), default=None)
+@click.option("--private-key", type=click.Path(path_type=Path), default=None)
+@click.option("--server-certificate", type=click.Path(path_type=Path), default=None)
+@click.option(
+    "--settings",
+    "settings_path",
+    type=click.Path(dir_okay=False, exists=True),
+    default=None,
+    help="A control.toml of your own (default: the packaged tuning).",
+)
+@store_option
+@click.option("--verbose", is_flag=True)
+@click.pass_context
+def control(
+    ctx,
+    machine,
+    target,
+    max_overspray,
+    horizon,
+    url,
+    username,
+    password,
+    security,
+    certificate,
+    private_key,
+    server_certificate,
+    settings_path,
+    store,
+    verbose,
+):
+    """Closed-loop control of linewidth: MPC from the twin's state (docs/control.md).
+
+    With --machine/--target-linewidth/--opcua: control a live machine, writing its three
+    set-points over OPC UA every control period (within its limits and rate limits; held,
+    with the reason, on a model–machine mismatch or an alarm). Subcommands: simulate.
+    """
+    if ctx.invoked_subcommand is not None:
+        return
+    missing = [
+        flag
+        for flag, value in (
+            ("--machine", machine),
+            ("--target-linewidth", target),
+            ("--opcua", url),
+        )
+        if value is None
+    ]
+    if missing:
+        if machine is None and target is None and url is None:
+            click.echo(ctx.get_help())
+            return
+        raise click.UsageError(f"live control needs {', '.join(missing)}")
+    _control_live(
+        machine,
+        target,
+        max_overspray,
+        _parse_horizon(horizon),
+        url,
+        dict(
+            username=username,
+            password=password,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            server_certificate=server_certificate,
+        ),
+        settings_path,
+        store,
+        verbose,
+    )
+
+
+def _control_live(
+    machine, target, max_overspray, horizon_s, url, login, settings_path, store, verbose
+):
+    import asyncio
+    import logging
+
+    from ajtwin.apps.control import ControlSettings, TargetError
+    from ajtwin.live.control_link import ControlLink, LinkRefused
+    from ajtwin.store.registry import Registry, RegistryError
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
+    limits = None
+    try:
+        with Registry(store, create=False) as registry:
+            limits = registry.machine(machine)["limits"]
+    except (RegistryError, FileNotFoundError, KeyError):
+        click.echo(
+            f"{machine}: not in the registry; using the default limits (ajtwin machine add "
+            "sets a machine's own)",
+            err=True,
+        )
+    try:
+        overrides = {} if horizon_s is None else {"horizon_s": horizon_s}
+        settings = ControlSettings.load(settings_path, **overrides)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--horizon/--settings") from None
+
+    def show(d):
+        written = ", ".join(f"{k} → {v:.4g}" for k, v in d.written.items()) or "nothing written"
+        line = f"t = {d.time_s:6.0f} s  {d.status:7s}  {written}"
+        if d.status == "act" and d.predicted_linewidth_um == d.predicted_linewidth_um:
+            line += f"  (L_w → {d.predicted_linewidth_um:.1f} µm, solve {d.solve_ms:.0f} ms)"
+        if d.reason:
+            line += f"  [{d.reason}]"
+        click.echo(line)
+
+    try:
+        link = ControlLink(
+            url,
+            machine,
+            target,
+            limits=limits,
+            settings=settings,
+            max_overspray_um=max_overspray,
+            on_decision=show,
+            **login,
+        )
+        asyncio.run(link.run())
+    except TargetError as exc:
+        raise click.ClickException(str(exc)) from None
+    except LinkRefused as exc:
+        raise click.ClickException(str(exc)) from None
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    except KeyboardInterrupt:
+        click.echo("stopped; the machine keeps its last set-points", err=True)
+        return
+    click.echo(f"{machine}: print finished; {len(link.decisions)} control periods")
 
 
 @control.command()

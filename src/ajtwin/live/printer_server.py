@@ -426,9 +426,23 @@ class PrinterServer:
                 setpoint_nodes[var.nodeid] = (name, column, var)
         alarm_nodes = {nodes["alarm"].nodeid: name for name, nodes in self.nodes.items()}
 
+        pending: list = []
+
+        async def flush():
+            # the changes of one notification (e.g. a client's three set-points in one
+            # write request) are applied together, from the same second
+            batch, pending[:] = list(pending), []
+            now = time.monotonic()
+            for node, value in batch:
+                await server._on_change(node, value, now)
+
         class Handler:
             def datachange_notification(self, node, value, data):
-                asyncio.get_event_loop().create_task(server._on_change(node, value))
+                if not pending:
+                    asyncio.get_event_loop().call_soon(
+                        lambda: asyncio.get_event_loop().create_task(flush())
+                    )
+                pending.append((node, value))
 
         sub = await self.server.create_subscription(50, Handler())
         await sub.subscribe_data_change([v for _, _, v in setpoint_nodes.values()])
@@ -438,7 +452,7 @@ class PrinterServer:
         self._last_setpoint = {k: None for k in setpoint_nodes}
         return sub
 
-    async def _on_change(self, node, value):
+    async def _on_change(self, node, value, now: float):
         if node.nodeid in self._alarm_nodes:
             if value:
                 await self._fire_alarm(self._alarm_nodes[node.nodeid], value)
@@ -449,10 +463,10 @@ class PrinterServer:
         self._last_setpoint[node.nodeid] = value
         if previous is None:
             return  # the initial notification
-        now_s = machine.simulated_time(time.monotonic())
-        refusal = await asyncio.get_event_loop().run_in_executor(
-            None, machine.set_point, column, float(value), now_s
-        )
+        now_s = machine.simulated_time(now)
+        # in the loop, not an executor: stepping to the write's second is short, and the
+        # publishing loop must not run past that second meanwhile (the write would land late)
+        refusal = machine.set_point(column, float(value), now_s)
         if refusal:
             log.warning("set-point refused: %s", refusal)
             self._last_setpoint[node.nodeid] = previous

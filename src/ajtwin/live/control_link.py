@@ -1,0 +1,409 @@
+"""Closed-loop control of a live machine over OPC UA (``ajtwin control --machine … --opcua …``).
+
+:class:`ControlLink` follows one machine the way ``ajtwin live`` does (the login, security
+and refusal handling of :class:`ajtwin.live.link.OpcUaLink`; the ``SampleBuffer``
+subscription; every sample through :func:`ajtwin.live.engine.clean_sample`), feeds the
+samples to the streaming twin (:class:`ajtwin.live.engine.TwinStream`, inside
+:class:`ajtwin.apps.control_sim.MPCTwin` — the very controller ``ajtwin control simulate``
+runs against the virtual printer) and, every ``period_s`` seconds of print, writes the
+MPC's command to the three writable set-point nodes (docs/opcua.md):
+
+* the command in force is read back from the set-point nodes before each decision (an
+  operator's change or a refused write is what the controller starts from);
+* every command passes :func:`ajtwin.apps.control.clip_command`: inside the machine's
+  limits (registry ∩ the nodes' ``EURange`` ∩ the validity range of the fit) and within
+  the rate limits × the print time since the last write;
+* no write during the warm-up, while the twin reports a model–machine mismatch or an
+  alarm it cannot act on (the reasons are logged; the machine keeps what it has);
+* writing needs an authenticated session: at the start the set-points in force are
+  written back unchanged, so a refusal stops the link with a clear message before any
+  control (``LinkRefused``); a refused login or certificate likewise.
+
+Network faults are retried with back-off; the twin keeps its state across a reconnection
+(the samples the server no longer buffers are a gap = missing data). The link ends when
+the machine's ``PrintState`` says ``finished`` (or ``stop`` is set).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal
+from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+
+log = logging.getLogger("ajtwin.control")
+
+WRITE_REFUSED = (
+    "the server refused the set-point write ({code}): set-points may be written only by an "
+    "authenticated user; give --username/--password (and --security on an encrypted server)"
+)
+
+
+@dataclass
+class _Chunk:
+    """New samples in the form :meth:`MPCTwin.observe` takes."""
+
+    time_s: np.ndarray
+    inputs: np.ndarray
+    outputs: np.ndarray
+
+
+@dataclass
+class ControlDecision:
+    """One control period: what was decided and what was written."""
+
+    time_s: float
+    status: str  # act | hold | warm-up
+    reason: str
+    command: list  # [mA, sccm, sccm] in force after the period's write
+    written: dict = field(default_factory=dict)  # {column: value} actually written
+    solve_ms: float = float("nan")
+    predicted_linewidth_um: float = float("nan")
+
+
+class ControlLink:
+    """Control one machine on an OPC UA server (see module docstring).
+
+    Parameters
+    ----------
+    url : str
+        ``opc.tcp://host:port``.
+    machine : str
+    target_um : float
+        Target linewidth [µm].
+    limits : dict, optional
+        Machine limits {input column: [low, high]} (the registry's); intersected with
+        the set-point nodes' ``EURange``.
+    settings : ControlSettings, optional
+    max_overspray_um : float, optional
+    username, password, security, certificate, private_key, server_certificate
+        As for :class:`~ajtwin.live.link.OpcUaLink`.
+    on_decision : callable, optional
+        Called with each :class:`ControlDecision` (the CLI prints them).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        machine: str,
+        target_um: float,
+        *,
+        limits: dict | None = None,
+        settings=None,
+        max_overspray_um: float | None = None,
+        username: str | None = None,
+        password: str | None = None,
+        security: str | None = None,
+        certificate=None,
+        private_key=None,
+        server_certificate=None,
+        timeout_s: float = 4.0,
+        max_backoff_s: float = 10.0,
+        publish_ms: int = 100,
+        on_decision=None,
+    ):
+        from ajtwin.apps.control import ControlSettings, check_target
+        from ajtwin.store.registry import DEFAULT_LIMITS
+
+        self.url, self.machine = url, machine
+        self.target_um = check_target(target_um)
+        self.settings = settings or ControlSettings.load()
+        self.limits = {k: list(v) for k, v in (limits or DEFAULT_LIMITS).items()}
+        self.max_overspray_um = max_overspray_um
+        self.timeout_s = float(timeout_s)
+        self.max_backoff_s = float(max_backoff_s)
+        self.publish_ms = int(publish_ms)
+        self.on_decision = on_decision
+        # the client side of `ajtwin live` (login, security, certificates), no engine
+        self._login = OpcUaLink(
+            url,
+            [machine],
+            engine=None,
+            username=username,
+            password=password,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            server_certificate=server_certificate,
+            timeout_s=timeout_s,
+        )
+        self.decisions: list[ControlDecision] = []
+        self.last_time = -np.inf
+        self.finished = False
+        self.controller = None  # built by prepare() (compiles the twin and the MPC)
+        self._next_decision_s = None
+        self._last_write_s = None
+
+    # ------------------------------------------------------------------ setup
+    def prepare(self):
+        """Build the twin and the MPC (and compile them); done on the first connection
+        unless called before (a test calls it before the server's clock starts)."""
+        from ajtwin.apps.advise import effective_bounds
+        from ajtwin.apps.control_sim import MPCTwin
+        from ajtwin.estimation import Twin
+
+        if self.controller is not None:
+            return
+        self.bounds = effective_bounds(self.limits)
+        u_ref = np.array([np.mean(b) for b in self.bounds])
+        self.controller = MPCTwin(
+            twin=Twin.default(),
+            settings=self.settings,
+            bounds=self.bounds,
+            u0=u_ref,
+            target=self.target_um,
+            limits=self.limits,
+            max_overspray_um=self.max_overspray_um,
+        )
+
+    def _apply_eu_ranges(self, ranges: dict) -> None:
+        """Intersect the limits with the server's EURange of each set-point."""
+        from ajtwin.apps.advise import effective_bounds
+
+        changed = False
+        for column, (low, high) in ranges.items():
+            lo, hi = self.limits[column]
+            new = [max(lo, low), min(hi, high)]
+            if not new[0] < new[1]:
+                raise LinkRefused(
+                    f"{self.url}: {self.machine} {column}: the server's range [{low}, {high}] "
+                    f"and the machine limits [{lo}, {hi}] do not overlap"
+                )
+            if new != [lo, hi]:
+                changed = True
+                self.limits[column] = new
+        if changed:
+            self.bounds = effective_bounds(self.limits)
+            mpc = type(self.controller.mpc)(
+                self.controller.twin, self.settings, self.limits, self.max_overspray_um
+            )
+            mpc.warm_up()
+            self.controller.mpc = mpc
+            log.info("%s: limits narrowed to the server's EURange: %s", self.machine, self.limits)
+
+    # ------------------------------------------------------------------ running
+    async def run(self, stop: asyncio.Event | None = None) -> list[ControlDecision]:
+        """Control until the print is finished (or ``stop`` is set); the decisions."""
+        backoff = 0.5
+        while (stop is None or not stop.is_set()) and not self.finished:
+            try:
+                await self._session(stop)
+                backoff = 0.5
+            except LinkRefused:
+                raise
+            except (asyncio.CancelledError, KeyboardInterrupt):
+                raise
+            except Exception as exc:  # network faults, server restarts: retry
+                refusal = _refusal(exc)
+                if refusal:
+                    raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
+                log.warning(
+                    "%s: disconnected (%s: %s); reconnecting in %g s; the machine keeps "
+                    "its set-points",
+                    self.url,
+                    type(exc).__name__,
+                    exc,
+                    backoff,
+                )
+                try:
+                    await asyncio.wait_for(
+                        stop.wait() if stop else asyncio.sleep(backoff), timeout=backoff
+                    )
+                except TimeoutError:
+                    pass
+                backoff = min(2 * backoff, self.max_backoff_s)
+        return self.decisions
+
+    async def _session(self, stop):
+        from asyncua import ua
+
+        client = await self._login._client()
+        self._client = client
+        async with client:
+            idx = await client.get_namespace_index(NAMESPACE_URI)
+
+            def node(*parts):
+                return client.get_node(ua.NodeId(node_path(self.machine, *parts), idx))
+
+            buffer = node("Monitoring", "Process", "SampleBuffer")
+            state = node("Monitoring", "Process", "PrintState")
+            self._clock = node("Monitoring", "Process", "SampleTime")
+            setpoints = {
+                column: node("Monitoring", "SetPoints", key)
+                for key, (column, *_) in SETPOINTS.items()
+            }
+            try:
+                await buffer.read_browse_name()
+            except ua.UaStatusCodeError as exc:
+                raise LinkRefused(
+                    f"{self.url}: machine {self.machine!r} is not served ({exc})"
+                ) from None
+            ranges = {}
+            for key, (column, *_) in SETPOINTS.items():
+                try:
+                    rng = await node("Monitoring", "SetPoints", key, "EURange").read_value()
+                    ranges[column] = (float(rng.Low), float(rng.High))
+                except ua.UaStatusCodeError:
+                    pass  # no EURange: the registry's limits alone
+            u = await self._read_setpoints(setpoints)
+            await self._write(setpoints, dict(zip(setpoints, u)), probe=True)
+            if self.controller is None:  # compiled once we know we may write
+                log.warning("%s: compiling the twin and the MPC …", self.machine)
+                await asyncio.get_running_loop().run_in_executor(None, self.prepare)
+            self._apply_eu_ranges(ranges)
+            queue: asyncio.Queue = asyncio.Queue()
+
+            class Handler:
+                def datachange_notification(self, n, value, data):
+                    queue.put_nowait((n.nodeid, value))
+
+                def status_change_notification(self, status):
+                    queue.put_nowait(("status", status))
+
+            sub = await client.create_subscription(self.publish_ms, Handler())
+            await sub.subscribe_data_change([buffer, state])
+            log.info("%s: controlling %s to L_w = %g µm", self.url, self.machine, self.target_um)
+            print_state = "printing"
+            last_check = time.monotonic()
+            while stop is None or not stop.is_set():
+                try:
+                    batch = [await asyncio.wait_for(queue.get(), timeout=0.5)]
+                except TimeoutError:
+                    batch = []
+                while not queue.empty():
+                    batch.append(queue.get_nowait())
+                latest = None
+                for nodeid, value in batch:
+                    if nodeid == "status":
+                        raise ConnectionError(f"subscription status {value}")
+                    if nodeid == state.nodeid:
+                        print_state = str(value)
+                    elif nodeid == buffer.nodeid:
+                        latest = value
+                fed = self._feed(latest) if latest is not None else 0
+                if print_state == "finished" and latest is None:
+                    self.finished = True
+                    return
+                if fed and self.last_time >= self._next_decision_s:
+                    await self._decide(setpoints)
+                if time.monotonic() - last_check > 2.0:
+                    await client.check_connection()
+                    last_check = time.monotonic()
+
+    def _feed(self, value) -> int:
+        """New rows of the SampleBuffer → the twin; how many samples were fed."""
+        from ajtwin.live.engine import clean_sample
+
+        try:
+            rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
+        except (TypeError, ValueError):
+            log.warning("%s: SampleBuffer has the wrong shape; ignored", self.machine)
+            return 0
+        times, inputs, outputs = [], [], []
+        for row in rows:
+            if not np.isfinite(row[0]) or row[0] <= self.last_time:
+                continue
+            sample, problems = clean_sample(row[0], row[1:4], row[4:], where=self.machine)
+            for p in problems:
+                log.warning(p)
+            if sample is None:
+                continue
+            times.append(sample.time_s)
+            inputs.append(sample.inputs)
+            outputs.append(sample.outputs)
+            self.last_time = sample.time_s
+        if not times:
+            return 0
+        if self._next_decision_s is None:
+            self._next_decision_s = times[0] + self.settings.period_s
+        self.controller.observe(_Chunk(np.array(times), np.array(inputs), np.array(outputs)))
+        return len(times)
+
+    async def _read_setpoints(self, setpoints) -> np.ndarray:
+        return np.array([float(await n.read_value()) for n in setpoints.values()])
+
+    async def _decide(self, setpoints) -> None:
+        from ajtwin.apps.control import clip_command
+        from ajtwin.apps.control_sim import Decision
+
+        s = self.settings
+        t = float(self.last_time + 1)
+        # the machine's own clock: a controller that lags behind its samples must not
+        # bunch two periods' moves into less than a period of machine time
+        machine_now = float(await self._clock.read_value())
+        if self._last_write_s is not None and machine_now - self._last_write_s < s.period_s:
+            self._next_decision_s = self.last_time + 1
+            return
+        self._next_decision_s = self.last_time + s.period_s
+        u = await self._read_setpoints(setpoints)
+        if t < s.warmup_s:
+            decision = Decision(u.copy(), "warm-up", f"first {s.warmup_s} s of print")
+        else:
+            decision = await asyncio.get_running_loop().run_in_executor(
+                None, self.controller.decide, t, u
+            )
+        max_step = np.asarray(s.rate_limits) * s.period_s  # ≥ one period since the last write
+        command = clip_command(decision.command, u, self.bounds, max_step)
+        changes, reason = {}, decision.reason
+        for column, v, old in zip(setpoints, command, u):
+            low, high = self.limits[column]
+            if abs(float(v) - float(old)) <= 1e-9:
+                continue
+            if not low <= v <= high:  # on the way back from an operator's out-of-range value
+                reason += f"; {column} {v:g} not written (outside [{low:g}, {high:g}])"
+                continue
+            changes[column] = float(v)
+        if decision.status == "act" and changes:
+            await self._write(setpoints, changes)
+            self._last_write_s = float(await self._clock.read_value())
+        else:
+            changes = {}
+        # what is in force now: the values read, with what was written
+        command = [changes.get(column, float(old)) for column, old in zip(setpoints, u)]
+        record = ControlDecision(
+            t,
+            decision.status,
+            reason.lstrip("; "),
+            [float(v) for v in command],
+            changes,
+            decision.solve_s * 1e3,
+            decision.predicted_linewidth_um,
+        )
+        self.decisions.append(record)
+        if decision.status == "hold":
+            log.warning("%s t = %.0f s: HOLD — %s", self.machine, t, decision.reason)
+        if self.on_decision:
+            self.on_decision(record)
+
+    async def _write(self, setpoints, values: dict, probe: bool = False) -> None:
+        from asyncua import ua
+
+        for column, value in values.items():
+            if not probe:  # the probe writes back the machine's own values
+                low, high = self.limits[column]
+                assert low <= value <= high, f"{column} = {value} outside [{low}, {high}]"
+        nodes = [setpoints[column] for column in values]
+        data = [ua.DataValue(ua.Variant(float(v), ua.VariantType.Double)) for v in values.values()]
+        try:  # one request: the machine takes the three together
+            results = await self._client.write_values(nodes, data, raise_on_partial_error=False)
+        except ua.UaStatusCodeError as exc:
+            results = [exc]
+        for column, result in zip(values, results):
+            code = type(result).__name__ if isinstance(result, Exception) else result.name
+            if code in ("BadUserAccessDenied", "BadNotWritable", "BadWriteNotSupported"):
+                what = "checking write access" if probe else f"writing {column}"
+                raise LinkRefused(
+                    f"{self.url}: {self.machine}: {WRITE_REFUSED.format(code=code)} (while {what})"
+                )
+            if isinstance(result, Exception):
+                raise result
+            if not result.is_good():
+                log.warning("%s: writing %s refused by the server: %s", self.machine, column, code)
+
+
+__all__ = ["ControlDecision", "ControlLink", "LinkRefused"]

@@ -186,3 +186,34 @@ def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
     assert "BadUserAccessDenied" in result.output
     assert "authenticated user" in result.output and "--username/--password" in result.output
     assert machine.schedule == {}  # nothing was written
+
+
+def test_live_control_bad_targets_name_the_reachable_range():
+    from ajtwin.apps.control import TargetError
+    from ajtwin.apps.control_sim import nominal_state
+    from ajtwin.estimation import Twin
+    from ajtwin.live.control_link import ControlLink
+
+    for bad in (float("nan"), -3.0, "wide"):
+        with pytest.raises(TargetError, match="target linewidth"):
+            ControlLink("opc.tcp://127.0.0.1:1", "m1", bad)
+    link = ControlLink("opc.tcp://127.0.0.1:1", "m1", 500.0)
+
+    class Controller:  # the twin alone: what check_reachable needs before any MPC
+        twin = Twin.default()
+
+    link.controller = Controller()
+    from ajtwin.apps.advise import effective_bounds
+
+    link.bounds = effective_bounds(link.limits)
+    mean, cov = nominal_state(Controller.twin, [375.0, 23.0, 50.0])
+    with pytest.raises(TargetError, match=r"reachable now: \d+\.\d–\d+\.\d µm") as info:
+        link.check_reachable(mean, cov)
+    import re
+
+    low, high = (
+        float(v) for v in re.search(r"reachable now: ([\d.]+)–([\d.]+)", str(info.value)).groups()
+    )
+    assert low < 74.2 < high < 500  # the nominal line at 375 mA, 23/50 sccm lies inside
+    link.target_um = 65.0
+    assert link.check_reachable(mean, cov) == pytest.approx((low, high), abs=0.05)

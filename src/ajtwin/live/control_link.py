@@ -15,6 +15,8 @@ MPC's command to the three writable set-point nodes (docs/opcua.md):
   the rate limits × the print time since the last write;
 * no write during the warm-up, while the twin reports a model–machine mismatch or an
   alarm it cannot act on (the reasons are logged; the machine keeps what it has);
+* the target is checked when the twin has its first state: unreachable within the limits
+  from that state → :class:`~ajtwin.apps.control.TargetError` naming the reachable range;
 * writing needs an authenticated session: at the start the set-points in force are
   written back unchanged, so a refusal stops the link with a clear message before any
   control (``LinkRefused``); a refused login or certificate likewise.
@@ -33,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ajtwin.apps.control import TargetError
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
 
@@ -138,6 +141,7 @@ class ControlLink:
         self.controller = None  # built by prepare() (compiles the twin and the MPC)
         self._next_decision_s = None
         self._last_write_s = None
+        self._reach_checked = False
 
     # ------------------------------------------------------------------ setup
     def prepare(self):
@@ -160,6 +164,17 @@ class ControlLink:
             limits=self.limits,
             max_overspray_um=self.max_overspray_um,
         )
+
+    def check_reachable(self, mean, cov) -> tuple[float, float]:
+        """Once the twin has a state: is the target reachable within the limits from it?
+        :class:`TargetError` with the reachable range when not (nothing is written)."""
+        from ajtwin.apps.control import check_target, reachable_linewidth
+
+        reach = reachable_linewidth(self.controller.twin, mean, cov, self.bounds)
+        check_target(self.target_um, reach)
+        self._reach_checked = True
+        log.info("%s: reachable L_w %.1f–%.1f µm", self.machine, *reach)
+        return reach
 
     def _apply_eu_ranges(self, ranges: dict) -> None:
         """Intersect the limits with the server's EURange of each set-point."""
@@ -194,8 +209,8 @@ class ControlLink:
             try:
                 await self._session(stop)
                 backoff = 0.5
-            except LinkRefused:
-                raise
+            except (LinkRefused, TargetError, AssertionError):
+                raise  # retrying cannot help; a broken limit must stop the controller
             except (asyncio.CancelledError, KeyboardInterrupt):
                 raise
             except Exception as exc:  # network faults, server restarts: retry
@@ -341,6 +356,9 @@ class ControlLink:
             return
         self._next_decision_s = self.last_time + s.period_s
         u = await self._read_setpoints(setpoints)
+        history = self.controller.stream.history
+        if not self._reach_checked and len(history):
+            self.check_reachable(np.asarray(history.means[-1]), np.asarray(history.covariances[-1]))
         if t < s.warmup_s:
             decision = Decision(u.copy(), "warm-up", f"first {s.warmup_s} s of print")
         else:

@@ -25,6 +25,8 @@ Frames are processed one at a time (videos are streamed, never loaded whole).
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -412,10 +414,24 @@ class FrameSource:
     kind: str
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
+        count = yield from self._produce()
+        self._finish(count, stacklevel=3)
+
+    def prefetched(self, depth: int = 4) -> PrefetchedFrames:
+        """The same frames, decoded up to ``depth`` frames ahead in a background thread.
+
+        Decoding (``VideoCapture.read``, ``imread``, the gray conversion) releases the GIL, so
+        it runs on a second core beside the caller's feature extraction.  Use it as a context
+        manager (or call ``close``) so the thread stops when the caller stops early.
+        """
+        return PrefetchedFrames(self, depth)
+
+    def _produce(self):
+        """Yield (index, time_s, gray) and return the number of frames read."""
         if self.kind == "video":
             capture = cv2.VideoCapture(str(self.path))
+            index = 0
             try:
-                index = 0
                 while True:
                     ok, frame = capture.read()
                     if not ok:
@@ -424,24 +440,158 @@ class FrameSource:
                     index += 1
             finally:
                 capture.release()
-            if index == 0:
-                raise VisionInputError(f"{self.path}: no frame could be decoded")
-            if self.count and index < self.count:
-                # the container announced more frames than decode: a cut-off file
-                warnings.warn(
-                    f"{self.path}: decoded {index} of the {self.count} frames the video "
-                    "header announces; the file looks truncated (frames after "
-                    f"{index / self.fps:.3g} s are missing)",
-                    TruncatedVideoWarning,
-                    stacklevel=2,
-                )
-        else:
-            files = [self.path] if self.kind == "image" else _image_files(self.path)
-            for index, file in enumerate(files):
-                image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
-                if image is None:
-                    raise VisionInputError(f"{file}: not a readable image")
-                yield index, index / self.fps, to_gray(image, str(file))
+            return index
+        files = [self.path] if self.kind == "image" else _image_files(self.path)
+        for index, file in enumerate(files):
+            image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise VisionInputError(f"{file}: not a readable image")
+            yield index, index / self.fps, to_gray(image, str(file))
+        return len(files)
+
+    def _finish(self, index: int, stacklevel: int) -> None:
+        """After the last frame: an empty video is an error, a short one a warning."""
+        if self.kind != "video":
+            return
+        if index == 0:
+            raise VisionInputError(f"{self.path}: no frame could be decoded")
+        if self.count and index < self.count:
+            # the container announced more frames than decode: a cut-off file
+            warnings.warn(
+                f"{self.path}: decoded {index} of the {self.count} frames the video "
+                "header announces; the file looks truncated (frames after "
+                f"{index / self.fps:.3g} s are missing)",
+                TruncatedVideoWarning,
+                stacklevel=stacklevel,
+            )
+
+
+@dataclass
+class _End:
+    count: int
+
+
+@dataclass
+class _Failed:
+    error: BaseException
+
+
+class PrefetchedFrames:
+    """Iterator over a :class:`FrameSource`'s frames, decoded ahead in a worker thread.
+
+    Yields exactly what iterating the source yields, in order; an error while decoding is
+    raised here at the frame where it happened, and the truncated-video warning is issued
+    in the caller's thread after the last frame.  At most ``depth`` decoded frames wait in
+    the bounded queue, so memory stays bounded for any video length.  The thread ends at
+    the last frame, on an error, or on :meth:`close` (also called by ``with`` and on
+    garbage collection).
+
+    Examples
+    --------
+    >>> with open_source("print.mp4").prefetched() as frames:  # doctest: +SKIP
+    ...     for index, time_s, gray in frames:
+    ...         result = extractor.process(gray, index, time_s)
+    """
+
+    POLL_S = 0.05  # how often a blocked queue operation re-checks the stop flag
+
+    def __init__(self, source: FrameSource, depth: int = 4):
+        if int(depth) < 1:
+            raise ValueError(f"prefetch depth must be >= 1, got {depth}")
+        self.source = source
+        self._queue: queue.Queue = queue.Queue(maxsize=int(depth))
+        self._stop = threading.Event()
+        self._closed = False
+        # the worker holds no reference to self, so an abandoned reader can be collected
+        # (and its __del__ stops the thread)
+        self._thread = threading.Thread(
+            target=_decode_ahead,
+            args=(source, self._queue, self._stop),
+            name=f"ajtwin-decode {source.path.name}",
+            daemon=True,
+        )
+        self._thread.start()
+
+    # consumer --------------------------------------------------------------------------
+    def __iter__(self) -> PrefetchedFrames:
+        return self
+
+    def __next__(self) -> tuple[int, float, np.ndarray]:
+        if self._closed:
+            raise StopIteration
+        while True:
+            try:
+                item = self._queue.get(timeout=self.POLL_S)
+                break
+            except queue.Empty:
+                if not self._thread.is_alive() and self._queue.empty():
+                    self.close()
+                    raise RuntimeError(
+                        f"{self.source.path}: the decoder thread ended early"
+                    ) from None
+        if isinstance(item, _End):
+            self.close()
+            self.source._finish(item.count, stacklevel=3)
+            raise StopIteration
+        if isinstance(item, _Failed):
+            self.close()
+            raise item.error
+        return item
+
+    def close(self) -> None:
+        """Stop the decoder thread and wait for it (at most one frame's decode)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if threading.current_thread() is not self._thread:
+            self._thread.join()
+        while not self._queue.empty():  # drop decoded frames now, not at collection
+            self._queue.get_nowait()
+
+    @property
+    def running(self) -> bool:
+        """Whether the decoder thread is still alive."""
+        return self._thread.is_alive()
+
+    def __enter__(self) -> PrefetchedFrames:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        if not getattr(self, "_closed", True):
+            self.close()
+
+
+def _decode_ahead(source: FrameSource, out: queue.Queue, stop: threading.Event) -> None:
+    """Worker of :class:`PrefetchedFrames`: frames, then an end marker or the error."""
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                out.put(item, timeout=PrefetchedFrames.POLL_S)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    frames = source._produce()
+    try:
+        while not stop.is_set():
+            try:
+                item = next(frames)
+            except StopIteration as end:
+                put(_End(end.value))
+                return
+            except BaseException as exc:  # handed to the consumer, raised there
+                put(_Failed(exc))
+                return
+            if not put(item):
+                return
+    finally:
+        frames.close()  # releases the VideoCapture in this thread
 
 
 def _image_files(folder: Path) -> list[Path]:

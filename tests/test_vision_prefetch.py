@@ -75,7 +75,6 @@ def test_prefetched_truncated_video_warns_in_the_caller(tmp_path):
     source = open_source(cut)
     with pytest.warns(TruncatedVideoWarning, match=r"cut\.avi: decoded \d of the 10 frames"):
         plain = list(source)
-    caught = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         reader = source.prefetched(2)
@@ -106,13 +105,13 @@ def test_prefetched_exception_in_consumer_stops_the_thread(tmp_path, monkeypatch
 
     source = open_source(path)
     monkeypatch.setattr(extract_module.cv2, "VideoCapture", Counting)
-    with pytest.raises(ZeroDivisionError):
+    with pytest.raises(RuntimeError, match="the consumer failed"):
         with source.prefetched(depth=2) as reader:
             for index, _, _ in reader:
                 if index == 3:
                     time.sleep(0.3)  # a slow consumer: the decoder must wait, not run ahead
                     ahead = len(reads)
-                    1 / 0
+                    raise RuntimeError("the consumer failed")
     assert not reader.running  # close() joined it
     # frames 0..3 handed out, 2 in the queue, 1 decoded and waiting to be queued
     assert 4 <= ahead <= 4 + 2 + 1
@@ -152,3 +151,50 @@ def test_prefetch_depth_must_be_positive(tmp_path):
     source = open_source(_write_video(tmp_path / "v.avi", count=2))
     with pytest.raises(ValueError, match="depth must be >= 1"):
         PrefetchedFrames(source, 0)
+
+
+# --------------------------------------------------------------------------- #
+# The trimmed feature work gives the same numbers as the plain OpenCV path
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("shape", [(1080, 1920), (48, 64), (50, 66), (1081, 1922)])
+def test_area_downscale_is_bit_identical_to_opencv(shape):
+    rng = np.random.default_rng(shape[1])
+    noise = rng.integers(0, 256, shape, dtype=np.uint8)
+    # ties (block sums that end in exactly .5) on purpose: a column pattern of 0/1/2
+    ties = (np.arange(shape[1]) % 3).astype(np.uint8)[None, :].repeat(shape[0], 0) + 100
+    for gray in (noise, ties):
+        for q in (1, 2, 4):
+            expected = cv2.resize(
+                gray, (shape[1] // q, shape[0] // q), interpolation=cv2.INTER_AREA
+            )
+            np.testing.assert_array_equal(extract_module.area_downscale(gray, q), expected)
+
+
+def test_extractor_results_unchanged_by_the_fast_downscale(monkeypatch):
+    from ajtwin.vision.profile import line_profile
+    from ajtwin.vision.render import RenderSettings, render_frame
+
+    r = np.arange(-160.0, 160.0, 0.05)
+    frames = [
+        render_frame(
+            r,
+            line_profile(r, 43.0, 29.0, 15.0),
+            (1080, 1920),
+            RenderSettings.from_defaults(tilt_deg=tilt, raggedness_um=1.0),
+            rng=np.random.default_rng(int(tilt) + 20),
+        )
+        for tilt in (-8.0, 3.0)
+    ]
+    fast = [extract_module.LineExtractor(0.75).process(f) for f in frames]
+    monkeypatch.setattr(
+        extract_module,
+        "area_downscale",
+        lambda g, q: cv2.resize(
+            g, (g.shape[1] // q, g.shape[0] // q), interpolation=cv2.INTER_AREA
+        ),
+    )
+    plain = [extract_module.LineExtractor(0.75).process(f) for f in frames]
+    for a, b in zip(fast, plain, strict=True):
+        assert a.status == b.status == "ok"
+        assert a.row() == b.row() and a.angle_deg == b.angle_deg
+        assert [x.shoulders for x in a.batches] == [x.shoulders for x in b.batches]

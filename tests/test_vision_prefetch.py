@@ -20,11 +20,11 @@ from ajtwin.vision.extract import (
 )
 
 
-def _write_video(path, count=12, shape=(48, 64)):
-    """A small MPEG-4 (avi) video whose frames differ (a moving gradient plus noise)."""
+def _write_video(path, count=12, shape=(48, 64), codec="mp4v"):
+    """A small video (MPEG-4 by default) whose frames differ (a moving gradient plus noise)."""
     rng = np.random.default_rng(3)
     writer = cv2.VideoWriter(
-        str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (shape[1], shape[0]), False
+        str(path), cv2.VideoWriter_fourcc(*codec), 25, (shape[1], shape[0]), False
     )
     assert writer.isOpened()
     ramp = np.add.outer(np.arange(shape[0]), np.arange(shape[1])).astype(float)
@@ -49,9 +49,11 @@ def _wait_stopped(reader, seconds=5.0):
     return not reader.running
 
 
-@pytest.mark.parametrize("depth", [1, 4])
-def test_prefetched_yields_exactly_the_plain_frames(tmp_path, depth):
-    source = open_source(_write_video(tmp_path / "v.avi"))
+@pytest.mark.parametrize(
+    "depth,name,codec", [(1, "v.avi", "mp4v"), (4, "v.mp4", "mp4v"), (2, "v.avi", "MJPG")]
+)
+def test_prefetched_yields_exactly_the_plain_frames(tmp_path, depth, name, codec):
+    source = open_source(_write_video(tmp_path / name, codec=codec))
     plain = list(source)
     assert len(plain) == 12 and plain[3][1] == pytest.approx(3 / 25)
     with warnings.catch_warnings():

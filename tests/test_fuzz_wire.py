@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
 from test_fuzz_inputs import OUTCOMES, PROFILES, _report_outcomes  # noqa: F401  (autouse)
 from test_web_data import hand_print
 
@@ -328,3 +329,327 @@ def test_fuzz_http_token(profile, clients):
             OUTCOMES[f"token accepted {outcome}"] += 1
 
     run()
+
+
+# --------------------------------------------------------------------------- #
+# OPC UA wire data: the live engine's sample intake
+# --------------------------------------------------------------------------- #
+NOMINAL_U = [375.0, 23.0, 50.0]  # mA, sccm, sccm
+NOMINAL_Y = [75.0, 8.0, 5800.0, 5750.0, 1.5e-8]  # µm, µm, Pa, Pa, mL/s
+
+# one number as a Variant may carry it (or a client may mangle it)
+wire_number = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.floats(min_value=-1e-300, max_value=1e-300),
+    st.sampled_from([float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 5e-324, 0.0,
+                     -0.0, 375.0, 23.0, 50.0, 0.375, 1e6]),
+    st.integers(-(10**400), 10**400),
+)  # fmt: skip
+wire_junk = st.one_of(
+    st.none(), st.text(max_size=6), st.binary(max_size=6), st.booleans(), st.complex_numbers(),
+    st.sampled_from(["375", "nan", "", b"\x00", [], {}, [[1.0]], object()]),
+)  # fmt: skip
+wire_value = st.one_of(wire_number, wire_junk, st.lists(wire_number, max_size=4))
+
+
+def _vector(nominal):
+    """The nominal vector with some entries replaced, or the whole of it replaced."""
+    n = len(nominal)
+    return st.one_of(
+        st.lists(st.tuples(st.integers(0, n - 1), wire_value), max_size=3).map(
+            lambda subs: _substitute(nominal, subs)
+        ),
+        wire_value,
+        st.lists(wire_number, min_size=n - 1, max_size=n + 1),
+    )
+
+
+def _mostly(nominal, share=7):
+    """The nominal vector in ``share`` of 10 draws, else a fuzzed one (a filter has to run)."""
+    return st.integers(0, 9).flatmap(lambda i: st.just(nominal) if i < share else _vector(nominal))
+
+
+def _substitute(nominal, subs):
+    out = list(nominal)
+    for i, v in subs:
+        out[i] = v
+    return out
+
+
+def _as_float_vector(value, n):
+    """What the intake should see, computed independently (None: not n numbers)."""
+    try:
+        flat = [value] if not isinstance(value, (list, tuple)) else list(value)
+        if len(flat) != n or any(isinstance(v, (str, bytes, complex, list, dict)) for v in flat):
+            return None
+        if any(v is None or not isinstance(v, (int, float)) for v in flat):
+            return None
+        return np.array([float(v) for v in flat])
+    except OverflowError:
+        return None
+
+
+def check_clean(sample, problems, time_s, u_in, y_in):
+    """The contract of clean_sample for one wire sample (independent of its code)."""
+    from ajtwin.io.records import OUTPUT_COLUMNS, PLAUSIBLE_RANGES
+    from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+
+    assert all(isinstance(p, str) and len(p) > 10 for p in problems)
+    if sample is None:
+        assert problems, "a sample dropped without a log line"
+        return "dropped"
+    assert math.isfinite(sample.time_s) and abs(sample.time_s) <= 1e12
+    u, y = np.asarray(sample.inputs, float), np.asarray(sample.outputs, float)
+    assert u.shape == (3,) and y.shape == (5,)
+    assert not np.isinf(y).any()
+    if np.isnan(u).all():
+        assert np.isnan(y).all() and problems, "missing without a log line"
+        return "missing"
+    for value, name in zip(u, INPUT_NAMES):
+        low, high = INPUT_LIMITS[name]
+        assert low < value <= high, (name, value)
+    for value, column in zip(y, OUTPUT_COLUMNS):
+        low, high = PLAUSIBLE_RANGES.get(column, (-np.inf, np.inf))[:2]
+        assert np.isnan(value) or low <= value <= high, (column, value)
+    # accepted: every input as sent; an output differs from what was sent only with a line
+    expected_u, expected_y = _as_float_vector(u_in, 3), _as_float_vector(y_in, 5)
+    if expected_u is not None:
+        np.testing.assert_array_equal(u, expected_u)
+    if expected_y is not None:
+        changed = ~((y == expected_y) | (np.isnan(y) & np.isnan(expected_y)))
+        assert not changed.any() or problems
+        assert np.isnan(expected_y[changed]).sum() == 0  # only bad values become NaN
+        return "accepted, outputs missing" if changed.any() else "accepted"
+    return "accepted"
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_fuzz_clean_sample(profile):
+    from ajtwin.live.engine import clean_sample
+
+    @settings(settings.get_profile(profile))
+    @given(
+        time_s=st.one_of(st.floats(-10, 1e6), wire_number, wire_junk),
+        u=_mostly(NOMINAL_U, 3),
+        y=_mostly(NOMINAL_Y, 3),
+    )
+    def run(time_s, u, y):
+        sample, problems = clean_sample(time_s, u, y, where="aj1")
+        OUTCOMES[check_clean(sample, problems, time_s, u, y)] += 1
+
+    run()
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_fuzz_sample_buffer(profile):
+    """Link.SampleBuffer values → samples: the pure conversion the OPC UA link uses."""
+    from ajtwin.live.engine import clean_sample
+    from ajtwin.live.link import buffer_samples
+    from ajtwin.live.opcua import SAMPLE_WIDTH
+
+    # a Variant array of Doubles: any float in any cell, mostly the nominal value
+    cells = [st.one_of(st.just(v), st.just(v), st.floats()) for v in NOMINAL_U + NOMINAL_Y]
+    row = st.tuples(st.one_of(st.integers(-3, 40).map(float), st.floats()), *cells).map(list)
+
+    @settings(settings.get_profile(profile))
+    @given(
+        rows=st.lists(row, max_size=8),
+        shape=st.sampled_from(["rows", "flat", "junk"]),
+        junk=wire_value,
+        last=st.sampled_from([-np.inf, 0.0, 5.0, 1e9]),
+    )
+    def run(rows, shape, junk, last):
+        value = {"rows": rows, "flat": [v for r in rows for v in r], "junk": junk}[shape]
+        samples, new_last, problems = buffer_samples("aj1", value, last)
+        times = [s.time_s for s in samples]
+        assert all(b > a for a, b in zip([last, *times], times)), (last, times)
+        assert new_last == (times[-1] if times else last)
+        try:
+            table = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
+        except (TypeError, ValueError, OverflowError):
+            assert not samples and problems
+            OUTCOMES["buffer refused"] += 1
+            return
+        # independent replay: rows newer than the running last, each through clean_sample
+        expected, running, lines = [], last, 0
+        for r in table:
+            if not np.isfinite(r[0]):
+                lines += 1
+                continue
+            if r[0] <= running:
+                continue
+            s, p = clean_sample(r[0], r[1:4], r[4:])
+            lines += len(p)
+            if s is not None:
+                expected.append(s)
+                running = s.time_s
+        assert len(problems) == lines
+        assert times == [s.time_s for s in expected]
+        for got, want in zip(samples, expected):
+            np.testing.assert_array_equal(got.inputs, want.inputs)
+            np.testing.assert_array_equal(got.outputs, want.outputs)
+        OUTCOMES[f"buffer: {len(samples)} samples, {len(problems)} log lines"[:40]] += 1
+
+    run()
+
+
+class _Lines(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.records = []
+
+    def emit(self, record):
+        self.records.append(record.getMessage())
+
+
+@pytest.fixture(scope="module")
+def fitted_start():
+    """A start state fitted from ten nominal samples (the stream's own initial fit)."""
+    from ajtwin.live.engine import Sample, TwinStream
+
+    stream = TwinStream.new("fit", twin_overrides={"em": False}, asynchronous=False)
+    for k in range(stream.config.initial_samples):
+        stream.feed(Sample(float(k), np.array(NOMINAL_U), np.array(NOMINAL_Y)))
+    assert stream.carry is not None
+    return stream.start_mean, stream.start_cov
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_fuzz_stream_intake(profile, fitted_start):
+    """Wire samples → clean_sample → TwinStream.feed, in any time order."""
+    from ajtwin.live.engine import MAX_GAP_S, TwinStream, clean_sample
+
+    steps = st.one_of(
+        st.just(1.0),  # mostly the next second: the filter has to run
+        st.just(1.0),
+        st.just(1.0),
+        st.just(1.0),
+        st.just(1.0),
+        st.just(1.0),
+        st.sampled_from([0.0, -1.0, -30.0, 0.4, 0.6, 1.4, 2.0, 5.0, float(MAX_GAP_S) + 1.0,
+                         1e7, 1e12, 1e300, -1e300, float("nan"), float("inf")]),
+        st.floats(-50, 50),
+    )  # fmt: skip
+    event = st.tuples(
+        steps,
+        _mostly(NOMINAL_U),
+        _mostly(NOMINAL_Y),
+    )
+
+    @settings(settings.get_profile(profile))
+    @given(events=st.lists(event, min_size=1, max_size=25), t0=st.sampled_from([0.0, 1.7e9]))
+    def run(events, t0):
+        lines = _Lines()
+        logger = logging.getLogger("ajtwin.live")
+        old_level = logger.level
+        logger.addHandler(lines)
+        logger.setLevel(logging.DEBUG)
+        try:
+            stream = TwinStream(
+                "aj1",
+                _twin(),
+                start=fitted_start,
+                asynchronous=False,
+            )
+            t = t0
+            for dt, u, y in events:
+                sent = t + dt if math.isfinite(dt) else dt
+                if math.isfinite(sent) and abs(sent) < 1e13:
+                    t = sent  # the clock goes on from a readable time stamp
+                sample, problems = clean_sample(sent, u, y, where="aj1")
+                if sample is None:
+                    assert problems
+                    OUTCOMES["dropped at intake"] += 1
+                    continue
+                counts = dict(stream.dropped)
+                before = (stream.n_received, sum(stream.dropped.values()), len(lines.records))
+                stream.feed(sample)
+                after = (stream.n_received, sum(stream.dropped.values()), len(lines.records))
+                why = [k for k in counts if stream.dropped[k] > counts[k]]
+                if after[0] > before[0]:
+                    OUTCOMES["missing" if problems and np.isnan(sample.outputs).all()
+                             else "taken"] += 1  # fmt: skip
+                else:  # not taken: counted as dropped, with a log line
+                    assert after[1] > before[1] and after[2] > before[2], (t, sample)
+                    OUTCOMES[f"dropped by the stream: {why[0]}"] += 1
+            stream.finish()
+        finally:
+            logger.removeHandler(lines)
+            logger.setLevel(old_level)
+        arrays = stream.arrays()
+        time_s = arrays["time_s"]
+        if len(time_s) > 1:
+            np.testing.assert_allclose(np.diff(time_s), 1.0)  # the 1 s grid, never reordered
+        assert np.isfinite(arrays["means"]).all()
+        cov = np.asarray(stream.history.covariances)
+        assert np.isfinite(cov).all()
+        if len(cov):
+            assert (np.diagonal(cov, axis1=1, axis2=2) >= 0).all()  # σ real
+
+    run()
+
+
+_TWIN = {}
+
+
+def _twin():
+    """One default twin without EM (25-sample sequences never reach an EM window anyway)."""
+    from ajtwin.estimation import Twin
+
+    if "twin" not in _TWIN:
+        _TWIN["twin"] = Twin.default(em=False)
+    return _TWIN["twin"]
+
+
+# --------------------------------------------------------------------------- #
+# Inputs that once failed (found by the fuzzers above), kept as regression cases
+# --------------------------------------------------------------------------- #
+def test_deeply_nested_json_is_a_422(clients):
+    """``[[[[…`` 20,000 deep → RecursionError in the JSON parser → HTTP 500 (was)."""
+    client, _ = clients
+    for path in ("/api/machine/alpha/forecast", "/api/machine/alpha/advise"):
+        r = client.post(path, content=b"[" * 20_000 + b"]" * 20_000)
+        assert r.status_code == 422 and "nested too deeply" in r.json()["error"]
+
+
+@pytest.mark.parametrize(
+    "time_s, u, y",
+    [
+        (10**400, NOMINAL_U, NOMINAL_Y),  # was OverflowError out of clean_sample
+        (1.0, [10**400, 23.0, 50.0], NOMINAL_Y),  # same, from the inputs
+        (1.0, NOMINAL_U, [75.0, 8.0, 5800.0, 5750.0, "x"]),  # was None though "treated as missing"
+    ],
+)
+def test_wire_values_that_raised_or_were_dropped(time_s, u, y):
+    from ajtwin.live.engine import clean_sample
+
+    sample, problems = clean_sample(time_s, u, y, where="aj1")
+    assert problems and problems[0].startswith("aj1: ")
+    if time_s == 1.0:  # a readable time: the step is kept, as missing data
+        assert sample.time_s == 1.0 and np.isnan(sample.inputs).all()
+        assert np.isnan(sample.outputs).all() and "treated as missing" in problems[0]
+    else:
+        assert sample is None and "dropped" in problems[0]
+
+
+def test_far_future_time_stamp_is_dropped_not_filled(fitted_start, caplog, monkeypatch):
+    """t = 1e7 s after t = 0 was filled with 10 million missing steps (minutes, memory);
+    t = 1e300 was accepted as a time."""
+    from ajtwin.live import engine
+    from ajtwin.live.engine import Sample, TwinStream, clean_sample
+
+    monkeypatch.setattr(engine, "MAX_GAP_S", 5)  # the real limit (hours) works the same
+    MAX_GAP_S = 5
+    stream = TwinStream("aj1", _twin(), start=fitted_start, asynchronous=False)
+    u, y = np.array(NOMINAL_U), np.array(NOMINAL_Y)
+    stream.feed(Sample(0.0, u, y))
+    with caplog.at_level(logging.WARNING, logger="ajtwin.live"):
+        stream.feed(Sample(1e7, u, y))
+    assert stream.dropped["far_future"] == 1 and stream.n_received == 1
+    assert "ahead of the last step" in caplog.text
+    stream.feed(Sample(1.0, u, y))  # the clock goes on: taken
+    stream.feed(Sample(2.0 + MAX_GAP_S, u, y))  # an outage of MAX_GAP_S s: still filled
+    assert stream.n_received == 3 + MAX_GAP_S and stream.missing_inserted == MAX_GAP_S
+    stream.feed(Sample(4.0 + 2 * MAX_GAP_S, u, y))  # one second more: dropped
+    assert stream.dropped["far_future"] == 2
+    assert clean_sample(1e300, u, y)[0] is None

@@ -47,7 +47,13 @@ test: $(STAMP) openfoam chromium
 test-all: $(STAMP) openfoam chromium
 	$(PY) -m pytest -q
 
-bench: $(STAMP) chromium
+BENCH_STAMP := $(VENV)/.installed-bench
+
+$(BENCH_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install --quiet -e '.[dev,bench]'
+	touch $(BENCH_STAMP)
+
+bench: $(BENCH_STAMP) chromium
 	$(PY) benchmarks/run_all.py
 
 lint: $(STAMP)

@@ -247,23 +247,27 @@ def ekf_step(
     s_diag = jnp.einsum("ij,jk,ik->i", h, p_pred, h) + r_diag  # diag(H P Hᵀ + Σ_w)
     # per-output gate on the marginal innovation
     keep = measured & (innovation**2 <= gate**2 * s_diag)
+    # outputs not used at k become dummies h_i = 0, r_i = 1, ν_i = 0: their scalar update
+    # is then exactly the identity (k_i = 0, s_i = 1), with no select per output
+    h_k = jnp.where(keep[:, None], h, 0.0)
+    r_k = jnp.where(keep, r_diag, 1.0)
+    nu_k = jnp.where(keep, innovation, 0.0)
     z_post, p_post = z_pred, p_pred
     nis = jnp.zeros(())
     log_det = jnp.zeros(())
     for i in range(h.shape[0]):
         # y_i given y_<i: innovation ν_i = η_i − h_i z^(i−1), variance s_i = h_i P^(i−1) h_iᵀ + r_i
-        h_i = h[i]
+        h_i = h_k[i]
         ph = p_post @ h_i
-        s_i = h_i @ ph + r_diag[i]
-        nu_i = innovation[i] - h_i @ (z_post - z_pred)
+        s_i = h_i @ ph + r_k[i]
+        nu_i = nu_k[i] - h_i @ (z_post - z_pred)
         k_i = ph / s_i
+        z_post = z_post + k_i * nu_i
         # Joseph form for a scalar update: (I − k hᵀ) P (I − k hᵀ)ᵀ + r k kᵀ
         m = p_post - jnp.outer(k_i, ph)
-        p_joseph = m - jnp.outer(m @ h_i, k_i) + r_diag[i] * jnp.outer(k_i, k_i)
-        z_post = jnp.where(keep[i], z_post + k_i * nu_i, z_post)
-        p_post = jnp.where(keep[i], p_joseph, p_post)
-        nis = nis + jnp.where(keep[i], nu_i**2 / s_i, 0.0)
-        log_det = log_det + jnp.where(keep[i], jnp.log(s_i), 0.0)
+        p_post = m - jnp.outer(m @ h_i, k_i) + r_k[i] * jnp.outer(k_i, k_i)
+        nis = nis + nu_i**2 / s_i
+        log_det = log_det + jnp.log(s_i)
     p_post = 0.5 * (p_post + p_post.T)
     n_meas = jnp.sum(keep)
     log_lik = -0.5 * (nis + log_det + n_meas * jnp.log(2.0 * jnp.pi)) - jnp.sum(

@@ -35,6 +35,15 @@ from test_fuzz_inputs import OUTCOMES, PROFILES, _report_outcomes  # noqa: F401 
 from test_web_data import hand_print
 
 TOKEN = "fuzz-token-0123456789"
+# the OPC UA surface has three fuzzers: 3,400 each in the slow run (10,200 in all; the HTTP
+# surface's four run test_fuzz_inputs' 2,500 each)
+settings.register_profile(
+    "fuzz-long-wire", parent=settings.get_profile("fuzz-long"), max_examples=3400
+)
+WIRE_PROFILES = [
+    pytest.param("fuzz", id="fuzz"),
+    pytest.param("fuzz-long-wire", id="fuzz-long", marks=pytest.mark.slow),
+]
 
 
 # --------------------------------------------------------------------------- #
@@ -423,7 +432,7 @@ def check_clean(sample, problems, time_s, u_in, y_in):
     return "accepted"
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_clean_sample(profile):
     from ajtwin.live.engine import clean_sample
 
@@ -440,7 +449,7 @@ def test_fuzz_clean_sample(profile):
     run()
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_sample_buffer(profile):
     """Link.SampleBuffer values → samples: the pure conversion the OPC UA link uses."""
     from ajtwin.live.engine import clean_sample
@@ -514,7 +523,7 @@ def fitted_start():
     return stream.start_mean, stream.start_cov
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_stream_intake(profile, fitted_start):
     """Wire samples → clean_sample → TwinStream.feed, in any time order."""
     from ajtwin.live.engine import MAX_GAP_S, TwinStream, clean_sample

@@ -437,13 +437,58 @@ def test_fleet_of_printers_followed_by_one_process(tmp_path):
 
 @pytest.mark.slow
 def test_demo_live(tmp_path):
-    from click.testing import CliRunner
+    """``ajtwin demo --live``: the alarm, and the dashboard served live while it prints."""
+    import urllib.error
+    import urllib.request
 
-    from ajtwin.demo import demo_command
+    from ajtwin.web.server import free_port
 
-    result = CliRunner().invoke(demo_command, ["--live", "--out", str(tmp_path)])
-    assert result.exit_code == 0, result.output
-    summary = json.loads((tmp_path / "live_summary.json").read_text())
+    port = free_port()
+    base = f"http://127.0.0.1:{port}/"
+    demo = _ajtwin("demo", "--live", "--out", str(tmp_path / "out"), "--port", str(port),
+                   log_path=tmp_path / "demo.log")  # fmt: skip
+
+    def get(path):
+        try:
+            with urllib.request.urlopen(base + path, timeout=5) as r:
+                return r.status, r.read()
+        except (urllib.error.URLError, ConnectionError, TimeoutError):
+            return None, b""
+
+    seen_printing = None
+    fleet_page = b""
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and demo.poll() is None:
+            status, body = get("api/fleet")
+            if status == 200:
+                machines = {m["name"]: m for m in json.loads(body)["machines"]}
+                entry = machines.get("aj300-01")
+                if entry is not None and entry.get("live", {}).get("printing"):
+                    seen_printing = entry
+                    fleet_page = get("")[1]
+                    machine = json.loads(get("api/machine/aj300-01")[1])
+                    break
+            time.sleep(0.5)
+        demo.wait(timeout=300)
+    finally:
+        _stop(demo)
+    log = (tmp_path / "demo.log").read_text()
+    assert demo.returncode == 0, log
+    # the page showed the machine printing, with the twin's states, while the print ran
+    assert seen_printing is not None, log
+    assert seen_printing["live"]["time_s"] > 0
+    assert seen_printing["status"] in ("printing", "alarm")
+    assert any(np.isfinite(s["mean"]) for s in seen_printing["states"]), seen_printing
+    assert b"aj300-01" in fleet_page
+    assert machine["live"]["printing"] and len(machine["live"]["samples"]) >= 1
+    assert f"dashboard: open {base}" in log
+    summary = json.loads((tmp_path / "out" / "live_summary.json").read_text())
+    assert summary["dashboard_url"] == base
     assert summary["alarm"]["cause"] == "nozzle_clog"
     assert 0 <= summary["delay_s"] <= 60
     assert any(e["state"] == "raised" for e in summary["events_received_by_second_client"])
+    # without --keep-open the dashboard stopped with the demo
+    with socket.socket() as s:
+        s.settimeout(2)
+        assert s.connect_ex(("127.0.0.1", port)) != 0

@@ -20,6 +20,7 @@ PACKAGED = [
     "atomizer_dropout",
     "ink_running_low",
     "clean_long",
+    "commissioning",
 ]
 
 # Every mismatch and noise switched off: the truth must collapse onto the nominal model.
@@ -65,7 +66,8 @@ def test_packaged_scenarios_load_and_are_listed():
     assert sorted(PACKAGED) == list_scenarios()
     durations = {name: load_scenario(name).duration_s for name in PACKAGED}
     assert durations["clean_long"] == 8 * 3600
-    assert all(d == 5400 for n, d in durations.items() if n != "clean_long")
+    assert durations["commissioning"] == 20 * 60  # SPEC §11: a short print
+    assert all(d == 5400 for n, d in durations.items() if n not in ("clean_long", "commissioning"))
 
 
 def test_schedules_match_spec_section_10():

@@ -102,6 +102,8 @@ def test_fleet_page_lists_the_registry(server, registry, page, shots):
         end = reg.last_print("lab1")["end_mean"]
     assert f"{end[0]:.4g} µm" in lab1.locator("td").nth(4).inner_text()
     assert lab1.locator("svg.spark").count() == 4  # a trend per key state
+    # never commissioned nor maintained: the care column says so
+    assert "not recorded" in lab1.locator("td").nth(8).inner_text()
     page.wait_for_function("document.getElementById('conn').classList.contains('up')")
     page.screenshot(path=shots / "fleet.png", full_page=True)
 
@@ -136,6 +138,13 @@ def test_machine_page_states_with_bands_and_truth(server, registry, page, shots)
     assert "nozzle clog" in page.locator("#alarms").inner_text()
     assert page.locator("#history tbody tr").count() == 1
     assert page.locator("#status").inner_text() == "alarm"
+    # the model–machine guard's verdict stored at ingest is the one the page shows
+    with Registry(registry["store"]) as reg:
+        guard = reg.last_print("lab1")["summary"]["mismatch"]
+    assert page.locator("#mismatch").count() == int(guard["mismatch"])
+    if guard["mismatch"]:
+        assert guard["message"] in page.locator("#mismatch").inner_text()
+    assert page.locator("#calibration").count() == 0  # never commissioned
     page.screenshot(path=shots / "machine.png", full_page=True)
 
 

@@ -92,6 +92,90 @@ def test_machine_detail_and_missing(store):
         RegistryView(store.parent / "missing.sqlite")
 
 
+def _fake_commissioning(offset_um: float):
+    """What save_calibration stores, by hand (no fit): L_w offset ± 0.5 µm, rest nominal."""
+    from types import SimpleNamespace
+
+    from ajtwin.model.calibration import CALIBRATION_NAMES, Calibration
+
+    std = {k: 0.01 for k in CALIBRATION_NAMES} | {"linewidth_offset_um": 0.5}
+    determined = {k: True for k in CALIBRATION_NAMES} | {"sheath_line_factor": False}
+    return SimpleNamespace(
+        calibration=Calibration(linewidth_offset_um=offset_um),
+        std=std,
+        prior_std=std,
+        determined=determined,
+        priors={},
+        notes=[],
+        end_state=np.array([3.5, 0.9, 0.0, 0.0, 4.6e-7]),
+        end_state_cov=np.diag([0.01, 1e-4, 1e-8, 1e-6, 1e-16]),
+        calibration_cov=np.diag([v**2 for v in std.values()]),
+        noise_factors=None,
+    )
+
+
+def test_fleet_and_machine_show_calibration_maintenance_and_mismatch(store):
+    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.store.calibration import record_maintenance, save_calibration
+    from ajtwin.web.pages import fleet_rows
+
+    reg = Registry(store)
+    save_calibration(reg, "alpha", _fake_commissioning(-3.0), "old.parquet")
+    cal_id = save_calibration(reg, "alpha", _fake_commissioning(-7.25), "commission.parquet")
+    record_maintenance(reg, "alpha", nozzle_cleaned=True, vial_refilled_ml=1.1)
+    guard = MismatchStatus(
+        True,
+        130.0,
+        outputs=["carrier_pressure_Pa"],
+        reasons=["carrier_pressure_Pa persistently above the model"],
+        fixes=["commission the machine"],
+        message="model–machine mismatch: carrier_pressure_Pa persistently above the model",
+    )
+    # gamma's first print: the guard fired (the summary entry live/engine.py writes)
+    t = np.arange(5.0)
+    reg.save_print(
+        "gamma", content_hash="g1", source="hand-made", meta={}, n_samples=5, duration_s=5.0,
+        summary={"mean_nis": 1.0, "mismatch": guard.to_dict()},
+        start_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), start_cov=np.eye(5) * 1e-4,
+        end_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), end_cov=np.eye(5) * 1e-4,
+        theta_before=np.zeros(5), theta_after=np.zeros(5),
+        arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))},
+        anomalies=[], expected_last_seq=None,
+    )  # fmt: skip
+    reg.close()
+
+    view = RegistryView(store)
+    fleet = {m["name"]: m for m in view.fleet()}
+    alpha, gamma = fleet["alpha"], fleet["gamma"]
+    assert gamma["status"] == "mismatch"
+    assert gamma["mismatch"]["outputs"] == ["carrier_pressure_Pa"]
+    assert gamma["mismatch"]["seq"] == 1 and gamma["model_fit"] == {"seq": 1, "ok": False}
+    assert alpha["status"] == "idle" and "mismatch" not in alpha and "model_fit" not in alpha
+    assert "commissioned_at" not in gamma and "last_maintenance_at" not in gamma
+    assert alpha["commissioned_at"] == alpha["calibration"]["created_at"]
+    assert alpha["last_maintenance"] == "nozzle cleaned, vial refilled to 1.1 mL"
+    # beta's alarm outranks nothing here; its prints have no guard entry (older ingest)
+    assert fleet["beta"]["status"] == "alarm" and "model_fit" not in fleet["beta"]
+
+    html = fleet_rows(list(fleet.values()))
+    gamma_row = next(r for r in html.split("<tr") if 'data-machine="gamma"' in r)
+    assert "model–machine mismatch" in gamma_row and "carrier_pressure_Pa (print #1)" in gamma_row
+    alpha_row = next(r for r in html.split("<tr") if 'data-machine="alpha"' in r)
+    assert "last commissioned" in alpha_row and "last maintained" in alpha_row
+
+    m = view.machine("alpha")
+    cal = m["calibration"]
+    assert cal["id"] == cal_id and cal["source"] == "commission.parquet"  # the newest
+    params = {p["name"]: p for p in cal["parameters"]}
+    assert params["linewidth_offset_um"] == {
+        "name": "linewidth_offset_um", "value": -7.25, "std_error": 0.5, "determined": True,
+    }  # fmt: skip
+    assert params["linewidth_gain"]["value"] == 1.0
+    assert params["sheath_line_factor"]["determined"] is False
+    g = view.machine("gamma")
+    assert g["mismatch"]["message"] == guard.message and "calibration" not in g
+
+
 def test_decimation_keeps_peaks():
     idx = decimate(10_000)
     assert len(idx) <= MAX_POINTS and idx[0] == 0 and idx[-1] == 9_999

@@ -73,3 +73,67 @@ def test_live_command_serves_the_dashboard(clog_record, tmp_path):
     with socket.socket() as s:
         s.settimeout(2)
         assert s.connect_ex(("127.0.0.1", port)) != 0
+
+
+def test_live_demo_serves_the_dashboard_and_keeps_it_open(clog_record, tmp_path, monkeypatch):
+    """``ajtwin demo --live --keep-open`` wiring, without the OPC UA part: the engine's
+    samples reach the dashboard the demo serves, which answers after the print until Ctrl-C
+    and is gone after it. (The whole demo over OPC UA: the slow test in test_live_opcua.)"""
+    import json
+    import urllib.request
+
+    import ajtwin.demo as demo_cli
+    import ajtwin.live.demo as live_demo
+    from ajtwin.live.engine import Sample
+
+    def print_without_opcua(out, url, seed, engine, echo):
+        for k in range(20):
+            t, u, y = clog_record.time_s[k], clog_record.inputs[k], clog_record.outputs[k]
+            engine.feed(live_demo.MACHINE, Sample(t, u, y))
+        seen["during_print"] = fleet(seen["url"])
+        engine.close(live_demo.MACHINE)  # the print ends: stored in the registry
+        return {"endpoint": url, "onset_s": 240.0, "alarm": None, "delay_s": None,
+                "false_alarms": 0, "events_received_by_second_client": [], "reconnects": 0,
+                "wall_s": 1.0}  # fmt: skip
+
+    seen = {}
+
+    def fleet(base):
+        with urllib.request.urlopen(base + "api/fleet", timeout=10) as r:
+            return {m["name"]: m for m in json.loads(r.read())["machines"]}
+
+    def ctrl_c():  # the --keep-open wait: look at the page once, then "Ctrl-C"
+        seen["after_print"] = fleet(seen["url"])
+        raise KeyboardInterrupt
+
+    real_run = live_demo.run_live_demo
+
+    def run(*args, **kwargs):
+        echo = kwargs.pop("echo")
+
+        def echo_and_note(line):
+            if "dashboard: open " in line:
+                seen["url"] = line.split("dashboard: open ")[1].split()[0]
+            echo(line)
+
+        return real_run(*args, echo=echo_and_note, **kwargs)
+
+    monkeypatch.setattr(live_demo, "_serve_and_follow", print_without_opcua)
+    monkeypatch.setattr(live_demo, "run_live_demo", run)
+    monkeypatch.setattr(demo_cli, "_wait_for_ctrl_c", ctrl_c)
+    result = CliRunner().invoke(demo_cli.demo_command, ["--live", "--keep-open", "--out",
+                                                        str(tmp_path)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert f"dashboard still at {seen['url']}; Ctrl-C stops it" in result.output
+    # while printing the page shows the twin's last step and its states ...
+    entry = seen["during_print"][live_demo.MACHINE]
+    assert entry["live"] == {"time_s": clog_record.time_s[19], "printing": True}
+    assert entry["status"] == "printing" and len(entry["states"]) >= 4
+    # ... and after the print (--keep-open) the print the live twin stored
+    entry = seen["after_print"][live_demo.MACHINE]
+    assert entry["status"] != "printing" and entry["n_prints"] == 1
+    assert json.loads((tmp_path / "live_summary.json").read_text())["dashboard_url"] == seen["url"]
+    port = int(seen["url"].rsplit(":", 1)[1].strip("/"))
+    with socket.socket() as s:  # stopped after Ctrl-C
+        s.settimeout(2)
+        assert s.connect_ex(("127.0.0.1", port)) != 0

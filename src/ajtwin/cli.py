@@ -35,6 +35,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("ajtwin.store.cli:ingest", "Ingest a print into a machine's twin."),
     "forecast": ("ajtwin.apps.cli:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
+    "control": ("ajtwin.apps.control_cli:control", "Closed-loop MPC of linewidth (simulate)."),
     "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
     "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
     "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),

@@ -102,13 +102,28 @@ def _fmt(v, digits=4):
 @click.option(
     "--live",
     is_flag=True,
-    help="Instead: the virtual printer over OPC UA and the live twin beside it (~1 min).",
+    help="Instead: the virtual printer over OPC UA, the live twin beside it and the dashboard "
+    "served live from it (~1 min).",
 )
-def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live):
+@click.option(
+    "--port",
+    type=click.IntRange(min=0, max=65535),
+    default=0,
+    show_default=True,
+    help="--live: serve the dashboard on 127.0.0.1:PORT (0: a free port).",
+)
+@click.option(
+    "--keep-open",
+    is_flag=True,
+    help="--live: keep serving the dashboard after the print ends, until Ctrl-C.",
+)
+def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live, port, keep_open):
     """Run the end-to-end demo: virtual print with a nozzle clog → camera video → vision →
     twin → alarm → forecast → advice → demo-output/report.html."""
     if live:
-        return _live_demo(out_dir, seed)
+        return _live_demo(out_dir, seed, port, keep_open)
+    if keep_open or port:
+        raise click.UsageError("--port and --keep-open go with --live")
     from ajtwin.apps import report
     from ajtwin.apps.advise import advise
     from ajtwin.apps.forecast import forecast, input_schedule, parse_change
@@ -345,6 +360,15 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live):
     )
     sections = [
         ("Summary", summary_html),
+        (
+            "Model–machine fit (mismatch guard, docs/calibration.md)",
+            report.mismatch_html(
+                [
+                    ("print 1", first.summary.get("mismatch")),
+                    ("print 2", second.summary.get("mismatch")),
+                ]
+            ),
+        ),
         ("Alarms", alarm_table),
         ("Outputs", report.img_tag(report.outputs_figure(runs), "outputs")),
         ("Hidden states", report.img_tag(report.states_figure(runs), "states") + state_table),
@@ -412,7 +436,12 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live):
         pass
 
 
-def _live_demo(out_dir, seed):
+def _wait_for_ctrl_c():
+    while True:
+        time.sleep(1.0)
+
+
+def _live_demo(out_dir, seed, port=0, keep_open=False):
     import logging
 
     from ajtwin.live.demo import run_live_demo
@@ -420,20 +449,39 @@ def _live_demo(out_dir, seed):
     logging.basicConfig(level=logging.WARNING, format="      %(message)s")
     logging.getLogger("asyncua").setLevel(logging.ERROR)
 
-    click.echo(click.style("live twin over OPC UA", bold=True))
-    summary = run_live_demo(out_dir, seed, echo=click.echo)
-    alarm = summary["alarm"]
-    if alarm is None:
-        click.echo("  fault NOT detected")
-    else:
-        click.echo(
-            click.style(
-                f"  ALARM at {alarm['detected_s']:.0f} s, {summary['delay_s']:.0f} s after the "
-                f"clog began: {alarm['description']}",
-                fg="red",
+    def report(summary):
+        alarm = summary["alarm"]
+        if alarm is None:
+            click.echo("  fault NOT detected")
+        else:
+            click.echo(
+                click.style(
+                    f"  ALARM at {alarm['detected_s']:.0f} s, {summary['delay_s']:.0f} s after "
+                    f"the clog began: {alarm['description']}",
+                    fg="red",
+                )
             )
+        got = [e for e in summary["events_received_by_second_client"] if e["state"] == "raised"]
+        click.echo(f"  alarm events received by a second OPC UA client: {len(got)}")
+        click.echo(
+            f"  false alarms: {summary['false_alarms']}; wall time {summary['wall_s']:.0f} s"
         )
-    got = [e for e in summary["events_received_by_second_client"] if e["state"] == "raised"]
-    click.echo(f"  alarm events received by a second OPC UA client: {len(got)}")
-    click.echo(f"  false alarms: {summary['false_alarms']}; wall time {summary['wall_s']:.0f} s")
-    click.echo(f"  registry: {summary['registry']}")
+        click.echo(f"  registry: {summary['registry']}")
+        if keep_open:
+            # the dashboard thread serves on; this thread only waits for Ctrl-C
+            click.echo(f"  dashboard still at {summary['dashboard_url']}; Ctrl-C stops it")
+            try:
+                _wait_for_ctrl_c()
+            except KeyboardInterrupt:
+                click.echo("  stopped")
+        else:
+            click.echo(
+                f"  dashboard stopped with the demo (--keep-open keeps it); to browse this "
+                f"registry: ajtwin dashboard --store {summary['registry']}"
+            )
+
+    click.echo(click.style("live twin over OPC UA, dashboard served live", bold=True))
+    try:
+        run_live_demo(out_dir, seed, echo=click.echo, dashboard_port=port, after=report)
+    except RuntimeError as exc:  # e.g. the dashboard's port is taken
+        raise click.ClickException(str(exc)) from None

@@ -54,6 +54,8 @@ CAUSES = {
     "atomizer": "atomizer trouble (Q_m and φ_A falling)",
     "ink_low": "ink running out (V_l low)",
     "unexplained": "unexplained deviation",
+    # set by ajtwin.apps.mismatch.relabel_events: the model does not fit the machine
+    "model_machine_mismatch": "model–machine mismatch, not a fault (commission the machine)",
 }
 
 

@@ -35,7 +35,18 @@ def machine_twin(reg, name, nominal_theta=False):
             f"machine {name!r} has no prints yet: ingest one first "
             f"(`ajtwin ingest --machine {name} print.parquet`)"
         )
-    twin = Twin.default()
+    from ajtwin.store.calibration import active_calibration
+
+    # the machine's calibration (SPEC §11): forecasts and advice speak its outputs
+    active = active_calibration(reg, name)
+    calibrated = {}
+    if active is not None:
+        calibrated = {
+            "calibration": active["calibration"],
+            "calibration_cov": active["calibration_cov"],
+            "noise_factors": active.get("noise_factors"),
+        }
+    twin = Twin.default(**calibrated)
     if not nominal_theta:
         twin.theta = np.asarray(last["theta_after"], dtype=float)
     inputs = reg.print_arrays(last["id"]).get("inputs")

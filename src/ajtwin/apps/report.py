@@ -202,3 +202,18 @@ def html_page(title: str, sections: list[tuple[str, str]]) -> str:
         parts.append(body)
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def mismatch_html(statuses) -> str:
+    """The model–machine fit of each print: ``[(label, mismatch status dict), ...]``."""
+    rows = []
+    for label, status in statuses:
+        if not status:
+            rows.append([label, "not checked", "–"])
+        elif status.get("mismatch"):
+            rows.append(
+                [label, f"MISMATCH from {status['first_s']:.0f} s", "; ".join(status["fixes"])]
+            )
+        else:
+            rows.append([label, "fits", "–"])
+    return table_html(["print", "model–machine fit", "likely fix"], rows)

@@ -72,6 +72,14 @@ def _parse_seeds(text: str) -> list[int]:
     help="Vial fill level at the start [mL], in (0, V_v).",
 )
 @click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="The machine's calibration TOML (`ajtwin machine commission --out`); default: "
+    "the nominal model.",
+)
+@click.option(
     "--theta-out",
     type=click.Path(dir_okay=False),
     default=None,
@@ -94,6 +102,7 @@ def estimate(
     gate,
     noise_profile,
     vial_ml,
+    calibration_path,
     theta_out,
     plot_path,
 ):
@@ -107,7 +116,24 @@ def estimate(
         record = read_record(record_path)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
+    calibration = calibration_cov = noise_factors = None
+    if calibration_path is not None:
+        from ajtwin.model import OUTPUT_NAMES
+        from ajtwin.model.calibration import read_calibration_file
+
+        try:
+            calibration, content = read_calibration_file(calibration_path)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
+        if "covariance" in content:
+            calibration_cov = np.asarray(content["covariance"]["matrix"], dtype=float)
+        if "noise_factor" in content:
+            factors = content["noise_factor"]
+            noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
     twin = Twin.default(
+        calibration=calibration,
+        calibration_cov=calibration_cov,
+        noise_factors=noise_factors,
         noise_profile=noise_profile,
         em=em,
         window_s=window,
@@ -126,6 +152,11 @@ def estimate(
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
     frame = run.to_frame(smoothed=smooth)
+    from ajtwin.apps.mismatch import assess_run
+
+    # the guard: never return states from a model that does not fit without saying so
+    mismatch = assess_run(run, record)
+    frame["mismatch"] = mismatch.flags
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(out, index=False)
@@ -137,6 +168,15 @@ def estimate(
     click.echo(f"end state: {end}")
     mean_nis = float(np.nanmean(frame["nis"] / np.maximum(frame["n_measured"], 1)))
     click.echo(f"mean NIS per measured output: {mean_nis:.2f} (1 = consistent)")
+    if mismatch.mismatch:
+        click.echo(f"WARNING {mismatch.message}", err=True)
+        click.echo(
+            "         the states above are not trustworthy for this machine "
+            "(column 'mismatch' marks the seconds)",
+            err=True,
+        )
+    else:
+        click.echo("model–machine fit: ok (no mismatch found)")
     if reinit:
         click.echo(
             f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True

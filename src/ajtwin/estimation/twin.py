@@ -69,6 +69,9 @@ class TwinConfig:
     method: str = "euler"
 
     noise_profile: str = "calibrated"
+    # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
+    learn_line_offsets: bool = False
+    learn_output_noise: bool = False
 
     @classmethod
     def default(
@@ -127,6 +130,8 @@ class TwinRun:
     start_cov: np.ndarray
     end_mean: np.ndarray = field(default=None)
     end_cov: np.ndarray = field(default=None)
+    # (T, 5, 5): what the calibration's own uncertainty adds (None: exact / uncalibrated)
+    calibration_covariances: np.ndarray = field(default=None)
     #: (T, 5) bool: some output measured at that second responds to the state
     #: (record_checks.observed_states); False rows run on the model and priors alone.
     seen: np.ndarray | None = None
@@ -169,9 +174,16 @@ class TwinRun:
     def means(self) -> np.ndarray:
         return np.asarray(self.filtered.means)
 
+    def _total_cov(self, covariances) -> np.ndarray:
+        covariances = np.asarray(covariances)
+        if self.calibration_covariances is None:
+            return covariances
+        return covariances + self.calibration_covariances
+
     @property
     def stds(self) -> np.ndarray:
-        return np.sqrt(np.maximum(np.diagonal(np.asarray(self.filtered.covariances), 0, 1, 2), 0))
+        covariances = self._total_cov(self.filtered.covariances)
+        return np.sqrt(np.maximum(np.diagonal(covariances, 0, 1, 2), 0))
 
     def to_frame(self, smoothed: bool | None = None) -> pd.DataFrame:
         """States with σ, one-step predicted outputs, NIS: the ``estimate`` CSV."""
@@ -180,7 +192,7 @@ class TwinRun:
             raise ValueError("this run has no smoothed estimates (run with smooth=True)")
         src = self.smoothed if use_smoothed else self.filtered
         means = np.asarray(src.means)
-        stds = np.sqrt(np.maximum(np.diagonal(np.asarray(src.covariances), 0, 1, 2), 0))
+        stds = np.sqrt(np.maximum(np.diagonal(self._total_cov(src.covariances), 0, 1, 2), 0))
         frame = pd.DataFrame({"time_s": self.time_s})
         for i, name in enumerate(STATE_NAMES):
             frame[name] = means[:, i]
@@ -242,20 +254,54 @@ class Twin:
     config : TwinConfig
     theta : array (5,), optional
         Starting drift parameters (the machine's learned θ; default zeros).
+    calibration : Calibration, optional
+        The machine's calibration of the output model (SPEC §11); None = the nominal
+        machine (the packaged model exactly).
+    calibration_cov : array (11, 11), optional
+        Its covariance from commissioning: the reported state σ then include what the
+        calibration's error adds (:mod:`ajtwin.estimation.calibration_uncertainty`).
+    noise_factors : array (5,), optional
+        This machine's output noise relative to the tuned σ_w (fitted at commissioning).
     """
 
-    def __init__(self, model: DigitalModel, config: TwinConfig, theta=None):
+    def __init__(
+        self,
+        model: DigitalModel,
+        config: TwinConfig,
+        theta=None,
+        calibration=None,
+        calibration_cov=None,
+        noise_factors=None,
+    ):
         self.model = model
+        self.noise_factors = None if noise_factors is None else np.asarray(noise_factors, float)
+        self.calibration_cov = None if calibration_cov is None else np.asarray(calibration_cov)
         self.config = config
         self.theta = np.zeros(5) if theta is None else np.asarray(theta, dtype=float)
-        self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
+        self.calibration = calibration
+        self.commissioned_calibration = calibration
+        self._learned_var = None
+        coefficients = jnp.asarray(model.coefficient_matrix)
+        if calibration is not None:
+            from ajtwin.model.calibration import CalibratedCoefficients
+
+            coefficients = CalibratedCoefficients(coefficients, calibration)
+        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING)
         self.functions = model_functions(config.method)
         self.limits = StateLimits.load(model.params)
 
     @classmethod
-    def default(cls, **config_overrides) -> Twin:
+    def default(
+        cls, calibration=None, calibration_cov=None, noise_factors=None, **config_overrides
+    ) -> Twin:
         model = DigitalModel.default()
-        return cls(model, TwinConfig.default(model, **config_overrides))
+        return cls(
+            model,
+            TwinConfig.default(model, **config_overrides),
+            calibration=calibration,
+            calibration_cov=calibration_cov,
+            noise_factors=noise_factors,
+        )
 
     # ------------------------------------------------------------------ #
     @property
@@ -263,8 +309,52 @@ class Twin:
         return np.diag(np.asarray(self.config.process_std) ** 2)
 
     @property
+    def measurement_std(self) -> np.ndarray:
+        std = np.asarray(self.config.measurement_std, dtype=float)
+        if self.calibration is not None:
+            # σ_Qm is relative to the nominal Q_m (noise.toml): it scales with the gain
+            std = std.copy()
+            std[4] *= abs(float(self.calibration.material_flow_gain))
+        if self.noise_factors is not None:
+            std = std * self.noise_factors
+        return std
+
+    @property
     def measurement_var(self) -> np.ndarray:
-        return np.asarray(self.config.measurement_std) ** 2
+        if self._learned_var is not None:
+            return self._learned_var
+        return self.measurement_std**2
+
+    def _output_em(self, smoothed, inputs, measurements) -> dict:
+        """Line offsets and output noise by EM over a window (pressures never)."""
+        from ajtwin.estimation.em_calibration import output_m_step
+        from ajtwin.model.calibration import CalibratedCoefficients, Calibration
+
+        c = self.config
+        commissioned = self.commissioned_calibration or Calibration.identity()
+        calibration, var = output_m_step(
+            self.spec,
+            smoothed,
+            inputs,
+            measurements,
+            self.measurement_var,
+            commissioned,
+            functions=self.functions,
+            learn_offsets=c.learn_line_offsets,
+            learn_noise=c.learn_output_noise,
+            tuned_var=self.measurement_std**2,
+        )
+        if c.learn_line_offsets:
+            self.calibration = calibration
+            line = jnp.asarray(self.model.coefficient_matrix)
+            self.spec = self.spec._replace(coefficients=CalibratedCoefficients(line, calibration))
+        if c.learn_output_noise:
+            self._learned_var = var
+        return {
+            "linewidth_offset_um": float(calibration.linewidth_offset_um),
+            "overspray_offset_um": float(calibration.overspray_offset_um),
+            **{f"noise_std_{name}": float(np.sqrt(v)) for name, v in zip(OUTPUT_NAMES, var)},
+        }
 
     @property
     def theta_prior_precision(self) -> np.ndarray:
@@ -275,10 +365,10 @@ class Twin:
         c = self.config
         return fit_initial_state(
             self.model.params,
-            jnp.asarray(self.model.coefficient_matrix),
+            self.spec.coefficients,
             inputs,
             measurements,
-            np.asarray(c.measurement_std),
+            self.measurement_std,
             n_samples=c.initial_samples,
             vial_fill_ml=c.vial_fill_ml,
             vial_fill_std_ml=c.vial_fill_std_ml,
@@ -422,6 +512,9 @@ class Twin:
                         functions=self.functions,
                     )
                     theta = em.theta
+                    learned = {}
+                    if c.learn_line_offsets or c.learn_output_noise:
+                        learned = self._output_em(em.smoothed, inputs[w0:pos], measurements[w0:pos])
                     last_mean = np.asarray(em.filtered.means)[-1]
                     last_cov = np.asarray(em.filtered.covariances)[-1]
                     history.append(
@@ -432,6 +525,7 @@ class Twin:
                             "converged": em.converged,
                             "log_likelihood": em.log_likelihood,
                             **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
+                            **learned,
                         }
                     )
                 if pos < n:
@@ -445,9 +539,23 @@ class Twin:
             consistent = self._filter(start_mean, start_cov, inputs, measurements, thetas)
             smoothed = rts_smoother(self.spec, consistent)
         self.theta = theta
+        calibration_covariances = None
+        if self.calibration is not None and self.calibration_cov is not None:
+            from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
+
+            calibration_covariances = calibration_state_covariance(
+                self.spec,
+                filtered,
+                inputs,
+                self.measurement_var,
+                self.calibration_cov,
+                self.functions,
+            )
         columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
             f"theta_{name}" for name in STATE_NAMES
         ]
+        if history and len(history[-1]) > len(columns):
+            columns += [k for k in history[-1] if k not in columns]
         return TwinRun(
             time_s=time_s,
             filtered=filtered,
@@ -459,5 +567,6 @@ class Twin:
             start_cov=start_cov,
             end_mean=np.asarray(filtered.means[-1]),
             end_cov=np.asarray(filtered.covariances[-1]),
+            calibration_covariances=calibration_covariances,
             seen=seen,
         )

@@ -4,6 +4,10 @@ Starts ``ajtwin printer serve`` (nozzle clog at 4 min, ×30) as a child process 
 loopback port, follows it with the live twin in this process (registry in the demo
 folder), listens for the twin's alarm events as a second OPC UA client, and stops the
 server by its PID. About a minute on a laptop.
+
+The browser dashboard (``ajtwin.web``) is served from this same process on 127.0.0.1
+while the print runs: every engine message is pushed to its pages, as with
+``ajtwin live ... --dashboard``. Its address is echoed before the print starts.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from pathlib import Path
 ONSET_MIN = 4.0
 DURATION_MIN = 7.0
 SPEED = 30.0
+MACHINE = "aj300-01"
 
 
 def _free_port() -> int:
@@ -29,10 +34,25 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
-    """Serve, follow, alarm; returns a summary dict (also written to live_summary.json)."""
+def run_live_demo(
+    out_dir, seed: int = 0, echo=print, dashboard_port: int | None = 0, after=None
+) -> dict:
+    """Serve, follow, alarm; returns a summary dict (also written to live_summary.json).
+
+    Parameters
+    ----------
+    out_dir : demo folder (registry, server log, summary)
+    seed : seed of the virtual print
+    echo : callable(str), progress lines
+    dashboard_port : int or None
+        Serve the dashboard on 127.0.0.1:PORT from this process (0: a free port; None: no
+        dashboard). Its address is echoed before the print starts and is the summary's
+        ``dashboard_url``.
+    after : callable(summary), optional
+        Called once the print has ended and the summary is written, while the dashboard
+        still serves (``ajtwin demo --live --keep-open`` waits in it for Ctrl-C).
+    """
     from ajtwin.live.engine import LiveEngine
-    from ajtwin.live.link import OpcUaLink
     from ajtwin.store.registry import Registry
 
     out = Path(out_dir)
@@ -41,6 +61,42 @@ def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
     for suffix in ("", "-wal", "-shm"):
         Path(str(store) + suffix).unlink(missing_ok=True)
     url = f"opc.tcp://127.0.0.1:{_free_port()}"
+    registry = Registry(store)
+    engine = LiveEngine(registry)
+    dashboard = publisher = None
+    try:
+        if dashboard_port is not None:
+            # before the printer starts, so a person can open the page for the whole print
+            from ajtwin.web.publisher import LivePublisher
+            from ajtwin.web.server import BackgroundServer
+
+            publisher = LivePublisher()
+            engine.subscribe(publisher.publish_engine)
+            publisher.open_print(MACHINE)
+            dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
+            echo(f"      dashboard: open {dashboard.url} to watch the print live")
+        engine.warm_up()
+        summary = _serve_and_follow(out, url, seed, engine, echo)
+        engine.shutdown()  # everything committed is in the registry before the pages read it
+        if publisher is not None:
+            publisher.end_print(MACHINE)
+        summary["registry"] = str(store)
+        summary["dashboard_url"] = None if dashboard is None else dashboard.url
+        (out / "live_summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        if after is not None:
+            after(summary)
+    finally:
+        engine.shutdown()
+        registry.close()
+        if dashboard is not None:
+            dashboard.stop()
+    return summary
+
+
+def _serve_and_follow(out: Path, url: str, seed: int, engine, echo) -> dict:
+    """The printer server child, the live link and a second (event) client; the summary."""
+    from ajtwin.live.link import OpcUaLink
+
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
@@ -70,12 +126,9 @@ def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
         env=env,
     )
     echo(
-        f"      virtual printer aj300-01 served at {url} (pid {server.pid}), x{SPEED:g}, "
+        f"      virtual printer {MACHINE} served at {url} (pid {server.pid}), x{SPEED:g}, "
         f"nozzle clog from {ONSET_MIN:g} min"
     )
-    registry = Registry(store)
-    engine = LiveEngine(registry)
-    engine.warm_up()
     received: list = []
     raised: list = []
     engine.subscribe(
@@ -117,7 +170,7 @@ def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
     async def main():
         done = asyncio.Event()
         listener = asyncio.create_task(listen(done))
-        link = OpcUaLink(url, ["aj300-01"], engine, max_backoff_s=1.0)
+        link = OpcUaLink(url, [MACHINE], engine, max_backoff_s=1.0)
         try:
             await asyncio.wait_for(link.run(), timeout=300)
         finally:
@@ -134,11 +187,11 @@ def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
                 server.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 os.kill(server.pid, signal.SIGKILL)
+                server.wait(timeout=20)
         server_log.close()
-        engine.shutdown()
     onset_s = ONSET_MIN * 60
     first = next((e for e in raised if e["detected_s"] >= onset_s), None)
-    summary = {
+    return {
         "endpoint": url,
         "onset_s": onset_s,
         "alarm": first,
@@ -147,8 +200,4 @@ def run_live_demo(out_dir, seed: int = 0, echo=print) -> dict:
         "events_received_by_second_client": received,
         "reconnects": link.reconnects,
         "wall_s": time.monotonic() - t0,
-        "registry": str(store),
     }
-    (out / "live_summary.json").write_text(json.dumps(summary, indent=2, default=str))
-    registry.close()
-    return summary

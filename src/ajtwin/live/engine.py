@@ -688,10 +688,12 @@ def save_print(
     started_from: str,
     status: str,
     status_reason: str,
+    extra_summary: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
-    ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run.
+    ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run;
+    ``extra_summary``: more summary keys (calibration, maintenance, mismatch status).
     """
     summary = print_summary(
         end[0],
@@ -704,6 +706,7 @@ def save_print(
         status,
         status_reason,
     )
+    summary.update(extra_summary or {})
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     print_id = registry.save_print(
         machine,
@@ -786,15 +789,22 @@ def ingest_record(
             summary=existing["summary"],
             seconds=time.perf_counter() - t0,
         )
+    from ajtwin.apps.mismatch import assess_run, relabel_events
+    from ajtwin.store.calibration import machine_start
+
     chain = chain_start(registry, machine)
-    twin = Twin.default(**(twin_overrides or {}))
-    start, expected = chain.start, chain.latest_seq
-    if chain.theta is not None:
-        twin.theta = chain.theta
+    # the machine's calibration, commissioning start and maintenance (SPEC §11)
+    begin = machine_start(registry, machine, chain, twin_overrides)
+    twin = Twin.default(**begin["twin_kwargs"])
+    start, expected = begin["start"], chain.latest_seq
+    twin.theta = begin["theta"]
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
     status, status_reason = judge_run(run)
     detection = detect_run(run, record, detector_settings)
+    # a model that does not fit the machine is reported as such, never as a fault
+    mismatch = assess_run(run, record)
+    detection.events = relabel_events(detection.events, mismatch)
 
     f = run.filtered
     hist = run.theta_history
@@ -829,9 +839,14 @@ def ingest_record(
             theta_before=theta_before,
             theta_after=twin.theta,
             expected_last_seq=expected,
-            started_from=chain.description,
+            started_from=begin["started_from"],
             status=status,
             status_reason=status_reason,
+            extra_summary={
+                "calibration_id": begin["calibration_id"],
+                "maintenance": begin["maintenance"],
+                "mismatch": mismatch.to_dict(),
+            },
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race
@@ -1024,7 +1039,9 @@ class LiveEngine:
             return self.sessions[machine].stream
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
         resumed = None
+        twin_kwargs = self.twin_overrides
         if self.registry is not None:
+            from ajtwin.store.calibration import machine_start
             from ajtwin.store.chain import chain_start
 
             try:
@@ -1033,14 +1050,17 @@ class LiveEngine:
                 self.registry.add_machine(machine, notes="added by ajtwin live")
                 log.info("machine %r added to the registry", machine)
             resumed = self.log.open_session_of(machine)
+            # the machine's calibration, commissioning start and maintenance (SPEC §11)
+            chain = chain_start(self.registry, machine)
+            begin = machine_start(self.registry, machine, chain, self.twin_overrides)
+            twin_kwargs = begin["twin_kwargs"]
             if resumed is not None:
                 start, theta = resumed["start"], resumed["theta_before"]
                 expected, session_id = resumed["expected_last_seq"], resumed["id"]
                 started_from = "initial fit" if expected is None else f"print {expected}"
             else:
-                chain = chain_start(self.registry, machine)
-                start, theta, expected = chain.start, chain.theta, chain.latest_seq
-                started_from = chain.description
+                start, theta, expected = begin["start"], begin["theta"], chain.latest_seq
+                started_from = begin["started_from"]
                 session_id = self.log.open_session(
                     machine,
                     source=source,
@@ -1052,7 +1072,7 @@ class LiveEngine:
             machine,
             start=start,
             theta=theta,
-            twin_overrides=self.twin_overrides,
+            twin_overrides=twin_kwargs,
             detector_settings=self.detector_settings,
             asynchronous=False,
             executor=self._executor,

@@ -26,6 +26,7 @@ import numpy as np
 from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.model.atomizer import aerosol_fraction_rate, net_droplet_generation, vial_volume_rate
+from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
 from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
 from ajtwin.model.line_output import line_feature, material_flow
@@ -154,9 +155,14 @@ def output_function(x, u, params: PhysicalParameters, coefficients):
     x : array (..., 5), u : array (..., 3)
         Display units.
     params : PhysicalParameters
-    coefficients : array (2, 8)
-        :func:`coefficient_matrix` of the output coefficients.
+    coefficients : array (2, 8) or CalibratedCoefficients
+        :func:`coefficient_matrix` of the output coefficients, or that matrix with a
+        machine's :class:`~ajtwin.model.calibration.Calibration` (SPEC §11), which is
+        then applied to the nominal outputs.
     """
+    if isinstance(coefficients, CalibratedCoefficients):
+        nominal = output_function(x, u, params, coefficients.line)
+        return apply_calibration(nominal, x, u, params, coefficients.calibration)
     x = jnp.asarray(x)
     u = jnp.asarray(u)
     coefficients = jnp.asarray(coefficients)

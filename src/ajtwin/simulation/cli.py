@@ -53,8 +53,41 @@ from ajtwin.io.cli_options import BoundedFloat
     help="A previous virtual print of the same machine: start from its final vial level "
     "and deposits.",
 )
+@click.option(
+    "--machine-seed",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Draw a virtual machine that differs from the nominal model (line resistances, "
+    "gauges, line model, camera, Q_m gain; data/machine_variation.toml). Default: nominal.",
+)
+@click.option(
+    "--machine",
+    "machine_profile",
+    default=None,
+    help="A machine profile instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or 'nominal'.",
+)
+@click.option(
+    "--truth",
+    "truth_generator",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="Truth generator: 'alt' is the second, structurally different one (evaluation only; "
+    "ajtwin.simulation.truth_alt).",
+)
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
-def simulate(scenario, seed, out, duration_min, plot_path, continue_from, list_only):
+def simulate(
+    scenario,
+    seed,
+    out,
+    duration_min,
+    plot_path,
+    continue_from,
+    machine_seed,
+    machine_profile,
+    truth_generator,
+    list_only,
+):
     """Virtual printer: simulate one print with known truth into a record file.
 
     Example: ajtwin simulate --scenario exp3 --seed 1 --out print.parquet
@@ -83,7 +116,15 @@ def simulate(scenario, seed, out, duration_min, plot_path, continue_from, list_o
             raise click.ClickException(str(exc)) from None
     t0 = time.perf_counter()
     try:
-        record = run(scenario, seed, duration_min, continue_from=previous)
+        record = run(
+            scenario,
+            seed,
+            duration_min,
+            continue_from=previous,
+            machine=machine_profile,
+            machine_seed=machine_seed,
+            truth_generator=truth_generator,
+        )
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     elapsed = time.perf_counter() - t0
@@ -95,6 +136,12 @@ def simulate(scenario, seed, out, duration_min, plot_path, continue_from, list_o
         f"{out}: {meta['scenario']} seed {seed}, {len(record)} s, fault {fault} "
         f"(simulated in {elapsed:.2f} s)"
     )
+    if "machine" in meta:
+        cal = meta["machine"]["equivalent_calibration"]
+        click.echo(
+            f"machine {meta['machine']['name']}: "
+            + ", ".join(f"{k} {v:.4g}" for k, v in cal.items())
+        )
     if plot_path is not None:
         from ajtwin.simulation.plotting import plot_record
 

@@ -41,6 +41,7 @@ from ajtwin.io.records import (
 )
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
 from ajtwin.model.system import output_function
+from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
 
@@ -124,13 +125,37 @@ class Processes:
     draws: dict = field(default_factory=dict)  # seeded constants, for the metadata
 
 
-def draw_processes(scenario: Scenario, streams: dict) -> Processes:
-    """Draw the exogenous processes of a scenario (layer 1)."""
+def make_streams(seed: int) -> dict:
+    """The named random streams of one seed (fresh generators: each call starts over)."""
+    return dict(
+        zip(
+            STREAMS,
+            (
+                np.random.default_rng(s)
+                for s in np.random.SeedSequence(int(seed)).spawn(len(STREAMS))
+            ),
+            strict=True,
+        )
+    )
+
+
+def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Processes:
+    """Draw the exogenous processes of a scenario (layer 1).
+
+    ``setpoints`` (T, 3) replaces the scenario's schedule (a controller's commands). No
+    random draw depends on the set-points, so the same streams give the same noise
+    realisation under any schedule, and every process is causal in the set-points.
+    """
     cfg = scenario.config
     truth, meas, fault = cfg["truth"], cfg["measurement"], cfg["fault"]
     n = scenario.duration_s
     t = np.arange(n, dtype=float)
-    setpoints = scenario.setpoints(n)
+    if setpoints is None:
+        setpoints = scenario.setpoints(n)
+    else:
+        setpoints = np.asarray(setpoints, dtype=float)
+        if setpoints.shape != (n, 3):
+            raise ValueError(f"setpoints must be ({n}, 3); got {setpoints.shape}")
 
     # MFCs regulate around the set-point with a short correlation (AR(1)); the
     # atomizer current wanders sample to sample.
@@ -289,6 +314,33 @@ class VirtualPrint:
     substrate_ink_mL: np.ndarray
     line_coefficients: np.ndarray
     generation_ml_s: np.ndarray
+    machine: MachineDeviation = field(default_factory=MachineDeviation)
+
+
+def draw_line_coefficients(scenario: Scenario, streams: dict, nominal, params):
+    """Seeded factors (2, 7) on the output sensitivities and the true coefficients (2, 8)."""
+    factors = 1.0 + scenario.config["truth"]["line_coefficient_sd"] * streams[
+        "line_coefficients"
+    ].standard_normal((2, 7))
+    return factors, true_line_coefficients(nominal, factors, params)
+
+
+def true_initial_state(scenario: Scenario, processes: Processes, params) -> np.ndarray:
+    """True x0: the scenario's vial and deposits, φ_A in balance with the true generation."""
+    cfg = scenario.config
+    head0 = processes.head_inputs[0]
+    vial0 = float(cfg["initial"]["vial_volume_mL"])
+    generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
+    aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
+    return np.array(
+        [
+            processes.droplet_um[0],
+            vial0,
+            cfg["initial"]["tube_deposition_um"],
+            cfg["initial"]["nozzle_deposition_um"],
+            aerosol0,
+        ]
+    )
 
 
 def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> dict:
@@ -319,10 +371,17 @@ def run_virtual_print(
     continue_from: PrintRecord | None = None,
     params=None,
     coefficients=None,
+    machine=None,
+    machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> VirtualPrint:
     """Simulate one print and keep the full truth (see :func:`simulate`)."""
     if continue_from is not None:
         overrides = _continuation_overrides(continue_from, overrides)
+        # the same machine prints again unless another is named
+        if machine is None and machine_seed is None and "machine" in continue_from.meta:
+            machine = continue_from.meta["machine"]
+    deviation = resolve_machine(machine, machine_seed)
     scenario = load_scenario(scenario, overrides)
     if duration_min is not None:
         scenario = scenario.with_duration(duration_min)
@@ -331,51 +390,55 @@ def run_virtual_print(
     params = load_parameters() if params is None else params
     coefficients = load_output_coefficients() if coefficients is None else coefficients
     nominal = coefficient_matrix(coefficients)
-    streams = dict(
-        zip(
-            STREAMS,
-            (
-                np.random.default_rng(s)
-                for s in np.random.SeedSequence(int(seed)).spawn(len(STREAMS))
-            ),
-            strict=True,
-        )
-    )
+    streams = make_streams(seed)
     processes = draw_processes(scenario, streams)
+    if truth_generator not in ("model", "alt"):
+        raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_processes
+
+        processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
+    line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
+    x0 = true_initial_state(scenario, processes, params)
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import integrate_alt_truth
 
-    line_factors = 1.0 + cfg["truth"]["line_coefficient_sd"] * streams[
-        "line_coefficients"
-    ].standard_normal((2, 7))
-    line_coefficients = true_line_coefficients(nominal, line_factors, params)
-
-    head0 = processes.head_inputs[0]
-    vial0 = float(cfg["initial"]["vial_volume_mL"])
-    generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
-    aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
-    x0 = np.array(
-        [
-            processes.droplet_um[0],
-            vial0,
-            cfg["initial"]["tube_deposition_um"],
-            cfg["initial"]["nozzle_deposition_um"],
-            aerosol0,
-        ]
-    )
-    truth = integrate_truth(
-        x0,
-        processes.droplet_um,
-        processes.head_inputs,
-        processes.drivers,
-        params,
-        line_coefficients,
-        substeps=int(cfg["truth"]["integration_substeps"]),
-    )
+        truth = integrate_alt_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+        )
+        truth["generation_ml_s"] = np.asarray(
+            true_generation(
+                processes.head_inputs, truth["states"][:, 1], processes.drivers[:, 0], params
+            )
+        )
+    else:
+        truth = integrate_truth(
+            x0,
+            processes.droplet_um,
+            processes.head_inputs,
+            processes.drivers,
+            params,
+            line_coefficients,
+            substeps=int(cfg["truth"]["integration_substeps"]),
+        )
     states = truth["states"]
     if not np.isfinite(states).all():
         raise FloatingPointError(f"scenario {scenario.name!r}: the true states became non-finite")
     outputs_true = truth["outputs"]
-    inputs, outputs = measure(scenario, processes, outputs_true, streams)
+    # this machine's plumbing, gauges, line model and camera (identity: nominal machine)
+    outputs_true = deviation.apply(outputs_true, states, processes.head_inputs, params)
+    if truth_generator == "alt":
+        from ajtwin.simulation.truth_alt import alt_measure
+
+        inputs, outputs = alt_measure(scenario, processes, outputs_true, int(seed))
+    else:
+        inputs, outputs = measure(scenario, processes, outputs_true, streams)
 
     n = scenario.duration_s
     columns = {TIME_COLUMN: np.arange(n, dtype=float)}
@@ -404,6 +467,12 @@ def run_virtual_print(
         },
         "scenario_config": cfg,
     }
+    if truth_generator != "model":
+        meta["truth_generator"] = truth_generator
+    if not deviation.is_nominal:
+        meta["machine"] = deviation.as_dict()
+        if meta["machine_id"] == "virtual-aj300-01":
+            meta["machine_id"] = f"virtual-aj300-{deviation.name}"
     record = PrintRecord(data, meta)
     return VirtualPrint(
         record,
@@ -414,6 +483,7 @@ def run_virtual_print(
         truth["substrate_ink_mL"],
         line_coefficients,
         truth["generation_ml_s"],
+        deviation,
     )
 
 
@@ -423,6 +493,9 @@ def simulate(
     duration_min: float | None = None,
     overrides: dict | None = None,
     continue_from: PrintRecord | None = None,
+    machine=None,
+    machine_seed: int | None = None,
+    truth_generator: str = "model",
 ) -> PrintRecord:
     """Simulate one print on the virtual printer.
 
@@ -443,7 +516,16 @@ def simulate(
         A previous virtual print of the same machine: this print starts with its final
         vial level and tube/nozzle deposits (and its machine id). The droplet size and
         the generation start afresh (a new print, a new atomizer run); seed the two
-        prints differently. Explicit ``overrides["initial"]`` keys win.
+        prints differently. Explicit ``overrides["initial"]`` keys win. The machine of the
+        previous print is kept unless ``machine``/``machine_seed`` name another.
+    machine : str, dict or MachineDeviation, optional
+        A machine profile (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
+        an explicit deviation (:mod:`ajtwin.simulation.machine`). Default: nominal machine.
+    machine_seed : int, optional
+        Draw the machine's deviations from this seed (independent of ``seed``).
+    truth_generator : {"model", "alt"}
+        ``"alt"``: the second, structurally different truth generator
+        (:mod:`ajtwin.simulation.truth_alt`), for evaluation only.
 
     Returns
     -------
@@ -458,4 +540,13 @@ def simulate(
     >>> len(rec), rec.meta["fault_kind"], rec.has_truth
     (120, 'none', True)
     """
-    return run_virtual_print(scenario, seed, duration_min, overrides, continue_from).record
+    return run_virtual_print(
+        scenario,
+        seed,
+        duration_min,
+        overrides,
+        continue_from,
+        machine=machine,
+        machine_seed=machine_seed,
+        truth_generator=truth_generator,
+    ).record

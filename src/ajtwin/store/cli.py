@@ -126,6 +126,10 @@ def show(name, store):
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
+    from ajtwin.store.calibration_cli import describe_calibration
+
+    for line in describe_calibration(reg, name):
+        click.echo(line)
     if newest is not None and (last is None or newest["seq"] != last["seq"]):
         click.echo(
             f"  newest print #{newest['seq']} is {newest['status']} (not in the chain): "
@@ -260,7 +264,8 @@ def compact_command(name, keep_covariances_days, store):
         raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
     click.echo(
         f"compacted {_safe(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
-        f"re-encoded, {stats['thinned']} with covariance key frames dropped; registry "
+        f"re-encoded, {stats['thinned']} with covariance key frames dropped, "
+        f"{stats['live_steps_dropped']} steps of finished live sessions dropped; registry "
         f"{stats['bytes_before'] / 1e6:.2f} MB → {stats['bytes_after'] / 1e6:.2f} MB"
     )
 
@@ -270,7 +275,7 @@ def compact_command(name, keep_covariances_days, store):
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True)
 @store_option
 def export_command(name, out, store):
-    """Write machine NAME (all prints, arrays, anomalies) to a tar archive."""
+    """Write machine NAME (all prints, arrays, anomalies, live sessions) to a tar archive."""
     from ajtwin.store.maintenance import export_machine
     from ajtwin.store.registry import RegistryError
 
@@ -280,8 +285,9 @@ def export_command(name, out, store):
     except (RegistryError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
-        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, schema "
-        f"{manifest['schema_version']}) to {out}"
+        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, "
+        f"{manifest['live_sessions']} live sessions of which {manifest['open_live_sessions']} "
+        f"open, schema {manifest['schema_version']}) to {out}"
     )
 
 
@@ -302,7 +308,9 @@ def import_command(archive, as_name, store):
     for message in result["migrated"]:
         click.echo(f"archive: {message}", err=True)
     click.echo(
-        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints) into {reg.path}"
+        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints, "
+        f"{result['live_sessions']} live sessions of which {result['open_live_sessions']} "
+        f"open) into {reg.path}"
     )
 
 
@@ -371,6 +379,9 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
         f"({result.n_samples} s, {result.seconds:.1f} s wall, "
         f"started from {result.summary['started_from']})"
     )
+    status = result.summary.get("mismatch", {})
+    if status.get("mismatch"):
+        click.echo(f"  WARNING {status['message']}", err=True)
     if result.summary.get("status", "ok") != "ok":
         click.echo(
             f"  WARNING: stored but EXCLUDED from the machine's chain (the next print will not "
@@ -391,3 +402,11 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
             )
     else:
         click.echo("  no anomalies")
+
+
+# commissioning, maintenance and calibration history (SPEC §11; ajtwin.store.calibration_cli)
+from ajtwin.store.calibration_cli import calibrations, commission, maintain  # noqa: E402
+
+machine.add_command(commission)
+machine.add_command(maintain)
+machine.add_command(calibrations)

@@ -2,7 +2,8 @@
 
 A live session (one machine, one print as it happens) writes its samples, the twin's
 committed states and its alarms here as it goes, in small transactions, next to the
-registry's tables (same SQLite file, own tables). A client killed mid-print restarts,
+registry's tables (same SQLite file, own tables, created by the registry's migration 3:
+:data:`ajtwin.store.registry.MIGRATIONS`). A client killed mid-print restarts,
 finds the open session and replays its samples through the twin: what was committed is
 kept, and nothing is written twice (``PRIMARY KEY (session_id, step)``). When the print
 ends the engine stores it as an ordinary print of the registry and closes the session.
@@ -30,44 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.store.registry import from_npy, to_npy
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS live_sessions (
-    id INTEGER PRIMARY KEY,
-    machine TEXT NOT NULL,
-    started_at REAL NOT NULL,
-    source TEXT NOT NULL,
-    status TEXT NOT NULL,
-    start_mean BLOB,
-    start_cov BLOB,
-    theta_before BLOB NOT NULL,
-    expected_last_seq INTEGER,
-    print_id INTEGER,
-    closed_at REAL
-);
-CREATE TABLE IF NOT EXISTS live_samples (
-    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
-    step INTEGER NOT NULL,
-    time_s REAL NOT NULL,
-    inputs BLOB NOT NULL,
-    outputs BLOB NOT NULL,
-    PRIMARY KEY (session_id, step)
-);
-CREATE TABLE IF NOT EXISTS live_states (
-    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
-    step INTEGER NOT NULL,
-    message_json TEXT NOT NULL,
-    PRIMARY KEY (session_id, step)
-);
-CREATE TABLE IF NOT EXISTS live_events (
-    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
-    detected_s REAL NOT NULL,
-    state TEXT NOT NULL,
-    event_json TEXT NOT NULL,
-    PRIMARY KEY (session_id, detected_s, state)
-);
-"""
+from ajtwin.store.registry import Registry, from_npy, to_npy
 
 
 class LiveLog:
@@ -81,22 +45,14 @@ class LiveLog:
 
     def __init__(self, path, timeout_s: float = 30.0):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # the tables are the registry's (migration 3): opening it creates or migrates them,
+        # and a file that is not an ajtwin registry is refused, never taken over
+        Registry(self.path, timeout_s).close()
         self._conn = sqlite3.connect(
             str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
         )
         self._conn.row_factory = sqlite3.Row
-        self._conn.execute("PRAGMA journal_mode=WAL")
         self._conn.execute("PRAGMA synchronous=NORMAL")
-        self._conn.execute("BEGIN IMMEDIATE")
-        try:
-            for statement in _SCHEMA.split(";"):
-                if statement.strip():
-                    self._conn.execute(statement)
-        except BaseException:
-            self._conn.execute("ROLLBACK")
-            raise
-        self._conn.execute("COMMIT")
 
     def close(self):
         self._conn.close()

@@ -4,12 +4,22 @@
 (:mod:`ajtwin.store.arrays`; version-1 prints hold raw ``.npy`` and the whole covariance
 sequence), drops the periodic covariance key frames of prints older than
 ``keep_covariances_days`` (the end covariance, the alarms' covariances, every σ and mean
-stay) and VACUUMs the file. ``export_machine`` writes ``manifest.json`` (format and
+stay) and VACUUMs the file. Of the machine's *closed* live sessions whose print is stored
+it drops the per-step samples and published states (``live_samples``, ``live_states``:
+the stored print holds the same samples and states, compressed) and keeps the session
+row and its alarms; an open session is left whole, since a restarted ``ajtwin live``
+replays it. ``export_machine`` writes ``manifest.json`` (format and
 schema version, machine, print count, SHA-256 of the database) and ``machine.sqlite`` (a
 registry holding that machine only) into an uncompressed tar; ``import_machine`` checks
 the archive strictly (exactly those two regular files, sizes, checksum, versions), reads
 the members into a private temporary folder under its own file names (never
 ``extract``: no path traversal, no links) and copies the machine in one transaction.
+Export and import carry the machine's calibration history (provenance, standard errors)
+and maintenance events (:mod:`ajtwin.store.calibration`; compact leaves them as they are),
+so the importing registry starts the machine's next print exactly as the exporting one
+would. They carry the machine's live-twin sessions too (:mod:`ajtwin.store.live_log`):
+closed ones as history, and an open one (a print still running, or a client that was
+stopped mid-print) whole, so ``ajtwin live`` on the importing registry resumes it.
 
 Example
 -------
@@ -40,6 +50,7 @@ import numpy as np
 
 from ajtwin.store import arrays as _arrays
 from ajtwin.store.registry import (
+    LIVE_SESSION_TABLES,
     MACHINE_TABLES,
     PRINT_TABLES,
     SCHEMA_VERSION,
@@ -91,7 +102,8 @@ def compact(
     Returns
     -------
     dict: ``bytes_before``, ``bytes_after`` (file + WAL), ``prints``, ``reencoded``
-    (version-1 prints converted), ``thinned`` (prints whose key frames were dropped).
+    (version-1 prints converted), ``thinned`` (prints whose key frames were dropped),
+    ``live_steps_dropped`` (per-step rows of closed live sessions, module docstring).
     """
     if not keep_covariances_days >= 0:
         raise RegistryError(f"--keep-covariances-days must be ≥ 0, got {keep_covariances_days}")
@@ -171,6 +183,7 @@ def compact(
             raise
         if old and legacy:
             thinned += 1
+    live_steps_dropped = _drop_closed_live_steps(conn, machine["name"], machine["id"])
     if vacuum:
         _checkpoint(conn)
         conn.execute("VACUUM")
@@ -181,7 +194,34 @@ def compact(
         "prints": len(prints),
         "reencoded": reencoded,
         "thinned": thinned,
+        "live_steps_dropped": live_steps_dropped,
     }
+
+
+def _drop_closed_live_steps(conn, name: str, machine_id: int) -> int:
+    """Per-step rows of the machine's closed live sessions whose print is stored (module
+    docstring); returns how many steps were dropped. One transaction."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        sessions = [
+            r[0]
+            for r in conn.execute(
+                "SELECT s.id FROM live_sessions s JOIN prints p ON p.id = s.print_id "
+                "WHERE s.machine = ? AND s.status = 'closed' AND p.machine_id = ?",
+                (name, machine_id),
+            )
+        ]
+        dropped = 0
+        for session_id in sessions:
+            dropped += conn.execute(
+                "DELETE FROM live_samples WHERE session_id = ?", (session_id,)
+            ).rowcount
+            conn.execute("DELETE FROM live_states WHERE session_id = ?", (session_id,))
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+    return dropped
 
 
 # ---------------------------------------------------------------------- copy a machine
@@ -205,9 +245,26 @@ def _insert(dst, table, row: dict, columns) -> int:
     return cur.lastrowid
 
 
-def copy_machine(src: sqlite3.Connection, dst: sqlite3.Connection, name: str, new_name: str):
-    """Copy machine ``name`` with every machine- and print-scoped row from ``src`` into
-    ``dst`` as ``new_name`` in one transaction of ``dst`` (ids renumbered)."""
+def copy_machine(
+    src: sqlite3.Connection, dst: sqlite3.Connection, name: str, new_name: str
+) -> dict:
+    """Copy machine ``name`` with every machine-, print- and live-session-scoped row from
+    ``src`` into ``dst`` as ``new_name`` in one transaction of ``dst`` (ids renumbered).
+
+    ``src`` is read in one snapshot (a live twin may be appending to an open session).
+
+    Returns
+    -------
+    dict: ``prints``, ``live_sessions``, ``open_live_sessions`` (copied counts).
+    """
+    src.execute("BEGIN")  # deferred: one read snapshot of src for the whole copy
+    try:
+        return _copy_machine(src, dst, name, new_name)
+    finally:
+        src.execute("ROLLBACK")  # nothing was written to src
+
+
+def _copy_machine(src, dst, name, new_name) -> dict:
     src_tables = {r[0] for r in src.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     machine = src.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
     if machine is None:
@@ -219,6 +276,13 @@ def copy_machine(src: sqlite3.Connection, dst: sqlite3.Connection, name: str, ne
                 f"machine {printable(new_name)!r} already exists; import it under another "
                 "name with --as NAME"
             )
+        if dst.execute(
+            "SELECT 1 FROM live_sessions WHERE machine = ? AND status = 'open'", (new_name,)
+        ).fetchone():
+            raise RegistryError(
+                f"an open live session of {printable(new_name)!r} is in this registry; "
+                "import the machine under another name with --as NAME"
+            )
         row = dict(zip(machine.keys(), machine))
         row.pop("id")
         row["name"] = new_name
@@ -229,7 +293,9 @@ def copy_machine(src: sqlite3.Connection, dst: sqlite3.Connection, name: str, ne
                 continue
             columns = _columns(dst, table)
             drop_id = _has_integer_id(dst, table)
-            cursor = src.execute(f"SELECT * FROM {table} WHERE machine_id = ?", (machine["id"],))
+            cursor = src.execute(
+                f"SELECT * FROM {table} WHERE machine_id = ? ORDER BY rowid", (machine["id"],)
+            )
             for r in cursor:
                 row = dict(zip(r.keys(), r))
                 old_id = row.get("id")
@@ -251,11 +317,36 @@ def copy_machine(src: sqlite3.Connection, dst: sqlite3.Connection, name: str, ne
                         row.pop("id", None)
                     row["print_id"] = new_print
                     _insert(dst, table, row, columns)
+        n_sessions = n_open = 0
+        if "live_sessions" in src_tables:
+            columns = _columns(dst, "live_sessions")
+            sessions = src.execute(
+                "SELECT * FROM live_sessions WHERE machine = ? ORDER BY id", (name,)
+            ).fetchall()
+            for r in sessions:
+                row = dict(zip(r.keys(), r))
+                old_session = row.pop("id")
+                row["machine"] = new_name
+                if row.get("print_id") is not None:
+                    row["print_id"] = print_ids.get(row["print_id"])
+                new_session = _insert(dst, "live_sessions", row, columns)
+                n_sessions += 1
+                n_open += row["status"] == "open"
+                for table in LIVE_SESSION_TABLES:
+                    if table not in src_tables:
+                        continue
+                    table_columns = _columns(dst, table)
+                    for s_row in src.execute(
+                        f"SELECT * FROM {table} WHERE session_id = ?", (old_session,)
+                    ):
+                        s_row = dict(zip(s_row.keys(), s_row))
+                        s_row["session_id"] = new_session
+                        _insert(dst, table, s_row, table_columns)
         dst.execute("COMMIT")
     except BaseException:
         dst.execute("ROLLBACK")
         raise
-    return len(print_ids)
+    return {"prints": len(print_ids), "live_sessions": n_sessions, "open_live_sessions": n_open}
 
 
 def _sha256(path) -> str:
@@ -267,7 +358,8 @@ def _sha256(path) -> str:
 
 
 def export_machine(registry: Registry, name: str, out) -> dict:
-    """Write machine ``name`` (every print, array, anomaly) to the tar ``out``.
+    """Write machine ``name`` (every print, array, anomaly, calibration, maintenance event
+    and live session) to the tar ``out``.
 
     Returns the manifest. The tar is written to a temporary name and renamed, so a killed
     export never leaves a half archive under ``out``.
@@ -279,7 +371,7 @@ def export_machine(registry: Registry, name: str, out) -> dict:
     with tempfile.TemporaryDirectory(prefix="ajtwin-export-") as tmp:
         db_path = Path(tmp) / "machine.sqlite"
         part = Registry(db_path)
-        n_prints = copy_machine(registry._conn, part._conn, machine["name"], machine["name"])
+        copied = copy_machine(registry._conn, part._conn, machine["name"], machine["name"])
         part._conn.execute("PRAGMA journal_mode=DELETE")  # one self-contained file
         part.close()
         manifest = {
@@ -287,7 +379,9 @@ def export_machine(registry: Registry, name: str, out) -> dict:
             "format_version": EXPORT_FORMAT_VERSION,
             "schema_version": SCHEMA_VERSION,
             "machine": machine["name"],
-            "n_prints": n_prints,
+            "n_prints": copied["prints"],
+            "live_sessions": copied["live_sessions"],
+            "open_live_sessions": copied["open_live_sessions"],
             "exported_at": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "ajtwin_version": __version__,
             "database_sha256": _sha256(db_path),
@@ -318,7 +412,8 @@ def import_machine(registry: Registry, archive, as_name: str | None = None) -> d
 
     Returns
     -------
-    dict: ``machine`` (its name here), ``n_prints``, ``manifest``, ``migrated`` (messages).
+    dict: ``machine`` (its name here), ``n_prints``, ``live_sessions``,
+    ``open_live_sessions``, ``manifest``, ``migrated`` (messages).
     """
     archive = Path(archive)
     if not archive.is_file():
@@ -393,10 +488,17 @@ def import_machine(registry: Registry, archive, as_name: str | None = None) -> d
             part.close()
             raise _bad(archive, str(exc)) from None
         try:
-            n_prints = copy_machine(part._conn, registry._conn, source_name, new_name)
+            copied = copy_machine(part._conn, registry._conn, source_name, new_name)
         except sqlite3.Error as exc:
             raise _bad(archive, f"machine.sqlite: {exc}") from None
         finally:
             migrated = list(part.migrated)
             part.close()
-    return {"machine": new_name, "n_prints": n_prints, "manifest": manifest, "migrated": migrated}
+    return {
+        "machine": new_name,
+        "n_prints": copied["prints"],
+        "live_sessions": copied["live_sessions"],
+        "open_live_sessions": copied["open_live_sessions"],
+        "manifest": manifest,
+        "migrated": migrated,
+    }

@@ -37,8 +37,9 @@ missing ones, so a table you add exists in both. To add one:
    N = last version + 1 (if two branches both added N, the merge renumbers one of them).
    :data:`SCHEMA_VERSION` follows automatically.
 3. A machine-scoped table (a ``machine_id`` column) must be added to
-   :data:`MACHINE_TABLES` (a print-scoped one, ``print_id``, to :data:`PRINT_TABLES`) so
-   that ``machine export/import`` carry it.
+   :data:`MACHINE_TABLES` (a print-scoped one, ``print_id``, to :data:`PRINT_TABLES`; one
+   scoped to a live session, ``session_id``, to :data:`LIVE_SESSION_TABLES`) so that
+   ``machine export/import`` carry it.
 4. Test it in tests/test_store_reliability.py: a registry of the previous version opens,
    migrates and keeps its prints.
 
@@ -172,15 +173,113 @@ def _migrate_to_2(conn):
             )
 
 
+#: The live twin's log (:mod:`ajtwin.store.live_log`): a session per live print of a
+#: machine (keyed by the machine's *name*, as the live link knows it), its samples, the
+#: published state of every committed step and its alarms. Never edit: add a migration.
+_LIVE_SCHEMA = """
+CREATE TABLE IF NOT EXISTS live_sessions (
+    id INTEGER PRIMARY KEY,
+    machine TEXT NOT NULL,
+    started_at REAL NOT NULL,
+    source TEXT NOT NULL,
+    status TEXT NOT NULL,
+    start_mean BLOB,
+    start_cov BLOB,
+    theta_before BLOB NOT NULL,
+    expected_last_seq INTEGER,
+    print_id INTEGER,
+    closed_at REAL
+);
+CREATE TABLE IF NOT EXISTS live_samples (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    step INTEGER NOT NULL,
+    time_s REAL NOT NULL,
+    inputs BLOB NOT NULL,
+    outputs BLOB NOT NULL,
+    PRIMARY KEY (session_id, step)
+);
+CREATE TABLE IF NOT EXISTS live_states (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    step INTEGER NOT NULL,
+    message_json TEXT NOT NULL,
+    PRIMARY KEY (session_id, step)
+);
+CREATE TABLE IF NOT EXISTS live_events (
+    session_id INTEGER NOT NULL REFERENCES live_sessions(id),
+    detected_s REAL NOT NULL,
+    state TEXT NOT NULL,
+    event_json TEXT NOT NULL,
+    PRIMARY KEY (session_id, detected_s, state)
+);
+CREATE INDEX IF NOT EXISTS live_sessions_by_machine ON live_sessions(machine, status)
+"""
+
+
+def _migrate_to_3(conn):
+    """The live twin's session tables (a registry the live twin already wrote keeps them)."""
+    _execute_all(conn, _LIVE_SCHEMA)
+
+
+#: A machine's calibrations (one row per commissioning, the newest active) and its
+#: maintenance events (:mod:`ajtwin.store.calibration`, SPEC §11). Never edit: add a migration.
+_CALIBRATION_SCHEMA = """
+CREATE TABLE IF NOT EXISTS calibrations (
+    id INTEGER PRIMARY KEY,
+    machine_id INTEGER NOT NULL REFERENCES machines(id),
+    created_at TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    source TEXT NOT NULL,
+    after_print_seq INTEGER NOT NULL,
+    calibration_json TEXT NOT NULL,
+    std_json TEXT NOT NULL,
+    prior_std_json TEXT NOT NULL,
+    determined_json TEXT NOT NULL,
+    priors_json TEXT NOT NULL,
+    notes_json TEXT NOT NULL,
+    end_mean_json TEXT NOT NULL,
+    end_cov_json TEXT NOT NULL,
+    calibration_cov_json TEXT NOT NULL,
+    noise_factors_json TEXT NOT NULL DEFAULT 'null'
+);
+CREATE TABLE IF NOT EXISTS maintenance_events (
+    id INTEGER PRIMARY KEY,
+    machine_id INTEGER NOT NULL REFERENCES machines(id),
+    created_at TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    after_print_seq INTEGER NOT NULL,
+    event_json TEXT NOT NULL
+)
+"""
+
+
+def _migrate_to_4(conn):
+    """Calibrations and maintenance events. A schema-3 registry that already has them
+    (ajtwin's calibration code created them on first write) keeps its rows; one written
+    before ``noise_factors_json`` existed gets that column with its default."""
+    _execute_all(conn, _CALIBRATION_SCHEMA)
+    columns = {r[1] for r in conn.execute("PRAGMA table_info(calibrations)").fetchall()}
+    if "noise_factors_json" not in columns:
+        conn.execute(
+            "ALTER TABLE calibrations ADD COLUMN noise_factors_json TEXT NOT NULL DEFAULT 'null'"
+        )
+
+
 #: (version, what it adds, function(conn)); append only (see the module docstring).
 MIGRATIONS: list[tuple[int, str, object]] = [
     (2, "print chain status, compressed arrays, anomaly index", _migrate_to_2),
+    (3, "live twin sessions: live_sessions, live_samples, live_states, live_events", _migrate_to_3),
+    (4, "per-machine calibrations and maintenance events", _migrate_to_4),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
 #: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
-MACHINE_TABLES = ["prints"]
+#: Copied in this order, each in its ``id`` order (the newest calibration stays active).
+MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
 PRINT_TABLES = ["print_arrays", "anomalies"]
+#: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
+#: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
+#: ``print_id`` renumbered, by :func:`ajtwin.store.maintenance.copy_machine`.
+LIVE_SESSION_TABLES = ["live_samples", "live_states", "live_events"]
 
 
 class RegistryError(RuntimeError):

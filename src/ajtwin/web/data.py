@@ -5,10 +5,9 @@ change of the registry's schema (migrations, new per-machine fields) touches thi
 only. Values are in SPEC §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
 plain lists with NaN → ``None`` (JSON has no NaN).
 
-Fields other branches add to the registry (commissioning/calibration, maintenance,
-model–machine mismatch) are optional: :func:`optional_machine_fields` picks them up when
-the machine row or the :class:`~ajtwin.store.registry.Registry` offers them and the pages
-show them only when present.
+A machine's commissioning (active calibration ± standard errors), maintenance and the
+model–machine guard's verdict on its newest print come from :func:`care_fields` (through
+:mod:`ajtwin.store.calibration` and the print summary); pages show them when present.
 
 Parameters of the view
 ----------------------
@@ -30,11 +29,11 @@ Example
 from __future__ import annotations
 
 import json
-import sqlite3
 import threading
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import arrays as _arrays
@@ -60,22 +59,6 @@ NAMES = {
     "inputs": list(INPUT_SYMBOLS),
     "input_units": list(INPUT_UNITS),
     "key_states": list(KEY_STATES),
-}
-
-# Optional per-machine fields from other branches of the registry, by the names they are
-# expected under (machine row key or Registry method taking the machine name).
-_OPTIONAL_ROW_KEYS = {
-    "commissioned_at": "commissioned_at",
-    "calibrated_at": "calibrated_at",
-    "last_maintenance": "last_maintenance_at",
-    "mismatch": "mismatch",
-}
-_OPTIONAL_METHODS = {
-    "last_calibration": "calibrated_at",
-    "last_maintenance": "last_maintenance_at",
-    "maintenance_events": "maintenance_events",
-    "mismatch": "mismatch",
-    "mismatch_status": "mismatch",
 }
 
 
@@ -108,21 +91,71 @@ def binned_max(values, index) -> np.ndarray:
     return np.stack([np.nanmax(values[s : e + 1], axis=0) for s, e in zip(starts, index)])
 
 
-def optional_machine_fields(registry, row: dict) -> dict:
-    """Commissioning/maintenance/mismatch fields, when this registry has them."""
-    out = {}
-    for key, label in _OPTIONAL_ROW_KEYS.items():
-        if row.get(key) not in (None, ""):
-            out[label] = row[key]
-    for method, label in _OPTIONAL_METHODS.items():
-        func = getattr(registry, method, None)
-        if callable(func) and label not in out:
-            try:
-                value = func(row["name"])
-            except (RegistryError, TypeError, ValueError, sqlite3.Error):
-                continue
-            if value is not None and not (hasattr(value, "empty") and value.empty):
-                out[label] = value.to_dict("records") if hasattr(value, "to_dict") else value
+def care_fields(registry, name: str) -> dict:
+    """Commissioning, maintenance and the model–machine guard of machine ``name``.
+
+    Read through :mod:`ajtwin.store.calibration` and the newest print's summary (its
+    ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.mismatch.assess_run`).
+    Keys present only when there is something to show:
+
+    * ``commissioned_at`` — ISO time of the active (newest) calibration;
+    * ``calibration`` — that calibration: ``id``, ``source``, ``created_at`` and
+      ``parameters`` [{``name``, ``value``, ``std_error``, ``determined``}];
+    * ``last_maintenance_at`` — ISO time of the newest maintenance event, and
+      ``last_maintenance`` (what was done);
+    * ``mismatch`` — when the newest print's guard fired: ``seq``, ``message``,
+      ``outputs`` and ``states`` it names, ``first_s``, ``fixes``;
+      ``model_fit`` — ``{"seq", "ok"}`` whenever the newest print was checked.
+    """
+    from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
+    from ajtwin.store.calibration import active_calibration, maintenance_history
+
+    out: dict = {}
+    active = active_calibration(registry, name)
+    if active is not None:
+        values = calibration_to_dict(active["calibration"])
+        out["commissioned_at"] = active["created_at"]
+        out["calibration"] = {
+            "id": int(active["id"]),
+            "source": active["source"],
+            "created_at": active["created_at"],
+            "parameters": [
+                {
+                    "name": key,
+                    "value": float(values[key]),
+                    "std_error": None
+                    if active["std"].get(key) is None
+                    else float(active["std"][key]),
+                    "determined": bool(active["determined"].get(key, False)),
+                }
+                for key in CALIBRATION_NAMES
+            ],
+        }
+    events = maintenance_history(registry, name)
+    if not events.empty:
+        last = events.iloc[-1]
+        out["last_maintenance_at"] = str(last["created_at"])
+        done = [
+            "nozzle cleaned" if last.get("nozzle_cleaned") else "",
+            f"vial refilled to {last['vial_refilled_ml']:g} mL"
+            if pd.notna(last.get("vial_refilled_ml"))
+            else "",
+            "θ reset" if last.get("reset_theta") else "",
+        ]
+        out["last_maintenance"] = ", ".join(d for d in done if d)
+    newest = registry.last_print(name, in_chain=False)
+    guard = None if newest is None else newest["summary"].get("mismatch")
+    if isinstance(guard, dict):
+        out["model_fit"] = {"seq": int(newest["seq"]), "ok": not guard.get("mismatch")}
+        if guard.get("mismatch"):
+            out["mismatch"] = {
+                "seq": int(newest["seq"]),
+                "message": str(guard.get("message", "")),
+                "outputs": list(guard.get("outputs") or []),
+                "states": list(guard.get("states") or []),
+                "first_s": guard.get("first_s"),
+                "fixes": list(guard.get("fixes") or []),
+            }
     return out
 
 
@@ -250,7 +283,7 @@ class RegistryView:
                     entry["last_alarm"] = dict(alarm)
                     if alarm["seq"] == latest_seq:  # the machine's latest print alarmed
                         entry["status"] = "alarm"
-                entry.update(optional_machine_fields(self.registry, row))
+                entry.update(care_fields(self.registry, row["name"]))
                 if entry.get("mismatch") and entry["status"] != "alarm":
                     entry["status"] = "mismatch"
                 out.append(entry)
@@ -286,12 +319,7 @@ class RegistryView:
                         "status_reason": rec.get("status_reason", ""),
                     }
                 )
-            row = dict(
-                self.registry._conn.execute(
-                    "SELECT * FROM machines WHERE name = ?", (name,)
-                ).fetchone()
-            )
-            optional = optional_machine_fields(self.registry, row)
+            optional = care_fields(self.registry, machine["name"])
         out = {
             "name": machine["name"],
             "created_at": machine["created_at"],

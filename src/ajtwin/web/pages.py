@@ -117,6 +117,13 @@ def fleet_rows(machines: list[dict]) -> str:
         name = escape(m["name"])
         status = m["status"]
         badge = f'<span class="status {status}">{escape(STATUS_TEXT.get(status, status))}</span>'
+        mismatch = m.get("mismatch")
+        if mismatch:  # the newest print's model–machine guard fired: say on what
+            named = ", ".join(mismatch.get("outputs") or mismatch.get("states") or [])
+            badge += (
+                f'<br><span class="cause mismatch-of" title="{escape(mismatch["message"])}">'
+                f"{escape(named or 'model fit')} (print #{mismatch['seq']})</span>"
+            )
         last = m.get("last_print")
         if m.get("live"):
             now = "live" if m["live"].get("printing") else "live print ended"
@@ -153,12 +160,11 @@ def fleet_rows(machines: list[dict]) -> str:
         whatif = f'<a href="/whatif/{name}">what-if</a>' if last else ""
         care = []
         for key, label in (
-            ("commissioned_at", "commissioned"),
-            ("calibrated_at", "calibrated"),
-            ("last_maintenance_at", "maintained"),
+            ("commissioned_at", "last commissioned"),
+            ("last_maintenance_at", "last maintained"),
         ):
             if m.get(key):
-                care.append(f"{label} {_when(str(m[key]))}")
+                care.append(f'<span class="care">{label} {_when(str(m[key]))}</span>')
         care_cell = "<br>".join(care) if care else '<span class="dim">not recorded</span>'
         rows.append(
             f'<tr data-machine="{name}" data-status="{escape(status)}">'
@@ -183,9 +189,10 @@ def fleet_page(machines: list[dict], store: str) -> str:
 {fleet_rows(machines)}
 </tbody></table>
 <p class="dim small">Status: <b>alarm</b> = the last print (or the live one) raised an alarm;
-<b>printing</b> = live samples within the last 30 s; <b>mismatch</b> = the registry flags the
-model as not matching the machine. States are the twin's estimate at the end of the last print
-(live: now); the line is their course over that print.</p>
+<b>printing</b> = live samples within the last 30 s; <b>mismatch</b> = the model–machine guard
+fired on the newest print (the outputs it names beneath; commission the machine). States are
+the twin's estimate at the end of the last print (live: now); the line is their course over
+that print.</p>
 """
     return _page("Fleet", body, "fleet", plots=False)
 

@@ -177,8 +177,18 @@ class BackgroundServer:
             time.sleep(0.05)
 
     def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop serving; an open page's websocket must not keep the thread alive.
+
+        A graceful exit waits for open connections (a page left open never closes its
+        websocket), so after half the bound uvicorn is told to exit without waiting.
+        """
         self._server.should_exit = True
-        self._thread.join(timeout_s)
+        self._thread.join(min(1.0, timeout_s / 2))
+        if self._thread.is_alive():
+            self._server.force_exit = True
+            self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            raise RuntimeError(f"dashboard on port {self.port} did not stop in {timeout_s:g} s")
 
 
 def launch_chromium(playwright, user_data_dir=None):

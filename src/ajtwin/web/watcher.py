@@ -53,6 +53,12 @@ class RegistryWatcher:
         while True:
             try:
                 await asyncio.to_thread(self.check)
+            except RuntimeError as exc:
+                # the interpreter is exiting under a server thread that is still up (its
+                # worker pool is gone): nothing left to watch for, and no one to tell
+                if "after shutdown" in str(exc):
+                    return
+                log.exception("registry watcher: check failed")
             except Exception:  # a locked or briefly unreadable file: try next tick
                 log.exception("registry watcher: check failed")
             self.ticks += 1

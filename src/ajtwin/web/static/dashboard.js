@@ -217,17 +217,32 @@ function machinePage() {
       c.append(el("div", { class: "dim" }, "± " + fmt(2 * std[i], 2) + " (2σ) · " + where));
       box.append(c);
     });
-    const extra = [["commissioned_at", "commissioned"], ["calibrated_at", "calibrated"],
-      ["last_maintenance_at", "maintained"]];
+    const extra = [["commissioned_at", "last commissioned"], ["last_maintenance_at", "last maintained"]];
     for (const [k, label] of extra) if (m[k]) {
       const c = el("div", { class: "card" });
       c.append(el("div", { class: "dim" }, label)); c.append(el("div", {}, String(m[k])));
+      if (k === "last_maintenance_at" && m.last_maintenance) c.append(el("div", { class: "dim" }, m.last_maintenance));
       box.append(c);
     }
     if (m.mismatch) {
-      const c = el("div", { class: "card" });
-      c.append(el("div", { class: "dim" }, "model–machine mismatch"));
-      c.append(el("div", { class: "cause" }, typeof m.mismatch === "object" ? JSON.stringify(m.mismatch) : String(m.mismatch)));
+      const c = el("div", { class: "card mismatch", id: "mismatch" });
+      c.append(el("div", { class: "dim" }, "model–machine mismatch, print #" + m.mismatch.seq));
+      c.append(el("div", { class: "cause" }, m.mismatch.message));
+      box.append(c);
+    }
+    if (m.calibration) {
+      const cal = m.calibration;
+      const c = el("div", { class: "card calibration", id: "calibration" });
+      c.append(el("div", { class: "dim" }, "active calibration " + cal.id + " · " + cal.source + " · " + cal.created_at));
+      const t = el("table", { class: "grid small" });
+      for (const p of cal.parameters) {
+        const tr = el("tr", p.determined ? {} : { class: "dim", title: "not determined by the print (prior)" });
+        tr.append(el("td", {}, p.name));
+        tr.append(el("td", { class: "num" }, fmt(p.value, 4)));
+        tr.append(el("td", { class: "num" }, p.std_error == null ? "" : "± " + fmt(p.std_error, 2)));
+        t.append(tr);
+      }
+      c.append(t);
       box.append(c);
     }
   }

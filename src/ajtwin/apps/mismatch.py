@@ -1,0 +1,305 @@
+"""The model–machine mismatch guard: the twin never turns a misfit into silent nonsense.
+
+When the packaged (or calibrated) model does not describe the machine, the EKF still
+returns numbers: a line model 30 µm off drives d_a to 0.2 µm, gauges reading 8 % high
+appear as a 0.15 µm nozzle deposit from the first minute. This guard reads one run of
+the twin and says, per second and for the print, whether the model fits:
+
+* **physical range** — any filtered state outside :class:`~ajtwin.model.limits.StateLimits`;
+* **persistent innovation bias** — the rolling mean of an output's normalised
+  innovations e = ν/√S over ``bias_window_s`` beyond ``bias_sigma`` (white, well-modelled
+  innovations average to ~0; the twin's process noise absorbs a fault only slowly, a
+  structural misfit never);
+* **windowed NIS far from 1** — the rolling mean of NIS per measured output outside
+  [``nis_low``, ``nis_high``];
+* **start surprise** — in the first ``start_window_s`` a state the start prior holds
+  (fill, deposits) moves more than ``start_sigma`` prior σ: a clean nozzle cannot clog
+  in a minute, so pressures that say so are a gauge or plumbing misfit.
+
+Each finding names the output(s)/state(s) and the likely fix. Thresholds:
+``data/mismatch.toml`` (with how they were set). A mismatch is not a fault of the
+print: :func:`relabel_events` marks anomaly events it explains.
+
+Examples
+--------
+>>> import numpy as np
+>>> e = np.zeros((400, 5)); e[:, 2] = 1.5      # P_c persistently 1.5 σ above the model
+>>> s = assess(np.arange(400.0), np.tile([3.5, 1, 0, 0.01, 4.6e-7], (400, 1)), e,
+...            np.full(400, 5.0), np.full(400, 5))
+>>> s.mismatch, s.outputs
+(True, ['carrier_pressure_Pa'])
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+
+import numpy as np
+
+from ajtwin.model.system import OUTPUT_NAMES, STATE_NAMES
+
+#: Likely fix per output / state.
+FIXES = {
+    "linewidth_um": "commission the machine (line-model offset/gain) or recalibrate the camera "
+    "(µm per pixel)",
+    "overspray_um": "commission the machine (line-model offset/gain) or recalibrate the camera "
+    "(µm per pixel)",
+    "carrier_pressure_Pa": "check the carrier pressure gauge (zero and span) and the carrier "
+    "line, then commission the machine",
+    "sheath_pressure_Pa": "check the sheath pressure gauge (zero and span) and the sheath line, "
+    "then commission the machine",
+    "material_flow_mL_s": "recalibrate the height-profile CNN / platen speed (Q_m gain) or "
+    "commission the machine",
+    "droplet_diameter_um": "commission the machine: the line model does not fit (d_a absorbs it)",
+    "aerosol_fraction": "commission the machine: Q_m or the line model does not fit",
+    "vial_volume_mL": "check the vial fill entered for this print",
+    "tube_deposition_um": "check the pressure gauges or commission the machine",
+    "nozzle_deposition_um": "check the pressure gauges (zero and span) or commission the "
+    "machine; if the nozzle was not cleaned, record it (`ajtwin machine maintain`)",
+    "nis": "commission the machine (the noise and output model do not fit its data)",
+}
+
+
+def load_guard_settings() -> dict:
+    with (resources.files("ajtwin") / "data" / "mismatch.toml").open("rb") as handle:
+        return tomllib.load(handle)["guard"]
+
+
+@dataclass
+class MismatchStatus:
+    """The guard's verdict on one print (JSON-friendly via :meth:`to_dict`)."""
+
+    mismatch: bool
+    first_s: float | None  # time of the first finding
+    outputs: list = field(default_factory=list)  # outputs that do not fit
+    states: list = field(default_factory=list)  # states out of range / surprising
+    reasons: list = field(default_factory=list)  # one sentence per finding
+    fixes: list = field(default_factory=list)
+    message: str = "the model fits this machine"
+    flags: np.ndarray = None  # (T,) bool: a finding holds at this second
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out.pop("flags")
+        return out
+
+
+def _rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over ``window`` rows ignoring NaN (NaN where nothing was measured)."""
+    values = np.asarray(values, dtype=float)
+    finite = np.isfinite(values)
+    filled = np.where(finite, values, 0.0)
+    csum = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(filled, axis=0)])
+    ccount = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(finite, axis=0)])
+    idx = np.arange(1, len(values) + 1)
+    lo = np.maximum(idx - int(window), 0)
+    total = csum[idx] - csum[lo]
+    count = ccount[idx] - ccount[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def assess(
+    time_s,
+    means,
+    normalised_innovations,
+    nis,
+    n_measured,
+    *,
+    start_mean=None,
+    start_cov=None,
+    limits=None,
+    settings: dict | None = None,
+) -> MismatchStatus:
+    """Run the guard's four tests (module docstring) over one print.
+
+    Parameters
+    ----------
+    time_s : (T,) ; means : (T, 5) filtered states (display units)
+    normalised_innovations : (T, 5) e = ν/√S (NaN where not measured)
+    nis, n_measured : (T,)
+    start_mean, start_cov : (5,), (5, 5), optional
+        The print's start prior (for the start-surprise test).
+    limits : StateLimits, optional
+        Default: ``data/state_limits.toml`` with the packaged parameters.
+    """
+    from ajtwin.model import load_parameters
+    from ajtwin.model.limits import StateLimits
+
+    g = settings or load_guard_settings()
+    t = np.asarray(time_s, dtype=float)
+    t = t - t[0]
+    means = np.asarray(means, dtype=float)
+    e = np.asarray(normalised_innovations, dtype=float)
+    n = len(t)
+    limits = limits or StateLimits.load(load_parameters())
+    active = t >= float(g["warmup_s"])
+    flags = np.zeros(n, dtype=bool)
+    findings = []  # (first index, kind, name, sentence)
+
+    def first(mask):
+        hits = np.flatnonzero(mask & active)
+        return int(hits[0]) if hits.size else None
+
+    inside = limits.inside(means)
+    for i, name in enumerate(STATE_NAMES):
+        k = first(~inside[:, i])
+        if k is not None:
+            flags |= ~inside[:, i] & active
+            findings.append((k, "state", name, f"{limits.violations(means[k])[0]} at {t[k]:.0f} s"))
+
+    bias = _rolling_mean(e, int(g["bias_window_s"]))
+    # a bias needs a full window of evidence (or the print so far, after warm-up)
+    for j, name in enumerate(OUTPUT_NAMES):
+        mask = np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])
+        k = first(mask)
+        if k is not None:
+            flags |= mask & active
+            direction = "above" if bias[k, j] > 0 else "below"
+            findings.append(
+                (
+                    k,
+                    "output",
+                    name,
+                    f"{name} persistently {direction} the model ({bias[k, j]:+.2f} σ mean "
+                    f"over {int(g['bias_window_s'])} s) from {t[k]:.0f} s",
+                )
+            )
+
+    per_output = np.asarray(nis, dtype=float) / np.maximum(np.asarray(n_measured, float), 1)
+    rolling_nis = _rolling_mean(per_output[:, None], int(g["nis_window_s"]))[:, 0]
+    full = t >= min(float(g["nis_window_s"]), max(t[-1], 0.0))
+    mask = full & ((rolling_nis < float(g["nis_low"])) | (rolling_nis > float(g["nis_high"])))
+    k = first(mask)
+    if k is not None:
+        flags |= mask & active
+        findings.append(
+            (
+                k,
+                "nis",
+                "nis",
+                f"mean NIS per output {rolling_nis[k]:.2f} over {int(g['nis_window_s'])} s "
+                f"(1 = consistent; allowed {g['nis_low']}–{g['nis_high']}) at {t[k]:.0f} s",
+            )
+        )
+
+    if start_mean is not None and start_cov is not None:
+        sd = np.sqrt(np.maximum(np.diag(np.asarray(start_cov, float)), 1e-300))
+        z = np.abs(means - np.asarray(start_mean, float)) / sd
+        window = t <= float(g["start_window_s"])
+        for name in g["start_states"]:
+            i = STATE_NAMES.index(name)
+            mask = window & (z[:, i] > float(g["start_sigma"]))
+            k = first(mask)
+            if k is not None:
+                flags |= mask & active
+                findings.append(
+                    (
+                        k,
+                        "state",
+                        name,
+                        f"{name} moved {z[k, i]:.1f} prior σ within {t[k]:.0f} s of the start "
+                        f"({start_mean[i]:.4g} → {means[k, i]:.4g}): faster than the machine "
+                        "can change",
+                    )
+                )
+
+    if not findings:
+        return MismatchStatus(False, None, flags=flags)
+    findings.sort(key=lambda f: f[0])
+    outputs = sorted({f[2] for f in findings if f[1] == "output"}, key=OUTPUT_NAMES.index)
+    states = sorted({f[2] for f in findings if f[1] == "state"}, key=STATE_NAMES.index)
+    names = [f[2] for f in findings]
+    fixes = list(dict.fromkeys(FIXES[nm] for nm in names))
+    reasons = [f[3] for f in findings]
+    message = (
+        "model–machine mismatch: "
+        + "; ".join(reasons[:3])
+        + (f" (+{len(reasons) - 3} more)" if len(reasons) > 3 else "")
+        + ". Likely fix: "
+        + "; ".join(fixes[:2])
+    )
+    return MismatchStatus(
+        True, float(t[findings[0][0]]), outputs, states, reasons, fixes, message, flags
+    )
+
+
+def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
+    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+    from ajtwin.apps.anomaly import normalised_innovations
+
+    f = run.filtered
+    e = normalised_innovations(
+        record.outputs, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
+    )
+    return assess(
+        run.time_s,
+        run.means,
+        e,
+        np.asarray(f.nis),
+        np.asarray(f.n_measured),
+        start_mean=run.start_mean,
+        start_cov=run.start_cov,
+        settings=settings,
+    )
+
+
+MISMATCH_CAUSE = "model_machine_mismatch"
+
+_SHORT = dict(zip(OUTPUT_NAMES, ("L_w", "L_o", "P_c", "P_s", "Q_m"), strict=True))
+#: outputs whose misfit a state's misfit stands for
+_STATE_OUTPUTS = {
+    "droplet_diameter_um": {"L_w", "L_o"},
+    "aerosol_fraction": {"L_w", "L_o", "Q_m"},
+    "vial_volume_mL": {"Q_m"},
+    "tube_deposition_um": {"P_c", "P_s"},
+    "nozzle_deposition_um": {"P_c", "P_s"},
+}
+
+
+def _mismatch_channels(status: MismatchStatus) -> set:
+    channels = {_SHORT[o] for o in status.outputs}
+    for state in status.states:
+        channels |= _STATE_OUTPUTS.get(state, set())
+    return channels
+
+
+def _event_channels(event) -> set:
+    """Outputs an anomaly event's detectors fired on (``"cusum+ P_c"``, ``"P_c+P_s"``)."""
+    channels = set()
+    for detector in event.detectors:
+        for short in _SHORT.values():
+            if short in detector:
+                channels.add(short)
+    return channels
+
+
+def relabel_events(events: list, status: MismatchStatus) -> list:
+    """Anomaly events explained by a mismatch get the cause ``model_machine_mismatch``.
+
+    An event is explained when the guard's first finding came no later than the event's
+    onset and either the event begins in the guard's start window or its detectors fired
+    on an output the mismatch names: the detectors then see the misfit, not a new fault.
+    A fault that begins later on other outputs, or on a machine that fitted, keeps its
+    label (a clog stays a clog).
+    """
+    if not status.mismatch or status.first_s is None:
+        return events
+    g = load_guard_settings()
+    # a misfit found in the start window was there from the start
+    start = float(g["warmup_s"]) + float(g["start_window_s"])
+    misfit = _mismatch_channels(status)
+    out = []
+    for ev in events:
+        found_first = status.first_s <= max(float(ev.onset_s), start) + 1.0
+        # at the start every alarm is the misfit; later only alarms on the misfit outputs
+        same_outputs = bool(_event_channels(ev) & misfit)
+        explained = found_first and (float(ev.onset_s) <= start or same_outputs)
+        if explained and ev.cause != MISMATCH_CAUSE:
+            ev.evidence = {**ev.evidence, "relabelled_from": ev.cause}
+            ev.cause = MISMATCH_CAUSE
+            ev.description = f"model–machine mismatch, not a fault: {status.message}"
+        out.append(ev)
+    return out

@@ -1,0 +1,90 @@
+"""How uncertain the states are because the machine's calibration is (honest bands).
+
+Commissioning knows the calibration c only to its covariance Σ_c (the line offset to a
+few µm, say). The twin runs with the fitted c as if it were exact, so its filter
+covariance P_k misses a systematic part: a line offset off by δo makes d_a off by
+about δo / (g α^da) for the whole print, however many samples arrive.
+
+For a constant calibration error δc the filter settles where its gain-weighted
+innovations vanish, K_k (G_k δc − H_k δx) = 0, so
+
+    δx_k = A_k δc,   A_k = (K_k H_k)⁺ K_k G_k,   C_k = A_k Σ_c A_kᵀ,
+
+with H_k = ∂g/∂x, G_k = ∂g/∂c at the filtered state, K_k = P_{k|k−1} Hᵀ S⁻¹ the filter's
+gain, ⁺ a pseudo-inverse that drops the directions the outputs do not see (those states
+are not moved by a calibration error). The vial, seen by no output, integrates the
+aerosol (dV_l/dt = −φ_A Q_c), so its row is A_k[V_l] = −Σ_{j<k} A_j[φ_A] Q_c,j Δt.
+The reported covariance is P_k + C_k.
+Computed in the filter's scaled coordinates (states span 15 orders of magnitude).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ajtwin import units
+from ajtwin._jax import jax, jnp
+from ajtwin.model.calibration import (
+    CalibratedCoefficients,
+    calibration_from_vector,
+    calibration_vector,
+)
+
+#: Singular values of K H below this fraction of the largest are treated as unseen.
+RCOND = 1e-4
+
+
+def calibration_state_covariance(
+    spec, filtered, inputs, measurement_var, calibration_cov, functions
+) -> np.ndarray:
+    """C_k (T, 5, 5), display units: the state covariance the calibration error adds.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        With ``CalibratedCoefficients`` (the fitted calibration).
+    filtered : FilterResult
+    inputs : (T, 3)
+    measurement_var : (5,)
+        Σ_w diagonal the filter used.
+    calibration_cov : (11, 11)
+        Σ_c from commissioning (display units).
+    functions : ModelFunctions
+    """
+    coefficients = spec.coefficients
+    if not isinstance(coefficients, CalibratedCoefficients):
+        raise ValueError("calibration_state_covariance needs a calibrated ModelSpec")
+    s = np.asarray(spec.scaling.state)
+    r = np.asarray(spec.scaling.output)
+    c0 = calibration_vector(coefficients.calibration)
+    line = coefficients.line
+
+    def g(x, u, c):
+        return functions.output(
+            x, u, spec.params, CalibratedCoefficients(line, calibration_from_vector(c))
+        )
+
+    means = jnp.asarray(filtered.means)
+    u = jnp.asarray(inputs, dtype=float)
+    h = np.asarray(jax.vmap(jax.jacfwd(g, argnums=0), in_axes=(0, 0, None))(means, u, c0))
+    gc = np.asarray(jax.vmap(jax.jacfwd(g, argnums=2), in_axes=(0, 0, None))(means, u, c0))
+    # scaled coordinates: z = x/s, η = y/r
+    h_s = h * s[None, None, :] / r[None, :, None]
+    g_s = gc / r[None, :, None]
+    p_pred = np.asarray(filtered.predicted_covariances) / np.outer(s, s)[None]
+    r_s = np.diag(np.asarray(measurement_var, float) / r**2)
+    cal_cov = np.asarray(calibration_cov, dtype=float)
+    sensitivity = np.zeros((len(p_pred), len(s), cal_cov.shape[0]))  # A_k, scaled states
+    for k in range(len(p_pred)):
+        hk, pk = h_s[k], p_pred[k]
+        gain = np.linalg.solve(hk @ pk @ hk.T + r_s, hk @ pk).T  # K = P Hᵀ S⁻¹
+        sensitivity[k] = np.linalg.pinv(gain @ hk, rcond=RCOND) @ gain @ g_s[k]
+    # the vial is seen by no output, but it integrates the aerosol: dV_l/dt = −φ_A Q_c, so
+    # a calibration error that biases φ_A drains the estimated vial by Σ δφ_A Q_c Δt
+    carrier_ml_s = np.asarray(units.sccm_to_ml_per_s(np.asarray(inputs, dtype=float)[:, 1]))
+    dt = float(spec.dt)
+    drain = np.cumsum(sensitivity[:, 4, :] * (s[4] * carrier_ml_s * dt)[:, None], axis=0)
+    drain = np.concatenate([np.zeros_like(drain[:1]), drain[:-1]])
+    sensitivity[:, 1, :] -= drain / s[1]
+    out = np.einsum("tic,cd,tjd->tij", sensitivity, cal_cov, sensitivity)
+    return out * np.outer(s, s)[None]

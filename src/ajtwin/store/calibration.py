@@ -1,0 +1,309 @@
+"""Per-machine calibrations and maintenance events in the registry (SPEC §11).
+
+Two tables of the registry (schema migration 4 of :mod:`ajtwin.store.registry`; export,
+import and compact carry them like the prints):
+
+* ``calibrations`` — every commissioning of a machine with its provenance: the print it
+  was fitted from, when, the priors, the standard errors, which parameters the print
+  determined, and the machine's state when commissioning ended. The newest row is the
+  active calibration; re-commissioning adds a row, so the history is kept.
+* ``maintenance_events`` — nozzle cleaned, vial refilled, θ reset: applied to the start
+  state of the next ingested print and kept as history.
+
+Persist and read only: the fitting lives in :mod:`ajtwin.estimation.commission`.
+
+Examples
+--------
+>>> import tempfile, os
+>>> from ajtwin.store.registry import Registry
+>>> reg = Registry(os.path.join(tempfile.mkdtemp(), "r.sqlite"))
+>>> _ = reg.add_machine("aj1")
+>>> active_calibration(reg, "aj1") is None
+True
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import time
+
+import numpy as np
+import pandas as pd
+
+from ajtwin.model.calibration import Calibration, calibration_from_dict, calibration_to_dict
+from ajtwin.store.registry import _CALIBRATION_SCHEMA
+
+# created by the registry's schema migration 4; kept here for registries opened before it
+_TABLES = _CALIBRATION_SCHEMA
+
+
+def _has_tables(registry) -> bool:
+    rows = registry._conn.execute(
+        "SELECT name FROM sqlite_master WHERE type = 'table' AND name IN "
+        "('calibrations', 'maintenance_events')"
+    ).fetchall()
+    return len(rows) == 2
+
+
+def ensure_tables(registry) -> None:
+    """Create the calibration tables if this registry does not have them (every registry
+    opened by :class:`~ajtwin.store.registry.Registry` has them since schema 4; this
+    covers a connection whose tables were dropped or a hand-made registry)."""
+    conn = registry._conn
+    if _has_tables(registry):
+        return
+    if conn.in_transaction:  # inside a caller's transaction: add them there
+        for statement in _TABLES.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        return
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        for statement in _TABLES.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+    except Exception:
+        conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def _now() -> tuple[str, float]:
+    now = time.time()
+    return _dt.datetime.fromtimestamp(now, _dt.UTC).isoformat(timespec="seconds"), now
+
+
+def _last_seq(registry, machine: str) -> int:
+    # the newest print, in the chain or not: events and calibrations come after it
+    last = registry.last_print(machine, in_chain=False)
+    return 0 if last is None else int(last["seq"])
+
+
+def save_calibration(registry, machine: str, result, source: str) -> int:
+    """Store a :class:`~ajtwin.estimation.commission.CommissioningResult`; returns its id."""
+    ensure_tables(registry)
+    machine_id = registry.machine(machine)["id"]
+    created_at, unix = _now()
+    cur = registry._conn.execute(
+        "INSERT INTO calibrations (machine_id, created_at, created_unix, source, after_print_seq,"
+        " calibration_json, std_json, prior_std_json, determined_json, priors_json, notes_json,"
+        " end_mean_json, end_cov_json, calibration_cov_json, noise_factors_json)"
+        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        (
+            machine_id,
+            created_at,
+            unix,
+            source,
+            _last_seq(registry, machine),
+            json.dumps(calibration_to_dict(result.calibration)),
+            json.dumps(result.std),
+            json.dumps(result.prior_std),
+            json.dumps(result.determined),
+            json.dumps(result.priors),
+            json.dumps(result.notes),
+            json.dumps(np.asarray(result.end_state, float).tolist()),
+            json.dumps(np.asarray(result.end_state_cov, float).tolist()),
+            json.dumps(np.asarray(result.calibration_cov, float).tolist()),
+            json.dumps(
+                None if result.noise_factors is None else np.asarray(result.noise_factors).tolist()
+            ),
+        ),
+    )
+    return int(cur.lastrowid)
+
+
+def _calibration_row(row) -> dict:
+    out = dict(row)
+    for key in list(out):
+        if key.endswith("_json"):
+            out[key.removesuffix("_json")] = json.loads(out.pop(key))
+    out["calibration"] = calibration_from_dict(out["calibration"], "registry calibration")
+    out["end_mean"] = np.asarray(out["end_mean"], float)
+    out["end_cov"] = np.asarray(out["end_cov"], float)
+    out["calibration_cov"] = np.asarray(out["calibration_cov"], float)
+    return out
+
+
+def active_calibration(registry, machine: str) -> dict | None:
+    """The newest calibration of a machine (dict with ``calibration``, provenance) or None."""
+    machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return None
+    row = registry._conn.execute(
+        "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id DESC LIMIT 1", (machine_id,)
+    ).fetchone()
+    return None if row is None else _calibration_row(row)
+
+
+def calibration_history(registry, machine: str) -> pd.DataFrame:
+    """One row per commissioning (oldest first): date, source, parameters, std errors."""
+    machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return pd.DataFrame()
+    rows = registry._conn.execute(
+        "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id", (machine_id,)
+    ).fetchall()
+    table = []
+    for row in rows:
+        r = _calibration_row(row)
+        entry = {"id": r["id"], "created_at": r["created_at"], "source": r["source"]}
+        entry.update(calibration_to_dict(r["calibration"]))
+        entry.update({f"{k}_se": v for k, v in r["std"].items()})
+        table.append(entry)
+    return pd.DataFrame(table)
+
+
+def record_maintenance(
+    registry,
+    machine: str,
+    *,
+    nozzle_cleaned: bool = False,
+    vial_refilled_ml: float | None = None,
+    reset_theta: bool = False,
+    note: str = "",
+) -> dict:
+    """Store a maintenance event; the next ingest applies it (:func:`apply_maintenance`)."""
+    if not (nozzle_cleaned or vial_refilled_ml is not None or reset_theta):
+        raise ValueError(
+            "a maintenance event must name what was done: --nozzle-cleaned, "
+            "--vial-refilled ML or --reset-theta"
+        )
+    if vial_refilled_ml is not None and not (0 < float(vial_refilled_ml) < 3.0):
+        raise ValueError(f"--vial-refilled {vial_refilled_ml}: the fill must be in (0, 3) mL")
+    ensure_tables(registry)
+    machine_id = registry.machine(machine)["id"]
+    event = {
+        "nozzle_cleaned": bool(nozzle_cleaned),
+        "vial_refilled_ml": None if vial_refilled_ml is None else float(vial_refilled_ml),
+        "reset_theta": bool(reset_theta),
+        "note": note,
+    }
+    created_at, unix = _now()
+    registry._conn.execute(
+        "INSERT INTO maintenance_events (machine_id, created_at, created_unix, after_print_seq,"
+        " event_json) VALUES (?, ?, ?, ?, ?)",
+        (machine_id, created_at, unix, _last_seq(registry, machine), json.dumps(event)),
+    )
+    return {"created_at": created_at, **event}
+
+
+def maintenance_history(registry, machine: str) -> pd.DataFrame:
+    machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return pd.DataFrame()
+    rows = registry._conn.execute(
+        "SELECT * FROM maintenance_events WHERE machine_id = ? ORDER BY id", (machine_id,)
+    ).fetchall()
+    return pd.DataFrame(
+        [
+            {"id": r["id"], "created_at": r["created_at"], "after_print_seq": r["after_print_seq"]}
+            | json.loads(r["event_json"])
+            for r in rows
+        ]
+    )
+
+
+def pending_maintenance(registry, machine: str, since_unix: float = 0.0) -> list[dict]:
+    """Maintenance events done after the machine's last print (and after ``since_unix``)."""
+    machine_id = registry.machine(machine)["id"]
+    if not _has_tables(registry):
+        return []
+    rows = registry._conn.execute(
+        "SELECT * FROM maintenance_events WHERE machine_id = ? AND after_print_seq = ? "
+        "AND created_unix >= ? ORDER BY id",
+        (machine_id, _last_seq(registry, machine), since_unix),
+    ).fetchall()
+    return [json.loads(r["event_json"]) for r in rows]
+
+
+#: Prior σ of a cleaned nozzle deposit [µm] and a weighed refill [mL] (as commissioning).
+def _maintenance_priors() -> tuple[float, float]:
+    from ajtwin.estimation.commission import load_commissioning_settings
+
+    prior = load_commissioning_settings()["state_prior"]
+    return prior["nozzle_deposition_um"]["std"], prior["vial_volume_std_mL"]["value"]
+
+
+def apply_maintenance(mean, cov, theta, events: list[dict]):
+    """Start state (mean (5,), cov (5, 5)) and θ (5,) after maintenance events.
+
+    Nozzle cleaned: ΔR_N → 0 with the cleaned-nozzle prior σ, uncorrelated with the rest
+    (and θ_RN → 0: a clog learned into θ must not carry on). Vial refilled: V_l → fill
+    with the weighing σ. Reset θ: θ → 0.
+    """
+    mean = np.array(mean, dtype=float)
+    cov = np.array(cov, dtype=float)
+    theta = np.array(theta, dtype=float)
+    nozzle_std, vial_std = _maintenance_priors()
+
+    def reset(index, value, std):
+        mean[index] = value
+        cov[index, :] = 0.0
+        cov[:, index] = 0.0
+        cov[index, index] = std**2
+
+    for event in events:
+        if event.get("nozzle_cleaned"):
+            reset(3, 0.0, nozzle_std)
+            theta[3] = 0.0
+        if event.get("vial_refilled_ml") is not None:
+            reset(1, float(event["vial_refilled_ml"]), vial_std)
+        if event.get("reset_theta"):
+            theta[:] = 0.0
+    return mean, cov, theta
+
+
+def calibration_or_none(registry, machine: str) -> Calibration | None:
+    active = active_calibration(registry, machine)
+    return None if active is None else active["calibration"]
+
+
+def machine_start(registry, machine: str, chain, twin_overrides: dict | None = None) -> dict:
+    """How the machine's next print starts, on top of the chain's start (SPEC §11).
+
+    The newest calibration (if any) and its noise factors and covariance; if it was fitted
+    after the newest print, the start is where commissioning left the machine; maintenance
+    events done since are applied (:func:`apply_maintenance`). Returns a dict with
+    ``start`` ((mean, cov) or None), ``theta`` (5,), ``twin_kwargs`` (for
+    :meth:`Twin.default`), ``started_from``, ``calibration_id``, ``maintenance``.
+    """
+    from ajtwin.store.chain import carry_over
+
+    start = chain.start
+    theta = np.zeros(5) if chain.theta is None else np.asarray(chain.theta, dtype=float)
+    started_from = chain.description
+    active = active_calibration(registry, machine)
+    overrides = dict(twin_overrides or {})
+    latest = 0 if chain.latest_seq is None else chain.latest_seq
+    since = 0.0
+    if active is not None and active["after_print_seq"] >= latest:
+        # commissioned since the last print: start where commissioning left the machine
+        start = carry_over(active["end_mean"], active["end_cov"])
+        since = active["created_unix"]
+        started_from = f"commissioning {active['id']}"
+    events = pending_maintenance(registry, machine, since)
+    if events:
+        if start is None:
+            refills = [e["vial_refilled_ml"] for e in events if e["vial_refilled_ml"] is not None]
+            if refills:
+                overrides.setdefault("vial_fill_ml", refills[-1])
+        else:
+            mean, cov, theta = apply_maintenance(start[0], start[1], theta, events)
+            start = (mean, cov)
+        started_from += " + maintenance"
+    twin_kwargs = dict(overrides)
+    if active is not None:
+        twin_kwargs.update(
+            calibration=active["calibration"],
+            calibration_cov=active["calibration_cov"],
+            noise_factors=active.get("noise_factors"),
+        )
+    return {
+        "start": start,
+        "theta": theta,
+        "twin_kwargs": twin_kwargs,
+        "started_from": started_from,
+        "calibration_id": None if active is None else int(active["id"]),
+        "maintenance": events,
+    }

@@ -1,0 +1,185 @@
+"""Issue 12: the model–machine mismatch guard, commissioned clogs, maintenance events."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ajtwin.apps.anomaly import detect_run
+from ajtwin.apps.mismatch import MISMATCH_CAUSE, assess, assess_run, relabel_events
+from ajtwin.estimation.commission import commission
+from ajtwin.estimation.twin import Twin
+from ajtwin.simulation.machine import MachineDeviation
+from ajtwin.simulation.printer import simulate
+
+LINE_OFFSET = MachineDeviation(name="line-30", linewidth_offset_um=-30.0)
+GAUGE_GAIN = MachineDeviation(name="gauge+8%", carrier_gauge_gain=1.08, sheath_gauge_gain=1.08)
+
+
+def _guard(record, twin=None, start=None):
+    run = (twin or Twin.default()).run(record, start=start)
+    return run, assess_run(run, record)
+
+
+def test_guard_unit_bias_and_range():
+    n = 400
+    t = np.arange(float(n))
+    x = np.tile([3.5, 1.0, 0.0, 0.01, 4.6e-7], (n, 1))
+    e = np.random.default_rng(0).standard_normal((n, 5)) * 0.3
+    quiet = assess(t, x, e, np.full(n, 5.0), np.full(n, 5))
+    assert not quiet.mismatch and quiet.first_s is None
+    biased = e.copy()
+    biased[200:, 1] += 2.0  # overspray 2 σ above the model from 200 s
+    status = assess(t, x, biased, np.full(n, 5.0), np.full(n, 5))
+    assert status.mismatch and status.outputs == ["overspray_um"]
+    assert 200 <= status.first_s <= 200 + 300  # needs its window of evidence
+    bad = x.copy()
+    bad[100:, 1] = -2.35  # the issue's negative vial
+    status = assess(t, bad, e, np.full(n, 5.0), np.full(n, 5))
+    assert status.states == ["vial_volume_mL"] and status.first_s == 100.0
+
+
+@pytest.mark.parametrize(
+    "machine, expect_output, expect_state",
+    [
+        (LINE_OFFSET, "overspray_um", "droplet_diameter_um"),
+        (GAUGE_GAIN, None, "nozzle_deposition_um"),
+    ],
+    ids=["line_offset_-30um", "pressure_gain_+8%"],
+)
+def test_guard_fires_on_the_issues_two_failures_within_5_min(machine, expect_output, expect_state):
+    record = simulate("exp1", seed=301, duration_min=6.0, machine=machine)
+    _, status = _guard(record)
+    assert status.mismatch
+    assert status.first_s <= 300.0
+    assert expect_state in status.states
+    if expect_output:
+        assert expect_output in status.outputs
+    assert "commission" in status.message
+
+
+def test_guard_is_silent_on_the_nominal_machine():
+    record = simulate("exp1", seed=301, duration_min=12.0)
+    _, status = _guard(record)
+    assert not status.mismatch, status.message
+    assert not status.flags.any()
+
+
+def test_clog_on_a_commissioned_machine_is_detected_and_labelled():
+    # commission machine seed 3, then print on it with a clog 5 min into the print
+    commissioning = simulate("commissioning", seed=21, machine_seed=3)
+    result = commission(commissioning, known={"droplet_diameter_um": (3.45, 0.2)})
+    clog = simulate(
+        "nozzle_clog",
+        seed=22,
+        duration_min=12.0,
+        continue_from=commissioning,
+        overrides={"fault": {"onset_min": 5.0}},
+    )
+    assert clog.meta["machine"]["name"] == "seed-3"  # the same machine prints again
+    twin = Twin.default(calibration=result.calibration)
+    run, status = _guard(clog, twin, start=(result.end_state, result.end_state_cov))
+    events = relabel_events(detect_run(run, clog).events, status)
+    onset = clog.meta["fault_onset_s"]
+    clogs = [ev for ev in events if ev.cause == "nozzle_clog"]
+    assert clogs, [(ev.cause, ev.detected_s) for ev in events]
+    assert clogs[0].detected_s - onset <= 60.0
+    assert not [ev for ev in events if ev.detected_s < onset]  # nothing before the clog
+    # the same print read with the nominal model: the guard says mismatch instead
+    _, uncommissioned = _guard(clog)
+    assert uncommissioned.mismatch and uncommissioned.first_s <= 300.0
+
+
+def test_mismatch_relabels_start_events_but_not_later_faults():
+    from ajtwin.apps.anomaly import AnomalyEvent
+    from ajtwin.apps.mismatch import MismatchStatus
+
+    status = MismatchStatus(True, 40.0, ["overspray_um"], [], ["r"], ["f"], "m", np.ones(10, bool))
+    early = AnomalyEvent(75.0, 20.0, "nozzle_clog", "clog")
+    late = AnomalyEvent(3000.0, 2950.0, "nozzle_clog", "clog")
+    out = relabel_events([early, late], status)
+    assert out[0].cause == MISMATCH_CAUSE and out[0].evidence["relabelled_from"] == "nozzle_clog"
+    assert out[1].cause == "nozzle_clog"
+    later = MismatchStatus(True, 4000.0, [], [], ["r"], ["f"], "m", np.ones(10, bool))
+    assert relabel_events([AnomalyEvent(3000.0, 2950.0, "nozzle_clog", "c")], later)[0].cause == (
+        "nozzle_clog"
+    )
+
+
+def test_maintenance_resets_what_it_names(tmp_path):
+    from ajtwin.store.calibration import apply_maintenance, maintenance_history, record_maintenance
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    mean = np.array([3.4, 0.7, 1e-4, 0.09, 4.5e-7])
+    cov = np.full((5, 5), 1e-6) + np.diag([1e-2, 1e-4, 1e-8, 1e-4, 1e-16])
+    theta = np.array([1e-5, 0.0, 1e-4, 2e-3, 1e-2])
+    m2, c2, t2 = apply_maintenance(mean, cov, theta, [{"nozzle_cleaned": True}])
+    assert m2[3] == 0.0 and t2[3] == 0.0 and c2[3, 3] == pytest.approx(2e-3**2)
+    assert np.all(c2[3, [0, 1, 2, 4]] == 0.0) and m2[1] == 0.7 and t2[4] == 1e-2
+    m3, c3, t3 = apply_maintenance(
+        mean, cov, theta, [{"vial_refilled_ml": 1.2, "reset_theta": True}]
+    )
+    assert m3[1] == 1.2 and m3[3] == 0.09 and np.all(t3 == 0.0)
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("aj")
+    with pytest.raises(ValueError, match="must name what was done"):
+        record_maintenance(reg, "aj")
+    first = simulate("exp1", seed=5, duration_min=2.0)
+    ingest_record(reg, "aj", first)
+    record_maintenance(reg, "aj", nozzle_cleaned=True, vial_refilled_ml=1.1, reset_theta=True)
+    second = simulate("exp1", seed=6, duration_min=2.0, continue_from=first)
+    result = ingest_record(reg, "aj", second)
+    stored = reg.get_print(result.print_id)
+    assert stored["start_mean"][3] == 0.0 and stored["start_mean"][1] == 1.1
+    assert np.all(stored["theta_before"] == 0.0)
+    assert "maintenance" in result.summary["started_from"]
+    # the event stays in the history but is not applied twice
+    assert len(maintenance_history(reg, "aj")) == 1
+    third = ingest_record(reg, "aj", simulate("exp1", seed=7, duration_min=2.0))
+    assert third.summary["maintenance"] == []
+
+
+def test_cli_commission_refuses_and_maintain_needs_an_action(tmp_path):
+    from ajtwin.cli import main
+    from ajtwin.io.records import write_record
+
+    path = tmp_path / "flat.parquet"
+    write_record(simulate("exp1", seed=1, duration_min=6.0), path)
+    store = str(tmp_path / "r.sqlite")
+    runner = CliRunner()
+    assert runner.invoke(main, ["machine", "add", "aj", "--store", store]).exit_code == 0
+    out = runner.invoke(main, ["machine", "commission", "aj", str(path), "--store", store])
+    assert out.exit_code != 0 and "carrier flow varies only" in out.output
+    out = runner.invoke(main, ["machine", "maintain", "aj", "--store", store])
+    assert out.exit_code != 0 and "must name what was done" in out.output
+    out = runner.invoke(
+        main, ["machine", "commission", "aj", str(path), "--known", "d=1", "--store", store]
+    )
+    assert out.exit_code != 0 and "unknown state" in out.output
+
+
+def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
+    from ajtwin.apps.cli import machine_twin
+    from ajtwin.store.calibration import calibration_history, save_calibration
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m3")
+    commissioning = simulate("commissioning", seed=41, duration_min=8.0, machine_seed=3)
+    first = commission(commissioning)
+    save_calibration(reg, "m3", first, "comm1.parquet")
+    second = commission(commissioning, known={"droplet_diameter_um": (3.4, 0.1)})
+    save_calibration(reg, "m3", second, "comm2.parquet")  # re-commissioning keeps history
+    assert calibration_history(reg, "m3")["source"].tolist() == ["comm1.parquet", "comm2.parquet"]
+    nxt = simulate("exp1", seed=42, duration_min=3.0, continue_from=commissioning)
+    result = ingest_record(reg, "m3", nxt)
+    assert result.summary["calibration_id"] == 2
+    assert result.summary["started_from"] == "commissioning 2"
+    assert np.allclose(reg.get_print(result.print_id)["start_mean"][:4], second.end_state[:4])
+    assert result.summary["mismatch"]["mismatch"] is False
+    twin, *_ = machine_twin(reg, "m3")
+    assert twin.calibration == second.calibration

@@ -1,0 +1,178 @@
+"""The live twin's tables in the registry: created by a migration, carried by
+``machine export``/``import``, thinned by ``machine compact``."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import numpy as np
+import pytest
+
+from ajtwin.live.engine import LiveEngine, Sample
+from ajtwin.model import STATE_NAMES
+from ajtwin.simulation import simulate
+from ajtwin.store import registry as R
+from ajtwin.store.live_log import LiveLog
+from ajtwin.store.maintenance import compact, export_machine, import_machine
+from ajtwin.store.registry import Registry
+
+LIVE_TABLES = {"live_sessions", "live_samples", "live_states", "live_events"}
+FIRST_PRINT = 100  # samples of the finished live print
+OPEN_STEPS = 40  # samples of the second print when the client stops
+
+
+@pytest.fixture(scope="module")
+def record():
+    # a fast clog so the short live print raises (and stores) an alarm
+    return simulate(
+        "nozzle_clog",
+        seed=5,
+        duration_min=2.5,
+        overrides={"fault": {"onset_min": 0.5, "nozzle_deposition_multiplier": 2000.0}},
+    )
+
+
+def _feed(engine, machine, rec, start, stop):
+    for k in range(start, stop):
+        engine.feed(machine, Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+
+
+def _session_content(log: LiveLog, session_id: int):
+    t, u, y = log.samples(session_id)
+    return t, u, y, log.states(session_id), log.events(session_id)
+
+
+def _same_session(a: LiveLog, sa: int, b: LiveLog, sb: int):
+    for x, y in zip(_session_content(a, sa), _session_content(b, sb), strict=True):
+        if isinstance(x, np.ndarray):
+            assert np.array_equal(x, y, equal_nan=True)
+        else:
+            assert x == y
+
+
+def test_old_registry_gets_the_live_tables_by_migration(tmp_path):
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("m")
+    assert LIVE_TABLES <= reg._tables() and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    reg.close()
+    # what a registry of schema 2 without a live twin looked like: no live_* tables
+    conn = sqlite3.connect(store)
+    for table in ("live_events", "live_states", "live_samples", "live_sessions"):
+        conn.execute(f"DROP TABLE {table}")
+    conn.execute("UPDATE info SET value = '2' WHERE key = 'schema_version'")
+    conn.commit()
+    conn.close()
+    reg = Registry(store)
+    assert reg.migrated[0] == (
+        f"{store}: migrated registry schema 2 → 3 (live twin sessions: live_sessions, "
+        "live_samples, live_states, live_events)"
+    )
+    assert len(reg.migrated) == R.SCHEMA_VERSION - 2  # and on to the newest
+    assert LIVE_TABLES <= reg._tables() and reg.machine("m")["name"] == "m"
+    reg.close()
+
+
+def test_schema2_registry_written_by_the_live_twin_keeps_its_sessions(tmp_path):
+    # before migration 3 the live log created its tables itself, at schema 2
+    store = tmp_path / "r.sqlite"
+    log = LiveLog(store)
+    sid = log.open_session("m1", source="test", start=None, theta=np.zeros(5))
+    log.append(sid, [(0, 0.0, np.ones(3), np.ones(5), {"step": 0})], [])
+    log.close()
+    conn = sqlite3.connect(store)
+    conn.execute("DROP INDEX live_sessions_by_machine")
+    conn.execute("UPDATE info SET value = '2' WHERE key = 'schema_version'")
+    conn.commit()
+    conn.close()
+    reg = Registry(store)
+    assert len(reg.migrated) == R.SCHEMA_VERSION - 2 and "2 → 3" in reg.migrated[0]
+    log = LiveLog(store)
+    assert log.open_session_of("m1")["id"] == sid and log.n_steps(sid) == 1
+
+
+def test_live_log_refuses_a_foreign_database(tmp_path):
+    store = tmp_path / "other.sqlite"
+    conn = sqlite3.connect(store)
+    conn.execute("CREATE TABLE customers (id INTEGER PRIMARY KEY)")
+    conn.commit()
+    conn.close()
+    with pytest.raises(R.RegistryError, match="not an ajtwin registry"):
+        LiveLog(store)
+    conn = sqlite3.connect(store)
+    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    conn.close()
+    assert tables == {"customers"}  # untouched
+
+
+def test_export_import_carry_finished_and_open_live_sessions(record, tmp_path):
+    src = Registry(tmp_path / "a.sqlite")
+    engine = LiveEngine(src, asynchronous=False, commit_every_s=0)
+    _feed(engine, "lab", record, 0, FIRST_PRINT)
+    first_print = engine.close("lab")  # a finished live print, stored in the registry
+    _feed(engine, "lab", record, 0, OPEN_STEPS)  # the next print, still running ...
+    engine.shutdown()  # ... when the client stops: its session stays open
+    del engine
+    log_a = LiveLog(src.path)
+    sessions_a = log_a.sessions("lab")
+    assert [s["status"] for s in sessions_a] == ["closed", "open"]
+    assert sessions_a[0]["print_id"] == first_print
+    assert log_a.events(sessions_a[0]["id"]), "the short clog print should have alarms"
+
+    archive = tmp_path / "lab.tar"
+    manifest = export_machine(src, "lab", archive)
+    assert (manifest["n_prints"], manifest["live_sessions"], manifest["open_live_sessions"]) == (
+        1,
+        2,
+        1,
+    )
+    dst = Registry(tmp_path / "b.sqlite")
+    result = import_machine(dst, archive)
+    assert (result["n_prints"], result["live_sessions"], result["open_live_sessions"]) == (1, 2, 1)
+    copy = import_machine(src, archive, as_name="lab-copy")  # beside the original
+    assert copy["live_sessions"] == 2
+
+    for target, name in ((dst, "lab"), (src, "lab-copy")):
+        log_b = LiveLog(target.path)
+        sessions_b = log_b.sessions(name)
+        assert [s["status"] for s in sessions_b] == ["closed", "open"]
+        assert [s["source"] for s in sessions_b] == [s["source"] for s in sessions_a]
+        for sa, sb in zip(sessions_a, sessions_b, strict=True):
+            _same_session(log_a, sa["id"], log_b, sb["id"])
+        # the finished session points at the imported copy of its print
+        imported = target.get_print(sessions_b[0]["print_id"])
+        assert imported["seq"] == 1 and imported["machine_id"] == target.machine(name)["id"]
+        assert np.array_equal(imported["end_mean"], src.get_print(first_print)["end_mean"])
+        opened = log_b.open_session_of(name)
+        original = log_a.open_session_of("lab")
+        assert opened["expected_last_seq"] == original["expected_last_seq"] == 1
+        assert np.array_equal(opened["theta_before"], original["theta_before"])
+        assert np.array_equal(opened["start"][0], original["start"][0])
+    with pytest.raises(R.RegistryError, match="already exists"):
+        import_machine(dst, archive)
+
+    # compact: the finished session's steps go (its print holds them), the open one stays
+    before_events = log_a.events(sessions_a[0]["id"])
+    stats = compact(src, "lab")
+    assert stats["live_steps_dropped"] == FIRST_PRINT
+    assert log_a.n_steps(sessions_a[0]["id"]) == 0 and log_a.states(sessions_a[0]["id"]) == []
+    assert log_a.events(sessions_a[0]["id"]) == before_events
+    assert log_a.n_steps(sessions_a[1]["id"]) == OPEN_STEPS
+    assert src.print_arrays(first_print)["means"].shape[0] == FIRST_PRINT
+    assert LiveLog(dst.path).n_steps(LiveLog(dst.path).sessions("lab")[0]["id"]) == FIRST_PRINT
+
+    # the open print resumes in the importing registry and ends exactly as in the original
+    ends = []
+    for reg in (src, dst):
+        engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+        stream = engine.open("lab")
+        assert stream.n_committed == OPEN_STEPS  # resumed, not restarted
+        _feed(engine, "lab", record, OPEN_STEPS, FIRST_PRINT)
+        print_id = engine.close("lab")
+        engine.shutdown()
+        stored = reg.get_print(print_id)
+        assert stored["seq"] == 2 and LiveLog(reg.path).open_session_of("lab") is None
+        ends.append((stored["end_mean"], reg.print_arrays(print_id)["means"]))
+    assert np.array_equal(ends[0][0], ends[1][0])
+    assert np.array_equal(ends[0][1], ends[1][1])
+    assert ends[0][1].shape == (FIRST_PRINT, len(STATE_NAMES))

@@ -20,7 +20,9 @@ Per frame:
 6. Frame value = median over the batches that succeeded (robust to a batch whose shoulder
    hid in ragged edges); the standard deviation over batches is reported too.
 
-Frames are processed one at a time (videos are streamed, never loaded whole).
+Frames are processed one at a time (videos are streamed, never loaded whole);
+:meth:`FrameSource.prefetched` decodes them in a background thread, at most a few frames
+ahead, so decoding and extraction use two cores.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 :class:`ControlLink` follows one machine the way ``ajtwin live`` does (the login, security
 and refusal handling of :class:`ajtwin.live.link.OpcUaLink`; the ``SampleBuffer``
-subscription; every sample through :func:`ajtwin.live.engine.clean_sample`), feeds the
+subscription; every buffer through :func:`ajtwin.live.link.buffer_samples`), feeds the
 samples to the streaming twin (:class:`ajtwin.live.engine.TwinStream`, inside
 :class:`ajtwin.apps.control_sim.MPCTwin` — the very controller ``ajtwin control simulate``
 runs against the virtual printer) and, every ``period_s`` seconds of print, writes the
@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ajtwin.apps.control import TargetError
-from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal
-from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
+from ajtwin.live.opcua import NAMESPACE_URI, SETPOINTS, node_path
 
 log = logging.getLogger("ajtwin.control")
 
@@ -312,32 +312,21 @@ class ControlLink:
 
     def _feed(self, value) -> int:
         """New rows of the SampleBuffer → the twin; how many samples were fed."""
-        from ajtwin.live.engine import clean_sample
-
-        try:
-            rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
-        except (TypeError, ValueError):
-            log.warning("%s: SampleBuffer has the wrong shape; ignored", self.machine)
-            return 0
-        times, inputs, outputs = [], [], []
-        for row in rows:
-            if not np.isfinite(row[0]) or row[0] <= self.last_time:
-                continue
-            sample, problems = clean_sample(row[0], row[1:4], row[4:], where=self.machine)
-            for p in problems:
-                log.warning(p)
-            if sample is None:
-                continue
-            times.append(sample.time_s)
-            inputs.append(sample.inputs)
-            outputs.append(sample.outputs)
-            self.last_time = sample.time_s
-        if not times:
+        samples, self.last_time, problems = buffer_samples(self.machine, value, self.last_time)
+        for p in problems:
+            log.warning(p)
+        if not samples:
             return 0
         if self._next_decision_s is None:
-            self._next_decision_s = times[0] + self.settings.period_s
-        self.controller.observe(_Chunk(np.array(times), np.array(inputs), np.array(outputs)))
-        return len(times)
+            self._next_decision_s = samples[0].time_s + self.settings.period_s
+        self.controller.observe(
+            _Chunk(
+                np.array([x.time_s for x in samples]),
+                np.array([x.inputs for x in samples]),
+                np.array([x.outputs for x in samples]),
+            )
+        )
+        return len(samples)
 
     async def _read_setpoints(self, setpoints) -> np.ndarray:
         return np.array([float(await n.read_value()) for n in setpoints.values()])

@@ -37,7 +37,7 @@ import numpy as np
 
 from ajtwin.apps.control import TargetError
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
-from ajtwin.live.opcua import NAMESPACE_URI, SETPOINTS, node_path
+from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
 
 log = logging.getLogger("ajtwin.control")
 
@@ -312,6 +312,11 @@ class ControlLink:
 
     def _feed(self, value) -> int:
         """New rows of the SampleBuffer → the twin; how many samples were fed."""
+        try:  # the buffer's NaN padding (docs/opcua.md) is not a problem worth a log line
+            rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
+            value = rows[~np.all(np.isnan(rows), axis=1)]
+        except (TypeError, ValueError, OverflowError):
+            pass  # buffer_samples refuses it with a log line
         samples, self.last_time, problems = buffer_samples(self.machine, value, self.last_time)
         for p in problems:
             log.warning(p)

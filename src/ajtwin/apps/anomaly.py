@@ -67,7 +67,8 @@ class DetectorSettings:
     cusum_drift: float = 0.35  # allowance k per step [σ]
     cusum_threshold: float = 16.0  # decision interval h [σ] for L_w, L_o, P_c, P_s
     # Q_m (CNN-based, log-normal noise, filter σ a rough 20 %): clean prints reach g ≈ 15–18
-    cusum_threshold_material_flow: float = 30.0
+    cusum_threshold_material_flow: float = 16.0
+    cusum_drift_material_flow: float = 0.7
     # common-mode pressure channel e_Pc + e_Ps (a nozzle deposit or a carrier change moves
     # both pressures together; their innovations correlate ~0.8 in clean prints)
     cusum_drift_pressure_sum: float = 0.7
@@ -459,7 +460,9 @@ class AnomalyDetector:
             [s.cusum_threshold] * 4
             + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
         )
-        drifts = np.array([s.cusum_drift] * 5 + [s.cusum_drift_pressure_sum])
+        drifts = np.array(
+            [s.cusum_drift] * 4 + [s.cusum_drift_material_flow, s.cusum_drift_pressure_sum]
+        )
         self.cusum = Cusum(drifts, thresholds, len(CUSUM_CHANNELS))
         self.window = WindowedNIS(s.nis_window_s)
         self.long_run = LongRunScale(

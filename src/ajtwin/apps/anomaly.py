@@ -86,8 +86,8 @@ class DetectorSettings:
     # Coloured noise the filter does not model (a wandering gauge): each CUSUM channel's
     # increments are divided by its long-run σ (from block means, see LongRunScale), never
     # by less than 1 (the filter's S stays the reference; first-generator prints: ≤ 1).
-    long_run_block_s: int = 60
-    long_run_blocks: int = 30  # trailing blocks behind the estimate (30 min)
+    long_run_block_s: int = 30
+    long_run_blocks: int = 60  # trailing blocks behind the estimate (30 min)
     long_run_min_blocks: int = 5  # fewer completed blocks: scale 1
     long_run_max_scale: float = 3.0
     # the common-mode channel e_Pc + e_Ps is not unit-variance: its per-step σ on clean

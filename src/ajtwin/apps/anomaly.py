@@ -19,7 +19,8 @@ Thresholds are not the textbook ones: the twin's innovations are autocorrelated 
 virtual printer is not the twin's model), so ``drift``/``threshold``/``alpha`` were set on
 clean prints (``exp1`` seeds 10–13, ``exp2`` and ``exp3`` seed 10: 9 h with input
 steps) and the false-alarm rate is measured on ``clean_long`` (a different scenario and
-seed), see docs/anomalies.md.
+seed), see docs/anomalies.md. On top (issue 12): innovations are Huber-clipped and each
+CUSUM channel is divided by its measured long-run σ (:class:`LongRunScale`).
 
 Examples
 --------
@@ -66,7 +67,9 @@ class DetectorSettings:
 
     cusum_drift: float = 0.35  # allowance k per step [σ]
     cusum_threshold: float = 16.0  # decision interval h [σ] for L_w, L_o, P_c, P_s
-    # Q_m (CNN-based, log-normal noise, filter σ a rough 20 %): clean prints reach g ≈ 15–18
+    # Q_m (CNN-based, filter σ a rough 20 %): after a print start the twin re-learns φ_A
+    # (e_Qm ≈ +0.5σ for ~10 min); an atomizer dropout is ≈ −3σ → k = half of 1.4σ
+    # (chosen on first-generator machine seeds 11–15; was k 0.35, h 30)
     cusum_threshold_material_flow: float = 16.0
     cusum_drift_material_flow: float = 0.7
     # common-mode pressure channel e_Pc + e_Ps (a nozzle deposit or a carrier change moves
@@ -86,7 +89,7 @@ class DetectorSettings:
     # Coloured noise the filter does not model (a wandering gauge): each CUSUM channel's
     # increments are divided by its long-run σ (from block means, see LongRunScale), never
     # by less than 1 (the filter's S stays the reference; first-generator prints: ≤ 1).
-    long_run_block_s: int = 30
+    long_run_block_s: int = 30  # 30 vs 60 s chosen on clean_long (first generator)
     long_run_blocks: int = 60  # trailing blocks behind the estimate (30 min)
     long_run_min_blocks: int = 5  # fewer completed blocks: scale 1
     long_run_max_scale: float = 3.0

@@ -112,6 +112,12 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
     return case(truth, machine_seed, print_seed, minutes)
 
 
+def _lag1(x: np.ndarray) -> float:
+    """Lag-1 autocorrelation over the pairs where both samples were measured."""
+    ok = np.isfinite(x[:-1]) & np.isfinite(x[1:])
+    return float(np.round(np.corrcoef(x[:-1][ok], x[1:][ok])[0, 1], 2))
+
+
 def detect(arrays: dict, settings=None):
     from ajtwin.apps.anomaly import detect_anomalies
 
@@ -141,20 +147,7 @@ def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict
                 "kurtosis": (np.nanmean(e**4, axis=0) / np.nanmean(e**2, axis=0) ** 2)
                 .round(1)
                 .tolist(),
-                "lag1": [
-                    float(
-                        np.round(
-                            np.corrcoef(
-                                x[np.isfinite(x[:-1]) & np.isfinite(x[1:])][:-1]
-                                if False
-                                else x[:-1][np.isfinite(x[:-1]) & np.isfinite(x[1:])],
-                                x[1:][np.isfinite(x[:-1]) & np.isfinite(x[1:])],
-                            )[0, 1],
-                            2,
-                        )
-                    )
-                    for x in e.T
-                ],
+                "lag1": [_lag1(x) for x in e.T],
             }
         )
         clog = detect(c["clog"], settings)

@@ -356,6 +356,8 @@ def extract(
     annotated_dir = None
     try:
         with (
+            # decoding runs in a background thread, beside the feature extraction below
+            frames.prefetched() as decoded,
             out.open("w", newline="") as fh,
             batch_path.open("w", newline="") if batch_path else _Null() as bfh,
         ):
@@ -377,7 +379,7 @@ def extract(
                     ]
                 )
             bar = tqdm(
-                frames,
+                decoded,
                 total=frames.count,
                 unit="frame",
                 desc=f"extract {source.name}",

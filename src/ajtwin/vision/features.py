@@ -289,7 +289,11 @@ def _gather(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
 def _side_batches(mean, thresh, start, direction, delta, lookahead, hold):
     """Vectorised first peak outward from ``start`` and overspray end, per column."""
     n_rows, n_cols = mean.shape
-    steps = np.arange(n_rows)[:, None]
+    # steps that stay inside the array for some column (further ones are all NaN, which no
+    # test below can pass, so leaving them out changes nothing and halves the work)
+    n_steps = int(start.max()) + 1 if direction < 0 else n_rows - int(start.min())
+    n_steps = max(n_steps, 2)
+    steps = np.arange(n_steps)[:, None]
     seg = _gather(mean, start[None, :] + direction * steps)
     with np.errstate(invalid="ignore"):
         d = np.diff(seg, axis=0)
@@ -302,25 +306,23 @@ def _side_batches(mean, thresh, start, direction, delta, lookahead, hold):
     kk, bb = np.nonzero(local_max & rise_ok)
     level = seg[kk, bb]
     need = np.broadcast_to(delta, seg.shape)[kk, bb]
-    fall_ok = np.zeros(kk.size, dtype=bool)
-    alive = np.ones(kk.size, dtype=bool)
-    for t in range(1, lookahead + 1):
-        idx = kk + t
-        inside = idx < n_rows
-        ahead = np.where(inside, seg[np.minimum(idx, n_rows - 1), bb], np.nan)
-        with np.errstate(invalid="ignore"):
-            alive &= ~(ahead > level)
-            fall_ok |= alive & (ahead <= level - need)
+    # all ``lookahead`` samples after every candidate at once, (lookahead, candidates):
+    # "alive" until a sample exceeds the peak; the fall counts only while alive
+    idx = kk[None, :] + np.arange(1, lookahead + 1)[:, None]
+    ahead = np.where(idx < n_steps, seg[np.minimum(idx, n_steps - 1), bb[None, :]], np.nan)
+    with np.errstate(invalid="ignore"):
+        alive = np.logical_and.accumulate(~(ahead > level), axis=0)
+        fall_ok = (alive & (ahead <= level - need)).any(axis=0)
     # np.nonzero lists candidates row by row, so a column's first hit is its nearest peak
-    first = np.full(n_cols, n_rows, dtype=np.int64)
+    first = np.full(n_cols, n_steps, dtype=np.int64)
     hit_cols, first_hit = np.unique(bb[fall_ok], return_index=True)
     first[hit_cols] = kk[fall_ok][first_hit]
-    found = first < n_rows
+    found = first < n_steps
     k = np.where(found, first, 0)
     cols = np.arange(n_cols)
     km1 = seg[np.maximum(k - 1, 0), cols]
     k0 = seg[k, cols]
-    kp1 = seg[np.minimum(k + 1, n_rows - 1), cols]
+    kp1 = seg[np.minimum(k + 1, n_steps - 1), cols]
     denom = km1 - 2.0 * k0 + kp1
     with np.errstate(invalid="ignore", divide="ignore"):
         shift = np.where(denom < 0, np.clip(0.5 * (km1 - kp1) / denom, -0.5, 0.5), 0.0)

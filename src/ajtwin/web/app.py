@@ -354,6 +354,7 @@ def create_app(
             "samples": publisher.snapshot(name),
             "alarms": publisher.alarms(name),
         }
+        out["link"] = publisher.link(name)
         out["status"] = _status(out, publisher)
         return out
 
@@ -479,6 +480,9 @@ def create_app(
 def _merge_live(entry: dict, publisher: LivePublisher) -> None:
     """Overlay a machine's live state (printing, states now, live alarms) on its summary."""
     name = entry["name"]
+    link = publisher.link(name)
+    if link is not None:
+        entry["link"] = link
     latest = publisher.latest(name)
     printing = publisher.is_printing(name)
     if latest is None:

@@ -202,6 +202,18 @@ function machinePage() {
     s.textContent = { mismatch: "model–machine mismatch" }[status] || status;
   }
 
+  function renderLink(link) {
+    // the live twin's machine link (text from the server: one wording for both pages)
+    const b = document.getElementById("link");
+    if (!b) return;
+    b.hidden = !(link && link.text);
+    if (b.hidden) return;
+    b.className = "link " + link.state;
+    b.textContent = link.text;
+    b.title = link.reason || link.url || "";
+    A.link = link;
+  }
+
   function renderSummary(m, latest) {
     const box = document.getElementById("summary");
     box.innerHTML = "";
@@ -420,6 +432,7 @@ function machinePage() {
       info = await getJSON("/api/machine/" + encodeURIComponent(name));
     } catch (e) { showError(e.message); return; }
     setStatus(info.status);
+    renderLink(info.link);
     const live = info.live.samples;
     renderSummary(info, live.length && info.live.printing ? live[live.length - 1] : null);
     renderAlarms(info);
@@ -440,6 +453,8 @@ function machinePage() {
       if (ev.alarms && ev.alarms.length) onAlarm(ev);
       queue.push(ev);
       if (!frame) frame = requestAnimationFrame(flush);
+    } else if (ev.type === "link") {
+      if (ev.machine === name) { info.link = ev.link; renderLink(ev.link); }
     } else if (ev.type === "print_end") {
       info.live.printing = false; renderHistory(info);
     } else if (ev.type === "print" && ev.machine === name) {

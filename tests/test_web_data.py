@@ -457,3 +457,35 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
         assert "link up (back after a 12 s gap: missing data)" in alpha
     finally:
         server.stop()
+
+
+def test_fleet_and_machine_page_agree_on_mismatch_versus_alarm(tmp_path):
+    """The guard's own 'mismatch, not a fault' events make the status mismatch on both pages;
+    a fault alarm in the same latest print makes it alarm on both (they used to disagree)."""
+    from ajtwin.apps.mismatch import MISMATCH_CAUSE
+    from ajtwin.web.app import _status
+
+    guard = {"mismatch": True, "first_s": 30.0, "outputs": ["carrier_pressure_Pa"], "states": [],
+             "reasons": [], "fixes": [],
+             "message": "model–machine mismatch: P_c above"}  # fmt: skip
+    relabelled = AnomalyEvent(74.0, 59.0, MISMATCH_CAUSE, "model–machine mismatch, not a fault", [])
+    clog = AnomalyEvent(40.0, 31.0, "nozzle_clog", "nozzle clog", ["x"])
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    for name, events in (("only-guard", [relabelled]), ("guard-and-clog", [relabelled, clog])):
+        reg.add_machine(name)
+        t = np.arange(5.0)
+        reg.save_print(
+            name, content_hash=name, source="hand-made", meta={}, n_samples=5, duration_s=5.0,
+            summary={"mean_nis": 1.0, "mismatch": guard},
+            start_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), start_cov=np.eye(5) * 1e-4,
+            end_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), end_cov=np.eye(5) * 1e-4,
+            theta_before=np.zeros(5), theta_after=np.zeros(5),
+            arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))},
+            anomalies=events, expected_last_seq=None,
+        )  # fmt: skip
+    reg.close()
+    view, pub = RegistryView(store), LivePublisher()
+    fleet = {m["name"]: m["status"] for m in view.fleet()}
+    detail = {n: _status(view.machine(n), pub) for n in fleet}
+    assert fleet == detail == {"only-guard": "mismatch", "guard-and-clog": "alarm"}

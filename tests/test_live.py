@@ -78,7 +78,7 @@ def test_gaps_duplicates_and_old_samples(clog_record):
             stream.feed(Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))  # duplicate
             stream.feed(Sample(rec.time_s[20], rec.inputs[20], rec.outputs[20]))  # old
     stream.finish()
-    assert stream.dropped == {"duplicate": 1, "out_of_order": 1, "bad": 0}
+    assert stream.dropped == {"duplicate": 1, "out_of_order": 1, "bad": 0, "far_future": 0}
     assert stream.missing_inserted == 3
     arrays = stream.arrays()
     assert np.array_equal(arrays["time_s"], rec.time_s)

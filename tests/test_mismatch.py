@@ -183,3 +183,47 @@ def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
     assert result.summary["mismatch"]["mismatch"] is False
     twin, *_ = machine_twin(reg, "m3")
     assert twin.calibration == second.calibration
+
+
+def test_start_surprise_explains_start_alarms_only():
+    """A deposit that jumped at the start names P_c/P_s, but a clog on P_c/P_s an hour later
+    is a clog; a deposit out of range is a misfit for the whole print."""
+    from ajtwin.apps.anomaly import AnomalyEvent
+    from ajtwin.apps.mismatch import MismatchStatus
+
+    def clog(detected_s, onset_s):
+        return AnomalyEvent(detected_s, onset_s, "nozzle_clog", "clog", detectors=["cusum+ P_c"])
+
+    nozzle = ["nozzle_deposition_um"]
+    start = MismatchStatus(True, 37.0, [], nozzle, ["r"], ["f"], "m", np.ones(10, bool), nozzle)
+    early, late = relabel_events([clog(80.0, 60.0), clog(3660.0, 3600.0)], start)
+    assert early.cause == MISMATCH_CAUSE
+    assert late.cause == "nozzle_clog"
+    ranged = MismatchStatus(True, 37.0, [], nozzle, ["r"], ["f"], "m", np.ones(10, bool))
+    assert relabel_events([clog(3660.0, 3600.0)], ranged)[0].cause == MISMATCH_CAUSE
+
+
+def test_carried_over_print_keeps_its_clog_label(tmp_path):
+    """The demo's chain: a clean print, then a print of the same machine that clogs at
+    20 min. The filter's re-convergence at the second print's start moves ΔR_N by ~1.6 nm
+    (2.8 σ of the carried-over prior): that is no mismatch, and the clog is a clog."""
+    from ajtwin.live.engine import ingest_record
+    from ajtwin.store.registry import Registry
+
+    registry = Registry(tmp_path / "r.sqlite")
+    registry.add_machine("M")
+    clean = simulate("exp1", seed=1, duration_min=15.0)
+    faulty = simulate(
+        "nozzle_clog",
+        seed=2,
+        duration_min=22.0,
+        continue_from=clean,
+        overrides={"fault": {"onset_min": 20.0}},
+    )
+    ingest_record(registry, "M", clean)
+    second = ingest_record(registry, "M", faulty)
+    assert second.summary["mismatch"]["mismatch"] is False, second.summary["mismatch"]
+    causes = [(ev.cause, ev.detected_s) for ev in second.events]
+    onset = faulty.meta["fault_onset_s"]
+    assert [c for c, _ in causes] == ["nozzle_clog"], causes
+    assert 0 <= causes[0][1] - onset <= 60.0

@@ -97,27 +97,40 @@ class Sample:
     outputs: np.ndarray
 
 
+#: |time| beyond this [s] (≈ 31,700 years) is no clock reading: the sample is dropped (far
+#: below 2**53 s, where float64 could no longer hold the 1 s grid)
+MAX_ABS_TIME_S = 1e12
+#: a gap ahead of the last step longer than this [s] is not filled with missing samples
+#: (a clock jump or a stale/wrong time stamp, not an outage): the sample is dropped
+MAX_GAP_S = 6 * 3600
+
+
 def clean_sample(time_s, inputs, outputs, where: str = "") -> tuple[Sample | None, list[str]]:
     """Check a sample from the wire; returns (sample or None, problems as log lines).
 
-    Non-finite or out-of-range outputs become NaN; bad inputs make the sample missing
-    (None); a non-finite time drops it.
+    Non-finite or out-of-range outputs become NaN; bad or malformed inputs/outputs (not
+    3 + 5 numbers) make the sample missing (all NaN); a non-finite or implausible time
+    (|t| > ``MAX_ABS_TIME_S``) drops it (None).
     """
     problems = []
     prefix = f"{where}: " if where else ""
     try:
         t = float(time_s)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         t = float("nan")
     if not np.isfinite(t):
         return None, [f"{prefix}sample time {time_s!r} is not a number; sample dropped"]
+    if abs(t) > MAX_ABS_TIME_S:
+        return None, [f"{prefix}sample time {t:g} s is not a plausible clock; sample dropped"]
     u = np.full(3, np.nan)
     y = np.full(5, np.nan)
     try:
         u[:] = np.asarray(inputs, dtype=float).reshape(3)
         y[:] = np.asarray(outputs, dtype=float).reshape(5)
-    except (TypeError, ValueError) as exc:
-        return None, [f"{prefix}t = {t:g} s: malformed sample ({exc}); treated as missing"]
+    except (TypeError, ValueError, OverflowError) as exc:
+        # as the line says: a step with nothing known, not a dropped one
+        missing = Sample(t, np.full(3, np.nan), np.full(5, np.nan))
+        return missing, [f"{prefix}t = {t:g} s: malformed sample ({exc}); treated as missing"]
     for i, name in enumerate(INPUT_NAMES):
         low, high = INPUT_LIMITS[name]
         if not np.isfinite(u[i]) or not (low < u[i] <= high):
@@ -226,7 +239,7 @@ class TwinStream:
         self._em_done: int | None = None  # boundary whose EM result is in force
         self._spec_carry: EKFCarry | None = None  # speculative carry while EM runs
         self._device_constants = None
-        self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0}
+        self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0, "far_future": 0}
         self.missing_inserted = 0
 
     @classmethod
@@ -254,7 +267,8 @@ class TwinStream:
         if self.last_time is None:
             grid = [sample]
         else:
-            n = int(round(t - self.last_time))
+            # clamped before rounding: a time stamp far ahead must not become a huge int
+            n = int(round(min(max(t - self.last_time, -1.0), MAX_GAP_S + 2.0)))
             if n <= 0:
                 if n == 0:
                     self.dropped["duplicate"] += 1
@@ -267,6 +281,18 @@ class TwinStream:
                         t,
                         self.last_time,
                     )
+                return out
+            if n - 1 > MAX_GAP_S:
+                self.dropped["far_future"] += 1
+                log.warning(
+                    "%s: sample at t = %g s is %g s ahead of the last step (t = %g s), more "
+                    "than %d s; dropped (clock jump?)",
+                    self.machine,
+                    t,
+                    t - self.last_time,
+                    self.last_time,
+                    MAX_GAP_S,
+                )
                 return out
             grid = []
             if n > 1:

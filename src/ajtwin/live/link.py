@@ -326,25 +326,15 @@ class OpcUaLink:
         """New rows of each machine's buffer → samples, fed in time order, batched."""
         by_time: dict[float, list] = {}
         for name, value in buffers.items():
-            try:
-                rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
-            except (TypeError, ValueError):
-                log.warning("%s: SampleBuffer has the wrong shape; ignored", name)
-                continue
             last = self.last_time.get(name, -np.inf)
             session = self.engine.sessions.get(name)
             if session is not None and session.stream.last_time is not None:
                 last = max(last, session.stream.last_time)  # resumed: skip what is stored
-            for row in rows:
-                if not np.isfinite(row[0]) or row[0] <= last:
-                    continue
-                sample, problems = clean_sample(row[0], row[1:4], row[4:], where=name)
-                for p in problems:
-                    log.warning(p)
-                if sample is None:
-                    continue
+            samples, last, problems = buffer_samples(name, value, last)
+            for p in problems:
+                log.warning(p)
+            for sample in samples:
                 by_time.setdefault(sample.time_s, []).append((name, sample))
-                last = sample.time_s
             self.last_time[name] = last
         messages = []
         for t in sorted(by_time):
@@ -394,6 +384,46 @@ class OpcUaLink:
                     event["description"],
                 )
                 await asyncio.sleep(0.15)  # one server-side notification per alarm
+
+
+def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, list[str]]:
+    """A ``SampleBuffer`` value as it came off the wire → the new samples in it.
+
+    Parameters
+    ----------
+    name : machine (for the log lines)
+    value : anything
+        The subscription value: rows of ``SAMPLE_WIDTH`` numbers (time [s], I_A [mA],
+        Q_c [sccm], Q_s [sccm], the five outputs), flattened or not. Anything else (None,
+        text, bytes, a ragged list) is refused whole with a log line.
+    last : float
+        Time [s] of the newest sample already taken; rows at or before it are the
+        buffer's overlap with the previous notification and are skipped silently.
+
+    Returns
+    -------
+    samples : cleaned samples (:func:`~ajtwin.live.engine.clean_sample`), in buffer order
+    last : the newest time taken (unchanged if none)
+    problems : log lines for everything refused, treated as missing or dropped
+    """
+    try:
+        rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
+    except (TypeError, ValueError, OverflowError):
+        return [], last, [f"{name}: SampleBuffer has the wrong shape or type; ignored"]
+    samples, problems = [], []
+    for row in rows:
+        if not np.isfinite(row[0]):
+            problems.append(f"{name}: SampleBuffer row with time {row[0]!r}; dropped")
+            continue
+        if row[0] <= last:
+            continue
+        sample, found = clean_sample(row[0], row[1:4], row[4:], where=name)
+        problems += found
+        if sample is None:
+            continue
+        samples.append(sample)
+        last = sample.time_s
+    return samples, last, problems
 
 
 def _refusal(exc) -> str | None:

@@ -377,6 +377,8 @@ def create_app(
             return await request.json()
         except (json.JSONDecodeError, UnicodeDecodeError):
             raise InputError("the form did not arrive as JSON; reload the page") from None
+        except RecursionError:  # JSON nested thousands deep: no form sends that
+            raise InputError("the request is nested too deeply to be a what-if form") from None
 
     @app.post("/api/machine/{name}/forecast")
     async def api_forecast(name: str, request: Request):

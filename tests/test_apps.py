@@ -310,3 +310,46 @@ def test_forecast_and_advise_cli(tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert "target reached" in res.output
+
+
+def test_long_run_scale_sees_coloured_noise_not_a_fault_step():
+    """AR(1) noise: σ_LR = σ_w/(1 − φ) (hand-computed); a step bias must not inflate it."""
+    from ajtwin.apps.anomaly import LongRunScale
+
+    rng = np.random.default_rng(3)
+    n, phi = 12000, 0.8
+    w = rng.standard_normal(n)
+    x = np.zeros(n)
+    for k in range(1, n):
+        x[k] = phi * x[k - 1] + w[k]
+    white = rng.standard_normal(n)
+    stepped = white.copy()
+    stepped[n // 2 :] += 3.0  # a fault: a 3σ step
+    scale = LongRunScale(3, block=60, blocks=200, min_blocks=5, max_scale=50.0)
+    for row in np.column_stack([x, white, stepped]):
+        s = scale.update(row)
+    assert abs(s[0] - 1.0 / (1.0 - phi)) < 0.2 * 5.0  # σ_LR = 5
+    assert s[1] < 1.2 and s[2] < 1.2  # white: 1 (floored); the step moves one d_j only
+
+
+def test_clipped_outlier_does_not_alarm_but_a_bias_does():
+    """One 30σ camera outlier (heavy-tailed line noise) is clipped; a 1σ bias still alarms."""
+    rng = np.random.default_rng(4)
+    t = 1200
+    e = rng.standard_normal((t, 5)) * 0.5
+    e[600, 0] = 30.0
+    args = dict(
+        time_s=np.arange(t, dtype=float),
+        predicted_outputs=np.zeros((t, 5)),
+        innovation_variances=np.ones((t, 5)),
+        n_measured=np.full(t, 5),
+        means=np.tile([3.5, 1.0, 0.0, 0.01, 4.6e-7], (t, 1)),
+        predicted_means=np.tile([3.5, 1.0, 0.0, 0.01, 4.6e-7], (t, 1)),
+        covariances=np.tile(np.eye(5), (t, 1, 1)),
+    )
+    quiet = detect_anomalies(measurements=e, nis=np.sum(e**2, axis=1), **args)
+    assert quiet.events == []
+    biased = e.copy()
+    biased[800:, 0] += 1.0
+    loud = detect_anomalies(measurements=biased, nis=np.sum(biased**2, axis=1), **args)
+    assert loud.events and "cusum+ L_w" in loud.events[0].detectors

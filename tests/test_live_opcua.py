@@ -371,7 +371,8 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         procs.append(live)
         _wait(lambda: _steps_in(tmp_path / "messages2.jsonl") >= 20, 180, "resumed steps")
         # the server goes away and comes back later in the same print
-        t_stop = json.loads((tmp_path / "messages2.jsonl").read_text().splitlines()[-1])["time_s"]
+        lines = (tmp_path / "messages2.jsonl").read_text().splitlines()
+        t_stop = json.loads([x for x in lines if '"step"' in x][-1])["time_s"]  # not a link line
         _stop(server)
         time.sleep(3)
         server = _serve(

@@ -285,3 +285,97 @@ def test_token_required(registry, tmp_path, browser):
             url, open_timeout=10, additional_headers={"Authorization": f"Bearer {token}"}
         ) as ws:
             assert json.loads(ws.recv(timeout=10)) == {"type": "hello"}
+
+
+@pytest.fixture(scope="module")
+def commissioned_registry(tmp_path_factory):
+    """'lab3': commissioned on its commissioning print (virtual machine seed 3), then its
+    pressure gauges read 8 % high — the next print's model–machine guard fires."""
+    from ajtwin.estimation.commission import commission
+    from ajtwin.simulation import simulate
+    from ajtwin.simulation.machine import MachineDeviation
+    from ajtwin.store.calibration import save_calibration
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+
+    store = tmp_path_factory.mktemp("commissioned") / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("lab3", notes="bench C")
+    commissioning = simulate("commissioning", seed=41, duration_min=8.0, machine_seed=3)
+    result = commission(commissioning)
+    cal_id = save_calibration(reg, "lab3", result, "lab3_commissioning.parquet")
+    gauges = MachineDeviation(name="gauges+8%", carrier_gauge_gain=1.08, sheath_gauge_gain=1.08)
+    record = simulate(
+        "exp1", seed=42, duration_min=6.0, continue_from=commissioning, machine=gauges
+    )
+    ingest = ingest_record(reg, "lab3", record, source="lab3_print1.parquet")
+    reg.close()
+    assert ingest.summary["mismatch"]["mismatch"], "the gauge error should trip the guard"
+    return {"store": store, "calibration": result, "cal_id": cal_id, "guard": ingest.summary}
+
+
+def test_machine_page_shows_calibration_and_mismatch(
+    commissioned_registry, browser, tmp_path, shots
+):
+    """The commissioned machine's page: the active calibration card (the fitted values) and
+    the model–machine mismatch card with the guard's message; the fleet row says mismatch."""
+    reg = commissioned_registry
+    with DashboardProcess(reg["store"], log_path=tmp_path / "s.log") as dash:
+        page = browser.new_page()
+        errors = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        try:
+            page.goto(dash.page_url("/machine/lab3"))
+            page.wait_for_function("window.__ajtwin.drawnPrint === 1")
+            card = page.locator("#calibration")
+            assert f"active calibration {reg['cal_id']}" in card.inner_text()
+            assert "lab3_commissioning.parquet" in card.inner_text()
+            offset = reg["calibration"].calibration.linewidth_offset_um
+            row = card.locator("tr", has_text="linewidth_offset_um")
+            shown = float(row.locator("td").nth(1).inner_text())
+            assert shown == pytest.approx(offset, rel=5e-4)  # 4 significant digits
+            mismatch = page.locator("#mismatch")
+            assert reg["guard"]["mismatch"]["message"] in mismatch.inner_text()
+            assert "print #1" in mismatch.inner_text()
+            page.screenshot(path=shots / "machine_calibration.png", full_page=True)
+            page.goto(dash.page_url("/"))
+            lab3 = page.locator('tr[data-machine="lab3"]')
+            assert "last commissioned" in lab3.inner_text()
+            assert "carrier_pressure_Pa" in lab3.inner_text()  # what the guard names
+        finally:
+            page.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+@pytest.mark.slow
+def test_machine_page_of_a_90_min_print(browser, tmp_path, shots):
+    """A 90-min print with a nozzle clog from 60 min (docs/dashboard/machine_90min.png): the
+    figures are decimated to at most MAX_POINTS points, the clog is found after its onset."""
+    from ajtwin.io.records import write_record
+    from ajtwin.simulation import simulate
+    from ajtwin.store.ingest import ingest_record
+    from ajtwin.store.registry import Registry
+    from ajtwin.web.data import MAX_POINTS
+
+    record = simulate(
+        "nozzle_clog", seed=3, duration_min=90.0, overrides={"fault": {"onset_min": 60}}
+    )
+    path = tmp_path / "lab9_print1.parquet"
+    write_record(record, path)
+    store = tmp_path / "r.sqlite"
+    with Registry(store) as reg:
+        reg.add_machine("lab9")
+        result = ingest_record(reg, "lab9", record, source=str(path))
+    clogs = [e for e in result.events if e.cause == "nozzle_clog"]
+    assert clogs and 3600.0 <= clogs[0].detected_s <= 3600.0 + 300.0
+    with DashboardProcess(store, log_path=tmp_path / "s.log") as dash:
+        page = browser.new_page()
+        try:
+            page.goto(dash.page_url("/machine/lab9"))
+            page.wait_for_function("window.__ajtwin.drawnPrint === 1")
+            n = page.evaluate("document.getElementById('plot-states').data[2].x.length")
+            assert 100 < n <= MAX_POINTS
+            assert "nozzle clog" in page.locator("#alarms").inner_text()
+            page.screenshot(path=shots / "machine_90min.png", full_page=True)
+        finally:
+            page.close()

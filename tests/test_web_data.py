@@ -410,3 +410,82 @@ def test_engine_messages_become_samples():
     pub.publish_engine(message)
     assert pub.latest("aj1")["measured"][3] is None  # NaN → None for JSON
     assert pub.alarms("aj1")[0]["cause"] == "nozzle_clog"
+
+
+def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
+    """The live link's state (engine message without a step) → pushed to the machine's page,
+    kept for /api/machine and drawn as a badge in the fleet rows (issue 15)."""
+    import json
+    import urllib.request
+
+    from websockets.sync.client import connect
+
+    from ajtwin.web.server import BackgroundServer
+
+    pub = LivePublisher()
+    server = BackgroundServer(store, pub, port=0)
+    lost = {"state": "reconnecting", "url": "opc.tcp://127.0.0.1:4840", "since": 3600.0,
+            "attempt": 3, "retry_in_s": 4.0, "reason": "ConnectionRefusedError",
+            "gap_s": None}  # fmt: skip
+    try:
+        with connect(server.url.replace("http", "ws") + "ws?machine=alpha", open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["type"] == "hello"
+            pub.publish_engine({"machine": "beta", "link": {**lost, "attempt": 1}})  # filtered
+            pub.publish_engine({"machine": "alpha", "link": lost})
+            event = json.loads(ws.recv(timeout=10))
+        assert event["type"] == "link" and event["machine"] == "alpha"
+        assert event["link"]["attempt"] == 3 and event["link"]["since"] == 3600.0
+        text = "link lost since 01:00:00 UTC — reconnecting (attempt 3, next in 4 s)"
+        assert event["link"]["text"] == text
+        with urllib.request.urlopen(server.url + "api/machine/alpha", timeout=10) as r:
+            machine = json.loads(r.read())
+        assert machine["link"]["text"] == text and machine["live"]["samples"] == []
+        assert machine["status"] == "idle"  # the link state alone is not a live print
+        with urllib.request.urlopen(server.url + "fragment/fleet-rows", timeout=10) as r:
+            rows = r.read().decode()
+        alpha = next(r for r in rows.split("<tr") if 'data-machine="alpha"' in r)
+        assert '<span class="link reconnecting" title="ConnectionRefusedError">' in alpha
+        assert text in alpha
+        gamma = next(r for r in rows.split("<tr") if 'data-machine="gamma"' in r)
+        assert 'class="link' not in gamma  # no live link for gamma
+        pub.publish_engine({"machine": "alpha", "link": {**lost, "state": "connected",
+                                                         "attempt": 0, "gap_s": 12.4}})  # fmt: skip
+        with urllib.request.urlopen(server.url + "fragment/fleet-rows", timeout=10) as r:
+            rows = r.read().decode()
+        alpha = next(r for r in rows.split("<tr") if 'data-machine="alpha"' in r)
+        assert 'class="link connected"' in alpha
+        assert "link up (back after a 12 s gap: missing data)" in alpha
+    finally:
+        server.stop()
+
+
+def test_fleet_and_machine_page_agree_on_mismatch_versus_alarm(tmp_path):
+    """The guard's own 'mismatch, not a fault' events make the status mismatch on both pages;
+    a fault alarm in the same latest print makes it alarm on both (they used to disagree)."""
+    from ajtwin.apps.mismatch import MISMATCH_CAUSE
+    from ajtwin.web.app import _status
+
+    guard = {"mismatch": True, "first_s": 30.0, "outputs": ["carrier_pressure_Pa"], "states": [],
+             "reasons": [], "fixes": [],
+             "message": "model–machine mismatch: P_c above"}  # fmt: skip
+    relabelled = AnomalyEvent(74.0, 59.0, MISMATCH_CAUSE, "model–machine mismatch, not a fault", [])
+    clog = AnomalyEvent(40.0, 31.0, "nozzle_clog", "nozzle clog", ["x"])
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    for name, events in (("only-guard", [relabelled]), ("guard-and-clog", [relabelled, clog])):
+        reg.add_machine(name)
+        t = np.arange(5.0)
+        reg.save_print(
+            name, content_hash=name, source="hand-made", meta={}, n_samples=5, duration_s=5.0,
+            summary={"mean_nis": 1.0, "mismatch": guard},
+            start_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), start_cov=np.eye(5) * 1e-4,
+            end_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), end_cov=np.eye(5) * 1e-4,
+            theta_before=np.zeros(5), theta_after=np.zeros(5),
+            arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))},
+            anomalies=events, expected_last_seq=None,
+        )  # fmt: skip
+    reg.close()
+    view, pub = RegistryView(store), LivePublisher()
+    fleet = {m["name"]: m["status"] for m in view.fleet()}
+    detail = {n: _status(view.machine(n), pub) for n in fleet}
+    assert fleet == detail == {"only-guard": "mismatch", "guard-and-clog": "alarm"}

@@ -38,6 +38,12 @@ returns them; :class:`LiveEngine` hands them to subscribers): ``machine``, ``ste
 ``cause``, ``alarms`` (detector labels fired at this step), ``events`` (raised/finalised
 events as dicts with ``state`` "raised"/"final"), ``theta``.
 
+A machine link also publishes its connection state on the same path
+(:meth:`LiveEngine.publish_link`): ``{"machine", "link": {"state", "url", "since",
+"attempt", "retry_in_s", "reason", "gap_s"}}`` — no ``step``; ``state`` is
+``connecting``, ``connected``, ``reconnecting`` (the server is gone since ``since``,
+Unix time; ``attempt`` reconnections tried), ``refused`` or ``ended``.
+
 Examples
 --------
 >>> from ajtwin.simulation import simulate                      # doctest: +SKIP
@@ -1023,6 +1029,10 @@ class LiveEngine:
 
         self.subscribe(put)
         return q
+
+    def publish_link(self, machines, link: dict) -> None:
+        """Tell subscribers the state of the link that feeds ``machines`` (module docstring)."""
+        self._publish([{"machine": name, "link": dict(link)} for name in machines])
 
     def _publish(self, messages: list[dict]) -> None:
         for message in messages:

@@ -9,7 +9,10 @@ raised or finalised alarm is written to ``Health/Alarm``, which the server turns
 last sample is in, the print is closed (stored as a registry print).
 
 Faults: a lost connection is retried with exponential back-off (the samples the server
-no longer buffers become a gap = missing data; the status is logged for the operator);
+no longer buffers become a gap = missing data). The link's state — connecting, connected,
+reconnecting since T (attempt n), refused, ended — is logged and published on the
+engine's message path (:meth:`LiveEngine.publish_link`, shown by the dashboard), and
+after each (re)connection written to each machine's ``Health/LinkStatus`` for HMIs;
 a refused login or certificate stops the link with a clear message (retrying cannot
 help); a missing node or bad values are logged and the sample treated as missing.
 
@@ -114,20 +117,41 @@ class OpcUaLink:
         self.last_time: dict[str, float] = {}
         self.first_published: float | None = None
         self.reconnects = 0
+        self.link: dict = {}  # the last published link state (engine.publish_link)
+        self._lost_at: float | None = None  # Unix time the current outage began
+        self._attempt = 0  # failed attempts in the current outage
 
     def _set_status(self, status: str, level=logging.INFO):
         if status != self.status:
             self.status = status
             log.log(level, "link %s: %s", self.url, status)
 
+    def _announce(self, state: str, *, reason: str = "", retry_in_s=None, gap_s=None) -> None:
+        """Publish the link state to the engine's subscribers (machines still followed)."""
+        now = time.time()
+        since = self._lost_at if state == "reconnecting" else now
+        self.link = {
+            "state": state,
+            "url": self.url,
+            "since": since,
+            "attempt": self._attempt,
+            "retry_in_s": retry_in_s,
+            "reason": reason,
+            "gap_s": gap_s,
+        }
+        followed = [m for m in self.machines if m not in self.finished or state == "ended"]
+        self.engine.publish_link(followed, self.link)
+
     async def run(self, stop: asyncio.Event | None = None) -> None:
         """Follow until every machine's print is finished (or ``stop`` is set)."""
-        backoff = 0.5
+        backoff = min(0.5, self.max_backoff_s)
+        self._announce("connecting")
         while (stop is None or not stop.is_set()) and len(self.finished) < len(self.machines):
             try:
                 await self._session(stop)
-                backoff = 0.5
-            except LinkRefused:
+                backoff = min(0.5, self.max_backoff_s)
+            except LinkRefused as exc:
+                self._announce("refused", reason=str(exc))
                 raise
             except (asyncio.CancelledError, KeyboardInterrupt):
                 raise
@@ -135,12 +159,18 @@ class OpcUaLink:
                 refusal = _refusal(exc)
                 if refusal:
                     self._set_status(f"refused: {refusal}", logging.ERROR)
+                    self._announce("refused", reason=refusal)
                     raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
                 self.engine.flush()
                 self._set_status(
                     f"disconnected ({type(exc).__name__}: {exc}); reconnecting in {backoff:g} s",
                     logging.WARNING,
                 )
+                if self._lost_at is None:
+                    self._lost_at = time.time()
+                self._attempt += 1
+                reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                self._announce("reconnecting", reason=reason, retry_in_s=backoff)
                 self.reconnects += 1
                 try:
                     await asyncio.wait_for(
@@ -150,6 +180,7 @@ class OpcUaLink:
                     pass
                 backoff = min(2 * backoff, self.max_backoff_s)
         self.engine.flush()
+        self._announce("ended")
 
     async def _client(self):
         from asyncua import Client
@@ -205,6 +236,7 @@ class OpcUaLink:
             await sub.subscribe_data_change([n["buffer"] for n in nodes.values()])
             await sub.subscribe_data_change([n["state"] for n in nodes.values()])
             self._set_status(f"connected, following {', '.join(nodes)}")
+            await self._connected(client, nodes)
             states = {name: "printing" for name in nodes}
             buffered: set[str] = set()  # machines whose buffer came in this session
             last_check = time.monotonic()
@@ -244,6 +276,26 @@ class OpcUaLink:
                     await client.check_connection()
                     last_check = time.monotonic()
 
+    async def _connected(self, client, nodes) -> None:
+        """The link is up: publish it, and write each machine's ``Health/LinkStatus``."""
+        from asyncua import ua
+
+        gap_s = None if self._lost_at is None else time.time() - self._lost_at
+        attempts = self._attempt
+        self._lost_at, self._attempt = None, 0
+        self._announce("connected", gap_s=gap_s)
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+        text = f"connected {stamp}"
+        if gap_s is not None:
+            text += f", back after a {gap_s:.0f} s gap ({attempts} failed attempt(s))"
+        for name, n in nodes.items():
+            if n.get("link_status") is None:
+                continue
+            try:
+                await n["link_status"].write_value(ua.Variant(text, ua.VariantType.String))
+            except ua.UaStatusCodeError as exc:  # read-only or gone: the twin goes on
+                log.warning("%s: could not write Health/LinkStatus (%s)", name, exc)
+
     async def _nodes(self, client, idx, name) -> dict:
         from asyncua import ua
 
@@ -263,6 +315,11 @@ class OpcUaLink:
             out["health"][key + "Std"] = node("Monitoring", "Health", key + "Std")
         for n in (out["buffer"], out["state"], out["alarm"]):
             await n.read_browse_name()  # raises BadNodeIdUnknown when missing
+        out["link_status"] = node("Monitoring", "Health", "LinkStatus")
+        try:
+            await out["link_status"].read_browse_name()
+        except ua.UaStatusCodeError:  # a server without it (optional)
+            out["link_status"] = None
         return out
 
     def _feed(self, buffers: dict) -> list[dict]:

@@ -398,6 +398,7 @@ class PrinterServer:
             nodes["setpoints"][column] = var
         health = await monitoring.add_object(nid("Monitoring", "Health"), f"{idx}:Health")
         defaults = {"Status": "no twin connected", "Cause": "", "Alarm": "", "TwinTime": -1.0}
+        defaults["LinkStatus"] = ""  # the twin's link: connected since …, back after a gap
         defaults["NIS"] = float("nan")
         defaults["Theta"] = [0.0] * 5
         for key, (_state, unit, code) in HEALTH_STATES.items():

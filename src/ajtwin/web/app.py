@@ -354,6 +354,7 @@ def create_app(
             "samples": publisher.snapshot(name),
             "alarms": publisher.alarms(name),
         }
+        out["link"] = publisher.link(name)
         out["status"] = _status(out, publisher)
         return out
 
@@ -481,6 +482,9 @@ def create_app(
 def _merge_live(entry: dict, publisher: LivePublisher) -> None:
     """Overlay a machine's live state (printing, states now, live alarms) on its summary."""
     name = entry["name"]
+    link = publisher.link(name)
+    if link is not None:
+        entry["link"] = link
     latest = publisher.latest(name)
     printing = publisher.is_printing(name)
     if latest is None:
@@ -523,11 +527,17 @@ def _status(entry: dict, publisher: LivePublisher) -> str:
         return "printing"
     if entry.get("status") == "alarm":
         return "alarm"
+    if entry.get("prints") is not None:  # machine detail: the fleet's rule (data.fleet)
+        from ajtwin.apps.mismatch import MISMATCH_CAUSE
+
+        prints = entry["prints"]
+        last_seq = prints[-1]["seq"] if prints else None
+        if any(
+            a.get("seq") == last_seq and a.get("cause") != MISMATCH_CAUSE
+            for a in entry.get("alarms") or []
+        ):
+            return "alarm"  # a fault in the latest print
+        return "mismatch" if entry.get("mismatch") else "idle"
     if entry.get("mismatch"):
         return "mismatch"
-    if entry.get("prints") is not None:  # machine detail: alarm in its last print
-        prints = entry["prints"]
-        if prints and prints[-1]["anomalies"] > 0:
-            return "alarm"
-        return "idle"
     return entry.get("status", "idle")

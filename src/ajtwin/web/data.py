@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.apps.mismatch import MISMATCH_CAUSE
 from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import arrays as _arrays
 from ajtwin.store.registry import Registry, RegistryError
@@ -281,8 +282,15 @@ class RegistryView:
                         )
                 if alarm is not None:
                     entry["last_alarm"] = dict(alarm)
-                    if alarm["seq"] == latest_seq:  # the machine's latest print alarmed
-                        entry["status"] = "alarm"
+                # the latest print raised a fault alarm (the guard's own "mismatch, not a
+                # fault" events make the status mismatch below, as on the machine page)
+                n_faults = conn.execute(
+                    "SELECT COUNT(*) FROM anomalies a JOIN prints p ON a.print_id = p.id "
+                    "WHERE p.machine_id = ? AND p.seq = ? AND a.cause != ?",
+                    (row["id"], latest_seq, MISMATCH_CAUSE),
+                ).fetchone()[0]
+                if n_faults:
+                    entry["status"] = "alarm"
                 entry.update(care_fields(self.registry, row["name"]))
                 if entry.get("mismatch") and entry["status"] != "alarm":
                     entry["status"] = "mismatch"

@@ -105,6 +105,16 @@ def _when(iso: str | None) -> str:
     return escape(t.strftime("%Y-%m-%d %H:%M UTC"))
 
 
+def link_badge(link: dict) -> str:
+    """The badge of a machine link's state (text from :func:`ajtwin.web.publisher.link_text`)."""
+    state = str(link.get("state", ""))
+    reason = link.get("reason") or link.get("url") or ""
+    return (
+        f'<span class="link {escape(state)}" title="{escape(str(reason))}">'
+        f"{escape(str(link.get('text', '')))}</span>"
+    )
+
+
 def fleet_rows(machines: list[dict]) -> str:
     """The ``<tbody>`` rows of the fleet table."""
     if not machines:
@@ -124,6 +134,9 @@ def fleet_rows(machines: list[dict]) -> str:
                 f'<br><span class="cause mismatch-of" title="{escape(mismatch["message"])}">'
                 f"{escape(named or 'model fit')} (print #{mismatch['seq']})</span>"
             )
+        link = m.get("link")
+        if link and link.get("text"):  # the live twin's machine link (ajtwin live --dashboard)
+            badge += "<br>" + link_badge(link)
         last = m.get("last_print")
         if m.get("live"):
             now = "live" if m["live"].get("printing") else "live print ended"
@@ -189,10 +202,11 @@ def fleet_page(machines: list[dict], store: str) -> str:
 {fleet_rows(machines)}
 </tbody></table>
 <p class="dim small">Status: <b>alarm</b> = the last print (or the live one) raised an alarm;
-<b>printing</b> = live samples within the last 30 s; <b>mismatch</b> = the model–machine guard
-fired on the newest print (the outputs it names beneath; commission the machine). States are
-the twin's estimate at the end of the last print (live: now); the line is their course over
-that print.</p>
+<b>printing</b> = live samples within the last 30 s (beneath: the state of the live
+twin's machine link, e.g. <i>link lost — reconnecting</i>; the gap is missing data);
+<b>mismatch</b> = the model–machine guard fired on the newest print (the outputs it names
+beneath; commission the machine). States are the twin's estimate at the end of the last print
+(live: now); the line is their course over that print.</p>
 """
     return _page("Fleet", body, "fleet", plots=False)
 

@@ -25,6 +25,11 @@ through unchanged)::
     alarms       [{"detected_s", "onset_s", "cause", "description", "detectors"}]
                  alarms the twin raised at this sample
 
+A machine link's state (``ajtwin live``: connected, reconnecting since T, …; see
+:meth:`ajtwin.live.engine.LiveEngine.publish_link`) is kept per machine and pushed as
+``{"type": "link", "machine", "link": {…, "text"}}``; ``text`` (:func:`link_text`) is
+what the pages show.
+
 The publisher stamps ``published_at`` (Unix time, s) on each event so a page (same
 machine clock) can measure how long delivery took.
 
@@ -46,6 +51,39 @@ import time
 from collections import deque
 
 
+def link_text(link: dict | None) -> str:
+    """The operator's sentence for a link state (see :meth:`LivePublisher.publish_link`).
+
+    >>> link_text({"state": "reconnecting", "attempt": 3, "since": 0.0, "retry_in_s": 4})
+    'link lost since 00:00:00 UTC — reconnecting (attempt 3, next in 4 s)'
+    >>> link_text({"state": "connected", "gap_s": 12.4})
+    'link up (back after a 12 s gap: missing data)'
+    """
+    if not link:
+        return ""
+    state = link.get("state")
+    if state == "reconnecting":
+        since = link.get("since")
+        when = (
+            "" if since is None else " since " + time.strftime("%H:%M:%S UTC", time.gmtime(since))
+        )
+        retry = link.get("retry_in_s")
+        nxt = "" if retry is None else f", next in {retry:g} s"
+        return f"link lost{when} — reconnecting (attempt {link.get('attempt', 0)}{nxt})"
+    if state == "connected":
+        gap = link.get("gap_s")
+        if gap is None:
+            return "link up"
+        return f"link up (back after a {gap:.0f} s gap: missing data)"
+    if state == "connecting":
+        return "link: connecting…"
+    if state == "refused":
+        return f"link refused: {link.get('reason') or 'by the server'}"
+    if state == "ended":
+        return "link closed (prints finished)"
+    return f"link {state}"
+
+
 def sample_from_engine(message: dict) -> dict | None:
     """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
     ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
@@ -56,8 +94,8 @@ def sample_from_engine(message: dict) -> dict | None:
     from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.data import detector_thresholds
 
-    if message.get("provisional"):
-        return None
+    if message.get("provisional") or "time_s" not in message:
+        return None  # (a link-state message has no sample: publish_engine handles it)
 
     def ordered(key, names):
         value = message.get(key)
@@ -155,6 +193,7 @@ class LivePublisher:
         self._alarms: dict[str, list] = {}
         self._last_seen: dict[str, float] = {}
         self._ended: set[str] = set()
+        self._links: dict[str, dict] = {}
 
     # ------------------------------------------------------------------ publishing
     def publish(self, sample: dict) -> None:
@@ -183,8 +222,27 @@ class LivePublisher:
             self._samples.setdefault(machine, deque(maxlen=self.history))
         self._broadcast({"type": "print_start", "machine": machine, "published_at": time.time()})
 
+    def publish_link(self, machine: str, link: dict) -> None:
+        """The state of the link feeding ``machine`` (``state``, ``since``, ``attempt``, …;
+        see :meth:`ajtwin.live.engine.LiveEngine.publish_link`); kept and pushed to pages."""
+        link = _clean({**link, "text": link_text(link)})
+        with self._lock:
+            self._samples.setdefault(machine, deque(maxlen=self.history))
+            self._links[machine] = link
+        self._broadcast(
+            {"type": "link", "machine": machine, "link": link, "published_at": time.time()}
+        )
+
+    def link(self, machine: str) -> dict | None:
+        """The last link state of ``machine`` (None: no live link reported)."""
+        with self._lock:
+            return self._links.get(machine)
+
     def publish_engine(self, message: dict) -> None:
         """Publish a message of the live engine (:func:`sample_from_engine`); thread-safe."""
+        if "link" in message and "step" not in message:
+            self.publish_link(message["machine"], message["link"])
+            return
         sample = sample_from_engine(message)
         if sample is not None:
             self.publish(sample)

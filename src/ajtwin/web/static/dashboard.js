@@ -21,6 +21,12 @@ function fmt(v, digits) {
   return Number(v.toPrecision(digits || 4)).toString();
 }
 function minutes(t) { return t === null ? null : t / 60; }
+// "2026-11-23T06:52:46+00:00" → "2026-11-23 06:52 UTC" (the registry's times are UTC)
+function when(iso) {
+  const d = new Date(iso);
+  if (!iso || isNaN(d)) return iso ? String(iso) : "—";
+  return d.toISOString().slice(0, 16).replace("T", " ") + " UTC";
+}
 
 // ---------------------------------------------------------------- websocket
 function connect(machine, onEvent) {
@@ -160,8 +166,8 @@ function buildDetectors(s) {
     { type: "line", xref: "paper", x0: 0, x1: 1, yref: "y2", y0: d.window_nis_threshold, y1: d.window_nis_threshold, line: { color: "#c62828", dash: "dash", width: 1.2 } },
   ];
   layout.annotations = [
-    { xref: "paper", x: 0.01, yref: "y", y: 1, text: "alarm threshold", showarrow: false, yanchor: "bottom", font: { color: "#c62828", size: 10 } },
-    { xref: "paper", x: 0.01, yref: "y2", y: d.window_nis_threshold, text: "p = 1e-9", showarrow: false, yanchor: "bottom", font: { color: "#c62828", size: 10 } },
+    { xref: "paper", x: 1, xanchor: "right", yref: "y", y: 1, text: "alarm threshold", showarrow: false, yanchor: "bottom", font: { color: "#c62828", size: 10 } },
+    { xref: "paper", x: 1, xanchor: "right", yref: "y2", y: d.window_nis_threshold, text: "p = 1e-9", showarrow: false, yanchor: "bottom", font: { color: "#c62828", size: 10 } },
   ];
   return { traces, layout, map };
 }
@@ -174,7 +180,16 @@ function buildTheta(s) {
     traces.push({ x: t, y: s.theta.map((r) => r[i]), mode: "lines", line: { width: 1.4, color: COLORS[i] },
       name: "θ " + n.states[i], showlegend: false, yaxis: ax(i) });
   }
-  return { traces, layout: rowsLayout(5, n.states.map((x) => "θ " + x)), map };
+  const layout = rowsLayout(5, n.states.map((x) => "θ " + x));
+  // a print shorter than EM's first window keeps θ as it started: say so, not five flat lines
+  const first = s.theta.find((r) => r && r.every((v) => v !== null));
+  const unchanged = first && s.theta.every((r) => !r || r.every((v, i) => v === null || v === first[i]));
+  if (unchanged) {
+    layout.annotations = [{ xref: "paper", yref: "paper", x: 0.5, y: 1.0, yanchor: "bottom",
+      showarrow: false, font: { size: 11, color: "#6b7585" },
+      text: "θ unchanged in this print: EM had no full window of data to re-estimate it yet" }];
+  }
+  return { traces, layout, map, unchangedFrom: unchanged ? first : null };
 }
 
 function alarmShapes(alarms, existing) {
@@ -202,6 +217,18 @@ function machinePage() {
     s.textContent = { mismatch: "model–machine mismatch" }[status] || status;
   }
 
+  function renderLink(link) {
+    // the live twin's machine link (text from the server: one wording for both pages)
+    const b = document.getElementById("link");
+    if (!b) return;
+    b.hidden = !(link && link.text);
+    if (b.hidden) return;
+    b.className = "link " + link.state;
+    b.textContent = link.text;
+    b.title = link.reason || link.url || "";
+    A.link = link;
+  }
+
   function renderSummary(m, latest) {
     const box = document.getElementById("summary");
     box.innerHTML = "";
@@ -220,7 +247,7 @@ function machinePage() {
     const extra = [["commissioned_at", "last commissioned"], ["last_maintenance_at", "last maintained"]];
     for (const [k, label] of extra) if (m[k]) {
       const c = el("div", { class: "card" });
-      c.append(el("div", { class: "dim" }, label)); c.append(el("div", {}, String(m[k])));
+      c.append(el("div", { class: "dim" }, label)); c.append(el("div", {}, when(m[k])));
       if (k === "last_maintenance_at" && m.last_maintenance) c.append(el("div", { class: "dim" }, m.last_maintenance));
       box.append(c);
     }
@@ -233,7 +260,7 @@ function machinePage() {
     if (m.calibration) {
       const cal = m.calibration;
       const c = el("div", { class: "card calibration", id: "calibration" });
-      c.append(el("div", { class: "dim" }, "active calibration " + cal.id + " · " + cal.source + " · " + cal.created_at));
+      c.append(el("div", { class: "dim" }, "active calibration " + cal.id + " · " + cal.source + " · " + when(cal.created_at)));
       const t = el("table", { class: "grid small" });
       for (const p of cal.parameters) {
         const tr = el("tr", p.determined ? {} : { class: "dim", title: "not determined by the print (prior)" });
@@ -372,7 +399,14 @@ function machinePage() {
         ext("detectors", dp);
       }
     }
-    if (figs.theta) ext("theta", figs.theta.map.theta.map((idx, i) => [idx, col("theta", i)]));
+    if (figs.theta) {
+      ext("theta", figs.theta.map.theta.map((idx, i) => [idx, col("theta", i)]));
+      const first = figs.theta.unchangedFrom;  // EM landed: the "θ unchanged" note goes
+      if (first && batch.some((b) => b.theta && b.theta.some((v, i) => v !== null && v !== first[i]))) {
+        figs.theta.unchangedFrom = null;
+        Plotly.relayout(document.getElementById("plot-theta"), { annotations: [] });
+      }
+    }
     const now = Date.now();
     if (now - (A.historyDrawn || 0) > 2000) { renderHistory(info); A.historyDrawn = now; }
     for (const s of batch) A.latencies.push(now - s.published_at * 1000);
@@ -420,6 +454,7 @@ function machinePage() {
       info = await getJSON("/api/machine/" + encodeURIComponent(name));
     } catch (e) { showError(e.message); return; }
     setStatus(info.status);
+    renderLink(info.link);
     const live = info.live.samples;
     renderSummary(info, live.length && info.live.printing ? live[live.length - 1] : null);
     renderAlarms(info);
@@ -440,6 +475,8 @@ function machinePage() {
       if (ev.alarms && ev.alarms.length) onAlarm(ev);
       queue.push(ev);
       if (!frame) frame = requestAnimationFrame(flush);
+    } else if (ev.type === "link") {
+      if (ev.machine === name) { info.link = ev.link; renderLink(ev.link); }
     } else if (ev.type === "print_end") {
       info.live.printing = false; renderHistory(info);
     } else if (ev.type === "print" && ev.machine === name) {
@@ -508,6 +545,7 @@ function whatifPage() {
     const layout = rowsLayout(5, titles);
     layout.xaxis.title.text = "minutes from now";
     const div = document.getElementById("plot-forecast");
+    if (div.classList.contains("placeholder")) { div.classList.remove("placeholder"); div.textContent = ""; }
     Plotly.react(div, traces, layout, PLOT_CONFIG);
     A.forecastDrawn = (A.forecastDrawn || 0) + 1;
   }

@@ -1,0 +1,184 @@
+"""Where do the false alarms on clean prints come from? (issue 12, docs/anomalies.md)
+
+Runs, per (truth generator, machine seed): a 20-min ``commissioning`` print →
+:func:`~ajtwin.estimation.commission.commission`, then the calibrated twin on the next
+90-min clean ``exp1`` print and on a 30-min ``nozzle_clog`` print (onset 15 min), exactly
+as ``benchmarks/bench_machine.py`` does. The twin's filter outputs are cached (npz under
+``/tmp/ajtwin-alarm-cache``) so detector settings can be tried in seconds.
+
+Reports, per detector channel (windowed NIS, CUSUM± per output, common-mode pressure),
+how many clean-print events it started, and the clog detection delays.
+
+Tuning set: ``--truth model --machines 11,12,13,14,15`` (first generator, machine seeds not
+used for evaluation). Evaluation: ``--truth alt --machines 1001,1002,1003,1004,1005``
+(print seeds as in bench_machine.py).
+
+    python benchmarks/alarm_diagnosis.py --truth model --machines 11,12,13,14,15
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+CACHE = Path("/tmp/ajtwin-alarm-cache")
+FIELDS = (
+    "time_s",
+    "outputs",
+    "predicted_outputs",
+    "innovation_variances",
+    "nis",
+    "n_measured",
+    "means",
+    "predicted_means",
+    "covariances",
+)
+
+
+def _arrays(run, record) -> dict:
+    f = run.filtered
+    return {
+        "time_s": np.asarray(run.time_s),
+        "outputs": np.asarray(record.outputs),
+        "predicted_outputs": np.asarray(f.predicted_outputs),
+        "innovation_variances": np.asarray(f.innovation_variances),
+        "nis": np.asarray(f.nis),
+        "n_measured": np.asarray(f.n_measured),
+        "means": np.asarray(f.means),
+        "predicted_means": np.asarray(f.predicted_means),
+        "covariances": np.asarray(f.covariances),
+    }
+
+
+def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
+    """Filter outputs of the clean print and of the clog print (cached)."""
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v1".encode()).hexdigest()
+    path = CACHE / f"{key[:16]}.npz"
+    if path.exists():
+        z = np.load(path)
+        out = {"clean": {}, "clog": {}}
+        for name in z.files:
+            kind, field = name.split("/")
+            out[kind][field] = z[name]
+        out["clog_onset_s"] = float(out["clog"].pop("onset_s"))
+        return out
+
+    from ajtwin.estimation.commission import commission
+    from ajtwin.estimation.twin import Twin
+    from ajtwin.simulation.printer import run_virtual_print
+    from ajtwin.store.ingest import carry_over
+
+    rng = np.random.default_rng(print_seed)
+    kw = {"machine_seed": machine_seed} if machine_seed is not None else {}
+    comm = run_virtual_print("commissioning", seed=print_seed, truth_generator=truth, **kw)
+    measured = float(comm.states[0, 0] + 0.1 * rng.standard_normal())
+    result = commission(comm.record, known={"droplet_diameter_um": (measured, 0.1)})
+    start = carry_over(result.end_state, result.end_state_cov)
+
+    def twin():
+        return Twin.default(
+            calibration=result.calibration,
+            calibration_cov=result.calibration_cov,
+            noise_factors=result.noise_factors,
+        )
+
+    clean = run_virtual_print(
+        "exp1",
+        seed=print_seed + 1,
+        duration_min=minutes,
+        continue_from=comm.record,
+        truth_generator=truth,
+    )
+    clog = run_virtual_print(
+        "nozzle_clog",
+        seed=print_seed + 2,
+        duration_min=30.0,
+        continue_from=comm.record,
+        overrides={"fault": {"onset_min": 15.0}},
+        truth_generator=truth,
+    )
+    a = _arrays(twin().run(clean.record, start=start), clean.record)
+    b = _arrays(twin().run(clog.record, start=start), clog.record)
+    b["onset_s"] = np.asarray(clog.record.meta["fault_onset_s"])
+    CACHE.mkdir(parents=True, exist_ok=True)
+    np.savez(
+        path, **{f"clean/{k}": v for k, v in a.items()}, **{f"clog/{k}": v for k, v in b.items()}
+    )
+    return case(truth, machine_seed, print_seed, minutes)
+
+
+def _lag1(x: np.ndarray) -> float:
+    """Lag-1 autocorrelation over the pairs where both samples were measured."""
+    ok = np.isfinite(x[:-1]) & np.isfinite(x[1:])
+    return float(np.round(np.corrcoef(x[:-1][ok], x[1:][ok])[0, 1], 2))
+
+
+def detect(arrays: dict, settings=None):
+    from ajtwin.apps.anomaly import detect_anomalies
+
+    return detect_anomalies(
+        *(arrays[f] if f != "outputs" else arrays["outputs"] for f in FIELDS), settings=settings
+    )
+
+
+def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict:
+    first = Counter()
+    causes = Counter()
+    hours = 0.0
+    delays, labels, per_machine = [], [], {}
+    e_stats = []
+    for i, seed in enumerate(machines):
+        c = case(truth, seed, 2001 + 10 * i if truth == "alt" else 3001 + 10 * i, minutes)
+        res = detect(c["clean"], settings)
+        hours += minutes / 60.0
+        per_machine[str(seed)] = [(ev.detected_s, ev.cause, ev.detectors) for ev in res.events]
+        for ev in res.events:
+            first[ev.detectors[0]] += 1
+            causes[ev.cause] += 1
+        e = res.normalised_innovations[60:]
+        e_stats.append(
+            {
+                "std": np.nanstd(e, axis=0).round(2).tolist(),
+                "kurtosis": (np.nanmean(e**4, axis=0) / np.nanmean(e**2, axis=0) ** 2)
+                .round(1)
+                .tolist(),
+                "lag1": [_lag1(x) for x in e.T],
+            }
+        )
+        clog = detect(c["clog"], settings)
+        onset = c["clog_onset_s"]
+        hits = [ev for ev in clog.events if ev.detected_s >= onset]
+        pre = [ev for ev in clog.events if ev.detected_s < onset]
+        first.update(ev.detectors[0] for ev in pre)
+        causes.update(ev.cause for ev in pre)
+        hours += onset / 3600.0
+        delays.append(None if not hits else hits[0].detected_s - onset)
+        labels.append(None if not hits else hits[0].cause)
+    n = sum(causes.values())
+    return {
+        "truth": truth,
+        "machines": list(machines),
+        "clean_hours": hours,
+        "false_alarms": n,
+        "per_10h": 10.0 * n / hours,
+        "first_detector": dict(first),
+        "causes": dict(causes),
+        "clog_delay_s": delays,
+        "clog_label": labels,
+        "events": per_machine,
+        "innovation_stats": e_stats,
+    }
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser()
+    p.add_argument("--truth", default="model")
+    p.add_argument("--machines", default="11,12,13,14,15")
+    a = p.parse_args()
+    machines = [int(s) for s in a.machines.split(",")]
+    print(json.dumps(diagnose(a.truth, machines), indent=1, default=float))

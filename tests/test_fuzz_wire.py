@@ -482,6 +482,8 @@ def test_fuzz_sample_buffer(profile):
         # independent replay: rows newer than the running last, each through clean_sample
         expected, running, lines = [], last, 0
         for r in table:
+            if np.isnan(r).all():  # an unfilled slot of the buffer: no sample, no line
+                continue
             if not np.isfinite(r[0]):
                 lines += 1
                 continue
@@ -662,3 +664,17 @@ def test_far_future_time_stamp_is_dropped_not_filled(fitted_start, caplog, monke
     stream.feed(Sample(4.0 + 2 * MAX_GAP_S, u, y))  # one second more: dropped
     assert stream.dropped["far_future"] == 2
     assert clean_sample(1e300, u, y)[0] is None
+
+
+def test_buffer_padding_rows_are_skipped_silently():
+    """A buffer not yet full is padded with all-NaN rows (printer_server): `ajtwin demo
+    --live` printed one "row with time nan; dropped" line per padding row and sample."""
+    from ajtwin.live.link import buffer_samples
+    from ajtwin.live.opcua import SAMPLE_WIDTH
+
+    rows = np.full((4, SAMPLE_WIDTH), np.nan)
+    rows[3] = [7.0, *NOMINAL_U, *NOMINAL_Y]
+    samples, last, problems = buffer_samples("aj1", rows, 6.0)
+    assert [s.time_s for s in samples] == [7.0] and last == 7.0 and problems == []
+    rows[0, 1] = 375.0  # a row with values but no time is not padding: it is logged
+    assert len(buffer_samples("aj1", rows, 6.0)[2]) == 1

@@ -398,7 +398,8 @@ def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, 
         text, bytes, a ragged list) is refused whole with a log line.
     last : float
         Time [s] of the newest sample already taken; rows at or before it are the
-        buffer's overlap with the previous notification and are skipped silently.
+        buffer's overlap with the previous notification and are skipped silently, as are
+        all-NaN rows (the slots of a buffer not yet filled).
 
     Returns
     -------
@@ -412,6 +413,8 @@ def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, 
         return [], last, [f"{name}: SampleBuffer has the wrong shape or type; ignored"]
     samples, problems = [], []
     for row in rows:
+        if np.isnan(row).all():
+            continue  # an unfilled slot: the server pads its buffer with all-NaN rows
         if not np.isfinite(row[0]):
             problems.append(f"{name}: SampleBuffer row with time {row[0]!r}; dropped")
             continue

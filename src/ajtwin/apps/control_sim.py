@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin import units
 from ajtwin.apps.control import (
     MPC,
     ControlSettings,
@@ -167,8 +168,8 @@ class PIController:
         # SIMC (Skogestad 2003) for K e^{-θs}/(τ1 s + 1): τ1 = φ_A's head-space time
         # constant (V_v − V_l)/Q_c, θ = half a period (sample and hold)
         vial_ml = 1.0
-        head_ml = float(twin.model.params.vial_volume * 1e6) - vial_ml
-        tau1 = head_ml / (self.u0[1] / 60.0)
+        head_ml = float(units.m3_to_ml(twin.model.params.vial_volume)) - vial_ml
+        tau1 = head_ml / float(units.sccm_to_ml_per_s(self.u0[1]))
         theta = settings.period_s / 2.0
         tau_c = settings.pi_closed_loop_time_s
         self.kp = tau1 / (self.gain * (tau_c + theta))

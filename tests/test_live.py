@@ -150,21 +150,36 @@ def test_kill_and_resume_from_registry(clog_record, tmp_path):
     log = LiveLog(registry.path)
     sid = log.open_session_of("m1")["id"]
     assert log.n_steps(sid) == committed
+    logged = log.states(sid)  # what the killed process committed
     engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    published = []
+    engine.subscribe(published.append)
     stream = engine.open("m1")
     assert stream.n_committed == committed
     for k in range(100, len(rec)):  # a re-read from before the kill: old samples dropped
         engine.feed("m1", Sample(rec.time_s[k], rec.inputs[k], rec.outputs[k]))
+    # while the session is open, the log holds every committed step (a kill now resumes)
+    engine.flush()
+    assert log.n_steps(sid) == stream.n_committed > committed
+    assert log.states(sid)[:committed] == logged  # nothing committed changed
     print_id = engine.close("m1")
     assert log.open_session_of("m1") is None
-    steps = [m["step"] for m in log.states(sid)]
+    resumed = [m for m in published if "step" in m and not m["provisional"]]
+    steps = [m["step"] for m in logged + resumed]
     assert steps == list(range(len(rec)))  # nothing lost, nothing twice
     run = Twin.default(**FAST_EM).run(rec)
-    # the live log keeps the published float64 states (the registry's print keeps float32)
-    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in log.states(sid)])
+    # the published float64 states, before and after the kill, are the batch twin's
+    means = np.array([[m["states"][n] for n in STATE_NAMES] for m in logged + resumed])
     assert _relative(means, run.means) < 1e-9
+    # closed with its print stored: the per-step rows are gone, the print holds them
+    session = log.sessions("m1")[0]
+    assert (session["status"], session["print_id"]) == ("closed", print_id)
+    assert log.n_steps(sid) == 0 and log.states(sid) == []
     stored = registry.print_arrays(print_id)
-    assert _relative(stored["means"], run.means) < 1e-6
+    assert np.array_equal(stored["time_s"], rec.time_s)
+    assert np.array_equal(stored["inputs"], rec.inputs)
+    assert np.array_equal(stored["measurements"], rec.outputs, equal_nan=True)
+    assert _relative(stored["means"], run.means) < 1e-6  # float32 by the storage policy
     assert registry.last_print("m1")["seq"] == 1
 
 
@@ -186,6 +201,8 @@ def test_follow_growing_csv(clog_record, tmp_path, caplog):
     path.write_text("\n".join(lines[:41]) + "\n" + lines[41][:10])  # a half-written line
     registry = Registry(tmp_path / "r.sqlite")
     engine = LiveEngine(registry, asynchronous=False, commit_every_s=0)
+    published = []
+    engine.subscribe(published.append)
 
     async def main():
         async def grow():
@@ -203,7 +220,10 @@ def test_follow_growing_csv(clog_record, tmp_path, caplog):
     arrays = registry.print_arrays(print_id)
     assert np.array_equal(arrays["time_s"], rec.time_s)
     session = max(LiveLog(registry.path).sessions("m1"), key=lambda r: r["id"])
-    states = LiveLog(registry.path).states(session["id"])
+    assert (session["status"], session["print_id"]) == ("closed", print_id)
+    assert LiveLog(registry.path).n_steps(session["id"]) == 0  # the print holds them
+    states = [m for m in published if "step" in m and not m["provisional"]]
+    assert [m["step"] for m in states] == list(range(len(rec)))
     means = np.array([[m["states"][n] for n in STATE_NAMES] for m in states])
     y = rec.outputs.copy()
     u = rec.inputs.copy()

@@ -370,6 +370,8 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         live = start_live(2)
         procs.append(live)
         _wait(lambda: _steps_in(tmp_path / "messages2.jsonl") >= 20, 180, "resumed steps")
+        # while the print runs the open session holds its rows: nothing committed changed
+        assert log.states(session["id"])[: len(committed)] == committed
         # the server goes away and comes back later in the same print
         lines = (tmp_path / "messages2.jsonl").read_text().splitlines()
         t_stop = json.loads([x for x in lines if '"step"' in x][-1])["time_s"]  # not a link line
@@ -386,12 +388,20 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         for p in procs:
             _stop(p)
 
-    states = log.states(session["id"])
-    assert [m["step"] for m in states] == list(range(len(states)))  # nothing twice
-    assert states[: len(committed)] == committed  # nothing committed lost or changed
+    # the session ended with its print stored: its per-step rows went with that
+    # transaction; what the second process committed is what it published (messages2)
     registry = Registry(store)
-    arrays = registry.print_arrays(registry.last_print("aj300-01")["id"])
-    assert len(arrays["time_s"]) == 15 * 60
+    stored = registry.last_print("aj300-01")
+    (closed,) = [s for s in log.sessions("aj300-01") if s["id"] == session["id"]]
+    assert (closed["status"], closed["print_id"]) == ("closed", stored["id"])
+    assert log.n_steps(session["id"]) == 0
+    lines = (tmp_path / "messages2.jsonl").read_text().splitlines()
+    published = [json.loads(x) for x in lines if '"step"' in x]
+    resumed = [m for m in published if not m.get("provisional")]
+    states = committed + resumed
+    assert [m["step"] for m in states] == list(range(len(states)))  # nothing lost, twice
+    arrays = registry.print_arrays(stored["id"])
+    assert len(arrays["time_s"]) == 15 * 60 == len(states)
     run = Twin.default().run(
         inputs=arrays["inputs"], measurements=arrays["measurements"], time_s=arrays["time_s"]
     )

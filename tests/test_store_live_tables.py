@@ -107,7 +107,9 @@ def test_live_log_refuses_a_foreign_database(tmp_path):
 
 def test_export_import_carry_finished_and_open_live_sessions(record, tmp_path):
     src = Registry(tmp_path / "a.sqlite")
-    engine = LiveEngine(src, asynchronous=False, commit_every_s=0)
+    # the closed session keeps its per-step rows (as older ajtwin left them, or the audit
+    # option): export/import must carry them, compact must thin them
+    engine = LiveEngine(src, asynchronous=False, commit_every_s=0, keep_live_steps=True)
     _feed(engine, "lab", record, 0, FIRST_PRINT)
     first_print = engine.close("lab")  # a finished live print, stored in the registry
     _feed(engine, "lab", record, 0, OPEN_STEPS)  # the next print, still running ...
@@ -176,3 +178,121 @@ def test_export_import_carry_finished_and_open_live_sessions(record, tmp_path):
     assert np.array_equal(ends[0][0], ends[1][0])
     assert np.array_equal(ends[0][1], ends[1][1])
     assert ends[0][1].shape == (FIRST_PRINT, len(STATE_NAMES))
+
+
+def _file_bytes(reg: Registry) -> int:
+    reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    return reg.path.stat().st_size
+
+
+def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record, tmp_path):
+    """The default policy: the per-step rows exist while the session is open (to resume
+    it) and go in the transaction that stores the print; the file shrinks back to what the
+    same print costs when ingested; nothing a later command reads is lost."""
+    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.estimation import Twin
+
+    reg = Registry(tmp_path / "a.sqlite")
+    reg.add_machine("lab")
+    empty = _file_bytes(reg)
+    engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+    _feed(engine, "lab", record, 0, FIRST_PRINT)
+    log = LiveLog(reg.path)
+    sid = log.open_session_of("lab")["id"]
+    assert log.n_steps(sid) == FIRST_PRINT and len(log.states(sid)) == FIRST_PRINT
+    open_bytes = _file_bytes(reg) - empty
+    print_id = engine.close("lab")
+    engine.shutdown()
+
+    session = log.sessions("lab")[0]
+    assert (session["status"], session["print_id"]) == ("closed", print_id)
+    assert log.n_steps(sid) == 0 and log.states(sid) == []
+    events = log.events(sid)
+    assert events  # the alarms stay with the session row
+    closed_bytes = _file_bytes(reg) - empty
+    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0  # pages returned
+    assert closed_bytes < open_bytes / 3
+
+    # the same print ingested by batch into another registry costs the same file bytes
+    # (± one page per table) as the live one now does
+    from ajtwin.store.ingest import ingest_record
+
+    other = Registry(tmp_path / "b.sqlite")
+    other.add_machine("lab")
+    other_empty = _file_bytes(other)
+    window = record.window(0, record.time_s[FIRST_PRINT])
+    ingest_record(other, "lab", window)
+    batch_bytes = _file_bytes(other) - other_empty
+    assert abs(closed_bytes - batch_bytes) <= 16 * 4096, (closed_bytes, batch_bytes)
+
+    # what later commands read is intact: raw samples exact, states as the batch twin's
+    arrays = reg.print_arrays(print_id)
+    assert np.array_equal(arrays["time_s"], window.time_s)
+    assert np.array_equal(arrays["inputs"], window.inputs)
+    assert np.array_equal(arrays["measurements"], window.outputs, equal_nan=True)
+    run = Twin.default().run(window)
+    assert np.max(np.abs(arrays["means"] - run.means) / np.abs(run.means)) < 1e-6
+    stored = [(e["detected_s"], e["cause"]) for e in reg.anomalies("lab").to_dict("records")]
+    batch = [(e.detected_s, e.cause) for e in detect_run(run, window).events]
+    assert stored == batch and stored
+
+    # export/import carry the thinned session; compact has nothing left to drop
+    archive = tmp_path / "lab.tar"
+    assert export_machine(reg, "lab", archive)["live_sessions"] == 1
+    dst = Registry(tmp_path / "c.sqlite")
+    import_machine(dst, archive)
+    log_c = LiveLog(dst.path)
+    (copied,) = log_c.sessions("lab")
+    assert copied["status"] == "closed" and log_c.events(copied["id"]) == events
+    assert compact(reg, "lab")["live_steps_dropped"] == 0
+
+    # the next live print starts from the stored one (the chain), as after an ingest
+    engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+    engine.open("lab")
+    assert engine.sessions["lab"].started_from == "print 1"
+    engine.shutdown()
+
+
+def test_a_live_session_killed_before_its_print_is_stored_keeps_its_rows(record, tmp_path):
+    """The close and the drop are one transaction with the print: if storing the print
+    fails, the session stays open with every row (resumable), nothing half-done."""
+    reg = Registry(tmp_path / "a.sqlite")
+    engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+    _feed(engine, "lab", record, 0, OPEN_STEPS)
+    sid = engine.sessions["lab"].session_id
+    # another writer stores a print of the machine meanwhile: save_print refuses (stale)
+    from ajtwin.store.ingest import ingest_record
+
+    ingest_record(reg, "lab", record.window(0, 30))
+    with pytest.raises(R.RegistryError, match="while this ingest ran"):
+        engine.close("lab")
+    engine.shutdown()
+    log = LiveLog(reg.path)
+    assert log.open_session_of("lab")["id"] == sid
+    assert log.n_steps(sid) == OPEN_STEPS and len(log.states(sid)) == OPEN_STEPS
+    assert [p["seq"] for p in reg.history("lab").to_dict("records")] == [1]
+
+
+def test_an_older_registry_reuses_the_pages_and_compact_makes_it_shrink(record, tmp_path):
+    """A registry made before ``auto_vacuum=INCREMENTAL`` keeps a closed session's pages
+    free for reuse; ``machine compact`` converts it, and later sessions give them back."""
+    reg = Registry(tmp_path / "a.sqlite")
+    reg._conn.execute("PRAGMA auto_vacuum=NONE")
+    reg._conn.execute("VACUUM")  # as every registry before this policy was
+    assert reg._conn.execute("PRAGMA auto_vacuum").fetchone()[0] == 0
+
+    def live_print(first):
+        engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+        _feed(engine, "lab", record, first, first + OPEN_STEPS)
+        print_id = engine.close("lab")
+        engine.shutdown()
+        return print_id
+
+    live_print(0)
+    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] > 0  # kept for reuse
+    compact(reg, "lab")
+    assert reg._conn.execute("PRAGMA auto_vacuum").fetchone()[0] == 2
+    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0
+    second = live_print(OPEN_STEPS)
+    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0
+    assert reg.get_print(second)["seq"] == 2

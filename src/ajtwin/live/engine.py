@@ -695,11 +695,15 @@ def save_print(
     status: str,
     status_reason: str,
     extra_summary: dict | None = None,
+    live_session: int | None = None,
+    keep_live_steps: bool = False,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
     ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run;
-    ``extra_summary``: more summary keys (calibration, maintenance, mismatch status).
+    ``extra_summary``: more summary keys (calibration, maintenance, mismatch status);
+    ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
+    same transaction (:meth:`ajtwin.store.registry.Registry.save_print`).
     """
     summary = print_summary(
         end[0],
@@ -733,6 +737,8 @@ def save_print(
         expected_last_seq=expected_last_seq,
         status=status,
         status_reason=status_reason,
+        live_session=live_session,
+        keep_live_steps=keep_live_steps,
     )
     return print_id, summary
 
@@ -949,6 +955,12 @@ class LiveEngine:
         Threads for EM (shared by all machines).
     commit_every_s : float
         Longest time committed steps wait before they are written (0: every step).
+    keep_live_steps : bool
+        Keep a session's per-step rows (samples and published float64 states) after its
+        print is stored (an audit log, ≈ 9 MB per print-hour until ``machine compact``).
+        By default they are dropped in the transaction that stores the print, which holds
+        the samples exactly and the states by the storage policy (≈ 0.4 MB per
+        print-hour); they exist only while the session is open, to resume it.
     """
 
     def __init__(
@@ -960,8 +972,10 @@ class LiveEngine:
         asynchronous: bool = True,
         em_workers: int = 1,
         commit_every_s: float = 1.0,
+        keep_live_steps: bool = False,
     ):
         self.registry = registry
+        self.keep_live_steps = bool(keep_live_steps)
         self.log = None
         if registry is not None:
             from ajtwin.store.live_log import LiveLog
@@ -1249,8 +1263,11 @@ class LiveEngine:
                 started_from=session.started_from,
                 status=status,
                 status_reason=reason,
+                live_session=session.session_id,  # closed (and thinned) with the print
+                keep_live_steps=self.keep_live_steps,
             )
-        self.log.close_session(session.session_id, print_id)
+        else:  # nothing stored: the session's rows are all there is of it
+            self.log.close_session(session.session_id, print_id)
         return print_id
 
     def _record_into(self, session: _Session, messages: list[dict]) -> None:

@@ -4,14 +4,18 @@
 (:mod:`ajtwin.store.arrays`; version-1 prints hold raw ``.npy`` and the whole covariance
 sequence), drops the periodic covariance key frames of prints older than
 ``keep_covariances_days`` (the end covariance, the alarms' covariances, every σ and mean
-stay) and VACUUMs the file. Of the machine's *closed* live sessions whose print is stored
-it drops the per-step samples and published states (``live_samples``, ``live_states``:
-the stored print holds the same samples and states, compressed) and keeps the session
-row and its alarms; an open session is left whole, since a restarted ``ajtwin live``
-replays it. ``export_machine`` writes ``manifest.json`` (format and
-schema version, machine, print count, SHA-256 of the database) and ``machine.sqlite`` (a
-registry holding that machine only) into an uncompressed tar; ``import_machine`` checks
-the archive strictly (exactly those two regular files, sizes, checksum, versions), reads
+stay) and VACUUMs the file (switching it to ``auto_vacuum=INCREMENTAL``, as new
+registries are, so that later closed live sessions give their pages back). A live
+session that ends with its print stored drops its own per-step rows
+(``Registry.save_print``); of the machine's *closed* sessions that still hold them
+(written by older code, or kept with ``keep_live_steps``) compact drops the per-step
+samples and published states (``live_samples``, ``live_states``: the stored print holds
+the same samples and states, compressed) and keeps the session row and its alarms; an
+open session is left whole, since a restarted ``ajtwin live`` replays it.
+``export_machine`` writes ``manifest.json`` (format and schema version, machine, print
+count, SHA-256 of the database) and ``machine.sqlite`` (a registry holding that machine
+only) into an uncompressed tar; ``import_machine`` checks the archive strictly (exactly
+those two regular files, sizes, checksum, versions), reads
 the members into a private temporary folder under its own file names (never
 ``extract``: no path traversal, no links) and copies the machine in one transaction.
 Export and import carry the machine's calibration history (provenance, standard errors)
@@ -186,6 +190,8 @@ def compact(
     live_steps_dropped = _drop_closed_live_steps(conn, machine["name"], machine["id"])
     if vacuum:
         _checkpoint(conn)
+        # from now on the file also shrinks when a live session closes (release_free_pages)
+        conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
         conn.execute("VACUUM")
         _checkpoint(conn)
     return {

@@ -483,6 +483,11 @@ class Registry:
                 f"no registry in {self.path} (an empty file); create one with "
                 f"`ajtwin machine add NAME --store {self.path}`"
             )
+        if version is None:
+            # a new registry returns the pages it frees (a closed live session's per-step
+            # rows) to the file system: release_free_pages(); must precede the first table
+            # and the journal mode (an existing registry gets it from `machine compact`)
+            self._conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
         # only now, on our own file, change its journal mode
         self._conn.execute("PRAGMA journal_mode=WAL")
         self._conn.execute("PRAGMA foreign_keys=ON")
@@ -796,8 +801,17 @@ class Registry:
         expected_last_seq: int | None,
         status: str = STATUS_OK,
         status_reason: str = "",
+        live_session: int | None = None,
+        keep_live_steps: bool = False,
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
+
+        ``live_session``: the live session (:mod:`ajtwin.store.live_log`) this print ends;
+        in the same transaction it is closed with this print's id and, unless
+        ``keep_live_steps``, its per-step rows (``live_samples``, ``live_states``) are
+        deleted: the print now holds its samples exactly and its states by the storage
+        policy, and a session is only replayed while open. Its session row and alarms
+        stay. A kill before the COMMIT leaves the session open and whole (resumable).
 
         ``expected_last_seq`` is the seq of the machine's latest print (in the chain or
         not) when the twin started (None: none); if another ingest of the same machine
@@ -876,6 +890,9 @@ class Registry:
                     for ev in anomalies
                 ],
             )
+            dropped = 0
+            if live_session is not None:
+                dropped = self._end_live_session(live_session, print_id, keep_live_steps)
             delay = float(os.environ.get(TEST_SLEEP_ENV, "0") or 0)
             if delay > 0:  # crash-safety tests kill the process here
                 time.sleep(delay)
@@ -883,4 +900,32 @@ class Registry:
         except BaseException:
             conn.execute("ROLLBACK")
             raise
+        if dropped:
+            self.release_free_pages()
         return int(print_id)
+
+    def _end_live_session(self, session_id: int, print_id: int, keep_steps: bool) -> int:
+        """Inside save_print's transaction: close the open live session with its print;
+        drop its per-step rows unless ``keep_steps``. Returns the number of steps dropped."""
+        closed = self._conn.execute(
+            "UPDATE live_sessions SET status = 'closed', print_id = ?, closed_at = ? "
+            "WHERE id = ? AND status = 'open'",
+            (print_id, time.time(), session_id),
+        ).rowcount
+        if closed != 1:
+            raise RegistryError(f"live session {session_id} is not open; nothing stored")
+        if keep_steps:
+            return 0
+        dropped = self._conn.execute(
+            "DELETE FROM live_samples WHERE session_id = ?", (session_id,)
+        ).rowcount
+        self._conn.execute("DELETE FROM live_states WHERE session_id = ?", (session_id,))
+        return dropped
+
+    def release_free_pages(self) -> None:
+        """Give the file's free pages back to the file system (registries made with
+        ``auto_vacuum=INCREMENTAL``: every new one, and any after ``machine compact``);
+        others keep them for reuse by later rows (the next live session)."""
+        if self._conn.execute("PRAGMA auto_vacuum").fetchone()[0] == 2:
+            # executescript steps the pragma to its end (execute would free one page)
+            self._conn.executescript("PRAGMA incremental_vacuum")

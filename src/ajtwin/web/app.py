@@ -15,7 +15,12 @@ Routes
 
 Access: with a ``token`` every request must carry it (``Authorization: Bearer T``, the
 ``ajtwin_token`` cookie, or ``?token=T`` once — the server then sets the cookie) or gets
-401; the websocket is refused the same way. Nothing in the application changes a machine
+401; the websocket is refused the same way (HTTP 403), and also when a browser opens it
+from a page of another origin (``Origin`` not this server's: any site could otherwise
+read the live stream of a dashboard served without a token). The websocket only pushes:
+a page that sends a message is closed with code 1003; at most :data:`MAX_WEBSOCKETS` are
+open at once (more: 403); events go out as strict JSON whatever a publisher put in them
+(:func:`ajtwin.web.publisher.event_text`). Nothing in the application changes a machine
 (forecasts and advice are computations; the registry is opened read-only in spirit: no
 write is ever issued). Bad what-if input gets HTTP 422 with a sentence saying what is
 wrong, never a server error.
@@ -39,7 +44,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from ajtwin.store.registry import RegistryError
 from ajtwin.web import pages
 from ajtwin.web.data import NAMES, RegistryView
-from ajtwin.web.publisher import LivePublisher
+from ajtwin.web.publisher import LivePublisher, event_text
 from ajtwin.web.watcher import RegistryWatcher
 
 log = logging.getLogger(__name__)
@@ -456,27 +461,81 @@ def create_app(
         }
 
     # ------------------------------------------------------------------ websocket
+    open_sockets: set = set()
+
     @app.websocket("/ws")
     async def ws(websocket: WebSocket):
-        if not _authorized(token, websocket.headers, websocket.cookies, websocket.query_params):
-            await websocket.close(code=1008)
+        if not _authorized(
+            token, websocket.headers, websocket.cookies, websocket.query_params
+        ) or not _same_origin(websocket.headers):
+            await websocket.close(code=1008)  # before accept: HTTP 403
             return
+        if len(open_sockets) >= MAX_WEBSOCKETS:
+            await websocket.close(code=1013)
+            return
+        machine = websocket.query_params.get("machine") or None
         await websocket.accept()
         sub = publisher.subscribe()
-        machine = websocket.query_params.get("machine") or None
+        open_sockets.add(sub)
+        sender = asyncio.create_task(_send_events(websocket, sub, machine))
         try:
-            await websocket.send_text(json.dumps({"type": "hello"}))
-            while True:
-                event = await sub.get()
-                if machine and event.get("machine") not in (None, machine):
-                    continue
-                await websocket.send_text(json.dumps(event))
-        except (WebSocketDisconnect, RuntimeError):
-            pass
+            await _read_until_closed(websocket)
         finally:
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
             publisher.unsubscribe(sub)
+            open_sockets.discard(sub)
 
     return app
+
+
+#: open websockets at most (each holds a queue of up to 2,000 events); more are refused
+MAX_WEBSOCKETS = 64
+#: the close reason a page gets when it sends a message
+SEND_ONLY = "this websocket only sends events; a page sends nothing"
+
+
+def _same_origin(headers) -> bool:
+    """Only the dashboard's own pages may open its websocket.
+
+    A browser names the page that opens a websocket in ``Origin``, and websockets have no
+    same-origin rule of their own: without this, a page of any site the operator visits
+    could read the live stream of a dashboard served without a token on 127.0.0.1. A
+    client that sends no ``Origin`` (a script) is judged by the token alone.
+    """
+    origin = headers.get("origin")
+    if origin is None:
+        return True
+    host = headers.get("host", "").lower()
+    return bool(host) and origin.lower() in (f"http://{host}", f"https://{host}")
+
+
+async def _read_until_closed(websocket: WebSocket) -> None:
+    """Read the page's side until it leaves. Pages send nothing: a message is answered
+    with close code 1003 and :data:`SEND_ONLY`. Reading all the time is also how a page
+    that left without a close is noticed at once (uvicorn stops reading a connection
+    whose messages the application does not take)."""
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        if message["type"] == "websocket.receive":
+            with contextlib.suppress(RuntimeError):  # already closing
+                await websocket.close(code=1003, reason=SEND_ONLY)
+
+
+async def _send_events(websocket: WebSocket, sub, machine: str | None) -> None:
+    """Push the hello, then every event (of ``machine`` only, when given) as strict JSON."""
+    try:
+        await websocket.send_text(event_text({"type": "hello"}))
+        while True:
+            event = await sub.get()
+            if machine and event.get("machine") not in (None, machine):
+                continue
+            await websocket.send_text(event_text(event))
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass  # the page left or was closed: the reader ends the handler
 
 
 def _merge_live(entry: dict, publisher: LivePublisher) -> None:

@@ -152,4 +152,6 @@ def dashboard(
     url = f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
     click.echo(f"ajtwin dashboard on {path}: open {url}  (Ctrl-C stops it)", err=True)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    uvicorn.run(app, host=host, port=port, log_level="warning", ws="websockets-sansio")
+    from ajtwin.web.websocket import SERVER_OPTIONS
+
+    uvicorn.run(app, host=host, port=port, log_level="warning", **SERVER_OPTIONS)

@@ -45,6 +45,7 @@ Example
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import threading
 import time
@@ -63,15 +64,17 @@ def link_text(link: dict | None) -> str:
         return ""
     state = link.get("state")
     if state == "reconnecting":
-        since = link.get("since")
+        since = _number(link.get("since"))
         when = (
-            "" if since is None else " since " + time.strftime("%H:%M:%S UTC", time.gmtime(since))
+            ""
+            if since is None or not 0 <= since < 1e11  # a Unix time gmtime can show
+            else " since " + time.strftime("%H:%M:%S UTC", time.gmtime(since))
         )
-        retry = link.get("retry_in_s")
+        retry = _number(link.get("retry_in_s"))
         nxt = "" if retry is None else f", next in {retry:g} s"
         return f"link lost{when} — reconnecting (attempt {link.get('attempt', 0)}{nxt})"
     if state == "connected":
-        gap = link.get("gap_s")
+        gap = _number(link.get("gap_s"))
         if gap is None:
             return "link up"
         return f"link up (back after a {gap:.0f} s gap: missing data)"
@@ -84,6 +87,17 @@ def link_text(link: dict | None) -> str:
     return f"link {state}"
 
 
+def _number(value) -> float | None:
+    """A finite real number, or None (a link state's times come from another process)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond float
+        return None
+    return value if math.isfinite(value) else None
+
+
 def sample_from_engine(message: dict) -> dict | None:
     """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
     ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
@@ -94,8 +108,12 @@ def sample_from_engine(message: dict) -> dict | None:
     from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.data import detector_thresholds
 
+    if not isinstance(message, dict):
+        raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")
     if message.get("provisional") or "time_s" not in message:
         return None  # (a link-state message has no sample: publish_engine handles it)
+    if "machine" not in message:
+        raise ValueError("a live-engine message with a time_s needs a 'machine'")
 
     def ordered(key, names):
         value = message.get(key)
@@ -117,11 +135,11 @@ def sample_from_engine(message: dict) -> dict | None:
     }
     if isinstance(message.get("cusum"), dict):
         settings = DetectorSettings()
-        p = message.get("window_nis_p")
+        p = _number(message.get("window_nis_p"))
         sample["detectors"] = {
             "cusum": [message["cusum"].get(c) for c in CUSUM_CHANNELS],
             "cusum_thresholds": detector_thresholds(settings),
-            "window_nis_log10p": None if p is None else -math.log10(max(float(p), 1e-300)),
+            "window_nis_log10p": None if p is None else -math.log10(max(p, 1e-300)),
             "window_nis_threshold": -math.log10(settings.nis_alpha),
         }
     sample["alarms"] = [
@@ -130,12 +148,22 @@ def sample_from_engine(message: dict) -> dict | None:
             "onset_s": ev.get("onset_s"),
             "cause": ev.get("cause"),
             "description": ev.get("description"),
-            "detectors": ", ".join(ev.get("detectors") or []),
+            "detectors": _detector_names(ev.get("detectors")),
         }
-        for ev in message.get("events") or []
-        if ev.get("state", "raised") == "raised"
+        for ev in _as_list(message.get("events"))
+        if isinstance(ev, dict) and ev.get("state", "raised") == "raised"
     ]
     return sample
+
+
+def _as_list(value) -> list:
+    return list(value) if isinstance(value, list | tuple) else []
+
+
+def _detector_names(value) -> str:
+    if isinstance(value, str):
+        return value
+    return ", ".join(str(v) for v in _as_list(value))
 
 
 class Subscription:
@@ -160,17 +188,36 @@ class Subscription:
         return await self.queue.get()
 
 
-def _clean(value):
-    """NaN/inf → None recursively, so every event is valid JSON."""
+#: deepest nesting of an event (a sample is 3 levels deep); deeper ones are refused
+MAX_EVENT_DEPTH = 32
+
+
+def _clean(value, depth: int = 0):
+    """Any value as plain JSON data, so every event a page receives is strict JSON:
+    NaN/inf → None, NumPy values → numbers/lists, tuples and sets → lists, keys → text,
+    bytes and other objects → their text. Nesting beyond :data:`MAX_EVENT_DEPTH` is a
+    ``ValueError`` (a publisher's bug, said at ``publish``, never a dead page stream)."""
+    if depth > MAX_EVENT_DEPTH:
+        raise ValueError(f"a live event nested deeper than {MAX_EVENT_DEPTH} levels")
+    if value is None or isinstance(value, bool | int | str):
+        return value
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if hasattr(value, "tolist"):  # NumPy arrays and scalars
-        return _clean(value.tolist())
-    return value
+        return {k if isinstance(k, str) else str(k): _clean(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [_clean(v, depth + 1) for v in value]
+    if hasattr(value, "tolist") and hasattr(value, "dtype"):  # NumPy arrays and scalars
+        plain = value.tolist()
+        return None if plain is value else _clean(plain, depth + 1)
+    if isinstance(value, bytes | bytearray):
+        return bytes(value).decode("utf-8", "replace")
+    return str(value)
+
+
+def event_text(event: dict) -> str:
+    """An event as the text a page receives: strict JSON (no NaN, every key text)."""
+    return json.dumps(_clean(event), allow_nan=False)
 
 
 class LivePublisher:
@@ -198,6 +245,8 @@ class LivePublisher:
     # ------------------------------------------------------------------ publishing
     def publish(self, sample: dict) -> None:
         """Deliver one sample (see module docstring) to every page; thread-safe."""
+        if not isinstance(sample, dict):
+            raise ValueError(f"a live sample is a dict, got {type(sample).__name__}")
         if "machine" not in sample or "time_s" not in sample:
             raise ValueError("a live sample needs at least 'machine' and 'time_s'")
         event = _clean(dict(sample))
@@ -211,8 +260,10 @@ class LivePublisher:
                 self._alarms[name] = []
                 self._ended.discard(name)
             buffer.append(event)
-            if event.get("alarms"):
-                self._alarms.setdefault(name, []).extend(event["alarms"])
+            if isinstance(event.get("alarms"), list) and event["alarms"]:
+                self._alarms.setdefault(name, []).extend(
+                    a for a in event["alarms"] if isinstance(a, dict)
+                )
             self._last_seen[name] = time.monotonic()
         self._broadcast(event)
 
@@ -225,6 +276,8 @@ class LivePublisher:
     def publish_link(self, machine: str, link: dict) -> None:
         """The state of the link feeding ``machine`` (``state``, ``since``, ``attempt``, …;
         see :meth:`ajtwin.live.engine.LiveEngine.publish_link`); kept and pushed to pages."""
+        if not isinstance(link, dict):
+            raise ValueError(f"a link state is a dict, got {type(link).__name__}")
         link = _clean({**link, "text": link_text(link)})
         with self._lock:
             self._samples.setdefault(machine, deque(maxlen=self.history))
@@ -240,8 +293,10 @@ class LivePublisher:
 
     def publish_engine(self, message: dict) -> None:
         """Publish a message of the live engine (:func:`sample_from_engine`); thread-safe."""
+        if not isinstance(message, dict):
+            raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")
         if "link" in message and "step" not in message:
-            self.publish_link(message["machine"], message["link"])
+            self.publish_link(str(message.get("machine")), message["link"])
             return
         sample = sample_from_engine(message)
         if sample is not None:
@@ -256,6 +311,10 @@ class LivePublisher:
 
     def announce(self, event: dict) -> None:
         """Broadcast a non-sample event (e.g. ``{"type": "print", "machine": …}``)."""
+        if not isinstance(event, dict):
+            raise ValueError(f"an announced event is a dict, got {type(event).__name__}")
+        if not isinstance(event.get("type"), str):
+            raise ValueError("an announced event needs a 'type' (text) the pages dispatch on")
         event = _clean(dict(event))
         event.setdefault("published_at", time.time())
         self._broadcast(event)

@@ -163,8 +163,10 @@ class BackgroundServer:
         self.port = free_port() if not port else int(port)
         self.url = f"http://{host}:{self.port}/"
         app = create_app(store, token=token, publisher=publisher)
+        from ajtwin.web.websocket import SERVER_OPTIONS
+
         config = uvicorn.Config(
-            app, host=host, port=self.port, log_level="warning", ws="websockets-sansio"
+            app, host=host, port=self.port, log_level="warning", **SERVER_OPTIONS
         )
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, name="dashboard", daemon=True)

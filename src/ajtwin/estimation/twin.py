@@ -135,6 +135,9 @@ class TwinRun:
     #: (T, 5) bool: some output measured at that second responds to the state
     #: (record_checks.observed_states); False rows run on the model and priors alone.
     seen: np.ndarray | None = None
+    #: (T, 5) variance floor of states no data has constrained yet
+    #: (:func:`never_seen_variance_floor`); None: every state fitted from data
+    prior_floor: np.ndarray | None = None
 
     def visibility_notes(self) -> list[str]:
         """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
@@ -176,9 +179,14 @@ class TwinRun:
 
     def _total_cov(self, covariances) -> np.ndarray:
         covariances = np.asarray(covariances)
-        if self.calibration_covariances is None:
-            return covariances
-        return covariances + self.calibration_covariances
+        if self.calibration_covariances is not None:
+            covariances = covariances + self.calibration_covariances
+        if self.prior_floor is not None and self.prior_floor.any():
+            # raising a diagonal entry keeps the matrix positive semi-definite
+            covariances = covariances.copy()
+            diagonal = np.einsum("tii->ti", covariances)
+            np.maximum(diagonal, self.prior_floor, out=diagonal)
+        return covariances
 
     @property
     def stds(self) -> np.ndarray:
@@ -208,6 +216,33 @@ class TwinRun:
             for i, name in enumerate(STATE_NAMES):
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
         return frame
+
+
+def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
+    """Variance floor (T, 5) of the states the initial fit took from their priors
+    (``initial.states_from_prior``: a machine without a camera), up to the first second
+    an output sees them (``seen``):
+
+        floor_k,i = (σ₀,ᵢ / |x̂₀,ᵢ| · |x̂_k,i|)²   while state i has not been seen by step k,
+
+    i.e. such a state keeps the prior's *relative* width. Without it the reported band
+    is the model's: φ_A relaxes to the generation model's steady state within seconds,
+    which contracts its variance to the process noise's (≈ 2.6 % against the prior's
+    50 %), and on the virtual printer the truth's generation wander then lies outside
+    ±2σ a third of the time. The offset of a real atomizer's generation from the model
+    is what no pressure can see (docs/reliability.md, "A machine without a camera").
+    Returns None when every state was fitted from data.
+    """
+    if initial is None or not initial.states_from_prior or seen is None:
+        return None
+    means = np.asarray(means, dtype=float)
+    floor = np.zeros_like(means)
+    not_yet = ~np.logical_or.accumulate(np.asarray(seen, dtype=bool), axis=0)
+    for name in initial.states_from_prior:
+        i = STATE_NAMES.index(name)
+        relative = np.sqrt(initial.covariance[i, i]) / abs(initial.mean[i])
+        floor[:, i] = np.where(not_yet[:, i], (relative * means[:, i]) ** 2, 0.0)
+    return floor
 
 
 def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = None):
@@ -569,4 +604,5 @@ class Twin:
             end_cov=np.asarray(filtered.covariances[-1]),
             calibration_covariances=calibration_covariances,
             seen=seen,
+            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
         )

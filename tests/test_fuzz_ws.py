@@ -22,8 +22,8 @@ Two surfaces:
   ``publish`` refuses with a ``ValueError`` naming what is wrong, or every page receives
   the event as strict JSON (:func:`ajtwin.web.app.event_text`).
 
-Profiles ``fuzz`` (60 each, default suite) and ``fuzz-long`` (2,500 each, ``-m slow``) as
-in tests/test_fuzz_inputs.py. Inputs that once failed are replayed at the end.
+Profiles ``fuzz`` (60 each, default suite) and ``fuzz-long`` (3,400 each, 10,200 in all,
+``-m slow``). Inputs that once failed are replayed at the end.
 """
 
 from __future__ import annotations
@@ -43,10 +43,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from test_fuzz_inputs import OUTCOMES, PROFILES, _report_outcomes  # noqa: F401  (autouse)
+from test_fuzz_inputs import OUTCOMES, _report_outcomes  # noqa: F401  (autouse)
 from test_web_data import hand_print
 
 TOKEN = "ws-fuzz-token-0123456789"
+# three fuzzers: 3,400 each in the slow run (10,200 in all), 60 each in the default suite
+settings.register_profile(
+    "fuzz-long-ws", parent=settings.get_profile("fuzz-long"), max_examples=3400
+)
+WS_PROFILES = [
+    pytest.param("fuzz", id="fuzz"),
+    pytest.param("fuzz-long-ws", id="fuzz-long", marks=pytest.mark.slow),
+]
 GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
 IO_TIMEOUT_S = 10.0  # every read from the server is bounded by this (2 loaded cores)
 #: close codes the server may send after the fuzzed frames (plus the client's own close)
@@ -66,12 +74,12 @@ def server(tmp_path_factory):
     reg.add_machine("alpha")
     hand_print(reg, "alpha", seq_before=None)
     reg.close()
-    # a virtual live print: samples published at 2 Hz for 15 min
+    # a virtual live print: a sample a second for an hour (the slow run lasts ~40 min)
     dash = DashboardProcess(
         folder / "r.sqlite",
         token=TOKEN,
-        extra_args=["--virtual-print", "exp1", "--virtual-minutes", "30",
-                    "--virtual-rate", "2", "--virtual-machine", "vm1"],
+        extra_args=["--virtual-print", "exp1", "--virtual-minutes", "60",
+                    "--virtual-rate", "1", "--virtual-machine", "vm1"],
         log_path=folder / "server.log",
         startup_timeout_s=300,
     )  # fmt: skip
@@ -317,7 +325,10 @@ def handshakes(draw):
         "path": path,
         "raw": raw,
         "headers": headers + extra,
-        "authorised": token == TOKEN and offer != "none" and token.strip() == token,
+        # the server strips blanks around a header's or cookie's token (HTTP does too), not
+        # around the query's
+        "authorised": offer != "none"
+        and (token == TOKEN or (offer != "query" and token.strip() == TOKEN)),
         "origin": origin,
         "well_formed": well_formed and raw is None,
     }
@@ -385,7 +396,7 @@ def frame_lists(draw):
 # --------------------------------------------------------------------------- #
 # the socket
 # --------------------------------------------------------------------------- #
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WS_PROFILES)
 def test_fuzz_ws_handshake(profile, server):
     self_origin = f"http://{server.host}:{server.port}"
 
@@ -422,7 +433,7 @@ def test_fuzz_ws_handshake(profile, server):
     conn.close()
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WS_PROFILES)
 def test_fuzz_ws_frames(profile, server):
     @settings(settings.get_profile(profile))
     @given(frame_lists(), st.sampled_from(["", "alpha", "vm1"]))
@@ -504,7 +515,7 @@ def deep(n):
     return out
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", WS_PROFILES)
 def test_fuzz_ws_events(profile):
     import asyncio
 
@@ -588,3 +599,71 @@ def test_ws_events_that_raised(how, sample):
             strict_json(event_text(sub.queue.get_nowait()).encode())
     finally:
         loop.close()
+
+
+# --------------------------------------------------------------------------- #
+# the socket inputs that once failed (found by the fuzzers above, kept as cases)
+# --------------------------------------------------------------------------- #
+def _answer(server, request: bytes) -> tuple[int, bytes]:
+    conn = Conn(server)
+    try:
+        conn.send(request)
+        status, _, body = conn.response(time.monotonic() + IO_TIMEOUT_S)
+        return status, body
+    finally:
+        conn.close()
+
+
+@pytest.mark.parametrize(
+    "headers, raw_path",
+    [
+        ([("Origin", "\x1f")], None),  # a control character in a header value
+        ([("Sec-WebSocket-Key", "\x1f")], None),
+        ([], b"/ws?token=" + TOKEN.encode() + b"&x=" + b"a" * 9000),  # request line too long
+    ],
+)
+def test_refused_opening_requests_are_answered(server, headers, raw_path):
+    """websockets' parser refused these and uvicorn left the client waiting forever."""
+    key = base64.b64encode(b"0123456789abcdef").decode()
+    names = {k for k, _ in headers}
+    request = handshake(
+        server,
+        path="/ws?token=" + TOKEN,
+        headers=[h for h in standard_headers(key, None) if h[0] not in names] + headers,
+        raw_path=raw_path,
+    )
+    status, body = _answer(server, request)
+    assert 400 <= status < 500 and len(body) > 10, (status, body)
+    _check_server(server)
+
+
+def test_a_page_of_another_site_cannot_open_the_websocket(server):
+    """Was accepted: a page of any site could read the stream of a dashboard on
+    127.0.0.1 served without a token (a websocket has no same-origin rule)."""
+    key = base64.b64encode(b"0123456789abcdef").decode()
+    for origin in ("http://evil.example", "null", f"http://127.0.0.1:{server.port}.evil"):
+        request = handshake(server, path="/ws?token=" + TOKEN,
+                            headers=standard_headers(key, origin))  # fmt: skip
+        assert _answer(server, request)[0] == 403
+    same = f"http://{server.host}:{server.port}"
+    conn, _ = open_ws(server, extra=[("Origin", same)])
+    conn.close()
+
+
+@pytest.mark.parametrize(
+    "frame, code",
+    [
+        (ws_frame(1, b"", key=b"\x00\x00\x00\x00"), 1003),  # an empty text message
+        (ws_frame(2, b"\x00" * 70_000), 1009),  # over the 64 KiB limit
+        (ws_frame(1, b"ok\xff\xfe"), 1007),  # not UTF-8 (was a traceback in the log)
+    ],
+)
+def test_messages_from_a_page_are_answered_with_a_close(server, frame, code):
+    """The server stopped reading a connection after its first message (ping, close and
+    a vanished client then went unnoticed); now every message gets a close frame."""
+    conn, _ = open_ws(server)
+    try:
+        conn.send(frame)
+        assert after_frames(conn, None) == f"closed {code}"
+    finally:
+        conn.close()

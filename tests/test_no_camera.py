@@ -185,3 +185,22 @@ def test_camera_less_aerosol_band_holds_the_truth(truth_generator):
     z_model = np.abs(run.means[60:, PHI] - truth[60:]) / model_only[60:]
     if truth_generator == "model":
         assert np.mean(z_model < 2) < 0.9
+
+
+def test_live_stream_reports_the_same_camera_less_bands_as_the_batch_twin(clog_print):
+    """One math path: the live twin's published σ and stored arrays carry the same floor."""
+    from ajtwin.live.engine import Sample, TwinStream
+
+    record = _blind(clog_print.window(0, 180), LINE_COLUMNS)
+    run = Twin.default(em=False).run(record)
+    stream = TwinStream.new("m", twin_overrides={"em": False}, asynchronous=False)
+    messages = []
+    for t, u, y in zip(record.time_s, record.inputs, record.outputs, strict=True):
+        messages += stream.feed(Sample(t, u, y))
+    messages += stream.finish()
+    stds = stream.arrays()["stds"]
+    np.testing.assert_allclose(stds, run.stds, rtol=1e-9)
+    published = [m for m in messages if "step" in m and not m["provisional"]]
+    phi = np.array([m["stds"]["aerosol_fraction"] for m in published])
+    np.testing.assert_allclose(phi, run.stds[:, PHI], rtol=1e-9)
+    assert np.all(stds[:, PHI] >= 0.49 * stream.arrays()["means"][:, PHI])

@@ -172,6 +172,7 @@ class _History:
         "n_measured",
         "reinitialised",
         "theta_per_step",
+        "prior_floor",
     )
 
     def __init__(self):
@@ -241,6 +242,11 @@ class TwinStream:
         self._device_constants = None
         self.dropped = {"duplicate": 0, "out_of_order": 0, "bad": 0, "far_future": 0}
         self.missing_inserted = 0
+        # states the initial fit took from priors and no output has seen yet (camera-less):
+        # their bands keep the prior's relative width (twin.never_seen_variance_floor)
+        self._never_seen: np.ndarray | None = None
+        self._responds: np.ndarray | None = None  # (5 outputs, 5 states)
+        self._floor_relative = np.zeros(5)
 
     @classmethod
     def new(cls, machine: str, start=None, theta=None, twin_overrides=None, **kwargs):
@@ -364,6 +370,8 @@ class TwinStream:
             outputs = np.array([s.outputs for s in waiting])
             self.initial = self.twin.initial_state(inputs, outputs)
             mean, cov = self.initial.mean, self.initial.covariance
+            if self.initial.states_from_prior:
+                self._start_prior_floor(inputs)
         else:
             mean, cov = self.start
         self.start_mean, self.start_cov = np.asarray(mean).copy(), np.asarray(cov).copy()
@@ -391,6 +399,38 @@ class TwinStream:
                 return [self._speculative(sample)]
             self._restart_chunk(k, self.theta)
         return [self._commit(sample)]
+
+    def _start_prior_floor(self, inputs) -> None:
+        """Which output sees which state (the batch twin's ``observed_states``, one output
+        at a time) and the prior's relative σ of the states taken from priors."""
+        from ajtwin.estimation.record_checks import observed_states
+
+        twin, initial = self.twin, self.initial
+        one_output_each = np.where(np.eye(5, dtype=bool), 1.0, np.nan)
+        self._responds = observed_states(
+            twin.model.params,
+            twin.spec.coefficients,
+            initial.mean,
+            twin.limits.upper - twin.limits.lower,
+            inputs,
+            one_output_each,
+            twin.config.measurement_std,
+        )
+        self._never_seen = np.array([n in initial.states_from_prior for n in STATE_NAMES])
+        relative = np.zeros(5)
+        for i in np.flatnonzero(self._never_seen):
+            relative[i] = np.sqrt(initial.covariance[i, i]) / abs(initial.mean[i])
+        self._floor_relative = relative
+
+    def _prior_floor(self, mean, outputs=None) -> np.ndarray:
+        """Variance floor (5,) of this step; ``outputs`` (a committed sample) update what
+        has been seen."""
+        if self._never_seen is None:
+            return np.zeros(5)
+        if outputs is not None:
+            measured = np.isfinite(np.asarray(outputs, dtype=float))
+            self._never_seen &= ~(measured[:, None] & self._responds).any(axis=0)
+        return np.where(self._never_seen, (self._floor_relative * np.asarray(mean)) ** 2, 0.0)
 
     def _restart_chunk(self, pos: int, theta, last=None):
         """Filter restart at a chunk boundary: prior = prediction from step pos − 1."""
@@ -536,6 +576,7 @@ class TwinStream:
         h.n_measured.append(float(step.n_measured))
         h.reinitialised.append(bool(step.reinitialised))
         h.theta_per_step.append(self.theta.copy())
+        h.prior_floor.append(self._prior_floor(step.mean, sample.outputs))
         status = self.detector.update(
             sample.time_s,
             sample.outputs,
@@ -552,7 +593,8 @@ class TwinStream:
     # ------------------------------------------------------------------ #
     def _message(self, k, sample, step, status, provisional) -> dict:
         mean = np.asarray(step.mean)
-        std = np.sqrt(np.maximum(np.diag(np.asarray(step.covariance)), 0.0))
+        variance = np.maximum(np.diag(np.asarray(step.covariance)), self._prior_floor(mean))
+        std = np.sqrt(np.maximum(variance, 0.0))
         msg = {
             "machine": self.machine,
             "step": int(k),
@@ -629,7 +671,9 @@ class TwinStream:
         return {
             "time_s": h.array("time_s"),
             "means": means.reshape(-1, 5),
-            "stds": np.sqrt(np.maximum(np.diagonal(covs, 0, 1, 2), 0)),
+            "stds": np.sqrt(
+                np.maximum(np.diagonal(covs, 0, 1, 2), h.array("prior_floor").reshape(-1, 5))
+            ),
             "covariances": covs,
             "predicted_means": h.array("predicted_means").reshape(-1, 5),
             "predicted_outputs": h.array("predicted_outputs").reshape(-1, 5),

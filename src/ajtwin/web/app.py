@@ -504,11 +504,12 @@ def _same_origin(headers) -> bool:
     could read the live stream of a dashboard served without a token on 127.0.0.1. A
     client that sends no ``Origin`` (a script) is judged by the token alone.
     """
-    origin = headers.get("origin")
-    if origin is None:
+    origins = headers.getlist("origin")
+    if not origins:
         return True
     host = headers.get("host", "").lower()
-    return bool(host) and origin.lower() in (f"http://{host}", f"https://{host}")
+    own = (f"http://{host}", f"https://{host}")
+    return bool(host) and all(origin.lower() in own for origin in origins)
 
 
 async def _read_until_closed(websocket: WebSocket) -> None:

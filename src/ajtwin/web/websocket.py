@@ -25,6 +25,7 @@ Example
 from __future__ import annotations
 
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.protocol import State
 
 #: the largest message a page may send [bytes] (it sends none; a larger one closes 1009)
 MAX_MESSAGE_BYTES = 64 * 1024
@@ -41,6 +42,11 @@ class DashboardWebSocketProtocol(WebSocketsSansIOProtocol):
     a traceback for that client error)."""
 
     def send_receive_event_to_app(self) -> None:
+        if self.conn.state is not State.OPEN:
+            # the same read also brought the client's close (websockets is already
+            # closing): the message is moot, the close frame is answered next
+            self.frames = []
+            return
         if self.curr_msg_data_type == "text" and not self.close_sent:
             try:
                 b"".join(self.frames).decode("utf-8")

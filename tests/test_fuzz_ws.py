@@ -463,11 +463,24 @@ def test_fuzz_ws_frames(profile, server):
 def test_many_silent_clients_do_not_pile_up(server):
     """Clients that send a message and vanish: each connection is noticed and released
     (the server reads every connection, so a lost client is found without an event)."""
-    for _ in range(20):
+    from ajtwin.web.app import MAX_WEBSOCKETS
+
+    for k in range(MAX_WEBSOCKETS + 6):  # more than may be open at once
         conn, _ = open_ws(server)
-        conn.send(ws_frame(1, b"hello from the page"))
+        if k % 2:
+            conn.send(ws_frame(1, b"hello from the page"))
+        conn.close()  # no close frame: the client just goes
+    deadline = time.monotonic() + 30  # each is released once its end is read
+    while True:
+        conn = Conn(server)
+        key = base64.b64encode(b"0123456789abcdef").decode()
+        conn.send(handshake(server, path="/ws?token=" + TOKEN, headers=standard_headers(key, None)))
+        status = conn.response(time.monotonic() + IO_TIMEOUT_S)[0]
+        if status == 101 or time.monotonic() > deadline:
+            break
         conn.close()
-    conn, _ = open_ws(server)
+        time.sleep(0.5)
+    assert status == 101, "closed connections were not released"
     assert after_frames(conn, None) == "alive"
     conn.close()
     _check_server(server)
@@ -672,3 +685,33 @@ def test_messages_from_a_page_are_answered_with_a_close(server, frame, code):
         assert after_frames(conn, None) == f"closed {code}"
     finally:
         conn.close()
+
+
+def test_open_websockets_are_capped(server):
+    """At most MAX_WEBSOCKETS at once (each holds a queue of events): one more is refused
+    with a 403, and a place frees when one closes."""
+    from ajtwin.web.app import MAX_WEBSOCKETS
+
+    key = base64.b64encode(b"0123456789abcdef").decode()
+    request = handshake(server, path="/ws?token=" + TOKEN, headers=standard_headers(key, None))
+    held = []
+    try:
+        deadline = time.monotonic() + 30  # earlier tests' sockets may still be closing
+        while len(held) < MAX_WEBSOCKETS and time.monotonic() < deadline:
+            conn = Conn(server)
+            conn.send(request)
+            if conn.response(time.monotonic() + IO_TIMEOUT_S)[0] == 101:
+                held.append(conn)
+            else:
+                conn.close()
+                time.sleep(0.2)
+        assert len(held) == MAX_WEBSOCKETS
+        assert _answer(server, request)[0] == 403
+        held.pop().close()
+        deadline = time.monotonic() + 30
+        while (status := _answer(server, request)[0]) != 101 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert status == 101
+    finally:
+        for conn in held:
+            conn.close()

@@ -235,6 +235,32 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     stored = [(e["detected_s"], e["cause"]) for e in reg.anomalies("lab").to_dict("records")]
     batch = [(e.detected_s, e.cause) for e in detect_run(run, window).events]
     assert stored == batch and stored
+    # the later commands on the live-stored print: detectors re-run, forecast, advice,
+    # show, history — the forecast as on the same print ingested by batch
+    import pandas as pd
+    from click.testing import CliRunner
+
+    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.store.cli import machine
+
+    again = detect_anomalies(**reg.detector_inputs(print_id))
+    assert [(e.detected_s, e.cause) for e in again.events] == stored
+    forecasts = []
+    for registry, name in ((reg, "live"), (other, "batch")):
+        out = tmp_path / f"{name}.csv"
+        res = CliRunner().invoke(forecast, ["--machine", "lab", "--horizon", "2min", "--store",
+                                            str(registry.path), "--out", str(out)])  # fmt: skip
+        assert res.exit_code == 0, res.output
+        forecasts.append(pd.read_csv(out))
+    numbers = forecasts[0].select_dtypes("number").columns
+    np.testing.assert_allclose(forecasts[0][numbers], forecasts[1][numbers], rtol=1e-6)
+    res = CliRunner().invoke(advise, ["--machine", "lab", "--target-linewidth", "40", "--store",
+                                      str(reg.path)])  # fmt: skip
+    assert res.exit_code in (0, 2) and "Traceback" not in res.output, res.output
+    for command in ("show", "history"):
+        res = CliRunner().invoke(machine, [command, "lab", "--store", str(reg.path)])
+        assert res.exit_code == 0, res.output
 
     # export/import carry the thinned session; compact has nothing left to drop
     archive = tmp_path / "lab.tar"

@@ -250,7 +250,8 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     for registry, name in ((reg, "live"), (other, "batch")):
         out = tmp_path / f"{name}.csv"
         res = CliRunner().invoke(forecast, ["--machine", "lab", "--horizon", "2min", "--store",
-                                            str(registry.path), "--out", str(out)])  # fmt: skip
+                                            str(registry.path), "--out", str(out),
+                                            "--plot", str(tmp_path / f"{name}.png")])  # fmt: skip
         assert res.exit_code == 0, res.output
         forecasts.append(pd.read_csv(out))
     numbers = forecasts[0].select_dtypes("number").columns

@@ -615,6 +615,15 @@ def _twin():
 # --------------------------------------------------------------------------- #
 # Inputs that once failed (found by the fuzzers above), kept as regression cases
 # --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("seq", [str(2**63), str(-(2**63) - 1), str(2**70)])
+def test_print_number_beyond_sqlite_integers_is_a_404(clients, seq):
+    """Found by the fuzz-long run (once in several: the generator reaches 2⁶³ with
+    name 'alpha' and the print route rarely): OverflowError in the SQLite binding, HTTP 500."""
+    client, _ = clients
+    r = client.get(f"/api/machine/alpha/print/{seq}")
+    assert r.status_code == 404 and "has no print" in check_response(r, seq) + r.text
+
+
 def test_deeply_nested_json_is_a_422(clients):
     """``[[[[…`` 20,000 deep → RecursionError in the JSON parser → HTTP 500 (was)."""
     client, _ = clients

@@ -664,9 +664,11 @@ class Registry:
 
     def print_by_seq(self, name: str, seq: int) -> dict:
         machine = self.machine(name)
-        row = self._conn.execute(
-            "SELECT * FROM prints WHERE machine_id = ? AND seq = ?", (machine["id"], int(seq))
-        ).fetchone()
+        row = None
+        if -(2**63) <= int(seq) < 2**63:  # beyond SQLite's integers there is no print
+            row = self._conn.execute(
+                "SELECT * FROM prints WHERE machine_id = ? AND seq = ?", (machine["id"], int(seq))
+            ).fetchone()
         if row is None:
             raise RegistryError(
                 f"machine {printable(machine['name'])!r} has no print #{seq} "

@@ -499,14 +499,15 @@ leaves = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=10),
     st.binary(max_size=8), st.just(np.float32(np.nan)), st.just(np.int64(7)),
     st.just(np.array([1.0, np.inf])), st.just(Weird()), st.just({1, 2}), st.just(1 + 2j),
+    st.just([]), st.just({}),
 )  # fmt: skip
 keys = st.one_of(st.text(max_size=6), st.integers(-5, 5), st.none(), st.tuples(st.integers()))
 values = st.recursive(
     leaves,
     lambda inner: st.one_of(
-        st.lists(inner, max_size=4),
-        st.tuples(inner, inner),
-        st.dictionaries(keys, inner, max_size=4),
+        st.lists(inner, min_size=1, max_size=4),  # (empty ones are leaves: every branch
+        st.tuples(inner, inner),  # uses ``inner``, so hypothesis sees the recursion)
+        st.dictionaries(keys, inner, min_size=1, max_size=4),
     ),  # fmt: skip
     max_leaves=12,
 )

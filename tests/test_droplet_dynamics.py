@@ -1,0 +1,161 @@
+"""Optional droplet-size dynamics of the transition (issue 18): data/transition.toml profiles.
+
+Hand-computed rates, the closed forms of the saturating drift and of the input response,
+linearity in θ (the premise of the closed-form M-step), the M-step recovering a known θ_da
+under the new row, and the forecast following a planned input step.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ajtwin._jax import jax, jnp
+from ajtwin.estimation.filters import AJ_EULER, DEFAULT_SCALING, ModelSpec, SmootherResult
+from ajtwin.estimation.twin import Twin, twin_functions
+from ajtwin.model import euler_step, load_parameters
+from ajtwin.model.droplet_dynamics import (
+    DropletStep,
+    augment_inputs,
+    load_droplet_dynamics,
+    next_response,
+    transition_profiles,
+)
+
+PARAMS = load_parameters()
+X = np.array([3.2, 1.0, 2e-4, 0.03, 4.6e-7])
+U = np.array([375.0, 25.0, 50.0])
+
+
+def test_profiles_load_with_provenance():
+    assert {"paper", "mean_reverting", "input_following"} <= set(transition_profiles())
+    for name in transition_profiles():
+        dyn = load_droplet_dynamics(name)
+        assert dyn.provenance, name
+    assert twin_functions("euler", "paper") is AJ_EULER  # the default path is untouched
+
+
+def test_bad_profile_and_keys_name_the_file(tmp_path):
+    with pytest.raises(ValueError, match="transition.toml.*no transition profile 'nope'"):
+        load_droplet_dynamics("nope")
+    bad = tmp_path / "t.toml"
+    bad.write_text('[profiles.x]\nform = "mean_reverting"\nrelaxaton_time_s = 5\n')
+    with pytest.raises(ValueError, match=r"t.toml \[profiles.x\]: unknown keys \['relaxaton_time_s'\]"):
+        load_droplet_dynamics("x", bad)
+    bad.write_text('[profiles.x]\nform = "exponential"\n')
+    with pytest.raises(ValueError, match="form = 'exponential'"):
+        load_droplet_dynamics("x", bad)
+
+
+def test_mean_reverting_rate_by_hand_and_other_rows_unchanged():
+    dyn = load_droplet_dynamics("mean_reverting")
+    theta = np.array([1e-5, 0.0, 0.0, 0.0, 0.0])
+    x_next = np.asarray(DropletStep(dyn)(X, U, theta, PARAMS))
+    equilibrium = 3.5 + dyn.carrier_um_per_sccm * (25.0 - 23.0)
+    rate = 1e-5 * 3.5 + (equilibrium - 3.2) / dyn.relaxation_time_s
+    assert x_next[0] == pytest.approx(3.2 + rate, rel=1e-12)
+    paper = np.asarray(euler_step(X, U, theta, PARAMS))
+    np.testing.assert_allclose(x_next[1:], paper[1:], rtol=1e-14)
+
+
+def test_saturating_drift_is_bounded_where_the_paper_drift_compounds():
+    dyn = load_droplet_dynamics("mean_reverting")
+    theta = jnp.array([2e-5, 0.0, 0.0, 0.0, 0.0])
+    step = DropletStep(dyn)
+
+    def run(stepper, steps):
+        def body(x, _):
+            return stepper(x, U, theta, PARAMS), None
+
+        return jax.lax.scan(body, jnp.asarray(X), None, length=steps)[0]
+
+    tau = dyn.relaxation_time_s
+    bound = 3.5 + dyn.carrier_um_per_sccm * 2.0 + 2e-5 * 3.5 * tau
+    after = float(run(step, int(40 * tau))[0])
+    assert after == pytest.approx(bound, abs=1e-9)  # the closed-form equilibrium
+    # the paper's θ_da d_a over the same time: exp(2e-5 · 24000) ≈ 1.6×
+    paper = float(run(lambda x, u, th, p: euler_step(x, u, th, p), int(40 * tau))[0])
+    assert paper > 3.2 * 1.5 and after == pytest.approx(3.6188, abs=1e-4)
+
+
+def test_step_is_linear_in_theta():
+    for name in ("mean_reverting", "input_following"):
+        step = DropletStep(load_droplet_dynamics(name))
+        u = augment_inputs(U[None], step.dynamics)[0]
+        theta = jnp.array([3e-5, -2e-6, 1e-4, 5e-5, 0.02])
+        jac = jax.jacfwd(lambda th: step(X, u, th, PARAMS))(jnp.zeros(5))
+        affine = step(X, u, jnp.zeros(5), PARAMS) + jac @ theta
+        np.testing.assert_allclose(step(X, u, theta, PARAMS), affine, rtol=1e-12, atol=1e-20)
+
+
+def test_input_response_is_a_first_order_lag_of_the_step():
+    dyn = load_droplet_dynamics("input_following")
+    inputs = np.tile([375.0, 23.0, 50.0], (400, 1))
+    inputs[100:, 1] = 26.0
+    r = augment_inputs(inputs, dyn)[:, 3]
+    assert np.all(r[:101] == 0.0)  # equilibrium at the reference inputs, then the step acts
+    k = np.arange(300)
+    expected = 3.0 * dyn.carrier_um_per_sccm * (1 - (1 - 1 / dyn.response_time_s) ** k)
+    np.testing.assert_allclose(r[100:], expected, rtol=1e-12, atol=1e-15)
+    assert next_response(float(r[-1]), inputs[-1], dyn) == pytest.approx(
+        r[-1] + (3.0 * dyn.carrier_um_per_sccm - r[-1]) / dyn.response_time_s
+    )
+    # the droplet size follows r exactly (θ = 0): d_a − d_a(0) = r − r(0)
+    step = DropletStep(dyn)
+    aug = augment_inputs(inputs, dyn)
+
+    def body(x, u):
+        nxt = step(x, u, jnp.zeros(5), PARAMS)
+        return nxt, nxt[0]
+
+    _, droplet = jax.lax.scan(body, jnp.asarray(X), jnp.asarray(aug))
+    np.testing.assert_allclose(np.asarray(droplet)[:-1] - 3.2, r[1:], atol=1e-12)
+    # fed the plain 3-column inputs the row is the paper's (the live engine's inputs)
+    np.testing.assert_allclose(
+        step(X, U, jnp.zeros(5), PARAMS), euler_step(X, U, jnp.zeros(5), PARAMS), rtol=1e-14
+    )
+
+
+def test_m_step_recovers_theta_da_under_the_mean_reverting_row():
+    from ajtwin.estimation.em import m_step
+
+    dyn = dataclasses.replace(load_droplet_dynamics("mean_reverting"), relaxation_time_s=300.0)
+    functions = twin_functions("euler", "paper")._replace(step=DropletStep(dyn))
+    theta_true = jnp.array([1.5e-5, 0.0, 0.0, 0.0, 0.0])
+    inputs = np.tile(U, (400, 1))
+    inputs[200:, 1] = 27.0
+
+    def body(x, u):
+        nxt = functions.step(x, u, theta_true, PARAMS, 1.0)
+        return nxt, nxt
+
+    _, xs = jax.lax.scan(body, jnp.asarray(X), jnp.asarray(inputs[:-1]))
+    means = jnp.concatenate([jnp.asarray(X)[None], xs])
+    smoothed = SmootherResult(means, jnp.zeros((400, 5, 5)), jnp.zeros((399, 5, 5)))
+    spec = ModelSpec(PARAMS, jnp.zeros((2, 8)), DEFAULT_SCALING)
+    process_cov = np.diag([5e-3, 1e-6, 1e-5, 3e-4, 7e-9]) ** 2
+    precision = np.array([0.0, 1e12, 1e12, 1e12, 1e12])  # the other θ held at 0
+    theta = np.asarray(m_step(spec, smoothed, inputs, process_cov, precision, functions))
+    assert theta[0] == pytest.approx(1.5e-5, rel=1e-6)
+
+
+def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
+    from ajtwin.apps.forecast import forecast
+
+    inputs = np.tile([375.0, 23.0, 50.0], (900, 1))
+    inputs[60:, 1] = 26.0
+    x0 = np.array([3.5, 1.0, 0.0, 0.0, 4.6e-7])
+    cov = np.diag([1e-4, 1e-6, 1e-8, 1e-6, 1e-16])
+    following = Twin.default(transition="input_following")
+    dyn = following.droplet_dynamics
+    assert following.config.theta_prior_std[0] == dyn.theta_prior_std  # its bounded prior
+    fc = forecast(following, x0, cov, inputs, np.zeros(5))
+    shift = 3.0 * dyn.carrier_um_per_sccm
+    settled = shift * (1 - (1 - 1 / dyn.response_time_s) ** (900 - 60))
+    assert fc.state_means[-1, 0] - 3.5 == pytest.approx(settled, rel=1e-9)
+    paper = forecast(Twin.default(), x0, cov, inputs, np.zeros(5))
+    assert paper.state_means[-1, 0] == pytest.approx(3.5, abs=1e-12)
+    # the line follows: L_w rises by α_da·shift more than the paper's forecast
+    alpha = following.model.coefficients.linewidth.droplet_diameter
+    gain = fc.output_means[-1, 0] - paper.output_means[-1, 0]
+    assert gain == pytest.approx(alpha * settled, rel=1e-3)

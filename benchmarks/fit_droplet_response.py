@@ -70,7 +70,10 @@ def main() -> int:
         coef, *_ = np.linalg.lstsq(a, y, rcond=None)
         rms = float(np.sqrt(np.mean((a @ coef - y) ** 2)))
         results.append((rms, tau, float(coef[-2]), float(coef[-1])))
-        print(f"tau_u {tau:5.0f} s: c_c {coef[-2]:.4f} um/sccm, c_I {coef[-1]:.5f} um/mA, rms {rms:.4f}")
+        print(
+            f"tau_u {tau:5.0f} s: c_c {coef[-2]:.4f} um/sccm, "
+            f"c_I {coef[-1]:.5f} um/mA, rms {rms:.4f}"
+        )
     rms, tau, c_c, c_i = min(results)
     best = {
         "response_time_s": tau,

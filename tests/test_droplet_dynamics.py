@@ -40,7 +40,9 @@ def test_bad_profile_and_keys_name_the_file(tmp_path):
         load_droplet_dynamics("nope")
     bad = tmp_path / "t.toml"
     bad.write_text('[profiles.x]\nform = "mean_reverting"\nrelaxaton_time_s = 5\n')
-    with pytest.raises(ValueError, match=r"t.toml \[profiles.x\]: unknown keys \['relaxaton_time_s'\]"):
+    with pytest.raises(
+        ValueError, match=r"t.toml \[profiles.x\]: unknown keys \['relaxaton_time_s'\]"
+    ):
         load_droplet_dynamics("x", bad)
     bad.write_text('[profiles.x]\nform = "exponential"\n')
     with pytest.raises(ValueError, match="form = 'exponential'"):
@@ -83,7 +85,7 @@ def test_step_is_linear_in_theta():
         step = DropletStep(load_droplet_dynamics(name))
         u = augment_inputs(U[None], step.dynamics)[0]
         theta = jnp.array([3e-5, -2e-6, 1e-4, 5e-5, 0.02])
-        jac = jax.jacfwd(lambda th: step(X, u, th, PARAMS))(jnp.zeros(5))
+        jac = jax.jacfwd(lambda th, step=step, u=u: step(X, u, th, PARAMS))(jnp.zeros(5))
         affine = step(X, u, jnp.zeros(5), PARAMS) + jac @ theta
         np.testing.assert_allclose(step(X, u, theta, PARAMS), affine, rtol=1e-12, atol=1e-20)
 

@@ -333,8 +333,12 @@ def run_exp3(
         },
         # the ±2σ band of the calibrated forecast (state uncertainty, no sensor noise)
         "forecast_band_coverage": {
-            "linewidth": forecast_band_coverage(y_cal[:, 0], fc_cal.output_stds[:, 0], y_true[:, 0]),
-            "overspray": forecast_band_coverage(y_cal[:, 1], fc_cal.output_stds[:, 1], y_true[:, 1]),
+            "linewidth": forecast_band_coverage(
+                y_cal[:, 0], fc_cal.output_stds[:, 0], y_true[:, 0]
+            ),
+            "overspray": forecast_band_coverage(
+                y_cal[:, 1], fc_cal.output_stds[:, 1], y_true[:, 1]
+            ),
         },
         # the d_a part of the error, and what no forecast from the filtered state can know
         "droplet_forecast_rmse_um": {

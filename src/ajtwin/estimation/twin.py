@@ -114,7 +114,9 @@ class TwinConfig:
             initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
             initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
-        base = replace(cls(process, measurement, noise_profile=noise_profile, **initial), **overrides)
+        base = replace(
+            cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
+        )
         if base.transition != "paper":
             from ajtwin.model.droplet_dynamics import load_droplet_dynamics
 

@@ -161,3 +161,29 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
     alpha = following.model.coefficients.linewidth.droplet_diameter
     gain = fc.output_means[-1, 0] - paper.output_means[-1, 0]
     assert gain == pytest.approx(alpha * settled, rel=1e-3)
+
+
+@pytest.mark.parametrize("truth", ["model", "alt"])
+def test_oracle_is_the_generators_droplet_law(truth, monkeypatch):
+    """Without the random wander the oracle forecast of d_a is the truth itself."""
+    from ajtwin.estimation.experiments import droplet_oracle_forecast
+    from ajtwin.simulation import run_virtual_print, truth_alt
+
+    overrides = {"truth": {"droplet_ou_sd_um": 0.0}}
+    if truth == "alt":
+        settings = truth_alt.load_alt_settings()
+        settings["droplet"].update(walk_sd_um_per_sqrt_h=0.0, jump_rate_per_h=0.0)
+        monkeypatch.setattr(truth_alt, "load_alt_settings", lambda: settings)
+    inputs = {"carrier_flow_sccm": [[0.0, 24.0], [3.0, 27.0]]}
+    vp = run_virtual_print(
+        "exp3",
+        4,
+        duration_min=8.0,
+        overrides={**overrides, "inputs": inputs},
+        truth_generator=truth,
+    )
+    start = 150
+    oracle = droplet_oracle_forecast(vp, start, truth)
+    truth_da = np.asarray(vp.processes.droplet_um)[start + 1 :]
+    assert truth_da[-1] - truth_da[0] > 0.05  # the Q_c step moved d_a: the test can bite
+    np.testing.assert_allclose(oracle, truth_da, atol=1e-9)

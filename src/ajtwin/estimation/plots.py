@@ -217,7 +217,7 @@ def exp3_figures(record, series, out: Path):
         if "y_cal_std" in series:
             mean, std = series["y_cal"][:, i], series["y_cal_std"][:, i]
             ax.fill_between(
-                after, mean - 2 * std, mean + 2 * std, color="k", alpha=0.12, label="its ±2σ"
+                after, mean - 2 * std, mean + 2 * std, color="tab:green", alpha=0.3, label="its ±2σ"
             )
         ax.axvline(n_cal / 60, color="tab:blue", ls="--", lw=1)
         ax.text(n_cal / 60, ax.get_ylim()[1], " forecast →", va="top", fontsize=8, color="tab:blue")

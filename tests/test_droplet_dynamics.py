@@ -187,3 +187,58 @@ def test_oracle_is_the_generators_droplet_law(truth, monkeypatch):
     truth_da = np.asarray(vp.processes.droplet_um)[start + 1 :]
     assert truth_da[-1] - truth_da[0] > 0.05  # the Q_c step moved d_a: the test can bite
     np.testing.assert_allclose(oracle, truth_da, atol=1e-9)
+
+
+def test_forecast_cli_transition_option(tmp_path):
+    """`ajtwin forecast --transition input_following`: d_a follows a planned Q_c step."""
+    import pandas as pd
+    from click.testing import CliRunner
+
+    from ajtwin.apps.cli import forecast
+    from ajtwin.store.registry import Registry
+
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("m")
+    twin = Twin.default()
+    phi = float(twin.model.steady_aerosol_fraction(np.array([375.0, 23.0, 50.0]), 1.0))
+    end = np.array([3.5, 1.0, 1e-4, 0.04, phi])
+    reg.save_print(
+        "m",
+        content_hash="x",
+        source="t",
+        meta={},
+        summary={},
+        n_samples=600,
+        duration_s=600.0,
+        start_mean=end,
+        start_cov=np.eye(5) * 1e-6,
+        end_mean=end,
+        end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
+        theta_before=np.zeros(5),
+        theta_after=np.array([3e-4, 0.0, 0.0, 0.0, 0.0]),  # a runaway θ_da learned earlier
+        arrays={"inputs": np.tile([375.0, 23.0, 50.0], (600, 1))},
+        anomalies=[],
+        expected_last_seq=None,
+    )
+    runner = CliRunner()
+    frames = {}
+    for transition in ("paper", "input_following"):
+        out = tmp_path / f"{transition}.csv"
+        args = ["--machine", "m", "--set", "Q_c=26@+60s", "--horizon", "20min"]
+        args += ["--store", str(store), "--out", str(out), "--plot", str(tmp_path / "f.png")]
+        res = runner.invoke(forecast, [*args, "--transition", transition, "--nominal-theta"])
+        assert res.exit_code == 0, res.output
+        frames[transition] = pd.read_csv(out)
+    dyn = load_droplet_dynamics("input_following")
+    settled = 3.0 * dyn.carrier_um_per_sccm * (1 - (1 - 1 / dyn.response_time_s) ** (1200 - 60))
+    d_a = frames["input_following"]["droplet_diameter_um"].iloc[-1]
+    assert d_a - 3.5 == pytest.approx(settled, rel=1e-6)
+    assert frames["paper"]["droplet_diameter_um"].iloc[-1] == pytest.approx(3.5, abs=1e-9)
+    # with the machine's θ: the profile bounds θ_da to ±2σ of its prior; the paper compounds it
+    res = runner.invoke(forecast, [*args, "--transition", "input_following"])
+    assert res.exit_code == 0, res.output
+    bounded = pd.read_csv(tmp_path / "input_following.csv")["droplet_diameter_um"].iloc[-1]
+    assert bounded - d_a == pytest.approx(3.5 * 2 * dyn.theta_prior_std * 1200, rel=0.05)
+    res = runner.invoke(forecast, [*args, "--transition", "nope"])
+    assert res.exit_code != 0 and "no transition profile 'nope'" in res.output

@@ -157,6 +157,22 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
     assert fc.state_means[-1, 0] - 3.5 == pytest.approx(settled, rel=1e-9)
     paper = forecast(Twin.default(), x0, cov, inputs, np.zeros(5))
     assert paper.state_means[-1, 0] == pytest.approx(3.5, abs=1e-12)
+    # d_a's row does not see the other states: its variance is a random walk's, with the
+    # filter's σ_da (noise.toml) unless the profile sets a forecast σ
+    sigma_da = following.config.process_std[0]
+    for result in (fc, paper):
+        var = result.state_stds[-1, 0] ** 2
+        assert var == pytest.approx(1e-4 + 900 * sigma_da**2, rel=1e-9)
+    import ajtwin.model.droplet_dynamics as module
+
+    narrower = dataclasses.replace(dyn, forecast_droplet_std_um=2e-3)
+    original = module.load_droplet_dynamics
+    module.load_droplet_dynamics = lambda profile, path=None: narrower
+    try:
+        fc = forecast(following, x0, cov, inputs, np.zeros(5))
+    finally:
+        module.load_droplet_dynamics = original
+    assert fc.state_stds[-1, 0] ** 2 == pytest.approx(1e-4 + 900 * 2e-3**2, rel=1e-9)
     # the line follows: L_w rises by α_da·shift more than the paper's forecast
     alpha = following.model.coefficients.linewidth.droplet_diameter
     gain = fc.output_means[-1, 0] - paper.output_means[-1, 0]

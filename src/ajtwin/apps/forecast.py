@@ -202,15 +202,20 @@ def forecast(
     inputs = check_input(np.asarray(inputs, dtype=float))
     theta = twin.theta if theta is None else theta
     model_inputs = inputs
+    process_cov = np.array(twin.process_cov, dtype=float)
     if hasattr(twin, "model_inputs"):
         model_inputs = twin.model_inputs(inputs, input_response0)
+        # a transition profile may set d_a's long-horizon wander for forecasts
+        droplet_std = twin.droplet_dynamics.forecast_droplet_std_um
+        if droplet_std > 0:
+            process_cov[0, 0] = droplet_std**2
     m, pdiag, y, var = _forecast_scan(
         twin.spec,
         jnp.asarray(mean, dtype=float),
         jnp.asarray(cov, dtype=float),
         jnp.asarray(model_inputs),
         jnp.asarray(theta, dtype=float),
-        jnp.asarray(twin.process_cov),
+        jnp.asarray(process_cov),
         # the twin's own model (discretisation, transition profile): the one its θ was learned on
         functions=getattr(twin, "functions", None),
     )

@@ -33,6 +33,10 @@ reference_um : d_ref [µm]
 carrier_um_per_sccm, current_um_per_mA : c_c [µm/sccm], c_I [µm/mA]
 reference_carrier_sccm, reference_current_mA : Q_c,ref [sccm], I_A,ref [mA]
 theta_prior_std : MAP prior σ of θ_da [1/s] (0 = keep noise.toml's)
+forecast_droplet_std_um : σ of d_a's process noise per 1 s step in open-loop forecasts
+    [µm] (0 = the filter's σ_da). The filter's σ_da is a short-horizon tuning (it must let
+    the filter follow the droplet size within seconds); over a forecast horizon the level
+    wanders less than a random walk with that σ.
 
 Examples
 --------
@@ -78,6 +82,7 @@ class DropletDynamics:
     reference_carrier_sccm: float = 23.0
     reference_current_mA: float = 375.0
     theta_prior_std: float = 0.0
+    forecast_droplet_std_um: float = 0.0
     provenance: str = ""
 
     @property

@@ -215,7 +215,7 @@ def estimate(
     default="paper",
     show_default=True,
     help="Droplet-size dynamics: a profile of ajtwin/data/transition.toml "
-    "(paper, saturating, mean_reverting).",
+    "(paper, input_following, mean_reverting; docs/forecast.md).",
 )
 def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""

@@ -258,3 +258,18 @@ def test_forecast_cli_transition_option(tmp_path):
     assert bounded - d_a == pytest.approx(3.5 * 2 * dyn.theta_prior_std * 1200, rel=0.05)
     res = runner.invoke(forecast, [*args, "--transition", "nope"])
     assert res.exit_code != 0 and "no transition profile 'nope'" in res.output
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("truth", ["model", "alt"])
+def test_exp3_input_following_beats_the_paper_row(truth):
+    """Held-out seed 3 (docs/forecast.md): the droplet row that follows the inputs forecasts
+    L_w better than the paper's, θ no longer makes it worse, and the band holds the truth."""
+    from ajtwin.estimation.experiments import run_exp3
+
+    _, _, paper = run_exp3(3, {"transition": "paper"}, truth=truth)
+    _, _, following = run_exp3(3, {"transition": "input_following"}, truth=truth)
+    key = "linewidth_rmse_ratio_calibrated_over_uncalibrated"
+    assert following[key] < 0.9 * paper[key]
+    assert following["linewidth_rmse_ratio_calibrated_over_theta_withheld"] <= 1.01
+    assert following["forecast_band_coverage"]["linewidth"] >= 0.85

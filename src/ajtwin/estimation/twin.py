@@ -67,6 +67,9 @@ class TwinConfig:
     droplet_prior_std_um: float | None = None
     aerosol_prior_relative_std: float | None = None
     method: str = "euler"
+    # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
+    # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
+    vial_consider: bool = True
 
     noise_profile: str = "calibrated"
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
@@ -112,6 +115,9 @@ class TwinConfig:
             initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
             initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
+        from ajtwin.estimation.vial import load_vial_settings
+
+        initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
         base = cls(process, measurement, noise_profile=noise_profile, **initial)
         return replace(base, **overrides)
 
@@ -286,7 +292,10 @@ class Twin:
             from ajtwin.model.calibration import CalibratedCoefficients
 
             coefficients = CalibratedCoefficients(coefficients, calibration)
-        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING)
+        update_mask = None
+        if config.vial_consider:
+            update_mask = jnp.asarray([1.0, 0.0, 1.0, 1.0, 1.0])
+        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING, 1.0, update_mask)
         self.functions = model_functions(config.method)
         self.limits = StateLimits.load(model.params)
 
@@ -359,7 +368,12 @@ class Twin:
     @property
     def theta_prior_precision(self) -> np.ndarray:
         std = np.asarray(self.config.theta_prior_std, dtype=float)
-        return np.where(np.isfinite(std), 1.0 / std**2, 0.0)
+        precision = np.where(np.isfinite(std), 1.0 / std**2, 0.0)
+        if self.config.vial_consider:
+            # a consider state's smoothed path is its own prediction: θ_Vl has no data, so
+            # it is held at 0 (a prior far stronger than any window's normal equations)
+            precision[1] = 1e40
+        return precision
 
     def initial_state(self, inputs, measurements) -> InitialFit:
         c = self.config

@@ -173,6 +173,7 @@ def test_observer_tells_a_falling_vial_from_a_failing_atomizer():
     t_truth = float(low.time_s[np.argmax(truth < 0.5)])
     assert np.isfinite(t_low) and t_low < t_truth  # flagged before the truth crosses 0.5 mL
     assert est.loss_rate_ml_per_h[-1] > 0.1  # the evaporation, 0.15 mL/h
+    assert (np.diff(est.running_low.astype(int)) >= 0).all()  # latched: no flicker
 
     drop = simulate("atomizer_dropout", seed=3)
     est = observe_vial(drop.inputs, drop.outputs[:, 4], fill_ml=1.0, fill_std_ml=3e-3)
@@ -192,3 +193,64 @@ def test_observer_uses_the_calibrations_material_flow_gain():
     est = observe_vial(u, q, fill_ml=1.0, material_flow_gain=1.3)
     assert est.efficiency[-1] == pytest.approx(1.0, abs=0.02)
     assert jnp.isfinite(est.vial_ml).all()
+
+
+# --------------------------------------------------------------------------- #
+# The detectors: 'V_l low' and the ink_low label from the observer
+# --------------------------------------------------------------------------- #
+
+
+def test_label_cause_defers_to_the_vial_observer():
+    from ajtwin.apps.anomaly import DetectorSettings, label_cause
+
+    s = DetectorSettings()
+    qm_deficit = ([-1, 0, 0, 0, -2], [60] * 5, [0, 0, 0, 0, -4])
+    assert label_cause(*qm_deficit, 1.0, s) == "atomizer"
+    assert label_cause(*qm_deficit, 1.0, s, True) == "ink_low"
+    # the twin's V_l is a consider state: with an observer it no longer decides
+    assert label_cause(*qm_deficit, 0.3, s, False) == "atomizer"
+    assert label_cause(*qm_deficit, 0.3, s) == "ink_low"
+
+
+def _detector_arrays(vial_truth, n):
+    """A print the twin explains perfectly (e = 0) but whose Q_m follows a vial V(t)."""
+    u = np.tile([375.0, 23.0, 50.0], (n, 1))
+    h = np.array(
+        [float(net_droplet_generation(23.0, v, 375.0, PARAMS.generation_fit)) for v in vial_truth]
+    )
+    y = np.tile([45.0, 30.0, 5661.0, 5641.0, 0.0], (n, 1))
+    y[:, 4] = PARAMS.silver_volume_fraction * h
+    means = np.tile([3.5, vial_truth[0], 0.0, 0.03, 4.6e-7], (n, 1))
+    cov = np.tile(np.diag([1e-2, 9e-6, 1e-6, 1e-4, 1e-16]), (n, 1, 1))
+    return dict(
+        time_s=np.arange(n, dtype=float),
+        measurements=y,
+        predicted_outputs=y.copy(),
+        innovation_variances=np.tile([4.0, 9.0, 36.0, 36.0, (0.17 * y[0, 4]) ** 2], (n, 1)),
+        nis=np.zeros(n),
+        n_measured=np.full(n, 5.0),
+        means=means,
+        predicted_means=means.copy(),
+        covariances=cov,
+        inputs=u,
+    )
+
+
+def test_detectors_raise_vial_low_from_the_observer_and_label_it():
+    from ajtwin.apps.anomaly import detect_anomalies
+
+    n = 5400
+    falling = 0.7 - 0.25 * np.arange(n) / n  # 0.70 → 0.45 mL in 90 min (0.17 mL/h)
+    result = detect_anomalies(**_detector_arrays(falling, n))
+    assert len(result.events) == 1
+    event = result.events[0]
+    assert event.cause == "ink_low" and event.detectors == ["V_l low"]
+    assert event.evidence["vial_observer_running_low"]
+    # raised before the vial reaches 0.5 mL (the horizon: 30 min at the learnt loss)
+    assert event.detected_s < float(np.argmax(falling < 0.5))
+    steady = detect_anomalies(**_detector_arrays(np.full(n, 0.7), n))
+    assert steady.events == []
+    # without the inputs (an old stored print) the twin's V_l decides, as before
+    old = _detector_arrays(falling, n)
+    old.pop("inputs")
+    assert detect_anomalies(**old).events == []

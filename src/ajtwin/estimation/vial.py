@@ -318,7 +318,7 @@ class VialEstimate:
     covariances: np.ndarray  # (T, 4, 4)
     normalised_innovations: np.ndarray  # (T,) of ln Q_m (NaN: not measured)
     held: np.ndarray  # (T,) bool: a step of Q_m held the observer (no update)
-    running_low: np.ndarray  # (T,) bool, :func:`vial_status` per second
+    running_low: np.ndarray  # (T,) bool, :func:`vial_status` per second, latched
     minutes_to_low: np.ndarray  # (T,)
 
     @property
@@ -372,13 +372,18 @@ def observe_vial(
         covs,
         np.asarray(e),
         np.asarray(held),
-        status["running_low"],
+        np.logical_or.accumulate(status["running_low"]),  # latched, see VialObserver
         status["minutes_to_low"],
     )
 
 
 class VialObserver:
-    """The observer one sample at a time (live detectors); same step as :func:`observe_vial`."""
+    """The observer one sample at a time (live detectors); same step as :func:`observe_vial`.
+
+    ``running_low`` is latched: once raised it stays for the print (a vial does not refill
+    itself; a refill is a maintenance event and a new print), so a controller does not
+    see it flicker while the projection hovers at the horizon.
+    """
 
     def __init__(
         self,
@@ -394,14 +399,18 @@ class VialObserver:
         self.carry = initial_carry(self.settings, fill_ml, fill_std_ml)
         self.status: VialStatus | None = None
         self.held = False
+        self.latched = False
 
     def update(self, u, material_flow: float) -> VialStatus:
         u = np.asarray(u, dtype=float)
         self.carry, (mean, cov, _, self.held) = _step_jit(
             self.model, self.carry, jnp.asarray(u), float(material_flow), self.gain
         )
-        self.status = vial_status(mean, cov, u, self.model, self.settings)
-        return self.status
+        status = vial_status(mean, cov, u, self.model, self.settings)
+        self.latched = self.latched or status.running_low
+        status.running_low = self.latched
+        self.status = status
+        return status
 
 
 def ink_volume_drawn_ml(material_flow, material_flow_gain=1.0, params=None, dt=1.0) -> float:

@@ -202,8 +202,8 @@ def _markdown(result) -> str:
         "",
         "## ink_running_low: cause of the first alarm event (target: ink_low on ≥ 4 of 5)",
         "",
-        "| generator | variant | first-event cause per seed | ink_low | observer 'running low' at [s] "
-        "(truth < 0.5 mL at [s]) |",
+        "| generator | variant | first-event cause per seed | ink_low "
+        "| observer 'running low' at [s] (truth < 0.5 mL at [s]) |",
         "|---|---|---|---|---|",
     ]
     for truth in ("model", "alt"):
@@ -248,7 +248,8 @@ def _markdown(result) -> str:
         "",
         "## V_l: error at 30/60/90 min (worst seed) and ±2σ coverage (per seed)",
         "",
-        "| prints | generator | estimate | worst err 30/60/90 [%] | max err [%] | coverage per seed |",
+        "| prints | generator | estimate | worst err 30/60/90 [%] | max err [%] "
+        "| coverage per seed |",
         "|---|---|---|---|---|---|",
     ]
     for scenario in ("exp1", "exp2", "ink_running_low"):

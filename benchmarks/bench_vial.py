@@ -133,6 +133,13 @@ def _evaluate(arrays: dict, variant: str) -> dict:
         below = np.flatnonzero(truth < 0.5)
         out["truth_below_0.5_s"] = float(arrays["time_s"][below[0]]) if len(below) else None
         out["observer_held_s"] = int(est.held.sum())
+        if variant == "after_fill_1.0":
+            # the same wrong fill declared as not weighed (σ 0.3 mL): the data may move it
+            est = observe_vial(arrays["inputs"], arrays["measurements"][:, 4], fill, 0.3)
+            out["observer_unweighed_vial"] = metrics(est.vial_ml, est.vial_std_ml)
+            out["observer_unweighed_first_running_low_s"] = est.first_running_low_s(
+                arrays["time_s"]
+            )
     return out
 
 
@@ -222,6 +229,22 @@ def _markdown(result) -> str:
                 f"| {truth} | {variant} | {' / '.join(causes)} | {hits}/{len(sel)} | "
                 f"{when if variant != 'before' else '–'} |"
             )
+    lines += [
+        "",
+        "Told 1.0 mL but declared *not weighed* (fill σ 0.3 mL), the observer alone: "
+        "'running low' at [s] / max V_l error / coverage:",
+        "",
+    ]
+    for truth in ("model", "alt"):
+        sel = _pick(rows, "ink_running_low", truth, "after_fill_1.0")
+        cells = [
+            f"{r['observer_unweighed_first_running_low_s']:.0f} s / "
+            f"{r['observer_unweighed_vial']['max_err_pct']:.0f} % / "
+            f"{100 * r['observer_unweighed_vial']['coverage']:.0f} %"
+            for r in sel
+            if "observer_unweighed_vial" in r
+        ]
+        lines.append(f"- {truth}: " + "; ".join(cells))
     lines += [
         "",
         "## Alarm events on clean prints (target: no new ones) and the atomizer's label",

@@ -254,3 +254,17 @@ def test_detectors_raise_vial_low_from_the_observer_and_label_it():
     old = _detector_arrays(falling, n)
     old.pop("inputs")
     assert detect_anomalies(**old).events == []
+
+
+def test_twin_run_carries_the_observer_and_writes_its_columns():
+    rec = simulate("exp1", seed=1, duration_min=3.0)
+    run = Twin.default(em=False).run(rec)
+    direct = observe_vial(rec.inputs, rec.outputs[:, 4], 1.0, 3e-3)
+    np.testing.assert_allclose(run.vial.vial_ml, direct.vial_ml, rtol=1e-12)
+    frame = run.to_frame()
+    np.testing.assert_allclose(frame["vial_observed_mL"], direct.vial_ml, rtol=1e-12)
+    assert not frame["vial_running_low"].any()
+    no_qm = rec.outputs.copy()
+    no_qm[:, 4] = np.nan
+    bare = Twin.default(em=False).run(inputs=rec.inputs, measurements=no_qm)
+    assert bare.vial is None and "vial_observed_mL" not in bare.to_frame()

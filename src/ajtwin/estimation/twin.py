@@ -141,6 +141,9 @@ class TwinRun:
     #: (T, 5) bool: some output measured at that second responds to the state
     #: (record_checks.observed_states); False rows run on the model and priors alone.
     seen: np.ndarray | None = None
+    #: the vial observer over the print (ajtwin.estimation.vial; None: no Q_m measured):
+    #: V_l from the data, apart from the atomizer's efficiency, and the 'running low' flag
+    vial: object | None = None
 
     def visibility_notes(self) -> list[str]:
         """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
@@ -213,6 +216,14 @@ class TwinRun:
         if self.seen is not None:
             for i, name in enumerate(STATE_NAMES):
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
+        if self.vial is not None:
+            # V_l above is the twin's consider state (fill − modelled draw); these read it
+            # from the measured Q_m with the atomizer's efficiency apart (docs/estimation.md)
+            frame["vial_observed_mL"] = self.vial.vial_ml
+            frame["vial_observed_mL_std"] = self.vial.vial_std_ml
+            frame["vial_loss_rate_mL_per_h"] = self.vial.loss_rate_ml_per_h
+            frame["atomizer_efficiency"] = self.vial.efficiency
+            frame["vial_running_low"] = self.vial.running_low
         return frame
 
 
@@ -565,6 +576,19 @@ class Twin:
                 self.calibration_cov,
                 self.functions,
             )
+        vial = None
+        if np.isfinite(measurements[:, 4]).any():
+            from ajtwin.estimation.vial import observe_vial
+
+            gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
+            vial = observe_vial(
+                inputs,
+                measurements[:, 4],
+                fill_ml=float(start_mean[1]),
+                fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
+                material_flow_gain=abs(gain),
+                params=self.model.params,
+            )
         columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
             f"theta_{name}" for name in STATE_NAMES
         ]
@@ -583,4 +607,5 @@ class Twin:
             end_cov=np.asarray(filtered.covariances[-1]),
             calibration_covariances=calibration_covariances,
             seen=seen,
+            vial=vial,
         )

@@ -20,6 +20,9 @@ The twin is told the vial's fill (the scenario's initial volume, weighed at load
 
     python benchmarks/bench_vial.py [--quick] [--cache DIR] [--out DIR]
 
+``main()`` without arguments (``make bench``) runs ``--quick`` (seed 1, 20-min prints)
+and writes beside the cache, not into docs/.
+
 Twin runs are cached as .npz (``--cache``, default /tmp/ajtwin-bench-vial), so the
 tables can be rebuilt in seconds. Writes ``results.json`` and ``results.md`` to
 ``--out`` (default docs/results/vial).
@@ -30,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -144,11 +148,17 @@ def _evaluate(arrays: dict, variant: str) -> dict:
 
 
 def main(argv=None) -> dict:
+    if argv is None:  # make bench (benchmarks/run_all.py): the quick version
+        argv = ["--quick"]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1 seed, 20-min prints (make bench)")
     ap.add_argument("--cache", default="/tmp/ajtwin-bench-vial")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "vial"))
+    ap.add_argument("--out", default=None, help="default docs/results/vial (quick: the cache)")
     args = ap.parse_args(argv)
+    if args.out is None:
+        args.out = str(
+            Path(args.cache) / "quick" if args.quick else ROOT / "docs" / "results" / "vial"
+        )
     cache = Path(args.cache)
     seeds = (1,) if args.quick else (1, 2, 3, 4, 5)
     duration = 20.0 if args.quick else None
@@ -188,7 +198,31 @@ def main(argv=None) -> dict:
     (out / "results.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "results.md").write_text(_markdown(result))
     print(_markdown(result))
-    return result
+    return _figures(rows, result["wall_s"])
+
+
+def _figures(rows, wall_s) -> dict:
+    """Flat named figures for benchmarks/run_all.py."""
+    figures = {"wall_s": round(wall_s, 1)}
+    for truth in ("model", "alt"):
+        for variant in ("before", "after"):
+            sel = _pick(rows, "ink_running_low", truth, variant)
+            hits = sum(bool(r["events"]) and r["events"][0]["cause"] == "ink_low" for r in sel)
+            figures[f"ink_running_low_{truth}_{variant}_ink_low_first_events"] = (
+                f"{hits}/{len(sel)}"
+            )
+    for variant in ("before", "after"):
+        clean = [
+            r
+            for scenario in ("exp1", "exp2", "clean_long")
+            for r in _pick(rows, scenario, "model", variant)
+        ]
+        figures[f"clean_prints_events_{variant}"] = sum(len(r["events"]) for r in clean)
+        exp1 = _pick(rows, "exp1", "model", variant)
+        figures[f"exp1_twin_vial_coverage_min_{variant}"] = round(
+            min(r["twin_vial"]["coverage"] for r in exp1), 3
+        )
+    return figures
 
 
 def _pick(rows, scenario, truth, variant):
@@ -315,4 +349,4 @@ def _markdown(result) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

@@ -20,8 +20,12 @@ SHORT = {
 }
 
 
-def machine_twin(reg, name, nominal_theta=False):
-    """(twin with the machine's θ, mean, cov, last inputs, machine row) from the registry."""
+def machine_twin(reg, name, nominal_theta=False, transition="paper"):
+    """(twin with the machine's θ, mean, cov, last inputs, machine row) from the registry.
+
+    ``transition``: a profile of ``data/transition.toml`` for the twin's droplet row. A
+    profile with a bounded θ_da prior (σ) clips the machine's learned θ_da to ±2σ.
+    """
     from ajtwin.estimation import Twin
     from ajtwin.store.registry import RegistryError
 
@@ -46,12 +50,28 @@ def machine_twin(reg, name, nominal_theta=False):
             "calibration_cov": active["calibration_cov"],
             "noise_factors": active.get("noise_factors"),
         }
-    twin = Twin.default(**calibrated)
+    twin = Twin.default(transition=transition, **calibrated)
     if not nominal_theta:
         twin.theta = np.asarray(last["theta_after"], dtype=float)
+        bound = 2.0 * twin.droplet_dynamics.theta_prior_std
+        if transition != "paper" and bound > 0:
+            twin.theta[0] = float(np.clip(twin.theta[0], -bound, bound))
     inputs = reg.print_arrays(last["id"]).get("inputs")
     u_last = np.nanmedian(inputs[-60:], axis=0) if inputs is not None else np.array([375, 23, 50])
     return twin, last["end_mean"], last["end_cov"], u_last, machine, last
+
+
+def _input_response_at_end(twin, reg, last):
+    """The droplet size's input response at the end of the last print (None: equilibrium)."""
+    if not twin.droplet_dynamics.follows_inputs:
+        return None
+    inputs = reg.print_arrays(last["id"]).get("inputs")
+    if inputs is None or not np.isfinite(inputs).all():
+        return None
+    from ajtwin.model.droplet_dynamics import next_response
+
+    response = float(twin.model_inputs(inputs)[-1, 3])
+    return next_response(response, inputs[-1], twin.droplet_dynamics)
 
 
 def _parse_inputs(text):
@@ -106,9 +126,25 @@ def _parse_inputs(text):
     is_flag=True,
     help="Use θ = 0 instead of the machine's learned θ (e.g. after cleaning the nozzle).",
 )
+@click.option(
+    "--transition",
+    default="paper",
+    show_default=True,
+    help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml; "
+    "input_following lets d_a follow planned Q_c/I_A changes (docs/forecast.md).",
+)
 @store_option
 def forecast(
-    machine_name, changes, horizon, inputs_text, with_sensor_noise, out, plot, nominal_theta, store
+    machine_name,
+    changes,
+    horizon,
+    inputs_text,
+    with_sensor_noise,
+    out,
+    plot,
+    nominal_theta,
+    transition,
+    store,
 ):
     """Forecast L_w, L_o, P_c, P_s (± σ) from the machine's last state under planned inputs."""
     from ajtwin.apps.forecast import forecast as run_forecast
@@ -121,13 +157,25 @@ def forecast(
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     reg = open_registry(store)
-    twin, mean, cov, u_last, _, last = machine_twin(reg, machine_name, nominal_theta)
+    try:
+        twin, mean, cov, u_last, _, last = machine_twin(
+            reg, machine_name, nominal_theta, transition
+        )
+    except ValueError as exc:  # an unknown transition profile
+        raise click.BadParameter(str(exc)) from None
     u0 = u_last if user_inputs is None else user_inputs
     try:
         schedule = input_schedule(u0, parsed, horizon_s)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
-    fc = run_forecast(twin, mean, cov, schedule, include_measurement_noise=with_sensor_noise)
+    fc = run_forecast(
+        twin,
+        mean,
+        cov,
+        schedule,
+        include_measurement_noise=with_sensor_noise,
+        input_response0=_input_response_at_end(twin, reg, last),
+    )
     frame = fc.to_frame()
     out.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(out, index=False)

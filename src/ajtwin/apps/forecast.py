@@ -148,7 +148,7 @@ def range_warnings(fc) -> list[str]:
     return out
 
 
-def _forecast_scan(spec, mean, cov, inputs, theta, process_cov):
+def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     from ajtwin.estimation.twin import predict
 
     def g(x, u):
@@ -156,7 +156,7 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov):
 
     def body(carry, u):
         m, p = carry
-        m, p = predict(spec, m, p, u, theta, process_cov)
+        m, p = predict(spec, m, p, u, theta, process_cov, functions)
         y = g(m, u)
         jac = jax.jacfwd(g)(m, u)
         var = jnp.einsum("ij,jk,ik->i", jac, p, jac)
@@ -166,7 +166,7 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov):
     return out
 
 
-_forecast_scan = jax.jit(_forecast_scan)
+_forecast_scan = jax.jit(_forecast_scan, static_argnames=("functions",))
 
 
 def forecast(
@@ -177,6 +177,7 @@ def forecast(
     theta=None,
     *,
     include_measurement_noise: bool = False,
+    input_response0: float | None = None,
 ) -> Forecast:
     """Propagate (mean, cov) through the model under ``inputs`` (T, 3), one step per second.
 
@@ -189,6 +190,10 @@ def forecast(
     theta : (5,) θ [1/s], default ``twin.theta``
     include_measurement_noise : bool
         Add the sensors' σ² to the output variances.
+    input_response0 : float, optional
+        For a twin whose transition profile follows the inputs
+        (:mod:`ajtwin.model.droplet_dynamics`): the droplet size's input response r [µm]
+        at the start; default its equilibrium with the first planned input.
 
     Returns
     -------
@@ -196,13 +201,23 @@ def forecast(
     """
     inputs = check_input(np.asarray(inputs, dtype=float))
     theta = twin.theta if theta is None else theta
+    model_inputs = inputs
+    process_cov = np.array(twin.process_cov, dtype=float)
+    if hasattr(twin, "model_inputs"):
+        model_inputs = twin.model_inputs(inputs, input_response0)
+        # a transition profile may set d_a's long-horizon wander for forecasts
+        droplet_std = twin.droplet_dynamics.forecast_droplet_std_um
+        if droplet_std > 0:
+            process_cov[0, 0] = droplet_std**2
     m, pdiag, y, var = _forecast_scan(
         twin.spec,
         jnp.asarray(mean, dtype=float),
         jnp.asarray(cov, dtype=float),
-        jnp.asarray(inputs),
+        jnp.asarray(model_inputs),
         jnp.asarray(theta, dtype=float),
-        jnp.asarray(twin.process_cov),
+        jnp.asarray(process_cov),
+        # the twin's own model (discretisation, transition profile): the one its θ was learned on
+        functions=getattr(twin, "functions", None),
     )
     var = np.asarray(var)
     if include_measurement_noise:

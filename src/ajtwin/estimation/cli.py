@@ -202,7 +202,22 @@ def estimate(
     default="calibrated",
     show_default=True,
 )
-def experiment(name, seed, seeds_text, out_dir, noise_profile):
+@click.option(
+    "--truth",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="exp3 only: the virtual printer's truth generator; 'alt' is the second, "
+    "structurally different one (ajtwin.simulation.truth_alt), for evaluation only.",
+)
+@click.option(
+    "--transition",
+    default="paper",
+    show_default=True,
+    help="Droplet-size dynamics: a profile of ajtwin/data/transition.toml "
+    "(paper, input_following, mean_reverting; docs/forecast.md).",
+)
+def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""
     from tqdm import tqdm
 
@@ -213,7 +228,12 @@ def experiment(name, seed, seeds_text, out_dir, noise_profile):
     seeds = _parse_seeds(seeds_text) if seeds_text else [1 if seed is None else seed]
     with tqdm(total=len(seeds), unit="print", desc=name, disable=None) as bar:
         result = run_experiment(
-            name, seeds, out_dir, {"noise_profile": noise_profile}, progress=lambda _: bar.update(1)
+            name,
+            seeds,
+            out_dir,
+            {"noise_profile": noise_profile, "transition": transition},
+            progress=lambda _: bar.update(1),
+            truth=truth,
         )
     click.echo(json.dumps(result["summary"], indent=1, default=float))
     click.echo(f"wrote figures and {Path(out_dir) / 'metrics.json'}")

@@ -214,6 +214,11 @@ def exp3_figures(record, series, out: Path):
             label="ablation: twin state at 37.6 min, θ = 0",
         )
         ax.plot(after, series["y_cal"][:, i], color="k", lw=1.5, label="twin calibrated by EM")
+        if "y_cal_std" in series:
+            mean, std = series["y_cal"][:, i], series["y_cal_std"][:, i]
+            ax.fill_between(
+                after, mean - 2 * std, mean + 2 * std, color="tab:green", alpha=0.3, label="its ±2σ"
+            )
         ax.axvline(n_cal / 60, color="tab:blue", ls="--", lw=1)
         ax.text(n_cal / 60, ax.get_ylim()[1], " forecast →", va="top", fontsize=8, color="tab:blue")
         ax.set_title(OUTPUT_LABELS[i])

@@ -70,6 +70,8 @@ class TwinConfig:
     # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
+    # droplet-size dynamics: a profile of data/transition.toml ("paper" = SPEC §4 unchanged)
+    transition: str = "paper"
 
     noise_profile: str = "calibrated"
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
@@ -118,8 +120,19 @@ class TwinConfig:
         from ajtwin.estimation.vial import load_vial_settings
 
         initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
-        base = cls(process, measurement, noise_profile=noise_profile, **initial)
-        return replace(base, **overrides)
+        base = replace(
+            cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
+        )
+        if base.transition != "paper":
+            from ajtwin.model.droplet_dynamics import load_droplet_dynamics
+
+            dynamics = load_droplet_dynamics(base.transition)
+            # the profile's bound on θ_da (its MAP prior), unless the caller set one
+            if dynamics.theta_prior_std > 0 and "theta_prior_std" not in overrides:
+                prior = list(base.theta_prior_std)
+                prior[0] = dynamics.theta_prior_std
+                base = replace(base, theta_prior_std=tuple(prior))
+        return base
 
 
 @dataclass
@@ -227,6 +240,23 @@ class TwinRun:
         return frame
 
 
+def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFunctions:
+    """The model the estimators run: discretisation ``method`` and a ``transition`` profile.
+
+    ``transition`` names a profile of ``data/transition.toml``
+    (:mod:`ajtwin.model.droplet_dynamics`); ``"paper"`` is the paper's model itself.
+    """
+    functions = model_functions(method)
+    if transition == "paper":
+        return functions
+    from ajtwin.model.droplet_dynamics import DropletStep, load_droplet_dynamics
+
+    dynamics = load_droplet_dynamics(transition)
+    if dynamics.is_paper:
+        return functions
+    return ModelFunctions(DropletStep(dynamics, method), functions.output)
+
+
 def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = None):
     """One EKF prediction x̂_{k+1|k}, P_{k+1|k} in display units."""
     step = (functions or model_functions("euler")).step
@@ -307,7 +337,7 @@ class Twin:
         if config.vial_consider:
             update_mask = jnp.asarray([1.0, 0.0, 1.0, 1.0, 1.0])
         self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING, 1.0, update_mask)
-        self.functions = model_functions(config.method)
+        self.functions = twin_functions(config.method, config.transition)
         self.limits = StateLimits.load(model.params)
 
     @classmethod
@@ -324,6 +354,22 @@ class Twin:
         )
 
     # ------------------------------------------------------------------ #
+    @property
+    def droplet_dynamics(self):
+        """The transition profile (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
+        from ajtwin.model.droplet_dynamics import load_droplet_dynamics
+
+        return load_droplet_dynamics(self.config.transition)
+
+    def model_inputs(self, inputs, response0: float | None = None) -> np.ndarray:
+        """Inputs (T, 3) as the transition reads them: with the input-response column
+        (T, 4) for an ``input_following`` profile, unchanged otherwise."""
+        if self.config.transition == "paper":
+            return np.asarray(inputs, dtype=float)
+        from ajtwin.model.droplet_dynamics import augment_inputs
+
+        return augment_inputs(inputs, self.droplet_dynamics, response0, self.spec.dt)
+
     @property
     def process_cov(self) -> np.ndarray:
         return np.diag(np.asarray(self.config.process_std) ** 2)
@@ -485,13 +531,15 @@ class Twin:
             self.config.measurement_std,
         )
         c = self.config
+        # the transition profile's extra input column (input response), if it has one
+        model_inputs = self.model_inputs(inputs)
         theta = self.theta.copy()
         history = []
         thetas = np.zeros((n, 5))
 
         if not c.em:
             thetas[:] = theta
-            filtered = self._filter(mean, cov, inputs, measurements, theta)
+            filtered = self._filter(mean, cov, model_inputs, measurements, theta)
             if progress:
                 progress(n)
         else:
@@ -505,7 +553,7 @@ class Twin:
                 seg = self._filter(
                     mean,
                     cov,
-                    _pad(inputs[pos:end], every, None),
+                    _pad(model_inputs[pos:end], every, None),
                     _pad(measurements[pos:end], every, np.nan),
                     theta,
                 )
@@ -525,7 +573,7 @@ class Twin:
                         self.spec,
                         prior_mean,
                         prior_cov,
-                        inputs[w0:pos],
+                        model_inputs[w0:pos],
                         measurements[w0:pos],
                         theta,
                         self.process_cov,
@@ -539,7 +587,9 @@ class Twin:
                     theta = em.theta
                     learned = {}
                     if c.learn_line_offsets or c.learn_output_noise:
-                        learned = self._output_em(em.smoothed, inputs[w0:pos], measurements[w0:pos])
+                        learned = self._output_em(
+                            em.smoothed, model_inputs[w0:pos], measurements[w0:pos]
+                        )
                     last_mean = np.asarray(em.filtered.means)[-1]
                     last_cov = np.asarray(em.filtered.covariances)[-1]
                     history.append(
@@ -554,14 +604,14 @@ class Twin:
                         }
                     )
                 if pos < n:
-                    mean, cov = self._predict(last_mean, last_cov, inputs[pos - 1], theta)
+                    mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
                 if progress:
                     progress(pos)
             filtered = _concat(pieces)
 
         smoothed = None
         if smooth:
-            consistent = self._filter(start_mean, start_cov, inputs, measurements, thetas)
+            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
             smoothed = rts_smoother(self.spec, consistent)
         self.theta = theta
         calibration_covariances = None
@@ -571,7 +621,7 @@ class Twin:
             calibration_covariances = calibration_state_covariance(
                 self.spec,
                 filtered,
-                inputs,
+                model_inputs,
                 self.measurement_var,
                 self.calibration_cov,
                 self.functions,

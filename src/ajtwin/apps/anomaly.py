@@ -54,7 +54,7 @@ CAUSES = {
         "carrier leak, MFC drift or carrier-pressure sensor drift (P_c falling or alone)"
     ),
     "atomizer": "atomizer trouble (Q_m and φ_A falling)",
-    "ink_low": "ink running out (V_l low)",
+    "ink_low": "ink running out (V_l low or falling towards it; vial observer)",
     "unexplained": "unexplained deviation",
     # set by ajtwin.apps.mismatch.relabel_events: the model does not fit the machine
     "model_machine_mismatch": "model–machine mismatch, not a fault (commission the machine)",
@@ -342,7 +342,12 @@ def cusum(e, drift: float, threshold: float, start: int = 0):
 
 
 def label_cause(
-    mean_innovation, n_samples, state_shift, vial_mL: float, settings: DetectorSettings
+    mean_innovation,
+    n_samples,
+    state_shift,
+    vial_mL: float,
+    settings: DetectorSettings,
+    vial_running_low: bool | None = None,
 ) -> str:
     """The likely cause from the pattern of outputs and states (issue 8 rules).
 
@@ -352,7 +357,12 @@ def label_cause(
     n_samples : (5,) number of measured samples behind each mean
     state_shift : (5,) filter corrections Σ(x̂_k − x̂_{k|k−1}) over the window, divided
         by the state's σ at detection (signed: which state the data pushed, and which way)
-    vial_mL : latest V_l estimate [mL]
+    vial_mL : latest V_l estimate [mL] (the twin's; used when there is no observer)
+    vial_running_low : the vial observer's flag (:mod:`ajtwin.estimation.vial`) at the
+        end of the evidence window, or None without one. The twin's own V_l is a
+        consider state (it follows the fill and the modelled draw), so with the observer
+        it decides 'ink running out'; a Q_m deficit it does not read as the vial is
+        left to the other rules (atomizer …).
 
     Returns
     -------
@@ -367,7 +377,14 @@ def label_cause(
     'carrier_leak'
     >>> label_cause([-1, 0, 0, 0, -2], [60] * 5, [0, 0, 0, 0, -4], 1.0, s)
     'atomizer'
+    >>> label_cause([-1, 0, 0, 0, -2], [60] * 5, [0, 0, 0, 0, -4], 1.0, s, True)
+    'ink_low'
     """
+    if vial_running_low is not None:
+        # the vial observer (issue 18) sees the vial apart from the atomizer: it decides
+        if vial_running_low:
+            return "ink_low"
+        vial_mL = np.nan
     m = np.asarray(mean_innovation, dtype=float)
     n = np.asarray(n_samples, dtype=float)
     z = np.nan_to_num(m * np.sqrt(np.maximum(n, 0)))
@@ -490,6 +507,10 @@ class AnomalyDetector:
         self.final: list[bool] = []
         self._crossing = False
         self._vial_low = False
+        self.vial_observer = None  # started at the first step that brings the inputs
+        self.vial_running_low: list[bool | None] = []
+        self._observer_vial: list[float] = []
+        self.vial_status = None  # the observer's latest VialStatus (None: no observer)
 
     def update(
         self,
@@ -502,8 +523,15 @@ class AnomalyDetector:
         mean,
         predicted_mean,
         covariance,
+        inputs=None,
     ) -> DetectorStep:
-        """Step k: the EKF outputs of one sample (display units; see :func:`detect_anomalies`)."""
+        """Step k: the EKF outputs of one sample (display units; see :func:`detect_anomalies`).
+
+        With ``inputs`` (3,) the vial observer runs too (:mod:`ajtwin.estimation.vial`):
+        started from the twin's V_l and σ at the first such step (the fill, or the
+        previous print's end), it raises 'V_l low' and decides the 'ink running out'
+        label. Without it the twin's V_l below ``vial_low_mL`` does (as before).
+        """
         s = self.settings
         self.k += 1
         k = self.k
@@ -523,6 +551,17 @@ class AnomalyDetector:
         self.corrections.append(mean - np.asarray(predicted_mean, dtype=float))
         self.stds.append(np.sqrt(np.maximum(np.diag(np.asarray(covariance, dtype=float)), 1e-300)))
         self.vial.append(float(mean[1]))
+        running_low = None
+        if inputs is not None:
+            if self.vial_observer is None:
+                from ajtwin.estimation.vial import VialObserver
+
+                sd = float(np.sqrt(max(float(np.asarray(covariance)[1, 1]), 1e-12)))
+                self.vial_observer = VialObserver(fill_ml=float(mean[1]), fill_std_ml=sd)
+            self.vial_status = self.vial_observer.update(inputs, float(measurement[4]))
+            running_low = self.vial_status.running_low
+        self.vial_running_low.append(running_low)
+        self._observer_vial.append(np.nan if running_low is None else self.vial_status.vial_ml)
         p_step = float(nis_tail_probability([nis], [n_measured])[0])
         # Huber-clipped innovations: a heavy-tailed outlier counts as a ±clip σ one
         c = s.innovation_clip_sigma
@@ -546,7 +585,8 @@ class AnomalyDetector:
         if crossing and not self._crossing:  # the first step of a run of crossings
             raw.append((k, max(k - self.window_steps, 0), "windowed NIS"))
         self._crossing = crossing
-        if self.start is not None and not self._vial_low and mean[1] < s.vial_low_mL:
+        vial_low = mean[1] < s.vial_low_mL if running_low is None else running_low
+        if self.start is not None and not self._vial_low and vial_low:
             self._vial_low = True
             raw.append((k, k, "V_l low"))
         raw.sort()
@@ -614,7 +654,8 @@ class AnomalyDetector:
             mean_e = np.where(counts > 0, np.nansum(seg, axis=0) / np.maximum(counts, 1), 0.0)
         shift = np.asarray(self.corrections[span]).sum(axis=0) / self.stds[span.stop - 1]
         vial = self.vial[span.stop - 1]
-        cause = label_cause(mean_e, counts, shift, vial, s)
+        running_low = self.vial_running_low[span.stop - 1]
+        cause = label_cause(mean_e, counts, shift, vial, s, running_low)
         detectors = []
         for step, _, name in group:
             if step <= k_end and name not in detectors:
@@ -629,6 +670,14 @@ class AnomalyDetector:
                 "mean_normalised_innovation": dict(zip(SHORT_OUTPUT, np.round(mean_e, 3).tolist())),
                 "state_correction_sigma": dict(zip(SHORT_STATE, np.round(shift, 3).tolist())),
                 "vial_mL": float(vial),
+                **(
+                    {}
+                    if running_low is None
+                    else {
+                        "vial_observer_running_low": bool(running_low),
+                        "vial_observer_mL": float(self._observer_vial[span.stop - 1]),
+                    }
+                ),
             },
         )
 
@@ -644,6 +693,7 @@ def detect_anomalies(
     predicted_means,
     covariances,
     settings: DetectorSettings | None = None,
+    inputs=None,
 ) -> DetectionResult:
     """Run NIS, windowed-NIS and CUSUM tests and group alarms into labelled events.
 
@@ -658,6 +708,8 @@ def detect_anomalies(
     means, predicted_means, covariances : (T, 5), (T, 5), (T, 5, 5)
         filtered states x̂_k, predictions x̂_{k|k−1} and P_k (display units)
     settings : DetectorSettings, optional
+    inputs : (T, 3), optional
+        [mA, sccm, sccm]: runs the vial observer (see :meth:`AnomalyDetector.update`).
 
     Returns
     -------
@@ -676,7 +728,11 @@ def detect_anomalies(
         covariances,
     )
     columns = [np.asarray(c, dtype=float) for c in columns]
-    rows = [detector.update(t[k], *(c[k] for c in columns)) for k in range(len(t))]
+    u = None if inputs is None else np.asarray(inputs, dtype=float)
+    rows = [
+        detector.update(t[k], *(c[k] for c in columns), inputs=None if u is None else u[k])
+        for k in range(len(t))
+    ]
     events = detector.finish()
     n_channels = len(CUSUM_CHANNELS)
 
@@ -709,6 +765,7 @@ def detect_run(run, record, settings: DetectorSettings | None = None) -> Detecti
         np.asarray(f.predicted_means),
         np.asarray(f.covariances),
         settings,
+        inputs=record.inputs,
     )
 
 

@@ -68,7 +68,10 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
 
     rec = simulate(scenario, seed=seed, duration_min=duration_min)
     t0 = time.perf_counter()
-    run = Twin.default().run(rec)
+    # the operator knows the fill (weighed at loading, σ in noise.toml): ink_running_low
+    # starts at 0.70 mL, the others at 1.0 mL
+    fill = float(rec.meta["scenario_config"]["initial"]["vial_volume_mL"])
+    run = Twin.default(vial_fill_ml=fill).run(rec)
     f = run.filtered
     out = {
         "time_s": run.time_s,
@@ -81,6 +84,7 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
         "predicted_means": np.asarray(f.predicted_means),
         "covariances": np.asarray(f.covariances),
         "true_states": rec.true_states,
+        "inputs": rec.inputs,
     }
     meta = {
         "scenario": scenario,
@@ -97,7 +101,9 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
 
 
 def detect_arrays(arrays: dict, settings: DetectorSettings | None = None):
-    return detect_anomalies(*(arrays[k] for k in KEYS), settings=settings)
+    return detect_anomalies(
+        *(arrays[k] for k in KEYS), settings=settings, inputs=arrays.get("inputs")
+    )
 
 
 def evaluate(

@@ -18,6 +18,9 @@ prediction to k):
     x̂_k = x̂_{k|k-1} + K (y_k − g(x̂_{k|k-1}, u_k))
     P_k = (I − K H) P (I − K H)ᵀ + K Σ_w Kᵀ          (Joseph form: stays PSD)
 
+A *consider* state (``ModelSpec.update_mask`` 0: V_l in the twin) gets a zero gain row
+(Schmidt–Kalman): its mean follows the model, its covariance stays exact.
+
 Missing measurements (NaN) drop their rows (H row 0, innovation 0, unit
 variance), so the update uses only what was measured; optional per-output
 innovation gating drops outliers the same way. A divergence guard replaces a
@@ -87,6 +90,10 @@ class ModelSpec(NamedTuple):
     coefficients: jnp.ndarray  # (2, 8)
     scaling: Scaling
     dt: float = 1.0
+    #: (5,) 1 = the measurements update the state, 0 = a *consider* state (Schmidt–Kalman):
+    #: its gain row is zero, so its mean follows the model alone while its covariance and
+    #: cross-covariances stay exact (Joseph form holds for any gain). None: update all.
+    update_mask: jnp.ndarray | None = None
 
 
 class FilterResult(NamedTuple):
@@ -262,6 +269,8 @@ def ekf_step(
         s_i = h_i @ ph + r_k[i]
         nu_i = nu_k[i] - h_i @ (z_post - z_pred)
         k_i = ph / s_i
+        if spec.update_mask is not None:
+            k_i = k_i * spec.update_mask
         z_post = z_post + k_i * nu_i
         # Joseph form for a scalar update: (I − k hᵀ) P (I − k hᵀ)ᵀ + r k kᵀ
         m = p_post - jnp.outer(k_i, ph)
@@ -365,7 +374,9 @@ def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:
     """Rauch–Tung–Striebel smoothing of an EKF run (paper App. E).
 
     Uses the EKF's own linearisations F_k, so it is the exact RTS smoother of
-    the linearised model the filter saw.
+    the linearised model the filter saw. Consider states (``spec.update_mask`` 0) keep
+    their filtered values: their rows of J_k are zero, so later data do not reach them
+    through the backward pass either.
     """
     s = spec.scaling.state
     ss = jnp.outer(s, s)
@@ -379,6 +390,8 @@ def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:
     # pass: all gains in one batched solve, outside the scan (a per-step solve inside
     # the scan costs a factorisation call per step)
     gains = jnp.swapaxes(jnp.linalg.solve(p_p[1:], f_jacs[:-1] @ p_f[:-1]), -1, -2)  # (T-1, 5, 5)
+    if spec.update_mask is not None:
+        gains = gains * spec.update_mask[None, :, None]
 
     def body(carry, inp):
         z_next_s, p_next_s = carry

@@ -67,6 +67,9 @@ class TwinConfig:
     droplet_prior_std_um: float | None = None
     aerosol_prior_relative_std: float | None = None
     method: str = "euler"
+    # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
+    # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
+    vial_consider: bool = True
     # droplet-size dynamics: a profile of data/transition.toml ("paper" = SPEC §4 unchanged)
     transition: str = "paper"
 
@@ -114,6 +117,9 @@ class TwinConfig:
             initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
             initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
+        from ajtwin.estimation.vial import load_vial_settings
+
+        initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
         base = replace(
             cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
         )
@@ -151,6 +157,9 @@ class TwinRun:
     #: (T, 5) variance floor of states no data has constrained yet
     #: (:func:`never_seen_variance_floor`); None: every state fitted from data
     prior_floor: np.ndarray | None = None
+    #: the vial observer over the print (ajtwin.estimation.vial; None: no Q_m measured):
+    #: V_l from the data, apart from the atomizer's efficiency, and the 'running low' flag
+    vial: object | None = None
 
     def visibility_notes(self) -> list[str]:
         """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
@@ -228,6 +237,14 @@ class TwinRun:
         if self.seen is not None:
             for i, name in enumerate(STATE_NAMES):
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
+        if self.vial is not None:
+            # V_l above is the twin's consider state (fill − modelled draw); these read it
+            # from the measured Q_m with the atomizer's efficiency apart (docs/estimation.md)
+            frame["vial_observed_mL"] = self.vial.vial_ml
+            frame["vial_observed_mL_std"] = self.vial.vial_std_ml
+            frame["vial_loss_rate_mL_per_h"] = self.vial.loss_rate_ml_per_h
+            frame["atomizer_efficiency"] = self.vial.efficiency
+            frame["vial_running_low"] = self.vial.running_low
         return frame
 
 
@@ -351,7 +368,10 @@ class Twin:
             from ajtwin.model.calibration import CalibratedCoefficients
 
             coefficients = CalibratedCoefficients(coefficients, calibration)
-        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING)
+        update_mask = None
+        if config.vial_consider:
+            update_mask = jnp.asarray([1.0, 0.0, 1.0, 1.0, 1.0])
+        self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING, 1.0, update_mask)
         self.functions = twin_functions(config.method, config.transition)
         self.limits = StateLimits.load(model.params)
 
@@ -440,7 +460,12 @@ class Twin:
     @property
     def theta_prior_precision(self) -> np.ndarray:
         std = np.asarray(self.config.theta_prior_std, dtype=float)
-        return np.where(np.isfinite(std), 1.0 / std**2, 0.0)
+        precision = np.where(np.isfinite(std), 1.0 / std**2, 0.0)
+        if self.config.vial_consider:
+            # a consider state's smoothed path is its own prediction: θ_Vl has no data, so
+            # it is held at 0 (a prior far stronger than any window's normal equations)
+            precision[1] = 1e40
+        return precision
 
     def initial_state(self, inputs, measurements) -> InitialFit:
         c = self.config
@@ -636,6 +661,19 @@ class Twin:
                 self.calibration_cov,
                 self.functions,
             )
+        vial = None
+        if np.isfinite(measurements[:, 4]).any():
+            from ajtwin.estimation.vial import observe_vial
+
+            gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
+            vial = observe_vial(
+                inputs,
+                measurements[:, 4],
+                fill_ml=float(start_mean[1]),
+                fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
+                material_flow_gain=abs(gain),
+                params=self.model.params,
+            )
         columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
             f"theta_{name}" for name in STATE_NAMES
         ]
@@ -655,4 +693,5 @@ class Twin:
             calibration_covariances=calibration_covariances,
             seen=seen,
             prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
+            vial=vial,
         )

@@ -587,6 +587,7 @@ class TwinStream:
             step.mean,
             step.predicted_mean,
             step.covariance,
+            inputs=sample.inputs,
         )
         return self._message(k, sample, step, status, False)
 

@@ -719,6 +719,8 @@ class Registry:
             "means": a["means"],
             "predicted_means": a["predicted_means"],
             "covariances": covariances,
+            # the vial observer's inputs (issue 18); older prints without them: twin's V_l
+            "inputs": a.get("inputs"),
         }
 
     def history(self, name: str) -> pd.DataFrame:

@@ -226,6 +226,13 @@ def _control_live(
     default=None,
     help="A control.toml of your own (default: the packaged tuning).",
 )
+@click.option(
+    "--truth",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="Virtual printer's truth generator: model (tuned the controller) or alt (evaluation).",
+)
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def simulate(
     scenarios,
@@ -236,6 +243,7 @@ def simulate(
     duration_min,
     max_overspray,
     settings_path,
+    truth,
     no_progress,
 ):
     """Run the strategies in closed loop with the virtual printer and compare them.
@@ -279,6 +287,7 @@ def simulate(
                 max_overspray_um=max_overspray,
                 progress=bar.update,
                 log=lambda text: tqdm.write(text) if not no_progress else click.echo(text),
+                truth=truth,
             )
     except TargetError as exc:
         raise click.ClickException(str(exc)) from None

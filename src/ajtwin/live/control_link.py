@@ -387,8 +387,10 @@ class ControlLink:
             decision.predicted_linewidth_um,
         )
         self.decisions.append(record)
-        if decision.status == "hold":
-            log.warning("%s t = %.0f s: HOLD — %s", self.machine, t, decision.reason)
+        if decision.status in ("hold", "stop"):  # stop: latched, the ink ran low
+            log.warning(
+                "%s t = %.0f s: %s — %s", self.machine, t, decision.status.upper(), decision.reason
+            )
         if self.on_decision:
             self.on_decision(record)
 

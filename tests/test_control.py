@@ -490,3 +490,73 @@ def test_mpc_plans_with_the_twins_transition_profile(profile, control_settings):
     # and it differs from the paper's step (d_a relaxes / follows the inputs here)
     paper = forecast(Twin.default(), mean, cov, inputs, np.zeros(5))
     assert np.max(np.abs(paper.output_means[:, 0] - expected.output_means[:, 0])) > 1e-3
+
+
+def test_cli_merge_runs_and_truth_alt(tmp_path):
+    """Per-seed runs (one on the second truth generator) merge into one table; runs that
+    are not one table (another target, the same print differing) are refused."""
+    from ajtwin.cli import main
+
+    def run(name, seed, *extra):
+        out = tmp_path / name
+        result = CliRunner().invoke(
+            main,
+            [
+                "control",
+                "simulate",
+                "--scenario",
+                "exp1",
+                "--target-linewidth",
+                "65",
+                "--out",
+                str(out),
+                "--duration-min",
+                "2",
+                "--seeds",
+                str(seed),
+                "--strategies",
+                "open_loop,pi",
+                "--no-progress",
+                *extra,
+            ],
+        )
+        assert result.exit_code == 0, result.output
+        return out
+
+    a, b, alt = run("a", 1), run("b", 2), run("alt", 1, "--truth", "alt")
+    out = tmp_path / "merged"
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(a), str(b), str(alt), "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    merged = json.loads((out / "metrics.json").read_text())
+    assert set(merged["scenarios"]) == {"exp1", "exp1@alt"}
+    exp1 = merged["scenarios"]["exp1"]
+    assert list(exp1["per_seed"]) == ["1", "2"]
+    rms = [exp1["per_seed"][s]["pi"]["rms_error_um"] for s in ("1", "2")]
+    assert exp1["summary"]["pi"]["rms_error_um_mean"] == pytest.approx(np.mean(rms))
+    # the alt print is another print: not the first generator's seed 1
+    alt_rms = merged["scenarios"]["exp1@alt"]["per_seed"]["1"]["open_loop"]["rms_error_um"]
+    assert alt_rms != exp1["per_seed"]["1"]["open_loop"]["rms_error_um"]
+    table = (out / "metrics.md").read_text()
+    assert "| exp1@alt | 1 |" in table and "| exp1 | 1,2 |" in table
+    # a conflicting re-run of the same print, and another target, are refused
+    bad = json.loads((b / "metrics.json").read_text())
+    bad["scenarios"]["exp1"]["per_seed"]["2"]["pi"]["rms_error_um"] += 1.0
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "metrics.json").write_text(json.dumps(bad))
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(b), str(tmp_path / "c"), "--out", str(out)]
+    )
+    assert result.exit_code != 0 and "seed 2 pi differs" in result.output
+    bad = json.loads((b / "metrics.json").read_text())
+    bad["target_linewidth_um"] = 60.0
+    (tmp_path / "c" / "metrics.json").write_text(json.dumps(bad))
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(a), str(tmp_path / "c"), "--out", str(out)]
+    )
+    assert result.exit_code != 0 and "target_linewidth_um" in result.output
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(tmp_path / "nothing"), "--out", str(out)]
+    )
+    assert result.exit_code != 0

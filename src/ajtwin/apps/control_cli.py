@@ -308,3 +308,30 @@ def simulate(
                 + (f"  solve {solve:5.1f} ms" if solve is not None else "")
             )
     click.echo(f"\nwrote {out_dir}/metrics.json and one figure per scenario")
+
+
+@control.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder.")
+def merge(runs, out_dir):
+    """Merge runs of ``control simulate`` (per seed, scenario or --truth) into one table.
+
+    RUNS are --out folders (or their metrics.json). Writes OUT/metrics.json (per seed and
+    recomputed summaries; a scenario of the second truth generator as NAME@alt) and
+    OUT/metrics.md (the comparison table), and prints the table.
+    """
+    import json
+
+    from ajtwin.apps.control_sim import merge_results, metrics_table
+
+    try:
+        merged = merge_results(runs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(merged, indent=2))
+    table = metrics_table(merged)
+    (out / "metrics.md").write_text(table)
+    click.echo(table, nl=False)
+    click.echo(f"wrote {out / 'metrics.json'} and {out / 'metrics.md'} ({len(runs)} runs)")

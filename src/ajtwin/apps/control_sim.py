@@ -354,7 +354,9 @@ class MPCTwin(_MPCStrategy):
             status=getattr(self.stream, "mismatch_status", None),
         )
         status, cause = self.stream.status()
-        if status == "alarm" and cause not in self.settings.actionable_causes:
+        # 'ink running out' is the ink rule's (ink_supply): it keeps steering while the
+        # vial is inside H's fit and stops for good before it leaves it — no on/off holds
+        if status == "alarm" and cause not in (*self.settings.actionable_causes, "ink_low"):
             from ajtwin.apps.anomaly import CAUSES
 
             reasons.append(f"alarm the controller cannot act on: {CAUSES.get(cause, cause)}")
@@ -690,6 +692,104 @@ def summarise(per_seed: dict, strategies) -> dict:
             if other in out and twin_rms > 0:
                 out[f"ratio_rms_{other}_over_mpc_twin"] = out[other]["rms_error_um_mean"] / twin_rms
     return out
+
+
+# --------------------------------------------------------------------------- #
+# Merging runs made apart (per seed, per scenario, per truth generator)
+# --------------------------------------------------------------------------- #
+
+#: what every merged run must share (else the rows are not comparable)
+_MERGE_KEYS = ("target_linewidth_um", "start_inputs", "settings")
+
+
+def _load_metrics(path) -> tuple[Path, dict]:
+    path = Path(path)
+    file = path / "metrics.json" if path.is_dir() else path
+    if not file.is_file():
+        raise FileNotFoundError(f"{path}: no metrics.json (a DIR of ajtwin control simulate)")
+    try:
+        data = json.loads(file.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{file}: not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or "scenarios" not in data:
+        raise ValueError(f"{file}: not a metrics.json of ajtwin control simulate")
+    return file, data
+
+
+def merge_results(paths) -> dict:
+    """One metrics table from several ``control simulate`` runs (per seed or scenario).
+
+    Per-seed rows are collected under ``scenario`` (``scenario@alt`` for the second truth
+    generator) and the summaries recomputed over every seed found. The runs must share
+    the target, the start inputs and the settings; the same scenario, seed and strategy
+    twice must agree to the last digit (a re-run of the same thing), else it is an error.
+    """
+    if not paths:
+        raise ValueError("nothing to merge: give one or more run directories")
+    merged: dict = {"merged_from": [], "scenarios": {}}
+    per_seed: dict = {}
+    for path in paths:
+        file, data = _load_metrics(path)
+        merged["merged_from"].append(str(file))
+        for key in _MERGE_KEYS:
+            if key not in merged:
+                merged[key] = data.get(key)
+            elif data.get(key) != merged[key]:
+                raise ValueError(
+                    f"{file}: {key} = {data.get(key)!r} differs from the runs before "
+                    f"({merged[key]!r}); runs with different {key} are not one table"
+                )
+        truth = data.get("truth_generator", "model")
+        merged.setdefault("tuned_on", data.get("tuned_on"))
+        for name, block in data["scenarios"].items():
+            key = name if truth == "model" else f"{name}@{truth}"
+            rows = per_seed.setdefault(key, {})
+            for seed, strategies in block["per_seed"].items():
+                for strategy, metrics in strategies.items():
+                    old = rows.get(seed, {}).get(strategy)
+                    if old is not None and old != metrics:
+                        raise ValueError(
+                            f"{file}: {key} seed {seed} {strategy} differs from an earlier "
+                            "run of the same print; merge runs of different prints only"
+                        )
+                    rows.setdefault(seed, {})[strategy] = metrics
+    for key, rows in per_seed.items():
+        strategies = [s for s in STRATEGIES if any(s in r for r in rows.values())]
+        ordered = dict(sorted(rows.items(), key=lambda kv: int(kv[0])))
+        merged["scenarios"][key] = {
+            "per_seed": ordered,
+            "summary": summarise(ordered, strategies),
+        }
+    return merged
+
+
+def metrics_table(results: dict) -> str:
+    """The comparison as a Markdown table: RMS error and time within ±2 µm per strategy."""
+    lines = [
+        "| scenario | seeds | " + " | ".join(STRATEGIES) + " | open/twin | PI/twin | twin stops |",
+        "|---" * (len(STRATEGIES) + 5) + "|",
+    ]
+    for name, block in results["scenarios"].items():
+        summary = block["summary"]
+        cells = []
+        for strategy in STRATEGIES:
+            row = summary.get(strategy)
+            cells.append(
+                "–"
+                if row is None
+                else f"{row['rms_error_um_mean']:.2f} µm, {row['within_2um_fraction_mean']:.0%}"
+            )
+        ratios = [summary.get(f"ratio_rms_{other}_over_mpc_twin") for other in ("open_loop", "pi")]
+        stops = (summary.get("mpc_twin") or {}).get("ink_stop_s_per_seed") or []
+        stop_text = ", ".join("–" if t is None else f"{t / 60:.0f} min" for t in stops)
+        lines.append(
+            f"| {name} | {','.join(block['per_seed'])} | "
+            + " | ".join(cells)
+            + " | "
+            + " | ".join("–" if r is None else f"{r:.2f}×" for r in ratios)
+            + f" | {stop_text or '–'} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot_scenario(runs: dict, target_um: float, path, title: str):

@@ -79,6 +79,9 @@ class ControlSettings:
     overspray_scale_um: float = 10.0
     weight_move: float = 0.02
     weight_overspray_limit: float = 100.0
+    max_linearisations: int = 2
+    max_iterations: int = 30
+    solver_tolerance: float = 1e-6
     rate_limits: tuple = (2.0, 0.1, 0.2)  # per second [mA/s, sccm/s, sccm/s]
     uncertainty_sigma_um: float = 1.0
     nis_window_s: int = 120
@@ -118,6 +121,9 @@ class ControlSettings:
                 overspray_scale_um=float(mpc["overspray_scale_um"]),
                 weight_move=float(mpc["weight_move"]),
                 weight_overspray_limit=float(mpc["weight_overspray_limit"]),
+                max_linearisations=int(mpc["max_linearisations"]),
+                max_iterations=int(mpc["max_iterations"]),
+                solver_tolerance=float(mpc["solver_tolerance"]),
                 rate_limits=tuple(float(rates[name]) for name in INPUT_NAMES),
                 uncertainty_sigma_um=float(safety["uncertainty_sigma_um"]),
                 nis_window_s=int(safety["nis_window_s"]),
@@ -151,6 +157,10 @@ class ControlSettings:
             raise ValueError(f"rate limits must be positive; got {self.rate_limits}")
         if not self.tolerance_um > 0:
             raise ValueError(f"tolerance_um must be > 0; got {self.tolerance_um}")
+        if self.max_linearisations < 1 or self.max_iterations < 1:
+            raise ValueError("max_linearisations and max_iterations must be ≥ 1")
+        if not self.solver_tolerance > 0:
+            raise ValueError(f"solver_tolerance must be > 0; got {self.solver_tolerance}")
         if not (np.isfinite(self.ink_stop_vial_ml) and self.ink_stop_vial_ml >= 0):
             raise ValueError(f"[ink] stop_vial_ml must be ≥ 0 mL; got {self.ink_stop_vial_ml}")
         if not self.ink_stop_lead_min >= 0:
@@ -542,7 +552,7 @@ class MPC:
         # time between a move and the one before it (the first: one control period)
         self.move_gaps = np.diff(np.concatenate([[starts[0] - s.period_s], starts])).astype(float)
         self.rates = np.asarray(s.rate_limits, dtype=float)
-        self.max_linearisations = 3
+        self.max_linearisations = int(s.max_linearisations)
         # the twin's own model (discretisation, transition profile), as its forecast uses
         self.functions = getattr(twin, "functions", None)
         self.plan_arrays = _PlanArrays(
@@ -609,6 +619,7 @@ class MPC:
     ) -> MPCSolution:
         """Optimise the moves from (mean, cov, θ) with the command in force ``u_prev``."""
         t0 = time.process_time()
+        s = self.settings
         u_prev = np.asarray(u_prev, dtype=float)
         model_args = self._model_args(mean, cov, theta)
         u_prev_j = jnp.asarray(u_prev)
@@ -642,7 +653,7 @@ class MPC:
                 method="SLSQP",
                 bounds=[(0.0, 1.0)] * (3 * self.n_moves),
                 constraints=[{"type": "ineq", "fun": lambda z: a @ z - b, "jac": lambda z: a}],
-                options={"maxiter": 100, "ftol": 1e-10},
+                options={"maxiter": s.max_iterations, "ftol": s.solver_tolerance},
             )
             iterations += int(result.nit)
             z_new = self._feasible(result.x, z_hold, step_scale)

@@ -560,3 +560,13 @@ def test_cli_merge_runs_and_truth_alt(tmp_path):
         main, ["control", "merge", str(tmp_path / "nothing"), "--out", str(out)]
     )
     assert result.exit_code != 0
+
+
+def test_live_link_takes_the_vial_fill():
+    from ajtwin.live.control_link import ControlLink
+
+    link = ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=0.7)
+    assert link.vial_fill_ml == 0.7
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="vial fill"):
+            ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=bad)

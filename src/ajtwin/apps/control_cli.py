@@ -75,6 +75,12 @@ def _parse_horizon(text) -> int | None:
     default=None,
     help="A control.toml of your own (default: the packaged tuning).",
 )
+@click.option(
+    "--vial-fill-ml",
+    type=float,
+    default=None,
+    help="The vial's fill as weighed at the refill [mL] (ink balance; default 1 mL).",
+)
 @store_option
 @click.option("--verbose", is_flag=True)
 @click.pass_context
@@ -92,6 +98,7 @@ def control(
     private_key,
     server_certificate,
     settings_path,
+    vial_fill_ml,
     store,
     verbose,
 ):
@@ -134,11 +141,21 @@ def control(
         settings_path,
         store,
         verbose,
+        vial_fill_ml,
     )
 
 
 def _control_live(
-    machine, target, max_overspray, horizon_s, url, login, settings_path, store, verbose
+    machine,
+    target,
+    max_overspray,
+    horizon_s,
+    url,
+    login,
+    settings_path,
+    store,
+    verbose,
+    vial_fill_ml=None,
 ):
     import asyncio
     import logging
@@ -185,6 +202,7 @@ def _control_live(
             settings=settings,
             max_overspray_um=max_overspray,
             on_decision=show,
+            vial_fill_ml=vial_fill_ml,
             **login,
         )
         asyncio.run(link.run())

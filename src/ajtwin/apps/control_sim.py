@@ -730,7 +730,10 @@ def merge_results(paths) -> dict:
     per_seed: dict = {}
     for path in paths:
         file, data = _load_metrics(path)
-        merged["merged_from"].append(str(file))
+        # the run's folder name (regenerate.sh names one per scenario and generator)
+        merged["merged_from"].append(file.parent.name or str(file))
+        if data.get("note"):
+            merged.setdefault("notes", {})[file.parent.name or str(file)] = data["note"]
         for key in _MERGE_KEYS:
             if key not in merged:
                 merged[key] = data.get(key)

@@ -101,3 +101,22 @@ def test_alt_truth_stepping_is_the_batch_alt_print_and_takes_commands():
     np.testing.assert_allclose(_frame(printer.record()), _frame(stepped.record), rtol=1e-12)
     with pytest.raises(ValueError, match="truth generator"):
         SteppedPrinter("exp1", seed=1, truth="other")
+
+
+def test_measured_overspray_is_never_negative():
+    """The output model's L_o dips just below 0 at I_A 300 mA / Q_s 80 sccm late in a print
+    (where the MPC's least-overspray choice sits); the camera reads 0, so the closed-loop
+    record stays readable (it failed read_record's range check before)."""
+    from ajtwin.simulation.printer import draw_processes, make_streams, measure
+    from ajtwin.simulation.scenarios import load_scenario
+    from ajtwin.simulation.truth_alt import alt_measure
+
+    sc = load_scenario("exp1").with_duration(1.0)
+    processes = draw_processes(sc, make_streams(1))
+    true = np.tile([65.0, -0.01, 1000.0, 1000.0, 1e-8], (60, 1))
+    for _, y in (
+        measure(sc, processes, true, make_streams(1)),
+        alt_measure(sc, processes, true, 1),
+    ):
+        assert (y[:, 1] >= 0).all()
+        assert np.nanmax(np.abs(y[:, 0] - 65.0)) > 0  # the rest still noisy

@@ -284,6 +284,9 @@ def measure(
     line = streams["line_noise"].standard_normal((n, 2))
     y[:, 0] *= np.exp(meas["linewidth_log_sd"] * line[:, 0])
     y[:, 1] *= np.exp(meas["overspray_log_sd"] * line[:, 1])
+    # the output model's overspray dips just below 0 at the edge of the input box (I_A
+    # 300 mA, Q_s 80 sccm: where a least-overspray controller sits); a camera reads 0
+    y[:, 1] = np.maximum(y[:, 1], 0.0)
     y[:, 2:4] += streams["pressure_noise"].standard_normal((n, 2)) * meas["pressure_noise_Pa"]
     y[:, 2:4] += processes.pressure_drift_pa
     y[:, 4] *= np.exp(meas["material_flow_log_sd"] * streams["material_noise"].standard_normal(n))

@@ -208,6 +208,7 @@ def alt_measure(scenario, processes, outputs_true, seed: int, settings=None):
     dof = float(cfg["line_t_dof"])
     y[:, 0] *= 1.0 + cfg["linewidth_sd"] * rng.standard_t(dof, n)
     y[:, 1] *= np.maximum(1.0 + cfg["overspray_sd"] * rng.standard_t(dof, n), 0.05)
+    y[:, 1] = np.maximum(y[:, 1], 0.0)  # as measure(): no negative overspray on camera
     a = float(cfg["pressure_ar"])
     for j in (2, 3):
         white = rng.standard_normal(n) * cfg["pressure_sd_Pa"] * np.sqrt(1 - a**2)

@@ -30,16 +30,21 @@ ORDER=(exp1 slow_clog ink_running_low exp1_alt ink_running_low_alt clean_long)
 
 for run in "${ORDER[@]}"; do
   [ -n "${RUNS[$run]:-}" ] || { echo "unknown run $run (one of ${!RUNS[*]})" >&2; exit 2; }
+  # a finished run (metrics.json is written when its one scenario is done) is kept: delete
+  # $WORK/<run> to run it again
+  if [ -f "$WORK/$run/metrics.json" ]; then echo "$run: kept ($WORK/$run)"; continue; fi
   # shellcheck disable=SC2086
   "$AJ" control simulate ${RUNS[$run]} --target-linewidth 65 --no-progress --out "$WORK/$run"
 done
 
-"$AJ" control merge "$WORK"/*/ --out "$HERE"
+done_runs=()
 for dir in "$WORK"/*/; do
-  run="$(basename "$dir")"
+  [ -f "$dir/metrics.json" ] || continue  # unfinished: not merged
+  done_runs+=("$dir")
   png=("$dir"*.png)
-  [ -e "${png[0]}" ] && cp "${png[0]}" "$HERE/$run.png"
+  [ -e "${png[0]}" ] && cp "${png[0]}" "$HERE/$(basename "$dir").png"
 done
+"$AJ" control merge "${done_runs[@]}" --out "$HERE"
 
 # PI against the twin's MPC as the printer's noise is removed (docs/control.md)
 if [ $# -eq 0 ]; then

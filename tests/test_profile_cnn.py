@@ -73,6 +73,51 @@ def test_resnet18_1d_topology_and_parameter_count():
         net(torch.zeros(2, 199))
 
 
+def _unet1d_parameter_count(c=16, depth=3):
+    """Parameters of the 1-D U-Net, counted by hand: blocks, transposed convs, head."""
+
+    def block(cin, cout):  # two bias-free 3-tap convs, two batch norms
+        return cin * cout * 3 + cout * cout * 3 + 2 * 2 * cout
+
+    widths = [c * 2**i for i in range(depth + 1)]
+    total = block(1, widths[0])
+    total += sum(block(widths[i], widths[i + 1]) for i in range(depth))  # down + bottom
+    for hi, lo in zip(widths[:0:-1], widths[-2::-1], strict=True):
+        total += hi * lo * 2 + lo  # 2-tap stride-2 transposed conv with bias
+        total += block(2 * lo, lo)  # merge block after concatenating the skip
+    return total + widths[0] + 1  # 1×1 head
+
+
+def test_unet1d_parameter_count_shapes_and_locality():
+    from ajtwin.profile_cnn.network import UNet1dProfile, build_network
+
+    cfg = NetworkConfig(arch="unet1d", base_channels=16)
+    net = build_network(cfg)
+    assert isinstance(net, UNet1dProfile)
+    assert count_parameters(net) == _unet1d_parameter_count()
+    torch.manual_seed(0)
+    for m in net.modules():  # the zero-initialized head would hide the locality
+        if isinstance(m, torch.nn.Conv1d):
+            torch.nn.init.normal_(m.weight, std=0.3)
+    net.eval()
+    x = torch.randn(4, 200, generator=torch.Generator().manual_seed(1))
+    y = net(x)
+    assert y.shape == (4, 200)
+    # a change at pixel 10 moves the heights near pixel 10 and none beyond the
+    # receptive field (±46 px at depth 3, ±8 for the pooling grid)
+    x2 = x.clone()
+    x2[:, 10] += 1.0
+    dy = (net(x2) - y).abs()
+    scale = dy.max()
+    assert scale > 0
+    assert torch.all(dy[:, 70:] <= 1e-6 * scale), dy[:, 70:].max() / scale
+    assert dy[:, 5:16].max() > 0.01 * scale
+    with pytest.raises(ValueError, match="divisible by 8"):
+        build_network(NetworkConfig(n_pixels=201, arch="unet1d"))
+    with pytest.raises(ValueError, match="unknown network"):
+        build_network(NetworkConfig(arch="vgg"))
+
+
 # ------------------------------------------------------------------ Q_m
 
 
@@ -393,6 +438,19 @@ def test_model_save_load_roundtrip(tmp_path):
         ProfileModel.load(tmp_path / "junk.pt")
 
 
+def test_unet1d_trains_and_roundtrips(tmp_path):
+    data = _tiny_data()
+    cfg = TrainConfig(stage1_epochs=25, stage2_epochs=1, arch="unet1d", **SMALL)
+    trainer = Trainer(cfg, data, data, progress=False)
+    model = trainer.run()
+    losses = [h["loss"] for h in trainer.history if h["stage"] == 1]
+    assert losses[-1] < 0.2 * losses[0]
+    assert model.network.config.arch == "unet1d" and model.network.config.base_channels == 8
+    back = ProfileModel.load(model.save(tmp_path / "u.pt"))
+    assert type(back.network) is type(model.network)
+    np.testing.assert_array_equal(back.predict_um(data.columns), model.predict_um(data.columns))
+
+
 # ------------------------------------------------------------------ join
 
 
@@ -581,3 +639,22 @@ def test_pairs_from_manifest_takes_frames_of_different_sizes_and_smooths(tmp_pat
         np.testing.assert_allclose(raw.profiles_um[i], noisy, rtol=1e-5, atol=1e-7)
     assert not np.allclose(smooth.profiles_um, raw.profiles_um, atol=1e-4)
     np.testing.assert_allclose(smooth.profiles_um.sum(1), raw.profiles_um.sum(1), rtol=2e-3)
+
+
+def test_read_features_fallback_only_where_undefined():
+    from ajtwin.profile_cnn.features import read_features
+
+    scans, truth, _ = _noisy_scans(16, seed=4)
+    g = np.array([register_profile(s, 0.5, PX) for s in scans])  # noisy, not smoothed
+    lw_raw, ov_raw = features_numpy(g, PX)
+    raw_ok = np.isfinite(lw_raw) & np.isfinite(ov_raw)
+    assert 0 < raw_ok.sum() < len(g)  # some noisy profiles are undefined as they are
+    lw, ov, fallback = read_features(g, PX)
+    np.testing.assert_array_equal(fallback, ~raw_ok)
+    assert np.all(np.isfinite(lw)) and np.all(np.isfinite(ov))
+    np.testing.assert_array_equal(lw[raw_ok], lw_raw[raw_ok])  # defined ones untouched
+    # the fallback reads what the smoothed target would give: near the truth
+    assert np.mean(np.abs(lw[~raw_ok] - truth[~raw_ok, 0])) < 2.0
+    assert np.mean(np.abs(ov[~raw_ok] - truth[~raw_ok, 1])) < 2.0
+    flat = read_features(np.zeros((1, 200)), PX)
+    assert np.isnan(flat[0][0]) and flat[2][0]  # nothing to read: nan, not a guess

@@ -100,12 +100,18 @@ def _training_options(f):
             "0 = the paper's pure feature loss (inflates Q_m; see docs/profile_cnn.md).",
         ),
         click.option(
+            "--arch",
+            type=click.Choice(["resnet18", "unet1d"]),
+            default="resnet18",
+            show_default=True,
+            help="Network: the paper's 1-D ResNet-18, or a small 1-D U-Net (docs/profile_cnn.md).",
+        ),
+        click.option(
             "--width",
             "base_channels",
             type=int,
-            default=64,
-            show_default=True,
-            help="Channels of the first stage (64 = ResNet-18's 64-512).",
+            default=None,
+            help="Channels of the first stage (default: 64 = ResNet-18's 64-512; U-Net 16).",
         ),
         click.option("--threads", type=int, default=None, help="torch threads (default 1)."),
         click.option("--synthetic", is_flag=True, help="Train on synthetic rendered data."),
@@ -167,6 +173,7 @@ def _config(kw):
         stage2_replay_weight=kw["replay_weight"],
         stage2_area_weight=kw["area_weight"],
         base_channels=kw["base_channels"],
+        arch=kw["arch"],
         n_threads=kw["threads"],
     )
 

@@ -9,6 +9,11 @@ as ``benchmarks/bench_machine.py`` does. The twin's filter outputs are cached (n
 Reports, per detector channel (windowed NIS, CUSUM± per output, common-mode pressure),
 how many clean-print events it started, and the clog detection delays.
 
+The detectors' long-run noise scale is carried from the commissioning print (the
+calibrated twin over it, :func:`~ajtwin.apps.anomaly.commissioning_long_run_history`) to
+the clean and the clog print, as ``ajtwin machine commission`` + ``ajtwin ingest`` do
+(``--no-carry``: each print on its own, as before issue 12's carried history).
+
 Tuning set: ``--truth model --machines 11,12,13,14,15`` (first generator, machine seeds not
 used for evaluation). Evaluation: ``--truth alt --machines 1001,1002,1003,1004,1005``
 (print seeds as in bench_machine.py).
@@ -57,11 +62,11 @@ def _arrays(run, record) -> dict:
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v1".encode()).hexdigest()
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v2".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)
-        out = {"clean": {}, "clog": {}}
+        out = {"clean": {}, "clog": {}, "comm": {}}
         for name in z.files:
             kind, field = name.split("/")
             out[kind][field] = z[name]
@@ -105,9 +110,14 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
     a = _arrays(twin().run(clean.record, start=start), clean.record)
     b = _arrays(twin().run(clog.record, start=start), clog.record)
     b["onset_s"] = np.asarray(clog.record.meta["fault_onset_s"])
+    # the calibrated twin over the commissioning print itself: the carried long-run scale
+    c = _arrays(twin().run(comm.record), comm.record)
     CACHE.mkdir(parents=True, exist_ok=True)
     np.savez(
-        path, **{f"clean/{k}": v for k, v in a.items()}, **{f"clog/{k}": v for k, v in b.items()}
+        path,
+        **{f"clean/{k}": v for k, v in a.items()},
+        **{f"clog/{k}": v for k, v in b.items()},
+        **{f"comm/{k}": v for k, v in c.items()},
     )
     return case(truth, machine_seed, print_seed, minutes)
 
@@ -118,15 +128,15 @@ def _lag1(x: np.ndarray) -> float:
     return float(np.round(np.corrcoef(x[:-1][ok], x[1:][ok])[0, 1], 2))
 
 
-def detect(arrays: dict, settings=None):
+def detect(arrays: dict, settings=None, history=None):
     from ajtwin.apps.anomaly import detect_anomalies
 
     return detect_anomalies(
-        *(arrays[f] if f != "outputs" else arrays["outputs"] for f in FIELDS), settings=settings
+        *(arrays[f] for f in FIELDS), settings=settings, long_run_history=history
     )
 
 
-def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict:
+def diagnose(truth: str, machines, settings=None, minutes: float = 90.0, carry=True) -> dict:
     first = Counter()
     causes = Counter()
     hours = 0.0
@@ -134,7 +144,8 @@ def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict
     e_stats = []
     for i, seed in enumerate(machines):
         c = case(truth, seed, 2001 + 10 * i if truth == "alt" else 3001 + 10 * i, minutes)
-        res = detect(c["clean"], settings)
+        history = detect(c["comm"], settings).long_run_history if carry else None
+        res = detect(c["clean"], settings, history)
         hours += minutes / 60.0
         per_machine[str(seed)] = [(ev.detected_s, ev.cause, ev.detectors) for ev in res.events]
         for ev in res.events:
@@ -150,7 +161,7 @@ def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict
                 "lag1": [_lag1(x) for x in e.T],
             }
         )
-        clog = detect(c["clog"], settings)
+        clog = detect(c["clog"], settings, history)
         onset = c["clog_onset_s"]
         hits = [ev for ev in clog.events if ev.detected_s >= onset]
         pre = [ev for ev in clog.events if ev.detected_s < onset]
@@ -163,6 +174,7 @@ def diagnose(truth: str, machines, settings=None, minutes: float = 90.0) -> dict
     return {
         "truth": truth,
         "machines": list(machines),
+        "carried_long_run_history": carry,
         "clean_hours": hours,
         "false_alarms": n,
         "per_10h": 10.0 * n / hours,
@@ -179,6 +191,11 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser()
     p.add_argument("--truth", default="model")
     p.add_argument("--machines", default="11,12,13,14,15")
+    p.add_argument(
+        "--no-carry",
+        action="store_true",
+        help="each print on its own (no long-run history carried from commissioning)",
+    )
     a = p.parse_args()
     machines = [int(s) for s in a.machines.split(",")]
-    print(json.dumps(diagnose(a.truth, machines), indent=1, default=float))
+    print(json.dumps(diagnose(a.truth, machines, carry=not a.no_carry), indent=1, default=float))

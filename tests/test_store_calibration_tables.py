@@ -68,8 +68,12 @@ def _assert_same(a: dict, b: dict):
 def test_new_registry_has_the_tables_at_schema_4(tmp_path):
     reg = Registry(tmp_path / "r.sqlite")
     assert CAL_TABLES <= reg._tables() and reg._info("schema_version") == str(R.SCHEMA_VERSION)
-    assert R.SCHEMA_VERSION >= 4
+    assert R.SCHEMA_VERSION >= 5
     assert {"calibrations", "maintenance_events"} <= set(R.MACHINE_TABLES)
+    # schema 5: the detectors' long-run statistics per print and per calibration
+    for table in ("prints", "calibrations"):
+        columns = {r[1] for r in reg._conn.execute(f"PRAGMA table_info({table})")}
+        assert "long_run_json" in columns, table
 
 
 def test_export_import_carries_calibrations_and_maintenance(tmp_path, commissioned):
@@ -143,7 +147,10 @@ def test_schema3_registry_without_the_tables_migrates(tmp_path):
     _schema3(store, drop_calibration_tables=True)
     reg = Registry(store)
     assert reg.migrated == [
-        f"{store}: migrated registry schema 3 → 4 (per-machine calibrations and maintenance events)"
+        f"{store}: migrated registry schema 3 → 4 (per-machine calibrations and maintenance "
+        "events)",
+        f"{store}: migrated registry schema 4 → 5 (the detectors' long-run noise statistics per "
+        "print and calibration)",
     ]
     assert CAL_TABLES <= reg._tables() and reg.machine("m")["name"] == "m"
     assert active_calibration(reg, "m") is None and maintenance_history(reg, "m").empty
@@ -161,7 +168,7 @@ def test_schema3_registry_whose_tables_calibration_py_created_keeps_its_rows(
     reg.close()
     _schema3(store, drop_calibration_tables=False)
     reg = Registry(store)
-    assert len(reg.migrated) == 1 and "3 → 4" in reg.migrated[0]
+    assert len(reg.migrated) == 2 and "3 → 4" in reg.migrated[0] and "4 → 5" in reg.migrated[1]
     _assert_same(before, _history(reg, "m"))
 
 

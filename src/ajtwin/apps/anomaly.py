@@ -61,42 +61,74 @@ CAUSES = {
 }
 
 
+def load_detector_settings() -> dict:
+    """``data/detectors.toml`` (thresholds with their provenance), flattened to
+    :class:`DetectorSettings` field names."""
+    import tomllib
+    from importlib import resources
+
+    with (resources.files("ajtwin") / "data" / "detectors.toml").open("rb") as handle:
+        data = tomllib.load(handle)
+    c, n, ev, r, lr = (data[k] for k in ("cusum", "nis", "events", "robust", "long_run"))
+    return {
+        "cusum_drift": c["drift"],
+        "cusum_threshold": c["threshold"],
+        "cusum_threshold_material_flow": c["threshold_material_flow"],
+        "cusum_drift_material_flow": c["drift_material_flow"],
+        "cusum_drift_pressure_sum": c["drift_pressure_sum"],
+        "cusum_threshold_pressure_sum": c["threshold_pressure_sum"],
+        "nis_window_s": n["window_s"],
+        "nis_alpha": n["alpha"],
+        "merge_s": ev["merge_s"],
+        "evidence_s": ev["evidence_s"],
+        "significance_z": ev["significance_z"],
+        "vial_low_mL": ev["vial_low_mL"],
+        "warmup_s": ev["warmup_s"],
+        "innovation_clip_sigma": r["innovation_clip_sigma"],
+        "material_flow_reference_s": r["material_flow_reference_s"],
+        "long_run_block_s": tuple(int(b) for b in lr["block_s"]),
+        "long_run_blocks": lr["blocks"],
+        "long_run_min_blocks": lr["min_blocks"],
+        "long_run_max_scale": lr["max_scale"],
+        "long_run_reference_pressure_sum": lr["reference_pressure_sum"],
+    }
+
+
+_D = load_detector_settings()
+
+
 @dataclass(frozen=True)
 class DetectorSettings:
-    """Thresholds of the detectors (normalised-innovation units unless said)."""
+    """Thresholds of the detectors (normalised-innovation units unless said).
 
-    cusum_drift: float = 0.35  # allowance k per step [σ]
-    cusum_threshold: float = 16.0  # decision interval h [σ] for L_w, L_o, P_c, P_s
-    # Q_m (CNN-based, filter σ a rough 20 %): after a print start the twin re-learns φ_A
-    # (e_Qm ≈ +0.5σ for ~10 min); an atomizer dropout is ≈ −3σ → k = half of 1.4σ
-    # (chosen on first-generator machine seeds 11–15; was k 0.35, h 30)
-    cusum_threshold_material_flow: float = 16.0
-    cusum_drift_material_flow: float = 0.7
-    # common-mode pressure channel e_Pc + e_Ps (a nozzle deposit or a carrier change moves
-    # both pressures together; their innovations correlate ~0.8 in clean prints)
-    cusum_drift_pressure_sum: float = 0.7
-    cusum_threshold_pressure_sum: float = 16.0
-    nis_window_s: int = 120
-    nis_alpha: float = 1e-9  # tail probability of the windowed NIS
-    merge_s: float = 600.0  # alarms within this gap belong to one event
-    evidence_s: float = 120.0  # seconds after detection used for the cause label
-    significance_z: float = 3.0  # |mean e|·√n above this = an output clearly moved
-    vial_low_mL: float = 0.5  # the low end of H's Box–Behnken fit (SPEC §4)
-    warmup_s: float = 60.0  # ignore the initial transient of the filter
-    # Robust innovations (issue 12): heavy-tailed line noise (one camera frame 10σ off)
-    # must not carry a CUSUM or the windowed NIS alone → e is Huber-clipped at ±clip σ.
-    innovation_clip_sigma: float = 4.0
-    # Coloured noise the filter does not model (a wandering gauge): each CUSUM channel's
-    # increments are divided by its long-run σ (from block means, see LongRunScale), never
-    # by less than 1 (the filter's S stays the reference; first-generator prints: ≤ 1).
-    long_run_block_s: int = 30  # 30 vs 60 s chosen on clean_long (first generator)
-    long_run_blocks: int = 60  # trailing blocks behind the estimate (30 min)
-    long_run_min_blocks: int = 5  # fewer completed blocks: scale 1
-    long_run_max_scale: float = 3.0
-    # the common-mode channel e_Pc + e_Ps is not unit-variance: its per-step σ on clean
-    # first-generator prints is ≈ 1.9 (var 3.5–3.9, exp1 machine seeds 11–15); k, h were
-    # set in those units, so its long-run σ is compared with 1.9, not 1
-    long_run_reference_pressure_sum: float = 1.9
+    Defaults and why each value: ``data/detectors.toml``.
+    """
+
+    cusum_drift: float = _D["cusum_drift"]  # allowance k per step [σ]
+    cusum_threshold: float = _D["cusum_threshold"]  # h [σ] for L_w, L_o, P_c, P_s
+    cusum_threshold_material_flow: float = _D["cusum_threshold_material_flow"]
+    cusum_drift_material_flow: float = _D["cusum_drift_material_flow"]
+    cusum_drift_pressure_sum: float = _D["cusum_drift_pressure_sum"]  # e_Pc + e_Ps
+    cusum_threshold_pressure_sum: float = _D["cusum_threshold_pressure_sum"]
+    nis_window_s: int = _D["nis_window_s"]
+    nis_alpha: float = _D["nis_alpha"]  # tail probability of the windowed NIS
+    merge_s: float = _D["merge_s"]  # alarms within this gap belong to one event
+    evidence_s: float = _D["evidence_s"]  # seconds after detection used for the cause label
+    significance_z: float = _D["significance_z"]  # |mean e|·√n above this = output moved
+    vial_low_mL: float = _D["vial_low_mL"]  # the low end of H's Box–Behnken fit (SPEC §4)
+    warmup_s: float = _D["warmup_s"]  # ignore the initial transient of the filter
+    innovation_clip_sigma: float = _D["innovation_clip_sigma"]  # Huber clip of e
+    # Q_m's CUSUM reference: the print's own level (warm-up mean, then an EWMA with this
+    # time constant [s]; 0: e_Qm tested against 0 as before)
+    material_flow_reference_s: float = _D["material_flow_reference_s"]
+    # each CUSUM channel's increments / its long-run σ (LongRunScale), never by less than 1
+    # block lengths [s]: the scale is the largest of their estimates (noise with memory
+    # beyond a block looks white to it; a CUSUM integrates over tens of seconds to minutes)
+    long_run_block_s: tuple = _D["long_run_block_s"]
+    long_run_blocks: int = _D["long_run_blocks"]  # trailing block differences behind it
+    long_run_min_blocks: int = _D["long_run_min_blocks"]  # fewer: scale 1
+    long_run_max_scale: float = _D["long_run_max_scale"]
+    long_run_reference_pressure_sum: float = _D["long_run_reference_pressure_sum"]
 
 
 @dataclass
@@ -259,8 +291,13 @@ class LongRunScale:
     channel, block means m_j over ``block`` steps (n_j measured samples) give
     d_j = (m_j − m_{j−1}) / √(1/n_j + 1/n_{j−1}), N(0, σ²_LR) for stationary noise; a step
     or a ramp (a fault) moves one d_j or all of them by a constant, so the robust scale
-    σ̂_LR = 1.4826 · median|d_j − median(d)| over the last ``blocks`` blocks ignores it.
-    The scale returned is clip(σ̂_LR, 1, max_scale) (1 until ``min_blocks`` blocks exist).
+    σ̂_LR = 1.4826 · median|d_j − median(d)| over the last ``blocks`` differences ignores
+    it. The scale returned is clip(σ̂_LR, 1, max_scale) (1 until ``min_blocks`` exist).
+
+    ``history`` (n, m): the d_j of earlier prints of the machine (:meth:`history`, kept in
+    the registry): they fill the window at the start, so the scale is the machine's from
+    the first step instead of 1 for the print's first minutes (when a CUSUM meets the most
+    coloured noise with the least data); the print's own blocks push them out.
 
     >>> rng = np.random.default_rng(0)
     >>> x = np.zeros(6000); w = rng.standard_normal(6000)
@@ -269,16 +306,43 @@ class LongRunScale:
     >>> for v in x: scale = s.update([v])
     >>> 7.0 < float(scale[0]) < 13.0
     True
+    >>> t = LongRunScale(1, block=60, blocks=100, min_blocks=5, max_scale=20.0,
+    ...                  history=s.history())
+    >>> bool(t.update([0.0])[0] == s.scale[0])       # the machine's scale from step one
+    True
     """
 
-    def __init__(self, m: int, block: int, blocks: int, min_blocks: int, max_scale: float):
+    def __init__(
+        self, m: int, block: int, blocks: int, min_blocks: int, max_scale: float, history=None
+    ):
         self.block, self.min_blocks, self.max_scale = int(block), int(min_blocks), max_scale
+        self.m = int(m)
         self.sums = np.zeros(m)
         self.counts = np.zeros(m)
         self.steps = 0
-        self.means: deque = deque(maxlen=int(blocks) + 1)
-        self.ns: deque = deque(maxlen=int(blocks) + 1)
+        self.last_mean = None  # (m,) the previous block's mean and count
+        self.last_n = None
+        self.diffs: deque = deque(maxlen=int(blocks))
         self.scale = np.ones(m)
+        if history is not None:
+            carried = np.asarray(history, dtype=float).reshape(-1, m)
+            for row in carried[-int(blocks) :]:
+                self.diffs.append(row.copy())
+            self._estimate()
+
+    def history(self) -> np.ndarray:
+        """(n, m) the block differences d_j behind the current scale (carried ones too)."""
+        return np.array(self.diffs, dtype=float).reshape(-1, self.m)
+
+    def _estimate(self) -> None:
+        if len(self.diffs) < self.min_blocks:
+            return
+        d = np.array(self.diffs)
+        with warnings.catch_warnings():  # all-NaN channel (never measured): scale 1
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(d, axis=0)
+            mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
+        self.scale = np.clip(np.nan_to_num(mad, nan=1.0), 1.0, self.max_scale)
 
     def update(self, e_k) -> np.ndarray:
         """Add step k (NaN = not measured); the scale to use at step k (from past blocks)."""
@@ -290,20 +354,16 @@ class LongRunScale:
         self.steps += 1
         if self.steps == self.block:
             with np.errstate(invalid="ignore", divide="ignore"):
-                self.means.append(np.where(self.counts > 0, self.sums / self.counts, np.nan))
-            self.ns.append(self.counts.copy())
-            self.sums[:] = 0.0
-            self.counts[:] = 0.0
+                mean = np.where(self.counts > 0, self.sums / self.counts, np.nan)
+                if self.last_mean is not None:
+                    self.diffs.append(
+                        (mean - self.last_mean) / np.sqrt(1.0 / self.counts + 1.0 / self.last_n)
+                    )
+            self.last_mean, self.last_n = mean, self.counts.copy()
+            self.sums = np.zeros(self.m)
+            self.counts = np.zeros(self.m)
             self.steps = 0
-            if len(self.means) > self.min_blocks:
-                m, n = np.array(self.means), np.array(self.ns)
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    d = np.diff(m, axis=0) / np.sqrt(1.0 / n[1:] + 1.0 / n[:-1])
-                with warnings.catch_warnings():  # all-NaN channel (never measured): scale 1
-                    warnings.simplefilter("ignore", RuntimeWarning)
-                    med = np.nanmedian(d, axis=0)
-                    mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
-                self.scale = np.clip(np.nan_to_num(mad, nan=1.0), 1.0, self.max_scale)
+            self._estimate()
         return scale
 
 
@@ -426,6 +486,8 @@ class DetectionResult:
     cusum_neg: np.ndarray  # (T, 6)
     events: list  # AnomalyEvent
     settings: DetectorSettings
+    # the long-run statistics to carry to the machine's next print (AnomalyDetector)
+    long_run_history: dict | None = None
 
     def events_frame(self):
         import pandas as pd
@@ -461,6 +523,59 @@ class DetectorStep:
     finalised: list  # AnomalyEvent whose evidence window closed at this step (final label)
 
 
+def carried_differences(history: dict | None, settings: DetectorSettings) -> dict:
+    """{block length: (n, 6) block differences} of a stored long-run history for the block
+    lengths of ``settings`` (a block length it does not hold, or other channels: left out;
+    it says nothing about this detector's blocks)."""
+    if not history or list(history.get("channels", [])) != list(CUSUM_CHANNELS):
+        return {}
+    out = {}
+    blocks = history.get("blocks") or {}
+    for block in settings.long_run_block_s:
+        rows = blocks.get(str(int(block)))
+        if rows:
+            d = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], float)
+            out[int(block)] = d.reshape(-1, len(CUSUM_CHANNELS))
+    return out
+
+
+class MultiScaleLongRun:
+    """:class:`LongRunScale` at several block lengths; the scale is their largest.
+
+    Why the largest: σ_LR estimated from blocks of B seconds misses the part of the noise
+    whose memory is longer than B (the alt generator's pressure innovations: block-mean
+    variance × B grows from 1.9 at 30 s to 2.3 at 60 s and 3.1 at 120 s), while a CUSUM
+    at k = 0.35, h = 16 sums over 20–150 s; the largest estimate is the conservative one.
+    """
+
+    def __init__(self, m: int, settings: DetectorSettings, history: dict | None = None):
+        self.scales = {
+            int(b): LongRunScale(
+                m,
+                int(b),
+                settings.long_run_blocks,
+                settings.long_run_min_blocks,
+                settings.long_run_max_scale,
+                history=(history or {}).get(int(b)),
+            )
+            for b in settings.long_run_block_s
+        }
+        self.scale = self._combined()
+
+    def _combined(self) -> np.ndarray:
+        return np.max([ls.scale for ls in self.scales.values()], axis=0)
+
+    def update(self, e_k) -> np.ndarray:
+        """Add step k; the scale to use at step k (from past blocks, largest estimate)."""
+        scale = np.max([ls.update(e_k) for ls in self.scales.values()], axis=0)
+        self.scale = self._combined()
+        return scale
+
+    def history(self) -> dict:
+        """{block length: (n, m) differences} behind the current scales (carried ones too)."""
+        return {b: ls.history() for b, ls in self.scales.items()}
+
+
 class AnomalyDetector:
     """NIS, windowed-NIS and CUSUM tests, one EKF step at a time, alarms → labelled events.
 
@@ -472,9 +587,15 @@ class AnomalyDetector:
     Parameters
     ----------
     settings : DetectorSettings, optional
+    long_run_history : dict, optional
+        :meth:`long_run_history` of the machine's previous print (or of its commissioning
+        print): the CUSUMs start with the machine's long-run noise scale instead of 1.
+        Ignored when it was taken with another block length or other channels.
     """
 
-    def __init__(self, settings: DetectorSettings | None = None):
+    def __init__(
+        self, settings: DetectorSettings | None = None, long_run_history: dict | None = None
+    ):
         s = self.settings = settings or DetectorSettings()
         thresholds = np.array(
             [s.cusum_threshold] * 4
@@ -485,13 +606,10 @@ class AnomalyDetector:
         )
         self.cusum = Cusum(drifts, thresholds, len(CUSUM_CHANNELS))
         self.window = WindowedNIS(s.nis_window_s)
-        self.long_run = LongRunScale(
-            len(CUSUM_CHANNELS),
-            s.long_run_block_s,
-            s.long_run_blocks,
-            s.long_run_min_blocks,
-            s.long_run_max_scale,
+        self.long_run = MultiScaleLongRun(
+            len(CUSUM_CHANNELS), s, carried_differences(long_run_history, s)
         )
+        self._q_sum, self._q_n, self._q_ref = 0.0, 0, None  # Q_m's reference level
         self.long_run_reference = np.array([1.0] * 5 + [s.long_run_reference_pressure_sum])
         self.window_steps = int(np.asarray(s.nis_window_s, dtype=int))
         self.k = -1
@@ -572,9 +690,23 @@ class AnomalyDetector:
         _, _, p_win = self.window.update(nis_robust, n_measured)
 
         raw = []
+        q = e_clip[4]
+        tau = float(s.material_flow_reference_s)
+        if self.start is None and np.isfinite(q):  # warm-up: the print's Q_m level so far
+            self._q_sum += q
+            self._q_n += 1
         if self.start is not None:
             # + the common-mode pressure channel; each divided by its long-run σ
             channels = np.append(e_clip, e_clip[2] + e_clip[3])
+            if tau > 0:
+                # Q_m tested against the print's own level (DetectorSettings): a change
+                # during the print is a fault, the level it started at is this print's
+                # atomizer efficiency, which the twin learns by EM only after minutes
+                if self._q_ref is None:
+                    self._q_ref = self._q_sum / self._q_n if self._q_n else 0.0
+                channels[4] = q - self._q_ref
+                if np.isfinite(q):
+                    self._q_ref += (q - self._q_ref) / tau
             channels = channels / self.long_run.update(channels / self.long_run_reference)
             for a in self.cusum.update(k, channels):
                 sign = "+" if a.direction > 0 else "−"
@@ -630,6 +762,19 @@ class AnomalyDetector:
                 self.events[i] = self._event(group, self.k + 1)
                 self.final[i] = True
         return list(self.events)
+
+    def long_run_history(self) -> dict:
+        """The long-run statistics to carry to the machine's next print (JSON-able): the
+        block differences d_j behind the current scale (NaN → None), with the block length
+        and channels they were taken with."""
+        return {
+            "channels": list(CUSUM_CHANNELS),
+            "blocks": {
+                str(b): [[None if not np.isfinite(v) else float(v) for v in row] for row in d]
+                for b, d in self.long_run.history().items()
+            },
+            "scale": self.long_run.scale.tolist(),
+        }
 
     def _evidence_end(self, k_det: int) -> int | None:
         """First step at or after detection + evidence_s, if it has been seen."""
@@ -694,6 +839,7 @@ def detect_anomalies(
     covariances,
     settings: DetectorSettings | None = None,
     inputs=None,
+    long_run_history: dict | None = None,
 ) -> DetectionResult:
     """Run NIS, windowed-NIS and CUSUM tests and group alarms into labelled events.
 
@@ -710,12 +856,14 @@ def detect_anomalies(
     settings : DetectorSettings, optional
     inputs : (T, 3), optional
         [mA, sccm, sccm]: runs the vial observer (see :meth:`AnomalyDetector.update`).
+    long_run_history : dict, optional
+        The machine's carried long-run statistics (see :class:`AnomalyDetector`).
 
     Returns
     -------
-    DetectionResult
+    DetectionResult (its ``long_run_history``: what to carry to the next print)
     """
-    detector = AnomalyDetector(settings)
+    detector = AnomalyDetector(settings, long_run_history)
     t = np.asarray(time_s, dtype=float)
     columns = (
         measurements,
@@ -748,10 +896,13 @@ def detect_anomalies(
         stack("cusum_neg", (len(t), n_channels)),
         events,
         detector.settings,
+        detector.long_run_history(),
     )
 
 
-def detect_run(run, record, settings: DetectorSettings | None = None) -> DetectionResult:
+def detect_run(
+    run, record, settings: DetectorSettings | None = None, long_run_history: dict | None = None
+) -> DetectionResult:
     """:func:`detect_anomalies` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
     f = run.filtered
     return detect_anomalies(
@@ -766,7 +917,29 @@ def detect_run(run, record, settings: DetectorSettings | None = None) -> Detecti
         np.asarray(f.covariances),
         settings,
         inputs=record.inputs,
+        long_run_history=long_run_history,
     )
+
+
+def commissioning_long_run_history(record, result, settings: DetectorSettings | None = None):
+    """The detectors' long-run statistics of a machine from its commissioning print.
+
+    The commissioned twin (``result``: a
+    :class:`~ajtwin.estimation.commission.CommissioningResult`) runs over the print it was
+    fitted from, as it will run over the next one, and the detectors' block differences
+    are returned (:meth:`AnomalyDetector.long_run_history`): the first print after
+    commissioning starts with the machine's noise scale (its gauges' wander, its camera)
+    instead of 1. The input steps of a commissioning print move single block means, which
+    the robust scale ignores.
+    """
+    from ajtwin.estimation.twin import Twin
+
+    twin = Twin.default(
+        calibration=result.calibration,
+        calibration_cov=result.calibration_cov,
+        noise_factors=result.noise_factors,
+    )
+    return detect_run(twin.run(record), record, settings).long_run_history
 
 
 def detection_delay(result: DetectionResult, fault_onset_s: float | None) -> dict:
@@ -796,13 +969,17 @@ __all__ = [
     "AnomalyEvent",
     "Cusum",
     "LongRunScale",
+    "MultiScaleLongRun",
     "DetectorStep",
     "WindowedNIS",
     "CusumAlarm",
     "DetectionResult",
     "DetectorSettings",
+    "carried_differences",
+    "commissioning_long_run_history",
     "cusum",
     "detect_anomalies",
+    "load_detector_settings",
     "detect_run",
     "detection_delay",
     "label_cause",

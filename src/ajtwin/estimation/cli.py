@@ -157,6 +157,16 @@ def estimate(
     # the guard: never return states from a model that does not fit without saying so
     mismatch = assess_run(run, record)
     frame["mismatch"] = mismatch.flags
+    from ajtwin.apps.mismatch import data_share, determined_states, load_guard_settings
+    from ajtwin.model import STATE_NAMES
+
+    # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
+    share = data_share(run.filtered)
+    threshold = float(load_guard_settings()["undetermined_share"])
+    for i, name in enumerate(STATE_NAMES):
+        frame["data_share_" + name] = share[:, i]
+        frame["determined_" + name] = share[:, i] >= threshold
+    undetermined = [n for n, v in determined_states(share).items() if not v["determined"]]
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(out, index=False)
@@ -183,6 +193,12 @@ def estimate(
         )
     for note in run.visibility_notes():
         click.echo(note, err=True)
+    if undetermined:
+        click.echo(
+            f"note: not determined by this print's data: {', '.join(undetermined)} — their "
+            "bands are the start prior's, carried by the model (columns determined_* = False)",
+            err=True,
+        )
     if plot_path:
         from ajtwin.estimation.plots import estimate_figure
 

@@ -201,6 +201,8 @@ class TwinStream:
         EM in a worker thread (live) or inline (batch, replay).
     executor : ThreadPoolExecutor, optional
         Shared EM workers (:class:`LiveEngine` passes one for all machines).
+    long_run_history : dict, optional
+        The detectors' carried long-run statistics (:func:`carried_long_run_history`).
     """
 
     def __init__(
@@ -212,6 +214,7 @@ class TwinStream:
         *,
         asynchronous: bool = True,
         executor: ThreadPoolExecutor | None = None,
+        long_run_history: dict | None = None,
     ):
         self.machine = machine
         self.twin = twin
@@ -226,7 +229,7 @@ class TwinStream:
         self.start = None if start is None else tuple(np.asarray(a, dtype=float) for a in start)
         self.initial = None
         self.start_mean = self.start_cov = None
-        self.detector = AnomalyDetector(detector_settings)
+        self.detector = AnomalyDetector(detector_settings, long_run_history)
         self.history = _History()
         self.theta_history: list[dict] = []
         self.carry: EKFCarry | None = None  # committed carry for the next step
@@ -742,13 +745,15 @@ def save_print(
     extra_summary: dict | None = None,
     live_session: int | None = None,
     keep_live_steps: bool = False,
+    long_run_history: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
     ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run;
     ``extra_summary``: more summary keys (calibration, maintenance, mismatch status);
     ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
-    same transaction (:meth:`ajtwin.store.registry.Registry.save_print`).
+    same transaction (:meth:`ajtwin.store.registry.Registry.save_print`);
+    ``long_run_history``: the detectors' long-run statistics for the machine's next print.
     """
     summary = print_summary(
         end[0],
@@ -784,8 +789,31 @@ def save_print(
         status_reason=status_reason,
         live_session=live_session,
         keep_live_steps=keep_live_steps,
+        long_run_history=long_run_history,
     )
     return print_id, summary
+
+
+def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
+    """The detectors' long-run noise statistics the machine's next print starts with.
+
+    From its newest commissioning when that came after its last print (the print starts
+    where commissioning left the machine, :func:`ajtwin.store.calibration.machine_start`),
+    else from the newest print in the chain that stored them; None for a new machine (the
+    detectors then start at scale 1 and learn it from the print, as before issue 12).
+    Without it a CUSUM meets a wandering gauge in the first minutes of every print with
+    no scale for it (docs/anomalies.md).
+    """
+    from ajtwin.store.calibration import active_calibration
+    from ajtwin.store.chain import chain_start
+
+    chain = chain if chain is not None else chain_start(registry, machine)
+    latest = 0 if chain.latest_seq is None else chain.latest_seq
+    active = active_calibration(registry, machine)
+    if active is not None and active["after_print_seq"] >= latest and active.get("long_run"):
+        return active["long_run"]
+    stored = registry.long_run_history(machine)
+    return None if stored is None else stored[1]
 
 
 def ingest_record(
@@ -846,7 +874,7 @@ def ingest_record(
             summary=existing["summary"],
             seconds=time.perf_counter() - t0,
         )
-    from ajtwin.apps.mismatch import assess_run, relabel_events
+    from ajtwin.apps.mismatch import assess_run, data_share, determined_states, relabel_events
     from ajtwin.store.calibration import machine_start
 
     chain = chain_start(registry, machine)
@@ -858,7 +886,9 @@ def ingest_record(
     theta_before = twin.theta.copy()
     run = twin.run(record, start=start, progress=progress)
     status, status_reason = judge_run(run)
-    detection = detect_run(run, record, detector_settings)
+    detection = detect_run(
+        run, record, detector_settings, carried_long_run_history(registry, machine, chain)
+    )
     # a model that does not fit the machine is reported as such, never as a fault
     mismatch = assess_run(run, record)
     detection.events = relabel_events(detection.events, mismatch)
@@ -903,7 +933,10 @@ def ingest_record(
                 "calibration_id": begin["calibration_id"],
                 "maintenance": begin["maintenance"],
                 "mismatch": mismatch.to_dict(),
+                # which states this print's data determined (ΔR_T: the prior's band)
+                "data_share": determined_states(data_share(run.filtered)),
             },
+            long_run_history=detection.long_run_history,
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race
@@ -1109,6 +1142,7 @@ class LiveEngine:
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
         resumed = None
         twin_kwargs = self.twin_overrides
+        long_run = None
         if self.registry is not None:
             from ajtwin.store.calibration import machine_start
             from ajtwin.store.chain import chain_start
@@ -1123,6 +1157,7 @@ class LiveEngine:
             chain = chain_start(self.registry, machine)
             begin = machine_start(self.registry, machine, chain, self.twin_overrides)
             twin_kwargs = begin["twin_kwargs"]
+            long_run = carried_long_run_history(self.registry, machine, chain)
             if resumed is not None:
                 start, theta = resumed["start"], resumed["theta_before"]
                 expected, session_id = resumed["expected_last_seq"], resumed["id"]
@@ -1145,6 +1180,7 @@ class LiveEngine:
             detector_settings=self.detector_settings,
             asynchronous=False,
             executor=self._executor,
+            long_run_history=long_run,
         )
         if resumed is not None:
             t, u, y = self.log.samples(session_id)
@@ -1310,6 +1346,7 @@ class LiveEngine:
                 status_reason=reason,
                 live_session=session.session_id,  # closed (and thinned) with the print
                 keep_live_steps=self.keep_live_steps,
+                long_run_history=stream.detector.long_run_history(),
             )
         else:  # nothing stored: the session's rows are all there is of it
             self.log.close_session(session.session_id, print_id)

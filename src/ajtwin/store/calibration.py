@@ -57,16 +57,27 @@ def ensure_tables(registry) -> None:
         for statement in _TABLES.split(";"):
             if statement.strip():
                 conn.execute(statement)
+        _add_long_run_column(conn)
         return
     conn.execute("BEGIN IMMEDIATE")
     try:
         for statement in _TABLES.split(";"):
             if statement.strip():
                 conn.execute(statement)
+        _add_long_run_column(conn)
     except Exception:
         conn.execute("ROLLBACK")
         raise
     conn.execute("COMMIT")
+
+
+def _add_long_run_column(conn) -> None:
+    # schema 5's column on tables made here from the schema-4 statements
+    columns = {r[1] for r in conn.execute("PRAGMA table_info(calibrations)").fetchall()}
+    if "long_run_json" not in columns:
+        conn.execute(
+            "ALTER TABLE calibrations ADD COLUMN long_run_json TEXT NOT NULL DEFAULT 'null'"
+        )
 
 
 def _now() -> tuple[str, float]:
@@ -80,16 +91,22 @@ def _last_seq(registry, machine: str) -> int:
     return 0 if last is None else int(last["seq"])
 
 
-def save_calibration(registry, machine: str, result, source: str) -> int:
-    """Store a :class:`~ajtwin.estimation.commission.CommissioningResult`; returns its id."""
+def save_calibration(
+    registry, machine: str, result, source: str, long_run_history: dict | None = None
+) -> int:
+    """Store a :class:`~ajtwin.estimation.commission.CommissioningResult`; returns its id.
+
+    ``long_run_history``: the detectors' long-run statistics on the commissioning print
+    (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`), carried to the next print.
+    """
     ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
     created_at, unix = _now()
     cur = registry._conn.execute(
         "INSERT INTO calibrations (machine_id, created_at, created_unix, source, after_print_seq,"
         " calibration_json, std_json, prior_std_json, determined_json, priors_json, notes_json,"
-        " end_mean_json, end_cov_json, calibration_cov_json, noise_factors_json)"
-        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        " end_mean_json, end_cov_json, calibration_cov_json, noise_factors_json, long_run_json)"
+        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         (
             machine_id,
             created_at,
@@ -108,6 +125,7 @@ def save_calibration(registry, machine: str, result, source: str) -> int:
             json.dumps(
                 None if result.noise_factors is None else np.asarray(result.noise_factors).tolist()
             ),
+            json.dumps(long_run_history),
         ),
     )
     return int(cur.lastrowid)

@@ -98,7 +98,11 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
         )
         click.echo(f"wrote {out_path}")
     if reg is not None:
-        cal_id = save_calibration(reg, name, result, str(record))
+        from ajtwin.apps.anomaly import commissioning_long_run_history
+
+        # the detectors of the next print start with this machine's noise scale
+        history = commissioning_long_run_history(rec, result)
+        cal_id = save_calibration(reg, name, result, str(record), long_run_history=history)
         click.echo(f"stored as calibration {cal_id} of {name!r} in {reg.path}")
 
 

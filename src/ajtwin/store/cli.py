@@ -143,8 +143,17 @@ def show(name, store):
         f"({last['ingested_at']}), the twin's current state:"
     )
     std = np.sqrt(np.diag(last["end_cov"]))
-    for i, (_, short, unit) in enumerate(STATE_LABELS):
-        click.echo(f"    {short:5s} = {last['end_mean'][i]:.4g} ± {std[i]:.2g} {unit}")
+    # which bands that print's data set (apps.mismatch.data_share; prints before it: none)
+    shares = (last.get("summary") or {}).get("data_share") or {}
+    for i, (name_i, short, unit) in enumerate(STATE_LABELS):
+        line = f"    {short:5s} = {last['end_mean'][i]:.4g} ± {std[i]:.2g} {unit}"
+        share = shares.get(name_i)
+        if share is not None and not share["determined"]:
+            line += (
+                f"   (not determined by this print's data: data share {share['data_share']:.2f};"
+                " the band is the prior's)"
+            )
+        click.echo(line)
     theta = ", ".join(f"{v:.3g}" for v in last["theta_after"])
     click.echo(f"    θ [1/s] = [{theta}]")
     if len(anomalies):

@@ -264,11 +264,24 @@ def _migrate_to_4(conn):
         )
 
 
+def _migrate_to_5(conn):
+    """The anomaly detectors' long-run statistics (``long_run_json``, JSON, 'null' for rows
+    written before): per print, what it leaves the machine's next print; per calibration,
+    what the commissioning print showed (:func:`ajtwin.live.engine.carried_long_run_history`)."""
+    for table in ("prints", "calibrations"):
+        columns = {r[1] for r in conn.execute(f"PRAGMA table_info({table})").fetchall()}
+        if "long_run_json" not in columns:
+            conn.execute(
+                f"ALTER TABLE {table} ADD COLUMN long_run_json TEXT NOT NULL DEFAULT 'null'"
+            )
+
+
 #: (version, what it adds, function(conn)); append only (see the module docstring).
 MIGRATIONS: list[tuple[int, str, object]] = [
     (2, "print chain status, compressed arrays, anomaly index", _migrate_to_2),
     (3, "live twin sessions: live_sessions, live_samples, live_states, live_events", _migrate_to_3),
     (4, "per-machine calibrations and maintenance events", _migrate_to_4),
+    (5, "the detectors' long-run noise statistics per print and calibration", _migrate_to_5),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
@@ -723,6 +736,22 @@ class Registry:
             "inputs": a.get("inputs"),
         }
 
+    def long_run_history(self, name: str) -> tuple[int, dict] | None:
+        """(seq, statistics) of the detectors' long-run statistics stored with the newest
+        print in the chain that has them (None: no such print)."""
+        machine = self.machine(name)
+        row = self._conn.execute(
+            "SELECT id, seq, long_run_json FROM prints WHERE machine_id = ? AND status = ? "
+            "AND long_run_json != 'null' ORDER BY seq DESC LIMIT 1",
+            (machine["id"], STATUS_OK),
+        ).fetchone()
+        if row is None:
+            return None
+        try:
+            return int(row["seq"]), json.loads(row["long_run_json"])
+        except ValueError as exc:
+            raise self._damaged(row, "long_run_json", exc) from None
+
     def history(self, name: str) -> pd.DataFrame:
         """One row per print: seq, id, time, duration, source, status, end states, θ,
         anomaly count."""
@@ -807,8 +836,13 @@ class Registry:
         status_reason: str = "",
         live_session: int | None = None,
         keep_live_steps: bool = False,
+        long_run_history: dict | None = None,
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
+
+        ``long_run_history``: the detectors' long-run statistics at the print's end
+        (:meth:`ajtwin.apps.anomaly.AnomalyDetector.long_run_history`), read back by
+        :meth:`long_run_history` for the machine's next print.
 
         ``live_session``: the live session (:mod:`ajtwin.store.live_log`) this print ends;
         in the same transaction it is closed with this print's id and, unless
@@ -851,8 +885,8 @@ class Registry:
             cur = conn.execute(
                 "INSERT INTO prints (machine_id, seq, content_hash, ingested_at, source, "
                 "n_samples, duration_s, meta_json, summary_json, start_mean, start_cov, "
-                "end_mean, end_cov, theta_before, theta_after, status, status_reason) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "end_mean, end_cov, theta_before, theta_after, status, status_reason, "
+                "long_run_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     machine["id"],
                     seq,
@@ -871,6 +905,7 @@ class Registry:
                     to_npy(np.asarray(theta_after, dtype=float)),
                     status,
                     status_reason,
+                    json.dumps(long_run_history),
                 ),
             )
             print_id = cur.lastrowid

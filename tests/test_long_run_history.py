@@ -1,0 +1,217 @@
+"""Issue 12: the detectors' long-run noise scale carried from commissioning / the previous
+print through the registry (schema 5), and Q_m tested against the print's own level."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from ajtwin.apps.anomaly import (
+    CUSUM_CHANNELS,
+    AnomalyDetector,
+    DetectorSettings,
+    carried_differences,
+    detect_anomalies,
+)
+from ajtwin.store import registry as R
+from ajtwin.store.registry import Registry
+
+X0 = [3.5, 1.0, 0.0, 0.01, 4.6e-7]
+
+
+def _arrays(e):
+    """detect_anomalies arguments for normalised innovations e (T, 5) with S = 1."""
+    t = len(e)
+    return dict(
+        time_s=np.arange(t, dtype=float),
+        measurements=e,
+        predicted_outputs=np.zeros((t, 5)),
+        innovation_variances=np.ones((t, 5)),
+        nis=np.nansum(e**2, axis=1),
+        n_measured=np.full(t, 5),
+        means=np.tile(X0, (t, 1)),
+        predicted_means=np.tile(X0, (t, 1)),
+        covariances=np.tile(np.eye(5), (t, 1, 1)),
+    )
+
+
+def _history(pc_scale: float, n: int = 40) -> dict:
+    """A stored history whose P_c differences alternate ±a: median 0, MAD a, so the
+    scale is 1.4826·a = pc_scale (hand-computed); the other channels are 0 (scale 1)."""
+    a = pc_scale / 1.4826
+    d = np.zeros((n, len(CUSUM_CHANNELS)))
+    d[:, 2] = a * np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    return {
+        "channels": list(CUSUM_CHANNELS),
+        "blocks": {str(b): d.tolist() for b in DetectorSettings().long_run_block_s},
+    }
+
+
+def test_carried_history_changes_the_threshold():
+    """A gauge wander right after the warm-up, P_c +1.2σ and P_s −0.6σ for 40 s (the alt
+    generator's AR(1) gauges through the shared ΔR_N, 1005's clog print at 86 s): with
+    scale 1 the P_c CUSUM reaches 40·(1.2 − 0.35) = 34 > 16 and alarms; with the machine's
+    carried σ_LR = 1.7 it reaches 40·(1.2/1.7 − 0.35) = 14.2 < 16 and stays quiet (P_s:
+    40·(0.6 − 0.35) = 10, the sum 0.6 < k 0.7). A clog (+2σ on both pressures) still
+    alarms with the history, within 16/(2/1.7 − 0.35) + 1 = 20 s on P_c."""
+    s = DetectorSettings()
+    e = np.zeros((400, 5))
+    e[60:100, 2] = 1.2
+    e[60:100, 3] = -0.6
+    fresh = detect_anomalies(**_arrays(e), settings=s)
+    assert [ev.detectors[0] for ev in fresh.events] == ["cusum+ P_c"]
+    carried = detect_anomalies(**_arrays(e), settings=s, long_run_history=_history(1.7))
+    assert carried.events == []
+    detector = AnomalyDetector(s, _history(1.7))
+    assert detector.long_run.scale[2] == pytest.approx(1.7)
+    assert np.all(detector.long_run.scale[[0, 1, 3, 4, 5]] == 1.0)
+
+    clog = np.zeros((400, 5))
+    clog[200:, 2:4] = 2.0
+    result = detect_anomalies(**_arrays(clog), settings=s, long_run_history=_history(1.7))
+    assert result.events and result.events[0].cause == "nozzle_clog"
+    assert 200 < result.events[0].detected_s <= 200 + 16 / (2 / 1.7 - 0.35) + 1
+
+
+def test_history_round_trips_and_other_block_lengths_are_ignored():
+    rng = np.random.default_rng(5)
+    e = rng.standard_normal((1200, 5))
+    e[:, 1] = np.nan  # a channel never measured stays NaN → None in JSON
+    result = detect_anomalies(**_arrays(e))
+    history = json.loads(json.dumps(result.long_run_history))
+    s = DetectorSettings()
+    assert s.long_run_block_s == (30, 60)
+    carried = carried_differences(history, s)
+    for block in s.long_run_block_s:  # 1140 steps after the warm-up: n blocks, n − 1 diffs
+        d = carried[block]
+        assert d.shape == ((1200 - int(s.warmup_s)) // block - 1, len(CUSUM_CHANNELS))
+        assert np.isnan(d[:, 1]).all() and np.isfinite(d[:, 0]).all()
+    # the next print's detector starts where this one ended
+    assert np.array_equal(AnomalyDetector(s, history).long_run.scale, np.array(history["scale"]))
+    other = {**history, "blocks": {"45": history["blocks"]["30"]}}
+    assert carried_differences(other, s) == {}
+    assert carried_differences({**history, "channels": ["L_w"]}, s) == {}
+    assert carried_differences(None, s) == {}
+
+
+def test_material_flow_tested_against_the_prints_own_level():
+    """Q_m at +0.9σ from the start (this print's atomizer efficiency, not yet learnt by
+    EM) is no fault; a −3σ dropout later is, within 16/(3 − 0.7) + 2 ≈ 9 s."""
+    s = DetectorSettings()
+    assert s.material_flow_reference_s > 0
+    e = np.zeros((1500, 5))
+    e[:, 4] = 0.9
+    assert detect_anomalies(**_arrays(e), settings=s).events == []
+    from dataclasses import replace
+
+    against_zero = detect_anomalies(
+        **_arrays(e), settings=replace(s, material_flow_reference_s=0.0)
+    )
+    assert against_zero.events  # 0.2σ above k for 1440 s: the old false alarm
+    e[1000:, 4] = 0.9 - 3.0
+    events = detect_anomalies(**_arrays(e), settings=s).events
+    assert len(events) == 1 and events[0].detectors[0] == "cusum− Q_m"
+    assert 1000 < events[0].detected_s <= 1000 + 16 / (3.0 - 0.7) + 2
+
+
+# ----------------------------------------------------------------------------- registry
+def _schema4(store):
+    """Make a registry look like one written before schema 5."""
+    conn = sqlite3.connect(store)
+    conn.execute("ALTER TABLE prints DROP COLUMN long_run_json")
+    conn.execute("ALTER TABLE calibrations DROP COLUMN long_run_json")
+    conn.execute("UPDATE info SET value = '4' WHERE key = 'schema_version'")
+    conn.commit()
+    conn.close()
+
+
+@pytest.fixture(scope="module")
+def two_prints():
+    from ajtwin.simulation.printer import simulate
+
+    first = simulate("exp1", seed=61, duration_min=6.0)
+    second = simulate("exp1", seed=62, duration_min=4.0, continue_from=first)
+    return first, second
+
+
+def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
+    from ajtwin.live.engine import carried_long_run_history, ingest_record
+
+    store = tmp_path / "r.sqlite"
+    reg = Registry(store)
+    reg.add_machine("m")
+    old = ingest_record(reg, "m", two_prints[0])
+    reg.close()
+    _schema4(store)
+    reg = Registry(store)
+    assert reg.migrated == [
+        f"{store}: migrated registry schema 4 → 5 (the detectors' long-run noise statistics "
+        "per print and calibration)"
+    ]
+    assert R.SCHEMA_VERSION >= 5 and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    # the old print is read as before; it has no statistics, so nothing is carried
+    assert reg.get_print(old.print_id)["seq"] == 1
+    assert reg.long_run_history("m") is None
+    assert carried_long_run_history(reg, "m") is None
+    # the next print stores its statistics for the one after
+    new = ingest_record(reg, "m", two_prints[1])
+    seq, stored = reg.long_run_history("m")
+    assert seq == new.seq == 2 and set(stored["blocks"]) == {"30", "60"}
+
+
+def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkeypatch):
+    from ajtwin.apps import anomaly
+    from ajtwin.live import engine
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m")
+    seen = []
+    real = anomaly.detect_run
+
+    def spy(run, record, settings=None, long_run_history=None):
+        seen.append(long_run_history)
+        return real(run, record, settings, long_run_history)
+
+    monkeypatch.setattr(anomaly, "detect_run", spy)
+    first = engine.ingest_record(reg, "m", two_prints[0])
+    engine.ingest_record(reg, "m", two_prints[1])
+    assert seen[0] is None  # a new machine: nothing to carry
+    stored = json.loads(
+        reg._conn.execute(
+            "SELECT long_run_json FROM prints WHERE id = ?", (first.print_id,)
+        ).fetchone()[0]
+    )
+    assert seen[1] == stored == first.detection.long_run_history
+    # 6 min print, 60 s warm-up: 10 (5) block means of 30 (60) s → 9 (4) differences
+    assert len(stored["blocks"]["30"]) == 9 and len(stored["blocks"]["60"]) == 4
+    # a dropped print's statistics are not carried (the print before it is)
+    reg.set_status("m", 2, R.STATUS_DROPPED, "test")
+    assert engine.carried_long_run_history(reg, "m") == stored
+
+
+def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_prints):
+    from ajtwin.live.engine import carried_long_run_history, ingest_record
+    from ajtwin.model.calibration import IDENTITY, Calibration
+    from ajtwin.store.calibration import save_calibration
+
+    class Result:  # what save_calibration reads of a CommissioningResult
+        calibration = Calibration(*IDENTITY)
+        std = prior_std = determined = priors = {}
+        notes = []
+        end_state = np.array(X0)
+        end_state_cov = np.eye(5) * 1e-4
+        calibration_cov = np.eye(11) * 1e-6
+        noise_factors = None
+
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m")
+    ingest_record(reg, "m", two_prints[0])
+    printed = reg.long_run_history("m")[1]
+    commissioning = _history(1.5)
+    save_calibration(reg, "m", Result(), "comm.parquet", long_run_history=commissioning)
+    assert carried_long_run_history(reg, "m") == commissioning  # newer than the print
+    ingest_record(reg, "m", two_prints[1])
+    assert carried_long_run_history(reg, "m") == reg.long_run_history("m")[1] != printed

@@ -570,3 +570,25 @@ def test_live_link_takes_the_vial_fill():
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="vial fill"):
             ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=bad)
+
+
+def test_ink_alarm_is_left_to_the_ink_rule(control_settings):
+    """An 'ink running out' alarm does not hold the MPC on and off (the ink rule steers
+    while the vial is in H's fit and stops for good before it leaves it); other alarms the
+    model cannot explain still hold."""
+    from ajtwin.apps.control_sim import MPCTwin
+    from ajtwin.simulation.stepper import SteppedPrinter
+
+    u0 = np.array([375.0, 23.0, 50.0])
+    strategy = MPCTwin(
+        twin=Twin.default(), settings=control_settings, bounds=BOUNDS, u0=u0, target=75.0
+    )
+    printer = SteppedPrinter("exp1", seed=2, duration_min=2)
+    printer.set_setpoints(u0)
+    for _ in range(9):
+        strategy.observe(printer.advance(10))
+    assert strategy.safety() == []
+    strategy.stream.status = lambda: ("alarm", "ink_low")
+    assert strategy.safety() == []
+    strategy.stream.status = lambda: ("alarm", "atomizer")
+    assert any("alarm the controller cannot act on" in r for r in strategy.safety())

@@ -50,6 +50,7 @@ class ProfileModel:
 
     Examples
     --------
+    >>> from ajtwin.profile_cnn.network import ResNet18Profile
     >>> m = ProfileModel(ResNet18Profile(NetworkConfig(base_channels=8)), 1.0, 2.0)
     >>> m.predict_um(np.full((3, 200), 120.0)).shape
     (3, 200)

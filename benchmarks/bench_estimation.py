@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation import DEFAULT_SCALING, ModelSpec, Twin, ekf, rts_smoother
+from ajtwin.estimation import DEFAULT_SCALING, ModelSpec, Twin, ekf, ekf_fleet, rts_smoother
 from ajtwin.estimation.em import e_step, m_step, run_em
 from ajtwin.estimation.filters import AJ_EULER, ModelFunctions, _scaled_functions
 from ajtwin.simulation import simulate
@@ -240,6 +240,20 @@ def main() -> dict:
         jax.block_until_ready(batched(*fleet))
         t_batch = _best(lambda fleet=fleet: jax.block_until_ready(batched(*fleet)), 3)
         out[f"vmap_{machines}_machines_machine_steps_per_s"] = round(machines * steps / t_batch)
+        # ekf_fleet: the machines one after the other, each scan one XLA kernel
+        thetas = np.zeros((machines, 5))
+
+        def run_fleet(fleet=fleet, thetas=thetas):
+            return jax.block_until_ready(ekf_fleet(spec, *fleet, thetas, q, r).means[:, -1])
+
+        if machines == 1000:
+            out["ekf_fleet_vs_vmap_max_rel_diff"] = _check(
+                "ekf_fleet vs vmap", _relative(run_fleet(), batched(*fleet))
+            )
+        run_fleet()
+        t_fleet = _best(run_fleet, 3)
+        key = f"ekf_fleet_{machines}_machines_machine_steps_per_s"
+        out[key] = round(machines * steps / t_fleet)
     out["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     return out
 

@@ -3,7 +3,15 @@
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation import DEFAULT_SCALING, ModelSpec, Twin, ekf, ekf_init, ekf_step
+from ajtwin.estimation import (
+    DEFAULT_SCALING,
+    ModelSpec,
+    Twin,
+    ekf,
+    ekf_fleet,
+    ekf_init,
+    ekf_step,
+)
 from ajtwin.estimation.filters import _is_valid_covariance
 from ajtwin.model import DigitalModel
 from ajtwin.simulation import simulate
@@ -34,6 +42,36 @@ def test_step_by_step_equals_batch_filter():
         np.testing.assert_allclose(streamed, np.asarray(column), rtol=1e-12, atol=0, err_msg=name)
     assert int(np.asarray(batch.n_measured)[5]) == 0
     assert int(np.asarray(batch.n_measured)[17]) == 4
+
+
+def test_fleet_equals_one_filter_per_machine():
+    """ekf_fleet (machines one after the other inside one compiled map) = ekf per machine."""
+    record = simulate("exp1", 2)
+    u, y = record.inputs[:50], record.outputs[:50].copy()
+    start = TWIN.initial_state(u, y)
+    rng = np.random.default_rng(1)
+    machines = 3
+    means = np.tile(start.mean, (machines, 1))
+    means[:, 0] += rng.normal(0, 0.1, machines)
+    covs = np.tile(start.covariance, (machines, 1, 1)) * rng.uniform(0.5, 2.0, (machines, 1, 1))
+    us = np.tile(u, (machines, 1, 1)) * rng.uniform(0.95, 1.05, (machines, 1, 3))
+    ys = np.tile(y, (machines, 1, 1)) + rng.normal(0, 0.3, (machines, len(u), 5)) * [1, 1, 1, 1, 0]
+    ys[1, 10:13, :] = np.nan
+    thetas = np.zeros((machines, 5))
+    thetas[2, 0] = 1e-6
+    q, r = jnp.asarray(TWIN.process_cov), jnp.asarray(TWIN.measurement_var)
+    fleet = ekf_fleet(SPEC, means, covs, us, ys, thetas, q, r, 4.0)
+    for m in range(machines):
+        one = ekf(SPEC, means[m], covs[m], us[m], ys[m], thetas[m], q, r, 4.0)
+        for name, column in zip(one._fields, one):
+            np.testing.assert_allclose(
+                np.asarray(getattr(fleet, name))[m],
+                np.asarray(column),
+                rtol=1e-12,
+                atol=0,
+                err_msg=f"{name}, machine {m}",
+            )
+    assert int(np.asarray(fleet.n_measured)[1, 11]) == 0
 
 
 _FIELD = {

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from ajtwin._jax import SMALL_LOOP_BYTES, xla_flags
+from ajtwin._jax import FLAGS_SINCE_JAXLIB, SMALL_LOOP_BYTES, _jaxlib_version, xla_flags
 
 THRESHOLD = "xla_cpu_small_while_loop_byte_threshold"
 
@@ -36,6 +36,9 @@ def test_override_zero_leaves_xla_default_and_negative_is_refused():
         xla_flags("", "-1", "x86_64")
 
 
+@pytest.mark.skipif(
+    _jaxlib_version() < FLAGS_SINCE_JAXLIB, reason="older jaxlib: the flags are not set"
+)
 def test_set_in_a_new_process_before_jax_starts():
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["AJTWIN_XLA_SMALL_LOOP_BYTES"] = "4096"

@@ -34,7 +34,9 @@ XLA flags (set in ``XLA_FLAGS`` before JAX is imported)
   same print would give different last bits on different machines (and against the
   committed results); AVX's 256-bit vectors are kept.
 
-A flag the user already has in ``XLA_FLAGS`` is left as it is (theirs wins).
+A flag the user already has in ``XLA_FLAGS`` is left as it is (theirs wins). Set only
+with jaxlib ≥ 0.7.1 (:data:`FLAGS_SINCE_JAXLIB`): older XLA does not know them and would
+stop the process on start.
 
 Examples
 --------
@@ -52,6 +54,25 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 #: bytes below which XLA:CPU compiles a whole while loop into one kernel (XLA: 1 kB)
 SMALL_LOOP_BYTES = 1_000_000
+
+
+#: the first jaxlib known to have both flags (older XLA would pass the unknown extra option
+#: to LLVM or refuse the unknown flag, and stop the process)
+FLAGS_SINCE_JAXLIB = (0, 7, 1)
+
+
+def _jaxlib_version() -> tuple[int, ...]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        text = version("jaxlib")
+    except PackageNotFoundError:
+        return (0,)
+    parts = []
+    for part in text.split(".")[:3]:
+        digits = "".join(c for c in part if c.isdigit()) or "0"
+        parts.append(int(digits))
+    return tuple(parts)
 
 
 def xla_flags(existing: str, small_loop_bytes: str | None, machine: str) -> str:
@@ -79,7 +100,8 @@ def xla_flags(existing: str, small_loop_bytes: str | None, machine: str) -> str:
     return " ".join(ours + ([existing.strip()] if existing.strip() else []))
 
 
-if "jax" not in sys.modules:  # XLA reads XLA_FLAGS once, when its backend starts
+# XLA reads XLA_FLAGS once, when its backend starts
+if "jax" not in sys.modules and _jaxlib_version() >= FLAGS_SINCE_JAXLIB:
     import platform
 
     os.environ["XLA_FLAGS"] = xla_flags(

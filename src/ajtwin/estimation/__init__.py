@@ -10,6 +10,7 @@ from ajtwin.estimation.filters import (
     Scaling,
     SmootherResult,
     ekf,
+    ekf_fleet,
     ekf_init,
     ekf_step,
     rts_smoother,
@@ -19,6 +20,7 @@ from ajtwin.estimation.twin import Twin, TwinConfig, TwinRun
 
 __all__ = [
     "ekf",
+    "ekf_fleet",
     "ekf_step",
     "ekf_init",
     "EKFCarry",

@@ -86,17 +86,19 @@ def m_step(
     theta_zero = jnp.zeros(precision.shape[0])
     weight = jnp.linalg.inv(jnp.asarray(process_cov))
 
-    def base(x, u_j):
-        return functions.step(x, u_j, theta_zero, params, dt)
+    def value_and_b(x, u_j):
+        # f_d is linear in θ: its value at θ = 0 is a(x), its θ-Jacobian is B(x)
+        def f_theta(th):
+            value = functions.step(x, u_j, th, params, dt)
+            return value, value
 
-    def b_matrix(x, u_j):
-        return jax.jacfwd(lambda th: functions.step(x, u_j, th, params, dt))(theta_zero)
+        b, a = jax.jacfwd(f_theta, has_aux=True)(theta_zero)
+        return (b, a), (b, a)
 
     def per_step(x_j, x_next, p_j, c_next_j, u_j):
-        residual = x_next - base(x_j, u_j)
-        b = b_matrix(x_j, u_j)  # (n, n_θ)
-        db = jax.jacfwd(b_matrix)(x_j, u_j)  # (n, n_θ, n): ∂B/∂x_m
-        a_jac = jax.jacfwd(base)(x_j, u_j)
+        # one nested forward pass gives a, B and their x-Jacobians ∂B/∂x_m and A = ∂a/∂x
+        (db, a_jac), (b, a) = jax.jacfwd(value_and_b, has_aux=True)(x_j, u_j)  # db: (n, n_θ, n)
+        residual = x_next - a
         cov_x_r = c_next_j.T - p_j @ a_jac.T  # (n, n): Cov(x_m, r_i)
         normal = b.T @ weight @ b + jnp.einsum("ikm,mn,jln,ij->kl", db, p_j, db, weight)
         rhs = b.T @ weight @ residual + jnp.einsum("ikm,ij,mj->k", db, weight, cov_x_r)
@@ -183,39 +185,46 @@ def em_loop(
 ):
     """The EM iterations of :func:`run_em` as a ``lax.while_loop`` (pure, jit-able).
 
-    State: (i, θ, filtered, smoothed, ℓ, stop, converged). Each pass runs the
-    M-step from the current smoother, then the E-step under the new θ; the new
-    iterate is accepted when θ and ℓ are finite, and the loop stops on a
-    rejected iterate, on |Δℓ|/T < ``tolerance``, or after ``max_iterations``.
+    Pass j of the loop runs the M-step from the accepted smoother (pass 0: θ₀
+    instead) and then the E-step under that θ, so the compiled loop holds one E-step
+    and one M-step (an E-step before the loop would be a second copy to compile). The
+    new iterate is accepted when θ and ℓ are finite (pass 0: always); the loop stops
+    on a rejected iterate, on |Δℓ|/T < ``tolerance``, or after ``max_iterations``
+    M-steps.
 
     Returns
     -------
     (θ (n_θ,), iterations, converged, ℓ, FilterResult, SmootherResult)
     """
-    n_steps = inputs.shape[0]
+    n_steps, n_states = inputs.shape[0], prior_mean.shape[0]
     data = (prior_mean, prior_cov, inputs, measurements)
     noise = (process_cov, measurement_cov, gate)
-    filtered, smoothed, log_lik = e_step(spec, *data, theta0, *noise, functions=functions)
     false = jnp.asarray(False)
 
     def keep_going(state):
-        iteration, _, _, _, _, stop, _ = state
-        return ~stop & (iteration < max_iterations)
+        passes, _, _, _, _, stop, _ = state
+        return ~stop & (passes <= max_iterations)  # passes − 1 M-steps done so far
 
-    def one_iteration(state):
-        iteration, theta, filtered, smoothed, log_lik, _, _ = state
-        theta_new = m_step(spec, smoothed, inputs, process_cov, theta_prior_precision, functions)
+    def one_pass(state):
+        passes, theta, filtered, smoothed, log_lik, _, _ = state
+        first = passes == 0
+        theta_new = jax.lax.cond(
+            first,
+            lambda: theta0,
+            lambda: m_step(spec, smoothed, inputs, process_cov, theta_prior_precision, functions),
+        )
         filtered_new, smoothed_new, log_lik_new = e_step(
             spec, *data, theta_new, *noise, functions=functions
         )
-        accept = jnp.isfinite(log_lik_new) & jnp.all(jnp.isfinite(theta_new))
-        converged = accept & (jnp.abs(log_lik_new - log_lik) / n_steps < tolerance)
+        finite = jnp.isfinite(log_lik_new) & jnp.all(jnp.isfinite(theta_new))
+        accept = first | finite
+        converged = ~first & finite & (jnp.abs(log_lik_new - log_lik) / n_steps < tolerance)
 
         def pick(new, old):
             return jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)
 
         return (
-            iteration + 1,
+            passes + 1,
             pick(theta_new, theta),
             pick(filtered_new, filtered),
             pick(smoothed_new, smoothed),
@@ -224,11 +233,44 @@ def em_loop(
             converged,
         )
 
-    state = (jnp.asarray(0), theta0, filtered, smoothed, log_lik, false, false)
-    iterations, theta, filtered, smoothed, log_lik, _, converged = jax.lax.while_loop(
-        keep_going, one_iteration, state
+    state = (
+        jnp.asarray(0),
+        theta0,
+        _empty_filter_result(n_steps, n_states, measurements.shape[1]),
+        _empty_smoother_result(n_steps, n_states),
+        jnp.zeros(()),
+        false,
+        false,
     )
-    return theta, iterations, converged, log_lik, filtered, smoothed
+    passes, theta, filtered, smoothed, log_lik, _, converged = jax.lax.while_loop(
+        keep_going, one_pass, state
+    )
+    return theta, passes - 1, converged, log_lik, filtered, smoothed
+
+
+def _empty_filter_result(n_steps, n, m):
+    """Zeros shaped like an E-step's FilterResult (the loop's state before pass 0)."""
+    vec, mat = jnp.zeros((n_steps, n)), jnp.zeros((n_steps, n, n))
+    scalar = jnp.zeros(n_steps)
+    return FilterResult(
+        vec,
+        mat,
+        vec,
+        mat,
+        mat,
+        jnp.zeros((n_steps, m)),
+        jnp.zeros((n_steps, m)),
+        scalar,
+        scalar,
+        jnp.zeros(n_steps, dtype=jnp.sum(jnp.zeros(1, dtype=bool)).dtype),
+        jnp.zeros(n_steps, dtype=bool),
+    )
+
+
+def _empty_smoother_result(n_steps, n):
+    return SmootherResult(
+        jnp.zeros((n_steps, n)), jnp.zeros((n_steps, n, n)), jnp.zeros((n_steps - 1, n, n))
+    )
 
 
 em_loop = jax.jit(em_loop, static_argnames=("functions",))

@@ -8,7 +8,9 @@ machine and the paper's machine. Per machine:
    (d_a known from a droplet measurement: truth + N(0, 0.1 µm), given as ±0.1 µm);
 2. the next 90-min ``exp1`` print of that machine (continuing from the commissioning
    print) run by the calibrated twin, started where commissioning left the machine:
-   errors at 30/60/90 min, ±2σ coverage, alarms, the mismatch guard;
+   errors at 30/60/90 min, ±2σ coverage, alarms, the mismatch guard; the detectors start
+   with the long-run noise scale the calibrated twin showed on the commissioning print
+   (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`, as the registry carries it);
 3. BEFORE: the same print run by the uncalibrated (nominal) twin, as a new user would:
    errors, coverage, alarms, when the guard fires;
 4. a 30-min ``nozzle_clog`` print (onset 15 min) on the commissioned machine:
@@ -56,14 +58,15 @@ def _coverage(run, states):
     return {name: float(np.mean(z[:, i] <= 2.0)) for i, name in enumerate(STATES)}
 
 
-def _run(twin, record, start=None):
+def _run(twin, record, start=None, long_run_history=None):
     from ajtwin.apps.anomaly import detect_run
     from ajtwin.apps.mismatch import assess_run, relabel_events
 
     t0 = time.process_time()
     run = twin.run(record, start=start)
     status = assess_run(run, record)
-    events = relabel_events(detect_run(run, record).events, status)
+    detection = detect_run(run, record, long_run_history=long_run_history)
+    events = relabel_events(detection.events, status)
     return run, status, events, time.process_time() - t0
 
 
@@ -87,6 +90,10 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
     )
     commission_cpu = time.process_time() - t0
+    # the detectors' long-run noise scale of this machine, as `machine commission` stores it
+    from ajtwin.apps.anomaly import commissioning_long_run_history
+
+    history = commissioning_long_run_history(comm.record, result)
     truth_cal = comm.machine.calibration()._asdict()
     recovery = {
         row["parameter"]: {
@@ -115,6 +122,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         ),
         nxt.record,
         start,
+        history,
     )
     before_run, before_status, before_events, before_cpu = _run(Twin.default(), nxt.record)
     out = {
@@ -156,6 +164,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
             ),
             clog_print.record,
             start,
+            history,
         )
         onset = clog_print.record.meta["fault_onset_s"]
         hits = [e for e in clog_events if e.cause == "nozzle_clog" and e.detected_s >= onset]

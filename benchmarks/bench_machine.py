@@ -58,6 +58,12 @@ def _coverage(run, states):
     return {name: float(np.mean(z[:, i] <= 2.0)) for i, name in enumerate(STATES)}
 
 
+def _square_z(run, states):
+    """Σ z² and count per state, z = (x̂ − x)/σ (pooled into an rms z by summarise)."""
+    z = (run.means - states) / np.maximum(run.stds, 1e-300)
+    return {name: [float(np.sum(z[:, i] ** 2)), int(len(z))] for i, name in enumerate(STATES)}
+
+
 def _run(twin, record, start=None, long_run_history=None):
     from ajtwin.apps.anomaly import detect_run
     from ajtwin.apps.mismatch import assess_run, relabel_events
@@ -133,6 +139,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         "after": {
             "errors": _errors(after_run, nxt.states, checks),
             "coverage": _coverage(after_run, nxt.states),
+            "square_z": _square_z(after_run, nxt.states),
             "alarms": [(e.cause, e.detected_s) for e in after_events],
             "mismatch": after_status.to_dict(),
             "cpu_s": after_cpu,
@@ -225,6 +232,16 @@ def summarise(results: dict) -> dict:
         "guard_uncommissioned_first_s": [m["before"]["mismatch"]["first_s"] for m in machines],
         "guard_commissioned_fired": [m["after"]["mismatch"]["mismatch"] for m in machines],
         "guard_nominal_fired": {g: v["mismatch"]["mismatch"] for g, v in nominal.items()},
+        # honest bands: 1; below 1 the bands are too wide (pooled over the machines, after)
+        "rms_z_after": {
+            s: float(
+                np.sqrt(
+                    sum(m["after"]["square_z"][s][0] for m in machines)
+                    / sum(m["after"]["square_z"][s][1] for m in machines)
+                )
+            )
+            for s in STATES
+        },
     }
     if "paper" in results:
         summary["paper_after_errors"] = results["paper"]["after"]["errors"]
@@ -301,6 +318,8 @@ def _markdown(results: dict, command: str, load: str) -> str:
         f"{s['guard_uncommissioned_first_s']}.",
         f"Guard on commissioned machines fired: {s['guard_commissioned_fired']}; "
         f"on the nominal machine: {s['guard_nominal_fired']}.",
+        "rms z = (estimate − truth)/σ pooled over the commissioned machines (1 = honest "
+        "bands): " + ", ".join(f"{k} {v:.2f}" for k, v in s["rms_z_after"].items()) + ".",
         "",
         "Calibration recovery (z = (fitted − true)/std error, determined parameters):",
         "",

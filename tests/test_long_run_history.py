@@ -251,3 +251,25 @@ def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
     # the same gauges with ΔR_N not pushed up stay unexplained; P_c falling stays a leak
     assert label_cause(mean, n, [0, 0, 0, 0.5, 0], 1.0, s) == "unexplained"
     assert label_cause([0, 0, -0.4, 0.69, 0], n, shift, 1.0, s) == "carrier_leak"
+
+
+def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):
+    """`ajtwin live`: a closed live print stores its detectors' statistics; the machine's
+    next live print starts its detectors with them."""
+    from ajtwin.live.engine import LiveEngine, Sample
+
+    first, second = two_prints
+    reg = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+    for k in range(len(first)):
+        engine.feed("m", Sample(first.time_s[k], first.inputs[k], first.outputs[k]))
+    engine.close("m")
+    seq, stored = reg.long_run_history("m")
+    assert seq == 1 and len(stored["blocks"]["30"]) == 9
+    stream = engine.open("m")
+    carried = stream.detector.long_run.history()
+    assert np.array_equal(
+        carried[30], np.array(stored["blocks"]["30"], dtype=float), equal_nan=True
+    )
+    assert np.array_equal(stream.detector.long_run.scale, np.array(stored["scale"]))
+    engine.shutdown()

@@ -293,10 +293,12 @@ def test_forecast_and_advise_cli(tmp_path):
         forecast,
         [
             "--machine", "m", "--set", "Q_c=26@+60s", "--horizon", "5min", "--store", str(store),
-            "--out", str(out), "--plot", str(tmp_path / "f.png"),
+            "--out", str(out),
         ],
     )  # fmt: skip
     assert res.exit_code == 0, res.output
+    # without --plot the figure lands beside the CSV, not in the working directory
+    assert (tmp_path / "f.png").stat().st_size > 10_000
     import pandas as pd
 
     frame = pd.read_csv(out)

@@ -343,6 +343,8 @@ def test_converges_after_a_step_disturbance(control_settings):
     assert np.mean(open_lw[120:180]) - np.mean(open_lw[-180:]) > 2.0
     # the loop converged: the last 3 min within 0.75 µm of the target on average
     assert abs(np.mean(twin_lw[-180:]) - 65.0) < 0.75
+    # a sudden 30 % loss of generation is the atomizer, not the vial: no ink stop
+    assert runs["mpc_twin"].metrics["ink_stop_s"] is None
     assert runs["mpc_twin"].metrics["inside_limits"]
     assert runs["mpc_twin"].metrics["rate_limits_respected"]
 
@@ -361,3 +363,210 @@ def test_full_comparison_exp1(tmp_path):
         assert summary[strategy]["all_inside_limits"]
         assert summary[strategy]["all_rate_limits_respected"]
     assert summary["mpc_twin"]["within_2um_fraction_mean"] > 0.95
+
+
+# --------------------------------------------------------------------------- #
+# Ink supply: the vial running dry is detected, not chased
+# --------------------------------------------------------------------------- #
+
+
+def _vial(level, minutes=float("inf"), running_low=False):
+    from ajtwin.estimation.vial import VialStatus
+
+    return VialStatus(level, 0.01, 0.3, 0.05, 0.0, 1.0, 0.05, minutes, running_low)
+
+
+def test_ink_balance_and_supply_status(twin, control_settings):
+    from ajtwin.apps.control import ink_supply_status, vial_level_from_material_flow
+
+    params = twin.model.params
+    # 1 h of Q_m that carries 0.1 mL of ink (φ_m of it silver), a few samples missing
+    per_s = 0.1 / 3600.0 * params.silver_volume_fraction
+    q = np.full(3600, per_s)
+    q[::100] = np.nan
+    level = vial_level_from_material_flow(q, 0.7, params=params)
+    assert level == pytest.approx(0.7 - 0.1 * 3564 / 3600, rel=1e-9)
+    # a Q_m gain of 2 (calibration): the same flow is half the ink
+    assert vial_level_from_material_flow(q, 0.7, 2.0, params) == pytest.approx(
+        0.7 - 0.05 * 3564 / 3600, rel=1e-9
+    )
+    with pytest.raises(ValueError, match="fill"):
+        vial_level_from_material_flow(q, float("nan"))
+    s = control_settings
+    assert s.ink_stop_vial_ml == 0.5 and s.ink_stop_lead_min == 10.0
+    assert ink_supply_status(0.8, None, s).status == "ok"
+    assert ink_supply_status(0.8, _vial(0.8), s).status == "ok"
+    # the balance alone: below the fit's low end
+    stop = ink_supply_status(0.45, _vial(0.8), s)
+    assert stop.status == "stop" and stop.reason.startswith("ink_low") and "balance" in stop.reason
+    # the observer's level, and its projection within the lead time
+    assert "observer" in ink_supply_status(0.8, _vial(0.49), s).reason
+    assert ink_supply_status(0.8, _vial(0.52, 8.0, True), s).status == "stop"
+    # 'running low' further out: a warning, the controller keeps steering
+    low = ink_supply_status(0.8, _vial(0.6, 25.0, True), s)
+    assert low.status == "low" and "refill" in low.reason
+
+
+def test_vial_running_dry_stops_the_mpc_for_good(control_settings):
+    """A vial filled to 0.53 mL that loses 1 mL/h (0.5 mL crossed at ~2 min): the MPC on
+    the twin stops (reason ink_low), holds the inputs in force and never resumes — even
+    when the ink rule would clear — while on a clean print it never stops."""
+    from ajtwin.apps.control_sim import simulate_strategy
+
+    u0 = np.array([300.0, 24.116, 80.0])
+    dry = {"initial": {"vial_volume_mL": 0.53}, "truth": {"vial_evaporation_mL_per_h": 1.0}}
+    run = simulate_strategy(
+        "exp1",
+        1,
+        "mpc_twin",
+        65.0,
+        duration_min=8,
+        overrides=dry,
+        u0=u0,
+        settings=control_settings,
+    )
+    c = run.commands
+    stopped = np.flatnonzero(c["status"].to_numpy() == "stop")
+    assert len(stopped), c["status"].value_counts()
+    first = stopped[0]
+    # detected within 3 min of the true crossing, after the controller had steered
+    true_vial = run.record.data["true_vial_volume_mL"].to_numpy()
+    crossing = float(np.argmax(true_vial < 0.5))
+    assert crossing < c["time_s"].iloc[first] < crossing + 180
+    assert (c["status"].iloc[:first] == "act").any()
+    # latched: every later period is a stop with the same reason and unchanged set-points
+    assert (c["status"].iloc[first:] == "stop").all()
+    assert c["reason"].iloc[first].startswith("ink_low")
+    assert c["reason"].iloc[first:].nunique() == 1
+    held = c[["atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm"]].iloc[first - 1 :]
+    assert (held.diff().abs().fillna(0.0).to_numpy() == 0.0).all()
+    k = int(c["time_s"].iloc[first])
+    assert (np.abs(np.diff(run.setpoints[k:], axis=0)) == 0).all()
+    assert run.metrics["ink_stop_s"] == c["time_s"].iloc[first]
+    assert run.metrics["inside_limits"] and run.metrics["rate_limits_respected"]
+
+
+def test_ink_stop_latch_ignores_a_later_all_clear(twin, control_settings):
+    from ajtwin.apps.control_sim import MPCTwin
+    from ajtwin.simulation.stepper import SteppedPrinter
+
+    u0 = np.array([375.0, 23.0, 50.0])
+    strategy = MPCTwin(
+        twin=Twin.default(vial_fill_ml=0.45),
+        settings=control_settings,
+        bounds=BOUNDS,
+        u0=u0,
+        target=75.0,
+    )
+    printer = SteppedPrinter("exp1", seed=2, duration_min=2)
+    printer.set_setpoints(u0)
+    for _ in range(8):
+        strategy.observe(printer.advance(10))
+    first = strategy.decide(80.0, u0)
+    assert first.status == "stop" and "balance" in first.reason  # told 0.45 mL: below 0.5
+    strategy.vial_fill_ml = 1.0  # the balance would now say ok: still stopped
+    strategy.observe(printer.advance(10))
+    again = strategy.decide(90.0, u0 + np.array([5.0, 0.0, 0.0]))
+    assert again.status == "stop" and again.reason == first.reason
+    np.testing.assert_array_equal(again.command, u0 + np.array([5.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize("profile", ["mean_reverting", "input_following"])
+def test_mpc_plans_with_the_twins_transition_profile(profile, control_settings):
+    """The MPC's prediction is the twin's own forecast (its transition profile, the one
+    θ was learned on), not the paper's step: the plan's L̂_w equals ``forecast`` under the
+    planned inputs."""
+    from ajtwin.apps.forecast import forecast
+
+    tw = Twin.default(transition=profile)
+    controller = MPC(tw, control_settings)
+    u = np.array([375.0, 23.0, 50.0])
+    mean = np.array([3.3, 1.0, 0.0, 0.0, float(tw.model.steady_aerosol_fraction(u, 1.0))])
+    cov = np.diag([1e-2, 1e-4, 1e-8, 1e-4, (0.05 * mean[4]) ** 2])
+    sol = controller.solve(mean, cov, np.zeros(5), u, 70.0, warm_start=False)
+    inputs = sol.plan[controller.block_index]
+    expected = forecast(tw, mean, cov, inputs, np.zeros(5))
+    np.testing.assert_allclose(sol.predicted_linewidth, expected.output_means[:, 0], rtol=1e-9)
+    # and it differs from the paper's step (d_a relaxes / follows the inputs here)
+    paper = forecast(Twin.default(), mean, cov, inputs, np.zeros(5))
+    assert np.max(np.abs(paper.output_means[:, 0] - expected.output_means[:, 0])) > 1e-3
+
+
+def test_cli_merge_runs_and_truth_alt(tmp_path):
+    """Per-seed runs (one on the second truth generator) merge into one table; runs that
+    are not one table (another target, the same print differing) are refused."""
+    from ajtwin.cli import main
+
+    def run(name, seed, *extra):
+        out = tmp_path / name
+        result = CliRunner().invoke(
+            main,
+            [
+                "control",
+                "simulate",
+                "--scenario",
+                "exp1",
+                "--target-linewidth",
+                "65",
+                "--out",
+                str(out),
+                "--duration-min",
+                "2",
+                "--seeds",
+                str(seed),
+                "--strategies",
+                "open_loop,pi",
+                "--no-progress",
+                *extra,
+            ],
+        )
+        assert result.exit_code == 0, result.output
+        return out
+
+    a, b, alt = run("a", 1), run("b", 2), run("alt", 1, "--truth", "alt")
+    out = tmp_path / "merged"
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(a), str(b), str(alt), "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    merged = json.loads((out / "metrics.json").read_text())
+    assert set(merged["scenarios"]) == {"exp1", "exp1@alt"}
+    exp1 = merged["scenarios"]["exp1"]
+    assert list(exp1["per_seed"]) == ["1", "2"]
+    rms = [exp1["per_seed"][s]["pi"]["rms_error_um"] for s in ("1", "2")]
+    assert exp1["summary"]["pi"]["rms_error_um_mean"] == pytest.approx(np.mean(rms))
+    # the alt print is another print: not the first generator's seed 1
+    alt_rms = merged["scenarios"]["exp1@alt"]["per_seed"]["1"]["open_loop"]["rms_error_um"]
+    assert alt_rms != exp1["per_seed"]["1"]["open_loop"]["rms_error_um"]
+    table = (out / "metrics.md").read_text()
+    assert "| exp1@alt | 1 |" in table and "| exp1 | 1,2 |" in table
+    # a conflicting re-run of the same print, and another target, are refused
+    bad = json.loads((b / "metrics.json").read_text())
+    bad["scenarios"]["exp1"]["per_seed"]["2"]["pi"]["rms_error_um"] += 1.0
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "metrics.json").write_text(json.dumps(bad))
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(b), str(tmp_path / "c"), "--out", str(out)]
+    )
+    assert result.exit_code != 0 and "seed 2 pi differs" in result.output
+    bad = json.loads((b / "metrics.json").read_text())
+    bad["target_linewidth_um"] = 60.0
+    (tmp_path / "c" / "metrics.json").write_text(json.dumps(bad))
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(a), str(tmp_path / "c"), "--out", str(out)]
+    )
+    assert result.exit_code != 0 and "target_linewidth_um" in result.output
+    result = CliRunner().invoke(
+        main, ["control", "merge", str(tmp_path / "nothing"), "--out", str(out)]
+    )
+    assert result.exit_code != 0
+
+
+def test_live_link_takes_the_vial_fill():
+    from ajtwin.live.control_link import ControlLink
+
+    link = ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=0.7)
+    assert link.vial_fill_ml == 0.7
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="vial fill"):
+            ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=bad)

@@ -71,3 +71,33 @@ def test_stepper_rejects_bad_use():
     assert printer.done and len(printer.true_outputs) == 30
     with pytest.raises(RuntimeError, match="over"):
         printer.advance(1)
+
+
+def test_alt_truth_stepping_is_the_batch_alt_print_and_takes_commands():
+    """The second truth generator in the loop: stepping without commands gives
+    ``simulate --truth alt``'s print; a command equals that step in the schedule."""
+    batch = run_virtual_print("exp3", seed=2, duration_min=6.05, truth_generator="alt")
+    printer = SteppedPrinter("exp3", seed=2, duration_min=6.05, truth="alt")
+    while not printer.done:
+        printer.advance(10)
+    a, b = _frame(batch.record), _frame(printer.record())
+    assert np.array_equal(np.isnan(a), np.isnan(b))
+    np.testing.assert_allclose(b, a, rtol=1e-12, atol=0.0)
+    assert printer.record().meta["truth_generator"] == "alt"
+    # not the first generator's print (same seed): the generator really is swapped
+    first = run_virtual_print("exp3", seed=2, duration_min=6.05)
+    assert np.max(np.abs(first.states[:, 0] - batch.states[:, 0])) > 0.01
+
+    overrides = {"inputs": {"carrier_flow_sccm": [[0.0, 23.0], [3.0, 25.0]]}}
+    stepped = run_virtual_print(
+        "exp1", seed=4, duration_min=6, overrides=overrides, truth_generator="alt"
+    )
+    printer = SteppedPrinter("exp1", seed=4, duration_min=6, truth="alt")
+    for _ in range(18):
+        printer.advance(10)
+    printer.set_setpoints([375.0, 25.0, 50.0])
+    while not printer.done:
+        printer.advance(10)
+    np.testing.assert_allclose(_frame(printer.record()), _frame(stepped.record), rtol=1e-12)
+    with pytest.raises(ValueError, match="truth generator"):
+        SteppedPrinter("exp1", seed=1, truth="other")

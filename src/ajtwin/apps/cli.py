@@ -117,9 +117,8 @@ def _parse_inputs(text):
 @click.option(
     "--plot",
     type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("forecast.png"),
-    show_default=True,
-    help="Figure with ±2σ bands.",
+    default=None,
+    help="Figure with ±2σ bands  [default: the --out path with .png].",
 )
 @click.option(
     "--nominal-theta",
@@ -203,6 +202,8 @@ def forecast(
     click.echo(f"  θ [1/s] used: [{theta}]" + (" (nominal)" if nominal_theta else " (learned)"))
     for text in fc.warnings:
         click.echo(f"  warning: {text}")
+    # beside the CSV by default, so a run never litters the working directory
+    plot = out.with_suffix(".png") if plot is None else plot
     plot_forecast(fc, plot, title=f"{machine_name}: forecast (±2σ)")
     click.echo(f"wrote {out} and {plot}")
 

@@ -79,6 +79,9 @@ class ControlSettings:
     overspray_scale_um: float = 10.0
     weight_move: float = 0.02
     weight_overspray_limit: float = 100.0
+    max_linearisations: int = 2
+    max_iterations: int = 30
+    solver_tolerance: float = 1e-6
     rate_limits: tuple = (2.0, 0.1, 0.2)  # per second [mA/s, sccm/s, sccm/s]
     uncertainty_sigma_um: float = 1.0
     nis_window_s: int = 120
@@ -86,6 +89,8 @@ class ControlSettings:
     warmup_s: int = 60
     actionable_causes: tuple = ("nozzle_clog",)
     pi_closed_loop_time_s: float = 120.0
+    ink_stop_vial_ml: float = 0.5
+    ink_stop_lead_min: float = 10.0
     source: str = "defaults"
 
     @classmethod
@@ -104,6 +109,7 @@ class ControlSettings:
                 raise ValueError(f"{source}: not valid TOML: {exc}") from None
         try:
             mpc, rates, safety, pi = raw["mpc"], raw["rate_limits"], raw["safety"], raw["pi"]
+            ink = raw["ink"]
             values = dict(
                 period_s=int(mpc["period_s"]),
                 horizon_s=int(mpc["horizon_s"]),
@@ -115,6 +121,9 @@ class ControlSettings:
                 overspray_scale_um=float(mpc["overspray_scale_um"]),
                 weight_move=float(mpc["weight_move"]),
                 weight_overspray_limit=float(mpc["weight_overspray_limit"]),
+                max_linearisations=int(mpc["max_linearisations"]),
+                max_iterations=int(mpc["max_iterations"]),
+                solver_tolerance=float(mpc["solver_tolerance"]),
                 rate_limits=tuple(float(rates[name]) for name in INPUT_NAMES),
                 uncertainty_sigma_um=float(safety["uncertainty_sigma_um"]),
                 nis_window_s=int(safety["nis_window_s"]),
@@ -122,6 +131,8 @@ class ControlSettings:
                 warmup_s=int(safety["warmup_s"]),
                 actionable_causes=tuple(safety["actionable_causes"]),
                 pi_closed_loop_time_s=float(pi["closed_loop_time_s"]),
+                ink_stop_vial_ml=float(ink["stop_vial_ml"]),
+                ink_stop_lead_min=float(ink["stop_lead_min"]),
             )
         except KeyError as exc:
             raise ValueError(f"{source}: missing key {exc}") from None
@@ -146,6 +157,14 @@ class ControlSettings:
             raise ValueError(f"rate limits must be positive; got {self.rate_limits}")
         if not self.tolerance_um > 0:
             raise ValueError(f"tolerance_um must be > 0; got {self.tolerance_um}")
+        if self.max_linearisations < 1 or self.max_iterations < 1:
+            raise ValueError("max_linearisations and max_iterations must be ≥ 1")
+        if not self.solver_tolerance > 0:
+            raise ValueError(f"solver_tolerance must be > 0; got {self.solver_tolerance}")
+        if not (np.isfinite(self.ink_stop_vial_ml) and self.ink_stop_vial_ml >= 0):
+            raise ValueError(f"[ink] stop_vial_ml must be ≥ 0 mL; got {self.ink_stop_vial_ml}")
+        if not self.ink_stop_lead_min >= 0:
+            raise ValueError(f"[ink] stop_lead_min must be ≥ 0; got {self.ink_stop_lead_min}")
 
 
 # --------------------------------------------------------------------------- #
@@ -181,6 +200,7 @@ def _steady_linewidths(twin, mean, cov, settings, settle_s):
         jnp.asarray(settings, dtype=float),
         jnp.asarray(twin.theta, dtype=float),
         jnp.asarray(twin.process_cov),
+        functions=getattr(twin, "functions", None),
     )
 
 
@@ -190,15 +210,15 @@ _STEADY_CACHE: dict = {}
 def _steady_fn(settle_s: int):
     if settle_s not in _STEADY_CACHE:
 
-        def run(spec, mean, cov, settings, theta, process_cov):
+        def run(spec, mean, cov, settings, theta, process_cov, functions=None):
             def one(u):
-                inputs = jnp.broadcast_to(u, (settle_s, 3))
-                _, _, y, _ = _forecast_scan(spec, mean, cov, inputs, theta, process_cov)
+                inputs = model_inputs(jnp.broadcast_to(u, (settle_s, 3)), functions)
+                _, _, y, _ = _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions)
                 return y[-1, 0]
 
             return jax.vmap(one)(settings)
 
-        _STEADY_CACHE[settle_s] = jax.jit(run)
+        _STEADY_CACHE[settle_s] = jax.jit(run, static_argnames=("functions",))
     return _STEADY_CACHE[settle_s]
 
 
@@ -277,6 +297,92 @@ def mismatch_reasons(mean, nis=None, n_measured=None, *, limits=None, settings=N
     return reasons
 
 
+# --------------------------------------------------------------------------- #
+# Ink supply: a vial running dry is not controllable with I_A, Q_c, Q_s
+# --------------------------------------------------------------------------- #
+
+
+def vial_level_from_material_flow(
+    material_flow, fill_ml: float, material_flow_gain: float = 1.0, params=None, dt: float = 1.0
+) -> float:
+    """The controller's own ink balance: fill − Σ Q_m Δt / (g φ_m) [mL].
+
+    The ink that left the vial as aerosol per the measured material flow (NaN samples
+    count as nothing drawn). It sees only the aerosol draw — an unmodelled loss
+    (evaporation, a leak) is the vial observer's to find — so it is an upper bound on
+    the level: when even this is below the stop level, the vial is low.
+    """
+    from ajtwin.estimation.vial import ink_volume_drawn_ml
+
+    if not (np.isfinite(fill_ml) and fill_ml >= 0):
+        raise ValueError(f"vial fill = {fill_ml!r} mL must be a non-negative number")
+    drawn = ink_volume_drawn_ml(material_flow, material_flow_gain, params, dt)
+    return float(fill_ml) - drawn
+
+
+@dataclass
+class InkSupply:
+    """What the controller concludes about the ink (see :func:`ink_supply_status`)."""
+
+    status: str  # ok | low (warn, keep steering) | stop (hold for the rest of the print)
+    reason: str
+    balance_ml: float
+    observer_ml: float = float("nan")
+    minutes_to_low: float = float("inf")
+
+
+def ink_supply_status(balance_ml: float, observer=None, settings=None) -> InkSupply:
+    """Whether the vial still feeds the line in the range the model was fitted on.
+
+    Parameters
+    ----------
+    balance_ml : the controller's ink balance (:func:`vial_level_from_material_flow`)
+    observer : ajtwin.estimation.vial.VialStatus, optional
+        The vial observer's latest status (level, projected minutes to its low level,
+        the latched ``running_low`` flag).
+    settings : ControlSettings (its ``[ink]`` table)
+
+    Returns
+    -------
+    InkSupply
+        ``stop`` when the balance or the observer's level is below ``stop_vial_ml``
+        (the low end of H's fit: below it the model the MPC plans with extrapolates, and
+        an empty vial gives no aerosol at any current or flow), or the observer projects
+        reaching its low level within ``stop_lead_min``; ``low`` when the observer says
+        'running low' earlier than that (refill soon; the model still holds, so keep
+        steering); ``ok`` otherwise.
+    """
+    s = settings or ControlSettings()
+    stop_ml = s.ink_stop_vial_ml
+    if np.isfinite(balance_ml) and balance_ml < stop_ml:
+        return InkSupply(
+            "stop",
+            f"ink_low: ink balance {balance_ml:.3f} mL < {stop_ml:g} mL (fill − aerosol drawn)",
+            float(balance_ml),
+        )
+    if observer is None:
+        return InkSupply("ok", "", float(balance_ml))
+    level, minutes = float(observer.vial_ml), float(observer.minutes_to_low)
+    found = dict(balance_ml=float(balance_ml), observer_ml=level, minutes_to_low=minutes)
+    if level < stop_ml:
+        why = f"ink_low: vial observer {level:.3f} ± {observer.vial_std_ml:.3f} mL < {stop_ml:g} mL"
+        return InkSupply("stop", why, **found)
+    if observer.running_low and minutes <= s.ink_stop_lead_min:
+        why = (
+            f"ink_low: vial observer projects {level:.3f} mL to reach its low level in "
+            f"{minutes:.0f} min (≤ {s.ink_stop_lead_min:g}; "
+            f"loss {observer.loss_rate_ml_per_h:.2f} mL/h)"
+        )
+        return InkSupply("stop", why, **found)
+    if observer.running_low:
+        why = (
+            f"ink running low: vial observer {level:.3f} mL, ~{minutes:.0f} min to its "
+            "low level; refill"
+        )
+        return InkSupply("low", why, **found)
+    return InkSupply("ok", "", **found)
+
+
 def clip_command(u, u_prev, bounds, max_step):
     """Clip a command into the limits and within ``max_step`` of ``u_prev``; asserted.
 
@@ -334,18 +440,44 @@ class _PlanArrays(NamedTuple):
     weights: jnp.ndarray  # (7,) w_t, w_b, w_o, L_o,ref, w_m, w_l, tol
 
 
-def plan_trajectory(z, plan, spec, mean, cov, theta, process_cov):
-    """Moves (M, 3) from scaled z (3M,), and over the horizon outputs (H, 5), variances (H, 5)."""
+def model_inputs(inputs, functions=None):
+    """Inputs (H, 3) as the twin's transition reads them (jit-able).
+
+    A transition profile that follows the inputs (``input_following``,
+    :mod:`ajtwin.model.droplet_dynamics`) reads a 4th column, the droplet size's input
+    response r; it is filtered here from the plan as :func:`augment_inputs` does, starting
+    at its equilibrium with the first input (as :func:`ajtwin.apps.forecast.forecast`).
+    Any other profile reads the three inputs unchanged.
+    """
+    dynamics = getattr(getattr(functions, "step", None), "dynamics", None)
+    if dynamics is None or not dynamics.follows_inputs:
+        return inputs
+    target = dynamics.input_shift_um(inputs)
+    gain = 1.0 / dynamics.response_time_s  # Δt = 1 s, the forecast's step
+
+    def body(r, tk):
+        return r + gain * (tk - r), r
+
+    _, response = jax.lax.scan(body, target[0], target)
+    return jnp.concatenate([inputs, response[:, None]], axis=1)
+
+
+def plan_trajectory(z, plan, spec, mean, cov, theta, process_cov, functions=None):
+    """Moves (M, 3) from scaled z (3M,), and over the horizon outputs (H, 5), variances (H, 5).
+
+    ``functions``: the twin's model (discretisation, transition profile; ``twin.functions``),
+    the one its θ was learned on; None = the paper's Euler step.
+    """
     n_moves = plan.gaps.shape[0]
     moves = plan.lo + z.reshape(n_moves, 3) * plan.span
-    inputs = moves[plan.block_index]
-    _, _, y, var = _forecast_scan(spec, mean, cov, inputs, theta, process_cov)
+    inputs = model_inputs(moves[plan.block_index], functions)
+    _, _, y, var = _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions)
     return moves, y, var
 
 
-def plan_outputs(z, plan, spec, mean, cov, theta, process_cov):
+def plan_outputs(z, plan, spec, mean, cov, theta, process_cov, functions=None):
     """[L̂_w (H,), L̂_o (H,), var L_w (H,)] stacked: what the cost needs of the model."""
-    _, y, var = plan_trajectory(z, plan, spec, mean, cov, theta, process_cov)
+    _, y, var = plan_trajectory(z, plan, spec, mean, cov, theta, process_cov, functions)
     return jnp.concatenate([y[:, 0], y[:, 1], var[:, 0]])
 
 
@@ -367,8 +499,8 @@ def plan_cost(z, outputs, plan, u_prev, target, max_overspray):
     return jnp.mean(stage) + w_m * jnp.sum(step**2)
 
 
-def _linearise(z, plan, spec, mean, cov, theta, process_cov):
-    args = (plan, spec, mean, cov, theta, process_cov)
+def _linearise(z, plan, spec, mean, cov, theta, process_cov, functions=None):
+    args = (plan, spec, mean, cov, theta, process_cov, functions)
     return plan_outputs(z, *args), jax.jacfwd(plan_outputs)(z, *args)
 
 
@@ -377,15 +509,18 @@ def _linear_cost(z, z0, out0, jac, plan, u_prev, target, max_overspray):
     return plan_cost(z, out0 + jac @ (z - z0), plan, u_prev, target, max_overspray)
 
 
-def _exact_cost(z, plan, spec, mean, cov, theta, process_cov, u_prev, target, max_overspray):
-    outputs = plan_outputs(z, plan, spec, mean, cov, theta, process_cov)
+def _exact_cost(
+    z, plan, spec, mean, cov, theta, process_cov, u_prev, target, max_overspray, functions=None
+):
+    outputs = plan_outputs(z, plan, spec, mean, cov, theta, process_cov, functions)
     return plan_cost(z, outputs, plan, u_prev, target, max_overspray)
 
 
-_linearise_jit = jax.jit(_linearise)
+_STATIC = ("functions",)
+_linearise_jit = jax.jit(_linearise, static_argnames=_STATIC)
 _linear_objective = jax.jit(jax.value_and_grad(_linear_cost))
-_exact_cost_jit = jax.jit(_exact_cost)
-_trajectory_jit = jax.jit(plan_trajectory)
+_exact_cost_jit = jax.jit(_exact_cost, static_argnames=_STATIC)
+_trajectory_jit = jax.jit(plan_trajectory, static_argnames=_STATIC)
 
 
 class MPC:
@@ -417,7 +552,9 @@ class MPC:
         # time between a move and the one before it (the first: one control period)
         self.move_gaps = np.diff(np.concatenate([[starts[0] - s.period_s], starts])).astype(float)
         self.rates = np.asarray(s.rate_limits, dtype=float)
-        self.max_linearisations = 3
+        self.max_linearisations = int(s.max_linearisations)
+        # the twin's own model (discretisation, transition profile), as its forecast uses
+        self.functions = getattr(twin, "functions", None)
         self.plan_arrays = _PlanArrays(
             jnp.asarray(self.lo),
             jnp.asarray(self.span),
@@ -482,6 +619,7 @@ class MPC:
     ) -> MPCSolution:
         """Optimise the moves from (mean, cov, θ) with the command in force ``u_prev``."""
         t0 = time.process_time()
+        s = self.settings
         u_prev = np.asarray(u_prev, dtype=float)
         model_args = self._model_args(mean, cov, theta)
         u_prev_j = jnp.asarray(u_prev)
@@ -501,7 +639,7 @@ class MPC:
         # the plan still moves (the model is mildly nonlinear; the next solve, one period
         # later, re-linearises anyway)
         for _ in range(self.max_linearisations):
-            out0, jac = _linearise_jit(jnp.asarray(z0), *model_args)
+            out0, jac = _linearise_jit(jnp.asarray(z0), *model_args, functions=self.functions)
             lin_args = (jnp.asarray(z0), out0, jac, plan, u_prev_j, float(target_um), max_over)
 
             def fun(z, lin_args=lin_args):
@@ -515,7 +653,7 @@ class MPC:
                 method="SLSQP",
                 bounds=[(0.0, 1.0)] * (3 * self.n_moves),
                 constraints=[{"type": "ineq", "fun": lambda z: a @ z - b, "jac": lambda z: a}],
-                options={"maxiter": 100, "ftol": 1e-10},
+                options={"maxiter": s.max_iterations, "ftol": s.solver_tolerance},
             )
             iterations += int(result.nit)
             z_new = self._feasible(result.x, z_hold, step_scale)
@@ -525,7 +663,7 @@ class MPC:
                 break
         z = z0
         self._warm = z.reshape(self.n_moves, 3)
-        moves, y, var = _trajectory_jit(jnp.asarray(z), *model_args)
+        moves, y, var = _trajectory_jit(jnp.asarray(z), *model_args, functions=self.functions)
         moves = np.asarray(moves)
         command = clip_command(
             moves[0], u_prev, self.bounds, step_scale * self.rates * self.move_gaps[0]
@@ -537,7 +675,14 @@ class MPC:
             predicted_linewidth_std=np.sqrt(np.maximum(np.asarray(var[:, 0]), 0.0)),
             predicted_overspray=np.asarray(y[:, 1]),
             cost=float(
-                _exact_cost_jit(jnp.asarray(z), *model_args, u_prev_j, float(target_um), max_over)
+                _exact_cost_jit(
+                    jnp.asarray(z),
+                    *model_args,
+                    u_prev_j,
+                    float(target_um),
+                    max_over,
+                    functions=self.functions,
+                )
             ),
             solve_s=time.process_time() - t0,
             iterations=iterations,

@@ -75,6 +75,12 @@ def _parse_horizon(text) -> int | None:
     default=None,
     help="A control.toml of your own (default: the packaged tuning).",
 )
+@click.option(
+    "--vial-fill-ml",
+    type=float,
+    default=None,
+    help="The vial's fill as weighed at the refill [mL] (ink balance; default 1 mL).",
+)
 @store_option
 @click.option("--verbose", is_flag=True)
 @click.pass_context
@@ -92,6 +98,7 @@ def control(
     private_key,
     server_certificate,
     settings_path,
+    vial_fill_ml,
     store,
     verbose,
 ):
@@ -134,11 +141,21 @@ def control(
         settings_path,
         store,
         verbose,
+        vial_fill_ml,
     )
 
 
 def _control_live(
-    machine, target, max_overspray, horizon_s, url, login, settings_path, store, verbose
+    machine,
+    target,
+    max_overspray,
+    horizon_s,
+    url,
+    login,
+    settings_path,
+    store,
+    verbose,
+    vial_fill_ml=None,
 ):
     import asyncio
     import logging
@@ -185,6 +202,7 @@ def _control_live(
             settings=settings,
             max_overspray_um=max_overspray,
             on_decision=show,
+            vial_fill_ml=vial_fill_ml,
             **login,
         )
         asyncio.run(link.run())
@@ -226,6 +244,13 @@ def _control_live(
     default=None,
     help="A control.toml of your own (default: the packaged tuning).",
 )
+@click.option(
+    "--truth",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="Virtual printer's truth generator: model (tuned the controller) or alt (evaluation).",
+)
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def simulate(
     scenarios,
@@ -236,6 +261,7 @@ def simulate(
     duration_min,
     max_overspray,
     settings_path,
+    truth,
     no_progress,
 ):
     """Run the strategies in closed loop with the virtual printer and compare them.
@@ -279,6 +305,7 @@ def simulate(
                 max_overspray_um=max_overspray,
                 progress=bar.update,
                 log=lambda text: tqdm.write(text) if not no_progress else click.echo(text),
+                truth=truth,
             )
     except TargetError as exc:
         raise click.ClickException(str(exc)) from None
@@ -299,3 +326,30 @@ def simulate(
                 + (f"  solve {solve:5.1f} ms" if solve is not None else "")
             )
     click.echo(f"\nwrote {out_dir}/metrics.json and one figure per scenario")
+
+
+@control.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder.")
+def merge(runs, out_dir):
+    """Merge runs of ``control simulate`` (per seed, scenario or --truth) into one table.
+
+    RUNS are --out folders (or their metrics.json). Writes OUT/metrics.json (per seed and
+    recomputed summaries; a scenario of the second truth generator as NAME@alt) and
+    OUT/metrics.md (the comparison table), and prints the table.
+    """
+    import json
+
+    from ajtwin.apps.control_sim import merge_results, metrics_table
+
+    try:
+        merged = merge_results(runs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(merged, indent=2))
+    table = metrics_table(merged)
+    (out / "metrics.md").write_text(table)
+    click.echo(table, nl=False)
+    click.echo(f"wrote {out / 'metrics.json'} and {out / 'metrics.md'} ({len(runs)} runs)")

@@ -124,7 +124,7 @@ def start_inputs(twin, target_um, limits=None, max_overspray_um=None):
 @dataclass
 class Decision:
     command: np.ndarray
-    status: str = "act"  # act | hold | warm-up
+    status: str = "act"  # act | hold | warm-up | stop (latched: the ink ran low)
     reason: str = ""
     solve_s: float = float("nan")
     predicted_linewidth_um: float = float("nan")
@@ -243,6 +243,7 @@ class MPCNominal(_MPCStrategy):
         self.mean = self.cov = None
         self.first_u, self.first_y = [], []
         self.theta = np.zeros(5)
+        self.response = None  # input response r (input_following profiles): equilibrium first
 
     def observe(self, chunk):
         from ajtwin.estimation.twin import predict
@@ -258,11 +259,22 @@ class MPCNominal(_MPCStrategy):
             inputs = np.array(self.first_u)  # the fit is the state at the first sample
         else:
             inputs = chunk.inputs
+        # the twin's own model (transition profile), as the MPC plans with; a profile that
+        # follows the inputs reads the response column, filtered as the forecast does
+        if hasattr(twin, "model_inputs"):
+            inputs = twin.model_inputs(inputs, self.response)
         for u in inputs:
             self.mean, self.cov = (
                 np.asarray(a)
-                for a in predict(twin.spec, self.mean, self.cov, u, self.theta, twin.process_cov)
+                for a in predict(
+                    twin.spec, self.mean, self.cov, u, self.theta, twin.process_cov, twin.functions
+                )
             )
+        if inputs.shape[1] > 3:
+            from ajtwin.model.droplet_dynamics import next_response
+
+            last = inputs[-1]
+            self.response = next_response(float(last[3]), last[:3], twin.droplet_dynamics)
 
     def decide(self, t, u):
         if self.mean is None:
@@ -281,7 +293,14 @@ def _lw_variance(coefficients, mean, cov):
 
 
 class MPCTwin(_MPCStrategy):
-    """MPC on the twin: the streaming twin fed every sample, safety rules applied."""
+    """MPC on the twin: the streaming twin fed every sample, safety rules applied.
+
+    Besides the safety rules of :mod:`ajtwin.apps.control` it watches the ink supply
+    (:func:`ajtwin.apps.control.ink_supply_status`: its own ink balance from the measured
+    Q_m and the twin's vial observer). A vial running dry is not controllable with these
+    inputs, so on ``stop`` it latches: the inputs in force are held for the rest of the
+    print (reason ``ink_low: …``) — a refill is maintenance and a new print.
+    """
 
     name = "mpc_twin"
 
@@ -291,12 +310,34 @@ class MPCTwin(_MPCStrategy):
 
         self.stream = TwinStream("virtual", self.twin, asynchronous=False)
         self.holding = False
+        # the ink balance starts from the fill the twin was told (weighed at the refill)
+        self.vial_fill_ml = float(self.twin.config.vial_fill_ml)
+        calibration = getattr(self.twin, "calibration", None)
+        self.material_flow_gain = (
+            float(calibration.material_flow_gain) if calibration is not None else 1.0
+        )
+        self.material_flow: list[np.ndarray] = []
+        self.ink = None  # the latest InkSupply
+        self.ink_stop: str | None = None  # the latched reason, once stopped
 
     def observe(self, chunk):
         from ajtwin.live.engine import Sample
 
         for t, u, y in zip(chunk.time_s, chunk.inputs, chunk.outputs):
             self.stream.feed(Sample(float(t), u, y))
+        self.material_flow.append(np.asarray(chunk.outputs, dtype=float)[:, 4])
+
+    def ink_supply(self):
+        """The ink supply now (:func:`ajtwin.apps.control.ink_supply_status`)."""
+        from ajtwin.apps.control import ink_supply_status, vial_level_from_material_flow
+
+        q = np.concatenate(self.material_flow) if self.material_flow else np.array([])
+        balance = vial_level_from_material_flow(
+            q, self.vial_fill_ml, self.material_flow_gain, self.twin.model.params
+        )
+        observer = getattr(getattr(self.stream, "detector", None), "vial_status", None)
+        self.ink = ink_supply_status(balance, observer, self.settings)
+        return self.ink
 
     def safety(self):
         """Reasons not to act now (empty: act)."""
@@ -313,16 +354,26 @@ class MPCTwin(_MPCStrategy):
             status=getattr(self.stream, "mismatch_status", None),
         )
         status, cause = self.stream.status()
-        if status == "alarm" and cause not in self.settings.actionable_causes:
+        # 'ink running out' is the ink rule's (ink_supply): it keeps steering while the
+        # vial is inside H's fit and stops for good before it leaves it — no on/off holds
+        if status == "alarm" and cause not in (*self.settings.actionable_causes, "ink_low"):
             from ajtwin.apps.anomaly import CAUSES
 
             reasons.append(f"alarm the controller cannot act on: {CAUSES.get(cause, cause)}")
         return reasons
 
     def decide(self, t, u):
+        if self.ink_stop:
+            # latched: nothing the controller does brings the ink back
+            return Decision(u.copy(), "stop", self.ink_stop)
         h = self.stream.history
         if not len(h):
             return Decision(u.copy(), "warm-up", "waiting for the twin's initial fit")
+        ink = self.ink_supply()
+        if ink.status == "stop":
+            self.ink_stop = f"{ink.reason}; inputs held for the rest of the print (refill)"
+            self.mpc.reset()
+            return Decision(u.copy(), "stop", self.ink_stop)
         reasons = self.safety()
         if reasons:
             self.mpc.reset()
@@ -332,7 +383,10 @@ class MPCTwin(_MPCStrategy):
         sigma = float(
             np.sqrt(max(_lw_variance(self.twin.model.coefficient_matrix[0], mean, cov), 0.0))
         )
-        return self._act(mean, cov, self.stream.theta, u, sigma)
+        decision = self._act(mean, cov, self.stream.theta, u, sigma)
+        if ink.status == "low":
+            decision.reason = "; ".join(r for r in (decision.reason, ink.reason) if r)
+        return decision
 
 
 STRATEGY_CLASSES = {
@@ -374,8 +428,17 @@ def simulate_strategy(
     u0=None,
     overrides=None,
     progress=None,
+    truth: str = "model",
+    vial_fill_ml: float | None = None,
 ) -> ClosedLoopRun:
-    """Run one strategy in closed loop with the virtual printer; see the module docstring."""
+    """Run one strategy in closed loop with the virtual printer; see the module docstring.
+
+    ``truth``: the virtual printer's truth generator, ``"model"`` (the first, which tuned
+    the twin and the controller) or ``"alt"`` (the second, structurally different one:
+    evaluation only). ``vial_fill_ml``: the vial fill the twin is told (weighed at the
+    refill, as ``ajtwin machine maintain --vial-refilled``); default the scenario's
+    initial fill — the operator knows what was put in, not what evaporates later.
+    """
     from ajtwin.apps.advise import effective_bounds
     from ajtwin.estimation import Twin
     from ajtwin.simulation.stepper import SteppedPrinter
@@ -384,12 +447,14 @@ def simulate_strategy(
         raise ValueError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
     settings = settings or ControlSettings.load()
     target_um = check_target(target_um)
-    twin = Twin.default()
     bounds = effective_bounds(limits)
     if u0 is None:
-        u0, _ = start_inputs(twin, target_um, limits, max_overspray_um)
+        u0, _ = start_inputs(Twin.default(), target_um, limits, max_overspray_um)
     u0 = np.asarray(u0, dtype=float)
-    printer = SteppedPrinter(resolve_scenario(scenario), seed, duration_min, overrides)
+    printer = SteppedPrinter(resolve_scenario(scenario), seed, duration_min, overrides, truth)
+    if vial_fill_ml is None:
+        vial_fill_ml = float(printer.scenario.config["initial"]["vial_volume_mL"])
+    twin = Twin.default(vial_fill_ml=float(vial_fill_ml))
     controller = STRATEGY_CLASSES[strategy](
         twin=twin,
         settings=settings,
@@ -438,6 +503,8 @@ def simulate_strategy(
             "start_inputs": u0.tolist(),
             "settings": settings.source,
             "period_s": settings.period_s,
+            "truth_generator": truth,
+            "vial_fill_told_ml": float(vial_fill_ml),
         }
     }
     record = printer.record(extra_meta=meta)
@@ -477,6 +544,9 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
     if len(holds) and run.strategy != "open_loop":
         for t, reason in zip(holds["time_s"], holds["reason"]):
             reasons.setdefault(reason, float(t))
+    stops = c[c["status"] == "stop"] if len(c) else c
+    reasons_text = c["reason"].fillna("").astype(str) if len(c) else pd.Series([], dtype=str)
+    low = c[reasons_text.str.contains("ink running low")] if len(c) else c
     return {
         "rms_error_um": float(np.sqrt(np.mean(err**2))),
         "mean_error_um": float(np.mean(err)),
@@ -493,6 +563,11 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
             float(holds["time_s"].iloc[0]) if len(holds) and run.strategy != "open_loop" else None
         ),
         "hold_reasons": {r: t for r, t in list(reasons.items())[:5]},
+        # the ink supply (mpc_twin): a latched stop, and the earlier 'running low' warning
+        "ink_stop_s": float(stops["time_s"].iloc[0]) if len(stops) else None,
+        "ink_stop_reason": str(stops["reason"].iloc[0]) if len(stops) else None,
+        "n_stopped": int(len(stops)),
+        "ink_low_warning_s": float(low["time_s"].iloc[0]) if len(low) else None,
         "inside_limits": inside,
         "rate_limits_respected": rate_ok,
         "final_setpoints": sp[-1].tolist(),
@@ -517,6 +592,7 @@ def compare(
     max_overspray_um=None,
     progress=None,
     log=print,
+    truth: str = "model",
 ) -> dict:
     """Run every strategy on every scenario and seed; write records, metrics and figures."""
     from ajtwin.estimation import Twin
@@ -539,6 +615,9 @@ def compare(
         "strategies": list(strategies),
         "seeds": [int(s) for s in seeds],
         "duration_min": duration_min,
+        "truth_generator": truth,
+        # control.toml's tuning was chosen on the first generator (exp1 seeds 0 and 6)
+        "tuned_on": "model (first generator): exp1 seeds 0 and 6",
         "scenarios": {},
     }
     metrics_path = out / "metrics.json"
@@ -559,6 +638,7 @@ def compare(
                     max_overspray_um=max_overspray_um,
                     u0=u0,
                     progress=progress,
+                    truth=truth,
                 )
                 name = run.scenario
                 stem = out / name / f"seed{seed}"
@@ -602,6 +682,7 @@ def summarise(per_seed: dict, strategies) -> dict:
             "solve_ms_mean": float(np.mean(solve)) if solve else None,
             "solve_ms_max": float(np.max(solve_max)) if solve_max else None,
             "holds_mean": float(np.mean([r["n_holds"] for r in rows])),
+            "ink_stop_s_per_seed": [r.get("ink_stop_s") for r in rows],
             "all_inside_limits": bool(all(r["inside_limits"] for r in rows)),
             "all_rate_limits_respected": bool(all(r["rate_limits_respected"] for r in rows)),
         }
@@ -611,6 +692,107 @@ def summarise(per_seed: dict, strategies) -> dict:
             if other in out and twin_rms > 0:
                 out[f"ratio_rms_{other}_over_mpc_twin"] = out[other]["rms_error_um_mean"] / twin_rms
     return out
+
+
+# --------------------------------------------------------------------------- #
+# Merging runs made apart (per seed, per scenario, per truth generator)
+# --------------------------------------------------------------------------- #
+
+#: what every merged run must share (else the rows are not comparable)
+_MERGE_KEYS = ("target_linewidth_um", "start_inputs", "settings")
+
+
+def _load_metrics(path) -> tuple[Path, dict]:
+    path = Path(path)
+    file = path / "metrics.json" if path.is_dir() else path
+    if not file.is_file():
+        raise FileNotFoundError(f"{path}: no metrics.json (a DIR of ajtwin control simulate)")
+    try:
+        data = json.loads(file.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{file}: not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or "scenarios" not in data:
+        raise ValueError(f"{file}: not a metrics.json of ajtwin control simulate")
+    return file, data
+
+
+def merge_results(paths) -> dict:
+    """One metrics table from several ``control simulate`` runs (per seed or scenario).
+
+    Per-seed rows are collected under ``scenario`` (``scenario@alt`` for the second truth
+    generator) and the summaries recomputed over every seed found. The runs must share
+    the target, the start inputs and the settings; the same scenario, seed and strategy
+    twice must agree to the last digit (a re-run of the same thing), else it is an error.
+    """
+    if not paths:
+        raise ValueError("nothing to merge: give one or more run directories")
+    merged: dict = {"merged_from": [], "scenarios": {}}
+    per_seed: dict = {}
+    for path in paths:
+        file, data = _load_metrics(path)
+        # the run's folder name (regenerate.sh names one per scenario and generator)
+        merged["merged_from"].append(file.parent.name or str(file))
+        if data.get("note"):
+            merged.setdefault("notes", {})[file.parent.name or str(file)] = data["note"]
+        for key in _MERGE_KEYS:
+            if key not in merged:
+                merged[key] = data.get(key)
+            elif data.get(key) != merged[key]:
+                raise ValueError(
+                    f"{file}: {key} = {data.get(key)!r} differs from the runs before "
+                    f"({merged[key]!r}); runs with different {key} are not one table"
+                )
+        truth = data.get("truth_generator", "model")
+        merged.setdefault("tuned_on", data.get("tuned_on"))
+        for name, block in data["scenarios"].items():
+            key = name if truth == "model" else f"{name}@{truth}"
+            rows = per_seed.setdefault(key, {})
+            for seed, strategies in block["per_seed"].items():
+                for strategy, metrics in strategies.items():
+                    old = rows.get(seed, {}).get(strategy)
+                    if old is not None and old != metrics:
+                        raise ValueError(
+                            f"{file}: {key} seed {seed} {strategy} differs from an earlier "
+                            "run of the same print; merge runs of different prints only"
+                        )
+                    rows.setdefault(seed, {})[strategy] = metrics
+    for key, rows in per_seed.items():
+        strategies = [s for s in STRATEGIES if any(s in r for r in rows.values())]
+        ordered = dict(sorted(rows.items(), key=lambda kv: int(kv[0])))
+        merged["scenarios"][key] = {
+            "per_seed": ordered,
+            "summary": summarise(ordered, strategies),
+        }
+    return merged
+
+
+def metrics_table(results: dict) -> str:
+    """The comparison as a Markdown table: RMS error and time within ±2 µm per strategy."""
+    lines = [
+        "| scenario | seeds | " + " | ".join(STRATEGIES) + " | open/twin | PI/twin | twin stops |",
+        "|---" * (len(STRATEGIES) + 5) + "|",
+    ]
+    for name, block in results["scenarios"].items():
+        summary = block["summary"]
+        cells = []
+        for strategy in STRATEGIES:
+            row = summary.get(strategy)
+            cells.append(
+                "–"
+                if row is None
+                else f"{row['rms_error_um_mean']:.2f} µm, {row['within_2um_fraction_mean']:.0%}"
+            )
+        ratios = [summary.get(f"ratio_rms_{other}_over_mpc_twin") for other in ("open_loop", "pi")]
+        stops = (summary.get("mpc_twin") or {}).get("ink_stop_s_per_seed") or []
+        stop_text = ", ".join("–" if t is None else f"{t / 60:.0f} min" for t in stops)
+        lines.append(
+            f"| {name} | {','.join(block['per_seed'])} | "
+            + " | ".join(cells)
+            + " | "
+            + " | ".join("–" if r is None else f"{r:.2f}×" for r in ratios)
+            + f" | {stop_text or '–'} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot_scenario(runs: dict, target_um: float, path, title: str):
@@ -636,6 +818,18 @@ def plot_scenario(runs: dict, target_um: float, path, title: str):
         for i in range(3):
             axes[2 + i].plot(t, run.setpoints[:, i], lw=1, color=colour)
         holds = run.commands[run.commands["status"] == "hold"]
+        stops = run.commands[run.commands["status"] == "stop"]
+        if strategy == "mpc_twin" and len(stops):
+            for ax in axes:
+                ax.axvline(stops["time_s"].iloc[0] / 60.0, color="tab:red", lw=0.8, ls=":")
+            axes[0].annotate(
+                "mpc_twin stops: ink low",
+                (stops["time_s"].iloc[0] / 60.0, target_um - 2.0),
+                fontsize=7,
+                color="tab:red",
+                ha="right",
+                va="top",
+            )
         if strategy == "mpc_twin" and len(holds):
             axes[0].plot(
                 holds["time_s"] / 60.0,

@@ -28,8 +28,9 @@ non-finite or non-positive-definite posterior by the prior covariance P₀ at th
 predicted mean and flags the step.
 
 The EKF's step is the public pure function :func:`ekf_step` (carry in, carry
-and one step's outputs out); :func:`ekf` scans it over a print and a streaming
-engine calls it per sample, so both run the same math.
+and one step's outputs out), a streaming engine calls it per sample; it wraps
+:func:`ekf_step_in_loop`, the same step with the per-run constants taken out and
+results in scaled coordinates, which :func:`ekf` scans over a print. One math path.
 
 RTS (paper App. E): J_k = P_k F_kᵀ P_{k+1|k}⁻¹,
 x̂_{k|N} = x̂_k + J_k (x̂_{k+1|N} − x̂_{k+1|k}),
@@ -133,16 +134,27 @@ def _scaled_functions(spec: ModelSpec, functions: ModelFunctions):
 def _is_valid_covariance(p):
     """Finite, positive diagonal and eig_min > −1e-9 · max diag (a Cholesky test).
 
-    The Cholesky factor of sym + 1e-9 · max|diag| · I exists (is finite) exactly
-    when eig_min(sym) > −1e-9 · max|diag|: the same test as an eigenvalue
-    decomposition at a fraction of the cost per step.
+    The Cholesky factor of sym + 1e-9 · max|diag| · I exists exactly when
+    eig_min(sym) > −1e-9 · max|diag|: the same test as an eigenvalue decomposition
+    at a fraction of the cost. It is written out as symmetric Gaussian elimination
+    (the pivots of LDLᵀ, all > 0 ⇔ positive definite) in plain element-wise ops:
+    a LAPACK call is a custom call, which keeps XLA:CPU from compiling the
+    filter's ``lax.scan`` into one kernel (see ``ajtwin._jax``), and for a 5×5
+    matrix the call's overhead exceeds the arithmetic.
     """
+    n = p.shape[0]
     sym = 0.5 * (p + p.T)
     finite = jnp.all(jnp.isfinite(sym))
-    safe = jnp.where(finite, sym, jnp.eye(sym.shape[0]))
+    safe = jnp.where(finite, sym, jnp.eye(n))
     shift = 1e-9 * jnp.max(jnp.abs(jnp.diag(safe)))
-    chol = jnp.linalg.cholesky(safe + shift * jnp.eye(sym.shape[0]))
-    return finite & jnp.all(jnp.isfinite(chol)) & jnp.all(jnp.diag(sym) > 0)
+    a = safe + shift * jnp.eye(n)
+    positive = jnp.asarray(True)
+    for _ in range(n):  # static: eliminate the first row/column, keep the trailing block
+        pivot = a[0, 0]
+        positive = positive & (pivot > 0)
+        column = a[1:, 0]
+        a = a[1:, 1:] - jnp.outer(column, column) / pivot
+    return finite & positive & jnp.all(jnp.diag(sym) > 0)
 
 
 class EKFCarry(NamedTuple):
@@ -182,6 +194,136 @@ def ekf_init(spec: ModelSpec, prior_mean, prior_cov) -> EKFCarry:
     return EKFCarry(z0, p0, z0, p0)
 
 
+class StepConstants(NamedTuple):
+    """What every EKF step of a run shares, in *scaled* coordinates (:func:`step_constants`).
+
+    Computed once per run, outside the loop, so the step inside ``lax.scan`` does
+    only per-sample work.
+    """
+
+    process_cov: jnp.ndarray  # (5, 5) Σ_ξ / (s sᵀ)
+    measurement_var: jnp.ndarray  # (5,) diag Σ_w / r²
+    log_output_scale: jnp.ndarray  # (5,) log r: the log-likelihood back in display units
+    gate: jnp.ndarray  # () innovation gate in σ (inf: off)
+
+
+def step_constants(spec: ModelSpec, process_cov, measurement_var, gate=jnp.inf) -> StepConstants:
+    """Σ_ξ, diag Σ_w (display units) and the gate as the in-loop step wants them."""
+    s, r = spec.scaling.state, spec.scaling.output
+    return StepConstants(
+        jnp.asarray(process_cov, dtype=float) / jnp.outer(s, s),
+        jnp.asarray(measurement_var, dtype=float) / r**2,
+        jnp.log(r),
+        jnp.asarray(gate, dtype=float),
+    )
+
+
+def ekf_step_in_loop(
+    spec: ModelSpec,
+    carry: EKFCarry,
+    u,
+    eta,
+    theta,
+    constants: StepConstants,
+    functions: ModelFunctions = AJ_EULER,
+) -> tuple[EKFCarry, EKFStepOutput]:
+    """One EKF step in scaled coordinates: the body of :func:`ekf`'s ``lax.scan``.
+
+    The math of :func:`ekf_step` (which wraps this function) with everything that
+    is the same at every step taken out: the noise is scaled once
+    (:func:`step_constants`), the measurement comes in scaled (η = y / r), and the
+    step's results go out scaled — :func:`to_display_units` converts them, once per
+    run on the stacked arrays in :func:`ekf`, per sample in :func:`ekf_step`.
+
+    Returns
+    -------
+    (EKFCarry, EKFStepOutput)
+        The carry for step k+1 and step k's results in scaled coordinates
+        (``mean`` z_k, ``covariance`` P_k / (s sᵀ), ``predicted_output`` ĝ / r,
+        ``innovation_variance`` diag S_k / r²; the other fields as in display units).
+    """
+    f_s, g_s = _scaled_functions(spec, functions)
+    q, r_diag = constants.process_cov, constants.measurement_var
+    z_pred, p_pred, z0, p0 = carry
+
+    # --- update with y_k: one scalar update per output (Σ_w is diagonal) --------------
+    measured = jnp.isfinite(eta)
+    # value and Jacobian from one forward-mode pass (the primal is not evaluated twice)
+    h, y_hat = jax.jacfwd(lambda z: (g_s(z, u), g_s(z, u)), has_aux=True)(z_pred)
+    innovation = jnp.where(measured, eta - y_hat, 0.0)
+    s_diag = jnp.einsum("ij,jk,ik->i", h, p_pred, h) + r_diag  # diag(H P Hᵀ + Σ_w)
+    # per-output gate on the marginal innovation
+    keep = measured & (innovation**2 <= constants.gate**2 * s_diag)
+    # outputs not used at k become dummies h_i = 0, r_i = 1, ν_i = 0: their scalar update
+    # is then exactly the identity (k_i = 0, s_i = 1), with no select per output
+    h_k = jnp.where(keep[:, None], h, 0.0)
+    r_k = jnp.where(keep, r_diag, 1.0)
+    nu_k = jnp.where(keep, innovation, 0.0)
+    z_post, p_post = z_pred, p_pred
+    nis = jnp.zeros(())
+    log_det = jnp.zeros(())
+    for i in range(h.shape[0]):
+        # y_i given y_<i: innovation ν_i = η_i − h_i z^(i−1), variance s_i = h_i P^(i−1) h_iᵀ + r_i
+        h_i = h_k[i]
+        ph = p_post @ h_i
+        s_i = h_i @ ph + r_k[i]
+        nu_i = nu_k[i] - h_i @ (z_post - z_pred)
+        k_i = ph / s_i
+        if spec.update_mask is not None:
+            k_i = k_i * spec.update_mask
+        z_post = z_post + k_i * nu_i
+        # Joseph form for a scalar update: (I − k hᵀ) P (I − k hᵀ)ᵀ + r k kᵀ
+        m = p_post - jnp.outer(k_i, ph)
+        p_post = m - jnp.outer(m @ h_i, k_i) + r_k[i] * jnp.outer(k_i, k_i)
+        nis = nis + nu_i**2 / s_i
+        log_det = log_det + jnp.log(s_i)
+    p_post = 0.5 * (p_post + p_post.T)
+    n_meas = jnp.sum(keep)
+    log_lik = -0.5 * (nis + log_det + n_meas * jnp.log(2.0 * jnp.pi)) - jnp.sum(
+        jnp.where(keep, constants.log_output_scale, 0.0)
+    )
+
+    # --- divergence guard --------------------------------------------------------
+    ok = jnp.all(jnp.isfinite(z_post)) & _is_valid_covariance(p_post)
+    fallback = jnp.where(jnp.all(jnp.isfinite(z_pred)), z_pred, z0)
+    z_post = jnp.where(ok, z_post, fallback)
+    p_post = jnp.where(ok, p_post, p0)
+
+    # --- predict to k+1 ------------------------------------------------------------
+    f_jac, z_next = jax.jacfwd(lambda z: (f_s(z, u, theta), f_s(z, u, theta)), has_aux=True)(z_post)
+    p_next = f_jac @ p_post @ f_jac.T + q
+    p_next = 0.5 * (p_next + p_next.T)
+
+    out = EKFStepOutput(
+        mean=z_post,
+        covariance=p_post,
+        predicted_mean=z_pred,
+        predicted_covariance=p_pred,
+        transition_jacobian=f_jac,
+        predicted_output=y_hat,
+        innovation_variance=s_diag,
+        log_likelihood=log_lik,
+        nis=nis,
+        n_measured=n_meas,
+        reinitialised=~ok,
+    )
+    return EKFCarry(z_next, p_next, z0, p0), out
+
+
+def to_display_units(spec: ModelSpec, out: EKFStepOutput) -> EKFStepOutput:
+    """:func:`ekf_step_in_loop`'s scaled results in display units (one step or stacked)."""
+    s, r = spec.scaling.state, spec.scaling.output
+    ss = jnp.outer(s, s)
+    return out._replace(
+        mean=out.mean * s,
+        covariance=out.covariance * ss,
+        predicted_mean=out.predicted_mean * s,
+        predicted_covariance=out.predicted_covariance * ss,
+        predicted_output=out.predicted_output * r,
+        innovation_variance=out.innovation_variance * r**2,
+    )
+
+
 def ekf_step(
     spec: ModelSpec,
     carry: EKFCarry,
@@ -195,8 +337,8 @@ def ekf_step(
 ) -> tuple[EKFCarry, EKFStepOutput]:
     """One EKF step: update with y_k at x̂_{k|k-1}, then predict to k+1 (pure, jit-able).
 
-    The batch filter :func:`ekf` is ``lax.scan`` of this function, and a
-    streaming engine calls it once per sample: one math path.
+    A streaming engine calls this once per sample; the batch filter :func:`ekf`
+    scans :func:`ekf_step_in_loop`, which this function wraps: one math path.
 
         H = ∂g/∂x at x̂_{k|k-1},  S = H P Hᵀ + Σ_w,  K = P Hᵀ S⁻¹
         x̂_k = x̂_{k|k-1} + K (y_k − g(x̂_{k|k-1}, u_k))
@@ -238,76 +380,10 @@ def ekf_step(
     (EKFCarry, EKFStepOutput)
         The carry for step k+1 and step k's results.
     """
-    s, r = spec.scaling.state, spec.scaling.output
-    ss = jnp.outer(s, s)
-    f_s, g_s = _scaled_functions(spec, functions)
-    q = process_cov / ss
-    r_diag = measurement_var / r**2
-    z_pred, p_pred, z0, p0 = carry
-
-    # --- update with y_k: one scalar update per output (Σ_w is diagonal) --------------
-    eta = y / r
-    measured = jnp.isfinite(eta)
-    # value and Jacobian from one forward-mode pass (the primal is not evaluated twice)
-    h, y_hat = jax.jacfwd(lambda z: (g_s(z, u), g_s(z, u)), has_aux=True)(z_pred)
-    innovation = jnp.where(measured, eta - y_hat, 0.0)
-    s_diag = jnp.einsum("ij,jk,ik->i", h, p_pred, h) + r_diag  # diag(H P Hᵀ + Σ_w)
-    # per-output gate on the marginal innovation
-    keep = measured & (innovation**2 <= gate**2 * s_diag)
-    # outputs not used at k become dummies h_i = 0, r_i = 1, ν_i = 0: their scalar update
-    # is then exactly the identity (k_i = 0, s_i = 1), with no select per output
-    h_k = jnp.where(keep[:, None], h, 0.0)
-    r_k = jnp.where(keep, r_diag, 1.0)
-    nu_k = jnp.where(keep, innovation, 0.0)
-    z_post, p_post = z_pred, p_pred
-    nis = jnp.zeros(())
-    log_det = jnp.zeros(())
-    for i in range(h.shape[0]):
-        # y_i given y_<i: innovation ν_i = η_i − h_i z^(i−1), variance s_i = h_i P^(i−1) h_iᵀ + r_i
-        h_i = h_k[i]
-        ph = p_post @ h_i
-        s_i = h_i @ ph + r_k[i]
-        nu_i = nu_k[i] - h_i @ (z_post - z_pred)
-        k_i = ph / s_i
-        if spec.update_mask is not None:
-            k_i = k_i * spec.update_mask
-        z_post = z_post + k_i * nu_i
-        # Joseph form for a scalar update: (I − k hᵀ) P (I − k hᵀ)ᵀ + r k kᵀ
-        m = p_post - jnp.outer(k_i, ph)
-        p_post = m - jnp.outer(m @ h_i, k_i) + r_k[i] * jnp.outer(k_i, k_i)
-        nis = nis + nu_i**2 / s_i
-        log_det = log_det + jnp.log(s_i)
-    p_post = 0.5 * (p_post + p_post.T)
-    n_meas = jnp.sum(keep)
-    log_lik = -0.5 * (nis + log_det + n_meas * jnp.log(2.0 * jnp.pi)) - jnp.sum(
-        jnp.where(keep, jnp.log(r), 0.0)
-    )
-
-    # --- divergence guard --------------------------------------------------------
-    ok = jnp.all(jnp.isfinite(z_post)) & _is_valid_covariance(p_post)
-    fallback = jnp.where(jnp.all(jnp.isfinite(z_pred)), z_pred, z0)
-    z_post = jnp.where(ok, z_post, fallback)
-    p_post = jnp.where(ok, p_post, p0)
-
-    # --- predict to k+1 ------------------------------------------------------------
-    f_jac, z_next = jax.jacfwd(lambda z: (f_s(z, u, theta), f_s(z, u, theta)), has_aux=True)(z_post)
-    p_next = f_jac @ p_post @ f_jac.T + q
-    p_next = 0.5 * (p_next + p_next.T)
-
-    out = EKFStepOutput(
-        mean=z_post * s,
-        covariance=p_post * ss,
-        predicted_mean=z_pred * s,
-        predicted_covariance=p_pred * ss,
-        transition_jacobian=f_jac,
-        predicted_output=y_hat * r,
-        innovation_variance=s_diag * r**2,
-        log_likelihood=log_lik,
-        nis=nis,
-        n_measured=n_meas,
-        reinitialised=~ok,
-    )
-    return EKFCarry(z_next, p_next, z0, p0), out
+    constants = step_constants(spec, process_cov, measurement_var, gate)
+    eta = jnp.asarray(y, dtype=float) / spec.scaling.output
+    carry, out = ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions)
+    return carry, to_display_units(spec, out)
 
 
 def ekf(
@@ -322,7 +398,7 @@ def ekf(
     gate: float = jnp.inf,
     functions: ModelFunctions = AJ_EULER,
 ) -> FilterResult:
-    """Run the EKF over a print: ``lax.scan`` of :func:`ekf_step`.
+    """Run the EKF over a print: ``lax.scan`` of :func:`ekf_step_in_loop`.
 
     Parameters
     ----------
@@ -355,16 +431,16 @@ def ekf(
     n_steps = inputs.shape[0]
     n_theta = jnp.asarray(thetas).shape[-1]
     thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_steps, n_theta))
-    process_cov = jnp.asarray(process_cov, dtype=float)
-    measurement_cov = jnp.asarray(measurement_cov, dtype=float)
+    constants = step_constants(spec, process_cov, measurement_cov, gate)
 
     def body(carry, inp):
-        u, y, theta = inp
-        return ekf_step(spec, carry, u, y, theta, process_cov, measurement_cov, gate, functions)
+        u, eta, theta = inp
+        return ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions)
 
     carry = ekf_init(spec, prior_mean, prior_cov)
-    _, out = jax.lax.scan(body, carry, (inputs, measurements, thetas))
-    return FilterResult(*out)
+    eta = measurements / spec.scaling.output
+    _, out = jax.lax.scan(body, carry, (inputs, eta, thetas))
+    return FilterResult(*to_display_units(spec, out))
 
 
 ekf = jax.jit(ekf, static_argnames=("functions",))

@@ -109,8 +109,15 @@ class ControlLink:
         max_backoff_s: float = 10.0,
         publish_ms: int = 100,
         on_decision=None,
+        vial_fill_ml: float | None = None,
     ):
         from ajtwin.apps.control import ControlSettings, check_target
+
+        # the vial's fill as weighed at the refill: the start of the controller's ink
+        # balance and of the vial observer (None: the twin's default, 1 mL)
+        if vial_fill_ml is not None and not (np.isfinite(vial_fill_ml) and vial_fill_ml > 0):
+            raise ValueError(f"vial fill = {vial_fill_ml!r} mL must be a positive number")
+        self.vial_fill_ml = vial_fill_ml
         from ajtwin.store.registry import DEFAULT_LIMITS
 
         self.url, self.machine = url, machine
@@ -155,8 +162,9 @@ class ControlLink:
             return
         self.bounds = effective_bounds(self.limits)
         u_ref = np.array([np.mean(b) for b in self.bounds])
+        fill = {} if self.vial_fill_ml is None else {"vial_fill_ml": float(self.vial_fill_ml)}
         self.controller = MPCTwin(
-            twin=Twin.default(),
+            twin=Twin.default(**fill),
             settings=self.settings,
             bounds=self.bounds,
             u0=u_ref,
@@ -387,8 +395,10 @@ class ControlLink:
             decision.predicted_linewidth_um,
         )
         self.decisions.append(record)
-        if decision.status == "hold":
-            log.warning("%s t = %.0f s: HOLD — %s", self.machine, t, decision.reason)
+        if decision.status in ("hold", "stop"):  # stop: latched, the ink ran low
+            log.warning(
+                "%s t = %.0f s: %s — %s", self.machine, t, decision.status.upper(), decision.reason
+            )
         if self.on_decision:
             self.on_decision(record)
 

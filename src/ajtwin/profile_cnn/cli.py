@@ -17,22 +17,48 @@ import click
 
 from ajtwin.io.cli_options import join_options
 
+_SMOOTHING_HELP = (
+    "σ (µm) of the Gaussian smoothing of profilometer scans before registration "
+    "(default: data/profile_cnn.toml, 1.25; 0 = none). Scan noise otherwise moves "
+    "the stage-1 targets' edges by ~19 µm."
+)
 
-def _synthetic(n_pairs, n_columns, seed, um_per_px, progress):
+
+def _smoothing_option(f):
+    return click.option("--scan-smoothing-um", type=float, default=None, help=_SMOOTHING_HELP)(f)
+
+
+def _synthetic(n_pairs, n_columns, seed, um_per_px, progress, scan_smoothing_um=None):
     from ajtwin.profile_cnn.synth import synthetic_labelled, synthetic_pairs
 
-    pairs = synthetic_pairs(n_pairs, seed=seed, um_per_px=um_per_px, progress=progress)
+    pairs = synthetic_pairs(
+        n_pairs,
+        seed=seed,
+        um_per_px=um_per_px,
+        progress=progress,
+        scan_smoothing_um=scan_smoothing_um,
+    )
     labelled = synthetic_labelled(n_columns, seed=seed, um_per_px=um_per_px, progress=progress)
     return pairs, labelled
 
 
-def _load_data(pairs_path, columns_path, synthetic, n_pairs, n_columns, seed, um_per_px, progress):
+def _load_data(
+    pairs_path,
+    columns_path,
+    synthetic,
+    n_pairs,
+    n_columns,
+    seed,
+    um_per_px,
+    progress,
+    scan_smoothing_um=None,
+):
     from ajtwin.profile_cnn.data import load_dataset
 
     if synthetic:
         if pairs_path or columns_path:
             raise click.UsageError("--synthetic replaces --pairs/--columns; give one or the other")
-        return _synthetic(n_pairs, n_columns, seed, um_per_px, progress)
+        return _synthetic(n_pairs, n_columns, seed, um_per_px, progress, scan_smoothing_um)
     if not pairs_path and not columns_path:
         raise click.UsageError("give --pairs and/or --columns data sets, or --synthetic")
     try:
@@ -74,12 +100,18 @@ def _training_options(f):
             "0 = the paper's pure feature loss (inflates Q_m; see docs/profile_cnn.md).",
         ),
         click.option(
+            "--arch",
+            type=click.Choice(["resnet18", "unet1d"]),
+            default="resnet18",
+            show_default=True,
+            help="Network: the paper's 1-D ResNet-18, or a small 1-D U-Net (docs/profile_cnn.md).",
+        ),
+        click.option(
             "--width",
             "base_channels",
             type=int,
-            default=64,
-            show_default=True,
-            help="Channels of the first stage (64 = ResNet-18's 64-512).",
+            default=None,
+            help="Channels of the first stage (default: 64 = ResNet-18's 64-512; U-Net 16).",
         ),
         click.option("--threads", type=int, default=None, help="torch threads (default 1)."),
         click.option("--synthetic", is_flag=True, help="Train on synthetic rendered data."),
@@ -114,6 +146,12 @@ def _training_options(f):
             show_default=True,
             help="Pixel size of synthetic data, µm.",
         ),
+        click.option(
+            "--scan-smoothing-um",
+            type=float,
+            default=None,
+            help="With --synthetic: " + _SMOOTHING_HELP,
+        ),
         click.option("--progress/--no-progress", default=True, show_default=True),
     ]
     for option in reversed(options):
@@ -135,6 +173,7 @@ def _config(kw):
         stage2_replay_weight=kw["replay_weight"],
         stage2_area_weight=kw["area_weight"],
         base_channels=kw["base_channels"],
+        arch=kw["arch"],
         n_threads=kw["threads"],
     )
 
@@ -150,12 +189,13 @@ def cnn():
 @click.option("--n-columns", type=int, default=4000, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--um-per-px", type=float, default=0.75, show_default=True)
+@_smoothing_option
 @click.option("--progress/--no-progress", default=True, show_default=True)
-def synth(out_dir, n_pairs, n_columns, seed, um_per_px, progress):
+def synth(out_dir, n_pairs, n_columns, seed, um_per_px, scan_smoothing_um, progress):
     """Render synthetic training data: OUT_DIR/pairs.npz and OUT_DIR/columns.npz."""
     from ajtwin.profile_cnn.data import save_dataset
 
-    pairs, labelled = _synthetic(n_pairs, n_columns, seed, um_per_px, progress)
+    pairs, labelled = _synthetic(n_pairs, n_columns, seed, um_per_px, progress, scan_smoothing_um)
     out = Path(out_dir)
     click.echo(f"wrote {save_dataset(pairs, out / 'pairs.npz')} ({len(pairs)} pairs)")
     click.echo(f"wrote {save_dataset(labelled, out / 'columns.npz')} ({len(labelled)} columns)")
@@ -172,7 +212,8 @@ def synth(out_dir, n_pairs, n_columns, seed, um_per_px, progress):
     show_default=True,
     help="Average 2·N+1 neighbouring frame columns per pair.",
 )
-def pairs(manifest, um_per_px, out, half_width_px):
+@_smoothing_option
+def pairs(manifest, um_per_px, out, half_width_px, scan_smoothing_um):
     """Build stage-1 pairs from real frames and profilometer scans (MANIFEST CSV).
 
     Columns: frame, column_px, line_row_px, scan, scan_row, scan_pixel_size_um
@@ -181,7 +222,12 @@ def pairs(manifest, um_per_px, out, half_width_px):
     from ajtwin.profile_cnn.data import pairs_from_manifest, save_dataset
 
     try:
-        data = pairs_from_manifest(manifest, um_per_px, half_width_px=half_width_px)
+        data = pairs_from_manifest(
+            manifest,
+            um_per_px,
+            half_width_px=half_width_px,
+            scan_smoothing_um=scan_smoothing_um,
+        )
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"wrote {save_dataset(data, out)} ({len(data)} pairs)")
@@ -240,6 +286,7 @@ def train(out, checkpoint, resume, init_path, **kw):
         kw["seed"],
         kw["um_per_px"],
         kw["progress"],
+        kw["scan_smoothing_um"],
     )
     config = _config(kw)
     init = ProfileModel.load(init_path) if init_path else None
@@ -291,6 +338,7 @@ def crossval(k, only, out, **kw):
         kw["seed"],
         kw["um_per_px"],
         kw["progress"],
+        kw["scan_smoothing_um"],
     )
     if pairs_ds is None or labelled is None:
         raise click.UsageError("cross-validation needs both --pairs and --columns (or --synthetic)")

@@ -12,8 +12,11 @@ Scores (all on columns the model never trained on):
   which is the relative error of Q_m = ν·A at any platen speed;
   ``qm_rel_bias`` the signed mean;
 * ``feature_nan_fraction`` — share of predicted profiles on which the SPEC §9
-  definitions cannot be applied (no shoulder peak, tail leaving the column);
-  the MAEs are over the others.
+  definitions cannot be applied (no shoulder peak, tail leaving the column)
+  even after the read-out's smoothing fallback
+  (:func:`~ajtwin.profile_cnn.features.read_features`); the MAEs are over the
+  others. ``feature_fallback_fraction`` — share that needed the fallback
+  (undefined on the raw predicted profile).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.profile_cnn.data import ColumnDataset
-from ajtwin.profile_cnn.features import features_numpy
+from ajtwin.profile_cnn.features import features_numpy, read_features
 from ajtwin.profile_cnn.flow import cross_section_area_um2
 from ajtwin.profile_cnn.model import ProfileModel
 from ajtwin.profile_cnn.train import TrainConfig, Trainer
@@ -41,10 +44,11 @@ def score(model: ProfileModel, data: ColumnDataset) -> dict:
     t0 = time.perf_counter()
     pred = model.predict_um(data.columns)
     infer_s = time.perf_counter() - t0
-    lw, ov = features_numpy(pred, data.um_per_px)
+    lw, ov, fallback = read_features(pred, data.um_per_px)
     out: dict = {
         "n_columns": len(data),
         "feature_nan_fraction": float(np.mean(~(np.isfinite(lw) & np.isfinite(ov)))),
+        "feature_fallback_fraction": float(np.mean(fallback)),
         "inference_columns_per_s": len(data) / infer_s if infer_s > 0 else float("nan"),
     }
     if data.linewidth_um is not None:
@@ -179,6 +183,7 @@ REPORT_ROWS = (
     ("Q_m relative bias, held-out pairs", "pairs", "qm_rel_bias"),
     ("Q_m relative error, held-out columns", "columns", "qm_rel_error"),
     ("features undefined (share of columns)", "columns", "feature_nan_fraction"),
+    ("read through the smoothing fallback (share)", "columns", "feature_fallback_fraction"),
 )
 
 

@@ -181,3 +181,39 @@ def features_numpy(h_um, um_per_px: float) -> tuple[np.ndarray, np.ndarray]:
             torch.as_tensor(np.atleast_2d(h_um), dtype=torch.float64), um_per_px
         )
     return lw.numpy(), ov.numpy()
+
+
+def read_features(h_um, um_per_px: float, *, sigma_um: float | None = None, tries: int = 3):
+    """Linewidth and overspray of predicted profiles, defined on every profile if possible.
+
+    The SPEC §9 definitions react to sub-nm slopes, so a profile with a small
+    ripple on its tail may have no clean threshold crossing or shoulder peak
+    (``nan``). Those profiles — and only those — are read again after a
+    Gaussian smoothing of σ = ``sigma_um`` (default: the scan smoothing the
+    stage-1 targets were made with, ``data/profile_cnn.toml``), doubling σ up
+    to ``tries`` times. Profiles that are defined as they are keep their value.
+
+    Returns
+    -------
+    linewidth_um, overspray_um : ndarray (N,)
+    fallback : ndarray (N,) bool
+        Profiles read through the smoothing fallback.
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    from ajtwin.profile_cnn.data import default_scan_smoothing_um
+
+    h = np.atleast_2d(np.asarray(h_um, dtype=np.float64))
+    lw, ov = features_numpy(h, um_per_px)
+    bad = ~(np.isfinite(lw) & np.isfinite(ov))
+    fallback = bad.copy()
+    sigma = default_scan_smoothing_um() if sigma_um is None else float(sigma_um)
+    for _ in range(tries):
+        if not bad.any() or sigma <= 0:
+            break
+        smooth = gaussian_filter1d(h[bad], sigma / um_per_px, axis=1, mode="nearest")
+        lw_s, ov_s = features_numpy(smooth, um_per_px)
+        lw[bad], ov[bad] = lw_s, ov_s
+        bad = ~(np.isfinite(lw) & np.isfinite(ov))
+        sigma *= 2
+    return lw, ov, fallback

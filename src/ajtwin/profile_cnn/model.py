@@ -15,7 +15,7 @@ import torch
 
 from ajtwin.profile_cnn.data import normalize_columns
 from ajtwin.profile_cnn.flow import material_flow_ml_s
-from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile
+from ajtwin.profile_cnn.network import NetworkConfig, build_network
 
 FORMAT_VERSION = 1
 
@@ -40,7 +40,7 @@ class ProfileModel:
 
     Parameters
     ----------
-    network : ResNet18Profile
+    network : ResNet18Profile or UNet1dProfile
     um_per_px : float
         Camera pixel size the network was trained at, µm.
     height_scale_um : float
@@ -57,7 +57,7 @@ class ProfileModel:
 
     def __init__(
         self,
-        network: ResNet18Profile,
+        network: torch.nn.Module,
         um_per_px: float,
         height_scale_um: float,
         meta: dict | None = None,
@@ -123,7 +123,7 @@ class ProfileModel:
             raise ValueError(
                 f"model format {state.get('format_version')!r}; this ajtwin reads {FORMAT_VERSION}"
             )
-        net = ResNet18Profile(NetworkConfig.from_dict(state["network_config"]))
+        net = build_network(NetworkConfig.from_dict(state["network_config"]))
         net.load_state_dict(state["state_dict"])
         net.eval()
         return cls(net, state["um_per_px"], state["height_scale_um"], state.get("meta"))

@@ -34,11 +34,17 @@ class NetworkConfig:
         (ResNet-18: 64 → 64–512 channels).
     blocks_per_stage : tuple of int
         Basic blocks per stage (ResNet-18: 2, 2, 2, 2).
+    arch : {"resnet18", "unet1d"}
+        The paper's ResNet-18 or the small 1-D U-Net (:class:`UNet1dProfile`).
+    depth : int
+        U-Net only: number of 2× down-samplings (``n_pixels`` must divide by 2**depth).
     """
 
     n_pixels: int = 200
     base_channels: int = 64
     blocks_per_stage: tuple[int, ...] = (2, 2, 2, 2)
+    arch: str = "resnet18"
+    depth: int = 3
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -47,7 +53,7 @@ class NetworkConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> NetworkConfig:
-        d = dict(d)
+        d = dict(d)  # models saved before the U-Net option have no arch/depth: ResNet
         d["blocks_per_stage"] = tuple(d["blocks_per_stage"])
         return cls(**d)
 
@@ -146,6 +152,97 @@ class ResNet18Profile(nn.Module):
             )
         features = self.pool(self.stages(self.stem(x))).flatten(1)
         return self.head(features)
+
+
+class ConvBlock1d(nn.Sequential):
+    """Two 3-tap convolutions, each with batch norm and ReLU (the U-Net's unit)."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__(
+            nn.Conv1d(in_channels, out_channels, 3, 1, 1, bias=False),
+            nn.BatchNorm1d(out_channels),
+            nn.ReLU(inplace=True),
+            nn.Conv1d(out_channels, out_channels, 3, 1, 1, bias=False),
+            nn.BatchNorm1d(out_channels),
+            nn.ReLU(inplace=True),
+        )
+
+
+class UNet1dProfile(nn.Module):
+    """Small 1-D U-Net (Ronneberger et al. 2015): the "simpler model" of issue #19.
+
+    The ResNet's global average pool squeezes the column into one vector and a
+    dense head re-creates 200 heights, so an edge's position must survive a
+    7-sample bottleneck. A U-Net keeps full resolution through skip
+    connections and predicts each height from a local window (receptive field
+    ±46 pixels at depth 3), which is what the edge definitions need.
+
+    Encoder: ``depth`` levels of :class:`ConvBlock1d` + 2× max-pool with
+    c, 2c, 4c … channels, a bottleneck block with ``c·2**depth``; decoder:
+    2× transposed convolution, concatenation with the encoder's skip, a block;
+    a 1×1 convolution gives one height per pixel (same scale convention as
+    :class:`ResNet18Profile`).
+
+    Examples
+    --------
+    >>> net = UNet1dProfile(NetworkConfig(arch="unet1d", base_channels=16))
+    >>> net(torch.zeros(2, 200)).shape
+    torch.Size([2, 200])
+    """
+
+    def __init__(self, config: NetworkConfig):
+        super().__init__()
+        self.config = config
+        n, depth, c = config.n_pixels, config.depth, config.base_channels
+        if depth < 1 or n % 2**depth:
+            raise ValueError(f"a depth-{depth} U-Net needs n_pixels divisible by {2**depth}")
+        widths = [c * 2**i for i in range(depth + 1)]
+        self.down = nn.ModuleList()
+        in_ch = 1
+        for w in widths[:-1]:
+            self.down.append(ConvBlock1d(in_ch, w))
+            in_ch = w
+        self.pool = nn.MaxPool1d(2)
+        self.bottom = ConvBlock1d(widths[-2], widths[-1])
+        self.up = nn.ModuleList()
+        self.merge = nn.ModuleList()
+        for hi, lo in zip(widths[:0:-1], widths[-2::-1], strict=True):
+            self.up.append(nn.ConvTranspose1d(hi, lo, 2, stride=2))
+            self.merge.append(ConvBlock1d(2 * lo, lo))
+        self.head = nn.Conv1d(widths[0], 1, 1)
+        for m in self.modules():
+            if isinstance(m, nn.Conv1d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        nn.init.zeros_(self.head.weight)  # start from a flat profile, like a blank prior
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 2:
+            x = x.unsqueeze(1)
+        if x.shape[-1] != self.config.n_pixels:
+            raise ValueError(
+                f"column has {x.shape[-1]} pixels; this network takes {self.config.n_pixels}"
+            )
+        skips = []
+        for block in self.down:
+            x = block(x)
+            skips.append(x)
+            x = self.pool(x)
+        x = self.bottom(x)
+        for up, merge, skip in zip(self.up, self.merge, reversed(skips), strict=True):
+            x = merge(torch.cat([up(x), skip], dim=1))
+        return self.head(x)[:, 0]
+
+
+ARCHS = {"resnet18": ResNet18Profile, "unet1d": UNet1dProfile}
+DEFAULT_WIDTH = {"resnet18": 64, "unet1d": 16}
+
+
+def build_network(config: NetworkConfig) -> nn.Module:
+    """The network named by ``config.arch``."""
+    if config.arch not in ARCHS:
+        raise ValueError(f"unknown network {config.arch!r} (choose from {', '.join(ARCHS)})")
+    return ARCHS[config.arch](config)
 
 
 def count_parameters(module: nn.Module) -> int:

@@ -8,7 +8,8 @@
   cut out exactly as at inference (:mod:`ajtwin.profile_cnn.frames`). The
   "profilometer scan" of the same profile is sampled at 0.5 µm with 3 nm
   height noise and a random tilt, and goes through the real-data path:
-  levelling, centring and area-preserving resampling
+  levelling, Gaussian smoothing (``scan_smoothing_um``), centring and
+  area-preserving resampling
   (:func:`ajtwin.profile_cnn.data.register_profile`).
 * :func:`synthetic_labelled` — stage 2, thousands of batch columns labelled
   only by the computer-vision extractor (the "CV labels"), from frames of
@@ -28,7 +29,7 @@ import warnings
 import numpy as np
 from tqdm.auto import tqdm
 
-from ajtwin.profile_cnn.data import ColumnDataset, register_profile
+from ajtwin.profile_cnn.data import ColumnDataset, default_scan_smoothing_um, register_profile
 from ajtwin.vision.extract import LineExtractor
 from ajtwin.vision.profile import line_profile, minimum_area_um2, profile_features
 from ajtwin.vision.render import RenderSettings, Substrate, render_frame
@@ -85,8 +86,12 @@ def synthetic_pairs(
     batch: int = 50,
     ranges: LineRanges = LineRanges(),
     progress: bool = True,
+    scan_smoothing_um: float | None = None,
 ) -> ColumnDataset:
     """Stage-1 pairs: (batch-mean column of a rendered frame, registered scan profile).
+
+    ``scan_smoothing_um`` (default: the packaged setting) smooths each scan
+    before registration, as for real scans.
 
     Returns
     -------
@@ -94,6 +99,8 @@ def synthetic_pairs(
         ``columns``, ``profiles_um`` (registered synthetic profilometer scans),
         ``extra['true_linewidth_um' / 'true_overspray_um']``; one group per pair.
     """
+    if scan_smoothing_um is None:
+        scan_smoothing_um = default_scan_smoothing_um()
     rng = np.random.default_rng([seed, 1])
     # a profilometer scan is one cross-section: render it straight along the line
     base = RenderSettings.from_defaults(um_per_px=um_per_px, raggedness_um=0.0)
@@ -120,7 +127,13 @@ def synthetic_pairs(
         scan = np.interp(x, r, h)
         scan = scan + rng.normal(0.0, PROFILOMETER_NOISE_UM, x.size)
         scan = scan + rng.uniform(-2e-3, 2e-3) * (x - x[0]) + rng.uniform(-0.5, 0.5)
-        profile = register_profile(scan, PROFILOMETER_STEP_UM, um_per_px, n_pixels=n_pixels)
+        profile = register_profile(
+            scan,
+            PROFILOMETER_STEP_UM,
+            um_per_px,
+            n_pixels=n_pixels,
+            smoothing_um=scan_smoothing_um,
+        )
         lw, ov = profile_features(r, h)
         columns.append(column)
         profiles.append(profile)

@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 from ajtwin.profile_cnn import features as feat
 from ajtwin.profile_cnn.data import ColumnDataset, normalize_columns
 from ajtwin.profile_cnn.model import ProfileModel, set_threads
-from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile
+from ajtwin.profile_cnn.network import DEFAULT_WIDTH, NetworkConfig, build_network
 
 
 @dataclass
@@ -65,8 +65,12 @@ class TrainConfig:
         1e3–1e5 (the feature loss is in µm²); 0 = the paper's pure feature loss,
         which inflated Q_m by +29 % (half width, 10-fold CV) and diverged at
         full width (Q_m +220 %), hence the default 1000.
-    base_channels : int
-        64 = ResNet-18 (64–512 channels); smaller only for tests.
+    base_channels : int, optional
+        Channels of the first stage/level; default per ``arch`` (ResNet-18: 64,
+        i.e. 64–512 channels; U-Net: 16). Smaller only for tests.
+    arch : {"resnet18", "unet1d"}
+        The paper's ResNet-18 (default) or the small 1-D U-Net compared in
+        docs/profile_cnn.md.
     n_threads : int, optional
         torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
     grad_clip : float
@@ -89,7 +93,8 @@ class TrainConfig:
     max_shift_px: int = 6
     stage2_replay_weight: float = 0.0
     stage2_area_weight: float = 1000.0
-    base_channels: int = 64
+    base_channels: int | None = None
+    arch: str = "resnet18"
     n_threads: int | None = None
     grad_clip: float = 5.0
     stage1_brightness_weight: float = 0.0
@@ -180,8 +185,14 @@ class Trainer:
             if pairs is None:
                 raise ValueError("training from scratch needs stage-1 pairs (or an init model)")
             torch.manual_seed(config.seed)
-            net = ResNet18Profile(
-                NetworkConfig(n_pixels=ref.n_pixels, base_channels=config.base_channels)
+            if config.arch not in DEFAULT_WIDTH:
+                raise ValueError(f"unknown network {config.arch!r}")
+            net = build_network(
+                NetworkConfig(
+                    n_pixels=ref.n_pixels,
+                    base_channels=config.base_channels or DEFAULT_WIDTH[config.arch],
+                    arch=config.arch,
+                )
             )
             scale = float(np.mean(np.max(pairs.profiles_um, axis=1)))
             if not scale > 0:

@@ -24,6 +24,10 @@ duration_min : float, optional
     Override the scenario's duration [min].
 overrides : dict, optional
     Scenario overrides.
+truth : {"model", "alt"}
+    The truth generator: the first (:mod:`ajtwin.simulation.truth`, which tuned the twin)
+    or the second, structurally different one (:mod:`ajtwin.simulation.truth_alt`, for
+    evaluation only), as ``simulate --truth``.
 
 Examples
 --------
@@ -81,7 +85,12 @@ class Chunk:
 class SteppedPrinter:
     """The virtual printer, advanced chunk by chunk under changing set-points."""
 
-    def __init__(self, scenario="exp1", seed: int = 0, duration_min=None, overrides=None):
+    def __init__(
+        self, scenario="exp1", seed: int = 0, duration_min=None, overrides=None, truth="model"
+    ):
+        if truth not in ("model", "alt"):
+            raise ValueError(f"truth generator {truth!r}: choose 'model' or 'alt'")
+        self.truth = truth
         scenario = load_scenario(scenario, overrides)
         if duration_min is not None:
             scenario = scenario.with_duration(duration_min)
@@ -93,7 +102,7 @@ class SteppedPrinter:
         self.n = scenario.duration_s
         self.schedule = scenario.setpoints(self.n).astype(float)
         streams = make_streams(self.seed)
-        self._processes = draw_processes(scenario, streams)
+        self._processes = self._draw(streams)
         nominal = coefficient_matrix(load_output_coefficients())
         self.line_factors, self.line_coefficients = draw_line_coefficients(
             scenario, streams, nominal, self.params
@@ -106,6 +115,33 @@ class SteppedPrinter:
         self._true_states = np.full((self.n, 5), np.nan)
         self._true_outputs = np.full((self.n, 5), np.nan)
         self._substeps = int(scenario.config["truth"]["integration_substeps"])
+        if truth == "alt":
+            from ajtwin.simulation.truth_alt import load_alt_settings
+
+            self._alt = load_alt_settings()
+            dep = self._alt["deposition"]
+            self._deposition = (
+                float(dep["reference_um"]),
+                float(dep["tube_size_exponent"]),
+                float(dep["nozzle_size_exponent"]),
+            )
+            self._substeps = int(self._alt["measurement"]["substeps"])
+
+    def _draw(self, streams, setpoints=None):
+        """The exogenous processes for a schedule (the alt truth replaces d_a and η)."""
+        processes = draw_processes(self.scenario, streams, setpoints=setpoints)
+        if self.truth == "alt":
+            from ajtwin.simulation.truth_alt import alt_processes
+
+            processes = alt_processes(self.scenario, processes, self.seed)
+        return processes
+
+    def _measure(self, processes, filled):
+        if self.truth == "alt":
+            from ajtwin.simulation.truth_alt import alt_measure
+
+            return alt_measure(self.scenario, processes, filled, self.seed, self._alt)
+        return measure(self.scenario, processes, filled, make_streams(self.seed))
 
     @property
     def done(self) -> bool:
@@ -115,9 +151,7 @@ class SteppedPrinter:
     def processes(self):
         """The exogenous processes under the schedule as it stands now."""
         if self._dirty:
-            self._processes = draw_processes(
-                self.scenario, make_streams(self.seed), setpoints=self.schedule
-            )
+            self._processes = self._draw(make_streams(self.seed), setpoints=self.schedule)
             self._dirty = False
         return self._processes
 
@@ -155,23 +189,39 @@ class SteppedPrinter:
         droplet_next = np.append(droplet[1:], droplet[-1])
         # pad to the requested length so every chunk of one size shares a compilation
         idx = np.minimum(np.arange(k0, k0 + seconds), k1 - 1)
-        self._carry, emitted = _scan_seconds_jit(
-            self._carry,
-            droplet[idx],
-            droplet_next[idx],
-            p.head_inputs[idx],
-            p.drivers[idx],
-            self.params,
-            self._coefficients,
-            substeps=self._substeps,
-        )
+        if self.truth == "alt":
+            from ajtwin.simulation.truth_alt import _scan_jit as _alt_scan_jit
+
+            self._carry, emitted = _alt_scan_jit(
+                self._carry,
+                droplet[idx],
+                droplet_next[idx],
+                p.head_inputs[idx],
+                p.drivers[idx],
+                self.params,
+                self._coefficients,
+                self._deposition,
+                substeps=self._substeps,
+            )
+        else:
+            self._carry, emitted = _scan_seconds_jit(
+                self._carry,
+                droplet[idx],
+                droplet_next[idx],
+                p.head_inputs[idx],
+                p.drivers[idx],
+                self.params,
+                self._coefficients,
+                substeps=self._substeps,
+            )
         n_new = k1 - k0  # padding past the end of the print only ever moves a spent carry
-        states, _, outputs, _ = (np.asarray(e)[:n_new] for e in emitted)
+        # (states, substrate ink, outputs[, generation]): the alt scan emits no generation
+        states, outputs = (np.asarray(emitted[i])[:n_new] for i in (0, 2))
         self._true_states[k0:k1] = states
         self._true_outputs[k0:k1] = outputs
         # the measurement layer on the print so far (rows are independent)
         filled = np.nan_to_num(self._true_outputs, nan=1.0)
-        inputs, measured = measure(self.scenario, p, filled, make_streams(self.seed))
+        inputs, measured = self._measure(p, filled)
         self.k = k1
         return Chunk(
             time_s=np.arange(k0, k1, dtype=float),
@@ -189,7 +239,7 @@ class SteppedPrinter:
             raise ValueError("a record needs at least 2 printed seconds")
         p = self.processes
         filled = np.nan_to_num(self._true_outputs, nan=1.0)
-        inputs, outputs = measure(self.scenario, p, filled, make_streams(self.seed))
+        inputs, outputs = self._measure(p, filled)
         columns = {TIME_COLUMN: np.arange(k, dtype=float)}
         columns.update({c: inputs[:k, i] for i, c in enumerate(INPUT_COLUMNS)})
         columns.update({c: outputs[:k, i] for i, c in enumerate(OUTPUT_COLUMNS)})
@@ -215,6 +265,8 @@ class SteppedPrinter:
             },
             **(extra_meta or {}),
         }
+        if self.truth != "model":
+            meta["truth_generator"] = self.truth
         return PrintRecord(data, meta)
 
     @property

@@ -8,7 +8,9 @@ machine and the paper's machine. Per machine:
    (d_a known from a droplet measurement: truth + N(0, 0.1 µm), given as ±0.1 µm);
 2. the next 90-min ``exp1`` print of that machine (continuing from the commissioning
    print) run by the calibrated twin, started where commissioning left the machine:
-   errors at 30/60/90 min, ±2σ coverage, alarms, the mismatch guard;
+   errors at 30/60/90 min, ±2σ coverage, alarms, the mismatch guard; the detectors start
+   with the long-run noise scale the calibrated twin showed on the commissioning print
+   (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`, as the registry carries it);
 3. BEFORE: the same print run by the uncalibrated (nominal) twin, as a new user would:
    errors, coverage, alarms, when the guard fires;
 4. a 30-min ``nozzle_clog`` print (onset 15 min) on the commissioned machine:
@@ -56,14 +58,21 @@ def _coverage(run, states):
     return {name: float(np.mean(z[:, i] <= 2.0)) for i, name in enumerate(STATES)}
 
 
-def _run(twin, record, start=None):
+def _square_z(run, states):
+    """Σ z² and count per state, z = (x̂ − x)/σ (pooled into an rms z by summarise)."""
+    z = (run.means - states) / np.maximum(run.stds, 1e-300)
+    return {name: [float(np.sum(z[:, i] ** 2)), int(len(z))] for i, name in enumerate(STATES)}
+
+
+def _run(twin, record, start=None, long_run_history=None):
     from ajtwin.apps.anomaly import detect_run
     from ajtwin.apps.mismatch import assess_run, relabel_events
 
     t0 = time.process_time()
     run = twin.run(record, start=start)
     status = assess_run(run, record)
-    events = relabel_events(detect_run(run, record).events, status)
+    detection = detect_run(run, record, long_run_history=long_run_history)
+    events = relabel_events(detection.events, status)
     return run, status, events, time.process_time() - t0
 
 
@@ -87,6 +96,10 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
     )
     commission_cpu = time.process_time() - t0
+    # the detectors' long-run noise scale of this machine, as `machine commission` stores it
+    from ajtwin.apps.anomaly import commissioning_long_run_history
+
+    history = commissioning_long_run_history(comm.record, result)
     truth_cal = comm.machine.calibration()._asdict()
     recovery = {
         row["parameter"]: {
@@ -115,6 +128,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         ),
         nxt.record,
         start,
+        history,
     )
     before_run, before_status, before_events, before_cpu = _run(Twin.default(), nxt.record)
     out = {
@@ -125,6 +139,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         "after": {
             "errors": _errors(after_run, nxt.states, checks),
             "coverage": _coverage(after_run, nxt.states),
+            "square_z": _square_z(after_run, nxt.states),
             "alarms": [(e.cause, e.detected_s) for e in after_events],
             "mismatch": after_status.to_dict(),
             "cpu_s": after_cpu,
@@ -156,6 +171,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
             ),
             clog_print.record,
             start,
+            history,
         )
         onset = clog_print.record.meta["fault_onset_s"]
         hits = [e for e in clog_events if e.cause == "nozzle_clog" and e.detected_s >= onset]
@@ -216,6 +232,16 @@ def summarise(results: dict) -> dict:
         "guard_uncommissioned_first_s": [m["before"]["mismatch"]["first_s"] for m in machines],
         "guard_commissioned_fired": [m["after"]["mismatch"]["mismatch"] for m in machines],
         "guard_nominal_fired": {g: v["mismatch"]["mismatch"] for g, v in nominal.items()},
+        # honest bands: 1; below 1 the bands are too wide (pooled over the machines, after)
+        "rms_z_after": {
+            s: float(
+                np.sqrt(
+                    sum(m["after"]["square_z"][s][0] for m in machines)
+                    / sum(m["after"]["square_z"][s][1] for m in machines)
+                )
+            )
+            for s in STATES
+        },
     }
     if "paper" in results:
         summary["paper_after_errors"] = results["paper"]["after"]["errors"]
@@ -223,8 +249,13 @@ def summarise(results: dict) -> dict:
     return summary
 
 
-def run_all(quick: bool = False, progress=print, n_machines=None, checkpoint=None) -> dict:
-    seeds = MACHINE_SEEDS[:1] if quick else MACHINE_SEEDS[: n_machines or len(MACHINE_SEEDS)]
+def run_all(
+    quick: bool = False, progress=print, n_machines=None, checkpoint=None, seeds=None
+) -> dict:
+    """``seeds``: other held-out machine seeds (``--seeds 1006-1020``; print seeds follow
+    the machine seed, so 1001-1005 print exactly as in the default run)."""
+    if seeds is None:
+        seeds = MACHINE_SEEDS[:1] if quick else MACHINE_SEEDS[: n_machines or len(MACHINE_SEEDS)]
     minutes = 30.0 if quick else 90.0
     results = {"machines": []}
     t0 = time.perf_counter()
@@ -235,9 +266,11 @@ def run_all(quick: bool = False, progress=print, n_machines=None, checkpoint=Non
         machine="paper", print_seed=2201, minutes=minutes, clog=False
     )
     progress(f"paper done ({time.perf_counter() - t0:.0f} s)")
-    for i, seed in enumerate(seeds):
+    for seed in seeds:
         results["machines"].append(
-            evaluate_machine(machine_seed=seed, print_seed=2001 + 10 * i, minutes=minutes)
+            evaluate_machine(
+                machine_seed=seed, print_seed=2001 + 10 * (seed - MACHINE_SEEDS[0]), minutes=minutes
+            )
         )
         progress(f"machine {seed} done ({time.perf_counter() - t0:.0f} s)")
         if checkpoint is not None:  # nothing lost if the run is stopped
@@ -254,8 +287,8 @@ def _markdown(results: dict, command: str, load: str) -> str:
         "",
         f"Command: `{command}`  ",
         f"Load at start: {load}; wall {results['wall_s']:.0f} s.",
-        "Evaluation on the SECOND truth generator (`--truth alt`, tuned nothing); machine seeds "
-        f"{', '.join(str(m) for m in MACHINE_SEEDS)} (held out), print seeds 2001+.",
+        "Evaluation on the SECOND truth generator (`--truth alt`, tuned nothing); machines "
+        f"{', '.join(m['machine'] for m in results['machines'])} (held out), print seeds 2001+.",
         "",
         "| machine | phase | d_a err 30/60/90 | φ_A err 30/60/90 | V_l err 30/60/90 "
         "| ΔR_N nm 30/60/90 | cover d_a/V_l/φ_A/ΔR_N/ΔR_T | alarms | guard |",
@@ -292,6 +325,8 @@ def _markdown(results: dict, command: str, load: str) -> str:
         f"{s['guard_uncommissioned_first_s']}.",
         f"Guard on commissioned machines fired: {s['guard_commissioned_fired']}; "
         f"on the nominal machine: {s['guard_nominal_fired']}.",
+        "rms z = (estimate − truth)/σ pooled over the commissioned machines (1 = honest "
+        "bands): " + ", ".join(f"{k} {v:.2f}" for k, v in s["rms_z_after"].items()) + ".",
         "",
         "Calibration recovery (z = (fitted − true)/std error, determined parameters):",
         "",
@@ -326,17 +361,23 @@ if __name__ == "__main__":
     if "--machines" in sys.argv:
         n_machines = int(sys.argv[sys.argv.index("--machines") + 1])
     load = open("/proc/loadavg").read().split()[:3] if os.path.exists("/proc/loadavg") else "?"
+    seeds = None
+    if "--seeds" in sys.argv:  # e.g. 1006-1020: more held-out machines, results_1006_1020.*
+        first, last = (int(v) for v in sys.argv[sys.argv.index("--seeds") + 1].split("-"))
+        seeds = list(range(first, last + 1))
     OUT.mkdir(parents=True, exist_ok=True)
-    name = "quick" if quick else "results"
+    name = "quick" if quick else "results" if seeds is None else f"results_{first}_{last}"
 
     def checkpoint(partial):
         (OUT / f"{name}.partial.json").write_text(json.dumps(partial, indent=1, default=float))
 
-    results = run_all(quick=quick, n_machines=n_machines, checkpoint=checkpoint)
+    results = run_all(quick=quick, n_machines=n_machines, checkpoint=checkpoint, seeds=seeds)
     (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
     (OUT / f"{name}.partial.json").unlink(missing_ok=True)  # the whole run is in name.json
     command = "python benchmarks/bench_machine.py" + (" --quick" if quick else "")
     if n_machines:
         command += f" --machines {n_machines}"
+    if seeds:
+        command += f" --seeds {first}-{last}"
     (OUT / f"{name}.md").write_text(_markdown(results, command, " ".join(load)))
     print(_markdown(results, command, " ".join(load)))

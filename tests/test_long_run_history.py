@@ -215,3 +215,61 @@ def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_pri
     assert carried_long_run_history(reg, "m") == commissioning  # newer than the print
     ingest_record(reg, "m", two_prints[1])
     assert carried_long_run_history(reg, "m") == reg.long_run_history("m")[1] != printed
+
+
+def test_a_clog_after_a_false_alarm_of_another_channel_is_its_own_event():
+    """A Q_m false alarm at ~70 s, then a clog (both pressures +1.5σ) at 400 s: within
+    merge_s (600 s) of it, but on another family of channels and more than 120 s after its
+    last alarm, so the clog is reported as a clog (before: swallowed into the Q_m event)."""
+    s = DetectorSettings()
+    e = np.zeros((900, 5))
+    e[61:80, 4] = -4.0  # a short Q_m dip (after the warm-up)
+    e[400:, 2:4] = 1.5
+    means = np.tile(X0, (900, 1))
+    predicted = means.copy()
+    predicted[400:, 3] -= 1e-3  # the filter pushes ΔR_N up
+    args = {**_arrays(e), "predicted_means": predicted}
+    events = detect_anomalies(**args, settings=s).events
+    assert [ev.cause for ev in events][-1] == "nozzle_clog", [
+        (ev.cause, ev.detectors) for ev in events
+    ]
+    assert events[0].detectors[0] == "cusum− Q_m" and len(events) == 2
+    assert 400 < events[1].detected_s <= 400 + 16 / (3.0 - 0.7) + 2  # the common channel
+    from dataclasses import replace
+
+    merged = detect_anomalies(**args, settings=replace(s, merge_other_family_s=1e9)).events
+    assert len(merged) == 1 and merged[0].cause != "nozzle_clog"
+
+
+def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
+    from ajtwin.apps.anomaly import label_cause
+
+    s = DetectorSettings()
+    # held-out machine 1006 (alt): P_s +0.69σ, P_c +0.13σ over 159 s, ΔR_N pushed +45σ
+    mean, n, shift = [0.03, -0.19, 0.13, 0.69, -0.35], [159] * 5, [0, 0, 0, 45.6, -14.3]
+    assert label_cause(mean, n, shift, 1.0, s) == "nozzle_clog"
+    # the same gauges with ΔR_N not pushed up stay unexplained; P_c falling stays a leak
+    assert label_cause(mean, n, [0, 0, 0, 0.5, 0], 1.0, s) == "unexplained"
+    assert label_cause([0, 0, -0.4, 0.69, 0], n, shift, 1.0, s) == "carrier_leak"
+
+
+def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):
+    """`ajtwin live`: a closed live print stores its detectors' statistics; the machine's
+    next live print starts its detectors with them."""
+    from ajtwin.live.engine import LiveEngine, Sample
+
+    first, second = two_prints
+    reg = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
+    for k in range(len(first)):
+        engine.feed("m", Sample(first.time_s[k], first.inputs[k], first.outputs[k]))
+    engine.close("m")
+    seq, stored = reg.long_run_history("m")
+    assert seq == 1 and len(stored["blocks"]["30"]) == 9
+    stream = engine.open("m")
+    carried = stream.detector.long_run.history()
+    assert np.array_equal(
+        carried[30], np.array(stored["blocks"]["30"], dtype=float), equal_nan=True
+    )
+    assert np.array_equal(stream.detector.long_run.scale, np.array(stored["scale"]))
+    engine.shutdown()

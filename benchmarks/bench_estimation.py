@@ -23,7 +23,15 @@ import warnings
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation import DEFAULT_SCALING, ModelSpec, Twin, ekf, ekf_fleet, rts_smoother
+from ajtwin.estimation import (
+    DEFAULT_SCALING,
+    ModelSpec,
+    Twin,
+    ekf,
+    ekf_fleet,
+    ekf_fleet_threaded,
+    rts_smoother,
+)
 from ajtwin.estimation.em import e_step, m_step, run_em
 from ajtwin.estimation.filters import AJ_EULER, ModelFunctions, _scaled_functions
 from ajtwin.simulation import simulate
@@ -254,6 +262,20 @@ def main() -> dict:
         t_fleet = _best(run_fleet, 3)
         key = f"ekf_fleet_{machines}_machines_machine_steps_per_s"
         out[key] = round(machines * steps / t_fleet)
+
+        # the same on every core: blocks of machines, one thread each
+        def run_threaded(fleet=fleet, thetas=thetas):
+            return ekf_fleet_threaded(spec, *fleet, thetas, q, r).means[:, -1]
+
+        if machines == 1000:
+            out["ekf_fleet_threaded_vs_ekf_fleet_max_abs_diff"] = float(
+                np.max(np.abs(run_threaded() - np.asarray(run_fleet())))
+            )
+        run_threaded()
+        t_threaded = _best(run_threaded, 3)
+        key = f"ekf_fleet_threaded_{machines}_machines_machine_steps_per_s"
+        out[key] = round(machines * steps / t_threaded)
+    out["cpu_count"] = os.cpu_count()
     out["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     return out
 

@@ -9,6 +9,7 @@ from ajtwin.estimation import (
     Twin,
     ekf,
     ekf_fleet,
+    ekf_fleet_threaded,
     ekf_init,
     ekf_step,
 )
@@ -72,6 +73,10 @@ def test_fleet_equals_one_filter_per_machine():
                 err_msg=f"{name}, machine {m}",
             )
     assert int(np.asarray(fleet.n_measured)[1, 11]) == 0
+    # the same fleet split over threads (blocks of 2 and 1 machines): the same bits
+    threaded = ekf_fleet_threaded(SPEC, means, covs, us, ys, thetas, q, r, 4.0, workers=2)
+    for name, column in zip(fleet._fields, fleet):
+        np.testing.assert_array_equal(np.asarray(getattr(threaded, name)), np.asarray(column))
 
 
 _FIELD = {

@@ -11,6 +11,7 @@ from ajtwin.estimation.filters import (
     SmootherResult,
     ekf,
     ekf_fleet,
+    ekf_fleet_threaded,
     ekf_init,
     ekf_step,
     rts_smoother,
@@ -21,6 +22,7 @@ from ajtwin.estimation.twin import Twin, TwinConfig, TwinRun
 __all__ = [
     "ekf",
     "ekf_fleet",
+    "ekf_fleet_threaded",
     "ekf_step",
     "ekf_init",
     "EKFCarry",

@@ -480,6 +480,50 @@ def ekf_fleet(
 ekf_fleet = jax.jit(ekf_fleet, static_argnames=("functions",))
 
 
+def ekf_fleet_threaded(
+    spec: ModelSpec,
+    prior_means,
+    prior_covs,
+    inputs,
+    measurements,
+    thetas,
+    process_cov,
+    measurement_cov,
+    gate: float = jnp.inf,
+    functions: ModelFunctions = AJ_EULER,
+    workers: int | None = None,
+) -> FilterResult:
+    """:func:`ekf_fleet` on several cores: the fleet split into ``workers`` blocks of
+    machines, each block one call of the same compiled :func:`ekf_fleet` from its own
+    thread (XLA runs a call without holding Python's GIL, so the blocks run at once).
+
+    A host-side shell, not jit-able; the math is :func:`ekf_fleet`'s and the results
+    are the same bit for bit (each machine's filter is the same kernel either way).
+    ``workers``: default ``os.cpu_count()``, at most one block per machine. Returns
+    NumPy arrays with the leading machine axis.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    arrays = [np.asarray(a) for a in (prior_means, prior_covs, inputs, measurements, thetas)]
+    n_machines = arrays[0].shape[0]
+    n_blocks = max(1, min(int(workers or os.cpu_count() or 1), n_machines))
+    edges = np.linspace(0, n_machines, n_blocks + 1).astype(int)
+
+    def block(i):
+        part = [a[edges[i] : edges[i + 1]] for a in arrays]
+        result = ekf_fleet(
+            spec, *part, process_cov, measurement_cov, gate=gate, functions=functions
+        )
+        return jax.tree_util.tree_map(np.asarray, result)
+
+    if n_blocks == 1:
+        return block(0)
+    with ThreadPoolExecutor(n_blocks, thread_name_prefix="ekf_fleet") as pool:
+        parts = list(pool.map(block, range(n_blocks)))
+    return FilterResult(*(np.concatenate(fields) for fields in zip(*parts)))
+
+
 def rts_smoother(spec: ModelSpec, filtered: FilterResult) -> SmootherResult:
     """Rauch–Tung–Striebel smoothing of an EKF run (paper App. E).
 

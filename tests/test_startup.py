@@ -107,3 +107,63 @@ def test_estimate_path_does_not_load_torch_opencv_or_matplotlib():
         "print(json.dumps(sorted(m for m in ('torch', 'cv2', 'matplotlib') if m in sys.modules)))"
     )
     assert json.loads(_python(code)) == []
+
+
+_EXPORT_PROBE = """
+import json, sys
+import numpy as np
+from ajtwin._jax import jax, jnp, compilation_cache_dir
+from ajtwin._aot import exported_jit
+traced = []
+
+def model(x, scale, gate=2.0, kind="square"):
+    traced.append(kind)  # runs only when JAX traces the Python function
+    y = x * scale if kind == "scale" else x**2
+    return {"y": y, "n": jnp.sum(x > gate)}
+
+f = exported_jit(model, static_argnames=("kind",))
+x = jnp.linspace(0.0, 3.0, 7)
+out = f(x, 1.5)
+ref = jax.jit(model, static_argnames=("kind",))(x, 1.5)
+vm = jax.vmap(lambda v: f(v, 2.0)["y"])(jnp.ones((3, 2)))  # a tracer: plain jit
+other = f(x, 1.5, kind="scale")
+d = compilation_cache_dir()
+files = sorted(p.name for p in (d / "exported").iterdir()) if d else []
+same = bool(np.array_equal(out["y"], ref["y"])) and int(ref["n"]) == int(out["n"])
+print(json.dumps({"y": np.asarray(out["y"]).tolist(), "n": int(out["n"]), "same": same,
+                  "vmap": np.asarray(vm).tolist(), "scale": np.asarray(other["y"]).tolist(),
+                  "traced": traced, "files": files}))
+"""
+
+
+def test_exported_programs_skip_tracing_in_a_new_process(tmp_path):
+    """ajtwin._aot: the lowered program is read back by the next process (no tracing),
+    results equal plain jax.jit's, static arguments and shapes get entries of their own,
+    transformations and a switched-off cache take the plain path, a broken entry is
+    traced again."""
+    base = tmp_path / "cache"
+    first = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    x = [3.0 * i / 6 for i in range(7)]
+    assert first["same"]
+    assert first["y"] == [v**2 for v in x] and first["n"] == 2
+    assert first["scale"] == [1.5 * v for v in x]
+    assert first["vmap"] == [[1.0, 1.0]] * 3
+    # traced: square (export), square (plain jit reference), square (vmap), scale (export)
+    assert sorted(first["traced"]) == ["scale", "square", "square", "square"]
+    assert len(first["files"]) == 4  # two programs, each with its output tree
+
+    second = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert second["y"] == first["y"] and second["scale"] == first["scale"]
+    assert sorted(second["traced"]) == ["square", "square"]  # only the reference and vmap
+    assert second["files"] == first["files"]
+
+    # a truncated program (a crash mid-write on a system without atomic rename) is retraced
+    directory = next(base.iterdir()) / "exported"
+    for path in directory.glob("*.stablehlo"):
+        path.write_bytes(path.read_bytes()[:20])
+    third = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert third["y"] == first["y"] and third["scale"] == first["scale"]
+    assert sorted(third["traced"]) == sorted(first["traced"])
+
+    off = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base), AJTWIN_NO_CACHE="1"))
+    assert off["y"] == first["y"] and off["files"] == []

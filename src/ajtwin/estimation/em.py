@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.estimation.filters import (
     AJ_EULER,
@@ -273,7 +274,7 @@ def _empty_smoother_result(n_steps, n):
     )
 
 
-em_loop = jax.jit(em_loop, static_argnames=("functions",))
+em_loop = exported_jit(em_loop, static_argnames=("functions",))
 
 
 def e_step(

@@ -44,6 +44,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.model.system import euler_step, output_function, rk4_step
 
@@ -443,7 +444,7 @@ def ekf(
     return FilterResult(*to_display_units(spec, out))
 
 
-ekf = jax.jit(ekf, static_argnames=("functions",))
+ekf = exported_jit(ekf, static_argnames=("functions",))
 
 
 def ekf_fleet(

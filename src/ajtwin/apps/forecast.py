@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
 from ajtwin.model.system import check_input, output_function
@@ -166,7 +167,7 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     return out
 
 
-_forecast_scan = jax.jit(_forecast_scan, static_argnames=("functions",))
+_forecast_scan = exported_jit(_forecast_scan, static_argnames=("functions",))
 
 
 def forecast(

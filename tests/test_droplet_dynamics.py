@@ -18,6 +18,7 @@ from ajtwin.model.droplet_dynamics import (
     DropletStep,
     augment_inputs,
     load_droplet_dynamics,
+    model_input,
     next_response,
     transition_profiles,
 )
@@ -88,6 +89,28 @@ def test_step_is_linear_in_theta():
         jac = jax.jacfwd(lambda th, step=step, u=u: step(X, u, th, PARAMS))(jnp.zeros(5))
         affine = step(X, u, jnp.zeros(5), PARAMS) + jac @ theta
         np.testing.assert_allclose(step(X, u, theta, PARAMS), affine, rtol=1e-12, atol=1e-20)
+
+
+def test_model_input_sample_by_sample_gives_augment_inputs_rows():
+    """The live engine's per-sample input (model_input) = augment_inputs on the whole
+    sequence, bit for bit (one recursion, response_step)."""
+    dyn = load_droplet_dynamics("input_following")
+    rng = np.random.default_rng(3)
+    inputs = np.column_stack(
+        [
+            350 + 40 * rng.random(300),
+            np.repeat(20 + 6 * rng.random(6), 50),
+            np.full(300, 60.0),
+        ]
+    )
+    rows, response = [], None
+    for u in inputs:
+        row, response = model_input(u, response, dyn)
+        rows.append(row)
+    np.testing.assert_array_equal(np.array(rows), augment_inputs(inputs, dyn))
+    # a profile that does not follow the inputs passes them through
+    same, r = model_input(inputs[0], None, load_droplet_dynamics("mean_reverting"))
+    assert r is None and np.array_equal(same, inputs[0])
 
 
 def test_input_response_is_a_first_order_lag_of_the_step():

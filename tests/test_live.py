@@ -68,6 +68,37 @@ def test_stream_equals_batch(clog_record, asynchronous):
         assert raised and raised[0]["detected_s"] == detection.events[0].detected_s
 
 
+@pytest.mark.parametrize("asynchronous", [False, True])
+def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchronous):
+    """The input_following profile reads the input response r as a 4th input: the stream
+    carries it sample by sample (model.droplet_dynamics.model_input) through EM
+    boundaries and held samples, and equals the batch twin's Twin.model_inputs run."""
+    rec = clog_record
+    u = rec.inputs.copy()
+    u[100:, 1] += 3.0  # carrier steps (r follows with τ_u = 90 s) ...
+    u[220:, 0] -= 25.0  # ... and the atomizer current
+    overrides = {**FAST_EM, "transition": "input_following"}
+    batch_twin = Twin.default(**overrides)
+    run = batch_twin.run(inputs=u, measurements=rec.outputs, time_s=rec.time_s)
+    # the response is not constant over this record, so the test can tell it apart
+    r = batch_twin.model_inputs(u)[:, 3]
+    assert np.ptp(r) > 0.05
+
+    stream = TwinStream.new("m", twin_overrides=overrides, asynchronous=asynchronous)
+    for t, uk, yk in zip(rec.time_s, u, rec.outputs):
+        stream.feed(Sample(t, uk, yk))
+    stream.finish()
+    arrays = stream.arrays()
+    assert np.array_equal(np.asarray(stream.history.model_inputs)[:, 3], r)
+    assert _relative(arrays["means"], run.means) < 1e-9
+    assert _relative(arrays["covariances"], np.asarray(run.filtered.covariances)) < 1e-9
+    assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
+    assert _relative(stream.theta, batch_twin.theta) < 1e-9
+    # the paper profile on the same inputs differs: the response column is not ignored
+    paper = Twin.default(**FAST_EM).run(inputs=u, measurements=rec.outputs, time_s=rec.time_s)
+    assert _relative(paper.means[:, 0], run.means[:, 0]) > 1e-3
+
+
 def test_gaps_duplicates_and_old_samples(clog_record):
     rec = clog_record.window(0, 120)
     keep = [k for k in range(len(rec)) if k not in (40, 41, 42)]  # a 3 s gap
@@ -104,11 +135,13 @@ def test_clean_sample_bad_wire_data():
     assert s is None and "not a number" in problems[0]
 
 
-def test_engine_many_machines_batched_equals_single(clog_record):
+@pytest.mark.parametrize("transition", ["paper", "input_following"])
+def test_engine_many_machines_batched_equals_single(clog_record, transition):
     from ajtwin.live.engine import LiveEngine
 
     rec = clog_record.window(0, 200)
-    engine = LiveEngine(twin_overrides=FAST_EM, asynchronous=False)
+    overrides = {**FAST_EM, "transition": transition}
+    engine = LiveEngine(twin_overrides=overrides, asynchronous=False)
     got = []
     engine.subscribe(got.append)
     names = ["a", "b", "c"]
@@ -118,7 +151,7 @@ def test_engine_many_machines_batched_equals_single(clog_record):
         if k > 0:
             items.append(("c", Sample(rec.time_s[k - 1], rec.inputs[k - 1], rec.outputs[k - 1])))
         engine.feed_many(items)
-    single = TwinStream.new("s", twin_overrides=FAST_EM, asynchronous=False)
+    single = TwinStream.new("s", twin_overrides=overrides, asynchronous=False)
     _feed_all(single, rec)
     for n in names:
         arrays = engine.sessions[n].stream.arrays()
@@ -232,3 +265,19 @@ def test_follow_growing_csv(clog_record, tmp_path, caplog):
     run = Twin.default().run(inputs=u, measurements=y, time_s=rec.time_s)
     assert _relative(means, run.means) < 1e-9
     assert "line 32: not numbers" in caplog.text
+
+
+def test_live_cli_refuses_an_unknown_transition_profile(tmp_path):
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main
+
+    csv = tmp_path / "p.csv"
+    csv.write_text("time_s\n")
+    result = CliRunner().invoke(
+        main,
+        ["live", "--machine", "m", "--follow", str(csv), "--transition", "nope"]
+        + ["--store", str(tmp_path / "s.sqlite")],
+    )
+    assert result.exit_code == 2
+    assert "no profile 'nope'" in result.output and "input_following" in result.output

@@ -173,6 +173,14 @@ def serve(
     metavar="PORT",
     help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
 )
+@click.option(
+    "--transition",
+    default="paper",
+    show_default=True,
+    help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml "
+    "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
+    "docs/forecast.md).",
+)
 @click.option("--verbose", is_flag=True)
 @store_option
 def live(
@@ -190,6 +198,7 @@ def live(
     messages,
     max_backoff,
     dashboard_port,
+    transition,
     verbose,
     store,
 ):
@@ -204,8 +213,17 @@ def live(
         raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
+    from ajtwin.model.droplet_dynamics import transition_profiles
+
+    if transition not in transition_profiles():
+        raise click.BadParameter(
+            f"no profile {transition!r}; choose one of {', '.join(transition_profiles())}",
+            param_hint="--transition",
+        )
     registry = open_registry(store, create=True)  # the live twin writes
-    engine = LiveEngine(registry)
+    engine = LiveEngine(
+        registry, twin_overrides=None if transition == "paper" else {"transition": transition}
+    )
     engine.warm_up(len(machines))
     out = None
     if messages is not None:

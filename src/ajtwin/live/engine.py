@@ -69,6 +69,7 @@ from ajtwin.estimation.filters import EKFCarry, ekf_init, ekf_step
 from ajtwin.estimation.twin import Twin, predict
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PLAUSIBLE_RANGES
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
+from ajtwin.model.droplet_dynamics import model_input, next_response
 from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
 
 log = logging.getLogger("ajtwin.live")
@@ -160,6 +161,7 @@ class _History:
     FIELDS = (
         "time_s",
         "inputs",
+        "model_inputs",  # the inputs as the transition reads them (with r: input_following)
         "measurements",
         "means",
         "covariances",
@@ -250,6 +252,19 @@ class TwinStream:
         self._never_seen: np.ndarray | None = None
         self._responds: np.ndarray | None = None  # (5 outputs, 5 states)
         self._floor_relative = np.zeros(5)
+        # the droplet size's input response r for the next committed step (a transition
+        # profile that follows the inputs; the batch twin's Twin.model_inputs, one sample
+        # at a time)
+        self._dynamics = twin.droplet_dynamics if twin.config.transition != "paper" else None
+        self._response: float | None = None
+
+    def model_input(self, inputs, response: float | None = None):
+        """(the transition's input for a committed step with ``inputs``, r after it);
+        ``response`` default: the committed r."""
+        r = self._response if response is None else response
+        if self._dynamics is None:
+            return np.asarray(inputs, dtype=float), None
+        return model_input(inputs, r, self._dynamics, self.twin.spec.dt)
 
     @classmethod
     def new(cls, machine: str, start=None, theta=None, twin_overrides=None, **kwargs):
@@ -444,7 +459,7 @@ class TwinStream:
             self.twin.spec,
             last[0],
             last[1],
-            h.inputs[pos - 1],
+            h.model_inputs[pos - 1],
             theta,
             self.twin.process_cov,
             self.twin.functions,
@@ -459,7 +474,7 @@ class TwinStream:
             self.twin.spec,
             np.asarray(h.predicted_means[w0]),
             np.asarray(h.predicted_covariances[w0]),
-            h.array("inputs")[w0:pos],
+            h.array("model_inputs")[w0:pos],
             h.array("measurements")[w0:pos],
             self.theta.copy(),
             self.twin.process_cov,
@@ -524,13 +539,19 @@ class TwinStream:
                 self.twin.spec,
                 h.means[pos - 1],
                 h.covariances[pos - 1],
-                h.inputs[pos - 1],
+                h.model_inputs[pos - 1],
                 self.theta,
                 self.twin.process_cov,
                 self.twin.functions,
             )
             self._spec_carry = ekf_init(self.twin.spec, np.asarray(mean), np.asarray(cov))
-        self._spec_carry, step = self._run_step(self._spec_carry, sample)
+        # r continued over the samples held before this one (all committed later)
+        response = self._response
+        if self._dynamics is not None and response is not None:
+            for held in self._pending[:-1]:
+                response = next_response(response, held.inputs, self._dynamics, self.twin.spec.dt)
+        u, _ = self.model_input(sample.inputs, response)
+        self._spec_carry, step = self._run_step(self._spec_carry, sample, u)
         return self._message(self.n_committed + len(self._pending) - 1, sample, step, None, True)
 
     def _constants(self):
@@ -545,11 +566,11 @@ class TwinStream:
             )
         return self._device_constants
 
-    def _run_step(self, carry, sample):
+    def _run_step(self, carry, sample, model_input):
         carry, step = _step(
             self.twin.spec,
             carry,
-            np.asarray(sample.inputs, dtype=float),
+            model_input,
             np.asarray(sample.outputs, dtype=float),
             self.theta,
             *self._constants(),
@@ -559,14 +580,16 @@ class TwinStream:
 
     def _commit(self, sample: Sample, step=None, carry=None) -> dict:
         """Committed step: kept, given to the detectors, stored and published."""
+        u, self._response = self.model_input(sample.inputs)
         if step is None:
-            self.carry, step = self._run_step(self.carry, sample)
+            self.carry, step = self._run_step(self.carry, sample, u)
         else:
             self.carry = carry
         h = self.history
         k = len(h)
         h.time_s.append(sample.time_s)
         h.inputs.append(np.asarray(sample.inputs, dtype=float))
+        h.model_inputs.append(u)
         h.measurements.append(np.asarray(sample.outputs, dtype=float))
         h.means.append(np.asarray(step.mean))
         h.covariances.append(np.asarray(step.covariance))
@@ -1230,7 +1253,7 @@ class LiveEngine:
         carries, steps = _step_many(
             twin.spec,
             carries,
-            np.array([x.inputs for _, x in plain]),
+            np.array([s.model_input(x.inputs)[0] for s, x in plain]),
             np.array([x.outputs for _, x in plain]),
             np.array([s.theta for s, _ in plain]),
             *plain[0][0]._constants(),

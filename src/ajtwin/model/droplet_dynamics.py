@@ -157,9 +157,16 @@ def input_response(inputs, dynamics: DropletDynamics, response0=None, dt=1.0):
     r0 = target[0] if response0 is None else jnp.asarray(response0, dtype=target.dtype)
 
     def step(r, target_k):
-        return r + gain * (target_k - r), r
+        return response_step(r, target_k, gain), r
 
     return jax.lax.scan(step, r0, target)[1]
+
+
+def response_step(response, target, gain):
+    """r_{k+1} = r_k + g (c·Δu_k − r_k), g = Δt/τ_u: the one Euler step of the input
+    response, for whole sequences (:func:`input_response`) and sample by sample
+    (:func:`next_response`, the live engine)."""
+    return response + gain * (target - response)
 
 
 def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = None, dt=1.0):
@@ -178,7 +185,23 @@ def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = 
 def next_response(response: float, u, dynamics: DropletDynamics, dt=1.0) -> float:
     """r after one step of input u (to continue :func:`augment_inputs` past a record)."""
     target = float(dynamics.input_shift_um(np.asarray(u, dtype=float)))
-    return response + dt / dynamics.response_time_s * (target - response)
+    return float(response_step(response, target, dt / dynamics.response_time_s))
+
+
+def model_input(u, response: float | None, dynamics: DropletDynamics, dt=1.0):
+    """One sample's input as the transition reads it, and r for the next sample.
+
+    ``u`` (3,) [mA, sccm, sccm]; ``response`` r_k [µm], None at the first sample (then
+    the equilibrium c·Δu_k, as :func:`augment_inputs` starts). Returns (u (4,) with r_k
+    appended, r_{k+1}); a profile that does not follow the inputs returns (u, None).
+    Fed sample by sample it gives :func:`augment_inputs`' rows (tested).
+    """
+    u = np.asarray(u, dtype=float)
+    if not dynamics.follows_inputs:
+        return u, None
+    if response is None:
+        response = float(dynamics.input_shift_um(u))
+    return np.append(u, response), next_response(response, u, dynamics, dt)
 
 
 def droplet_rate(x, u, theta, dynamics: DropletDynamics):

@@ -32,37 +32,11 @@ from pathlib import Path
 import numpy as np
 
 CACHE = Path("/tmp/ajtwin-alarm-cache")
-FIELDS = (
-    "time_s",
-    "outputs",
-    "predicted_outputs",
-    "innovation_variances",
-    "nis",
-    "n_measured",
-    "means",
-    "predicted_means",
-    "covariances",
-)
-
-
-def _arrays(run, record) -> dict:
-    f = run.filtered
-    return {
-        "time_s": np.asarray(run.time_s),
-        "outputs": np.asarray(record.outputs),
-        "predicted_outputs": np.asarray(f.predicted_outputs),
-        "innovation_variances": np.asarray(f.innovation_variances),
-        "nis": np.asarray(f.nis),
-        "n_measured": np.asarray(f.n_measured),
-        "means": np.asarray(f.means),
-        "predicted_means": np.asarray(f.predicted_means),
-        "covariances": np.asarray(f.covariances),
-    }
 
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v2".encode()).hexdigest()
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v3".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)
@@ -73,6 +47,7 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
         out["clog_onset_s"] = float(out["clog"].pop("onset_s"))
         return out
 
+    from ajtwin.apps.evaluate import detector_arrays
     from ajtwin.estimation.commission import commission
     from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
@@ -107,11 +82,11 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
         overrides={"fault": {"onset_min": 15.0}},
         truth_generator=truth,
     )
-    a = _arrays(twin().run(clean.record, start=start), clean.record)
-    b = _arrays(twin().run(clog.record, start=start), clog.record)
+    a = detector_arrays(twin().run(clean.record, start=start), clean.record)
+    b = detector_arrays(twin().run(clog.record, start=start), clog.record)
     b["onset_s"] = np.asarray(clog.record.meta["fault_onset_s"])
     # the calibrated twin over the commissioning print itself: the carried long-run scale
-    c = _arrays(twin().run(comm.record), comm.record)
+    c = detector_arrays(twin().run(comm.record), comm.record)
     CACHE.mkdir(parents=True, exist_ok=True)
     np.savez(
         path,
@@ -130,10 +105,9 @@ def _lag1(x: np.ndarray) -> float:
 
 def detect(arrays: dict, settings=None, history=None):
     from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.evaluate import KEYS
 
-    return detect_anomalies(
-        *(arrays[f] for f in FIELDS), settings=settings, long_run_history=history
-    )
+    return detect_anomalies(*(arrays[f] for f in KEYS), settings=settings, long_run_history=history)
 
 
 def diagnose(truth: str, machines, settings=None, minutes: float = 90.0, carry=True) -> dict:

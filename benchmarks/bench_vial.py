@@ -50,6 +50,7 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
     if path.exists():
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
+    from ajtwin.apps.evaluate import detector_arrays
     from ajtwin.estimation import Twin
     from ajtwin.simulation import simulate
 
@@ -60,20 +61,9 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
     twin = Twin.default(vial_fill_ml=fill, vial_consider=variant != "before")
     t0 = time.process_time()
     run = twin.run(rec)
-    f = run.filtered
     out = {
-        "time_s": run.time_s,
-        "measurements": rec.outputs,
-        "predicted_outputs": np.asarray(f.predicted_outputs),
-        "innovation_variances": np.asarray(f.innovation_variances),
-        "nis": np.asarray(f.nis),
-        "n_measured": np.asarray(f.n_measured),
-        "means": np.asarray(f.means),
-        "predicted_means": np.asarray(f.predicted_means),
-        "covariances": np.asarray(f.covariances),
+        **detector_arrays(run, rec),
         "stds": run.stds,
-        "true_states": rec.true_states,
-        "inputs": rec.inputs,
         "fill": np.array(fill),
         "cpu_s": np.array(time.process_time() - t0),
     }
@@ -82,21 +72,9 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
     return out
 
 
-KEYS = (
-    "time_s",
-    "measurements",
-    "predicted_outputs",
-    "innovation_variances",
-    "nis",
-    "n_measured",
-    "means",
-    "predicted_means",
-    "covariances",
-)
-
-
 def _evaluate(arrays: dict, variant: str) -> dict:
     from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.evaluate import KEYS
     from ajtwin.estimation.vial import observe_vial
 
     inputs = None if variant == "before" else arrays["inputs"]

@@ -51,6 +51,26 @@ KEYS = (
 )
 
 
+def detector_arrays(run, record) -> dict:
+    """What the detectors read from a twin run on ``record``, as NumPy arrays, named as
+    :data:`KEYS` (``measurements`` = the record's outputs), plus the record's true states
+    (None for a real print) and inputs."""
+    f = run.filtered
+    return {
+        "time_s": np.asarray(run.time_s),
+        "measurements": np.asarray(record.outputs),
+        "predicted_outputs": np.asarray(f.predicted_outputs),
+        "innovation_variances": np.asarray(f.innovation_variances),
+        "nis": np.asarray(f.nis),
+        "n_measured": np.asarray(f.n_measured),
+        "means": np.asarray(f.means),
+        "predicted_means": np.asarray(f.predicted_means),
+        "covariances": np.asarray(f.covariances),
+        "true_states": record.true_states,
+        "inputs": record.inputs,
+    }
+
+
 def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> dict:
     """Simulate a print, run the default twin on it, return the detector's input arrays.
 
@@ -72,20 +92,7 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
     # starts at 0.70 mL, the others at 1.0 mL
     fill = float(rec.meta["scenario_config"]["initial"]["vial_volume_mL"])
     run = Twin.default(vial_fill_ml=fill).run(rec)
-    f = run.filtered
-    out = {
-        "time_s": run.time_s,
-        "measurements": rec.outputs,
-        "predicted_outputs": np.asarray(f.predicted_outputs),
-        "innovation_variances": np.asarray(f.innovation_variances),
-        "nis": np.asarray(f.nis),
-        "n_measured": np.asarray(f.n_measured),
-        "means": np.asarray(f.means),
-        "predicted_means": np.asarray(f.predicted_means),
-        "covariances": np.asarray(f.covariances),
-        "true_states": rec.true_states,
-        "inputs": rec.inputs,
-    }
+    out = detector_arrays(run, rec)
     meta = {
         "scenario": scenario,
         "seed": seed,

@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -72,15 +73,17 @@ def exp12_row(name: str, profile: str, result: dict) -> str:
     )
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True)
+    parser.add_argument(
+        "--out", default=None, help="Result folder [default: a new temporary folder]."
+    )
     parser.add_argument("--profiles", default="paper,input_following,mean_reverting")
     parser.add_argument("--truths", default="model,alt")
     parser.add_argument("--seeds", default="1-5")
     parser.add_argument("--with-exp12", action="store_true")
     args = parser.parse_args(argv)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_forecast-"))
     out.mkdir(parents=True, exist_ok=True)
     seeds = seeds_from(args.seeds)
     profiles = args.profiles.split(",")
@@ -125,9 +128,15 @@ def main(argv=None) -> int:
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     (out / "summary.json").write_text(json.dumps({"seeds": seeds, "profiles": profiles}))
     print(f"wrote {out / 'summary.md'}")
-    return 0
+    return {
+        "summary_md": str(out / "summary.md"),
+        "experiments_cpu_s": round(time.process_time() - started, 1),
+        "seeds": args.seeds,
+        "profiles": args.profiles,
+    }
 
 
 if __name__ == "__main__":
     np.set_printoptions(precision=3)
-    sys.exit(main())
+    main()
+    sys.exit(0)

@@ -31,8 +31,13 @@ def main(selected: list[str]) -> int:
         t0 = time.perf_counter()
         try:
             spec.loader.exec_module(module)
-            figures = module.main()
-        except Exception as exc:  # a broken bench must not hide the others' figures
+            # a bench with its own options reads none of run_all's argv (its defaults)
+            argv, sys.argv = sys.argv, [str(path)]
+            try:
+                figures = module.main()
+            finally:
+                sys.argv = argv
+        except (Exception, SystemExit) as exc:  # a broken bench must not hide the others
             print(f"   FAILED: {type(exc).__name__}: {exc}", flush=True)
             failed.append(name)
             continue

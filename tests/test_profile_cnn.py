@@ -540,6 +540,24 @@ def test_stage2_area_anchor_term_by_hand():
     assert float(doubled - plain) == pytest.approx(100.0 * 0.25, rel=1e-5)
 
 
+def test_stage1_area_term_by_hand():
+    data = _tiny_data(8, seed=4)
+    plain_cfg = TrainConfig(stage1_epochs=1, stage2_epochs=0, **SMALL)
+    area_cfg = TrainConfig(stage1_epochs=1, stage2_epochs=0, stage1_area_weight=10.0, **SMALL)
+    plain_t = Trainer(plain_cfg, data, None, progress=False)
+    area_t = Trainer(area_cfg, data, None, progress=False)
+    area_t.model.network.load_state_dict(plain_t.model.network.state_dict())
+    for t in (plain_t, area_t):
+        t.model.network.eval()
+    x = torch.from_numpy(normalize_columns(data.columns))
+    with torch.no_grad():
+        h = plain_t.model.forward_um(x).double()
+        y = 2 * h  # a target of twice the predicted height: ((A - 2A) / 2A)² = 1/4
+        plain = plain_t._stage1_batch_loss(x, y)
+        with_area = area_t._stage1_batch_loss(x, y)
+    assert float(with_area - plain) == pytest.approx(10.0 * 0.25, rel=1e-5)
+
+
 def test_pairs_from_manifest_registers_real_style_files(tmp_path):
     import cv2
 

@@ -75,6 +75,12 @@ class TrainConfig:
         torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
     grad_clip : float
         Gradient-norm clip (feature positions can react strongly to nm-level slopes).
+    stage1_area_weight : float
+        Weight of a stage-1 area term, ``((A − A_true)/A_true)²`` per pair
+        (A = cross-section area ∝ Q_m, of the prediction and of the registered
+        scan). Height MSE weighs the area only indirectly; a small network
+        that fits the pairs less closely then misses Q_m by 4–5 %, and the
+        stage-2 anchor keeps whatever area stage 1 ended with. 0 = off.
     stage2_val_fraction : float
         Share of the stage-2 CV-labelled column groups held back from the
         feature loss as a validation split of the *training* data. When > 0,
@@ -107,6 +113,7 @@ class TrainConfig:
     grad_clip: float = 5.0
     stage1_brightness_weight: float = 0.0
     stage2_val_fraction: float = 0.0
+    stage1_area_weight: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -308,6 +315,12 @@ class Trainer:
             b_pred = feat.brightness_ratio(pred * self.model.height_scale_um, px)
             b_true = feat.brightness_ratio(y_um, px)
             loss = loss + w * torch.mean((b_pred - b_true) ** 2)
+        w = self.config.stage1_area_weight
+        if w > 0:
+            # area of the clamped profile, as Q_m is read; the pixel size cancels
+            a_pred = torch.clamp(pred * self.model.height_scale_um, min=0.0).sum(dim=1)
+            a_true = y_um.sum(dim=1).to(a_pred.dtype).clamp(min=1e-6)
+            loss = loss + w * torch.mean(((a_pred - a_true) / a_true) ** 2)
         return loss
 
     def _stage2_batch_loss(self, x, lw, ov, idx=None):

@@ -85,6 +85,13 @@ def _training_options(f):
             help="Weight of the relative cross-section area (Q_m) term in the stage-1 loss.",
         ),
         click.option(
+            "--grad-clip",
+            type=float,
+            default=5.0,
+            show_default=True,
+            help="Gradient-norm clip of every step.",
+        ),
+        click.option(
             "--val-fraction",
             type=float,
             default=0.0,
@@ -188,6 +195,7 @@ def _config(kw):
         stage2_replay_weight=kw["replay_weight"],
         stage2_area_weight=kw["area_weight"],
         stage2_val_fraction=kw["val_fraction"],
+        grad_clip=kw["grad_clip"],
         stage1_area_weight=kw["stage1_area_weight"],
         base_channels=kw["base_channels"],
         arch=kw["arch"],

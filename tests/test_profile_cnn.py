@@ -22,7 +22,12 @@ from ajtwin.profile_cnn.data import (
     save_dataset,
 )
 from ajtwin.profile_cnn.evaluate import fold_indices, summarize
-from ajtwin.profile_cnn.features import brightness_ratio, features_numpy, smooth_features
+from ajtwin.profile_cnn.features import (
+    brightness_ratio,
+    features_numpy,
+    read_features,
+    smooth_features,
+)
 from ajtwin.profile_cnn.flow import cross_section_area_um2, material_flow_ml_s
 from ajtwin.profile_cnn.infer import join_material_flow
 from ajtwin.profile_cnn.model import ProfileModel
@@ -426,6 +431,35 @@ def test_training_is_seeded_and_resume_is_exact(tmp_path):
         )
 
 
+def test_stage2_keeps_the_best_epoch_on_a_validation_split_of_whole_groups(tmp_path):
+    data = _tiny_data(24, seed=3)
+    data.group = np.repeat(np.arange(12), 2)  # two columns per frame
+    cfg = TrainConfig(stage1_epochs=3, stage2_epochs=4, stage2_val_fraction=0.25, **SMALL)
+    trainer = Trainer(cfg, data, data, progress=False, checkpoint=tmp_path / "c.pt")
+    train_g, val_g = set(trainer.labelled.group), set(trainer.validation.group)
+    assert not train_g & val_g and len(val_g) == 3 and len(trainer.validation) == 6
+    model = trainer.run()
+    scores = [h["val_score_um"] for h in trainer.history if h["stage"] == 2]
+    assert len(scores) == 4 and trainer.best["score"] <= min(scores)
+    # the returned network is the kept one: its score is the best, recomputed
+    assert trainer.validation_score() == pytest.approx(trainer.best["score"], abs=1e-9)
+    assert model.meta["stage2_selected_epoch"] == trainer.best["epoch"]
+    # hand check of the score on the first validation column set
+    lw, ov, _ = read_features(model.predict_um(trainer.validation.columns), PX)
+    ok = np.isfinite(lw) & np.isfinite(ov)
+    by_hand = (
+        np.mean(np.abs(lw[ok] - trainer.validation.linewidth_um[ok]))
+        + np.mean(np.abs(ov[ok] - trainer.validation.overspray_um[ok]))
+        + 100 * np.mean(~ok)
+    )
+    assert trainer.best["score"] == pytest.approx(by_hand, rel=1e-9)
+    # the same split and the kept state survive a resume from the checkpoint
+    again = Trainer(cfg, data, data, progress=False, checkpoint=tmp_path / "c.pt", resume=True)
+    assert set(again.validation.group) == val_g and again.best["epoch"] == trainer.best["epoch"]
+    with pytest.raises(ValueError, match="stage2_val_fraction"):
+        Trainer(TrainConfig(stage2_val_fraction=1.0, **SMALL), data, data, progress=False)
+
+
 def test_model_save_load_roundtrip(tmp_path):
     net = ResNet18Profile(NetworkConfig(base_channels=8))
     model = ProfileModel(net, PX, 0.5, {"note": "x"})
@@ -504,6 +538,24 @@ def test_stage2_area_anchor_term_by_hand():
     assert float(same) == pytest.approx(float(plain), rel=1e-6)
     # ((A - 2A) / 2A)² = 1/4 for every column
     assert float(doubled - plain) == pytest.approx(100.0 * 0.25, rel=1e-5)
+
+
+def test_stage1_area_term_by_hand():
+    data = _tiny_data(8, seed=4)
+    plain_cfg = TrainConfig(stage1_epochs=1, stage2_epochs=0, **SMALL)
+    area_cfg = TrainConfig(stage1_epochs=1, stage2_epochs=0, stage1_area_weight=10.0, **SMALL)
+    plain_t = Trainer(plain_cfg, data, None, progress=False)
+    area_t = Trainer(area_cfg, data, None, progress=False)
+    area_t.model.network.load_state_dict(plain_t.model.network.state_dict())
+    for t in (plain_t, area_t):
+        t.model.network.eval()
+    x = torch.from_numpy(normalize_columns(data.columns))
+    with torch.no_grad():
+        h = plain_t.model.forward_um(x).double()
+        y = 2 * h  # a target of twice the predicted height: ((A - 2A) / 2A)² = 1/4
+        plain = plain_t._stage1_batch_loss(x, y)
+        with_area = area_t._stage1_batch_loss(x, y)
+    assert float(with_area - plain) == pytest.approx(10.0 * 0.25, rel=1e-5)
 
 
 def test_pairs_from_manifest_registers_real_style_files(tmp_path):

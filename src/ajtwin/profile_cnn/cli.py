@@ -78,6 +78,28 @@ def _training_options(f):
         click.option("--stage1-lr", type=float, default=1e-3, show_default=True),
         click.option("--stage2-lr", type=float, default=2e-4, show_default=True),
         click.option(
+            "--stage1-area-weight",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Weight of the relative cross-section area (Q_m) term in the stage-1 loss.",
+        ),
+        click.option(
+            "--grad-clip",
+            type=float,
+            default=5.0,
+            show_default=True,
+            help="Gradient-norm clip of every step.",
+        ),
+        click.option(
+            "--val-fraction",
+            type=float,
+            default=0.0,
+            show_default=True,
+            help="Share of the stage-2 column groups held back to pick the best stage-2 "
+            "epoch (0 = keep the last epoch).",
+        ),
+        click.option(
             "--stage1-brightness-weight",
             type=float,
             default=0.0,
@@ -172,6 +194,9 @@ def _config(kw):
         stage1_brightness_weight=kw["stage1_brightness_weight"],
         stage2_replay_weight=kw["replay_weight"],
         stage2_area_weight=kw["area_weight"],
+        stage2_val_fraction=kw["val_fraction"],
+        grad_clip=kw["grad_clip"],
+        stage1_area_weight=kw["stage1_area_weight"],
         base_channels=kw["base_channels"],
         arch=kw["arch"],
         n_threads=kw["threads"],

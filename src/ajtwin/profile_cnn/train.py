@@ -75,6 +75,20 @@ class TrainConfig:
         torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
     grad_clip : float
         Gradient-norm clip (feature positions can react strongly to nm-level slopes).
+    stage1_area_weight : float
+        Weight of a stage-1 area term, ``((A − A_true)/A_true)²`` per pair
+        (A = cross-section area ∝ Q_m, of the prediction and of the registered
+        scan). Height MSE weighs the area only indirectly; a small network
+        that fits the pairs less closely then misses Q_m by 4–5 %, and the
+        stage-2 anchor keeps whatever area stage 1 ended with. 0 = off.
+    stage2_val_fraction : float
+        Share of the stage-2 CV-labelled column groups held back from the
+        feature loss as a validation split of the *training* data. When > 0,
+        the network is scored on it (linewidth + overspray MAE vs the CV labels,
+        plus 100 µm per undefined share) when stage 2 starts and after every
+        stage-2 epoch, and the best state is kept — stage 2's loss spikes
+        decide which minimum a run ends in, and the last epoch is not always
+        the best one. 0 = keep the last epoch (the paper).
     stage1_brightness_weight : float
         Weight of a second stage-1 term: MSE between the camera brightness
         (optics model, slope → B/B_bg) of the predicted and the true profile.
@@ -98,6 +112,8 @@ class TrainConfig:
     n_threads: int | None = None
     grad_clip: float = 5.0
     stage1_brightness_weight: float = 0.0
+    stage2_val_fraction: float = 0.0
+    stage1_area_weight: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -172,7 +188,7 @@ class Trainer:
             raise ValueError("stage-2 data set needs linewidth_um and overspray_um labels")
         self.config = config
         self.pairs = pairs
-        self.labelled = labelled
+        self.labelled, self.validation = _validation_split(labelled, config)
         self.checkpoint = Path(checkpoint) if checkpoint else None
         self.progress = progress
         self.on_stage_end = on_stage_end  # callback(stage, model) after each finished stage
@@ -212,6 +228,8 @@ class Trainer:
         self.train_seconds = 0.0
         self.stage_seconds = {"1": 0.0, "2": 0.0}
         self.area_ref: torch.Tensor | None = None  # stage-1 areas of the stage-2 columns
+        # best stage-2 state on the validation split: score, epoch, network weights
+        self.best: dict | None = None
         if resume and self.checkpoint and self.checkpoint.exists():
             self._load_checkpoint()
 
@@ -247,6 +265,13 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "stage_seconds": json.dumps(self.stage_seconds),
             "area_ref": self.area_ref,
+            "best": None
+            if self.best is None
+            else {
+                "score": self.best["score"],
+                "epoch": self.best["epoch"],
+                "state_dict": self.best["state_dict"],
+            },
         }
         self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.checkpoint.with_suffix(self.checkpoint.suffix + ".tmp")
@@ -271,6 +296,7 @@ class Trainer:
         self.train_seconds = float(state["train_seconds"])
         self.stage_seconds = json.loads(state["stage_seconds"])
         self.area_ref = state.get("area_ref")
+        self.best = state.get("best")
         if state["optimizer"] is not None:
             self.optimizer, self.scheduler = self._make_optimizer(self.stage)
             self.optimizer.load_state_dict(state["optimizer"])
@@ -289,6 +315,12 @@ class Trainer:
             b_pred = feat.brightness_ratio(pred * self.model.height_scale_um, px)
             b_true = feat.brightness_ratio(y_um, px)
             loss = loss + w * torch.mean((b_pred - b_true) ** 2)
+        w = self.config.stage1_area_weight
+        if w > 0:
+            # area of the clamped profile, as Q_m is read; the pixel size cancels
+            a_pred = torch.clamp(pred * self.model.height_scale_um, min=0.0).sum(dim=1)
+            a_true = y_um.sum(dim=1).to(a_pred.dtype).clamp(min=1e-6)
+            loss = loss + w * torch.mean(((a_pred - a_true) / a_true) ** 2)
         return loss
 
     def _stage2_batch_loss(self, x, lw, ov, idx=None):
@@ -314,6 +346,8 @@ class Trainer:
         while self.stage <= 2:
             n_epochs = self._stage_epochs(self.stage)
             if self.epoch >= n_epochs:
+                if self.stage == 2 and self.best is not None:
+                    self.model.network.load_state_dict(self.best["state_dict"])
                 if self.on_stage_end is not None:
                     self.model.network.eval()
                     self.on_stage_end(self.stage, self.model)
@@ -325,6 +359,8 @@ class Trainer:
             if self.stage == 2 and self.config.stage2_area_weight > 0 and self.area_ref is None:
                 areas = self.model.predict_um(self.labelled.columns).sum(axis=1)
                 self.area_ref = torch.from_numpy(areas * self.model.um_per_px)
+            if self.stage == 2 and self.validation is not None and self.best is None:
+                self._keep_if_best(0)  # the stage-1 model is a candidate too
             bar = tqdm(
                 total=n_epochs,
                 initial=self.epoch,
@@ -340,7 +376,10 @@ class Trainer:
                 self.train_seconds += dt
                 self.stage_seconds[str(self.stage)] += dt
                 self.epoch += 1
-                self.history.append({"stage": self.stage, "epoch": self.epoch, "loss": loss})
+                entry = {"stage": self.stage, "epoch": self.epoch, "loss": loss}
+                if self.stage == 2 and self.validation is not None:
+                    entry["val_score_um"] = self._keep_if_best(self.epoch)
+                self.history.append(entry)
                 bar.set_postfix(loss=f"{loss:.4g}")
                 bar.update(1)
                 self._save_checkpoint()
@@ -355,10 +394,44 @@ class Trainer:
                 "data_fingerprint": self.fingerprint,
                 "n_pairs": 0 if self.pairs is None else len(self.pairs),
                 "n_labelled": 0 if self.labelled is None else len(self.labelled),
+                "n_validation": 0 if self.validation is None else len(self.validation),
+                "stage2_selected_epoch": None if self.best is None else self.best["epoch"],
+                "stage2_selected_val_score_um": None
+                if self.best is None
+                else round(self.best["score"], 4),
                 "torch_threads": torch.get_num_threads(),
             }
         )
         return self.model
+
+    def validation_score(self) -> float:
+        """Linewidth + overspray MAE (µm) vs the CV labels of the validation split.
+
+        Features are read as :func:`~ajtwin.profile_cnn.features.read_features`
+        reads them for scoring; each 1 % of undefined columns adds 1 µm.
+        """
+        val = self.validation
+        pred = self.model.predict_um(val.columns)
+        lw, ov, _ = feat.read_features(pred, val.um_per_px)
+        ok = np.isfinite(lw) & np.isfinite(ov)
+        if not ok.any():
+            return float("inf")
+        mae = np.mean(np.abs(lw[ok] - val.linewidth_um[ok])) + np.mean(
+            np.abs(ov[ok] - val.overspray_um[ok])
+        )
+        return float(mae + 100.0 * np.mean(~ok))
+
+    def _keep_if_best(self, epoch: int) -> float:
+        value = self.validation_score()
+        if self.best is None or value < self.best["score"]:
+            self.best = {
+                "score": value,
+                "epoch": epoch,
+                "state_dict": {
+                    k: v.detach().clone() for k, v in self.model.network.state_dict().items()
+                },
+            }
+        return value
 
     def _run_epoch(self, stage: int, epoch: int) -> float:
         gen = _epoch_generator(self.config.seed, stage, epoch)
@@ -405,6 +478,27 @@ class Trainer:
             total += float(loss.detach()) * len(idx)
             count += len(idx)
         return total / max(count, 1)
+
+
+def _validation_split(labelled: ColumnDataset | None, config: TrainConfig):
+    """(training part, validation part) of the stage-2 columns, whole groups each.
+
+    The draw depends only on ``config.seed`` and the groups, so a resumed run
+    splits the same way. No split (``None``) when the fraction is 0.
+    """
+    frac = config.stage2_val_fraction
+    if labelled is None or frac <= 0:
+        return labelled, None
+    if not frac < 1:
+        raise ValueError(f"stage2_val_fraction must be in [0, 1), got {frac}")
+    groups = np.unique(labelled.group)
+    if len(groups) < 2:
+        raise ValueError("a validation split needs at least 2 column groups")
+    rng = np.random.default_rng([config.seed, 19])
+    n_val = min(len(groups) - 1, max(1, int(round(frac * len(groups)))))
+    val_groups = rng.choice(groups, size=n_val, replace=False)
+    is_val = np.isin(labelled.group, val_groups)
+    return labelled.subset(np.flatnonzero(~is_val)), labelled.subset(np.flatnonzero(is_val))
 
 
 def train(

@@ -5,7 +5,8 @@ and 3 Newton steps for the critical radius x_c. These tests prove, over the
 whole operating box of SPEC §3 (states and inputs, corners included), that
 this changes f and its Jacobian by ≤ 1e-6 relative against the same physics
 at 64 nodes and 12 Newton steps, and that x_c matches the root of the quartic
-found independently by NumPy's companion-matrix solver. g has no quadrature
+found independently by NumPy's companion-matrix solver. The droplet integrals'
+closed-form derivatives (their custom JVP rules) equal JAX's automatic ones. g has no quadrature
 or iteration (a polynomial and the resistance network): it is compared with
 the model before the speed work through the values pinned in test_model.py.
 """
@@ -15,9 +16,15 @@ import itertools
 import numpy as np
 import pytest
 
+from ajtwin import units
 from ajtwin._jax import jax, jnp
-from ajtwin.model import load_parameters, transition_rates
-from ajtwin.model.droplets import QUADRATURE_ORDER, lognormal_quadrature
+from ajtwin.model import load_parameters, transition_rates, transport
+from ajtwin.model.droplets import (
+    QUADRATURE_ORDER,
+    cunningham_slip_correction,
+    lognormal_quadrature,
+    slip_log_slope,
+)
 from ajtwin.model.transport import CRITICAL_RADIUS_NEWTON_STEPS, critical_radius
 
 PARAMS = load_parameters()
@@ -110,3 +117,90 @@ def test_critical_radius_matches_quartic_root():
         # compare ε = 1 − x (the small quantity that carries the loss), not x
         assert (1.0 - x_fast) == pytest.approx(eps, rel=1e-9), mu
     assert float(critical_radius(2.0)) == 0.0  # μ ≥ 1: no survivors
+
+
+def _integral_arguments():
+    """(d_a, R, Q_c, Q_c + Q_s) in SI over the operating box (corners and inside)."""
+    x, u = _box_points(300, seed=4)
+    d_a = units.um_to_m(x[:, 0])
+    radius = PARAMS.tube_radius - units.um_to_m(x[:, 2])
+    carrier = units.sccm_to_m3_per_s(u[:, 1])
+    total = units.sccm_to_m3_per_s(u[:, 1] + u[:, 2])
+    return d_a, radius, carrier, total
+
+
+@pytest.mark.parametrize("which", ["settled", "diffused"])
+def test_droplet_integrals_closed_form_derivatives_equal_automatic_ones(which):
+    """The custom JVP rules (closed forms, implicit x_c) against JAX differentiating the
+    plain integrals operation by operation — through the arcsine, the cube roots and
+    the three Newton steps — in every argument the state and the inputs reach."""
+    d_a, radius, carrier, total = _integral_arguments()
+    if which == "settled":
+        args = (d_a, radius, carrier)
+        fast = lambda *a: transport.settled_fraction(QUADRATURE_ORDER, *a, PARAMS)  # noqa: E731
+        plain = lambda *a: transport._settling_terms(QUADRATURE_ORDER, *a, PARAMS)[0]  # noqa: E731
+    else:
+        args = (d_a, total)
+        fast = lambda *a: transport.diffused_fraction(  # noqa: E731
+            QUADRATURE_ORDER, CRITICAL_RADIUS_NEWTON_STEPS, *a, PARAMS
+        )
+        plain = lambda *a: transport._diffusion_terms(  # noqa: E731
+            QUADRATURE_ORDER, CRITICAL_RADIUS_NEWTON_STEPS, *a, PARAMS
+        )[0]
+    for i in range(len(args)):
+        tangents = tuple(a * (1e-3 if j == i else 0.0) for j, a in enumerate(args))
+        value, tangent = jax.jvp(fast, args, tangents)
+        value_ref, tangent_ref = jax.jvp(plain, args, tangents)
+        np.testing.assert_allclose(value, value_ref, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(tangent, tangent_ref, rtol=1e-10, atol=0)
+    # a 1 % step in d_a: the derivative predicts the change to second order
+    step = 1e-4 * d_a
+    central = (fast(d_a + step, *args[1:]) - fast(d_a - step, *args[1:])) / (2 * step)
+    _, slope = jax.jvp(
+        fast, args, (jnp.ones_like(d_a),) + tuple(jnp.zeros_like(a) for a in args[1:])
+    )
+    np.testing.assert_allclose(slope, central, rtol=1e-6)
+
+
+def test_droplet_integrals_reverse_mode_and_parameter_derivatives():
+    """Reverse mode transposes the rules; derivatives in the parameters take the
+    automatic path and equal the plain integrals'."""
+    x = jnp.asarray([3.2, 1.0, 4e-4, 0.03, 3e-7])
+    u = jnp.asarray([380.0, 25.0, 60.0])
+    theta = jnp.zeros(5)
+    forward = jax.jacfwd(lambda xx: transition_rates(xx, u, theta, PARAMS))(x)
+    reverse = jax.jacrev(lambda xx: transition_rates(xx, u, theta, PARAMS))(x)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-12, atol=1e-300)
+
+    params = jax.tree.map(lambda v: jnp.asarray(v, dtype=float), PARAMS)
+    d_a, radius, carrier, total = (a[0] for a in _integral_arguments())
+
+    def through(fn):
+        return jax.grad(lambda p: fn(p))(params)
+
+    for fast, plain in [
+        (
+            lambda p: transport.settled_fraction(QUADRATURE_ORDER, d_a, radius, carrier, p),
+            lambda p: transport._settling_terms(QUADRATURE_ORDER, d_a, radius, carrier, p)[0],
+        ),
+        (
+            lambda p: transport.diffused_fraction(
+                QUADRATURE_ORDER, CRITICAL_RADIUS_NEWTON_STEPS, d_a, total, p
+            ),
+            lambda p: transport._diffusion_terms(
+                QUADRATURE_ORDER, CRITICAL_RADIUS_NEWTON_STEPS, d_a, total, p
+            )[0],
+        ),
+    ]:
+        for got, want in zip(jax.tree.leaves(through(fast)), jax.tree.leaves(through(plain))):
+            np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+    assert float(jnp.abs(through(fast).droplet_cv)) > 0  # a parameter the integral reads
+
+
+def test_slip_log_slope_is_the_derivative_of_log_slip():
+    diameters = jnp.logspace(-8, -4, 50)  # 10 nm … 100 µm
+    lam = PARAMS.mean_free_path
+    auto = jax.vmap(
+        jax.grad(lambda log_d: jnp.log(cunningham_slip_correction(jnp.exp(log_d), lam)))
+    )(jnp.log(diameters))
+    np.testing.assert_allclose(slip_log_slope(diameters, lam), auto, rtol=1e-12, atol=1e-15)

@@ -89,6 +89,19 @@ def cunningham_slip_correction(diameter, mean_free_path):
     return 1.0 + knudsen * (1.257 + 0.4 * jnp.exp(-1.1 / knudsen))
 
 
+def slip_log_slope(diameter, mean_free_path):
+    """∂ln C_c/∂ln d of the Cunningham correction (same units for d and λ).
+
+    With Kn = 2λ/d and C_c = 1 + Kn (1.257 + 0.4 e^{−1.1/Kn}):
+    ∂ln C_c/∂ln d = −Kn (1.257 + 0.4 e^{−1.1/Kn} (1 + 1.1/Kn)) / C_c
+    (0 for large droplets, → −1 in the free-molecular limit).
+    """
+    knudsen = 2.0 * mean_free_path / diameter
+    decay = 0.4 * jnp.exp(-1.1 / knudsen)
+    slip = 1.0 + knudsen * (1.257 + decay)
+    return -knudsen * (1.257 + decay * (1.0 + 1.1 / knudsen)) / slip
+
+
 def settling_velocity(diameter, droplet_density, gravity, settling_viscosity, mean_free_path):
     """Terminal settling velocity v_ts [m/s] of a droplet of diameter d [m].
 

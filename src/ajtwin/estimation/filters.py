@@ -279,8 +279,7 @@ def ekf_step_in_loop(
         nis = nis + nu_i**2 / s_i
         variances.append(s_i)
     p_post = 0.5 * (p_post + p_post.T)
-    # log det S = Σ_i log s_i, one vectorised log (five scalar logs cost more than the rest
-    # of the bookkeeping)
+    # log det S = Σ_i log s_i as one vector log, not five scalar ones (~0.1 µs a step)
     log_det = jnp.sum(jnp.log(jnp.stack(variances)))
     n_meas = jnp.sum(keep)
     log_lik = -0.5 * (nis + log_det + n_meas * jnp.log(2.0 * jnp.pi)) - jnp.sum(

@@ -32,7 +32,7 @@ from ajtwin.profile_cnn.flow import cross_section_area_um2, material_flow_ml_s
 from ajtwin.profile_cnn.infer import join_material_flow
 from ajtwin.profile_cnn.model import ProfileModel
 from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile, count_parameters
-from ajtwin.profile_cnn.train import TrainConfig, Trainer
+from ajtwin.profile_cnn.train import TrainConfig, Trainer, train_restarts
 from ajtwin.vision.features import find_edges
 from ajtwin.vision.profile import brightness_from_slope, line_profile, profile_features
 
@@ -458,6 +458,39 @@ def test_stage2_keeps_the_best_epoch_on_a_validation_split_of_whole_groups(tmp_p
     assert set(again.validation.group) == val_g and again.best["epoch"] == trainer.best["epoch"]
     with pytest.raises(ValueError, match="stage2_val_fraction"):
         Trainer(TrainConfig(stage2_val_fraction=1.0, **SMALL), data, data, progress=False)
+
+
+def test_restarts_keep_the_run_with_the_best_validation_score(tmp_path):
+    data = _tiny_data(24, seed=3)
+    data.group = np.repeat(np.arange(12), 2)
+    cfg = TrainConfig(
+        stage1_epochs=3, stage2_epochs=2, stage2_val_fraction=0.25, restarts=3, seed=5, **SMALL
+    )
+    model, trainers, best = train_restarts(
+        cfg, data, data, progress=False, checkpoint=tmp_path / "c.pt"
+    )
+    # three different runs (seeds 5, 6, 7) on ONE validation split, so the scores compare
+    assert [t.config.seed for t in trainers] == [5, 6, 7]
+    assert len({frozenset(t.validation.group) for t in trainers}) == 1
+    scores = [t.best["score"] for t in trainers]
+    assert len(set(scores)) == 3
+    assert best == int(np.argmin(scores)) and model is not None
+    # the kept model is the best run's network: its score, recomputed, is the minimum
+    assert trainers[best].validation_score() == pytest.approx(min(scores), abs=1e-9)
+    assert model.meta["restart_kept"] == best
+    assert [r["seed"] for r in model.meta["restarts"]] == [5, 6, 7]
+    assert model.meta["restarts"][best]["val_score_um"] == pytest.approx(min(scores), abs=1e-4)
+    # one checkpoint per restart; a resume finds every run finished and keeps the same one
+    assert all((tmp_path / f"c.pt.r{r}").exists() for r in range(3))
+    again, _, best_again = train_restarts(
+        cfg, data, data, progress=False, checkpoint=tmp_path / "c.pt", resume=True
+    )
+    assert best_again == best
+    np.testing.assert_array_equal(again.predict_um(data.columns), model.predict_um(data.columns))
+    with pytest.raises(ValueError, match="val-fraction"):
+        train_restarts(TrainConfig(restarts=2, **SMALL), data, data, progress=False)
+    with pytest.raises(ValueError, match="restarts"):
+        train_restarts(TrainConfig(restarts=0, **SMALL), data, data, progress=False)
 
 
 def test_model_save_load_roundtrip(tmp_path):

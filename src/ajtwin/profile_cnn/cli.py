@@ -100,6 +100,14 @@ def _training_options(f):
             "epoch (0 = keep the last epoch).",
         ),
         click.option(
+            "--restarts",
+            type=int,
+            default=1,
+            show_default=True,
+            help="Train N runs (seeds SEED, SEED+1, ...) and keep the best by the stage-2 "
+            "validation score (needs --val-fraction).",
+        ),
+        click.option(
             "--stage1-brightness-weight",
             type=float,
             default=0.0,
@@ -197,6 +205,7 @@ def _config(kw):
         stage2_val_fraction=kw["val_fraction"],
         grad_clip=kw["grad_clip"],
         stage1_area_weight=kw["stage1_area_weight"],
+        restarts=kw["restarts"],
         base_channels=kw["base_channels"],
         arch=kw["arch"],
         n_threads=kw["threads"],
@@ -300,7 +309,7 @@ def columns(video, um_per_px, out, batch, fps, progress):
 def train(out, checkpoint, resume, init_path, **kw):
     """Train the CNN: stage 1 on profile pairs, stage 2 on CV-labelled columns."""
     from ajtwin.profile_cnn.model import ProfileModel
-    from ajtwin.profile_cnn.train import Trainer
+    from ajtwin.profile_cnn.train import train_restarts
 
     pairs_ds, labelled = _load_data(
         kw["pairs_path"],
@@ -317,7 +326,7 @@ def train(out, checkpoint, resume, init_path, **kw):
     init = ProfileModel.load(init_path) if init_path else None
     checkpoint = checkpoint or str(out) + ".ckpt"
     try:
-        trainer = Trainer(
+        model, trainers, best = train_restarts(
             config,
             pairs_ds,
             labelled,
@@ -328,16 +337,25 @@ def train(out, checkpoint, resume, init_path, **kw):
         )
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
-    model = trainer.run()
     model.meta["command"] = (
         click.get_current_context().command_path
         + " "
         + json.dumps({k: v for k, v in kw.items() if k != "progress"})
     )
     model.save(out)
+    if len(trainers) > 1:
+        for r, entry in enumerate(model.meta["restarts"]):
+            mark = "kept" if r == best else ""
+            click.echo(
+                f"restart {r + 1}: seed {entry['seed']}, validation score "
+                f"{entry['val_score_um']} µm at stage-2 epoch {entry['selected_epoch']} {mark}"
+            )
+    stage1 = sum(t.stage_seconds["1"] for t in trainers)
+    stage2 = sum(t.stage_seconds["2"] for t in trainers)
+    over = f" over {len(trainers)} restarts" if len(trainers) > 1 else ""
     click.echo(
-        f"wrote {out} (stage 1 {trainer.stage_seconds['1']:.0f} s, "
-        f"stage 2 {trainer.stage_seconds['2']:.0f} s; checkpoint {checkpoint})"
+        f"wrote {out} (stage 1 {stage1:.0f} s, stage 2 {stage2:.0f} s{over}; "
+        f"checkpoint {checkpoint})"
     )
 
 

@@ -31,7 +31,7 @@ from ajtwin.profile_cnn.data import ColumnDataset
 from ajtwin.profile_cnn.features import features_numpy, read_features
 from ajtwin.profile_cnn.flow import cross_section_area_um2
 from ajtwin.profile_cnn.model import ProfileModel
-from ajtwin.profile_cnn.train import TrainConfig, Trainer
+from ajtwin.profile_cnn.train import TrainConfig, train_restarts
 
 
 def _mae(pred, ref):
@@ -125,24 +125,31 @@ def cross_validate(
         test_p, test_l = pairs.subset(pair_folds[i]), labelled.subset(label_folds[i])
         entry: dict = {"fold": i, "n_train_pairs": len(train_p), "n_train_columns": len(train_l)}
 
-        def on_stage_end(stage, model, entry=entry, test_p=test_p, test_l=test_l):
+        per_restart: dict = {}
+
+        def on_stage_end(
+            restart, stage, model, per_restart=per_restart, test_p=test_p, test_l=test_l
+        ):
             tag = "before" if stage == 1 else "after"
-            entry[f"{tag}_pairs"] = score(model, test_p)
-            entry[f"{tag}_columns"] = score(model, test_l)
+            scores = per_restart.setdefault(restart, {})
+            scores[f"{tag}_pairs"] = score(model, test_p)
+            scores[f"{tag}_columns"] = score(model, test_l)
 
         t0 = time.perf_counter()
-        trainer = Trainer(
+        _, trainers, best = train_restarts(
             config,
             pairs.subset(train_p),
             labelled.subset(train_l),
             progress=progress,
             on_stage_end=on_stage_end,
         )
-        trainer.run()
+        entry.update(per_restart[best])  # "before" is the kept restart's stage-1 model
+        if len(trainers) > 1:
+            entry["restart_kept"] = best
         entry["wall_seconds"] = time.perf_counter() - t0
-        entry["train_seconds"] = trainer.train_seconds
-        entry["train_seconds_stage1"] = trainer.stage_seconds["1"]
-        entry["train_seconds_stage2"] = trainer.stage_seconds["2"]
+        entry["train_seconds"] = sum(t.train_seconds for t in trainers)
+        entry["train_seconds_stage1"] = sum(t.stage_seconds["1"] for t in trainers)
+        entry["train_seconds_stage2"] = sum(t.stage_seconds["2"] for t in trainers)
         result["folds"].append(entry)
         result["summary"] = summarize(result["folds"])
         if out_json:

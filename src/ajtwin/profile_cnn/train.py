@@ -89,6 +89,16 @@ class TrainConfig:
         stage-2 epoch, and the best state is kept — stage 2's loss spikes
         decide which minimum a run ends in, and the last epoch is not always
         the best one. 0 = keep the last epoch (the paper).
+    restarts : int
+        Independent trainings (seeds ``seed``, ``seed + 1``, …; one validation
+        split, drawn from ``seed``) of which the one with the best stage-2
+        validation score is kept (:func:`train_restarts`). Stage 2 ends in a
+        minimum that depends on the initialisation (docs/profile_cnn.md, *Edges*);
+        the validation score tracks held-out truth, so picking among a few runs by
+        it is a selection on training data only. Needs ``stage2_val_fraction`` > 0.
+    split_seed : int, optional
+        Seed of the validation split (default ``seed``); the restarts share it so
+        that their scores compare.
     stage1_brightness_weight : float
         Weight of a second stage-1 term: MSE between the camera brightness
         (optics model, slope → B/B_bg) of the predicted and the true profile.
@@ -114,6 +124,8 @@ class TrainConfig:
     stage1_brightness_weight: float = 0.0
     stage2_val_fraction: float = 0.0
     stage1_area_weight: float = 0.0
+    restarts: int = 1
+    split_seed: int | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -282,7 +294,10 @@ class Trainer:
         state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
         saved_config = json.loads(state["config"])
         mine = self.config.to_dict()
-        differs = {k for k in mine if k != "n_threads" and saved_config.get(k) != mine[k]}
+        defaults = TrainConfig().to_dict()  # settings added since the checkpoint was written
+        differs = {
+            k for k in mine if k != "n_threads" and saved_config.get(k, defaults[k]) != mine[k]
+        }
         if differs:
             raise ValueError(
                 f"checkpoint {self.checkpoint} was made with different settings "
@@ -483,8 +498,9 @@ class Trainer:
 def _validation_split(labelled: ColumnDataset | None, config: TrainConfig):
     """(training part, validation part) of the stage-2 columns, whole groups each.
 
-    The draw depends only on ``config.seed`` and the groups, so a resumed run
-    splits the same way. No split (``None``) when the fraction is 0.
+    The draw depends only on ``config.split_seed`` (default ``config.seed``) and the
+    groups, so a resumed run, and every restart, splits the same way. No split (``None``)
+    when the fraction is 0.
     """
     frac = config.stage2_val_fraction
     if labelled is None or frac <= 0:
@@ -494,11 +510,97 @@ def _validation_split(labelled: ColumnDataset | None, config: TrainConfig):
     groups = np.unique(labelled.group)
     if len(groups) < 2:
         raise ValueError("a validation split needs at least 2 column groups")
-    rng = np.random.default_rng([config.seed, 19])
+    split_seed = config.seed if config.split_seed is None else config.split_seed
+    rng = np.random.default_rng([split_seed, 19])
     n_val = min(len(groups) - 1, max(1, int(round(frac * len(groups)))))
     val_groups = rng.choice(groups, size=n_val, replace=False)
     is_val = np.isin(labelled.group, val_groups)
     return labelled.subset(np.flatnonzero(~is_val)), labelled.subset(np.flatnonzero(is_val))
+
+
+def train_restarts(
+    config: TrainConfig,
+    pairs: ColumnDataset | None,
+    labelled: ColumnDataset | None,
+    *,
+    checkpoint=None,
+    resume: bool = False,
+    progress: bool = True,
+    on_stage_end=None,
+    init_model: ProfileModel | None = None,
+) -> tuple[ProfileModel, list[Trainer], int]:
+    """Train ``config.restarts`` models and keep the best by stage-2 validation score.
+
+    Restart r trains with seed ``config.seed + r`` (weights, batch order,
+    augmentation) on the same validation split (``split_seed``, default
+    ``config.seed``); each has its own checkpoint ``CHECKPOINT.rR`` (one restart:
+    ``CHECKPOINT`` itself, as :class:`Trainer`), so an interrupted run resumes
+    at the restart and epoch it reached. Ties keep the earlier restart.
+
+    Parameters
+    ----------
+    on_stage_end : callable, optional
+        ``on_stage_end(restart, stage, model)`` after each finished stage.
+
+    Returns
+    -------
+    (model, trainers, best)
+        The kept model (its meta lists every restart's seed and score), all
+        trainers, and the index of the kept one.
+    """
+    from dataclasses import replace
+
+    n = int(config.restarts)
+    if n < 1:
+        raise ValueError(f"restarts must be >= 1, got {config.restarts}")
+    if n > 1 and not config.stage2_val_fraction > 0:
+        raise ValueError(
+            "restarts pick the best run by its stage-2 validation score: "
+            "give a validation split (--val-fraction > 0)"
+        )
+    split_seed = config.seed if config.split_seed is None else config.split_seed
+    trainers, models = [], []
+    for r in range(n):
+        run_config = replace(
+            config, seed=config.seed + r, split_seed=split_seed if n > 1 else config.split_seed
+        )
+        run_checkpoint = checkpoint
+        if checkpoint and n > 1:
+            run_checkpoint = Path(str(checkpoint) + f".r{r}")
+        callback = None
+        if on_stage_end is not None:
+            callback = lambda stage, model, r=r: on_stage_end(r, stage, model)  # noqa: E731
+        if progress and n > 1:
+            tqdm.write(f"restart {r + 1}/{n} (seed {run_config.seed})")
+        trainer = Trainer(
+            run_config,
+            pairs,
+            labelled,
+            init_model=init_model,
+            checkpoint=run_checkpoint,
+            resume=resume,
+            progress=progress,
+            on_stage_end=callback,
+        )
+        models.append(trainer.run())
+        trainers.append(trainer)
+    scores = [
+        trainer.best["score"] if trainer.best is not None else float("inf") for trainer in trainers
+    ]
+    best = int(np.argmin(scores)) if n > 1 else 0
+    model = models[best]
+    model.meta["restarts"] = [
+        {
+            "seed": trainer.config.seed,
+            "val_score_um": None if np.isinf(score) else round(float(score), 4),
+            "selected_epoch": None if trainer.best is None else trainer.best["epoch"],
+            "train_seconds": round(trainer.train_seconds, 2),
+        }
+        for trainer, score in zip(trainers, scores)
+    ]
+    model.meta["restart_kept"] = best
+    model.meta["train_seconds_all_restarts"] = round(sum(t.train_seconds for t in trainers), 2)
+    return model, trainers, best
 
 
 def train(
@@ -507,5 +609,6 @@ def train(
     config: TrainConfig | None = None,
     **kwargs,
 ) -> ProfileModel:
-    """Train a :class:`ProfileModel` in two stages. See :class:`Trainer`."""
-    return Trainer(config or TrainConfig(), pairs, labelled, **kwargs).run()
+    """Train a :class:`ProfileModel` in two stages (with ``config.restarts``, the best
+    of several runs). See :class:`Trainer` and :func:`train_restarts`."""
+    return train_restarts(config or TrainConfig(), pairs, labelled, **kwargs)[0]

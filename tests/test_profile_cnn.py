@@ -7,6 +7,7 @@ cross-validation is ``test_profile_cnn_slow.py`` (marked slow).
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -491,6 +492,25 @@ def test_restarts_keep_the_run_with_the_best_validation_score(tmp_path):
         train_restarts(TrainConfig(restarts=2, **SMALL), data, data, progress=False)
     with pytest.raises(ValueError, match="restarts"):
         train_restarts(TrainConfig(restarts=0, **SMALL), data, data, progress=False)
+
+
+def test_restart_screen_finishes_only_the_best_early_runs(tmp_path):
+    data = _tiny_data(24, seed=3)
+    data.group = np.repeat(np.arange(12), 2)
+    common = dict(stage1_epochs=3, stage2_epochs=3, stage2_val_fraction=0.25, seed=5, **SMALL)
+    cfg = TrainConfig(restarts=3, restart_screen_epochs=1, restart_finalists=1, **common)
+    model, trainers, best = train_restarts(cfg, data, data, progress=False)
+    screen = [r["screen_val_score_um"] for r in model.meta["restarts"]]
+    finished = [r["finished"] for r in model.meta["restarts"]]
+    # the one finished is the best at the screen, and it ran all its stage-2 epochs
+    assert finished.count(True) == 1 and finished.index(True) == int(np.argmin(screen))
+    assert best == finished.index(True) and model.meta["restart_kept"] == best
+    assert [(t.stage, t.epoch) for t in trainers] == [(3, 0) if f else (2, 1) for f in finished]
+    # finishing a screened run is the same as never stopping it (same schedule, batches)
+    alone = Trainer(
+        replace(cfg, seed=5 + best, split_seed=5, restarts=1), data, data, progress=False
+    ).run()
+    np.testing.assert_array_equal(alone.predict_um(data.columns), model.predict_um(data.columns))
 
 
 def test_model_save_load_roundtrip(tmp_path):

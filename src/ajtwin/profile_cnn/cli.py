@@ -108,6 +108,21 @@ def _training_options(f):
             "validation score (needs --val-fraction).",
         ),
         click.option(
+            "--restart-screen-epochs",
+            type=int,
+            default=0,
+            show_default=True,
+            help="With --restarts: train each restart to this stage-2 epoch, then finish "
+            "only the --restart-finalists best (0 = finish all).",
+        ),
+        click.option(
+            "--restart-finalists",
+            type=int,
+            default=2,
+            show_default=True,
+            help="Restarts finished after the screen.",
+        ),
+        click.option(
             "--stage1-brightness-weight",
             type=float,
             default=0.0,
@@ -206,6 +221,8 @@ def _config(kw):
         grad_clip=kw["grad_clip"],
         stage1_area_weight=kw["stage1_area_weight"],
         restarts=kw["restarts"],
+        restart_screen_epochs=kw["restart_screen_epochs"],
+        restart_finalists=kw["restart_finalists"],
         base_channels=kw["base_channels"],
         arch=kw["arch"],
         n_threads=kw["threads"],
@@ -346,10 +363,18 @@ def train(out, checkpoint, resume, init_path, **kw):
     if len(trainers) > 1:
         for r, entry in enumerate(model.meta["restarts"]):
             mark = "kept" if r == best else ""
-            click.echo(
-                f"restart {r + 1}: seed {entry['seed']}, validation score "
-                f"{entry['val_score_um']} µm at stage-2 epoch {entry['selected_epoch']} {mark}"
+            screened = (
+                f"screen {entry['screen_val_score_um']} µm, "
+                if entry["screen_val_score_um"] is not None
+                else ""
             )
+            finished = (
+                f"validation score {entry['val_score_um']} µm at stage-2 epoch "
+                f"{entry['selected_epoch']}"
+                if entry["finished"]
+                else "not finished"
+            )
+            click.echo(f"restart {r + 1}: seed {entry['seed']}, {screened}{finished} {mark}")
     stage1 = sum(t.stage_seconds["1"] for t in trainers)
     stage2 = sum(t.stage_seconds["2"] for t in trainers)
     over = f" over {len(trainers)} restarts" if len(trainers) > 1 else ""

@@ -96,6 +96,14 @@ class TrainConfig:
         minimum that depends on the initialisation (docs/profile_cnn.md, *Edges*);
         the validation score tracks held-out truth, so picking among a few runs by
         it is a selection on training data only. Needs ``stage2_val_fraction`` > 0.
+    restart_screen_epochs : int
+        With restarts: train every restart only to this stage-2 epoch, then
+        finish the ``restart_finalists`` best by validation score so far and keep
+        the best of those (0 = finish every restart). A run that reaches a good
+        stage-2 minimum shows it early (docs/profile_cnn.md), so screening lets
+        more initialisations be tried in the same time.
+    restart_finalists : int
+        Restarts finished after the screen.
     split_seed : int, optional
         Seed of the validation split (default ``seed``); the restarts share it so
         that their scores compare.
@@ -125,6 +133,8 @@ class TrainConfig:
     stage2_val_fraction: float = 0.0
     stage1_area_weight: float = 0.0
     restarts: int = 1
+    restart_screen_epochs: int = 0
+    restart_finalists: int = 2
     split_seed: int | None = None
 
     def to_dict(self) -> dict:
@@ -356,10 +366,22 @@ class Trainer:
 
     # ------------------------------------------------------------ loop
 
-    def run(self) -> ProfileModel:
-        """Train the remaining epochs of both stages; returns the model."""
+    def run(self, stop_after_stage2_epoch: int | None = None) -> ProfileModel | None:
+        """Train the remaining epochs of both stages; returns the model.
+
+        With ``stop_after_stage2_epoch`` E, stop (checkpoint written, ``None``
+        returned) once stage 2 has E epochs done; a later ``run()`` continues the
+        same run (same schedule, same batches) to its end.
+        """
         while self.stage <= 2:
             n_epochs = self._stage_epochs(self.stage)
+            if (
+                self.stage == 2
+                and stop_after_stage2_epoch is not None
+                and self.epoch >= stop_after_stage2_epoch
+                and self.epoch < n_epochs
+            ):
+                return None
             if self.epoch >= n_epochs:
                 if self.stage == 2 and self.best is not None:
                     self.model.network.load_state_dict(self.best["state_dict"])
@@ -385,6 +407,12 @@ class Trainer:
                 leave=True,
             )
             while self.epoch < n_epochs:
+                if (
+                    self.stage == 2
+                    and stop_after_stage2_epoch is not None
+                    and self.epoch >= stop_after_stage2_epoch
+                ):
+                    break
                 t0 = time.perf_counter()
                 loss = self._run_epoch(self.stage, self.epoch)
                 dt = time.perf_counter() - t0
@@ -559,7 +587,9 @@ def train_restarts(
             "give a validation split (--val-fraction > 0)"
         )
     split_seed = config.seed if config.split_seed is None else config.split_seed
-    trainers, models = [], []
+    screen = int(config.restart_screen_epochs)
+    screening = n > 1 and 0 < screen < config.stage2_epochs
+    trainers = []
     for r in range(n):
         run_config = replace(
             config, seed=config.seed + r, split_seed=split_seed if n > 1 else config.split_seed
@@ -582,21 +612,38 @@ def train_restarts(
             progress=progress,
             on_stage_end=callback,
         )
-        models.append(trainer.run())
+        trainer.run(stop_after_stage2_epoch=screen if screening else None)
         trainers.append(trainer)
-    scores = [
-        trainer.best["score"] if trainer.best is not None else float("inf") for trainer in trainers
-    ]
+
+    def score_of(trainer):
+        return trainer.best["score"] if trainer.best is not None else float("inf")
+
+    screen_scores = [score_of(t) for t in trainers]
+    finalists = list(range(n))
+    if screening:
+        ranked = np.argsort(screen_scores, kind="stable")
+        finalists = sorted(int(r) for r in ranked[: max(1, config.restart_finalists)])
+        for r in finalists:
+            if progress:
+                tqdm.write(f"finishing restart {r + 1} (seed {trainers[r].config.seed})")
+            trainers[r].run()
+    scores = [score_of(t) if r in finalists else float("inf") for r, t in enumerate(trainers)]
     best = int(np.argmin(scores)) if n > 1 else 0
-    model = models[best]
+    model = trainers[best].model
     model.meta["restarts"] = [
         {
             "seed": trainer.config.seed,
-            "val_score_um": None if np.isinf(score) else round(float(score), 4),
-            "selected_epoch": None if trainer.best is None else trainer.best["epoch"],
+            "finished": r in finalists,
+            "screen_val_score_um": None
+            if not screening or np.isinf(screen_scores[r])
+            else round(float(screen_scores[r]), 4),
+            "val_score_um": None if np.isinf(scores[r]) else round(float(scores[r]), 4),
+            "selected_epoch": None
+            if trainer.best is None or r not in finalists
+            else trainer.best["epoch"],
             "train_seconds": round(trainer.train_seconds, 2),
         }
-        for trainer, score in zip(trainers, scores)
+        for r, trainer in enumerate(trainers)
     ]
     model.meta["restart_kept"] = best
     model.meta["train_seconds_all_restarts"] = round(sum(t.train_seconds for t in trainers), 2)

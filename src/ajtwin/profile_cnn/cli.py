@@ -10,6 +10,7 @@ vision module, ResNet-18-1D, stage 1 then 50 epochs of stage 2).
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -69,6 +70,20 @@ def _load_data(
     return pairs, labelled
 
 
+@functools.cache
+def _training_recipe() -> dict:
+    import tomllib
+    from importlib import resources
+
+    with (resources.files("ajtwin") / "data" / "profile_cnn.toml").open("rb") as fh:
+        return tomllib.load(fh)["training"]
+
+
+def _recipe(key):
+    """The default of a training option: data/profile_cnn.toml [training]."""
+    return _training_recipe()[key]
+
+
 def _training_options(f):
     options = [
         click.option("--seed", type=int, default=0, show_default=True),
@@ -80,46 +95,46 @@ def _training_options(f):
         click.option(
             "--stage1-area-weight",
             type=float,
-            default=0.0,
-            show_default=True,
+            default=_recipe("stage1_area_weight"),
+            show_default=f"{_recipe('stage1_area_weight')}, data/profile_cnn.toml",
             help="Weight of the relative cross-section area (Q_m) term in the stage-1 loss.",
         ),
         click.option(
             "--grad-clip",
             type=float,
-            default=5.0,
-            show_default=True,
+            default=_recipe("grad_clip"),
+            show_default=f"{_recipe('grad_clip')}, data/profile_cnn.toml",
             help="Gradient-norm clip of every step.",
         ),
         click.option(
             "--val-fraction",
             type=float,
-            default=0.0,
-            show_default=True,
+            default=_recipe("val_fraction"),
+            show_default=f"{_recipe('val_fraction')}, data/profile_cnn.toml",
             help="Share of the stage-2 column groups held back to pick the best stage-2 "
             "epoch (0 = keep the last epoch).",
         ),
         click.option(
             "--restarts",
             type=int,
-            default=1,
-            show_default=True,
+            default=_recipe("restarts"),
+            show_default=f"{_recipe('restarts')}, data/profile_cnn.toml",
             help="Train N runs (seeds SEED, SEED+1, ...) and keep the best by the stage-2 "
             "validation score (needs --val-fraction).",
         ),
         click.option(
             "--restart-screen-epochs",
             type=int,
-            default=0,
-            show_default=True,
+            default=_recipe("restart_screen_epochs"),
+            show_default=f"{_recipe('restart_screen_epochs')}, data/profile_cnn.toml",
             help="With --restarts: train each restart to this stage-2 epoch, then finish "
             "only the --restart-finalists best (0 = finish all).",
         ),
         click.option(
             "--restart-finalists",
             type=int,
-            default=2,
-            show_default=True,
+            default=_recipe("restart_finalists"),
+            show_default=f"{_recipe('restart_finalists')}, data/profile_cnn.toml",
             help="Restarts finished after the screen.",
         ),
         click.option(
@@ -147,8 +162,8 @@ def _training_options(f):
         click.option(
             "--arch",
             type=click.Choice(["resnet18", "unet1d"]),
-            default="resnet18",
-            show_default=True,
+            default=_recipe("arch"),
+            show_default=f"{_recipe('arch')}, data/profile_cnn.toml",
             help="Network: the paper's 1-D ResNet-18, or a small 1-D U-Net (docs/profile_cnn.md).",
         ),
         click.option(

@@ -5,7 +5,8 @@ The default model is reproduced by one command (no weights are shipped)::
     ajtwin cnn train --synthetic --seed 0 --out model.pt
 
 (125 synthetic profilometer pairs + 4000 CV-labelled columns rendered by the
-vision module, ResNet-18-1D, stage 1 then 50 epochs of stage 2).
+vision module; the recipe of ``data/profile_cnn.toml`` [training]: the 1-D U-Net,
+stage 1 then 50 epochs of stage 2, best of 8 restarts by a validation split).
 """
 
 from __future__ import annotations

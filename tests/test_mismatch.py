@@ -40,6 +40,33 @@ def test_guard_unit_bias_and_range():
     assert status.states == ["vial_volume_mL"] and status.first_s == 100.0
 
 
+def test_guard_judges_q_m_level_only_once_em_could_learn_it():
+    """Q_m's level (the print's atomizer efficiency) is θ_φA's to learn: an offset before
+    the first EM update is not a misfit, the same offset after it is; other outputs are
+    judged from the warm-up as before."""
+    n = 1500
+    t = 100.0 + np.arange(float(n))  # a clock that does not start at 0
+    x = np.tile([3.5, 1.0, 0.0, 0.01, 4.6e-7], (n, 1))
+    e = np.random.default_rng(1).standard_normal((n, 5)) * 0.3
+    level = e.copy()
+    level[:600, 4] += 1.0  # Q_m 1 σ high until EM (first update at t = 700) absorbs it
+    args = (np.full(n, 5.0), np.full(n, 5))
+    assert assess(t, x, level, *args).outputs == ["material_flow_mL_s"]  # no EM: a misfit
+    assert not assess(t, x, level, *args, level_learned_s=700.0).mismatch
+    late = e.copy()
+    late[900:, 4] += 1.0  # still off after EM's update: the model does not fit
+    status = assess(t, x, late, *args, level_learned_s=700.0)
+    assert status.outputs == ["material_flow_mL_s"] and 900 - 100 <= status.first_s <= 1200
+    # a part window right after the update is no evidence (θ's own transient): a whole one
+    spike = e.copy()
+    spike[600:640, 4] += 3.0  # a 40-s transient: 3 σ on a part window, 0.4 σ on a whole
+    assert not assess(t, x, spike, *args, level_learned_s=700.0).mismatch
+    line = level.copy()
+    line[:, 1] += 1.0  # overspray: judged from the warm-up regardless
+    status = assess(t, x, line, *args, level_learned_s=700.0)
+    assert status.outputs == ["overspray_um"] and status.first_s == 30.0
+
+
 @pytest.mark.parametrize(
     "machine, expect_output, expect_state",
     [

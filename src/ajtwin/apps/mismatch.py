@@ -115,6 +115,7 @@ def assess(
     start_cov=None,
     limits=None,
     settings: dict | None = None,
+    level_learned_s: float | None = None,
 ) -> MismatchStatus:
     """Run the guard's four tests (module docstring) over one print.
 
@@ -127,6 +128,12 @@ def assess(
         The print's start prior (for the start-surprise test).
     limits : StateLimits, optional
         Default: ``data/state_limits.toml`` with the packaged parameters.
+    level_learned_s : float, optional
+        Time (same clock as ``time_s``) from which the twin has learned the print's level of
+        the ``level_learned_outputs`` (``data/mismatch.toml``: Q_m, whose level is the
+        print's atomizer efficiency, learned only by EM's θ_φA). Their bias test reads only
+        samples from then on. None: from the warm-up (the twin cannot learn the level, so a
+        level offset is a misfit).
     """
     from ajtwin.model import load_parameters
     from ajtwin.model.limits import StateLimits
@@ -153,7 +160,21 @@ def assess(
             flags |= ~inside[:, i] & active
             findings.append((k, "state", name, f"{limits.violations(means[k])[0]} at {t[k]:.0f} s"))
 
-    bias = _rolling_mean(e, int(g["bias_window_s"]))
+    e_bias = e.copy()
+    before = None
+    if level_learned_s is not None:
+        # before EM's first θ the twin has no parameter for the print's own atomizer level
+        # (φ_A follows the generation model within seconds): a Q_m level offset then is the
+        # print-to-print variation the start prior allows, not a misfit (docs/calibration.md)
+        learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
+        before = t < learned
+        level_columns = [OUTPUT_NAMES.index(name) for name in g.get("level_learned_outputs", [])]
+        e_bias[np.ix_(before, level_columns)] = np.nan
+    bias = _rolling_mean(e_bias, int(g["bias_window_s"]))
+    if before is not None:
+        # ... and a whole window of samples after it: the θ update itself moves φ_A for tens
+        # of seconds, so a part-window mean right after it is no evidence
+        bias[np.ix_(t < learned + float(g["bias_window_s"]), level_columns)] = np.nan
     # a bias needs a full window of evidence (or the print so far, after warm-up)
     for j, name in enumerate(OUTPUT_NAMES):
         mask = np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])
@@ -263,7 +284,17 @@ def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
         start_mean=run.start_mean,
         start_cov=run.start_cov,
         settings=settings,
+        level_learned_s=first_em_update_s(run),
     )
+
+
+def first_em_update_s(run) -> float | None:
+    """When the twin's first EM update took effect (None: EM did not run): from then on θ_φA
+    holds the print's atomizer level, so Q_m's level is the model's to explain."""
+    history = getattr(run, "theta_history", None)
+    if history is None or len(history) == 0 or "time_s" not in history:
+        return None
+    return float(history["time_s"].iloc[0])
 
 
 def data_share(filtered) -> np.ndarray:

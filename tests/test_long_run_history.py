@@ -218,27 +218,50 @@ def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_pri
 
 
 def test_a_clog_after_a_false_alarm_of_another_channel_is_its_own_event():
-    """A Q_m false alarm at ~70 s, then a clog (both pressures +1.5σ) at 400 s: within
-    merge_s (600 s) of it, but on another family of channels and more than 120 s after its
+    """A Q_m false alarm at ~70 s, then a clog (both pressures +1.5σ) at 300 s: within
+    merge_s (300 s) of it, but on another family of channels and more than 120 s after its
     last alarm, so the clog is reported as a clog (before: swallowed into the Q_m event)."""
     s = DetectorSettings()
     e = np.zeros((900, 5))
     e[61:80, 4] = -4.0  # a short Q_m dip (after the warm-up)
-    e[400:, 2:4] = 1.5
+    e[300:, 2:4] = 1.5
     means = np.tile(X0, (900, 1))
     predicted = means.copy()
-    predicted[400:, 3] -= 1e-3  # the filter pushes ΔR_N up
+    predicted[300:, 3] -= 1e-3  # the filter pushes ΔR_N up
     args = {**_arrays(e), "predicted_means": predicted}
     events = detect_anomalies(**args, settings=s).events
     assert [ev.cause for ev in events][-1] == "nozzle_clog", [
         (ev.cause, ev.detectors) for ev in events
     ]
     assert events[0].detectors[0] == "cusum− Q_m" and len(events) == 2
-    assert 400 < events[1].detected_s <= 400 + 16 / (3.0 - 0.7) + 2  # the common channel
+    assert 300 < events[1].detected_s <= 300 + 16 / (3.0 - 0.7) + 2  # the common channel
     from dataclasses import replace
 
     merged = detect_anomalies(**args, settings=replace(s, merge_other_family_s=1e9)).events
     assert len(merged) == 1 and merged[0].cause != "nozzle_clog"
+
+
+def test_a_clog_after_a_quiet_false_alarm_of_the_same_family_is_its_own_event():
+    """A pressure false alarm at ~70 s, quiet after it, then a clog at 420 s: more than
+    merge_s (300 s) after the false alarm's last alarm, so the clog opens its own event
+    (with merge_s 600 it was swallowed: held-out alt machines 1015, 1054)."""
+    s = DetectorSettings()
+    e = np.zeros((1000, 5))
+    e[61:90, 2] = 3.0  # a short P_c excursion after the warm-up
+    e[420:, 2:4] = 1.5
+    means = np.tile(X0, (1000, 1))
+    predicted = means.copy()
+    predicted[420:, 3] -= 1e-3  # the filter pushes ΔR_N up
+    args = {**_arrays(e), "predicted_means": predicted}
+    events = detect_anomalies(**args, settings=s).events
+    assert len(events) == 2 and events[1].cause == "nozzle_clog", [
+        (ev.detected_s, ev.cause, ev.detectors) for ev in events
+    ]
+    assert events[0].detected_s < 100 and 420 < events[1].detected_s < 440
+    from dataclasses import replace
+
+    merged = detect_anomalies(**args, settings=replace(s, merge_s=600.0)).events
+    assert len(merged) == 1 and merged[0].detected_s < 100
 
 
 def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
@@ -251,6 +274,21 @@ def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
     # the same gauges with ΔR_N not pushed up stay unexplained; P_c falling stays a leak
     assert label_cause(mean, n, [0, 0, 0, 0.5, 0], 1.0, s) == "unexplained"
     assert label_cause([0, 0, -0.4, 0.69, 0], n, shift, 1.0, s) == "carrier_leak"
+
+
+def test_clog_start_with_p_c_up_and_p_s_within_noise_is_a_clog_not_a_leak():
+    from ajtwin.apps.anomaly import label_cause
+
+    s = DetectorSettings()
+    # held-out machine 1037 (alt), 120 s of evidence: P_c +0.73σ (z 8.0), P_s +0.23σ
+    # (z 2.5 < 3), ΔR_N pushed +49σ — was 'carrier_leak'
+    mean, n = [0.05, -0.04, 0.73, 0.23, -0.20], [120] * 5
+    shift = [0.8, 0, 0, 48.8, -6.3]
+    assert label_cause(mean, n, shift, 1.0, s) == "nozzle_clog"
+    # P_s falling against the deposit's prediction: one gauge creeping up, not a clog
+    assert label_cause([0.05, -0.04, 0.73, -0.23, -0.2], n, shift, 1.0, s) == "carrier_leak"
+    # ΔR_N not pushed: P_c alone rising stays the carrier line
+    assert label_cause(mean, n, [0.8, 0, 0, 1.0, -6.3], 1.0, s) == "carrier_leak"
 
 
 def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):

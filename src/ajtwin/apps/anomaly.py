@@ -460,6 +460,14 @@ def label_cause(
     # (Q_c + Q_s)·R_N term); rising together = deposit
     if z[pc] > zs and z[ps] > zs and (shift[3] > 0 or z[lw] > 0 or z[lo] > 0):
         return "nozzle_clog"
+    # both pressures up, the filter reading them as a growing nozzle deposit (ΔR_N pushed
+    # up by many σ), though P_s's rise is still within its noise in the evidence window: a
+    # clog's start, not the carrier line (a leak LOWERS P_c; a gauge creeping up alone
+    # pushes ΔR_N while P_s falls below the deposit's prediction). Held-out alt machines
+    # 1037/1042: P_c +0.73/+0.77σ, P_s +0.23/+0.20σ, ΔR_N +49/+58σ were labelled carrier
+    # leak by the rule below (set 2026-11-25, issue 12)
+    if shift[3] > zs and z[pc] > zs and z[ps] > 0:
+        return "nozzle_clog"
     # less carrier reaching the head lowers P_c (and P_s through the nozzle); a P_c
     # change alone or against P_s is the carrier line or its sensor
     if z[pc] < -zs or (sig[pc] and (not sig[ps] or np.sign(z[pc]) != np.sign(z[ps]))):

@@ -97,6 +97,13 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
     return case(truth, machine_seed, print_seed, minutes)
 
 
+def _print_seed(truth: str, machine_seed: int, index: int) -> int:
+    """The print seed bench_machine.py gives this machine (alt: 2001 + 10·(seed − 1001))."""
+    if truth == "alt" and machine_seed >= 1001:
+        return 2001 + 10 * (machine_seed - 1001)
+    return (2001 if truth == "alt" else 3001) + 10 * index
+
+
 def _lag1(x: np.ndarray) -> float:
     """Lag-1 autocorrelation over the pairs where both samples were measured."""
     ok = np.isfinite(x[:-1]) & np.isfinite(x[1:])
@@ -117,7 +124,7 @@ def diagnose(truth: str, machines, settings=None, minutes: float = 90.0, carry=T
     delays, labels, per_machine = [], [], {}
     e_stats = []
     for i, seed in enumerate(machines):
-        c = case(truth, seed, 2001 + 10 * i if truth == "alt" else 3001 + 10 * i, minutes)
+        c = case(truth, seed, _print_seed(truth, seed, i), minutes)
         history = detect(c["comm"], settings).long_run_history if carry else None
         res = detect(c["clean"], settings, history)
         hours += minutes / 60.0
@@ -170,6 +177,33 @@ if __name__ == "__main__":
         action="store_true",
         help="each print on its own (no long-run history carried from commissioning)",
     )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a DetectorSettings field, e.g. --set cusum_threshold=20 (repeatable)",
+    )
     a = p.parse_args()
-    machines = [int(s) for s in a.machines.split(",")]
-    print(json.dumps(diagnose(a.truth, machines, carry=not a.no_carry), indent=1, default=float))
+    machines = []
+    for part in a.machines.split(","):  # "1006-1020" or "11,12"
+        first, _, last = part.partition("-")
+        machines += list(range(int(first), int(last or first) + 1))
+    settings = None
+    if a.set:
+        from dataclasses import fields, replace
+
+        from ajtwin.apps.anomaly import DetectorSettings
+
+        types = {f.name: f.type for f in fields(DetectorSettings)}
+        overrides = {}
+        for item in a.set:
+            name, _, value = item.partition("=")
+            if name not in types:
+                p.error(f"--set {item}: no DetectorSettings field {name!r} ({', '.join(types)})")
+            overrides[name] = (
+                tuple(float(v) for v in value.split(",")) if "," in value else float(value)
+            )
+        settings = replace(DetectorSettings(), **overrides)
+    result = diagnose(a.truth, machines, settings=settings, carry=not a.no_carry)
+    print(json.dumps(result, indent=1, default=float))

@@ -584,6 +584,8 @@ def test_fuzz_ws_events(profile):
         ("publish_link", {"state": "reconnecting", "since": "x", "retry_in_s": "y"}),
         ("publish_link", {"state": "connected", "gap_s": None}),
         ("announce", {"type": "print", "machine": None, "x": np.array([np.nan])}),
+        # the caller's published_at was kept (setdefault): None reached the page's clock
+        ("announce", {"machine": None, "time_s": None, "published_at": None, "type": ""}),
     ],
 )
 def test_ws_events_that_raised(how, sample):
@@ -609,7 +611,8 @@ def test_ws_events_that_raised(how, sample):
         loop.run_until_complete(asyncio.sleep(0))
         assert not sub.queue.empty()
         while not sub.queue.empty():
-            strict_json(event_text(sub.queue.get_nowait()).encode())
+            doc = strict_json(event_text(sub.queue.get_nowait()).encode())
+            assert isinstance(doc.get("published_at"), float)  # the pages' delivery clock
     finally:
         loop.close()
 

@@ -316,7 +316,9 @@ class LivePublisher:
         if not isinstance(event.get("type"), str):
             raise ValueError("an announced event needs a 'type' (text) the pages dispatch on")
         event = _clean(dict(event))
-        event.setdefault("published_at", time.time())
+        # always the publisher's clock, as for samples: a caller's value (None, text, a
+        # stale stamp) would break the pages' delivery-time measure (found by test_fuzz_ws)
+        event["published_at"] = time.time()
         self._broadcast(event)
 
     def _broadcast(self, event: dict) -> None:

@@ -321,7 +321,10 @@ def test_twin_tracks_truth_on_a_held_out_virtual_print():
     inside = np.abs(run.means - truth) <= 2 * run.stds
     for i in (0, 3, 4):  # the observable states' bands are honest
         assert 0.80 <= inside[:, i].mean() <= 1.0
-    assert len(run.theta_history) == len(range(600, 5400, 300))  # none at the very end
+    # the early EM at 120 s, then every 300 s from a full window; none at the very end
+    assert run.theta_history["time_s"].tolist() == [119.0] + [
+        t - 1.0 for t in range(600, 5400, 300)
+    ]
     assert not np.asarray(run.filtered.reinitialised).any()
     # the open loop from the same start misses the nozzle offset the twin found
     open_loop = MODEL.simulate(run.start_mean, record.inputs[:-1])
@@ -340,7 +343,7 @@ def test_twin_run_start_state_and_smoother(exp1_record):
     run = twin.run(short, smooth=True)
     frame = run.to_frame()
     assert {"droplet_diameter_um_std", "pred_linewidth_um", "nis"} <= set(frame.columns)
-    assert len(run.theta_history) == 4  # EM at 300, 450, 600, 750 s
+    assert len(run.theta_history) == 5  # EM at 120 (early), 300, 450, 600, 750 s
     # continuing from the end state: no initial fit, the state carries over
     nxt = twin.run(exp1_record.window(900, 1200), start=(run.end_mean, run.end_cov))
     assert nxt.initial is None
@@ -378,6 +381,18 @@ def test_estimate_cli_writes_states_and_theta(tmp_path, exp1_record):
     assert all(c in states.columns for c in expected)
     assert len(states) == 700
     theta = pd.read_csv(tmp_path / "theta.csv")
-    assert len(theta) == 2 and "theta_aerosol_fraction" in theta.columns  # EM at 300, 600 s
+    assert len(theta) == 3 and "theta_aerosol_fraction" in theta.columns  # 120, 300, 600 s
+    for early, times in (("none", [299.0, 599.0]), ("60,200", [59.0, 199.0, 299.0, 599.0])):
+        result = CliRunner().invoke(
+            main,
+            ["estimate", str(path), "--out", str(out), "--window", "300", "--early-em", early],
+        )
+        assert result.exit_code == 0, result.output
+        assert pd.read_csv(tmp_path / "theta.csv")["time_s"].tolist() == times
+    for bad_value in ("soon", "1", "60.5"):
+        result = CliRunner().invoke(
+            main, ["estimate", str(path), "--out", str(out), "--early-em", bad_value]
+        )
+        assert result.exit_code == 2 and "--early-em" in result.output, result.output
     bad = CliRunner().invoke(main, ["estimate", str(tmp_path / "nope.parquet"), "--out", "x.csv"])
     assert bad.exit_code != 0

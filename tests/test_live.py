@@ -69,6 +69,29 @@ def test_stream_equals_batch(clog_record, asynchronous):
 
 
 @pytest.mark.parametrize("asynchronous", [False, True])
+def test_stream_equals_batch_with_early_em(clog_record, asynchronous):
+    """EM also at the early steps, each over the print so far: the same boundaries, θ and
+    states in the stream as in the batch twin."""
+    overrides = {**FAST_EM, "early_em_s": (10, 25)}
+    batch_twin = Twin.default(**overrides)
+    run = batch_twin.run(clog_record)
+    hist = run.theta_history
+    assert hist["time_s"].to_numpy(float)[:4].tolist() == [9.0, 24.0, 59.0, 89.0]
+    assert hist["window_start_s"].to_numpy(float)[:4].tolist() == [0.0, 0.0, 0.0, 30.0]
+    assert _relative(run.theta_per_step[10], run.theta_per_step[9]) > 0  # θ moved at 10
+    stream = TwinStream.new("m", twin_overrides=overrides, asynchronous=asynchronous)
+    _feed_all(stream, clog_record)
+    arrays = stream.arrays()
+    assert _relative(arrays["means"], run.means) < 1e-9
+    assert _relative(arrays["covariances"], np.asarray(run.filtered.covariances)) < 1e-9
+    assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
+    assert np.array_equal(arrays["theta_history_time_s"], hist["time_s"].to_numpy(float))
+    # without the early steps the first update comes only with a full window
+    plain = Twin.default(**FAST_EM, early_em_s=()).run(clog_record).theta_history
+    assert plain["time_s"].to_numpy(float)[0] == 59.0
+
+
+@pytest.mark.parametrize("asynchronous", [False, True])
 def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchronous):
     """The input_following profile reads the input response r as a 4th input: the stream
     carries it sample by sample (model.droplet_dynamics.model_input) through EM

@@ -25,6 +25,23 @@ def _parse_seeds(text: str) -> list[int]:
     return seeds
 
 
+def parse_early_em(text: str) -> tuple:
+    """'120' / '120,300' / 'none' → the early EM steps [s] (each a whole number ≥ 2)."""
+    text = str(text).strip().lower()
+    if text in ("", "none", "off"):
+        return ()
+    steps = []
+    for part in text.split(","):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"{part!r} is not a number of seconds (e.g. 120 or 120,300)") from None
+        if not value.is_integer() or value < 2:
+            raise ValueError(f"{part!r}: an early EM step is a whole number of seconds >= 2")
+        steps.append(int(value))
+    return tuple(steps)
+
+
 @click.command("estimate")
 @click.argument("record_path", type=click.Path(exists=True, dir_okay=False))
 @click.option(
@@ -47,6 +64,15 @@ def _parse_seeds(text: str) -> list[int]:
     default=300,
     show_default=True,
     help="EM update interval [s].",
+)
+@click.option(
+    "--early-em",
+    "early_em",
+    default="120",
+    show_default=True,
+    help="Extra EM updates before the first full window, each over the print so far "
+    "(seconds, comma-separated; 'none' = off): the print's atomizer level is learned "
+    "from the first of them.",
 )
 @click.option(
     "--gate",
@@ -99,6 +125,7 @@ def estimate(
     smooth,
     window,
     every,
+    early_em,
     gate,
     noise_profile,
     vial_ml,
@@ -130,6 +157,10 @@ def estimate(
         if "noise_factor" in content:
             factors = content["noise_factor"]
             noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
+    try:
+        early = parse_early_em(early_em)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--early-em") from None
     twin = Twin.default(
         calibration=calibration,
         calibration_cov=calibration_cov,
@@ -138,6 +169,7 @@ def estimate(
         em=em,
         window_s=window,
         every_s=every,
+        early_em_s=early,
         gate_sigma=gate,
         vial_fill_ml=vial_ml,
     )

@@ -12,9 +12,10 @@ Semantics (shared with ``Twin.run``)
 * Samples live on a 1 s grid k = 0, 1, …; the twin starts from the registry's carry-over
   state or, for a machine's first print, from the initial-state fit over the first
   ``initial_samples`` samples (the stream waits for them).
-* Every ``every_s`` steps (a *chunk boundary* pos) the filter restarts from the
-  prediction of step pos − 1. From pos ≥ ``window_s``, and only when sample pos has
-  arrived (the print goes on), EM runs over the trailing window [pos − window, pos);
+* Every ``every_s`` steps and at the early EM steps ``early_em_s`` (a *chunk boundary*
+  pos) the filter restarts from the prediction of step pos − 1. From pos ≥ ``window_s``
+  and at the early steps, and only when sample pos has arrived (the print goes on), EM
+  runs over the trailing window [max(pos − window, 0), pos);
   its θ and its re-filtered end state take effect from step pos.
 * EM does not stall the steps: it runs in a worker thread; samples that arrive meanwhile
   are stepped with the previous θ and published as ``provisional``, then re-stepped with
@@ -66,7 +67,7 @@ from ajtwin._jax import jax, jnp
 from ajtwin.apps.anomaly import AnomalyDetector, DetectorSettings
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.filters import EKFCarry, ekf_init, ekf_step
-from ajtwin.estimation.twin import Twin, predict
+from ajtwin.estimation.twin import Twin, em_due, em_early_steps, predict
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PLAUSIBLE_RANGES
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 from ajtwin.model.droplet_dynamics import model_input, next_response
@@ -223,6 +224,8 @@ class TwinStream:
         self.config = twin.config
         if self.config.em and (self.config.every_s < 1 or self.config.window_s < 2):
             raise ValueError("EM needs every_s >= 1 and window_s >= 2")
+        # the batch twin's boundaries and EM times (one rule: estimation.twin.em_due)
+        self._early = em_early_steps(self.config) if self.config.em else ()
         self.asynchronous = asynchronous
         self._executor = executor
         self._own_executor = False
@@ -344,7 +347,7 @@ class TwinStream:
             or int(round(float(sample.time_s) - self.last_time)) != 1
             or sample.inputs is None
             or not np.all(np.isfinite(sample.inputs))
-            or (c.em and k % int(c.every_s) == 0 and k != self._em_done)
+            or (c.em and self._is_boundary(k) and k != self._em_done)
         ):
             return None
         sample = Sample(
@@ -407,9 +410,9 @@ class TwinStream:
             return [self._speculative(sample)]
         k = self.n_committed
         c = self.config
-        boundary = c.em and k > 0 and k % int(c.every_s) == 0 and k != self._em_done
+        boundary = c.em and k > 0 and self._is_boundary(k) and k != self._em_done
         if boundary:
-            if k >= int(c.window_s):
+            if em_due(k, int(c.every_s), int(c.window_s), self._early):
                 self._launch_em(k)
                 self._pending.append(sample)
                 if not self.asynchronous:
@@ -417,6 +420,10 @@ class TwinStream:
                 return [self._speculative(sample)]
             self._restart_chunk(k, self.theta)
         return [self._commit(sample)]
+
+    def _is_boundary(self, k: int) -> bool:
+        """A chunk boundary: a multiple of every_s or an early EM step (the batch twin's)."""
+        return k % int(self.config.every_s) == 0 or k in self._early
 
     def _start_prior_floor(self, inputs) -> None:
         """Which output sees which state (the batch twin's ``observed_states``, one output
@@ -469,7 +476,7 @@ class TwinStream:
     def _launch_em(self, pos: int):
         h = self.history
         c = self.config
-        w0 = pos - int(c.window_s)
+        w0 = max(pos - int(c.window_s), 0)
         args = (
             self.twin.spec,
             np.asarray(h.predicted_means[w0]),
@@ -507,7 +514,7 @@ class TwinStream:
         em = future.result()
         pos = self._em_pos
         h = self.history
-        w0 = pos - int(self.config.window_s)
+        w0 = max(pos - int(self.config.window_s), 0)
         self.theta = np.asarray(em.theta, dtype=float)
         self.theta_history.append(
             {

@@ -191,7 +191,7 @@ def test_forecast_covariance_matches_monte_carlo(twin_and_state):
     _, mean, cov = twin_and_state
     quiet = Twin.default(process_std=(0.0,) * 5)
     u = np.tile([375.0, 23.0, 50.0], (60, 1))
-    fc = forecast(quiet, mean, cov / 100, u)
+    fc = forecast(quiet, mean, cov / 100, u, aerosol_wander_per_sqrt_h=0.0)
     rng = np.random.default_rng(0)
     samples = rng.multivariate_normal(mean, cov / 100, size=400)
     samples[:, 2:4] = np.abs(samples[:, 2:4])
@@ -199,8 +199,58 @@ def test_forecast_covariance_matches_monte_carlo(twin_and_state):
     mc = ys.std(axis=0)
     assert np.allclose(fc.output_stds[-1, :4], mc[:4], rtol=0.15)
     # with process noise the band only widens
-    wide = forecast(twin_and_state[0], mean, cov / 100, u)
+    wide = forecast(twin_and_state[0], mean, cov / 100, u, aerosol_wander_per_sqrt_h=0.0)
     assert np.all(wide.output_stds[-1, :4] >= fc.output_stds[-1, :4])
+
+
+def test_forecast_aerosol_level_walk_matches_monte_carlo(twin_and_state):
+    """θ_φA a random walk over the horizon: the forecast's σ of φ_A, L_o and Q_m ≈ the
+    spread of runs whose θ_φA walks with the same per-step variance; the relative σ of the
+    steady φ_A grows as w·√(t/h); a vanishing wander gives the plain forecast."""
+    from ajtwin._jax import jax, jnp
+    from ajtwin.apps.forecast import aerosol_level_variance
+    from ajtwin.estimation import Twin
+    from ajtwin.model.system import euler_step
+
+    _, mean, _ = twin_and_state
+    quiet = Twin.default(process_std=(0.0,) * 5)
+    tiny = np.diag([1e-6, 1e-8, 1e-12, 1e-10, (1e-6 * mean[4]) ** 2])
+    n_steps, wander = 1800, 0.2
+    u = np.tile([375.0, 23.0, 50.0], (n_steps, 1))
+    fc = forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=wander)
+    q = aerosol_level_variance(quiet, mean, u[0], wander)
+    # hand value: Q_c 23 sccm = 0.383 mL/s, head space V_v − V_l, per 3600 steps
+    from ajtwin import units
+
+    headspace = float(units.m3_to_ml(quiet.spec.params.vial_volume)) - mean[1]
+    assert q == pytest.approx((wander * 23.0 / 60.0 / headspace) ** 2 / 3600.0, rel=1e-9)
+    rng = np.random.default_rng(1)
+    walks = np.concatenate(
+        [np.zeros((400, 1)), np.cumsum(rng.normal(0, np.sqrt(q), (400, n_steps - 1)), axis=1)], 1
+    )
+    params = quiet.spec.params
+
+    def run(theta_aerosol):
+        def body(x, step_input):
+            uk, th = step_input
+            theta = jnp.zeros(5).at[4].set(th)
+            x = euler_step(x, uk, theta, params, 1.0)
+            return x, x
+
+        return jax.lax.scan(body, jnp.asarray(mean), (jnp.asarray(u), theta_aerosol))[1][-1]
+
+    ends = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(walks)))
+    ys = np.array([quiet.model.outputs(x, u[-1]) for x in ends])
+    assert fc.state_stds[-1, 4] == pytest.approx(ends[:, 4].std(), rel=0.12)
+    assert np.allclose(fc.output_stds[-1, [1, 4]], ys[:, [1, 4]].std(axis=0), rtol=0.12)
+    # the steady level's relative σ after 30 min: w √(0.5 h), to first order
+    assert fc.state_stds[-1, 4] / fc.state_means[-1, 4] == pytest.approx(wander * 0.5**0.5, rel=0.1)
+    plain = forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=0.0)
+    barely = forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=1e-9)
+    assert np.allclose(barely.state_stds, plain.state_stds, rtol=1e-9, atol=0)
+    assert np.array_equal(barely.state_means, plain.state_means)
+    with pytest.raises(ValueError, match="aerosol_wander_per_sqrt_h"):
+        forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=-0.1)
 
 
 def test_forecast_flags_extrapolation(twin_and_state):

@@ -149,6 +149,10 @@ def range_warnings(fc) -> list[str]:
     return out
 
 
+#: the transition profile's aerosol-level wander in forecasts (data/transition.toml)
+WANDER_KEY = "forecast_aerosol_wander_per_sqrt_h"
+
+
 def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     from ajtwin.estimation.twin import predict
 
@@ -170,6 +174,64 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
 _forecast_scan = exported_jit(_forecast_scan, static_argnames=("functions",))
 
 
+def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level_var, functions):
+    """:func:`_forecast_scan` with θ_φA (the aerosol level) a random walk over the horizon.
+
+    The state is augmented with θ_φA (variance 0 at the start: EM's value), propagated by
+    the same step as the filter's: with F = ∂f/∂x and b = ∂f/∂θ_φA,
+
+        P ← [F b; 0 1] P [F b; 0 1]ᵀ + diag(Σ_ξ, q_θ),   q_θ = ``level_var`` per step,
+
+    in the filter's scaled coordinates (θ_φA scaled by √q_θ). With q_θ → 0 the x block is
+    :func:`ajtwin.estimation.twin.predict`'s covariance (tested).
+    """
+    from ajtwin.estimation.filters import model_functions
+
+    step = (functions or model_functions("euler")).step
+    s = spec.scaling.state
+    theta_scale = jnp.sqrt(jnp.maximum(level_var, 1e-300))
+
+    def g(x, u):
+        return output_function(x, u, spec.params, spec.coefficients)
+
+    def f_scaled(z, level, u):
+        th = theta.at[4].set(theta[4] + level * theta_scale)
+        return step(z * s, u, th, spec.params, spec.dt) / s
+
+    q = jnp.zeros((6, 6)).at[:5, :5].set(process_cov / jnp.outer(s, s)).at[5, 5].set(1.0)
+
+    def body(carry, u):
+        m, p = carry  # m display units (5,); p scaled (6, 6)
+        z = m / s
+        jac_x, jac_level = jax.jacfwd(f_scaled, argnums=(0, 1))(z, 0.0, u)
+        a = jnp.zeros((6, 6)).at[:5, :5].set(jac_x).at[:5, 5].set(jac_level).at[5, 5].set(1.0)
+        p = a @ p @ a.T + q
+        m = f_scaled(z, 0.0, u) * s
+        px = p[:5, :5] * jnp.outer(s, s)
+        y = g(m, u)
+        jac = jax.jacfwd(g)(m, u)
+        var = jnp.einsum("ij,jk,ik->i", jac, px, jac)
+        return (m, p), (m, jnp.diagonal(px), y, var)
+
+    p0 = jnp.zeros((6, 6)).at[:5, :5].set(cov / jnp.outer(s, s))
+    _, out = jax.lax.scan(body, (mean, p0), inputs)
+    return out
+
+
+_forecast_scan_level_walk = exported_jit(_forecast_scan_level_walk, static_argnames=("functions",))
+
+
+def aerosol_level_variance(twin, mean, first_input, wander_per_sqrt_h: float) -> float:
+    """q_θ [1/s² per step]: θ_φA's random-walk variance per 1 s step that makes the steady
+    aerosol fraction φ* ≈ H/(Q_c − θ_φA (V_v − V_l)) wander by ``wander_per_sqrt_h`` (relative)
+    per √hour: δφ*/φ* ≈ δθ (V_v − V_l)/Q_c, so σ_θ = w Q_c/(V_v − V_l) per √h."""
+    from ajtwin import units
+
+    carrier_ml_s = float(units.sccm_to_ml_per_s(float(first_input[1])))
+    headspace_ml = float(units.m3_to_ml(twin.spec.params.vial_volume)) - float(mean[1])
+    return (wander_per_sqrt_h * carrier_ml_s / max(headspace_ml, 1e-9)) ** 2 / 3600.0
+
+
 def forecast(
     twin,
     mean,
@@ -179,6 +241,7 @@ def forecast(
     *,
     include_measurement_noise: bool = False,
     input_response0: float | None = None,
+    aerosol_wander_per_sqrt_h: float | None = None,
 ) -> Forecast:
     """Propagate (mean, cov) through the model under ``inputs`` (T, 3), one step per second.
 
@@ -195,6 +258,10 @@ def forecast(
         For a twin whose transition profile follows the inputs
         (:mod:`ajtwin.model.droplet_dynamics`): the droplet size's input response r [µm]
         at the start; default its equilibrium with the first planned input.
+    aerosol_wander_per_sqrt_h : float, optional
+        Relative σ per √h of the aerosol level over the horizon (θ_φA a random walk,
+        :func:`_forecast_scan_level_walk`); default the transition profile's
+        ``forecast_aerosol_wander_per_sqrt_h`` (data/transition.toml), 0 = none.
 
     Returns
     -------
@@ -210,16 +277,29 @@ def forecast(
         droplet_std = twin.droplet_dynamics.forecast_droplet_std_um
         if droplet_std > 0:
             process_cov[0, 0] = droplet_std**2
-    m, pdiag, y, var = _forecast_scan(
+    args = (
         twin.spec,
         jnp.asarray(mean, dtype=float),
         jnp.asarray(cov, dtype=float),
         jnp.asarray(model_inputs),
         jnp.asarray(theta, dtype=float),
         jnp.asarray(process_cov),
-        # the twin's own model (discretisation, transition profile): the one its θ was learned on
-        functions=getattr(twin, "functions", None),
     )
+    # the twin's own model (discretisation, transition profile): the one its θ was learned on
+    functions = getattr(twin, "functions", None)
+    wander = aerosol_wander_per_sqrt_h
+    if wander is None:
+        wander = getattr(getattr(twin, "droplet_dynamics", None), WANDER_KEY, 0.0) or 0.0
+    wander = float(wander)
+    if not (np.isfinite(wander) and wander >= 0):
+        raise ValueError(f"aerosol_wander_per_sqrt_h = {wander}: a relative σ per √h, >= 0")
+    if wander > 0:
+        level_var = aerosol_level_variance(twin, mean, inputs[0], wander)
+        m, pdiag, y, var = _forecast_scan_level_walk(
+            *args, jnp.asarray(level_var), functions=functions
+        )
+    else:
+        m, pdiag, y, var = _forecast_scan(*args, functions=functions)
     var = np.asarray(var)
     if include_measurement_noise:
         var = var + twin.measurement_var

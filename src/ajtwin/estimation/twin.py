@@ -315,7 +315,6 @@ def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = 
 predict = jax.jit(predict, static_argnames=("functions",))
 
 
-# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def em_early_steps(config: TwinConfig) -> tuple:
     """The early EM steps of ``config`` (:attr:`TwinConfig.early_em_s`), sorted; those at or
     beyond ``window_s`` are dropped (the full-window schedule runs from there)."""
@@ -337,6 +336,7 @@ def em_due(pos: int, every: int, window: int, early: tuple) -> bool:
     return (pos >= window and pos % every == 0) or pos in early
 
 
+# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def _concat(results: list[FilterResult]) -> FilterResult:
     return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
 

@@ -37,6 +37,10 @@ forecast_droplet_std_um : σ of d_a's process noise per 1 s step in open-loop fo
     [µm] (0 = the filter's σ_da). The filter's σ_da is a short-horizon tuning (it must let
     the filter follow the droplet size within seconds); over a forecast horizon the level
     wanders less than a random walk with that σ.
+forecast_aerosol_wander_per_sqrt_h : relative σ per √hour of the aerosol level (the
+    atomizer's efficiency) in open-loop forecasts (0 = none): θ_φA, which holds the level
+    the print has shown, becomes a random walk over the horizon, so φ_A's band (and L_o's,
+    Q_m's) widens as the efficiency may move (apps.forecast).
 
 Examples
 --------
@@ -83,6 +87,7 @@ class DropletDynamics:
     reference_current_mA: float = 375.0
     theta_prior_std: float = 0.0
     forecast_droplet_std_um: float = 0.0
+    forecast_aerosol_wander_per_sqrt_h: float = 0.0
     provenance: str = ""
 
     @property

@@ -36,7 +36,8 @@ CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v3".encode()).hexdigest()
+    # v4: the twin's early EM (2026-11-25) — bump whenever the twin's runs change
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v4".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)

@@ -61,10 +61,51 @@ def test_guard_judges_q_m_level_only_once_em_could_learn_it():
     spike = e.copy()
     spike[600:640, 4] += 3.0  # a 40-s transient: 3 σ on a part window, 0.4 σ on a whole
     assert not assess(t, x, spike, *args, level_learned_s=700.0).mismatch
-    line = level.copy()
-    line[:, 1] += 1.0  # overspray: judged from the warm-up regardless
+    line = e.copy()
+    line[:, 1] += 1.0  # overspray off alone (Q_m on the model): a line misfit from the warm-up
     status = assess(t, x, line, *args, level_learned_s=700.0)
-    assert status.outputs == ["overspray_um"] and status.first_s == 30.0
+    assert status.outputs == ["overspray_um"] and status.first_s == 60.0  # 60 s of evidence
+    # overspray and Q_m off the same way in the first minutes: the atomizer level (1061/1087)
+    both = e.copy()
+    both[:200, 1] += 1.0
+    both[:200, 4] += 1.2
+    assert not assess(t, x, both, *args, level_learned_s=150.0).mismatch
+    # ... but not without EM, nor when Q_m moves the other way, nor once the level is learned
+    assert assess(t, x, both, *args).outputs == ["overspray_um", "material_flow_mL_s"]
+    against = both.copy()
+    against[:200, 4] -= 2.4
+    assert assess(t, x, against, *args, level_learned_s=150.0).outputs == ["overspray_um"]
+    late = e.copy()
+    late[900:, 1] += 1.0
+    late[900:, 4] += 1.2
+    assert assess(t, x, late, *args, level_learned_s=150.0).outputs == [
+        "overspray_um",
+        "material_flow_mL_s",
+    ]
+
+
+def test_guard_flags_a_deposit_below_zero_beyond_its_noise():
+    """Uncommissioned alt machines 1029/1135: ΔR_N −42/−76 nm at σ 0.6 nm, nothing else off."""
+    n = 400
+    t = np.arange(float(n))
+    x = np.tile([3.5, 1.0, 0.0, 0.0, 4.6e-7], (n, 1))
+    e = np.random.default_rng(2).standard_normal((n, 5)) * 0.3
+    sd = np.tile([0.03, 0.003, 1e-3, 6e-4, 1e-8], (n, 1))
+    args = (np.full(n, 5.0), np.full(n, 5))
+    x[:, 3] = np.where(t < 100, 0.0, -0.076)
+    status = assess(t, x, e, *args, stds=sd)
+    assert status.states == ["nozzle_deposition_um"] and status.first_s == 100.0
+    assert "cannot be negative" in status.reasons[0] and "-76.0 nm" in status.reasons[0]
+    assert not assess(t, x, e, *args).mismatch  # without σ the test cannot run
+    # within the floor + 3σ (5 nm + 1.8 nm): a clean nozzle's estimate dipping in its noise
+    x[:, 3] = -0.0065
+    assert not assess(t, x, e, *args, stds=sd).mismatch
+    x[:, 3] = -0.0070
+    assert assess(t, x, e, *args, stds=sd).states == ["nozzle_deposition_um"]
+    # a wide σ (an unseen deposit) excuses the same value
+    wide = sd.copy()
+    wide[:, 3] = 0.05
+    assert not assess(t, x, e, *args, stds=wide).mismatch
 
 
 @pytest.mark.parametrize(

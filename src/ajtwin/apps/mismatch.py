@@ -116,6 +116,7 @@ def assess(
     limits=None,
     settings: dict | None = None,
     level_learned_s: float | None = None,
+    stds=None,
 ) -> MismatchStatus:
     """Run the guard's four tests (module docstring) over one print.
 
@@ -134,6 +135,9 @@ def assess(
         print's atomizer efficiency, learned only by EM's θ_φA). Their bias test reads only
         samples from then on. None: from the warm-up (the twin cannot learn the level, so a
         level offset is a misfit).
+    stds : (T, 5), optional
+        The states' σ (display units): with them a deposit estimated below zero by more
+        than its noise (``negative_deposit_*`` in ``data/mismatch.toml``) is a finding.
     """
     from ajtwin.model import load_parameters
     from ajtwin.model.limits import StateLimits
@@ -160,6 +164,31 @@ def assess(
             flags |= ~inside[:, i] & active
             findings.append((k, "state", name, f"{limits.violations(means[k])[0]} at {t[k]:.0f} s"))
 
+    if stds is not None:
+        # a deposit is never negative: an estimate below 0 by more than its own noise means
+        # the pressures are read through a model that does not fit (a gauge's zero or span,
+        # a line's resistance), the signature of an uncommissioned machine whose deviations
+        # mimic other states (held-out alt machines 1029, 1135: ΔR_N −42 / −76 nm at σ 0.6 nm)
+        stds = np.asarray(stds, dtype=float)
+        floor = float(g.get("negative_deposit_floor_um", np.inf))
+        k_sigma = float(g.get("negative_deposit_sigma", np.inf))
+        for name in ("tube_deposition_um", "nozzle_deposition_um"):
+            i = STATE_NAMES.index(name)
+            below = means[:, i] < -(floor + k_sigma * stds[:, i])
+            k = first(below)
+            if k is not None:
+                flags |= below & active
+                findings.append(
+                    (
+                        k,
+                        "state",
+                        name,
+                        f"{name} = {means[k, i] * 1e3:.1f} nm is below zero by "
+                        f"{-means[k, i] / max(stds[k, i], 1e-300):.0f} σ at {t[k]:.0f} s: a "
+                        "deposit cannot be negative",
+                    )
+                )
+
     e_bias = e.copy()
     before = None
     if level_learned_s is not None:
@@ -175,9 +204,22 @@ def assess(
         # ... and a whole window of samples after it: the θ update itself moves φ_A for tens
         # of seconds, so a part-window mean right after it is no evidence
         bias[np.ix_(t < learned + float(g["bias_window_s"]), level_columns)] = np.nan
-    # a bias needs a full window of evidence (or the print so far, after warm-up)
+        # the level also moves the outputs that read φ_A beside others (L_o): while Q_m says
+        # the level is off the same way, their bias is the level's, not a line misfit
+        level = _rolling_mean(
+            e[:, OUTPUT_NAMES.index("material_flow_mL_s")], int(g["bias_window_s"])
+        )
+        level_window = t < learned + float(g["bias_window_s"])
+        floor = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
+        for name in g.get("level_explained_outputs", []):
+            j = OUTPUT_NAMES.index(name)
+            same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
+            explained = level_window & same_way & (np.abs(np.nan_to_num(level)) >= floor)
+            bias[explained, j] = np.nan
+    # a bias needs a full window of evidence (or the print so far, after its own minimum)
+    evidence = t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
     for j, name in enumerate(OUTPUT_NAMES):
-        mask = np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])
+        mask = evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"]))
         k = first(mask)
         if k is not None:
             flags |= mask & active
@@ -285,6 +327,7 @@ def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
         start_cov=run.start_cov,
         settings=settings,
         level_learned_s=first_em_update_s(run),
+        stds=run.stds,
     )
 
 

@@ -68,17 +68,26 @@ def test_stream_equals_batch(clog_record, asynchronous):
         assert raised and raised[0]["detected_s"] == detection.events[0].detected_s
 
 
-@pytest.mark.parametrize("asynchronous", [False, True])
-def test_stream_equals_batch_with_early_em(clog_record, asynchronous):
+@pytest.mark.parametrize(
+    "asynchronous, early, times, starts",
+    [
+        (False, (10, 25), [9.0, 24.0, 59.0, 89.0], [0.0, 0.0, 0.0, 30.0]),
+        (True, (10, 25), [9.0, 24.0, 59.0, 89.0], [0.0, 0.0, 0.0, 30.0]),
+        # an early step between two multiples of every_s (and one past the window: dropped)
+        (True, (45, 70), [44.0, 59.0, 89.0, 119.0], [0.0, 0.0, 30.0, 60.0]),
+    ],
+)
+def test_stream_equals_batch_with_early_em(clog_record, asynchronous, early, times, starts):
     """EM also at the early steps, each over the print so far: the same boundaries, θ and
     states in the stream as in the batch twin."""
-    overrides = {**FAST_EM, "early_em_s": (10, 25)}
+    overrides = {**FAST_EM, "early_em_s": early}
     batch_twin = Twin.default(**overrides)
     run = batch_twin.run(clog_record)
     hist = run.theta_history
-    assert hist["time_s"].to_numpy(float)[:4].tolist() == [9.0, 24.0, 59.0, 89.0]
-    assert hist["window_start_s"].to_numpy(float)[:4].tolist() == [0.0, 0.0, 0.0, 30.0]
-    assert _relative(run.theta_per_step[10], run.theta_per_step[9]) > 0  # θ moved at 10
+    assert hist["time_s"].to_numpy(float)[:4].tolist() == times
+    assert hist["window_start_s"].to_numpy(float)[:4].tolist() == starts
+    first = int(times[0]) + 1
+    assert _relative(run.theta_per_step[first], run.theta_per_step[first - 1]) > 0  # θ moved
     stream = TwinStream.new("m", twin_overrides=overrides, asynchronous=asynchronous)
     _feed_all(stream, clog_record)
     arrays = stream.arrays()

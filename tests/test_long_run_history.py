@@ -217,6 +217,15 @@ def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_pri
     assert carried_long_run_history(reg, "m") == reg.long_run_history("m")[1] != printed
 
 
+def _false_alarm_then_clog(e, onset: int) -> dict:
+    """Detector arrays: innovations ``e`` (T, 5) with both pressures +1.5σ from ``onset``,
+    where the filter pushes ΔR_N up (a clog)."""
+    e[onset:, 2:4] = 1.5
+    predicted = np.tile(X0, (len(e), 1))
+    predicted[onset:, 3] -= 1e-3
+    return {**_arrays(e), "predicted_means": predicted}
+
+
 def test_a_clog_after_a_false_alarm_of_another_channel_is_its_own_event():
     """A Q_m false alarm at ~70 s, then a clog (both pressures +1.5σ) at 300 s: within
     merge_s (300 s) of it, but on another family of channels and more than 120 s after its
@@ -224,11 +233,7 @@ def test_a_clog_after_a_false_alarm_of_another_channel_is_its_own_event():
     s = DetectorSettings()
     e = np.zeros((900, 5))
     e[61:80, 4] = -4.0  # a short Q_m dip (after the warm-up)
-    e[300:, 2:4] = 1.5
-    means = np.tile(X0, (900, 1))
-    predicted = means.copy()
-    predicted[300:, 3] -= 1e-3  # the filter pushes ΔR_N up
-    args = {**_arrays(e), "predicted_means": predicted}
+    args = _false_alarm_then_clog(e, 300)
     events = detect_anomalies(**args, settings=s).events
     assert [ev.cause for ev in events][-1] == "nozzle_clog", [
         (ev.cause, ev.detectors) for ev in events
@@ -248,11 +253,7 @@ def test_a_clog_after_a_quiet_false_alarm_of_the_same_family_is_its_own_event():
     s = DetectorSettings()
     e = np.zeros((1000, 5))
     e[61:90, 2] = 3.0  # a short P_c excursion after the warm-up
-    e[420:, 2:4] = 1.5
-    means = np.tile(X0, (1000, 1))
-    predicted = means.copy()
-    predicted[420:, 3] -= 1e-3  # the filter pushes ΔR_N up
-    args = {**_arrays(e), "predicted_means": predicted}
+    args = _false_alarm_then_clog(e, 420)
     events = detect_anomalies(**args, settings=s).events
     assert len(events) == 2 and events[1].cause == "nozzle_clog", [
         (ev.detected_s, ev.cause, ev.detectors) for ev in events

@@ -212,6 +212,18 @@ def test_steady_aerosol_fraction_is_a_fixed_point():
     assert abs(rate) < 1e-6 * phi / 5.0
 
 
+def test_aerosol_level_theta_std_moves_the_steady_fraction_by_its_relative_std():
+    """σ_θ = w Q_c/(V_v − V_l): by hand (V_v = 3 mL, Q_c 23 sccm), and a θ_φA of that size
+    shifts the steady φ_A by ≈ w (first order)."""
+    from ajtwin.model.system import aerosol_level_theta_std, steady_aerosol_fraction
+
+    std = float(aerosol_level_theta_std(U_EXP1, 1.0, P, 0.01))
+    assert std == pytest.approx(0.01 * (23 / 60) / (3.0 - 1.0), rel=1e-12)
+    base = float(steady_aerosol_fraction(U_EXP1, 1.0, P))
+    moved = float(steady_aerosol_fraction(U_EXP1, 1.0, P, theta_aerosol=std))
+    assert moved / base - 1 == pytest.approx(0.01, rel=0.02)
+
+
 def test_theta_enters_linearly():
     theta = np.array([-1e-5, 2e-6, 1e-3, 5e-4, -3e-5])
     x = np.array([3.4, 0.9, 2e-4, 0.02, 4.0e-7])

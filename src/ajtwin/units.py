@@ -115,6 +115,11 @@ def um_to_nm(length):
     return length * 1e3
 
 
+def per_sqrt_h_to_per_sqrt_s(rate):
+    """A random walk's σ per √hour → per √second (the twin's 1 s step)."""
+    return rate / 60.0
+
+
 def ml_to_m3(volume):
     return volume * ML_IN_M3
 

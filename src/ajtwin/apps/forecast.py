@@ -153,18 +153,23 @@ def range_warnings(fc) -> list[str]:
 WANDER_KEY = "forecast_aerosol_wander_per_sqrt_h"
 
 
+def _output_moments(spec, m, p, u):
+    """The outputs at state m and their variances diag(G P Gᵀ), G = ∂g/∂x (first order)."""
+
+    def g(x):
+        return output_function(x, u, spec.params, spec.coefficients)
+
+    jac = jax.jacfwd(g)(m)
+    return g(m), jnp.einsum("ij,jk,ik->i", jac, p, jac)
+
+
 def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     from ajtwin.estimation.twin import predict
-
-    def g(x, u):
-        return output_function(x, u, spec.params, spec.coefficients)
 
     def body(carry, u):
         m, p = carry
         m, p = predict(spec, m, p, u, theta, process_cov, functions)
-        y = g(m, u)
-        jac = jax.jacfwd(g)(m, u)
-        var = jnp.einsum("ij,jk,ik->i", jac, p, jac)
+        y, var = _output_moments(spec, m, p, u)
         return (m, p), (m, jnp.diagonal(p), y, var)
 
     _, out = jax.lax.scan(body, (mean, cov), inputs)
@@ -191,9 +196,6 @@ def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level
     s = spec.scaling.state
     theta_scale = jnp.sqrt(jnp.maximum(level_var, 1e-300))
 
-    def g(x, u):
-        return output_function(x, u, spec.params, spec.coefficients)
-
     def f_scaled(z, level, u):
         th = theta.at[4].set(theta[4] + level * theta_scale)
         return step(z * s, u, th, spec.params, spec.dt) / s
@@ -208,9 +210,7 @@ def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level
         p = a @ p @ a.T + q
         m = f_scaled(z, 0.0, u) * s
         px = p[:5, :5] * jnp.outer(s, s)
-        y = g(m, u)
-        jac = jax.jacfwd(g)(m, u)
-        var = jnp.einsum("ij,jk,ik->i", jac, px, jac)
+        y, var = _output_moments(spec, m, px, u)
         return (m, p), (m, jnp.diagonal(px), y, var)
 
     p0 = jnp.zeros((6, 6)).at[:5, :5].set(cov / jnp.outer(s, s))
@@ -222,14 +222,15 @@ _forecast_scan_level_walk = exported_jit(_forecast_scan_level_walk, static_argna
 
 
 def aerosol_level_variance(twin, mean, first_input, wander_per_sqrt_h: float) -> float:
-    """q_θ [1/s² per step]: θ_φA's random-walk variance per 1 s step that makes the steady
-    aerosol fraction φ* ≈ H/(Q_c − θ_φA (V_v − V_l)) wander by ``wander_per_sqrt_h`` (relative)
-    per √hour: δφ*/φ* ≈ δθ (V_v − V_l)/Q_c, so σ_θ = w Q_c/(V_v − V_l) per √h."""
+    """q_θ [1/s² per step]: θ_φA's random-walk variance per step that makes the steady
+    aerosol fraction wander by ``wander_per_sqrt_h`` (relative σ per √hour) at the forecast's
+    first inputs and vial level (:func:`ajtwin.model.system.aerosol_level_theta_std`)."""
     from ajtwin import units
+    from ajtwin.model.system import aerosol_level_theta_std
 
-    carrier_ml_s = float(units.sccm_to_ml_per_s(float(first_input[1])))
-    headspace_ml = float(units.m3_to_ml(twin.spec.params.vial_volume)) - float(mean[1])
-    return (wander_per_sqrt_h * carrier_ml_s / max(headspace_ml, 1e-9)) ** 2 / 3600.0
+    per_sqrt_s = units.per_sqrt_h_to_per_sqrt_s(wander_per_sqrt_h)
+    std = aerosol_level_theta_std(first_input, float(mean[1]), twin.spec.params, per_sqrt_s)
+    return float(std) ** 2 * float(twin.spec.dt)
 
 
 def forecast(

@@ -38,6 +38,7 @@ from importlib import resources
 
 import numpy as np
 
+from ajtwin import units
 from ajtwin.model.system import OUTPUT_NAMES, STATE_NAMES
 
 #: Likely fix per output / state.
@@ -183,7 +184,7 @@ def assess(
                         k,
                         "state",
                         name,
-                        f"{name} = {means[k, i] * 1e3:.1f} nm is below zero by "
+                        f"{name} = {units.um_to_nm(means[k, i]):.1f} nm is below zero by "
                         f"{-means[k, i] / max(stds[k, i], 1e-300):.0f} σ at {t[k]:.0f} s: a "
                         "deposit cannot be negative",
                     )
@@ -203,18 +204,18 @@ def assess(
     if before is not None:
         # ... and a whole window of samples after it: the θ update itself moves φ_A for tens
         # of seconds, so a part-window mean right after it is no evidence
-        bias[np.ix_(t < learned + float(g["bias_window_s"]), level_columns)] = np.nan
+        unlearned = t < learned + float(g["bias_window_s"])
+        bias[np.ix_(unlearned, level_columns)] = np.nan
         # the level also moves the outputs that read φ_A beside others (L_o): while Q_m says
         # the level is off the same way, their bias is the level's, not a line misfit
         level = _rolling_mean(
             e[:, OUTPUT_NAMES.index("material_flow_mL_s")], int(g["bias_window_s"])
         )
-        level_window = t < learned + float(g["bias_window_s"])
-        floor = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
+        level_evidence = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
         for name in g.get("level_explained_outputs", []):
             j = OUTPUT_NAMES.index(name)
             same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
-            explained = level_window & same_way & (np.abs(np.nan_to_num(level)) >= floor)
+            explained = unlearned & same_way & (np.abs(np.nan_to_num(level)) >= level_evidence)
             bias[explained, j] = np.nan
     # a bias needs a full window of evidence (or the print so far, after its own minimum)
     evidence = t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))

@@ -208,8 +208,23 @@ def steady_aerosol_fraction(u, vial_volume_ml, params, theta_aerosol=0.0):
     u = jnp.asarray(u)
     carrier_ml_s = units.sccm_to_ml_per_s(u[..., 1])
     generation = net_droplet_generation(u[..., 1], vial_volume_ml, u[..., 0], params.generation_fit)
-    headspace = units.m3_to_ml(params.vial_volume) - vial_volume_ml
+    headspace = vial_headspace_ml(vial_volume_ml, params)
     return generation / (carrier_ml_s - theta_aerosol * headspace)
+
+
+def vial_headspace_ml(vial_volume_ml, params):
+    """V_v − V_l [mL]: the vial's gas space above the ink."""
+    return units.m3_to_ml(params.vial_volume) - vial_volume_ml
+
+
+def aerosol_level_theta_std(u, vial_volume_ml, params, relative_std):
+    """σ of θ_φA [1/s] that moves the steady aerosol fraction by ``relative_std``.
+
+    From φ* ≈ H / (Q_c − θ_φA (V_v − V_l)) (:func:`steady_aerosol_fraction`, θ_φA small):
+    δφ*/φ* ≈ δθ_φA (V_v − V_l) / Q_c, so σ_θ = relative_std · Q_c / (V_v − V_l).
+    """
+    carrier_ml_s = units.sccm_to_ml_per_s(jnp.asarray(u)[..., 1])
+    return relative_std * carrier_ml_s / vial_headspace_ml(vial_volume_ml, params)
 
 
 def ink_flows(x, u, params):

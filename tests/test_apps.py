@@ -248,7 +248,9 @@ def test_forecast_aerosol_level_walk_matches_monte_carlo(twin_and_state):
     plain = forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=0.0)
     barely = forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=1e-9)
     assert np.allclose(barely.state_stds, plain.state_stds, rtol=1e-9, atol=0)
-    assert np.array_equal(barely.state_means, plain.state_means)
+    # the walk leaves the means alone: the same step, in two programs whose folded parameter
+    # constants may round differently in the last bit (measured 5e-16)
+    assert np.allclose(barely.state_means, plain.state_means, rtol=1e-14, atol=0)
     with pytest.raises(ValueError, match="aerosol_wander_per_sqrt_h"):
         forecast(quiet, mean, tiny, u, aerosol_wander_per_sqrt_h=-0.1)
 

@@ -79,33 +79,86 @@ def _stable(value):
     return None
 
 
-def exported_jit(fun, *, static_argnames: tuple[str, ...] = ()):
+def _concrete_constant(value):
+    """``value`` with every leaf a Python float, or None if any leaf is not concrete.
+
+    The result is hashable (NamedTuples and tuples of floats), so it can be a static
+    argument of ``jax.jit`` and be described by :func:`_stable`.
+    """
+    leaves, tree = jax.tree_util.tree_flatten(value)
+    if not leaves:
+        return None
+    floats = []
+    for leaf in leaves:
+        if isinstance(leaf, jax.core.Tracer):
+            return None
+        array = np.asarray(leaf)
+        if array.shape != () or not np.issubdtype(array.dtype, np.number):
+            return None
+        floats.append(float(array))
+    return jax.tree_util.tree_unflatten(tree, floats)
+
+
+def exported_jit(
+    fun,
+    *,
+    static_argnames: tuple[str, ...] = (),
+    constant_fields: tuple[tuple[str, str], ...] = (),
+):
     """``jax.jit(fun, static_argnames=...)``, with its lowered program kept on disk.
 
     Same call signature and results as the jitted function. Positional and keyword
     arguments are bound to ``fun``'s signature (defaults filled in), so a call written
     either way finds the same entry.
+
+    ``constant_fields`` names ``(argument, field)`` pairs of NamedTuple arguments (e.g.
+    ``("spec", "params")``: the physical parameters inside the filter's model spec)
+    that are compiled in as constants whenever all their leaves are concrete scalars.
+    XLA then folds what depends on them alone (the droplet quadrature's nodes, the
+    slip correction's 1/λ, …) instead of recomputing it at every step of a scan: a
+    third of an EKF step (docs/performance.md, Round 5). Each distinct value compiles
+    a program of its own (the parameters are the packaged ones in every twin, so in
+    practice one); a field holding tracers (under ``grad``/``vmap`` of the caller) is
+    passed as an ordinary argument — the same function either way.
     """
+    constant_names = {pair: f"_constant_{pair[0]}_{pair[1]}" for pair in constant_fields}
+
+    def with_constants(**kwargs):
+        for (argument, field), hidden in constant_names.items():
+            value = kwargs.pop(hidden)
+            if value is not None:
+                kwargs[argument] = kwargs[argument]._replace(**{field: value})
+        return fun(**kwargs)
+
+    all_static = tuple(static_argnames) + tuple(constant_names.values())
     jitted = jax.jit(fun, static_argnames=static_argnames)
+    jitted_constants = jax.jit(with_constants, static_argnames=all_static)
     signature = inspect.signature(fun)
     name = f"{fun.__module__}.{fun.__qualname__}"
     loaded: dict[str, tuple] = {}
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        directory = compilation_cache_dir()
-        if directory is None:
-            return jitted(*args, **kwargs)
         bound = signature.bind(*args, **kwargs)
         bound.apply_defaults()
-        static = {k: bound.arguments.pop(k) for k in static_argnames}
-        dynamic = bound.arguments
+        arguments = dict(bound.arguments)
+        for (argument, field), hidden in constant_names.items():
+            holder = arguments[argument]
+            constant = _concrete_constant(getattr(holder, field))
+            arguments[hidden] = constant
+            if constant is not None:
+                arguments[argument] = holder._replace(**{field: None})
+        static = {k: arguments.pop(k) for k in all_static}
+        dynamic = arguments
+        directory = compilation_cache_dir()
+        if directory is None:
+            return jitted_constants(**dynamic, **static)
         leaves, in_tree = jax.tree_util.tree_flatten(dynamic)
         if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
-            return jitted(*args, **kwargs)
+            return jitted_constants(**dynamic, **static)
         static_key = {k: _stable(v) for k, v in static.items()}
         if any(v is None for v in static_key.values()):
-            return jitted(*args, **kwargs)
+            return jitted_constants(**dynamic, **static)
         arrays = [np.asarray(leaf) if not isinstance(leaf, jax.Array) else leaf for leaf in leaves]
         key_text = repr(
             (
@@ -121,7 +174,7 @@ def exported_jit(fun, *, static_argnames: tuple[str, ...] = ()):
         key = hashlib.sha256(key_text.encode()).hexdigest()[:40]
         entry = loaded.get(key) or _load(directory, key)
         if entry is None:
-            entry = _export(directory, key, jitted, in_tree, static, arrays)
+            entry = _export(directory, key, jitted_constants, in_tree, static, arrays)
         loaded[key] = entry
         run, out_tree = entry
         return jax.tree_util.tree_unflatten(out_tree, run(*arrays))

@@ -176,7 +176,9 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     return out
 
 
-_forecast_scan = exported_jit(_forecast_scan, static_argnames=("functions",))
+_forecast_scan = exported_jit(
+    _forecast_scan, static_argnames=("functions",), constant_fields=(("spec", "params"),)
+)
 
 
 def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level_var, functions):
@@ -218,7 +220,9 @@ def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level
     return out
 
 
-_forecast_scan_level_walk = exported_jit(_forecast_scan_level_walk, static_argnames=("functions",))
+_forecast_scan_level_walk = exported_jit(
+    _forecast_scan_level_walk, static_argnames=("functions",), constant_fields=(("spec", "params"),)
+)
 
 
 def aerosol_level_variance(twin, mean, first_input, wander_per_sqrt_h: float) -> float:

@@ -274,7 +274,9 @@ def _empty_smoother_result(n_steps, n):
     )
 
 
-em_loop = exported_jit(em_loop, static_argnames=("functions",))
+em_loop = exported_jit(
+    em_loop, static_argnames=("functions",), constant_fields=(("spec", "params"),)
+)
 
 
 def e_step(

@@ -446,7 +446,7 @@ def ekf(
     return FilterResult(*to_display_units(spec, out))
 
 
-ekf = exported_jit(ekf, static_argnames=("functions",))
+ekf = exported_jit(ekf, static_argnames=("functions",), constant_fields=(("spec", "params"),))
 
 
 def ekf_fleet(

@@ -129,6 +129,58 @@ def test_detect_white_noise_no_alarm_and_pressure_step_is_clog():
     assert np.isnan(detection_delay(clean, 2000.0)["delay_s"])
 
 
+def test_one_gauge_wandering_needs_more_evidence_than_both_moving_together():
+    """P_c and P_s on their own have a higher CUSUM threshold (24 σ, detectors.toml) than
+    their common mode (16 σ): a gauge's slow noise moves one pressure for a minute or so
+    (the commonest false alarm on held-out alt machines), a clog moves both. Noise-free
+    innovations, so the CUSUMs are hand-computable: +0.7 σ for 60 s gives g = (0.7 − 0.35)
+    · 60 = 21 on one gauge (< 24, > 16), and (1.4 − 0.7) · t on the common mode."""
+    from dataclasses import replace
+
+    def run(bias, settings=None):
+        data = _synthetic(n=600)
+        data["measurements"] = data["predicted_outputs"].copy()
+        s = np.sqrt(data["innovation_variances"][0])
+        data["measurements"][300:360] += np.asarray(bias) * s
+        data["nis"] = np.zeros(600)
+        return detect_anomalies(**data, settings=settings)
+
+    one_gauge = (0.0, 0.0, 0.7, 0.0, 0.0)
+    assert DetectorSettings().cusum_threshold_pressure == 24.0
+    assert run(one_gauge).events == []
+    at_16 = run(one_gauge, replace(DetectorSettings(), cusum_threshold_pressure=16.0))
+    assert [ev.detectors[0] for ev in at_16.events] == ["cusum+ P_c"]
+    assert at_16.events[0].detected_s == pytest.approx(300 + 16 / 0.35, abs=1.5)
+    both = run((0.0, 0.0, 0.7, 0.7, 0.0))
+    assert [ev.detectors[0] for ev in both.events] == ["cusum+ P_c+P_s"]
+    assert both.events[0].detected_s == pytest.approx(300 + 16 / 0.7, abs=1.5)
+
+
+def test_deposit_push_catches_a_clog_the_pressures_hide():
+    """The filter's push on ΔR_N, Σ (x̂_k − x̂_{k|k−1}) over 300 s, above 8 nm raises one
+    alarm (detectors.toml [deposit]), with the change point where the push began, even
+    when no innovation moves: hand-computable on noise-free arrays. 0.045 nm per step from
+    step 1000 crosses 8 nm at its 178th step; 0.02 nm per step tops out at 6 nm; a push
+    downwards (a leak lowers the pressures) is not a deposit."""
+
+    def run(push_nm_per_step):
+        data = _synthetic(n=2000)
+        data["measurements"] = data["predicted_outputs"].copy()
+        data["nis"] = np.zeros(2000)
+        data["predicted_means"] = data["means"].copy()
+        data["predicted_means"][1000:, 3] -= push_nm_per_step * 1e-3
+        return detect_anomalies(**data)
+
+    s = DetectorSettings()
+    assert (s.deposit_window_s, s.deposit_push_nm) == (300, 8.0)
+    result = run(0.045)
+    assert [ev.detectors for ev in result.events] == [["deposit push ΔR_N"]]
+    assert result.events[0].detected_s == 1000 + 177
+    assert result.events[0].onset_s == 1000
+    assert run(0.02).events == []
+    assert run(-0.5).events == []
+
+
 def test_real_nozzle_clog_detected_quickly():
     """Virtual printer + default twin: a clog from 5 min is caught within 2 min, as a clog."""
     from ajtwin.apps.anomaly import detect_run

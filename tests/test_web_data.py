@@ -399,9 +399,9 @@ def test_engine_messages_become_samples():
     assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
     assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
     assert s["detectors"]["cusum"] == [1.0, 0.5, 17.0, 12.0, 3.0, 20.0]
-    # h per channel: 16 σ everywhere since the Q_m CUSUM moved to k = 0.7, h = 16 (was 30;
-    # docs/anomalies.md, the print-start φ_A transient)
-    assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 16.0, 16.0, 16.0, 16.0]
+    # h per channel: 16 σ but for P_c and P_s on their own, 24 σ since 2026-11-25 (a gauge's
+    # slow noise; docs/anomalies.md). Q_m moved to k = 0.7, h = 16 (was 30) before that.
+    assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 24.0, 24.0, 16.0, 16.0]
     assert s["detectors"]["window_nis_log10p"] == pytest.approx(12.0)
     assert s["alarms"] == [
         {"detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",

@@ -69,10 +69,13 @@ def load_detector_settings() -> dict:
 
     with (resources.files("ajtwin") / "data" / "detectors.toml").open("rb") as handle:
         data = tomllib.load(handle)
-    c, n, ev, r, lr = (data[k] for k in ("cusum", "nis", "events", "robust", "long_run"))
+    c, n, ev, r, lr, dp = (
+        data[k] for k in ("cusum", "nis", "events", "robust", "long_run", "deposit")
+    )
     return {
         "cusum_drift": c["drift"],
         "cusum_threshold": c["threshold"],
+        "cusum_threshold_pressure": c["threshold_pressure"],
         "cusum_threshold_material_flow": c["threshold_material_flow"],
         "cusum_drift_material_flow": c["drift_material_flow"],
         "cusum_drift_pressure_sum": c["drift_pressure_sum"],
@@ -92,6 +95,8 @@ def load_detector_settings() -> dict:
         "long_run_min_blocks": lr["min_blocks"],
         "long_run_max_scale": lr["max_scale"],
         "long_run_reference_pressure_sum": lr["reference_pressure_sum"],
+        "deposit_window_s": dp["window_s"],
+        "deposit_push_nm": dp["push_nm"],
     }
 
 
@@ -106,7 +111,9 @@ class DetectorSettings:
     """
 
     cusum_drift: float = _D["cusum_drift"]  # allowance k per step [σ]
-    cusum_threshold: float = _D["cusum_threshold"]  # h [σ] for L_w, L_o, P_c, P_s
+    cusum_threshold: float = _D["cusum_threshold"]  # h [σ] for L_w, L_o
+    # h [σ] for P_c and P_s on their own (their common mode has its own below)
+    cusum_threshold_pressure: float = _D["cusum_threshold_pressure"]
     cusum_threshold_material_flow: float = _D["cusum_threshold_material_flow"]
     cusum_drift_material_flow: float = _D["cusum_drift_material_flow"]
     cusum_drift_pressure_sum: float = _D["cusum_drift_pressure_sum"]  # e_Pc + e_Ps
@@ -131,6 +138,20 @@ class DetectorSettings:
     long_run_min_blocks: int = _D["long_run_min_blocks"]  # fewer: scale 1
     long_run_max_scale: float = _D["long_run_max_scale"]
     long_run_reference_pressure_sum: float = _D["long_run_reference_pressure_sum"]
+    # the filter's push on the nozzle deposit: Σ (x̂_k − x̂_{k|k−1})[ΔR_N] over this window
+    # [s] above ``deposit_push_nm`` [nm] = the data keep adding deposit the model does not
+    deposit_window_s: int = _D["deposit_window_s"]
+    deposit_push_nm: float = _D["deposit_push_nm"]
+
+
+def cusum_thresholds(settings: DetectorSettings) -> np.ndarray:
+    """The CUSUM decision intervals h per channel of :data:`CUSUM_CHANNELS` [σ]."""
+    s = settings
+    return np.array(
+        [s.cusum_threshold] * 2
+        + [s.cusum_threshold_pressure] * 2
+        + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
+    )
 
 
 @dataclass
@@ -546,6 +567,8 @@ def _family(detector: str) -> str | None:
     """'cusum+ P_c' → 'pressure', 'V_l low' → 'vial', 'windowed NIS' → None (any)."""
     if detector.startswith("cusum"):
         return _FAMILIES[detector.split(" ", 1)[1].split("+")[0]]
+    if detector.startswith("deposit"):
+        return "pressure"  # a deposit is seen through the pressures
     return "vial" if detector.startswith("V_l") else None
 
 
@@ -623,10 +646,7 @@ class AnomalyDetector:
         self, settings: DetectorSettings | None = None, long_run_history: dict | None = None
     ):
         s = self.settings = settings or DetectorSettings()
-        thresholds = np.array(
-            [s.cusum_threshold] * 4
-            + [s.cusum_threshold_material_flow, s.cusum_threshold_pressure_sum]
-        )
+        thresholds = cusum_thresholds(s)
         drifts = np.array(
             [s.cusum_drift] * 4 + [s.cusum_drift_material_flow, s.cusum_drift_pressure_sum]
         )
@@ -638,6 +658,9 @@ class AnomalyDetector:
         self._q_sum, self._q_n, self._q_ref = 0.0, 0, None  # Q_m's reference level
         self.long_run_reference = np.array([1.0] * 5 + [s.long_run_reference_pressure_sum])
         self.window_steps = int(np.asarray(s.nis_window_s, dtype=int))
+        # the last deposit_window_s corrections of ΔR_N [nm] and whether the push is over
+        self._deposit_push = deque(maxlen=int(s.deposit_window_s))
+        self._deposit_crossing = False
         self.k = -1
         self.start = None  # first step past the warm-up
         self.t0 = None
@@ -743,6 +766,7 @@ class AnomalyDetector:
         if crossing and not self._crossing:  # the first step of a run of crossings
             raw.append((k, max(k - self.window_steps, 0), "windowed NIS"))
         self._crossing = crossing
+        raw.extend(self._deposit_alarm(k))
         vial_low = mean[1] < s.vial_low_mL if running_low is None else running_low
         if self.start is not None and not self._vial_low and vial_low:
             self._vial_low = True
@@ -780,6 +804,33 @@ class AnomalyDetector:
             [self.events[i] for i in raised],
             [self.events[i] for i in finalised],
         )
+
+    def _deposit_alarm(self, k: int) -> list:
+        """The filter's push on the nozzle deposit over the last ``deposit_window_s``.
+
+        P = Σ_j (x̂_j − x̂_{j|j−1})[ΔR_N] is what the data added to the deposit beyond the
+        model's own growth (and θ_RN's, once EM has learnt one). A clog whose pressures the
+        filter follows closely (innovations +0.2…+0.6 σ, below every CUSUM) still keeps
+        pushing ΔR_N up: held-out alt machine 1168, +76 nm in 10 min. Only after the
+        warm-up and with a full window; one alarm per run of crossings; the change point
+        is where the window's cumulative push was lowest.
+        """
+        s = self.settings
+        correction = self.corrections[-1][3] * 1e3  # µm → nm
+        self._deposit_push.append(correction if np.isfinite(correction) else 0.0)
+        full = len(self._deposit_push) == self._deposit_push.maxlen
+        if self.start is None or k < self.start + len(self._deposit_push) or not full:
+            return []
+        over = sum(self._deposit_push) > s.deposit_push_nm
+        alarms = []
+        if over and not self._deposit_crossing:
+            cumulative = np.concatenate([[0.0], np.cumsum(np.asarray(self._deposit_push))])
+            low = cumulative.size - 1 - int(np.argmin(cumulative[::-1]))  # the last minimum
+            # entry i of the window is step k − len + 1 + i; the push began at the minimum
+            onset = min(k - len(self._deposit_push) + 1 + low, k)
+            alarms.append((k, onset, "deposit push ΔR_N"))
+        self._deposit_crossing = over
+        return alarms
 
     def finish(self) -> list[AnomalyEvent]:
         """End of the print: finalise the open events with the data there is; all events."""

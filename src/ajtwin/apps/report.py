@@ -8,6 +8,8 @@ import io
 
 import numpy as np
 
+from ajtwin.apps.anomaly import cusum_thresholds
+
 OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
 STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [–]")
 
@@ -126,12 +128,14 @@ def detectors_figure(detection, fault_onset_s=None) -> bytes:
         axes[0].plot(t[ok], e[ok, i], lw=0.6, label=name)
     axes[0].set_ylabel("normalised\ninnovation [σ]")
     axes[0].set_ylim(-8, 8)
+    # each channel over its own decision interval h: an alarm where a line crosses ±1
+    h = cusum_thresholds(detection.settings)
     for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m", "P_c+P_s")):
-        axes[1].plot(t, detection.cusum_pos[:, i] - detection.cusum_neg[:, i], lw=1, label=name)
-    h = detection.settings.cusum_threshold  # (Q_m: its own, higher threshold)
-    axes[1].axhline(h, color="tab:red", ls=":")
-    axes[1].axhline(-h, color="tab:red", ls=":")
-    axes[1].set_ylabel("CUSUM g⁺ − g⁻")
+        g = (detection.cusum_pos[:, i] - detection.cusum_neg[:, i]) / h[i]
+        axes[1].plot(t, g, lw=1, label=name)
+    axes[1].axhline(1.0, color="tab:red", ls=":")
+    axes[1].axhline(-1.0, color="tab:red", ls=":")
+    axes[1].set_ylabel("CUSUM (g⁺ − g⁻) / h")
     axes[2].semilogy(t, np.maximum(detection.window_nis_p, 1e-300), lw=1)
     axes[2].axhline(detection.settings.nis_alpha, color="tab:red", ls=":")
     axes[2].set_ylabel(f"windowed NIS\np ({detection.settings.nis_window_s} s)")

@@ -461,11 +461,9 @@ class RegistryView:
 
 def detector_thresholds(settings) -> list[float]:
     """CUSUM decision intervals h per channel (L_w, L_o, P_c, P_s, Q_m, P_c+P_s)."""
-    s = settings
-    return [s.cusum_threshold] * 4 + [
-        s.cusum_threshold_material_flow,
-        s.cusum_threshold_pressure_sum,
-    ]
+    from ajtwin.apps.anomaly import cusum_thresholds
+
+    return [float(h) for h in cusum_thresholds(settings)]
 
 
 __all__ = ["RegistryView", "NAMES", "KEY_STATES", "STATE_NAMES", "json_list", "decimate"]

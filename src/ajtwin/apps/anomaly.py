@@ -812,8 +812,7 @@ class AnomalyDetector:
         model's own growth (and θ_RN's, once EM has learnt one). A clog whose pressures the
         filter follows closely (innovations +0.2…+0.6 σ, below every CUSUM) still keeps
         pushing ΔR_N up: held-out alt machine 1168, +76 nm in 10 min. Only after the
-        warm-up and with a full window; one alarm per run of crossings; the change point
-        is where the window's cumulative push was lowest.
+        warm-up and with a full window; one alarm per run of crossings.
         """
         s = self.settings
         correction = self.corrections[-1][3] * 1e3  # µm → nm
@@ -824,10 +823,17 @@ class AnomalyDetector:
         over = sum(self._deposit_push) > s.deposit_push_nm
         alarms = []
         if over and not self._deposit_crossing:
-            cumulative = np.concatenate([[0.0], np.cumsum(np.asarray(self._deposit_push))])
-            low = cumulative.size - 1 - int(np.argmin(cumulative[::-1]))  # the last minimum
-            # entry i of the window is step k − len + 1 + i; the push began at the minimum
-            onset = min(k - len(self._deposit_push) + 1 + low, k)
+            # change point: the last step where a CUSUM of the window's corrections with
+            # allowance κ = push_nm / window (the slowest push that crosses in one window)
+            # was 0; the plain cumulative sum's last minimum wanders minutes early on noise
+            allowance = s.deposit_push_nm / len(self._deposit_push)
+            g, last_zero = 0.0, -1
+            for i, c in enumerate(self._deposit_push):
+                g = max(0.0, g + c - allowance)
+                if g == 0.0:
+                    last_zero = i
+            # entry i of the window is step k − len + 1 + i
+            onset = min(k - len(self._deposit_push) + 2 + last_zero, k)
             alarms.append((k, onset, "deposit push ΔR_N"))
         self._deposit_crossing = over
         return alarms

@@ -131,7 +131,6 @@ def exported_jit(
         return fun(**kwargs)
 
     all_static = tuple(static_argnames) + tuple(constant_names.values())
-    jitted = jax.jit(fun, static_argnames=static_argnames)
     jitted_constants = jax.jit(with_constants, static_argnames=all_static)
     signature = inspect.signature(fun)
     name = f"{fun.__module__}.{fun.__qualname__}"
@@ -179,7 +178,6 @@ def exported_jit(
         run, out_tree = entry
         return jax.tree_util.tree_unflatten(out_tree, run(*arrays))
 
-    call.jitted = jitted
     return call
 
 

@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy import special
 
+from ajtwin import units
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
 SHORT_OUTPUT = ("L_w", "L_o", "P_c", "P_s", "Q_m")
@@ -815,7 +816,7 @@ class AnomalyDetector:
         warm-up and with a full window; one alarm per run of crossings.
         """
         s = self.settings
-        correction = self.corrections[-1][3] * 1e3  # µm → nm
+        correction = float(units.um_to_nm(self.corrections[-1][3]))
         self._deposit_push.append(correction if np.isfinite(correction) else 0.0)
         full = len(self._deposit_push) == self._deposit_push.maxlen
         if self.start is None or k < self.start + len(self._deposit_push) or not full:

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.apps.anomaly import cusum_thresholds
 from ajtwin.apps.mismatch import MISMATCH_CAUSE
 from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import arrays as _arrays
@@ -461,8 +462,6 @@ class RegistryView:
 
 def detector_thresholds(settings) -> list[float]:
     """CUSUM decision intervals h per channel (L_w, L_o, P_c, P_s, Q_m, P_c+P_s)."""
-    from ajtwin.apps.anomaly import cusum_thresholds
-
     return [float(h) for h in cusum_thresholds(settings)]
 
 

@@ -111,6 +111,27 @@ def test_same_seed_same_record_other_seed_differs():
     assert a.meta == b.meta and a.meta["seed"] == 7
 
 
+def test_a_weighed_fill_is_the_stated_fill_plus_the_balance_error():
+    """Commissioning's fill is weighed: the vial holds 1.0 mL + N(0, 3 µL), seeded."""
+    fills = np.array(
+        [simulate("commissioning", seed=s, duration_min=1).true_states[0, 1] for s in range(40)]
+    )
+    # 40 draws of sd 3e-3: the sample sd lies within ±35 % of it (chi-square, p > 0.999)
+    assert 0.65 * 3e-3 < np.std(fills - 1.0) < 1.35 * 3e-3
+    assert abs(np.mean(fills - 1.0)) < 4 * 3e-3 / np.sqrt(40)
+    weighed = simulate("commissioning", seed=3, duration_min=1)
+    exact = simulate(
+        "commissioning", seed=3, duration_min=1, overrides={"truth": {"vial_weighing_sd_mL": 0.0}}
+    )
+    assert exact.true_states[0, 1] == 1.0 != weighed.true_states[0, 1]
+    # its own stream: every other draw of the print is unchanged
+    np.testing.assert_array_equal(weighed.inputs, exact.inputs)
+    np.testing.assert_array_equal(weighed.true_states[:, 0], exact.true_states[:, 0])
+    # a print that continues the machine keeps the vial it was left, weighed once
+    again = simulate("commissioning", seed=4, duration_min=1, continue_from=weighed)
+    assert again.true_states[0, 1] == weighed.true_states[-1, 1]
+
+
 def test_without_mismatch_truth_is_the_nominal_model():
     vp = run_virtual_print("exp3", seed=1, duration_min=45, overrides=NO_MISMATCH)
     model = DigitalModel.default()

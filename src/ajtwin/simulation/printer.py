@@ -62,6 +62,7 @@ STREAMS = (
     "line_noise",
     "material_noise",
     "missing",
+    "vial_weighing",
 )
 
 # Reference operating point where the true line model equals the nominal one.
@@ -328,11 +329,23 @@ def draw_line_coefficients(scenario: Scenario, streams: dict, nominal, params):
     return factors, true_line_coefficients(nominal, factors, params)
 
 
-def true_initial_state(scenario: Scenario, processes: Processes, params) -> np.ndarray:
-    """True x0: the scenario's vial and deposits, φ_A in balance with the true generation."""
+def true_initial_state(
+    scenario: Scenario, processes: Processes, params, weighing: np.random.Generator | None = None
+) -> np.ndarray:
+    """True x0: the scenario's vial and deposits, φ_A in balance with the true generation.
+
+    The vial holds its stated fill plus a weighing error N(0, truth.vial_weighing_sd_mL)
+    drawn from ``weighing`` (the "vial_weighing" stream): the operator's balance, not the
+    vial, is what the twin is told (0 in base.toml; a commissioning print's fill is weighed).
+    """
     cfg = scenario.config
     head0 = processes.head_inputs[0]
     vial0 = float(cfg["initial"]["vial_volume_mL"])
+    weighing_sd = float(cfg["truth"].get("vial_weighing_sd_mL", 0.0))
+    if weighing_sd > 0.0:
+        if weighing is None:
+            raise ValueError("truth.vial_weighing_sd_mL > 0 needs the 'vial_weighing' stream")
+        vial0 = max(vial0 + weighing_sd * float(weighing.standard_normal()), 1e-6)
     generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
     aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
     return np.array(
@@ -359,6 +372,8 @@ def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> di
     initial.setdefault("vial_volume_mL", float(last[1]))
     initial.setdefault("tube_deposition_um", float(last[2]))
     initial.setdefault("nozzle_deposition_um", float(last[3]))
+    # the vial is the one the previous print left, not a newly weighed fill
+    merged.setdefault("truth", {}).setdefault("vial_weighing_sd_mL", 0.0)
     scenario_table = merged.setdefault("scenario", {})
     machine = previous.meta.get("machine_id")
     if machine and machine != "unknown":
@@ -403,7 +418,7 @@ def run_virtual_print(
         processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
-    x0 = true_initial_state(scenario, processes, params)
+    x0 = true_initial_state(scenario, processes, params, streams["vial_weighing"])
     if truth_generator == "alt":
         from ajtwin.simulation.truth_alt import integrate_alt_truth
 

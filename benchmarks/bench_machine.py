@@ -76,7 +76,9 @@ def _run(twin, record, start=None, long_run_history=None):
     return run, status, events, time.process_time() - t0
 
 
-def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True):
+def evaluate_machine(
+    machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
+):
     from ajtwin.estimation.commission import commission
     from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
@@ -88,7 +90,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         seed=print_seed,
         machine=machine,
         machine_seed=machine_seed,
-        truth_generator="alt",
+        truth_generator=truth,
     )
     measured_da = float(comm.states[0, 0] + DROPLET_SIZER_STD_UM * rng.standard_normal())
     t0 = time.process_time()
@@ -116,7 +118,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
         seed=print_seed + 1,
         duration_min=minutes,
         continue_from=comm.record,
-        truth_generator="alt",
+        truth_generator=truth,
     )
     start = carry_over(result.end_state, result.end_state_cov)
     checks = [m for m in CHECK_MIN if m <= minutes]
@@ -161,7 +163,7 @@ def evaluate_machine(machine_seed=None, machine=None, print_seed=2001, minutes=9
             duration_min=clog_min,
             continue_from=comm.record,
             overrides={"fault": {"onset_min": clog_min / 2}},
-            truth_generator="alt",
+            truth_generator=truth,
         )
         _, clog_status, clog_events, _ = _run(
             Twin.default(
@@ -250,10 +252,17 @@ def summarise(results: dict) -> dict:
 
 
 def run_all(
-    quick: bool = False, progress=print, n_machines=None, checkpoint=None, seeds=None
+    quick: bool = False,
+    progress=print,
+    n_machines=None,
+    checkpoint=None,
+    seeds=None,
+    truth="alt",
 ) -> dict:
     """``seeds``: other held-out machine seeds (``--seeds 1006-1020``; print seeds follow
-    the machine seed, so 1001-1005 print exactly as in the default run)."""
+    the machine seed, so 1001-1005 print exactly as in the default run). ``truth``: the
+    generator of the varied machines' prints — "alt" (evaluation, the default) or "model"
+    (the first generator, on which the twin's priors may be tuned)."""
     if seeds is None:
         seeds = MACHINE_SEEDS[:1] if quick else MACHINE_SEEDS[: n_machines or len(MACHINE_SEEDS)]
     minutes = 30.0 if quick else 90.0
@@ -262,14 +271,18 @@ def run_all(
     # the nominal and the paper's machine first: a stopped run still has them
     results["nominal"] = evaluate_nominal(minutes=minutes)
     progress(f"nominal done ({time.perf_counter() - t0:.0f} s)")
+    results["truth"] = truth
     results["paper"] = evaluate_machine(
-        machine="paper", print_seed=2201, minutes=minutes, clog=False
+        machine="paper", print_seed=2201, minutes=minutes, clog=False, truth=truth
     )
     progress(f"paper done ({time.perf_counter() - t0:.0f} s)")
     for seed in seeds:
         results["machines"].append(
             evaluate_machine(
-                machine_seed=seed, print_seed=2001 + 10 * (seed - MACHINE_SEEDS[0]), minutes=minutes
+                machine_seed=seed,
+                print_seed=2001 + 10 * (seed - MACHINE_SEEDS[0]),
+                minutes=minutes,
+                truth=truth,
             )
         )
         progress(f"machine {seed} done ({time.perf_counter() - t0:.0f} s)")
@@ -287,8 +300,13 @@ def _markdown(results: dict, command: str, load: str) -> str:
         "",
         f"Command: `{command}`  ",
         f"Load at start: {load}; wall {results['wall_s']:.0f} s.",
-        "Evaluation on the SECOND truth generator (`--truth alt`, tuned nothing); machines "
-        f"{', '.join(m['machine'] for m in results['machines'])} (held out), print seeds 2001+.",
+        (
+            "Evaluation on the SECOND truth generator (`--truth alt`, tuned nothing); machines "
+            if results.get("truth", "alt") == "alt"
+            else "On the FIRST truth generator (`--truth model`, the twin's own equations: "
+            "where priors may be tuned, not evaluated); machines "
+        )
+        + f"{', '.join(m['machine'] for m in results['machines'])}, print seeds 2001+.",
         "",
         "| machine | phase | d_a err 30/60/90 | φ_A err 30/60/90 | V_l err 30/60/90 "
         "| ΔR_N nm 30/60/90 | cover d_a/V_l/φ_A/ΔR_N/ΔR_T | alarms | guard |",
@@ -365,13 +383,22 @@ if __name__ == "__main__":
     if "--seeds" in sys.argv:  # e.g. 1006-1020: more held-out machines, results_1006_1020.*
         first, last = (int(v) for v in sys.argv[sys.argv.index("--seeds") + 1].split("-"))
         seeds = list(range(first, last + 1))
+    truth = "alt"
+    if "--truth" in sys.argv:  # model: the first generator (tuning), alt: evaluation
+        truth = sys.argv[sys.argv.index("--truth") + 1]
+        if truth not in ("alt", "model"):
+            sys.exit(f"--truth {truth!r}: choose alt or model")
     OUT.mkdir(parents=True, exist_ok=True)
     name = "quick" if quick else "results" if seeds is None else f"results_{first}_{last}"
+    if truth != "alt":
+        name += f"_{truth}"
 
     def checkpoint(partial):
         (OUT / f"{name}.partial.json").write_text(json.dumps(partial, indent=1, default=float))
 
-    results = run_all(quick=quick, n_machines=n_machines, checkpoint=checkpoint, seeds=seeds)
+    results = run_all(
+        quick=quick, n_machines=n_machines, checkpoint=checkpoint, seeds=seeds, truth=truth
+    )
     (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
     (OUT / f"{name}.partial.json").unlink(missing_ok=True)  # the whole run is in name.json
     command = "python benchmarks/bench_machine.py" + (" --quick" if quick else "")
@@ -379,5 +406,7 @@ if __name__ == "__main__":
         command += f" --machines {n_machines}"
     if seeds:
         command += f" --seeds {first}-{last}"
+    if truth != "alt":
+        command += f" --truth {truth}"
     (OUT / f"{name}.md").write_text(_markdown(results, command, " ".join(load)))
     print(_markdown(results, command, " ".join(load)))

@@ -1,0 +1,83 @@
+"""Where a commissioned twin's ±2σ band comes from: the filter's σ vs the calibration term.
+
+Per machine (as ``bench_machine``: 20-min commissioning print, d_a known ±0.1 µm, then the
+next 90-min exp1 print run by the calibrated twin), per state: the median total σ, its
+filter part and its calibration part C_k = A Σ_c Aᵀ (``run.calibration_covariances``,
+:mod:`ajtwin.estimation.calibration_uncertainty`), the rms error, and the rms z with the
+total σ and with the filter's σ alone. rms z ≈ 1 is an honest band.
+
+    python benchmarks/band_breakdown.py --truth model --machines 1006,1007,1008
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from bench_machine import DROPLET_SIZER_STD_UM, MACHINE_SEEDS
+
+STATES = {"d_a": 0, "V_l": 1, "ΔR_N": 3, "φ_A": 4}
+
+
+def breakdown(machine_seed: int, truth: str) -> dict:
+    from ajtwin.estimation.commission import commission
+    from ajtwin.estimation.twin import Twin
+    from ajtwin.simulation.printer import run_virtual_print
+    from ajtwin.store.ingest import carry_over
+
+    print_seed = 2001 + 10 * (machine_seed - MACHINE_SEEDS[0])  # as bench_machine
+    rng = np.random.default_rng(print_seed)
+    comm = run_virtual_print(
+        "commissioning", seed=print_seed, machine_seed=machine_seed, truth_generator=truth
+    )
+    measured_da = float(comm.states[0, 0] + DROPLET_SIZER_STD_UM * rng.standard_normal())
+    result = commission(
+        comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
+    )
+    nxt = run_virtual_print(
+        "exp1",
+        seed=print_seed + 1,
+        duration_min=90,
+        continue_from=comm.record,
+        truth_generator=truth,
+    )
+    twin = Twin.default(
+        calibration=result.calibration,
+        calibration_cov=result.calibration_cov,
+        noise_factors=result.noise_factors,
+    )
+    run = twin.run(nxt.record, start=carry_over(result.end_state, result.end_state_cov))
+    total = run.stds
+    calibration = np.sqrt(np.maximum(np.diagonal(run.calibration_covariances, 0, 1, 2), 0.0))
+    error = run.means - nxt.states
+    out = {}
+    for name, i in STATES.items():
+        filt = np.sqrt(np.maximum(total[:, i] ** 2 - calibration[:, i] ** 2, 1e-300))
+        out[name] = {
+            "median_sigma": float(np.median(total[:, i])),
+            "median_sigma_filter": float(np.median(filt)),
+            "median_sigma_calibration": float(np.median(calibration[:, i])),
+            "rms_error": float(np.sqrt(np.mean(error[:, i] ** 2))),
+            "rms_z": float(np.sqrt(np.mean((error[:, i] / total[:, i]) ** 2))),
+            "rms_z_filter_only": float(np.sqrt(np.mean((error[:, i] / filt) ** 2))),
+        }
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--truth", choices=("model", "alt"), default="model")
+    parser.add_argument("--machines", default="1006,1007,1008")
+    args = parser.parse_args(argv)
+    print("machine state  σ median (filter, calibration)  rms error  rms z (filter only)")
+    for seed in (int(s) for s in args.machines.split(",")):
+        for name, r in breakdown(seed, args.truth).items():
+            print(
+                f"{seed} {name:5s} {r['median_sigma']:.3g} ({r['median_sigma_filter']:.3g}, "
+                f"{r['median_sigma_calibration']:.3g})  {r['rms_error']:.3g}  "
+                f"{r['rms_z']:.2f} ({r['rms_z_filter_only']:.2f})"
+            )
+
+
+if __name__ == "__main__":
+    main()

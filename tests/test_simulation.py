@@ -111,25 +111,28 @@ def test_same_seed_same_record_other_seed_differs():
     assert a.meta == b.meta and a.meta["seed"] == 7
 
 
-def test_a_weighed_fill_is_the_stated_fill_plus_the_balance_error():
-    """Commissioning's fill is weighed: the vial holds 1.0 mL + N(0, 3 µL), seeded."""
-    fills = np.array(
-        [simulate("commissioning", seed=s, duration_min=1).true_states[0, 1] for s in range(40)]
+def test_a_weighed_fill_and_a_cleaned_nozzle_are_not_exactly_what_is_stated():
+    """Commissioning: the vial holds 1.0 mL + N(0, 3 µL); the cleaned nozzle |N(0, 2 nm)|."""
+    starts = np.array(
+        [simulate("commissioning", seed=s, duration_min=1).true_states[0] for s in range(40)]
     )
-    # 40 draws of sd 3e-3: the sample sd lies within ±35 % of it (chi-square, p > 0.999)
-    assert 0.65 * 3e-3 < np.std(fills - 1.0) < 1.35 * 3e-3
-    assert abs(np.mean(fills - 1.0)) < 4 * 3e-3 / np.sqrt(40)
-    weighed = simulate("commissioning", seed=3, duration_min=1)
-    exact = simulate(
-        "commissioning", seed=3, duration_min=1, overrides={"truth": {"vial_weighing_sd_mL": 0.0}}
-    )
-    assert exact.true_states[0, 1] == 1.0 != weighed.true_states[0, 1]
-    # its own stream: every other draw of the print is unchanged
-    np.testing.assert_array_equal(weighed.inputs, exact.inputs)
-    np.testing.assert_array_equal(weighed.true_states[:, 0], exact.true_states[:, 0])
-    # a print that continues the machine keeps the vial it was left, weighed once
-    again = simulate("commissioning", seed=4, duration_min=1, continue_from=weighed)
-    assert again.true_states[0, 1] == weighed.true_states[-1, 1]
+    fills, residues = starts[:, 1] - 1.0, starts[:, 3]
+    # 40 draws: the sample sd (rms for the half-normal) lies within ±35 % (chi-square, p > 0.999)
+    assert 0.65 * 3e-3 < np.std(fills) < 1.35 * 3e-3
+    assert abs(np.mean(fills)) < 4 * 3e-3 / np.sqrt(40)
+    assert np.all(residues >= 0.0)
+    assert 0.65 * 2e-3 < np.sqrt(np.mean(residues**2)) < 1.35 * 2e-3
+    stated = {"truth": {"vial_weighing_sd_mL": 0.0, "nozzle_residue_sd_um": 0.0}}
+    drawn = simulate("commissioning", seed=3, duration_min=1)
+    exact = simulate("commissioning", seed=3, duration_min=1, overrides=stated)
+    assert exact.true_states[0, 1] == 1.0 != drawn.true_states[0, 1]
+    assert exact.true_states[0, 3] == 0.0 < drawn.true_states[0, 3]
+    # their own streams: every other draw of the print is unchanged
+    np.testing.assert_array_equal(drawn.inputs, exact.inputs)
+    np.testing.assert_array_equal(drawn.true_states[:, 0], exact.true_states[:, 0])
+    # a print that continues the machine keeps the vial and nozzle it was left
+    again = simulate("commissioning", seed=4, duration_min=1, continue_from=drawn)
+    np.testing.assert_array_equal(again.true_states[0, 1:4], drawn.true_states[-1, 1:4])
 
 
 def test_without_mismatch_truth_is_the_nominal_model():

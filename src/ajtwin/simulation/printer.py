@@ -63,6 +63,7 @@ STREAMS = (
     "material_noise",
     "missing",
     "vial_weighing",
+    "nozzle_residue",
 )
 
 # Reference operating point where the true line model equals the nominal one.
@@ -330,22 +331,31 @@ def draw_line_coefficients(scenario: Scenario, streams: dict, nominal, params):
 
 
 def true_initial_state(
-    scenario: Scenario, processes: Processes, params, weighing: np.random.Generator | None = None
+    scenario: Scenario, processes: Processes, params, streams: dict | None = None
 ) -> np.ndarray:
     """True x0: the scenario's vial and deposits, φ_A in balance with the true generation.
 
-    The vial holds its stated fill plus a weighing error N(0, truth.vial_weighing_sd_mL)
-    drawn from ``weighing`` (the "vial_weighing" stream): the operator's balance, not the
-    vial, is what the twin is told (0 in base.toml; a commissioning print's fill is weighed).
+    What the operator states is not exactly what the machine holds (``streams``: the
+    "vial_weighing" and "nozzle_residue" streams of :func:`make_streams`):
+
+    - the vial holds its stated fill plus a weighing error N(0, truth.vial_weighing_sd_mL);
+    - a cleaned nozzle keeps a residue |N(0, truth.nozzle_residue_sd_um)| on top of the
+      stated deposit (a deposit cannot be negative: half-normal, second moment sd²).
+
+    Both are 0 in base.toml; a commissioning print (weighed fill, cleaned nozzle) sets them.
     """
     cfg = scenario.config
     head0 = processes.head_inputs[0]
     vial0 = float(cfg["initial"]["vial_volume_mL"])
+    nozzle0 = float(cfg["initial"]["nozzle_deposition_um"])
     weighing_sd = float(cfg["truth"].get("vial_weighing_sd_mL", 0.0))
+    residue_sd = float(cfg["truth"].get("nozzle_residue_sd_um", 0.0))
+    if (weighing_sd > 0.0 or residue_sd > 0.0) and streams is None:
+        raise ValueError("a weighing error or a nozzle residue needs the print's random streams")
     if weighing_sd > 0.0:
-        if weighing is None:
-            raise ValueError("truth.vial_weighing_sd_mL > 0 needs the 'vial_weighing' stream")
-        vial0 = max(vial0 + weighing_sd * float(weighing.standard_normal()), 1e-6)
+        vial0 = max(vial0 + weighing_sd * float(streams["vial_weighing"].standard_normal()), 1e-6)
+    if residue_sd > 0.0:
+        nozzle0 += residue_sd * abs(float(streams["nozzle_residue"].standard_normal()))
     generation0 = float(true_generation(head0, vial0, processes.drivers[0, 0], params))
     aerosol0 = generation0 / float(units.sccm_to_ml_per_s(head0[1]))
     return np.array(
@@ -353,7 +363,7 @@ def true_initial_state(
             processes.droplet_um[0],
             vial0,
             cfg["initial"]["tube_deposition_um"],
-            cfg["initial"]["nozzle_deposition_um"],
+            nozzle0,
             aerosol0,
         ]
     )
@@ -372,8 +382,9 @@ def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> di
     initial.setdefault("vial_volume_mL", float(last[1]))
     initial.setdefault("tube_deposition_um", float(last[2]))
     initial.setdefault("nozzle_deposition_um", float(last[3]))
-    # the vial is the one the previous print left, not a newly weighed fill
+    # the vial and nozzle are the ones the previous print left: not weighed or cleaned again
     merged.setdefault("truth", {}).setdefault("vial_weighing_sd_mL", 0.0)
+    merged["truth"].setdefault("nozzle_residue_sd_um", 0.0)
     scenario_table = merged.setdefault("scenario", {})
     machine = previous.meta.get("machine_id")
     if machine and machine != "unknown":
@@ -418,7 +429,7 @@ def run_virtual_print(
         processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
-    x0 = true_initial_state(scenario, processes, params, streams["vial_weighing"])
+    x0 = true_initial_state(scenario, processes, params, streams)
     if truth_generator == "alt":
         from ajtwin.simulation.truth_alt import integrate_alt_truth
 

@@ -108,7 +108,7 @@ class SteppedPrinter:
             scenario, streams, nominal, self.params
         )
         self._coefficients = jnp.asarray(self.line_coefficients)
-        x0 = true_initial_state(scenario, self._processes, self.params, streams["vial_weighing"])
+        x0 = true_initial_state(scenario, self._processes, self.params, streams)
         self._carry = (jnp.asarray(x0, dtype=float), jnp.zeros(()))
         self.k = 0
         self._dirty = False

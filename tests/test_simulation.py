@@ -370,7 +370,7 @@ def test_atomizer_dropout(exp1, fault_prints):
 def test_ink_running_low(fault_prints):
     vp = fault_prints["ink_running_low"]
     v = vp.states[:, 1]
-    assert v[0] == 0.70
+    assert v[0] == pytest.approx(0.70, abs=5 * 3e-3)  # the stated 0.70 mL, weighed (3 µL)
     assert v[0] - v[-1] == pytest.approx(0.15 * 1.5, rel=0.02)
     assert v[-1] < 0.5  # below the generation fit's validity
     q = vp.outputs_true[:, 4]

@@ -183,9 +183,10 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
     # d_a's row does not see the other states: its variance is a random walk's, with the
     # filter's σ_da (noise.toml) unless the profile sets a forecast σ
     sigma_da = following.config.process_std[0]
-    for result in (fc, paper):
+    assert dyn.forecast_droplet_std_um == 3e-3  # data/transition.toml (issue 18)
+    for result, sigma in ((fc, dyn.forecast_droplet_std_um), (paper, sigma_da)):
         var = result.state_stds[-1, 0] ** 2
-        assert var == pytest.approx(1e-4 + 900 * sigma_da**2, rel=1e-9)
+        assert var == pytest.approx(1e-4 + 900 * sigma**2, rel=1e-9)
     import ajtwin.model.droplet_dynamics as module
 
     narrower = dataclasses.replace(dyn, forecast_droplet_std_um=2e-3)

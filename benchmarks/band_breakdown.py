@@ -14,26 +14,17 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from bench_machine import DROPLET_SIZER_STD_UM, MACHINE_SEEDS
+from bench_machine import calibrated_twin, commission_machine, print_seed_of
 
 STATES = {"d_a": 0, "V_l": 1, "ΔR_N": 3, "φ_A": 4}
 
 
 def breakdown(machine_seed: int, truth: str) -> dict:
-    from ajtwin.estimation.commission import commission
-    from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
     from ajtwin.store.ingest import carry_over
 
-    print_seed = 2001 + 10 * (machine_seed - MACHINE_SEEDS[0])  # as bench_machine
-    rng = np.random.default_rng(print_seed)
-    comm = run_virtual_print(
-        "commissioning", seed=print_seed, machine_seed=machine_seed, truth_generator=truth
-    )
-    measured_da = float(comm.states[0, 0] + DROPLET_SIZER_STD_UM * rng.standard_normal())
-    result = commission(
-        comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
-    )
+    print_seed = print_seed_of(machine_seed)
+    comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)
     nxt = run_virtual_print(
         "exp1",
         seed=print_seed + 1,
@@ -41,11 +32,7 @@ def breakdown(machine_seed: int, truth: str) -> dict:
         continue_from=comm.record,
         truth_generator=truth,
     )
-    twin = Twin.default(
-        calibration=result.calibration,
-        calibration_cov=result.calibration_cov,
-        noise_factors=result.noise_factors,
-    )
+    twin = calibrated_twin(result)
     run = twin.run(nxt.record, start=carry_over(result.end_state, result.end_state_cov))
     total = run.stds
     calibration = np.sqrt(np.maximum(np.diagonal(run.calibration_covariances, 0, 1, 2), 0.0))

@@ -76,13 +76,19 @@ def _run(twin, record, start=None, long_run_history=None):
     return run, status, events, time.process_time() - t0
 
 
-def evaluate_machine(
-    machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
-):
+def print_seed_of(machine_seed: int) -> int:
+    """The first print seed of a held-out machine: its prints follow its machine seed."""
+    return 2001 + 10 * (machine_seed - MACHINE_SEEDS[0])
+
+
+def commission_machine(print_seed, truth="alt", machine=None, machine_seed=None):
+    """The machine's 20-min commissioning print and its calibration.
+
+    d_a is known from a droplet sizer: truth + N(0, 0.1 µm), declared ±0.1 µm.
+    Returns (commissioning print, CommissioningResult, CPU seconds of the fit).
+    """
     from ajtwin.estimation.commission import commission
-    from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
-    from ajtwin.store.ingest import carry_over
 
     rng = np.random.default_rng(print_seed)
     comm = run_virtual_print(
@@ -97,7 +103,28 @@ def evaluate_machine(
     result = commission(
         comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
     )
-    commission_cpu = time.process_time() - t0
+    return comm, result, time.process_time() - t0
+
+
+def calibrated_twin(result):
+    """The twin of a commissioned machine (its calibration, SEs and noise factors)."""
+    from ajtwin.estimation.twin import Twin
+
+    return Twin.default(
+        calibration=result.calibration,
+        calibration_cov=result.calibration_cov,
+        noise_factors=result.noise_factors,
+    )
+
+
+def evaluate_machine(
+    machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
+):
+    from ajtwin.estimation.twin import Twin
+    from ajtwin.simulation.printer import run_virtual_print
+    from ajtwin.store.ingest import carry_over
+
+    comm, result, commission_cpu = commission_machine(print_seed, truth, machine, machine_seed)
     # the detectors' long-run noise scale of this machine, as `machine commission` stores it
     from ajtwin.apps.anomaly import commissioning_long_run_history
 
@@ -123,11 +150,7 @@ def evaluate_machine(
     start = carry_over(result.end_state, result.end_state_cov)
     checks = [m for m in CHECK_MIN if m <= minutes]
     after_run, after_status, after_events, after_cpu = _run(
-        Twin.default(
-            calibration=result.calibration,
-            calibration_cov=result.calibration_cov,
-            noise_factors=result.noise_factors,
-        ),
+        calibrated_twin(result),
         nxt.record,
         start,
         history,
@@ -166,11 +189,7 @@ def evaluate_machine(
             truth_generator=truth,
         )
         _, clog_status, clog_events, _ = _run(
-            Twin.default(
-                calibration=result.calibration,
-                calibration_cov=result.calibration_cov,
-                noise_factors=result.noise_factors,
-            ),
+            calibrated_twin(result),
             clog_print.record,
             start,
             history,
@@ -280,7 +299,7 @@ def run_all(
         results["machines"].append(
             evaluate_machine(
                 machine_seed=seed,
-                print_seed=2001 + 10 * (seed - MACHINE_SEEDS[0]),
+                print_seed=print_seed_of(seed),
                 minutes=minutes,
                 truth=truth,
             )

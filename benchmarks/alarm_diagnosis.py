@@ -36,8 +36,9 @@ CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    # v4: the twin's early EM (2026-11-25) — bump whenever the twin's runs change
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v4".encode()).hexdigest()
+    # v5: weighed fills, a cleaned nozzle's residue and φ_A's 5 % prior (2026-11-26) — bump
+    # whenever the twin's runs or the virtual printer's truth change
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v5".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)
@@ -48,25 +49,17 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
         out["clog_onset_s"] = float(out["clog"].pop("onset_s"))
         return out
 
+    from bench_machine import calibrated_twin, commission_machine
+
     from ajtwin.apps.evaluate import detector_arrays
-    from ajtwin.estimation.commission import commission
-    from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
     from ajtwin.store.ingest import carry_over
 
-    rng = np.random.default_rng(print_seed)
-    kw = {"machine_seed": machine_seed} if machine_seed is not None else {}
-    comm = run_virtual_print("commissioning", seed=print_seed, truth_generator=truth, **kw)
-    measured = float(comm.states[0, 0] + 0.1 * rng.standard_normal())
-    result = commission(comm.record, known={"droplet_diameter_um": (measured, 0.1)})
+    comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)
     start = carry_over(result.end_state, result.end_state_cov)
 
     def twin():
-        return Twin.default(
-            calibration=result.calibration,
-            calibration_cov=result.calibration_cov,
-            noise_factors=result.noise_factors,
-        )
+        return calibrated_twin(result)
 
     clean = run_virtual_print(
         "exp1",

@@ -342,7 +342,8 @@ def true_initial_state(
     - a cleaned nozzle keeps a residue |N(0, truth.nozzle_residue_sd_um)| on top of the
       stated deposit (a deposit cannot be negative: half-normal, second moment sd²).
 
-    Both are 0 in base.toml; a commissioning print (weighed fill, cleaned nozzle) sets them.
+    base.toml weighs every fill (3 µL) and has no residue; a commissioning print (cleaned
+    nozzle) sets the residue. A print that continues a machine draws neither.
     """
     cfg = scenario.config
     head0 = processes.head_inputs[0]

@@ -16,9 +16,9 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
+from ajtwin.config import InputFileError, check_regular_file
 from click.testing import CliRunner
 
-from ajtwin.io.files import InputFileError, check_regular_file
 from ajtwin.io.records import RecordError, read_record, write_record
 from ajtwin.simulation import simulate
 

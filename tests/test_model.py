@@ -375,10 +375,9 @@ def test_bad_dt_and_method():
 
 def test_from_files_round_trip_and_errors(tmp_path):
     import tomllib
+    from importlib import resources
 
-    from ajtwin.model.parameters import DATA
-
-    text = (DATA / "parameters.toml").read_text()
+    text = (resources.files("ajtwin") / "data" / "parameters.toml").read_text()
     custom = tmp_path / "params.toml"
     custom.write_text(text.replace('value = 10.0\nunit = "mm"', 'value = 20.0\nunit = "mm"'))
     m = DigitalModel.from_files(parameters=custom)

@@ -41,6 +41,7 @@ import numpy as np
 from scipy import special
 
 from ajtwin import units
+from ajtwin.config import packaged_toml
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
 SHORT_OUTPUT = ("L_w", "L_o", "P_c", "P_s", "Q_m")
@@ -65,11 +66,7 @@ CAUSES = {
 def load_detector_settings() -> dict:
     """``data/detectors.toml`` (thresholds with their provenance), flattened to
     :class:`DetectorSettings` field names."""
-    import tomllib
-    from importlib import resources
-
-    with (resources.files("ajtwin") / "data" / "detectors.toml").open("rb") as handle:
-        data = tomllib.load(handle)
+    data = packaged_toml("data/detectors.toml")
     c, n, ev, r, lr, dp = (
         data[k] for k in ("cusum", "nis", "events", "robust", "long_run", "deposit")
     )

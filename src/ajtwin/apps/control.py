@@ -46,9 +46,7 @@ Examples
 from __future__ import annotations
 
 import time
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import NamedTuple
 
@@ -58,6 +56,7 @@ from scipy import optimize
 from ajtwin._jax import jax, jnp
 from ajtwin.apps.advise import effective_bounds
 from ajtwin.apps.forecast import _forecast_scan
+from ajtwin.config import load_toml
 from ajtwin.model import INPUT_NAMES
 
 # --------------------------------------------------------------------------- #
@@ -96,17 +95,8 @@ class ControlSettings:
     @classmethod
     def load(cls, path: str | Path | None = None, **overrides) -> ControlSettings:
         """Settings from ``data/control.toml`` (or a user's file of the same form)."""
-        if path is None:
-            handle = (resources.files("ajtwin") / "data" / "control.toml").open("rb")
-            source = "ajtwin/data/control.toml"
-        else:
-            handle = open(path, "rb")
-            source = str(path)
-        with handle:
-            try:
-                raw = tomllib.load(handle)
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{source}: not valid TOML: {exc}") from None
+        source = "ajtwin/data/control.toml" if path is None else str(path)
+        raw = load_toml(path, "data/control.toml", what="control settings")
         try:
             mpc, rates, safety, pi = raw["mpc"], raw["rate_limits"], raw["safety"], raw["pi"]
             ink = raw["ink"]

@@ -32,13 +32,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass, field
-from importlib import resources
 
 import numpy as np
 
 from ajtwin import units
+from ajtwin.config import packaged_toml
 from ajtwin.model.system import OUTPUT_NAMES, STATE_NAMES
 
 #: Likely fix per output / state.
@@ -64,8 +63,7 @@ FIXES = {
 
 
 def load_guard_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "mismatch.toml").open("rb") as handle:
-        return tomllib.load(handle)["guard"]
+    return packaged_toml("data/mismatch.toml")["guard"]
 
 
 @dataclass

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import click
 
+from ajtwin.config import packaged_toml, read_toml
+
 
 def _spec_options(func):
     func = click.option(
@@ -254,7 +256,7 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
     if not summary.exists():
         raise click.ClickException(f"{summary} not found: run `ajtwin cfd sweep {sweep_dir}` first")
     table = pd.read_csv(summary)
-    ref = fitting.read_toml(reference) if reference else _packaged_reference()
+    ref = read_toml(reference, what="reference coefficient") if reference else _packaged_reference()
     meta = sweep_metadata(sweep_dir, table)
     meta["summary_table"] = table_record or str(summary)
     limit = _geometry(None).max_trusted_speed
@@ -378,13 +380,9 @@ def report(sweep_dir, fine_dir, json_out, droplet_range, plot_out):
 
 def _packaged_reference() -> dict:
     """The provisional coefficients (for alpha^phi), wherever they are kept now."""
-    from importlib import resources
-
-    from ajtwin.cfd.fit import read_toml
-
-    data = resources.files("ajtwin") / "data"
     for name in ("output_coefficients_provisional.toml", "output_coefficients.toml"):
-        path = data / name
-        if path.is_file():
-            return read_toml(path)
+        try:
+            return packaged_toml(f"data/{name}")
+        except FileNotFoundError:
+            continue
     raise click.ClickException("no packaged output-coefficient file found (need alpha^phi)")

@@ -16,7 +16,6 @@ paper's polynomial.
 
 from __future__ import annotations
 
-import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.cfd.physics import load_cfd_parameters
+from ajtwin.config import load_toml
 
 #: The schema the twin reads (ajtwin.model.parameters.Coefficients).
 COEFFICIENT_KEYS = (
@@ -42,14 +42,7 @@ _OUTPUT_COLUMN = {"linewidth": "linewidth_um", "overspray": "overspray_um"}
 def fit_settings(path: str | Path | None = None) -> dict:
     """Fit settings from ``sweep.toml``: the droplet window of the linear d_a term
     (``[fit]``) and the paper's reference points (``[paper_reference]``)."""
-    from importlib import resources
-
-    text = (
-        (resources.files("ajtwin") / "cfd" / "sweep.toml").read_text()
-        if path is None
-        else Path(path).read_text()
-    )
-    doc = tomllib.loads(text)
+    doc = load_toml(path, "cfd/sweep.toml", what="sweep")
     settings = doc.get("fit", {})
     lo, hi = (float(v) for v in settings.get("droplet_range_um", (0.0, np.inf)))
     if not 0.0 <= lo < hi:
@@ -330,10 +323,6 @@ def write_toml(document: dict, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomli_w.dumps(document))
     return path
-
-
-def read_toml(path: str | Path) -> dict:
-    return tomllib.loads(Path(path).read_text())
 
 
 def resistance_document(resistance: dict, meta: dict) -> dict:

@@ -13,12 +13,11 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 from ajtwin import units
+from ajtwin.config import load_toml
 
 
 @dataclass(frozen=True)
@@ -52,13 +51,8 @@ _NAMES = {
 
 def load_cfd_parameters(path: str | Path | None = None) -> CfdParameters:
     """Read the CFD-relevant entries of a parameter file (default: the packaged one)."""
-    if path is None:
-        text = (resources.files("ajtwin") / "data" / "parameters.toml").read_text()
-        where = "packaged parameters.toml"
-    else:
-        text = Path(path).read_text()
-        where = str(path)
-    raw = tomllib.loads(text)
+    where = "packaged parameters.toml" if path is None else str(path)
+    raw = load_toml(path, "data/parameters.toml", what="parameter")
     values = {}
     for field_name, key in _NAMES.items():
         if key not in raw or "value" not in raw[key] or "unit" not in raw[key]:

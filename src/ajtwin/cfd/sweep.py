@@ -17,15 +17,14 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 import traceback
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import pandas as pd
 
 from ajtwin.cfd.case import CaseSpec
+from ajtwin.config import load_toml
 
 SUMMARY_NAME = "summary.csv"
 SWEEP_META = "sweep.json"
@@ -46,12 +45,7 @@ class Design:
 
 def load_design(name: str, path: str | Path | None = None, mesh_level: int | None = None) -> Design:
     """A named sweep design from ``sweep.toml`` (or ``path``); ``mesh_level`` overrides."""
-    text = (
-        (resources.files("ajtwin") / "cfd" / "sweep.toml").read_text()
-        if path is None
-        else Path(path).read_text()
-    )
-    designs = tomllib.loads(text).get("designs", {})
+    designs = load_toml(path, "cfd/sweep.toml", what="sweep").get("designs", {})
     if name not in designs:
         raise ValueError(f"unknown sweep design {name!r}; known: {', '.join(sorted(designs))}")
     d = designs[name]

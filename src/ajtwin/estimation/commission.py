@@ -24,13 +24,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 
 import numpy as np
 
 from ajtwin._jax import jnp
+from ajtwin.config import packaged_toml
 from ajtwin.estimation.filters import DEFAULT_SCALING, ModelFunctions, ModelSpec, Scaling, ekf
 from ajtwin.model import DigitalModel
 from ajtwin.model.calibration import (
@@ -58,8 +57,7 @@ class CommissioningError(ValueError):
 
 
 def load_commissioning_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "commissioning.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    return packaged_toml("data/commissioning.toml")
 
 
 def _augmented_step(z, u, theta, params, dt):

@@ -27,12 +27,10 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
-from importlib import resources
-
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.config import packaged_toml
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 
 #: Outputs whose offset may be learned online: L_w, L_o (never the pressures).
@@ -43,8 +41,7 @@ LEARNABLE_NOISE = (0, 1, 4)
 
 
 def load_em_calibration_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "em_calibration.toml").open("rb") as handle:
-        return tomllib.load(handle)["em_calibration"]
+    return packaged_toml("data/em_calibration.toml")["em_calibration"]
 
 
 def _as_calibrated(spec):

@@ -57,14 +57,13 @@ Example
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from typing import NamedTuple
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.config import load_toml
 from ajtwin.model.atomizer import net_droplet_generation
 from ajtwin.model.parameters import PhysicalParameters, load_parameters
 
@@ -75,15 +74,7 @@ _MIN_GENERATION = 1e-12
 
 def load_vial_settings(path=None) -> dict:
     """``data/vial.toml`` as ``{"twin": {...}, "observer": {...}, "low": {...}}`` of values."""
-    if path is None:
-        with (resources.files("ajtwin") / "data" / "vial.toml").open("rb") as fh:
-            raw = tomllib.load(fh)
-    else:
-        from pathlib import Path
-
-        from ajtwin.io.files import read_toml_file
-
-        raw = read_toml_file(Path(path), what="vial settings")
+    raw = load_toml(path, "data/vial.toml", what="vial settings")
     out = {}
     for group in ("twin", "observer", "low"):
         if group not in raw:

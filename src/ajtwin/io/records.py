@@ -37,16 +37,14 @@ import copy
 import csv
 import json
 import math
-import tomllib
 import warnings
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from ajtwin.io.files import InputFileError, check_regular_file, read_toml_file
+from ajtwin.config import InputFileError, check_regular_file, packaged_toml, read_toml
 
 FORMAT_VERSION = 1
 PARQUET_META_KEY = b"ajtwin"
@@ -273,11 +271,9 @@ def load_aliases(path: str | Path | None = None) -> dict[str, str]:
 
     Keys are lower-cased and stripped; the canonical names map to themselves.
     """
-    tables = []
-    with (resources.files("ajtwin.io") / "aliases.toml").open("rb") as fh:
-        tables.append(tomllib.load(fh))
+    tables = [packaged_toml("io/aliases.toml")]
     if path is not None:
-        tables.append(read_toml_file(Path(path), what="alias"))
+        tables.append(read_toml(path, what="alias"))
     mapping: dict[str, str] = {c.lower(): c for c in UNITS}
     for table in tables:
         aliases = table.get("aliases", {})

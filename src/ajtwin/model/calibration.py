@@ -27,7 +27,6 @@ Examples
 from __future__ import annotations
 
 import datetime as _dt
-import tomllib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -35,6 +34,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin._jax import jnp
+from ajtwin.config import read_toml
 from ajtwin.model.fluidics import tube_resistance
 
 #: Order of the calibration vector (display units: µm, Pa; the rest dimensionless).
@@ -225,12 +225,9 @@ def read_calibration_file(path) -> tuple[Calibration, dict]:
     """(Calibration, the whole file as a dict) from a calibration TOML."""
     path = Path(path)
     try:
-        with path.open("rb") as handle:
-            data = tomllib.load(handle)
+        data = read_toml(path, what="calibration")
     except FileNotFoundError:
         raise ValueError(f"{path}: no such calibration file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML: {exc}") from None
     if "calibration" not in data:
         raise ValueError(f"{path}: no [calibration] table")
     return calibration_from_dict(data["calibration"], str(path)), data

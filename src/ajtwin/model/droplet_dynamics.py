@@ -59,14 +59,13 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.config import load_toml
 from ajtwin.model.system import N_INPUTS, transition_rates
 
 FORMS = ("paper", "mean_reverting", "input_following")
@@ -111,16 +110,13 @@ class DropletDynamics:
         return self.reference_um + self.input_shift_um(u)
 
 
-def _transition_file(path: str | Path | None):
-    if path is not None:
-        return Path(path).open("rb")
-    return (resources.files("ajtwin") / "data" / "transition.toml").open("rb")
+def _transition_file(path: str | Path | None) -> dict:
+    return load_toml(path, "data/transition.toml", what="transition")
 
 
 def transition_profiles(path: str | Path | None = None) -> tuple[str, ...]:
     """Names of the profiles in ``transition.toml`` (or the file at ``path``)."""
-    with _transition_file(path) as handle:
-        return tuple(tomllib.load(handle)["profiles"])
+    return tuple(_transition_file(path)["profiles"])
 
 
 def load_droplet_dynamics(profile: str = "paper", path: str | Path | None = None):
@@ -129,8 +125,7 @@ def load_droplet_dynamics(profile: str = "paper", path: str | Path | None = None
     Raises ValueError naming the file and the profile or key that is wrong.
     """
     where = str(path) if path is not None else "ajtwin/data/transition.toml"
-    with _transition_file(path) as handle:
-        raw = tomllib.load(handle)
+    raw = _transition_file(path)
     profiles = raw.get("profiles", {})
     if profile not in profiles:
         raise ValueError(f"{where}: no transition profile {profile!r}; choose {sorted(profiles)}")

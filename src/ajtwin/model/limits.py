@@ -18,14 +18,13 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin import units
+from ajtwin.config import load_toml
 from ajtwin.model.parameters import PhysicalParameters
 
 STATE_NAMES = (
@@ -56,9 +55,8 @@ class StateLimits:
 
     @classmethod
     def load(cls, params: PhysicalParameters, path: str | Path | None = None) -> StateLimits:
-        source = resources.files("ajtwin") / "data" / "state_limits.toml" if path is None else path
-        with open(source, "rb") if path is not None else source.open("rb") as handle:
-            data = tomllib.load(handle)
+        source = "ajtwin/data/state_limits.toml" if path is None else path
+        data = load_toml(path, "data/state_limits.toml", what="state limits")
         vial_ml = units.m3_to_ml(params.vial_volume)
         radius_um = {
             "tube_deposition_um": units.m_to_um(params.tube_radius),

@@ -18,15 +18,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import NamedTuple
 
 from ajtwin import units
-
-DATA = resources.files("ajtwin") / "data"
+from ajtwin.config import load_toml
 
 
 class PhysicalParameters(NamedTuple):
@@ -97,12 +94,8 @@ class ParameterRecord:
 
 
 def _read_toml(path: Path | None, default_name: str) -> dict:
-    if path is None:
-        with (DATA / default_name).open("rb") as fh:
-            return tomllib.load(fh)
-    from ajtwin.io.files import read_toml_file  # a regular file of bounded size: no hang
-
-    return read_toml_file(Path(path), what="parameter")
+    # a user's file must be a regular file of bounded size (no hang on a FIFO)
+    return load_toml(path, f"data/{default_name}", what="parameter")
 
 
 def parameter_records(path: str | Path | None = None) -> list[ParameterRecord]:

@@ -73,11 +73,9 @@ def _load_data(
 
 @functools.cache
 def _training_recipe() -> dict:
-    import tomllib
-    from importlib import resources
+    from ajtwin.profile_cnn.data import settings
 
-    with (resources.files("ajtwin") / "data" / "profile_cnn.toml").open("rb") as fh:
-        return tomllib.load(fh)["training"]
+    return settings()["training"]
 
 
 def _recipe(key):

@@ -42,15 +42,14 @@ from __future__ import annotations
 
 import csv
 import re
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from ajtwin.config import packaged_toml
 from ajtwin.units import m_to_um, to_si
 
 N_PIXELS = 200
@@ -60,8 +59,7 @@ EDGE_FRACTION = 0.15  # outer share of a scan on each side treated as bare subst
 @lru_cache(maxsize=1)
 def settings() -> dict:
     """The CNN data-path settings (``ajtwin/data/profile_cnn.toml``)."""
-    with (resources.files("ajtwin") / "data" / "profile_cnn.toml").open("rb") as fh:
-        return tomllib.load(fh)
+    return packaged_toml("data/profile_cnn.toml")
 
 
 def default_scan_smoothing_um() -> float:

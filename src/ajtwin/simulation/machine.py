@@ -28,12 +28,11 @@ True
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass
-from importlib import resources
 
 import numpy as np
 
+from ajtwin.config import packaged_toml
 from ajtwin.model.calibration import Calibration, apply_calibration
 
 #: Reference operating point of the line levels [mA, sccm, sccm], d_a [µm], V_l [mL].
@@ -44,8 +43,7 @@ REFERENCE_VIAL_ML = 1.0
 
 def load_machine_variation() -> dict:
     """The packaged ``data/machine_variation.toml`` as a dict."""
-    with (resources.files("ajtwin") / "data" / "machine_variation.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    return packaged_toml("data/machine_variation.toml")
 
 
 @dataclass(frozen=True)

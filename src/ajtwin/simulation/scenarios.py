@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import copy
 import math
-import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from ajtwin.io.files import read_toml_file
+from ajtwin.config import packaged_toml, read_toml
 from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
 
 SCENARIO_DIR = resources.files("ajtwin.simulation") / "scenarios"
@@ -47,20 +46,8 @@ FAULT_FIELDS = {
 }
 
 
-def _read_toml(source) -> dict:
-    """A packaged scenario (a resource) or a user's file (a regular file of bounded size)."""
-    if isinstance(source, Path):
-        # a directory, FIFO or /dev/zero must be refused before it is opened (hang, no end)
-        return read_toml_file(source, what="scenario")
-    try:
-        with source.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{source}: not valid TOML: {exc}") from None
-
-
 def _base() -> dict:
-    return _read_toml(SCENARIO_DIR / "base.toml")
+    return packaged_toml("simulation/scenarios/base.toml")
 
 
 def list_scenarios() -> list[str]:
@@ -287,7 +274,8 @@ def load_scenario(
     if text.endswith(".toml") or path.exists():
         if not path.exists():
             raise FileNotFoundError(f"scenario file not found: {path}")
-        raw = _read_toml(path)
+        # a directory, FIFO or /dev/zero is refused before it is opened (hang, no end)
+        raw = read_toml(path, what="scenario")
         name = path.stem
         source = str(path)
     else:
@@ -297,7 +285,7 @@ def load_scenario(
                 f"unknown scenario {text!r}; packaged: {', '.join(list_scenarios())} "
                 "(or give a path to your own .toml file)"
             )
-        raw = _read_toml(packaged)
+        raw = packaged_toml(f"simulation/scenarios/{text}.toml")
         name = text
         source = f"packaged:{text}"
     config = _merge(base, raw, source)

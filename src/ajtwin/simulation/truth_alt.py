@@ -30,14 +30,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
-from importlib import resources
-
 import numpy as np
 from scipy.signal import lfilter
 
 from ajtwin import units
 from ajtwin._jax import jax, jnp
+from ajtwin.config import packaged_toml
 from ajtwin.model.system import output_function
 from ajtwin.simulation.truth import truth_rates
 
@@ -45,8 +43,7 @@ CHUNK_S = 600
 
 
 def load_alt_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "truth_alt.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    return packaged_toml("data/truth_alt.toml")
 
 
 def _lag(signal: np.ndarray, tau_s: float) -> np.ndarray:

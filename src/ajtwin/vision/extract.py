@@ -647,7 +647,7 @@ def open_source(path: str | Path, fps: float | None = None) -> FrameSource:
     if not path.exists():
         raise VisionInputError(f"{path}: no such file or folder")
     if not path.is_dir():
-        from ajtwin.io.files import InputFileError, check_regular_file
+        from ajtwin.config import InputFileError, check_regular_file
 
         try:  # a FIFO or device would block OpenCV's open forever
             check_regular_file(path, "video or image")

@@ -45,21 +45,19 @@ Constants live in ``optics.toml`` ([brightness], [profile]).
 from __future__ import annotations
 
 import functools
-import tomllib
 import warnings
-from importlib import resources
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from ajtwin.config import packaged_toml
 from ajtwin.vision.features import EdgePoints, find_edges
 
 
 @functools.cache
 def optics() -> dict:
     """The optical/profile/render constants of ``optics.toml`` (with provenance comments)."""
-    text = resources.files("ajtwin.vision").joinpath("optics.toml").read_text()
-    return tomllib.loads(text)
+    return packaged_toml("vision/optics.toml")
 
 
 def _brightness_constants(slope_scale, floor):

@@ -11,30 +11,9 @@ from pathlib import Path
 
 import click
 
+from ajtwin.cli.options import parse_seeds
+
 from ajtwin.store.cli import store_option
-
-
-def _parse_seeds(text: str) -> list[int]:
-    seeds: list[int] = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part:
-            continue
-        try:
-            if "-" in part:
-                a, b = (int(v) for v in part.split("-", 1))
-                if b < a:
-                    raise ValueError
-                seeds += list(range(a, b + 1))
-            else:
-                seeds.append(int(part))
-        except ValueError:
-            raise click.BadParameter(
-                f"cannot read seeds {text!r} (use e.g. 1-5 or 1,3,7)"
-            ) from None
-    if not seeds or any(s < 0 for s in seeds):
-        raise click.BadParameter(f"seeds must be non-negative integers, got {text!r}")
-    return seeds
 
 
 def _parse_horizon(text) -> int | None:
@@ -282,7 +261,7 @@ def simulate(
             f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}",
             param_hint="--strategies",
         )
-    seed_list = _parse_seeds(seeds)
+    seed_list = parse_seeds(seeds)
     if duration_min is not None and not duration_min > 0:
         raise click.BadParameter("must be > 0", param_hint="--duration-min")
     try:

@@ -1,5 +1,5 @@
-"""``ajtwin machine add|show|history|list|drop|restore|compact|export|import`` and
-``ajtwin ingest`` (docs/registry.md)."""
+"""``ajtwin machine add|list|show|history|drop|restore|compact|export|import|commission|maintain|
+calibrations``: the machine registry (docs/registry.md, docs/calibration.md)."""
 
 from __future__ import annotations
 
@@ -8,46 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import BoundedFloat
-
-STATE_LABELS = (
-    ("droplet_diameter_um", "d_a", "µm"),
-    ("vial_volume_mL", "V_l", "mL"),
-    ("tube_deposition_um", "ΔR_T", "µm"),
-    ("nozzle_deposition_um", "ΔR_N", "µm"),
-    ("aerosol_fraction", "φ_A", "–"),
-)
-
-
-def store_option(func):
-    return click.option(
-        "--store",
-        "store",
-        type=click.Path(dir_okay=False, path_type=Path),
-        default=None,
-        envvar="AJTWIN_STORE",
-        help="Registry file (default: $AJTWIN_STORE or ~/.local/share/ajtwin/registry.sqlite).",
-    )(func)
-
-
-def open_registry(store, create: bool = False):
-    """The registry at ``store``; read-only commands (the default) never create it."""
-    from ajtwin.store.registry import Registry, RegistryError
-
-    try:
-        reg = Registry(store, create=create)
-    except RegistryError as exc:
-        raise click.ClickException(str(exc)) from None
-    for message in reg.migrated:
-        click.echo(message, err=True)
-    return reg
-
-
-def _safe(text) -> str:
-    from ajtwin.store.registry import printable
-
-    return printable(text)
-
+from ajtwin.cli.options import STATE_LABELS, open_registry, safe_text, store_option
 
 def _range(text):
     if text is None:
@@ -89,7 +50,7 @@ def add(name, current_range, carrier_range, sheath_range, notes, store):
         m = reg.add_machine(name, limits, notes)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"added machine {_safe(m['name'])!r} to {reg.path}")
+    click.echo(f"added machine {safe_text(m['name'])!r} to {reg.path}")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  {key}: {low:g} – {high:g}")
 
@@ -104,7 +65,7 @@ def list_machines(store):
         click.echo(f"no machines in {reg.path}")
     for row in rows:
         m = reg.machine(row["name"])
-        click.echo(f"{_safe(m['name'])}  ({m['n_prints']} prints, added {m['created_at']})")
+        click.echo(f"{safe_text(m['name'])}  ({m['n_prints']} prints, added {m['created_at']})")
 
 
 @machine.command("show")
@@ -122,24 +83,22 @@ def show(name, store):
         anomalies = reg.anomalies(name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"machine {_safe(m['name'])}  (registry {reg.path})")
+    click.echo(f"machine {safe_text(m['name'])}  (registry {reg.path})")
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
-    from ajtwin.store.calibration_cli import describe_calibration
-
     for line in describe_calibration(reg, name):
         click.echo(line)
     if newest is not None and (last is None or newest["seq"] != last["seq"]):
         click.echo(
             f"  newest print #{newest['seq']} is {newest['status']} (not in the chain): "
-            f"{_safe(newest['status_reason'])}"
+            f"{safe_text(newest['status_reason'])}"
         )
     if last is None:
         click.echo("  no print in the chain: the next ingest starts from the initial-state fit")
         return
     click.echo(
-        f"  last print: #{last['seq']} from {_safe(last['source'])} "
+        f"  last print: #{last['seq']} from {safe_text(last['source'])} "
         f"({last['ingested_at']}), the twin's current state:"
     )
     std = np.sqrt(np.diag(last["end_cov"]))
@@ -161,7 +120,7 @@ def show(name, store):
         for _, row in anomalies.tail(5).iterrows():
             click.echo(
                 f"    print #{row['seq']} at {row['detected_s']:.0f} s "
-                f"(onset ≈ {row['onset_s']:.0f} s): {_safe(row['description'])}"
+                f"(onset ≈ {row['onset_s']:.0f} s): {safe_text(row['description'])}"
             )
 
 
@@ -187,7 +146,7 @@ def history(name, csv_path, store):
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     if table.empty:
-        click.echo(f"machine {_safe(name)!r} has no prints yet")
+        click.echo(f"machine {safe_text(name)!r} has no prints yet")
         return
     show_cols = ["seq", "ingested_at", "duration_min", "anomalies", "status"] + [
         "end_" + key for key, _, _ in STATE_LABELS
@@ -195,7 +154,7 @@ def history(name, csv_path, store):
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         click.echo(table[show_cols].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     for _, row in table[table["status"] != "ok"].iterrows():
-        click.echo(f"  #{row['seq']} {row['status']}: {_safe(row['status_reason'])}")
+        click.echo(f"  #{row['seq']} {row['status']}: {safe_text(row['status_reason'])}")
     if csv_path:
         table.to_csv(csv_path, index=False)
         click.echo(f"wrote {csv_path}")
@@ -218,7 +177,7 @@ def drop(name, seq, reason, store):
         chain = chain_start(reg, name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"print #{p['seq']} of {_safe(name)!r} dropped from the chain ({_safe(reason)})")
+    click.echo(f"print #{p['seq']} of {safe_text(name)!r} dropped from the chain ({safe_text(reason)})")
     start = "the initial-state fit" if chain.from_seq is None else f"print #{chain.from_seq}'s end"
     click.echo(f"  the next ingest starts from {start} state")
 
@@ -244,7 +203,7 @@ def restore(name, seq, store):
         reg.set_status(name, seq, STATUS_OK, "")
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"print #{seq} of {_safe(name)!r} is back in the chain")
+    click.echo(f"print #{seq} of {safe_text(name)!r} is back in the chain")
 
 
 @machine.command("compact")
@@ -272,7 +231,7 @@ def compact_command(name, keep_covariances_days, store):
     except sqlite3.Error as exc:  # e.g. VACUUM while another process holds a lock
         raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
     click.echo(
-        f"compacted {_safe(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
+        f"compacted {safe_text(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
         f"re-encoded, {stats['thinned']} with covariance key frames dropped, "
         f"{stats['live_steps_dropped']} steps of finished live sessions dropped; registry "
         f"{stats['bytes_before'] / 1e6:.2f} MB → {stats['bytes_after'] / 1e6:.2f} MB"
@@ -294,7 +253,7 @@ def export_command(name, out, store):
     except (RegistryError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
-        f"exported {_safe(name)!r} ({manifest['n_prints']} prints, "
+        f"exported {safe_text(name)!r} ({manifest['n_prints']} prints, "
         f"{manifest['live_sessions']} live sessions of which {manifest['open_live_sessions']} "
         f"open, schema {manifest['schema_version']}) to {out}"
     )
@@ -317,105 +276,190 @@ def import_command(archive, as_name, store):
     for message in result["migrated"]:
         click.echo(f"archive: {message}", err=True)
     click.echo(
-        f"imported {_safe(result['machine'])!r} ({result['n_prints']} prints, "
+        f"imported {safe_text(result['machine'])!r} ({result['n_prints']} prints, "
         f"{result['live_sessions']} live sessions of which {result['open_live_sessions']} "
         f"open) into {reg.path}"
     )
 
 
-@click.command()
-@click.option("--machine", "machine_name", required=True, help="Registered machine name.")
+@machine.command("commission")
+@click.argument("name")
 @click.argument("record", type=click.Path(dir_okay=False, exists=True, path_type=Path))
 @click.option(
-    "--video",
-    type=click.Path(exists=True, path_type=Path),
+    "--known",
+    "known_items",
+    multiple=True,
+    help="A state known at the start, NAME=VALUE±STD (e.g. droplet_diameter_um=3.5±0.2); "
+    "repeatable. Pins what the print confounds (d_a with the line offsets, φ_A with the "
+    "Q_m gain).",
+)
+@click.option("--vial-ml", default=1.0, show_default=True, help="The weighed fill [mL].")
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Alignment-camera video: fills linewidth/overspray (ajtwin.vision).",
+    help="Also write the calibration as a TOML file (for `ajtwin estimate --calibration`).",
 )
 @click.option(
-    "--um-per-px",
-    type=BoundedFloat(0.0, None),
-    default=None,
-    help="Camera pixel size, µm (with --video).",
+    "--no-registry",
+    is_flag=True,
+    help="Only fit (and write --out); do not store it in the registry.",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
 @store_option
-def ingest(machine_name, record, video, um_per_px, progress, store):
-    """Run the machine's twin over RECORD (from its last state and θ) and store it."""
-    from tqdm import tqdm
+def commission(name, record, known_items, vial_ml, out_path, no_registry, store):
+    """Fit machine NAME's calibration from a commissioning print RECORD.
 
-    from ajtwin.io.records import RecordError
-    from ajtwin.live.engine import ingest_file
+    The print must start from a cleaned nozzle and a known fill and step Q_c, Q_s (and
+    I_A) across the operating window (`ajtwin simulate --scenario commissioning`).
+    Prints each calibration parameter with its standard error and whether the print
+    determined it; stores it in the registry (the history is kept).
+    """
+    from ajtwin.estimation.commission import CommissioningError, commission, parse_known
+    from ajtwin.io.records import RecordError, read_record
+    from ajtwin.model.calibration import write_calibration_file
+    from ajtwin.store.calibration import save_calibration
     from ajtwin.store.registry import RegistryError
 
-    if video is not None and um_per_px is None:
-        raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")
-    reg = open_registry(store)
-    bar = None
-    state = {"done": 0}
-
-    def step(done):
-        nonlocal bar
-        if bar is None:
-            bar = tqdm(unit="s", desc="twin", disable=not progress)
-        bar.update(done - state["done"])
-        state["done"] = done
-
     try:
-        reg.machine(machine_name)
-        result = ingest_file(
-            reg,
-            machine_name,
-            record,
-            video=video,
-            um_per_px=um_per_px,
-            progress=step,
-            video_progress=progress,
-        )
-    except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
+        known = parse_known(known_items)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--known") from None
+    reg = None
+    if not no_registry:
+        reg = open_registry(store)
+        try:
+            reg.machine(name)
+        except RegistryError as exc:
+            raise click.ClickException(str(exc)) from None
+    try:
+        rec = read_record(record)
+        result = commission(rec, known=known, vial_fill_ml=vial_ml, where=str(record))
+    except (RecordError, CommissioningError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
-    finally:
-        if bar is not None:
-            bar.close()
-    if result.duplicate:
+    click.echo(f"commissioning of {name} from {record} ({result.n_samples} s):")
+    click.echo(f"  {'parameter':26s} {'value':>11s} {'std error':>10s} {'prior σ':>9s}  print")
+    for row in result.table():
+        status = "determined" if row["determined"] else "NOT determined (prior)"
         click.echo(
-            f"{record}: already ingested as print #{result.seq} of {machine_name!r} "
-            "(same content hash); nothing changed"
+            f"  {row['parameter']:26s} {row['value']:11.5g} {row['std_error']:10.3g} "
+            f"{row['prior_std']:9.3g}  {status}"
         )
-        return
-    click.echo(
-        f"ingested {record} as print #{result.seq} of {_safe(machine_name)!r} "
-        f"({result.n_samples} s, {result.seconds:.1f} s wall, "
-        f"started from {result.summary['started_from']})"
-    )
-    status = result.summary.get("mismatch", {})
-    if status.get("mismatch"):
-        click.echo(f"  WARNING {status['message']}", err=True)
-    if result.summary.get("status", "ok") != "ok":
-        click.echo(
-            f"  WARNING: stored but EXCLUDED from the machine's chain (the next print will not "
-            f"start from it): {result.summary['status_reason']}",
-            err=True,
+    for note in result.notes:
+        click.echo(f"  note: {note}")
+    click.echo(f"  mean NIS per output {result.mean_nis:.2f} (1 = the calibrated model fits)")
+    factors = ", ".join(f"{v:.2f}" for v in np.asarray(result.noise_factors))
+    click.echo(f"  output noise of this machine / tuned σ (L_w, L_o, P_c, P_s, Q_m): {factors}")
+    provenance = {
+        "machine": name,
+        "print": str(record),
+        "samples": result.n_samples,
+        "vial_fill_mL": vial_ml,
+        "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
+    }
+    if out_path is not None:
+        from ajtwin.model import OUTPUT_NAMES
+
+        write_calibration_file(
+            out_path,
+            result.calibration,
+            result.std,
+            provenance,
+            covariance=result.calibration_cov,
+            noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(result.noise_factors).tolist())),
         )
-    end = result.summary["end_state"]
-    for key, short, unit in STATE_LABELS:
-        click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
-    for note in result.run.visibility_notes() if result.run is not None else ():
-        click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
-    if result.events:
-        click.echo(f"  {len(result.events)} anomaly event(s):")
-        for ev in result.events:
-            click.echo(
-                f"    detected {ev.detected_s:.0f} s (onset ≈ {ev.onset_s:.0f} s): "
-                f"{ev.description} [{', '.join(ev.detectors)}]"
-            )
+        click.echo(f"wrote {out_path}")
+    if reg is not None:
+        from ajtwin.apps.anomaly import commissioning_long_run_history
+
+        # the detectors of the next print start with this machine's noise scale
+        history = commissioning_long_run_history(rec, result)
+        cal_id = save_calibration(reg, name, result, str(record), long_run_history=history)
+        click.echo(f"stored as calibration {cal_id} of {name!r} in {reg.path}")
+
+
+@machine.command("maintain")
+@click.argument("name")
+@click.option("--nozzle-cleaned", is_flag=True, help="Nozzle deposit → 0 (and θ_RN → 0).")
+@click.option(
+    "--vial-refilled", "vial_refilled", type=float, default=None, help="New vial fill [mL]."
+)
+@click.option("--reset-theta", is_flag=True, help="Forget the learned drift parameters θ.")
+@click.option("--note", default="", help="Free text.")
+@store_option
+def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
+    """Record a maintenance event on machine NAME; the next print starts from it."""
+    from ajtwin.store.calibration import record_maintenance
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        event = record_maintenance(
+            reg,
+            name,
+            nozzle_cleaned=nozzle_cleaned,
+            vial_refilled_ml=vial_refilled,
+            reset_theta=reset_theta,
+            note=note,
+        )
+    except (RegistryError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    done = [
+        "nozzle cleaned" if event["nozzle_cleaned"] else "",
+        f"vial refilled to {event['vial_refilled_ml']} mL" if event["vial_refilled_ml"] else "",
+        "θ reset" if event["reset_theta"] else "",
+    ]
+    click.echo(f"{name}: {', '.join(d for d in done if d)} ({event['created_at']})")
+
+
+@machine.command("calibrations")
+@click.argument("name")
+@store_option
+def calibrations(name, store):
+    """Every commissioning of machine NAME (oldest first) and its maintenance events."""
+    import pandas as pd
+
+    from ajtwin.store.calibration import calibration_history, maintenance_history
+    from ajtwin.store.registry import RegistryError
+
+    reg = open_registry(store)
+    try:
+        table = calibration_history(reg, name)
+        events = maintenance_history(reg, name)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    if table.empty:
+        click.echo(f"{name}: never commissioned (the nominal model is used)")
     else:
-        click.echo("  no anomalies")
+        with pd.option_context("display.width", 200, "display.max_columns", 40):
+            click.echo(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if not events.empty:
+        click.echo("maintenance:")
+        click.echo(events.to_string(index=False))
 
 
-# commissioning, maintenance and calibration history (SPEC §11; ajtwin.store.calibration_cli)
-from ajtwin.store.calibration_cli import calibrations, commission, maintain  # noqa: E402
+def describe_calibration(reg, name) -> list[str]:
+    """Lines for `machine show`: the active calibration and the last mismatch status."""
+    from ajtwin.store.calibration import active_calibration
 
-machine.add_command(commission)
-machine.add_command(maintain)
-machine.add_command(calibrations)
+    active = active_calibration(reg, name)
+    if active is None:
+        lines = ["  calibration: none — never commissioned, the nominal model is used"]
+    else:
+        cal = active["calibration"]
+        lines = [
+            f"  calibration {active['id']} from {active['source']} ({active['created_at']}):",
+            f"    L_w = {cal.linewidth_gain:.3g}·L_w⁰ {cal.linewidth_offset_um:+.3g} µm, "
+            f"L_o = {cal.overspray_gain:.3g}·L_o⁰ {cal.overspray_offset_um:+.3g} µm, "
+            f"P_c gain {cal.carrier_gauge_gain:.4g} offset {cal.carrier_gauge_offset_Pa:+.3g} Pa, "
+            f"P_s gain {cal.sheath_gauge_gain:.4g} offset {cal.sheath_gauge_offset_Pa:+.3g} Pa, "
+            f"Q_m gain {cal.material_flow_gain:.3g}",
+        ]
+    last = reg.last_print(name)
+    if last is not None and "mismatch" in last["summary"]:
+        status = last["summary"]["mismatch"]
+        if status.get("mismatch"):
+            lines.append(f"  MODEL–MACHINE MISMATCH on print #{last['seq']}: {status['message']}")
+        else:
+            lines.append(f"  model–machine fit on print #{last['seq']}: ok")
+    return lines

@@ -1,4 +1,5 @@
-"""Click options shared by every command that joins video-derived values onto a print record."""
+"""Click options and helpers shared by the commands: the registry option, bounded numbers,
+the video-join options, logging."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import click
 
 from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
 
-__all__ = ["MAX_PLATEN_SPEED_MM_S", "BoundedFloat", "check_vial_fill", "join_options"]
 
 
 def join_options(filled: str, suffix: str, must_exist: bool = False):
@@ -128,3 +128,77 @@ def check_vial_fill(ctx, param, value):
             f"{value:g} mL is outside (0, {capacity:g}) mL (the vial's capacity V_v)"
         )
     return value
+
+
+def store_option(func):
+    return click.option(
+        "--store",
+        "store",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        envvar="AJTWIN_STORE",
+        help="Registry file (default: $AJTWIN_STORE or ~/.local/share/ajtwin/registry.sqlite).",
+    )(func)
+
+
+def open_registry(store, create: bool = False):
+    """The registry at ``store``; read-only commands (the default) never create it."""
+    from ajtwin.store.registry import Registry, RegistryError
+
+    try:
+        reg = Registry(store, create=create)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    for message in reg.migrated:
+        click.echo(message, err=True)
+    return reg
+
+
+def configure_logging(verbose: bool) -> None:
+    """Log to stderr (DEBUG with ``--verbose``, else INFO); asyncua only its errors."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    # asyncua logs every request at INFO
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from ``1-5``, ``1,3,7`` or a mix; click errors for anything else."""
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part:
+                a, b = (int(v) for v in part.split("-", 1))
+                if b < a:
+                    raise ValueError
+                seeds += list(range(a, b + 1))
+            else:
+                seeds.append(int(part))
+        except ValueError:
+            raise click.BadParameter(
+                f"cannot read seeds {text!r} (use e.g. 1-5 or 1,3,7)"
+            ) from None
+    if not seeds or any(s < 0 for s in seeds):
+        raise click.BadParameter(f"seeds must be non-negative integers, got {text!r}")
+    return seeds
+
+
+STATE_LABELS = (
+    ("droplet_diameter_um", "d_a", "µm"),
+    ("vial_volume_mL", "V_l", "mL"),
+    ("tube_deposition_um", "ΔR_T", "µm"),
+    ("nozzle_deposition_um", "ΔR_N", "µm"),
+    ("aerosol_fraction", "φ_A", "–"),
+)
+
+
+def safe_text(text) -> str:
+    """``text`` with control characters escaped, safe to print (the registry's ``printable``)."""
+    from ajtwin.store.registry import printable
+
+    return printable(text)

@@ -52,8 +52,8 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
     from bench_machine import calibrated_twin, commission_machine
 
     from ajtwin.apps.evaluate import detector_arrays
+    from ajtwin.engine.chain import carry_over
     from ajtwin.simulation.printer import run_virtual_print
-    from ajtwin.store.ingest import carry_over
 
     comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)
     start = carry_over(result.end_state, result.end_state_cov)

@@ -20,8 +20,8 @@ STATES = {"d_a": 0, "V_l": 1, "ΔR_N": 3, "φ_A": 4}
 
 
 def breakdown(machine_seed: int, truth: str) -> dict:
+    from ajtwin.engine.chain import carry_over
     from ajtwin.simulation.printer import run_virtual_print
-    from ajtwin.store.ingest import carry_over
 
     print_seed = print_seed_of(machine_seed)
     comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)

@@ -43,8 +43,8 @@ def detection_figures() -> dict:
 def timing_figures() -> dict:
     from ajtwin.apps.advise import advise
     from ajtwin.apps.forecast import forecast, input_schedule, parse_change
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.estimation import Twin
-    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
     from ajtwin.store.registry import Registry
 

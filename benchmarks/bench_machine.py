@@ -120,13 +120,13 @@ def calibrated_twin(result):
 def evaluate_machine(
     machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
 ):
+    from ajtwin.engine.chain import carry_over
     from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import run_virtual_print
-    from ajtwin.store.ingest import carry_over
 
     comm, result, commission_cpu = commission_machine(print_seed, truth, machine, machine_seed)
     # the detectors' long-run noise scale of this machine, as `machine commission` stores it
-    from ajtwin.apps.anomaly import commissioning_long_run_history
+    from ajtwin.engine.commissioning import commissioning_long_run_history
 
     history = commissioning_long_run_history(comm.record, result)
     truth_cal = comm.machine.calibration()._asdict()

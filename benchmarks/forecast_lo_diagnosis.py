@@ -17,7 +17,8 @@ from ajtwin.apps.forecast import forecast
 from ajtwin.estimation import Twin
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.experiments import EXP3_CALIBRATION_END_S
-from ajtwin.model.system import STATE_NAMES, output_function
+from ajtwin.model.names import STATE_NAMES
+from ajtwin.model.system import output_function
 from ajtwin.simulation import run_virtual_print
 
 

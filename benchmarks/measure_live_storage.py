@@ -15,7 +15,8 @@ import time
 
 
 def main(minutes: float = 90.0, path: str = "live-storage.sqlite") -> dict:
-    from ajtwin.live.engine import LiveEngine, Sample
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.engine.samples import Sample
     from ajtwin.simulation import simulate
     from ajtwin.store.registry import Registry
 

@@ -360,7 +360,8 @@ def test_advice_unreachable(twin_and_state):
 
 
 def test_forecast_and_advise_cli(tmp_path):
-    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.cli.advise import advise
+    from ajtwin.cli.forecast import forecast
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"

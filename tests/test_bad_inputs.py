@@ -16,9 +16,9 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-from ajtwin.config import InputFileError, check_regular_file
 from click.testing import CliRunner
 
+from ajtwin.config import InputFileError, check_regular_file
 from ajtwin.io.records import RecordError, read_record, write_record
 from ajtwin.simulation import simulate
 
@@ -131,7 +131,7 @@ def test_T9_scenario_directory_device_fifo(tmp_path):
 
 
 def test_hang_record_fifo_in_reader_and_cli(tmp_path):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     fifo = tmp_path / "f.csv"
     os.mkfifo(fifo)
@@ -287,7 +287,7 @@ def test_S7_valid_metadata_still_reads(tmp_path, virtual_print):
     ],
 )
 def test_S8_estimate_options_are_validated(tmp_path, virtual_print, option, value):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     path = write_record(virtual_print, tmp_path / "p.parquet")
     result = CliRunner().invoke(estimate, [str(path), "--out", str(tmp_path / "s.csv"),
@@ -300,7 +300,7 @@ def test_S8_estimate_options_are_validated(tmp_path, virtual_print, option, valu
 def test_S8_bounded_float_accepts_the_valid_edges():
     import click
 
-    from ajtwin.io.cli_options import BoundedFloat
+    from ajtwin.cli.options import BoundedFloat
 
     gate = BoundedFloat(0.0, float("inf"), allow_inf=True)
     assert gate.convert("inf", None, None) == float("inf")
@@ -312,7 +312,7 @@ def test_S8_bounded_float_accepts_the_valid_edges():
 
 @pytest.fixture(scope="module")
 def small_video(tmp_path_factory, virtual_print):
-    from ajtwin.vision.cli import render
+    from ajtwin.cli.vision import render
 
     folder = tmp_path_factory.mktemp("video")
     record = write_record(virtual_print.window(0, 30), folder / "p.parquet")
@@ -325,7 +325,7 @@ def small_video(tmp_path_factory, virtual_print):
 def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypatch):
     """`ingest --video --um-per-px 1e300` once stored 1e302 µm lines: one shared check now."""
     import ajtwin.vision.join as join
-    from ajtwin.store.ingest import join_video
+    from ajtwin.engine.video import join_video
     from ajtwin.vision.extract import VisionInputError
 
     record_path, video = small_video
@@ -338,7 +338,7 @@ def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypa
     monkeypatch.setattr(join, "check_linewidth_scale",
                         lambda *a: calls.append(a) or original(*a))  # fmt: skip
     joined, *_ = join_video(record, video, 0.75, progress=False)
-    from ajtwin.vision.cli import extract
+    from ajtwin.cli.vision import extract
 
     argv = [str(video), "--um-per-px", "1e300", "--out", str(video.with_suffix(".csv"))]
     result = CliRunner().invoke(extract, [*argv, "--no-progress"])
@@ -348,7 +348,8 @@ def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypa
 
 
 def test_S5_ingest_cli_refuses_and_stores_nothing(small_video, tmp_path):
-    from ajtwin.store.cli import ingest, machine
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
     from ajtwin.store.registry import Registry
 
     record_path, video = small_video
@@ -363,7 +364,7 @@ def test_S5_ingest_cli_refuses_and_stores_nothing(small_video, tmp_path):
 
 
 def test_S9_truncated_video_warns(tmp_path):
-    from ajtwin.vision.cli import render
+    from ajtwin.cli.vision import render
     from ajtwin.vision.extract import TruncatedVideoWarning, open_source
 
     video = tmp_path / "cam.avi"
@@ -424,7 +425,7 @@ def test_vague_nan_input_and_one_row_name_file_row_column(tmp_path, table):
 
 
 def test_vague_errors_reach_the_cli_with_the_file_name(tmp_path, table):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     table.loc[17, "carrier_flow_sccm"] = np.nan
     path = tmp_path / "nan.csv"

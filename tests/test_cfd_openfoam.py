@@ -37,7 +37,7 @@ def test_missing_openfoam_says_what_to_do(monkeypatch, tmp_path):
     try:
         with pytest.raises(foam.OpenFoamMissing, match="make openfoam"):
             foam.foam_environment()
-        from ajtwin.cfd.cli import cfd
+        from ajtwin.cli.cfd import cfd
 
         result = CliRunner().invoke(cfd, ["run", str(tmp_path / "case")])
         assert result.exit_code != 0

@@ -46,7 +46,7 @@ def record():
 
 
 def test_tube_deposition_is_not_determined_and_the_cli_says_so(tmp_path, record):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
     from ajtwin.io.records import write_record
 
     path = tmp_path / "p.parquet"
@@ -67,8 +67,8 @@ def test_tube_deposition_is_not_determined_and_the_cli_says_so(tmp_path, record)
 
 
 def test_machine_show_names_the_undetermined_state(tmp_path, record):
-    from ajtwin.live.engine import ingest_record
-    from ajtwin.store.cli import machine
+    from ajtwin.cli.machine import machine
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"

@@ -234,7 +234,7 @@ def test_forecast_cli_transition_option(tmp_path):
     import pandas as pd
     from click.testing import CliRunner
 
-    from ajtwin.apps.cli import forecast
+    from ajtwin.cli.forecast import forecast
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"

@@ -442,7 +442,8 @@ def _toml_value(value) -> str:
 
 @pytest.mark.parametrize("profile", PROFILES)
 def test_fuzz_scenario_loader(profile, tmp_path):
-    from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+    from ajtwin.model.names import INPUT_NAMES
+    from ajtwin.model.system import INPUT_LIMITS
     from ajtwin.simulation.scenarios import load_scenario
 
     path = tmp_path / "fuzz.toml"
@@ -531,7 +532,7 @@ number_text = st.one_of(
 @pytest.mark.parametrize("profile", PROFILES)
 def test_fuzz_estimate_options(profile, tmp_path):
     from ajtwin import units
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
     from ajtwin.model import load_parameters
 
     record = tmp_path / "p.csv"

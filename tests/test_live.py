@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from ajtwin.apps.anomaly import detect_run
+from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin
-from ajtwin.live.engine import Sample, TwinStream, clean_sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 
@@ -169,7 +170,7 @@ def test_clean_sample_bad_wire_data():
 
 @pytest.mark.parametrize("transition", ["paper", "input_following"])
 def test_engine_many_machines_batched_equals_single(clog_record, transition):
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
 
     rec = clog_record.window(0, 200)
     overrides = {**FAST_EM, "transition": transition}
@@ -195,7 +196,7 @@ def test_engine_many_machines_batched_equals_single(clog_record, transition):
 
 
 def test_kill_and_resume_from_registry(clog_record, tmp_path):
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.store.live_log import LiveLog
     from ajtwin.store.registry import Registry
 
@@ -251,8 +252,8 @@ def test_kill_and_resume_from_registry(clog_record, tmp_path):
 def test_follow_growing_csv(clog_record, tmp_path, caplog):
     import asyncio
 
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
-    from ajtwin.live.engine import LiveEngine
     from ajtwin.live.link import follow_csv
     from ajtwin.store.live_log import LiveLog
     from ajtwin.store.registry import Registry

@@ -138,7 +138,8 @@ def two_prints():
 
 
 def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
-    from ajtwin.live.engine import carried_long_run_history, ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import carried_long_run_history
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -164,7 +165,7 @@ def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
 
 def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkeypatch):
     from ajtwin.apps import anomaly
-    from ajtwin.live import engine
+    from ajtwin.engine import stream as engine
 
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("m")
@@ -193,7 +194,8 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
 
 
 def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_prints):
-    from ajtwin.live.engine import carried_long_run_history, ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import carried_long_run_history
     from ajtwin.model.calibration import IDENTITY, Calibration
     from ajtwin.store.calibration import save_calibration
 
@@ -295,7 +297,8 @@ def test_clog_start_with_p_c_up_and_p_s_within_noise_is_a_clog_not_a_leak():
 def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):
     """`ajtwin live`: a closed live print stores its detectors' statistics; the machine's
     next live print starts its detectors with them."""
-    from ajtwin.live.engine import LiveEngine, Sample
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.engine.samples import Sample
 
     first, second = two_prints
     reg = Registry(tmp_path / "r.sqlite")

@@ -176,8 +176,9 @@ def test_mismatch_relabels_start_events_but_not_later_faults():
 
 
 def test_maintenance_resets_what_it_names(tmp_path):
-    from ajtwin.store.calibration import apply_maintenance, maintenance_history, record_maintenance
-    from ajtwin.store.ingest import ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import apply_maintenance
+    from ajtwin.store.calibration import maintenance_history, record_maintenance
     from ajtwin.store.registry import Registry
 
     mean = np.array([3.4, 0.7, 1e-4, 0.09, 4.5e-7])
@@ -230,9 +231,9 @@ def test_cli_commission_refuses_and_maintain_needs_an_action(tmp_path):
 
 
 def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
-    from ajtwin.apps.cli import machine_twin
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import machine_twin
     from ajtwin.store.calibration import calibration_history, save_calibration
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     reg = Registry(tmp_path / "r.sqlite")
@@ -275,7 +276,7 @@ def test_carried_over_print_keeps_its_clog_label(tmp_path):
     """The demo's chain: a clean print, then a print of the same machine that clogs at
     20 min. The filter's re-convergence at the second print's start moves ΔR_N by ~1.6 nm
     (2.8 σ of the carried-over prior): that is no mismatch, and the clog is a clog."""
-    from ajtwin.live.engine import ingest_record
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     registry = Registry(tmp_path / "r.sqlite")

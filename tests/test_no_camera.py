@@ -113,7 +113,7 @@ def test_camera_dropout_keeps_states_finite_and_widens_the_bands():
 
 
 def test_estimate_cli_on_a_camera_less_record(tmp_path, clog_print):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     record = _blind(clog_print.window(0, 300), LINE_COLUMNS)
     data = record.data.drop(columns=LINE_COLUMNS)  # the columns removed, not only NaN
@@ -130,7 +130,8 @@ def test_estimate_cli_on_a_camera_less_record(tmp_path, clog_print):
 
 
 def test_ingest_cli_on_a_camera_less_record(tmp_path, clog_print):
-    from ajtwin.store.cli import ingest, machine
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
 
     record = _blind(clog_print.window(0, 300), LINE_COLUMNS)
     path = write_record(record, tmp_path / "nocam.parquet")
@@ -189,7 +190,8 @@ def test_camera_less_aerosol_band_holds_the_truth(truth_generator):
 
 def test_live_stream_reports_the_same_camera_less_bands_as_the_batch_twin(clog_print):
     """One math path: the live twin's published σ and stored arrays carry the same floor."""
-    from ajtwin.live.engine import Sample, TwinStream
+    from ajtwin.engine.samples import Sample
+    from ajtwin.engine.stream import TwinStream
 
     record = _blind(clog_print.window(0, 180), LINE_COLUMNS)
     run = Twin.default(em=False).run(record)

@@ -87,7 +87,7 @@ def twenty_prints(tmp_path_factory):
 def test_machine_many_prints_carry_over_exactly(twenty_prints):
     """20 prints of one machine: each starts exactly (bit for bit) from the previous end
     and θ; the registry adds no numerical drift; history and show use indexes."""
-    from ajtwin.store.chain import carry_over
+    from ajtwin.engine.chain import carry_over
     from ajtwin.store.registry import Registry
 
     store, table = twenty_prints

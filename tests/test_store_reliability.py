@@ -17,9 +17,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.cli.ingest import ingest
+from ajtwin.cli.machine import machine
+from ajtwin.engine.ingest import detector_inputs
 from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
-from ajtwin.store.cli import ingest, machine
 from ajtwin.store.registry import Registry, RegistryError
 
 #: ajtwin 0.1's registry (main before issue 14), verbatim: a registry written by it must open.
@@ -254,7 +256,7 @@ def test_t8_crafted_blobs_give_a_clear_error_and_never_unpickle(tmp_path, monkey
         res = run_cli(*args, "--store", store)
         assert res.exit_code == 1, res.output
         assert "registry damaged at print 1 (id 1), column end_mean" in res.output
-    from ajtwin.apps.cli import forecast
+    from ajtwin.cli.forecast import forecast
 
     res = CliRunner().invoke(forecast, ["--machine", "M", "--store", str(store)])
     assert res.exit_code == 1 and "registry damaged at print 1" in res.output
@@ -343,7 +345,7 @@ def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     a = reg.print_arrays(1)  # legacy .npy blobs read as they were
     assert a["covariances"].shape == (600, 5, 5) and a["means"].dtype == np.float64
     # compaction re-encodes them by the policy and shrinks the file
-    from ajtwin.store.maintenance import compact
+    from ajtwin.store.compaction import compact
 
     stats = compact(reg, "old", keep_covariances_days=36500)
     assert stats["reencoded"] == 3 and stats["bytes_after"] < stats["bytes_before"] / 2
@@ -392,7 +394,7 @@ def test_concurrent_first_open_migrates_once(tmp_path):
 
 # --------------------------------------------------------------------- the chain
 def test_chain_skips_excluded_and_dropped_prints(tmp_path):
-    from ajtwin.store.chain import chain_start
+    from ajtwin.engine.chain import chain_start
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -492,10 +494,11 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     import datetime as dt
 
     from ajtwin.apps.anomaly import detect_anomalies
-    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.cli.advise import advise
+    from ajtwin.cli.forecast import forecast
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.maintenance import compact, file_bytes
+    from ajtwin.store.compaction import compact, file_bytes
 
     rec = simulate("nozzle_clog", seed=5, duration_min=12.0,
                    overrides={"fault": {"onset_min": 4.0}})  # fmt: skip
@@ -519,7 +522,7 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     assert set(alarm_steps) <= set(before["covariance_steps"].tolist())
 
     def later_commands():
-        again = detect_anomalies(**reg.detector_inputs(p["id"]))
+        again = detect_anomalies(**detector_inputs(reg, p["id"]))
         assert [e.detected_s for e in again.events] == events["detected_s"].tolist()
         assert [e.cause for e in again.events] == events["cause"].tolist()
         runner = CliRunner()
@@ -605,7 +608,7 @@ def test_import_refuses_damaged_or_foreign_archives(tmp_path):
     reg.add_machine("lab")
     _fake_print(reg, "lab", "p1", GOOD, None)
     archive = tmp_path / "lab.tar"
-    from ajtwin.store.maintenance import export_machine
+    from ajtwin.store.archive import export_machine
 
     manifest = export_machine(reg, "lab", archive)
     with tarfile.open(archive) as tar:
@@ -701,8 +704,8 @@ def test_guard_firings_are_counted_and_stored(tmp_path):
     """One absurd linewidth sample (1e300 µm, an in-memory record no reader checked):
     the divergence guard resets the filter there; the ingest counts the firing in the
     summary and stores it per step."""
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
 
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("M")

@@ -7,12 +7,13 @@ import threading
 
 import numpy as np
 import pytest
+from ajtwin.web.access import check_access, is_loopback
 from click.testing import CliRunner
 
 from ajtwin.apps.anomaly import AnomalyEvent
+from ajtwin.cli.dashboard import dashboard
 from ajtwin.store.registry import Registry, RegistryError
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
-from ajtwin.web.cli import check_access, dashboard, is_loopback
 from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
 from ajtwin.web.publisher import LivePublisher
 from ajtwin.web.watcher import RegistryWatcher
@@ -375,7 +376,7 @@ def click_usage_error():
 
 def test_engine_messages_become_samples():
     """The live engine's message format (dicts by name, raised events) → dashboard samples."""
-    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.publisher import sample_from_engine
 
     states = dict(zip(STATE_NAMES, [3.5, 0.99, 1e-4, 0.05, 4.6e-7]))

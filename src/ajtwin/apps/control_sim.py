@@ -306,7 +306,7 @@ class MPCTwin(_MPCStrategy):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        from ajtwin.live.engine import TwinStream
+        from ajtwin.engine.stream import TwinStream
 
         self.stream = TwinStream("virtual", self.twin, asynchronous=False)
         self.holding = False
@@ -321,7 +321,7 @@ class MPCTwin(_MPCStrategy):
         self.ink_stop: str | None = None  # the latched reason, once stopped
 
     def observe(self, chunk):
-        from ajtwin.live.engine import Sample
+        from ajtwin.engine.samples import Sample
 
         for t, u, y in zip(chunk.time_s, chunk.inputs, chunk.outputs):
             self.stream.feed(Sample(float(t), u, y))

@@ -38,7 +38,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.config import packaged_toml
-from ajtwin.model.system import OUTPUT_NAMES, STATE_NAMES
+from ajtwin.model.names import OUTPUT_NAMES, STATE_NAMES
 
 #: Likely fix per output / state.
 FIXES = {

@@ -111,9 +111,9 @@ def soak_print(
     -------
     SoakReport
     """
+    from ajtwin.engine.chain import carry_over, state_limits
     from ajtwin.estimation import Twin
     from ajtwin.simulation import simulate
-    from ajtwin.store.chain import carry_over, state_limits
 
     twin = Twin.default()
     prior_std = np.asarray(twin.config.theta_prior_std, dtype=float)
@@ -202,7 +202,7 @@ def soak_machine(
 
     import pandas as pd
 
-    from ajtwin.live.engine import ingest_record
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
     from ajtwin.store.registry import Registry
 

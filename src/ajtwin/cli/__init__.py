@@ -1,8 +1,9 @@
 """The ``ajtwin`` command line.
 
-Subcommands live next to the code they drive (``ajtwin/<area>/cli.py``) and are
-imported lazily, so ``ajtwin --help`` stays fast and one area's heavy imports
-(JAX, PyTorch, OpenCV) never slow down another's command.
+One module per command group (``ajtwin/cli/<group>.py``), each imported only when its
+command runs, so ``ajtwin --help`` stays fast and one area's heavy imports (JAX, PyTorch,
+OpenCV) never slow down another's command. A command module parses options and calls
+library functions; it holds no physics and no workflow of its own.
 """
 
 from __future__ import annotations
@@ -14,34 +15,35 @@ import click
 
 from ajtwin import __version__
 
-_PACKAGE_DIR = Path(__file__).resolve().parent
+#: the ajtwin package folder (the commands live in its cli/ subfolder)
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]
 
 # name -> "module:attribute" of a click command or group
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("ajtwin.demo:demo_command", "Run the end-to-end demo on the embedded default."),
-    "openloop": ("ajtwin.simulation.openloop:openloop", "Open-loop run of the digital model."),
-    "simulate": ("ajtwin.simulation.cli:simulate", "Virtual printer: simulate a print record."),
-    "plot": ("ajtwin.simulation.cli:plot", "Plot a print record (inputs, outputs, truth)."),
-    "estimate": ("ajtwin.estimation.cli:estimate", "Run the twin (EKF/RTS/EM) on a print record."),
-    "experiment": ("ajtwin.estimation.cli:experiment", "Reproduce the paper's experiments."),
-    "render": ("ajtwin.vision.cli:render", "Render alignment-camera video from a print."),
-    "extract": ("ajtwin.vision.cli:extract", "Linewidth/overspray from alignment-camera video."),
-    "cnn": ("ajtwin.profile_cnn.cli:cnn", "Height-profile CNN: train and infer Q_m."),
-    "cfd": ("ajtwin.cfd.cli:cfd", "CFD macro-model with OpenFOAM: case, run, sweep, fit."),
+    "demo": ("ajtwin.cli.demo:demo_command", "Run the end-to-end demo on the embedded default."),
+    "openloop": ("ajtwin.cli.openloop:openloop", "Open-loop run of the digital model."),
+    "simulate": ("ajtwin.cli.simulate:simulate", "Virtual printer: simulate a print record."),
+    "plot": ("ajtwin.cli.simulate:plot", "Plot a print record (inputs, outputs, truth)."),
+    "estimate": ("ajtwin.cli.estimate:estimate", "Run the twin (EKF/RTS/EM) on a print record."),
+    "experiment": ("ajtwin.cli.experiment:experiment", "Reproduce the paper's experiments."),
+    "render": ("ajtwin.cli.vision:render", "Render alignment-camera video from a print."),
+    "extract": ("ajtwin.cli.vision:extract", "Linewidth/overspray from alignment-camera video."),
+    "cnn": ("ajtwin.cli.cnn:cnn", "Height-profile CNN: train and infer Q_m."),
+    "cfd": ("ajtwin.cli.cfd:cfd", "CFD macro-model with OpenFOAM: case, run, sweep, fit."),
     "machine": (
-        "ajtwin.store.cli:machine",
+        "ajtwin.cli.machine:machine",
         "Machine registry: add, show, history, drop, compact, backup.",
     ),
-    "ingest": ("ajtwin.store.cli:ingest", "Ingest a print into a machine's twin."),
-    "forecast": ("ajtwin.apps.cli:forecast", "Forecast outputs under planned input changes."),
-    "advise": ("ajtwin.apps.cli:advise", "Input settings that hold a target linewidth."),
+    "ingest": ("ajtwin.cli.ingest:ingest", "Ingest a print into a machine's twin."),
+    "forecast": ("ajtwin.cli.forecast:forecast", "Forecast outputs under planned input changes."),
+    "advise": ("ajtwin.cli.advise:advise", "Input settings that hold a target linewidth."),
     "control": (
-        "ajtwin.apps.control_cli:control",
+        "ajtwin.cli.control:control",
         "Closed-loop MPC of linewidth: a live machine over OPC UA, or simulate.",
     ),
-    "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
-    "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
-    "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
+    "printer": ("ajtwin.cli.printer:printer", "The virtual printer as a live OPC UA machine."),
+    "live": ("ajtwin.cli.live:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
+    "dashboard": ("ajtwin.cli.dashboard:dashboard", "Browser dashboard: fleet, machines, what-if."),
 }
 
 
@@ -85,6 +87,3 @@ def main():
     input change will do. Units: µm, mL, mA, sccm, Pa (SPEC §3).
     """
 
-
-if __name__ == "__main__":
-    main()

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import click
 
-from ajtwin.io.cli_options import join_options
+from ajtwin.cli.options import join_options
 
 _SMOOTHING_HELP = (
     "σ (µm) of the Gaussian smoothing of profilometer scans before registration "

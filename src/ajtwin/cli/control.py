@@ -11,9 +11,7 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import parse_seeds
-
-from ajtwin.store.cli import store_option
+from ajtwin.cli.options import parse_seeds, store_option
 
 
 def _parse_horizon(text) -> int | None:

@@ -8,7 +8,7 @@ import secrets
 
 import click
 
-from ajtwin.store.cli import store_option
+from ajtwin.cli.options import store_option
 
 TOKEN_ENV = "AJTWIN_DASHBOARD_TOKEN"
 

@@ -127,13 +127,13 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live, port, kee
     from ajtwin.apps import report
     from ajtwin.apps.advise import advise
     from ajtwin.apps.forecast import forecast, input_schedule, parse_change
+    from ajtwin.cli.vision import render
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.video import join_video
     from ajtwin.estimation import Twin
     from ajtwin.io.records import write_record
-    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import join_video
     from ajtwin.store.registry import Registry
-    from ajtwin.vision.cli import render
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

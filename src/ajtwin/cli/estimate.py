@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import BoundedFloat, check_vial_fill
+from ajtwin.cli.options import BoundedFloat, check_vial_fill
 
 
 def parse_early_em(text: str) -> tuple:

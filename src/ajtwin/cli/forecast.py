@@ -1,4 +1,4 @@
-"""``ajtwin forecast`` and ``ajtwin advise``: what-if and input advice for a registered machine."""
+"""``ajtwin forecast``: what a registered machine's outputs will do under planned inputs."""
 
 from __future__ import annotations
 
@@ -7,83 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.store.cli import open_registry, store_option
-
-SHORT = {
-    "atomizer_current_mA": ("I_A", "mA"),
-    "carrier_flow_sccm": ("Q_c", "sccm"),
-    "sheath_flow_sccm": ("Q_s", "sccm"),
-    "linewidth_um": ("L_w", "µm"),
-    "overspray_um": ("L_o", "µm"),
-    "carrier_pressure_Pa": ("P_c", "Pa"),
-    "sheath_pressure_Pa": ("P_s", "Pa"),
-}
-
-
-def machine_twin(reg, name, nominal_theta=False, transition="paper"):
-    """(twin with the machine's θ, mean, cov, last inputs, machine row) from the registry.
-
-    ``transition``: a profile of ``data/transition.toml`` for the twin's droplet row. A
-    profile with a bounded θ_da prior (σ) clips the machine's learned θ_da to ±2σ.
-    """
-    from ajtwin.estimation import Twin
-    from ajtwin.store.registry import RegistryError
-
-    try:
-        machine = reg.machine(name)
-        last = reg.last_print(name)
-    except RegistryError as exc:
-        raise click.ClickException(str(exc)) from None
-    if last is None:
-        raise click.ClickException(
-            f"machine {name!r} has no prints yet: ingest one first "
-            f"(`ajtwin ingest --machine {name} print.parquet`)"
-        )
-    from ajtwin.store.calibration import active_calibration
-
-    # the machine's calibration (SPEC §11): forecasts and advice speak its outputs
-    active = active_calibration(reg, name)
-    calibrated = {}
-    if active is not None:
-        calibrated = {
-            "calibration": active["calibration"],
-            "calibration_cov": active["calibration_cov"],
-            "noise_factors": active.get("noise_factors"),
-        }
-    twin = Twin.default(transition=transition, **calibrated)
-    if not nominal_theta:
-        twin.theta = np.asarray(last["theta_after"], dtype=float)
-        bound = 2.0 * twin.droplet_dynamics.theta_prior_std
-        if transition != "paper" and bound > 0:
-            twin.theta[0] = float(np.clip(twin.theta[0], -bound, bound))
-    inputs = reg.print_arrays(last["id"]).get("inputs")
-    u_last = np.nanmedian(inputs[-60:], axis=0) if inputs is not None else np.array([375, 23, 50])
-    return twin, last["end_mean"], last["end_cov"], u_last, machine, last
-
-
-def _input_response_at_end(twin, reg, last):
-    """The droplet size's input response at the end of the last print (None: equilibrium)."""
-    if not twin.droplet_dynamics.follows_inputs:
-        return None
-    inputs = reg.print_arrays(last["id"]).get("inputs")
-    if inputs is None or not np.isfinite(inputs).all():
-        return None
-    from ajtwin.model.droplet_dynamics import next_response
-
-    response = float(twin.model_inputs(inputs)[-1, 3])
-    return next_response(response, inputs[-1], twin.droplet_dynamics)
-
-
-def _parse_inputs(text):
-    if text is None:
-        return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        raise click.BadParameter(f"expected I_A,Q_c,Q_s (mA, sccm, sccm), got {text!r}")
-    return np.array(values)
+from ajtwin.cli.options import SHORT, open_registry, parse_inputs, store_option
 
 
 @click.command()
@@ -146,13 +70,16 @@ def forecast(
     store,
 ):
     """Forecast L_w, L_o, P_c, P_s (± σ) from the machine's last state under planned inputs."""
+    # lazy CLI loading: the library (JAX) is imported when the command runs, not for --help
     from ajtwin.apps.forecast import forecast as run_forecast
     from ajtwin.apps.forecast import input_schedule, parse_change, parse_duration, plot_forecast
+    from ajtwin.engine.start import input_response_at_end, machine_twin
+    from ajtwin.store.registry import RegistryError
 
     try:
         horizon_s = parse_duration(horizon)
         parsed = [parse_change(c) for c in changes]
-        user_inputs = _parse_inputs(inputs_text)
+        user_inputs = parse_inputs(inputs_text)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     reg = open_registry(store)
@@ -160,7 +87,9 @@ def forecast(
         twin, mean, cov, u_last, _, last = machine_twin(
             reg, machine_name, nominal_theta, transition
         )
-    except ValueError as exc:  # an unknown transition profile
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    except ValueError as exc:  # an unknown transition variant
         raise click.BadParameter(str(exc)) from None
     u0 = u_last if user_inputs is None else user_inputs
     try:
@@ -173,7 +102,7 @@ def forecast(
         cov,
         schedule,
         include_measurement_noise=with_sensor_noise,
-        input_response0=_input_response_at_end(twin, reg, last),
+        input_response0=input_response_at_end(twin, reg, last),
     )
     frame = fc.to_frame()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -208,81 +137,3 @@ def forecast(
     click.echo(f"wrote {out} and {plot}")
 
 
-@click.command()
-@click.option("--machine", "machine_name", required=True, help="Registered machine name.")
-@click.option("--target-linewidth", type=float, required=True, help="Target L_w, µm.")
-@click.option("--max-overspray", type=float, default=None, help="Upper limit of L_o, µm.")
-@click.option(
-    "--settle",
-    default="120s",
-    show_default=True,
-    help="Judge the outputs this long after the change.",
-)
-@click.option(
-    "--inputs",
-    "inputs_text",
-    default=None,
-    help="Inputs now, I_A,Q_c,Q_s (default: the last print's final inputs).",
-)
-@click.option(
-    "--nominal-theta",
-    is_flag=True,
-    help="Use θ = 0 instead of the machine's learned θ (e.g. after cleaning the nozzle).",
-)
-@store_option
-def advise(
-    machine_name, target_linewidth, max_overspray, settle, inputs_text, nominal_theta, store
-):
-    """Inputs (I_A, Q_c, Q_s) within the machine's limits that reach a target linewidth
-    with least overspray, from the machine's current state."""
-    from ajtwin.apps.advise import advise as run_advise
-    from ajtwin.apps.forecast import parse_duration
-
-    try:
-        settle_s = int(round(parse_duration(settle)))
-        user_inputs = _parse_inputs(inputs_text)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc)) from None
-    if target_linewidth <= 0:
-        raise click.BadParameter("must be > 0 µm", param_hint="--target-linewidth")
-    reg = open_registry(store)
-    twin, mean, cov, u_last, machine, last = machine_twin(reg, machine_name, nominal_theta)
-    u0 = u_last if user_inputs is None else user_inputs
-    try:
-        advice = run_advise(
-            twin,
-            mean,
-            cov,
-            u0,
-            target_linewidth,
-            max_overspray_um=max_overspray,
-            limits=machine["limits"],
-            settle_s=settle_s,
-        )
-    except ValueError as exc:
-        raise click.ClickException(str(exc)) from None
-    click.echo(
-        f"advice for {machine_name!r} (state at the end of print #{last['seq']}), "
-        f"target L_w {target_linewidth:g} µm"
-        + (f", L_o ≤ {max_overspray:g} µm" if max_overspray is not None else "")
-    )
-    bounds = ", ".join(
-        f"{SHORT[n][0]} {lo:g}–{hi:g}"
-        for n, (lo, hi) in zip(
-            ("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm"),
-            advice.bounds,
-            strict=True,
-        )
-    )
-    click.echo(f"  search range: {bounds}")
-    click.echo(f"  {'':22s} {'now':>12s}  {'advised':>12s}")
-    for name, now, new, std in advice.rows():
-        short, unit = SHORT[name]
-        label = f"{short} [{unit}]"
-        if std is None:
-            click.echo(f"  {label:22s} {now:12.4g}  {new:12.4g}")
-        else:
-            click.echo(f"  {label:22s} {now:12.4g}  {new:12.4g} ± {2 * std:.2g} (2σ)")
-    click.echo(f"  outputs judged {settle_s} s after the change; {advice.message}")
-    if not advice.reachable:
-        raise SystemExit(2)

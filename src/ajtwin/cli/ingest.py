@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import STATE_LABELS, BoundedFloat, open_registry, safe_text, store_option
+from ajtwin.cli.options import STATE_LABELS, BoundedFloat, open_registry, store_option
+from ajtwin.store.registry import printable
 
 
 @click.command()
@@ -30,8 +31,8 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
     """Run the machine's twin over RECORD (from its last state and θ) and store it."""
     from tqdm import tqdm
 
+    from ajtwin.engine.ingest import ingest_file
     from ajtwin.io.records import RecordError
-    from ajtwin.live.engine import ingest_file
     from ajtwin.store.registry import RegistryError
 
     if video is not None and um_per_px is None:
@@ -70,7 +71,7 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
         )
         return
     click.echo(
-        f"ingested {record} as print #{result.seq} of {safe_text(machine_name)!r} "
+        f"ingested {record} as print #{result.seq} of {printable(machine_name)!r} "
         f"({result.n_samples} s, {result.seconds:.1f} s wall, "
         f"started from {result.summary['started_from']})"
     )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 
 import click
@@ -71,7 +70,7 @@ def live(
     """Run the live twin beside a machine (OPC UA, or a growing CSV with --follow)."""
     import asyncio
 
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.live.link import LinkRefused, OpcUaLink, follow_csv
 
     configure_logging(verbose)

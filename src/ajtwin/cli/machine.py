@@ -8,7 +8,9 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.cli.options import STATE_LABELS, open_registry, safe_text, store_option
+from ajtwin.cli.options import STATE_LABELS, open_registry, store_option
+from ajtwin.store.registry import printable
+
 
 def _range(text):
     if text is None:
@@ -50,7 +52,7 @@ def add(name, current_range, carrier_range, sheath_range, notes, store):
         m = reg.add_machine(name, limits, notes)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"added machine {safe_text(m['name'])!r} to {reg.path}")
+    click.echo(f"added machine {printable(m['name'])!r} to {reg.path}")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  {key}: {low:g} – {high:g}")
 
@@ -65,7 +67,7 @@ def list_machines(store):
         click.echo(f"no machines in {reg.path}")
     for row in rows:
         m = reg.machine(row["name"])
-        click.echo(f"{safe_text(m['name'])}  ({m['n_prints']} prints, added {m['created_at']})")
+        click.echo(f"{printable(m['name'])}  ({m['n_prints']} prints, added {m['created_at']})")
 
 
 @machine.command("show")
@@ -83,7 +85,7 @@ def show(name, store):
         anomalies = reg.anomalies(name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"machine {safe_text(m['name'])}  (registry {reg.path})")
+    click.echo(f"machine {printable(m['name'])}  (registry {reg.path})")
     click.echo(f"  added {m['created_at']}, {m['n_prints']} print(s)")
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
@@ -92,13 +94,13 @@ def show(name, store):
     if newest is not None and (last is None or newest["seq"] != last["seq"]):
         click.echo(
             f"  newest print #{newest['seq']} is {newest['status']} (not in the chain): "
-            f"{safe_text(newest['status_reason'])}"
+            f"{printable(newest['status_reason'])}"
         )
     if last is None:
         click.echo("  no print in the chain: the next ingest starts from the initial-state fit")
         return
     click.echo(
-        f"  last print: #{last['seq']} from {safe_text(last['source'])} "
+        f"  last print: #{last['seq']} from {printable(last['source'])} "
         f"({last['ingested_at']}), the twin's current state:"
     )
     std = np.sqrt(np.diag(last["end_cov"]))
@@ -120,7 +122,7 @@ def show(name, store):
         for _, row in anomalies.tail(5).iterrows():
             click.echo(
                 f"    print #{row['seq']} at {row['detected_s']:.0f} s "
-                f"(onset ≈ {row['onset_s']:.0f} s): {safe_text(row['description'])}"
+                f"(onset ≈ {row['onset_s']:.0f} s): {printable(row['description'])}"
             )
 
 
@@ -146,7 +148,7 @@ def history(name, csv_path, store):
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     if table.empty:
-        click.echo(f"machine {safe_text(name)!r} has no prints yet")
+        click.echo(f"machine {printable(name)!r} has no prints yet")
         return
     show_cols = ["seq", "ingested_at", "duration_min", "anomalies", "status"] + [
         "end_" + key for key, _, _ in STATE_LABELS
@@ -154,7 +156,7 @@ def history(name, csv_path, store):
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         click.echo(table[show_cols].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     for _, row in table[table["status"] != "ok"].iterrows():
-        click.echo(f"  #{row['seq']} {row['status']}: {safe_text(row['status_reason'])}")
+        click.echo(f"  #{row['seq']} {row['status']}: {printable(row['status_reason'])}")
     if csv_path:
         table.to_csv(csv_path, index=False)
         click.echo(f"wrote {csv_path}")
@@ -168,7 +170,7 @@ def history(name, csv_path, store):
 def drop(name, seq, reason, store):
     """Take print SEQ out of NAME's chain (kept for history; the next ingest starts from
     the newest print still in the chain)."""
-    from ajtwin.store.chain import chain_start
+    from ajtwin.engine.chain import chain_start
     from ajtwin.store.registry import STATUS_DROPPED, RegistryError
 
     reg = open_registry(store)
@@ -177,7 +179,7 @@ def drop(name, seq, reason, store):
         chain = chain_start(reg, name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"print #{p['seq']} of {safe_text(name)!r} dropped from the chain ({safe_text(reason)})")
+    click.echo(f"print #{p['seq']} of {printable(name)!r} dropped from the chain ({printable(reason)})")
     start = "the initial-state fit" if chain.from_seq is None else f"print #{chain.from_seq}'s end"
     click.echo(f"  the next ingest starts from {start} state")
 
@@ -188,7 +190,7 @@ def drop(name, seq, reason, store):
 @store_option
 def restore(name, seq, store):
     """Put a dropped or excluded print SEQ back into NAME's chain."""
-    from ajtwin.store.chain import state_violations
+    from ajtwin.engine.chain import state_violations
     from ajtwin.store.registry import STATUS_OK, RegistryError
 
     reg = open_registry(store)
@@ -203,7 +205,7 @@ def restore(name, seq, store):
         reg.set_status(name, seq, STATUS_OK, "")
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"print #{seq} of {safe_text(name)!r} is back in the chain")
+    click.echo(f"print #{seq} of {printable(name)!r} is back in the chain")
 
 
 @machine.command("compact")
@@ -220,7 +222,7 @@ def compact_command(name, keep_covariances_days, store):
     """Apply the storage policy and covariance retention to NAME, then VACUUM."""
     import sqlite3
 
-    from ajtwin.store.maintenance import compact
+    from ajtwin.store.compaction import compact
     from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
@@ -231,7 +233,7 @@ def compact_command(name, keep_covariances_days, store):
     except sqlite3.Error as exc:  # e.g. VACUUM while another process holds a lock
         raise click.ClickException(f"{reg.path}: compaction stopped ({exc}); retry") from None
     click.echo(
-        f"compacted {safe_text(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
+        f"compacted {printable(name)!r}: {stats['prints']} print(s), {stats['reencoded']} "
         f"re-encoded, {stats['thinned']} with covariance key frames dropped, "
         f"{stats['live_steps_dropped']} steps of finished live sessions dropped; registry "
         f"{stats['bytes_before'] / 1e6:.2f} MB → {stats['bytes_after'] / 1e6:.2f} MB"
@@ -244,7 +246,7 @@ def compact_command(name, keep_covariances_days, store):
 @store_option
 def export_command(name, out, store):
     """Write machine NAME (all prints, arrays, anomalies, live sessions) to a tar archive."""
-    from ajtwin.store.maintenance import export_machine
+    from ajtwin.store.archive import export_machine
     from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
@@ -253,7 +255,7 @@ def export_command(name, out, store):
     except (RegistryError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
-        f"exported {safe_text(name)!r} ({manifest['n_prints']} prints, "
+        f"exported {printable(name)!r} ({manifest['n_prints']} prints, "
         f"{manifest['live_sessions']} live sessions of which {manifest['open_live_sessions']} "
         f"open, schema {manifest['schema_version']}) to {out}"
     )
@@ -265,7 +267,7 @@ def export_command(name, out, store):
 @store_option
 def import_command(archive, as_name, store):
     """Add the machine of an `ajtwin machine export` ARCHIVE to the registry."""
-    from ajtwin.store.maintenance import import_machine
+    from ajtwin.store.archive import import_machine
     from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store, create=True)
@@ -276,7 +278,7 @@ def import_command(archive, as_name, store):
     for message in result["migrated"]:
         click.echo(f"archive: {message}", err=True)
     click.echo(
-        f"imported {safe_text(result['machine'])!r} ({result['n_prints']} prints, "
+        f"imported {printable(result['machine'])!r} ({result['n_prints']} prints, "
         f"{result['live_sessions']} live sessions of which {result['open_live_sessions']} "
         f"open) into {reg.path}"
     )
@@ -370,7 +372,7 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
         )
         click.echo(f"wrote {out_path}")
     if reg is not None:
-        from ajtwin.apps.anomaly import commissioning_long_run_history
+        from ajtwin.engine.commissioning import commissioning_long_run_history
 
         # the detectors of the next print start with this machine's noise scale
         history = commissioning_long_run_history(rec, result)

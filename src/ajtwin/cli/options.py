@@ -3,13 +3,15 @@ the video-join options, logging."""
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
 import click
+import numpy as np
 
-from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
-
+from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.store.registry import RegistryError
 
 
 def join_options(filled: str, suffix: str, must_exist: bool = False):
@@ -131,6 +133,7 @@ def check_vial_fill(ctx, param, value):
 
 
 def store_option(func):
+    """``--store PATH`` (or ``$AJTWIN_STORE``): the machine registry a command reads or writes."""
     return click.option(
         "--store",
         "store",
@@ -142,11 +145,14 @@ def store_option(func):
 
 
 def open_registry(store, create: bool = False):
-    """The registry at ``store``; read-only commands (the default) never create it."""
-    from ajtwin.store.registry import Registry, RegistryError
+    """The registry at ``store``; read-only commands (the default) never create it.
 
+    A registry of an older schema is migrated on open (each migration said on stderr);
+    one from before the chain's range check gets its impossible prints excluded
+    (:func:`ajtwin.engine.chain.open_registry`).
+    """
     try:
-        reg = Registry(store, create=create)
+        reg = open_checked_registry(store, create=create)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     for message in reg.migrated:
@@ -188,6 +194,7 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
+#: (state name, symbol, display unit) of the five states, as the commands print them
 STATE_LABELS = (
     ("droplet_diameter_um", "d_a", "µm"),
     ("vial_volume_mL", "V_l", "mL"),
@@ -197,8 +204,26 @@ STATE_LABELS = (
 )
 
 
-def safe_text(text) -> str:
-    """``text`` with control characters escaped, safe to print (the registry's ``printable``)."""
-    from ajtwin.store.registry import printable
+#: symbol and unit of each input and output, as the commands print them
+SHORT = {
+    "atomizer_current_mA": ("I_A", "mA"),
+    "carrier_flow_sccm": ("Q_c", "sccm"),
+    "sheath_flow_sccm": ("Q_s", "sccm"),
+    "linewidth_um": ("L_w", "µm"),
+    "overspray_um": ("L_o", "µm"),
+    "carrier_pressure_Pa": ("P_c", "Pa"),
+    "sheath_pressure_Pa": ("P_s", "Pa"),
+}
 
-    return printable(text)
+
+def parse_inputs(text):
+    """``I_A,Q_c,Q_s`` [mA, sccm, sccm] → array (3,); None stays None."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise click.BadParameter(f"expected I_A,Q_c,Q_s (mA, sccm, sccm), got {text!r}")
+    return np.array(values)

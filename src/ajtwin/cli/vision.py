@@ -12,7 +12,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import MAX_PLATEN_SPEED_MM_S, BoundedFloat, join_options
+from ajtwin.cli.options import BoundedFloat, join_options
+from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
 
 STATUS_HINTS = {
     "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",

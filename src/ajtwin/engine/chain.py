@@ -3,8 +3,8 @@
 A machine's twin carries its state and θ from print to print. One bad print (wrong
 units, a sensor stuck at a plausible-looking value) can drive the estimate to a state no
 printer can be in — a negative vial volume, a 534 µm droplet — and the next clean print
-would start from it (findings S3/S4: V_l 0.036 mL, ΔR_N 7.97 µm, a false "ink running
-out"). The rules here stop that:
+would start from it (V_l 0.036 mL, ΔR_N 7.97 µm, a false "ink running out"). The rules
+here stop that:
 
 * a print any of whose estimated states (any step, the start or the end) leaves the
   physical range of :class:`ajtwin.model.limits.StateLimits` is stored **excluded**, with
@@ -27,6 +27,10 @@ from functools import lru_cache
 
 import numpy as np
 
+from ajtwin.model import load_parameters
+from ajtwin.model.limits import StateLimits
+from ajtwin.store.registry import STATUS_EXCLUDED, STATUS_OK, Registry
+
 #: σ added between prints to d_a [µm] and φ_A [relative]; others carry over unchanged.
 BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.2}
 
@@ -34,15 +38,19 @@ BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.
 @lru_cache(maxsize=1)
 def state_limits():
     """The shared physical state range (``data/state_limits.toml``), loaded once."""
-    from ajtwin.model import load_parameters
-    from ajtwin.model.limits import StateLimits
-
     return StateLimits.load(load_parameters())
 
 
 def state_violations(x) -> list[str]:
     """Messages for the states of one x (5,) outside the physical range (empty: fine)."""
     return state_limits().violations(np.asarray(x, dtype=float).reshape(-1))
+
+
+def open_registry(path=None, **kwargs) -> Registry:
+    """The registry at ``path`` (:class:`~ajtwin.store.registry.Registry` keywords), whose
+    migration from version 1 takes prints that end in an impossible state out of the chain
+    (:func:`state_violations`)."""
+    return Registry(path, end_state_check=state_violations, **kwargs)
 
 
 def carry_over(end_mean, end_cov) -> tuple[np.ndarray, np.ndarray]:
@@ -88,8 +96,6 @@ class ChainStart:
 
 def chain_start(registry, machine: str) -> ChainStart:
     """The start of ``machine``'s next print: the newest good print's end, else the fit."""
-    from ajtwin.store.registry import STATUS_OK
-
     latest = registry.last_print(machine, in_chain=False)
     skipped = []
     if latest is not None and latest["status"] != STATUS_OK:
@@ -126,8 +132,6 @@ def _bad_covariance(cov) -> list[str]:
 def judge_run(run) -> tuple[str, str]:
     """(status, reason) of a twin run: ``excluded`` when any estimated state (start, any
     step, end) is outside the physical range or not finite, else ``ok``."""
-    from ajtwin.store.registry import STATUS_EXCLUDED, STATUS_OK
-
     limits = state_limits()
     means = np.asarray(run.means, dtype=float)
     for label, x in (("start", run.start_mean), ("end", run.end_mean)):

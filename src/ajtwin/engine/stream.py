@@ -1,4 +1,4 @@
-"""The live twin: one 1 Hz sample in → state ± σ, predicted outputs, NIS, alarms out.
+"""The streaming twin: one 1 Hz sample in → state ± σ, predicted outputs, NIS, alarms out.
 
 :class:`TwinStream` keeps one machine's twin in step with its data, a sample at a time,
 with the same math as the batch :meth:`ajtwin.estimation.Twin.run` and
@@ -29,21 +29,8 @@ A sample's time is rounded to the grid. A jump of n > 1 s inserts n − 1 missin
 one is logged and dropped. Non-finite or implausible values are logged and treated as
 missing (an output → NaN; an input → the whole sample missing, inputs held).
 
-Publish/subscribe
------------------
-Each committed (and provisional) step becomes a plain dict (:meth:`TwinStream.feed`
-returns them; :class:`LiveEngine` hands them to subscribers): ``machine``, ``step``,
-``time_s``, ``provisional``, ``states`` {name: value}, ``stds``, ``predicted_outputs``,
-``measured_outputs``, ``inputs``, ``nis``, ``n_measured``, ``nis_p``, ``window_nis_p``,
-``cusum`` {channel: max(g⁺, g⁻)}, ``status`` ("ok" / "alarm" / "warming up" …),
-``cause``, ``alarms`` (detector labels fired at this step), ``events`` (raised/finalised
-events as dicts with ``state`` "raised"/"final"), ``theta``.
-
-A machine link also publishes its connection state on the same path
-(:meth:`LiveEngine.publish_link`): ``{"machine", "link": {"state", "url", "since",
-"attempt", "retry_in_s", "reason", "gap_s"}}`` — no ``step``; ``state`` is
-``connecting``, ``connected``, ``reconnecting`` (the server is gone since ``since``,
-Unix time; ``attempt`` reconnections tried), ``refused`` or ``ended``.
+Each committed (and provisional) step becomes a plain dict, a *message*
+(:mod:`ajtwin.engine.fleet` lists its keys).
 
 Examples
 --------
@@ -57,21 +44,20 @@ Examples
 from __future__ import annotations
 
 import logging
-import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.apps.anomaly import AnomalyDetector, DetectorSettings
+from ajtwin.apps.anomaly import CUSUM_CHANNELS, AnomalyDetector, DetectorSettings
+from ajtwin.engine.samples import MAX_GAP_S, Sample
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.filters import EKFCarry, ekf_init, ekf_step
+from ajtwin.estimation.record_checks import observed_states
 from ajtwin.estimation.twin import Twin, em_due, em_early_steps, predict
-from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PLAUSIBLE_RANGES
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 from ajtwin.model.droplet_dynamics import model_input, next_response
-from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+from ajtwin.model.names import INPUT_NAMES
 
 log = logging.getLogger("ajtwin.live")
 
@@ -88,72 +74,6 @@ def _batched(spec, carry, u, y, theta, process_cov, measurement_cov, gate, funct
 
 
 _step_many = jax.jit(_batched, static_argnames=("functions",))
-
-
-@dataclass
-class Sample:
-    """One 1 Hz sample: time [s], inputs (3,) [mA, sccm, sccm], outputs (5,) (NaN = missing)."""
-
-    time_s: float
-    inputs: np.ndarray
-    outputs: np.ndarray
-
-
-#: |time| beyond this [s] (≈ 31,700 years) is no clock reading: the sample is dropped (far
-#: below 2**53 s, where float64 could no longer hold the 1 s grid)
-MAX_ABS_TIME_S = 1e12
-#: a gap ahead of the last step longer than this [s] is not filled with missing samples
-#: (a clock jump or a stale/wrong time stamp, not an outage): the sample is dropped
-MAX_GAP_S = 6 * 3600
-
-
-def clean_sample(time_s, inputs, outputs, where: str = "") -> tuple[Sample | None, list[str]]:
-    """Check a sample from the wire; returns (sample or None, problems as log lines).
-
-    Non-finite or out-of-range outputs become NaN; bad or malformed inputs/outputs (not
-    3 + 5 numbers) make the sample missing (all NaN); a non-finite or implausible time
-    (|t| > ``MAX_ABS_TIME_S``) drops it (None).
-    """
-    problems = []
-    prefix = f"{where}: " if where else ""
-    try:
-        t = float(time_s)
-    except (TypeError, ValueError, OverflowError):
-        t = float("nan")
-    if not np.isfinite(t):
-        return None, [f"{prefix}sample time {time_s!r} is not a number; sample dropped"]
-    if abs(t) > MAX_ABS_TIME_S:
-        return None, [f"{prefix}sample time {t:g} s is not a plausible clock; sample dropped"]
-    u = np.full(3, np.nan)
-    y = np.full(5, np.nan)
-    try:
-        u[:] = np.asarray(inputs, dtype=float).reshape(3)
-        y[:] = np.asarray(outputs, dtype=float).reshape(5)
-    except (TypeError, ValueError, OverflowError) as exc:
-        # as the line says: a step with nothing known, not a dropped one
-        missing = Sample(t, np.full(3, np.nan), np.full(5, np.nan))
-        return missing, [f"{prefix}t = {t:g} s: malformed sample ({exc}); treated as missing"]
-    for i, name in enumerate(INPUT_NAMES):
-        low, high = INPUT_LIMITS[name]
-        if not np.isfinite(u[i]) or not (low < u[i] <= high):
-            problems.append(
-                f"{prefix}t = {t:g} s: {INPUT_COLUMNS[i]} = {u[i]!r} outside ({low:g}, {high:g}]"
-                "; sample treated as missing"
-            )
-    if problems:
-        return Sample(t, np.full(3, np.nan), np.full(5, np.nan)), problems
-    for i, column in enumerate(OUTPUT_COLUMNS):
-        value = y[i]
-        if np.isnan(value):
-            continue
-        low, high = PLAUSIBLE_RANGES.get(column, (-np.inf, np.inf))[:2]
-        if not np.isfinite(value) or not (low <= value <= high):
-            problems.append(
-                f"{prefix}t = {t:g} s: {column} = {value!r} outside [{low:g}, {high:g}]; "
-                "treated as missing"
-            )
-            y[i] = np.nan
-    return Sample(t, u, y), problems
 
 
 class _History:
@@ -428,8 +348,6 @@ class TwinStream:
     def _start_prior_floor(self, inputs) -> None:
         """Which output sees which state (the batch twin's ``observed_states``, one output
         at a time) and the prior's relative σ of the states taken from priors."""
-        from ajtwin.estimation.record_checks import observed_states
-
         twin, initial = self.twin, self.initial
         one_output_each = np.where(np.eye(5, dtype=bool), 1.0, np.nan)
         self._responds = observed_states(
@@ -649,8 +567,6 @@ class TwinStream:
         }
         events = []
         if status is not None:
-            from ajtwin.apps.anomaly import CUSUM_CHANNELS
-
             msg["nis_p"] = status.nis_p
             msg["window_nis_p"] = status.window_nis_p
             g = np.maximum(status.cusum_pos, status.cusum_neg)
@@ -725,672 +641,66 @@ class TwinStream:
         }
 
 
-# --------------------------------------------------------------------------- #
-# Batch ingest and the registry (the same orchestration for a finished print)
-# --------------------------------------------------------------------------- #
-
-
-def print_summary(
-    end_mean,
-    end_cov,
-    nis,
-    reinitialised,
-    n_anomalies: int,
-    em_updates: int,
-    started_from: str,
-    status: str,
-    status_reason: str,
-):
-    """The summary the registry keeps for a print."""
-    return {
-        "end_state": dict(zip(STATE_NAMES, np.asarray(end_mean, dtype=float).tolist())),
-        "end_std": np.sqrt(np.diag(np.asarray(end_cov, dtype=float))).tolist(),
-        "mean_nis": float(np.nanmean(np.asarray(nis, dtype=float))),
-        "n_anomalies": int(n_anomalies),
-        "em_updates": int(em_updates),
-        "guard_reinitialisations": int(np.asarray(reinitialised).sum()),
-        "started_from": started_from,
-        "status": status,
-        "status_reason": status_reason,
-    }
-
-
-def save_print(
-    registry,
-    machine: str,
-    record,
-    *,
-    digest: str,
-    source: str,
-    arrays: dict,
-    events: list,
-    start,
-    end,
-    theta_before,
-    theta_after,
-    expected_last_seq,
-    started_from: str,
-    status: str,
-    status_reason: str,
-    extra_summary: dict | None = None,
-    live_session: int | None = None,
-    keep_live_steps: bool = False,
-    long_run_history: dict | None = None,
-):
-    """Store a twin's run over one print in one registry transaction; (print id, summary).
-
-    ``status``/``status_reason``: :func:`ajtwin.store.chain.judge_run` of the run;
-    ``extra_summary``: more summary keys (calibration, maintenance, mismatch status);
-    ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
-    same transaction (:meth:`ajtwin.store.registry.Registry.save_print`);
-    ``long_run_history``: the detectors' long-run statistics for the machine's next print.
-    """
-    summary = print_summary(
-        end[0],
-        end[1],
-        arrays["nis"],
-        arrays["reinitialised"],
-        len(events),
-        len(arrays["theta_history_time_s"]),
-        started_from,
-        status,
-        status_reason,
-    )
-    summary.update(extra_summary or {})
-    meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
-    print_id = registry.save_print(
-        machine,
-        content_hash=digest,
-        source=source,
-        meta=meta,
-        summary=summary,
-        n_samples=len(record),
-        duration_s=float(record.duration_s + 1.0),
-        start_mean=start[0],
-        start_cov=start[1],
-        end_mean=end[0],
-        end_cov=end[1],
-        theta_before=theta_before,
-        theta_after=theta_after,
-        arrays=arrays,
-        anomalies=events,
-        expected_last_seq=expected_last_seq,
-        status=status,
-        status_reason=status_reason,
-        live_session=live_session,
-        keep_live_steps=keep_live_steps,
-        long_run_history=long_run_history,
-    )
-    return print_id, summary
-
-
-def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
-    """The detectors' long-run noise statistics the machine's next print starts with.
-
-    From its newest commissioning when that came after its last print (the print starts
-    where commissioning left the machine, :func:`ajtwin.store.calibration.machine_start`),
-    else from the newest print in the chain that stored them; None for a new machine (the
-    detectors then start at scale 1 and learn it from the print, as before issue 12).
-    Without it a CUSUM meets a wandering gauge in the first minutes of every print with
-    no scale for it (docs/anomalies.md).
-    """
-    from ajtwin.store.calibration import active_calibration
-    from ajtwin.store.chain import chain_start
-
-    chain = chain if chain is not None else chain_start(registry, machine)
-    latest = 0 if chain.latest_seq is None else chain.latest_seq
-    active = active_calibration(registry, machine)
-    if active is not None and active["after_print_seq"] >= latest and active.get("long_run"):
-        return active["long_run"]
-    stored = registry.long_run_history(machine)
-    return None if stored is None else stored[1]
-
-
-def ingest_record(
-    registry,
-    machine: str,
-    record,
-    *,
-    source: str = "",
-    progress=None,
-    twin_overrides: dict | None = None,
-    detector_settings=None,
-):
-    """Run the machine's twin over one finished print and store the result.
-
-    Hash the print (duplicate → stop before any work), start from the machine's chain
-    (:func:`ajtwin.store.chain.chain_start`: the newest good print's end state and θ; the
-    initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
-    the detectors (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the
-    arrays), judge the run (:func:`ajtwin.store.chain.judge_run`) and store everything in
-    one transaction.
+def step_together(plain: list[tuple[TwinStream, Sample]]) -> list[dict]:
+    """Ordinary steps of several streams that share the twin's functions, run as one
+    vmapped EKF step (one stream: the single step); their committed messages.
 
     Parameters
     ----------
-    registry : Registry
-    machine : str
-        A registered machine name.
-    record : PrintRecord
-        The print (display units; NaN = not measured).
-    source : str
-        Where the print came from (file path), stored for the history.
-    progress : callable(int), optional
-        Steps done, for a progress bar.
-    twin_overrides : dict, optional
-        :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
-
-    Returns
-    -------
-    IngestResult (``duplicate=True`` and the existing print when it was ingested before).
+    plain : list of (TwinStream, Sample)
+        Each stream with the sample :meth:`TwinStream.take_plain` accepted.
     """
-    import time
-
-    from ajtwin.apps.anomaly import detect_run
-    from ajtwin.store.chain import chain_start, judge_run
-    from ajtwin.store.ingest import IngestResult
-    from ajtwin.store.registry import RegistryError, record_hash
-
-    t0 = time.perf_counter()
-    digest = record_hash(record)
-    existing = registry.find_print(machine, digest)
-    if existing is not None:
-        return IngestResult(
-            machine,
-            existing["id"],
-            existing["seq"],
-            True,
-            digest,
-            existing["n_samples"],
-            summary=existing["summary"],
-            seconds=time.perf_counter() - t0,
-        )
-    from ajtwin.apps.mismatch import assess_run, data_share, determined_states, relabel_events
-    from ajtwin.store.calibration import machine_start
-
-    chain = chain_start(registry, machine)
-    # the machine's calibration, commissioning start and maintenance (SPEC §11)
-    begin = machine_start(registry, machine, chain, twin_overrides)
-    twin = Twin.default(**begin["twin_kwargs"])
-    start, expected = begin["start"], chain.latest_seq
-    twin.theta = begin["theta"]
-    theta_before = twin.theta.copy()
-    run = twin.run(record, start=start, progress=progress)
-    status, status_reason = judge_run(run)
-    detection = detect_run(
-        run, record, detector_settings, carried_long_run_history(registry, machine, chain)
+    if len(plain) == 1:
+        stream, sample = plain[0]
+        return [stream._commit(sample)]
+    if not plain:
+        return []
+    twin = plain[0][0].twin
+    carries = EKFCarry(*[jnp.stack(parts) for parts in zip(*[s.carry for s, _ in plain])])
+    carries, steps = _step_many(
+        twin.spec,
+        carries,
+        np.array([s.model_input(x.inputs)[0] for s, x in plain]),
+        np.array([x.outputs for _, x in plain]),
+        np.array([s.theta for s, _ in plain]),
+        *plain[0][0]._constants(),
+        functions=twin.functions,
     )
-    # a model that does not fit the machine is reported as such, never as a fault
-    mismatch = assess_run(run, record)
-    detection.events = relabel_events(detection.events, mismatch)
-
-    f = run.filtered
-    hist = run.theta_history
-    arrays = {
-        "time_s": run.time_s,
-        "means": run.means,
-        "stds": run.stds,
-        "covariances": np.asarray(f.covariances),
-        "predicted_means": np.asarray(f.predicted_means),
-        "predicted_outputs": np.asarray(f.predicted_outputs),
-        "innovation_variances": np.asarray(f.innovation_variances),
-        "measurements": record.outputs,
-        "inputs": record.inputs,
-        "nis": np.asarray(f.nis),
-        "n_measured": np.asarray(f.n_measured),
-        "reinitialised": np.asarray(f.reinitialised),
-        "theta_per_step": run.theta_per_step,
-        "theta_history_time_s": hist["time_s"].to_numpy(float),
-        "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
-    }
-    try:
-        print_id, summary = save_print(
-            registry,
-            machine,
-            record,
-            digest=digest,
-            source=source,
-            arrays=arrays,
-            events=detection.events,
-            start=(run.start_mean, run.start_cov),
-            end=(run.end_mean, run.end_cov),
-            theta_before=theta_before,
-            theta_after=twin.theta,
-            expected_last_seq=expected,
-            started_from=begin["started_from"],
-            status=status,
-            status_reason=status_reason,
-            extra_summary={
-                "calibration_id": begin["calibration_id"],
-                "maintenance": begin["maintenance"],
-                "mismatch": mismatch.to_dict(),
-                # which states this print's data determined (ΔR_T: the prior's band)
-                "data_share": determined_states(data_share(run.filtered)),
-            },
-            long_run_history=detection.long_run_history,
-        )
-    except RegistryError:
-        # a concurrent ingest of the same print may have won the race
-        existing = registry.find_print(machine, digest)
-        if existing is None:
-            raise
-        return IngestResult(
-            machine, existing["id"], existing["seq"], True, digest, existing["n_samples"]
-        )
-    seq = registry.get_print(print_id)["seq"]
-    return IngestResult(
-        machine,
-        print_id,
-        seq,
-        False,
-        digest,
-        len(record),
-        events=detection.events,
-        summary=summary,
-        seconds=time.perf_counter() - t0,
-        run=run,
-        detection=detection,
-    )
+    steps = jax.device_get(steps)
+    out = []
+    for i, (stream, sample) in enumerate(plain):
+        carry = EKFCarry(*[part[i] for part in carries])
+        step = type(steps)(*[part[i] for part in steps])
+        out.append(stream._commit(sample, step, carry))
+    return out
 
 
-def ingest_file(
-    registry,
-    machine: str,
-    path,
-    *,
-    video=None,
-    um_per_px=None,
-    progress=None,
-    video_progress: bool = True,
-):
-    """Read a print file (and optionally its video) and :func:`ingest_record` it."""
-    from pathlib import Path
-
-    from ajtwin.io.records import read_record
-    from ajtwin.store.ingest import join_video
-
-    path = Path(path)
-    record = read_record(path)
-    source = str(path)
-    if video is not None:
-        if um_per_px is None:
-            raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
-        record, *_ = join_video(record, video, um_per_px, progress=video_progress)
-        source += f" + {video}"
-    return ingest_record(registry, machine, record, source=source, progress=progress)
-
-
-# --------------------------------------------------------------------------- #
-# Many machines, the registry log, subscribers
-# --------------------------------------------------------------------------- #
-
-
-@dataclass
-class _Session:
-    stream: TwinStream
-    session_id: int | None
-    expected_last_seq: int | None
-    started_from: str
-    source: str
-    unsaved: list
-    unsaved_events: list
-    last_flush: float
-
-
-class LiveEngine:
-    """Live twins of many machines in one process: samples in, messages out.
-
-    Each machine has a :class:`TwinStream`; ordinary steps of several machines that
-    arrive together are run as one vmapped :func:`ekf_step` (:meth:`feed_many`). With a
-    registry, every committed step, its sample and the alarms are written to the live
-    log as they go (:class:`ajtwin.store.live_log.LiveLog`, a transaction every
-    ``commit_every_s`` seconds), a restarted process resumes each machine's open session
-    by replaying its stored samples, and :meth:`close` stores the finished print as an
-    ordinary registry print (the next print starts from its end state).
-
-    Subscribers (:meth:`subscribe`, :meth:`queue`) receive every message as a plain dict
-    (see the module docstring).
+def warm_up_streams(twin_overrides: dict, detector_settings, n_machines: int = 1) -> None:
+    """Compile the step functions (single, chunk restart and, for several machines,
+    batched) before the first real sample arrives.
 
     Parameters
     ----------
-    registry : Registry, optional
-        Where machines, live sessions and finished prints are kept (None: memory only).
-    twin_overrides : dict, optional
-        TwinConfig fields for every machine's twin.
-    detector_settings : DetectorSettings, optional
-    asynchronous : bool
-        EM in worker threads (live) or inline (tests, replays).
-    em_workers : int
-        Threads for EM (shared by all machines).
-    commit_every_s : float
-        Longest time committed steps wait before they are written (0: every step).
-    keep_live_steps : bool
-        Keep a session's per-step rows (samples and published float64 states) after its
-        print is stored (an audit log, ≈ 9 MB per print-hour until ``machine compact``).
-        By default they are dropped in the transaction that stores the print, which holds
-        the samples exactly and the states by the storage policy (≈ 0.4 MB per
-        print-hour); they exist only while the session is open, to resume it.
+    twin_overrides : dict
+        TwinConfig fields of the machines' twins.
+    detector_settings : DetectorSettings or None
+    n_machines : int
+        Machines the process will follow (> 1 also compiles the batched step).
     """
-
-    def __init__(
-        self,
-        registry=None,
-        *,
-        twin_overrides: dict | None = None,
-        detector_settings: DetectorSettings | None = None,
-        asynchronous: bool = True,
-        em_workers: int = 1,
-        commit_every_s: float = 1.0,
-        keep_live_steps: bool = False,
-    ):
-        self.registry = registry
-        self.keep_live_steps = bool(keep_live_steps)
-        self.log = None
-        if registry is not None:
-            from ajtwin.store.live_log import LiveLog
-
-            self.log = LiveLog(registry.path)
-        self.twin_overrides = dict(twin_overrides or {})
-        self.detector_settings = detector_settings
-        self.asynchronous = asynchronous
-        self.commit_every_s = float(commit_every_s)
-        self._executor = ThreadPoolExecutor(max(1, int(em_workers)), thread_name_prefix="em")
-        self.sessions: dict[str, _Session] = {}
-        self._subscribers: list = []
-
-    def warm_up(self, n_machines: int = 1) -> None:
-        """Compile the step functions (single and batched) before the first real sample."""
-        twin = Twin.default(**self.twin_overrides)
-        u = np.array([375.0, 23.0, 50.0])
-        y = np.array(twin.model.outputs(np.array([3.5, 1.0, 0.0, 0.03, 1e-7]), u))
-        inputs, outputs = np.tile(u, (10, 1)), np.tile(y, (10, 1))
-        fit = twin.initial_state(inputs, outputs)
-        stream = TwinStream(
-            "warm-up",
-            twin,
-            (fit.mean, fit.covariance),
-            self.detector_settings,
-            asynchronous=False,
-        )
-        for k in range(3):
-            stream.feed(Sample(float(k), u, y))
-        stream._restart_chunk(2, stream.theta)
-        if n_machines > 1:
-            plain = []
-            for i in range(n_machines):
-                s = TwinStream(
-                    f"w{i}",
-                    twin,
-                    (fit.mean, fit.covariance),
-                    self.detector_settings,
-                    asynchronous=False,
-                )
-                s.feed(Sample(0.0, u, y))
-                plain.append((s, s.take_plain(Sample(1.0, u, y))))
-            self._step_batched(plain)
-
-    # ------------------------------------------------------------------ #
-    def subscribe(self, callback) -> callable:
-        """Call ``callback(message)`` for every message; returns a function that unsubscribes."""
-        self._subscribers.append(callback)
-        return lambda: self._subscribers.remove(callback)
-
-    def queue(self, maxsize: int = 0, loop=None):
-        """An asyncio.Queue that receives every message (thread-safe put into ``loop``)."""
-        import asyncio
-
-        loop = loop or asyncio.get_event_loop()
-        q: asyncio.Queue = asyncio.Queue(maxsize)
-
-        def put(message):
-            def put_now():
-                if q.full():  # a slow subscriber loses the oldest, never blocks the twin
-                    q.get_nowait()
-                q.put_nowait(message)
-
-            loop.call_soon_threadsafe(put_now)
-
-        self.subscribe(put)
-        return q
-
-    def publish_link(self, machines, link: dict) -> None:
-        """Tell subscribers the state of the link that feeds ``machines`` (module docstring)."""
-        self._publish([{"machine": name, "link": dict(link)} for name in machines])
-
-    def _publish(self, messages: list[dict]) -> None:
-        for message in messages:
-            for callback in list(self._subscribers):
-                try:
-                    callback(message)
-                except Exception:  # a broken subscriber must not stop the twin
-                    log.exception("subscriber %r failed", callback)
-
-    # ------------------------------------------------------------------ #
-    def open(self, machine: str, source: str = "live") -> TwinStream:
-        """The machine's stream: its open live session resumed, or a new one."""
-        if machine in self.sessions:
-            return self.sessions[machine].stream
-        start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
-        resumed = None
-        twin_kwargs = self.twin_overrides
-        long_run = None
-        if self.registry is not None:
-            from ajtwin.store.calibration import machine_start
-            from ajtwin.store.chain import chain_start
-
-            try:
-                self.registry.machine(machine)
-            except Exception:
-                self.registry.add_machine(machine, notes="added by ajtwin live")
-                log.info("machine %r added to the registry", machine)
-            resumed = self.log.open_session_of(machine)
-            # the machine's calibration, commissioning start and maintenance (SPEC §11)
-            chain = chain_start(self.registry, machine)
-            begin = machine_start(self.registry, machine, chain, self.twin_overrides)
-            twin_kwargs = begin["twin_kwargs"]
-            long_run = carried_long_run_history(self.registry, machine, chain)
-            if resumed is not None:
-                start, theta = resumed["start"], resumed["theta_before"]
-                expected, session_id = resumed["expected_last_seq"], resumed["id"]
-                started_from = "initial fit" if expected is None else f"print {expected}"
-            else:
-                start, theta, expected = begin["start"], begin["theta"], chain.latest_seq
-                started_from = begin["started_from"]
-                session_id = self.log.open_session(
-                    machine,
-                    source=source,
-                    start=start,
-                    theta=np.zeros(5) if theta is None else theta,
-                    expected_last_seq=expected,
-                )
-        stream = TwinStream.new(
-            machine,
-            start=start,
-            theta=theta,
-            twin_overrides=twin_kwargs,
-            detector_settings=self.detector_settings,
-            asynchronous=False,
-            executor=self._executor,
-            long_run_history=long_run,
-        )
-        if resumed is not None:
-            t, u, y = self.log.samples(session_id)
-            for k in range(len(t)):
-                stream.feed(Sample(t[k], u[k], y[k]))
-            log.info(
-                "%s: resumed live session %d at step %d (t = %s s)",
-                machine,
-                session_id,
-                stream.n_received,
-                None if not len(t) else f"{t[-1]:g}",
-            )
-        stream.asynchronous = self.asynchronous
-        self.sessions[machine] = _Session(
-            stream, session_id, expected, started_from, source, [], [], time.monotonic()
-        )
-        return stream
-
-    def feed(self, machine: str, sample: Sample) -> list[dict]:
-        """One sample of one machine (opens the machine on first use)."""
-        return self.feed_many([(machine, sample)])
-
-    def feed_many(self, items) -> list[dict]:
-        """Samples of several machines [(machine, Sample)]; ordinary steps run batched."""
-        messages: list[dict] = []
+    twin = Twin.default(**twin_overrides)
+    u = np.array([375.0, 23.0, 50.0])
+    y = np.array(twin.model.outputs(np.array([3.5, 1.0, 0.0, 0.03, 1e-7]), u))
+    inputs, outputs = np.tile(u, (10, 1)), np.tile(y, (10, 1))
+    fit = twin.initial_state(inputs, outputs)
+    start = (fit.mean, fit.covariance)
+    stream = TwinStream("warm-up", twin, start, detector_settings, asynchronous=False)
+    for k in range(3):
+        stream.feed(Sample(float(k), u, y))
+    stream._restart_chunk(2, stream.theta)
+    if n_machines > 1:
         plain = []
-        for machine, sample in items:
-            stream = self.open(machine)
-            taken = stream.take_plain(sample)
-            if taken is None:
-                messages += stream.feed(sample)
-            else:
-                plain.append((stream, taken))
-        if len(plain) == 1:
-            stream, sample = plain[0]
-            messages.append(stream._commit(sample))
-        elif plain:
-            messages += self._step_batched(plain)
-        messages += self.poll()
-        self._record(messages)
-        self._publish(messages)
-        return messages
-
-    def _step_batched(self, plain) -> list[dict]:
-        twin = plain[0][0].twin
-        carries = EKFCarry(*[jnp.stack(parts) for parts in zip(*[s.carry for s, _ in plain])])
-        carries, steps = _step_many(
-            twin.spec,
-            carries,
-            np.array([s.model_input(x.inputs)[0] for s, x in plain]),
-            np.array([x.outputs for _, x in plain]),
-            np.array([s.theta for s, _ in plain]),
-            *plain[0][0]._constants(),
-            functions=twin.functions,
-        )
-        steps = jax.device_get(steps)
-        out = []
-        for i, (stream, sample) in enumerate(plain):
-            carry = EKFCarry(*[part[i] for part in carries])
-            step = type(steps)(*[part[i] for part in steps])
-            out.append(stream._commit(sample, step, carry))
-        return out
-
-    def poll(self) -> list[dict]:
-        """Messages from EM results that landed (replayed held samples), all machines."""
-        out = []
-        for session in self.sessions.values():
-            out += session.stream.poll()
-        return out
-
-    def poll_and_publish(self) -> list[dict]:
-        messages = self.poll()
-        self._record(messages)
-        self._publish(messages)
-        return messages
-
-    # ------------------------------------------------------------------ #
-    def _record(self, messages: list[dict]) -> None:
-        if self.log is None:
-            return
-        now = time.monotonic()
-        for m in messages:
-            session = self.sessions.get(m.get("machine"))
-            if session is None or m.get("provisional") or "step" not in m:
-                continue
-            u = np.array(list(m["inputs"].values()), dtype=float)
-            y = np.array(list(m["measured_outputs"].values()), dtype=float)
-            session.unsaved.append((m["step"], m["time_s"], u, y, m))
-            session.unsaved_events += m.get("events", [])
-        for session in self.sessions.values():
-            if session.unsaved and now - session.last_flush >= self.commit_every_s:
-                self._flush(session)
-
-    def _flush(self, session: _Session) -> None:
-        if self.log is None or session.session_id is None:
-            return
-        self.log.append(session.session_id, session.unsaved, session.unsaved_events)
-        session.unsaved, session.unsaved_events = [], []
-        session.last_flush = time.monotonic()
-
-    def flush(self) -> None:
-        """Write every committed step not yet stored."""
-        for session in self.sessions.values():
-            self._flush(session)
-
-    def close(self, machine: str) -> int | None:
-        """End of the machine's print: finish the twin, store the print; its registry id."""
-        import pandas as pd
-
-        from ajtwin.io.records import PrintRecord
-        from ajtwin.store.registry import record_hash
-
-        session = self.sessions.pop(machine)
-        stream = session.stream
-        messages = stream.finish()
-        self._record_into(session, messages)
-        self._flush(session)
-        self._publish(messages)
-        if self.registry is None or session.session_id is None:
-            return None
-        print_id = None
-        arrays = stream.arrays()
-        if len(arrays["time_s"]) >= 2:
-            from types import SimpleNamespace
-
-            from ajtwin.store.chain import judge_run
-
-            status, reason = judge_run(
-                SimpleNamespace(
-                    means=arrays["means"],
-                    time_s=arrays["time_s"],
-                    start_mean=stream.start_mean,
-                    end_mean=arrays["means"][-1],
-                    end_cov=arrays["covariances"][-1],
-                )
-            )
-            data = {"time_s": arrays["time_s"]}
-            data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
-            data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
-            record = PrintRecord(
-                pd.DataFrame(data),
-                {
-                    "machine_id": machine,
-                    "source": session.source,
-                    "live_session": session.session_id,
-                },
-            )
-            print_id, _ = save_print(
-                self.registry,
-                machine,
-                record,
-                digest=record_hash(record),
-                source=f"live session {session.session_id} ({session.source})",
-                arrays=arrays,
-                events=list(stream.detector.events),
-                start=(stream.start_mean, stream.start_cov),
-                end=(arrays["means"][-1], arrays["covariances"][-1]),
-                theta_before=stream.theta_before,
-                theta_after=stream.theta,
-                expected_last_seq=session.expected_last_seq,
-                started_from=session.started_from,
-                status=status,
-                status_reason=reason,
-                live_session=session.session_id,  # closed (and thinned) with the print
-                keep_live_steps=self.keep_live_steps,
-                long_run_history=stream.detector.long_run_history(),
-            )
-        else:  # nothing stored: the session's rows are all there is of it
-            self.log.close_session(session.session_id, print_id)
-        return print_id
-
-    def _record_into(self, session: _Session, messages: list[dict]) -> None:
-        for m in messages:
-            if "step" in m and not m.get("provisional"):
-                u = np.array(list(m["inputs"].values()), dtype=float)
-                y = np.array(list(m["measured_outputs"].values()), dtype=float)
-                session.unsaved.append((m["step"], m["time_s"], u, y, m))
-            session.unsaved_events += m.get("events", [])
-
-    def shutdown(self) -> None:
-        """Write what is committed and stop the EM workers (sessions stay open: resumable)."""
-        self.flush()
-        self._executor.shutdown(wait=False, cancel_futures=True)
+        for i in range(n_machines):
+            s = TwinStream(f"w{i}", twin, start, detector_settings, asynchronous=False)
+            s.feed(Sample(0.0, u, y))
+            plain.append((s, s.take_plain(Sample(1.0, u, y))))
+        step_together(plain)

@@ -1,38 +1,18 @@
-"""What the registry decides about a print's start: carry-over between prints.
+"""Video join: a print record's linewidth and overspray from its alignment-camera video.
 
-The orchestration of an ingest (hash, start state, twin, detectors, store) lives in the
-engine, :func:`ajtwin.live.engine.ingest_record`, shared with the live twin;
-``ingest_record``/``ingest_file`` here are compatibility wrappers. :func:`join_video`
-fills a record's linewidth/overspray from the alignment-camera video.
-
-Which print the next one starts from, how the fast states' variance is widened between
-prints and when a print is kept out of the chain (a state outside the physical range):
-:mod:`ajtwin.store.chain`.
+:func:`join_video` runs the camera algorithm (:mod:`ajtwin.vision.extract`) over every
+frame, places the frames on the print's time line (:mod:`ajtwin.vision.join`) and fills
+the record's ``linewidth_um``/``overspray_um``; an ingest with ``--video`` and the demo
+call it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import pandas as pd
+from tqdm import tqdm
 
-from ajtwin.store.chain import BETWEEN_PRINT_STD, carry_over
-from ajtwin.store.registry import Registry
-
-__all__ = ["BETWEEN_PRINT_STD", "carry_over", "ingest_record", "ingest_file", "join_video"]
-
-
-@dataclass
-class IngestResult:
-    machine: str
-    print_id: int
-    seq: int
-    duplicate: bool
-    content_hash: str
-    n_samples: int
-    events: list = field(default_factory=list)
-    summary: dict = field(default_factory=dict)
-    seconds: float = 0.0
-    run: object = None  # TwinRun (None for a duplicate)
-    detection: object = None  # DetectionResult (None for a duplicate)
+from ajtwin.io.records import PrintRecord
+from ajtwin.vision.join import check_linewidth_scale, join_features
 
 
 def join_video(
@@ -55,12 +35,8 @@ def join_video(
     features : DataFrame, one row per frame (``ajtwin extract`` columns)
     annotated : dict {frame time [s]: BGR image}
     """
-    import pandas as pd
-    from tqdm import tqdm
-
-    from ajtwin.io.records import PrintRecord
+    # OpenCV is loaded only for a print that comes with a video
     from ajtwin.vision.extract import LineExtractor, annotate, open_source
-    from ajtwin.vision.join import check_linewidth_scale, join_features
 
     frames = open_source(video, fps=fps)
     extractor = LineExtractor(um_per_px)
@@ -94,15 +70,3 @@ def join_video(
     return PrintRecord(joined, meta), summary, features, annotated
 
 
-def ingest_record(registry: Registry, machine: str, record, **kwargs):
-    """Compatibility: the orchestration moved to :func:`ajtwin.live.engine.ingest_record`."""
-    from ajtwin.live.engine import ingest_record as _ingest_record
-
-    return _ingest_record(registry, machine, record, **kwargs)
-
-
-def ingest_file(registry: Registry, machine: str, path, **kwargs):
-    """Compatibility: moved to :func:`ajtwin.live.engine.ingest_file`."""
-    from ajtwin.live.engine import ingest_file as _ingest_file
-
-    return _ingest_file(registry, machine, path, **kwargs)

@@ -40,14 +40,8 @@ from ajtwin.model.calibration import (
     Calibration,
     calibration_from_vector,
 )
-from ajtwin.model.system import (
-    N_STATES,
-    STATE_NAMES,
-    check_input,
-    euler_step,
-    output_function,
-    steady_aerosol_fraction,
-)
+from ajtwin.model.names import N_STATES, STATE_NAMES
+from ajtwin.model.system import check_input, euler_step, output_function, steady_aerosol_fraction
 
 N_CAL = len(CALIBRATION_NAMES)
 

@@ -52,7 +52,7 @@ def run_live_demo(
         Called once the print has ended and the summary is written, while the dashboard
         still serves (``ajtwin demo --live --keep-open`` waits in it for Ctrl-C).
     """
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.store.registry import Registry
 
     out = Path(out_dir)

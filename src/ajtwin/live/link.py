@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.live.engine import LiveEngine, Sample, clean_sample
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.samples import Sample, clean_sample
 from ajtwin.live.opcua import (
     HEALTH_STATES,
     NAMESPACE_URI,

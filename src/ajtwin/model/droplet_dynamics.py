@@ -66,7 +66,8 @@ import numpy as np
 
 from ajtwin._jax import jax, jnp
 from ajtwin.config import load_toml
-from ajtwin.model.system import N_INPUTS, transition_rates
+from ajtwin.model.names import N_INPUTS
+from ajtwin.model.system import transition_rates
 
 FORMS = ("paper", "mean_reverting", "input_following")
 

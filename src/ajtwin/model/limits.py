@@ -25,15 +25,9 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.config import load_toml
+from ajtwin.model.names import STATE_NAMES
 from ajtwin.model.parameters import PhysicalParameters
 
-STATE_NAMES = (
-    "droplet_diameter_um",
-    "vial_volume_mL",
-    "tube_deposition_um",
-    "nozzle_deposition_um",
-    "aerosol_fraction",
-)
 _DISPLAY_UNIT = ("µm", "mL", "µm", "µm", "")
 
 

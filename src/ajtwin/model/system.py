@@ -30,6 +30,12 @@ from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
 from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
 from ajtwin.model.line_output import line_feature, material_flow
+from ajtwin.model.names import (
+    INPUT_NAMES,
+    N_INPUTS,
+    N_STATES,
+    STATE_NAMES,
+)
 from ajtwin.model.parameters import (
     OutputCoefficients,
     PhysicalParameters,
@@ -41,26 +47,6 @@ from ajtwin.model.transport import (
     nozzle_deposition_rate,
     tube_deposition_rate,
 )
-
-STATE_NAMES = (
-    "droplet_diameter_um",
-    "vial_volume_mL",
-    "tube_deposition_um",
-    "nozzle_deposition_um",
-    "aerosol_fraction",
-)
-INPUT_NAMES = ("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")
-OUTPUT_NAMES = (
-    "linewidth_um",
-    "overspray_um",
-    "carrier_pressure_Pa",
-    "sheath_pressure_Pa",
-    "material_flow_mL_s",
-)
-STATE_SYMBOLS = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
-INPUT_SYMBOLS = ("I_A", "Q_c", "Q_s")
-OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
-N_STATES, N_INPUTS, N_OUTPUTS = 5, 3, 5
 
 
 def coefficient_matrix(coefficients: OutputCoefficients) -> np.ndarray:

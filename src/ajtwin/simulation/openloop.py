@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import click
 import numpy as np
 
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel

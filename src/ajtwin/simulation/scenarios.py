@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.config import packaged_toml, read_toml
-from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+from ajtwin.model.names import INPUT_NAMES
+from ajtwin.model.system import INPUT_LIMITS
 
 SCENARIO_DIR = resources.files("ajtwin.simulation") / "scenarios"
 

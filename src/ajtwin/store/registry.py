@@ -72,6 +72,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.model.names import STATE_NAMES
 from ajtwin.store import arrays as _arrays
 
 #: environment variable: seconds to sleep inside the ingest transaction (crash tests only)
@@ -157,13 +158,16 @@ def _migrate_to_2(conn):
     conn.execute(f"ALTER TABLE print_arrays ADD COLUMN codec TEXT NOT NULL DEFAULT '{_arrays.NPY}'")
     conn.execute("CREATE INDEX IF NOT EXISTS anomalies_by_print ON anomalies(print_id)")
     conn.execute("INSERT OR REPLACE INTO info VALUES ('application', ?)", (APPLICATION,))
-    # prints of a version-1 registry whose end state is impossible leave the chain
-    from ajtwin.store.chain import state_violations
 
+
+def _exclude_impossible_ends(conn, end_state_check) -> None:
+    """Prints of a version-1 registry (stored before the chain's range check) whose end state
+    ``end_state_check`` rejects leave the chain, the reason kept; inside the migration's
+    transaction. The judgement is the caller's: the store holds no physics."""
     rows = conn.execute("SELECT id, end_mean FROM prints").fetchall()
     for print_id, blob in rows:
         try:
-            problems = state_violations(_arrays.decode(blob, _arrays.NPY))
+            problems = end_state_check(_arrays.decode(blob, _arrays.NPY))
         except ValueError as exc:
             problems = [f"unreadable end state ({exc})"]
         if problems:
@@ -387,6 +391,12 @@ class Registry:
         False and get a :class:`RegistryError` instead.
     policy : arrays.StoragePolicy, optional
         How per-second arrays are stored (default :class:`ajtwin.store.arrays.StoragePolicy`).
+    end_state_check : callable, optional
+        ``end_state_check(end_mean (5,)) -> list of problems``: when a version-1 registry is
+        migrated, its prints whose end state this rejects are excluded from the chain
+        (:func:`ajtwin.engine.chain.open_registry` passes the physical range check).
+        Without it they keep their status (the engine's chain start refuses such a start
+        anyway).
 
     Attributes
     ----------
@@ -394,9 +404,18 @@ class Registry:
         One message per migration applied while opening (empty when none).
     """
 
-    def __init__(self, path=None, timeout_s: float = 30.0, *, create: bool = True, policy=None):
+    def __init__(
+        self,
+        path=None,
+        timeout_s: float = 30.0,
+        *,
+        create: bool = True,
+        policy=None,
+        end_state_check=None,
+    ):
         self.path = Path(path) if path is not None else default_store_path()
         self.policy = policy or _arrays.StoragePolicy()
+        self.end_state_check = end_state_check
         self.migrated: list[str] = []
         self._conn = None
         exists = os.path.lexists(self.path)
@@ -527,6 +546,8 @@ class Registry:
                     self.migrated.append(
                         f"{self.path}: migrated registry schema {version} → {target} ({what})"
                     )
+                if target == 2 and not fresh and self.end_state_check is not None:
+                    _exclude_impossible_ends(self._conn, self.end_state_check)
                 version = target
             if not fresh:
                 missing = _V1_TABLES - self._tables()
@@ -713,29 +734,6 @@ class Registry:
                 ) from None
         return _arrays.expand(out)
 
-    def detector_inputs(self, print_id: int) -> dict:
-        """Keyword arguments of :func:`ajtwin.apps.anomaly.detect_anomalies` for a stored
-        print: what re-running the detectors needs (they use P_k's diagonal only, so
-        where the full sequence is not kept it is diag(σ_k²) from the stored σ)."""
-        a = self.print_arrays(print_id)
-        if "covariances" in a:
-            covariances = a["covariances"]
-        else:
-            covariances = np.einsum("ti,ij->tij", a["stds"] ** 2, np.eye(a["stds"].shape[1]))
-        return {
-            "time_s": a["time_s"],
-            "measurements": a["measurements"],
-            "predicted_outputs": a["predicted_outputs"],
-            "innovation_variances": a["innovation_variances"],
-            "nis": a["nis"],
-            "n_measured": a["n_measured"],
-            "means": a["means"],
-            "predicted_means": a["predicted_means"],
-            "covariances": covariances,
-            # the vial observer's inputs (issue 18); older prints without them: twin's V_l
-            "inputs": a.get("inputs"),
-        }
-
     def long_run_history(self, name: str) -> tuple[int, dict] | None:
         """(seq, statistics) of the detectors' long-run statistics stored with the newest
         print in the chain that has them (None: no such print)."""
@@ -755,8 +753,6 @@ class Registry:
     def history(self, name: str) -> pd.DataFrame:
         """One row per print: seq, id, time, duration, source, status, end states, θ,
         anomaly count."""
-        from ajtwin.model import STATE_NAMES
-
         machine = self.machine(name)
         rows = self._conn.execute(
             "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json, p.status,"

@@ -28,7 +28,6 @@ Example
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
 
@@ -37,8 +36,8 @@ import pandas as pd
 
 from ajtwin.apps.anomaly import cusum_thresholds
 from ajtwin.apps.mismatch import MISMATCH_CAUSE
-from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
-from ajtwin.store import arrays as _arrays
+from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.store import queries
 from ajtwin.store.registry import Registry, RegistryError
 
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
@@ -186,65 +185,26 @@ class RegistryView:
     # ------------------------------------------------------------------ changes
     def change_marker(self) -> tuple[int, int, int]:
         """(PRAGMA data_version, last print id, last machine id): changes on any commit."""
-        conn = self.registry._conn
         with self._lock:
-            version = conn.execute("PRAGMA data_version").fetchone()[0]
-            last_print = conn.execute("SELECT COALESCE(MAX(id), 0) FROM prints").fetchone()[0]
-            last_machine = conn.execute("SELECT COALESCE(MAX(id), 0) FROM machines").fetchone()[0]
-        return int(version), int(last_print), int(last_machine)
+            return queries.change_marker(self.registry)
 
     def prints_after(self, print_id: int) -> list[dict]:
         """Prints committed with an id above ``print_id``: machine, seq, id, anomalies."""
         with self._lock:
-            rows = self.registry._conn.execute(
-                "SELECT p.id, p.seq, m.name, p.duration_s, "
-                "(SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies "
-                "FROM prints p JOIN machines m ON p.machine_id = m.id WHERE p.id > ? "
-                "ORDER BY p.id",
-                (int(print_id),),
-            ).fetchall()
-        return [
-            {
-                "print_id": int(r["id"]),
-                "seq": int(r["seq"]),
-                "machine": r["name"],
-                "duration_s": float(r["duration_s"]),
-                "anomalies": int(r["n_anomalies"]),
-            }
-            for r in rows
-        ]
+            return queries.prints_after(self.registry, print_id)
 
     # ------------------------------------------------------------------ fleet
-    def _array(self, print_id: int, name: str) -> np.ndarray | None:
-        """One stored array of a print, decoded (without loading the others)."""
-        row = self.registry._conn.execute(
-            "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
-            (print_id, name),
-        ).fetchone()
-        return None if row is None else _arrays.decode(row[0], row[1])
-
     def fleet(self) -> list[dict]:
         """One summary per machine: status, last print, last alarm, key states with trend."""
-        conn = self.registry._conn
         with self._lock:
-            machines = conn.execute("SELECT * FROM machines ORDER BY name").fetchall()
             out = []
-            for m in machines:
-                row = dict(m)
+            for listed in self.registry.machines():
+                row = self.registry.machine(listed["name"])
                 # the twin's current state: the last print in the chain (registry rule)
                 last = self.registry.last_print(row["name"])
-                latest_seq = conn.execute(
-                    "SELECT MAX(seq) FROM prints WHERE machine_id = ?", (row["id"],)
-                ).fetchone()[0]
-                alarm = conn.execute(
-                    "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
-                    "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
-                    "WHERE p.machine_id = ? ORDER BY p.seq DESC, a.detected_s DESC LIMIT 1",
-                    (row["id"],),
-                ).fetchone()
-                n_prints = conn.execute(
-                    "SELECT COUNT(*) FROM prints WHERE machine_id = ?", (row["id"],)
-                ).fetchone()[0]
+                latest_seq = queries.latest_seq(self.registry, row["name"])
+                alarm = queries.latest_alarm(self.registry, row["name"])
+                n_prints = row["n_prints"]
                 entry = {
                     "name": row["name"],
                     "created_at": row["created_at"],
@@ -258,8 +218,8 @@ class RegistryView:
                 if last is not None:
                     mean = last["end_mean"]
                     std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
-                    means = self._array(last["id"], "means")
-                    time_s = self._array(last["id"], "time_s")
+                    means = queries.print_array(self.registry, last["id"], "means")
+                    time_s = queries.print_array(self.registry, last["id"], "time_s")
                     entry["last_print"] = {
                         "seq": int(last["seq"]),
                         "ingested_at": last["ingested_at"],
@@ -282,15 +242,10 @@ class RegistryView:
                             }
                         )
                 if alarm is not None:
-                    entry["last_alarm"] = dict(alarm)
+                    entry["last_alarm"] = alarm
                 # the latest print raised a fault alarm (the guard's own "mismatch, not a
                 # fault" events make the status mismatch below, as on the machine page)
-                n_faults = conn.execute(
-                    "SELECT COUNT(*) FROM anomalies a JOIN prints p ON a.print_id = p.id "
-                    "WHERE p.machine_id = ? AND p.seq = ? AND a.cause != ?",
-                    (row["id"], latest_seq, MISMATCH_CAUSE),
-                ).fetchone()[0]
-                if n_faults:
+                if queries.count_alarms(self.registry, row["name"], latest_seq, MISMATCH_CAUSE):
                     entry["status"] = "alarm"
                 entry.update(care_fields(self.registry, row["name"]))
                 if entry.get("mismatch") and entry["status"] != "alarm":
@@ -307,12 +262,8 @@ class RegistryView:
             anomalies = self.registry.anomalies(name)
             last = self.registry.last_print(name)
             prints = []
-            conn = self.registry._conn
             for rec in history.to_dict("records"):
-                summary = conn.execute(
-                    "SELECT summary_json FROM prints WHERE id = ?", (rec["print_id"],)
-                ).fetchone()[0]
-                mean_nis = json.loads(summary).get("mean_nis")
+                mean_nis = queries.print_summary(self.registry, rec["print_id"]).get("mean_nis")
                 prints.append(
                     {
                         "seq": int(rec["seq"]),
@@ -448,7 +399,7 @@ class RegistryView:
         (:func:`ajtwin.apps.cli.machine_twin`)."""
         import click
 
-        from ajtwin.apps.cli import machine_twin
+        from ajtwin.engine.start import machine_twin
 
         with self._lock:
             try:

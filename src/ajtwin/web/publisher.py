@@ -105,7 +105,7 @@ def sample_from_engine(message: dict) -> dict | None:
     step for the same time follows and is the one drawn.
     """
     from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings
-    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.data import detector_thresholds
 
     if not isinstance(message, dict):

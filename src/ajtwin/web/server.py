@@ -156,8 +156,8 @@ class BackgroundServer:
                  startup_timeout_s: float = 30.0):  # fmt: skip
         import uvicorn
 
+        from ajtwin.web.access import check_access
         from ajtwin.web.app import create_app
-        from ajtwin.web.cli import check_access
 
         check_access(host, token)
         self.port = free_port() if not port else int(port)

@@ -105,7 +105,7 @@ def _lag1(x: np.ndarray) -> float:
 
 
 def detect(arrays: dict, settings=None, history=None):
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
     from ajtwin.apps.evaluate import KEYS
 
     return detect_anomalies(*(arrays[f] for f in KEYS), settings=settings, long_run_history=history)
@@ -187,7 +187,7 @@ if __name__ == "__main__":
     if a.set:
         from dataclasses import fields, replace
 
-        from ajtwin.apps.anomaly import DetectorSettings
+        from ajtwin.apps.detection.settings import DetectorSettings
 
         types = {f.name: f.type for f in fields(DetectorSettings)}
         overrides = {}

@@ -41,8 +41,8 @@ def detection_figures() -> dict:
 
 
 def timing_figures() -> dict:
-    from ajtwin.apps.advise import advise
-    from ajtwin.apps.forecast import forecast, input_schedule, parse_change
+    from ajtwin.apps.planning.advice import advise
+    from ajtwin.apps.planning.forecast import forecast, input_schedule, parse_change
     from ajtwin.engine.ingest import ingest_record
     from ajtwin.estimation import Twin
     from ajtwin.simulation import simulate

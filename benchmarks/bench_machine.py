@@ -65,8 +65,8 @@ def _square_z(run, states):
 
 
 def _run(twin, record, start=None, long_run_history=None):
-    from ajtwin.apps.anomaly import detect_run
-    from ajtwin.apps.mismatch import assess_run, relabel_events
+    from ajtwin.apps.detection.batch import detect_run
+    from ajtwin.apps.detection.mismatch import assess_run, relabel_events
 
     t0 = time.process_time()
     run = twin.run(record, start=start)

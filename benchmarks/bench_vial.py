@@ -73,7 +73,7 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
 
 
 def _evaluate(arrays: dict, variant: str) -> dict:
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
     from ajtwin.apps.evaluate import KEYS
     from ajtwin.estimation.vial import observe_vial
 

@@ -42,7 +42,8 @@ STRATEGIES = ("pi", "mpc_twin")
 
 
 def main(seeds=(1, 2, 3), minutes: float = 45.0, target: float = 65.0) -> dict:
-    from ajtwin.apps.control_sim import simulate_strategy, start_inputs
+    from ajtwin.apps.planning.strategies import start_inputs
+    from ajtwin.engine.control import simulate_strategy
     from ajtwin.estimation import Twin
 
     u0, _ = start_inputs(Twin.default(), target)

@@ -13,7 +13,7 @@ import argparse
 
 import numpy as np
 
-from ajtwin.apps.forecast import forecast
+from ajtwin.apps.planning.forecast import forecast
 from ajtwin.estimation import Twin
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.experiments import EXP3_CALIBRATION_END_S

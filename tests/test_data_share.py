@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.apps.mismatch import data_share, determined_states, load_guard_settings
+from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
 from ajtwin.estimation.filters import DEFAULT_SCALING
 from ajtwin.model import STATE_NAMES
 

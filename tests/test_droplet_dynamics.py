@@ -165,7 +165,7 @@ def test_m_step_recovers_theta_da_under_the_mean_reverting_row():
 
 
 def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
-    from ajtwin.apps.forecast import forecast
+    from ajtwin.apps.planning.forecast import forecast
 
     inputs = np.tile([375.0, 23.0, 50.0], (900, 1))
     inputs[60:, 1] = 26.0

@@ -58,7 +58,7 @@ def test_m_step_learns_a_line_offset_step_and_the_noise_but_not_the_pressures():
 
 
 def test_online_em_keeps_a_clog_a_clog():
-    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.apps.detection.batch import detect_run
     from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import simulate
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ajtwin.apps.anomaly import detect_run
+from ajtwin.apps.detection.batch import detect_run
 from ajtwin.engine.samples import Sample, clean_sample
 from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin

@@ -9,13 +9,10 @@ import sqlite3
 import numpy as np
 import pytest
 
-from ajtwin.apps.anomaly import (
-    CUSUM_CHANNELS,
-    AnomalyDetector,
-    DetectorSettings,
-    carried_differences,
-    detect_anomalies,
-)
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.statistics import carried_differences
+from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.store import registry as R
 from ajtwin.store.registry import Registry
 
@@ -164,7 +161,7 @@ def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
 
 
 def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkeypatch):
-    from ajtwin.apps import anomaly
+    from ajtwin.apps.detection import streaming as anomaly
     from ajtwin.engine import stream as engine
 
     reg = Registry(tmp_path / "r.sqlite")
@@ -268,7 +265,7 @@ def test_a_clog_after_a_quiet_false_alarm_of_the_same_family_is_its_own_event():
 
 
 def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
-    from ajtwin.apps.anomaly import label_cause
+    from ajtwin.apps.detection.causes import label_cause
 
     s = DetectorSettings()
     # held-out machine 1006 (alt): P_s +0.69σ, P_c +0.13σ over 159 s, ΔR_N pushed +45σ
@@ -280,7 +277,7 @@ def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
 
 
 def test_clog_start_with_p_c_up_and_p_s_within_noise_is_a_clog_not_a_leak():
-    from ajtwin.apps.anomaly import label_cause
+    from ajtwin.apps.detection.causes import label_cause
 
     s = DetectorSettings()
     # held-out machine 1037 (alt), 120 s of evidence: P_c +0.73σ (z 8.0), P_s +0.23σ

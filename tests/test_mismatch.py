@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.apps.anomaly import detect_run
-from ajtwin.apps.mismatch import MISMATCH_CAUSE, assess, assess_run, relabel_events
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE, assess, assess_run, relabel_events
 from ajtwin.estimation.commission import commission
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.machine import MachineDeviation
@@ -160,8 +160,8 @@ def test_clog_on_a_commissioned_machine_is_detected_and_labelled():
 
 
 def test_mismatch_relabels_start_events_but_not_later_faults():
-    from ajtwin.apps.anomaly import AnomalyEvent
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
+    from ajtwin.apps.detection.streaming import AnomalyEvent
 
     status = MismatchStatus(True, 40.0, ["overspray_um"], [], ["r"], ["f"], "m", np.ones(10, bool))
     early = AnomalyEvent(75.0, 20.0, "nozzle_clog", "clog")
@@ -257,8 +257,8 @@ def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
 def test_start_surprise_explains_start_alarms_only():
     """A deposit that jumped at the start names P_c/P_s, but a clog on P_c/P_s an hour later
     is a clog; a deposit out of range is a misfit for the whole print."""
-    from ajtwin.apps.anomaly import AnomalyEvent
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
+    from ajtwin.apps.detection.streaming import AnomalyEvent
 
     def clog(detected_s, onset_s):
         return AnomalyEvent(detected_s, onset_s, "nozzle_clog", "clog", detectors=["cusum+ P_c"])

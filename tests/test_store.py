@@ -236,7 +236,7 @@ def test_ingest_chain_and_cli(tmp_path):
     assert abs(p2["end_mean"][1] - truth_end[1]) < 0.05
 
     # the stored arrays are enough to re-run the detectors: same events as stored
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
 
     again = detect_anomalies(**detector_inputs(reg, p2["id"]))
     stored = reg.anomalies("lab")

@@ -192,7 +192,7 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     """The default policy: the per-step rows exist while the session is open (to resume
     it) and go in the transaction that stores the print; the file shrinks back to what the
     same print costs when ingested; nothing a later command reads is lost."""
-    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.apps.detection.batch import detect_run
     from ajtwin.estimation import Twin
 
     reg = Registry(tmp_path / "a.sqlite")
@@ -243,7 +243,7 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     import pandas as pd
     from click.testing import CliRunner
 
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
     from ajtwin.cli.advise import advise
     from ajtwin.cli.forecast import forecast
     from ajtwin.cli.machine import machine

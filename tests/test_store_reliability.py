@@ -493,7 +493,7 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     re-run of the detectors still work, with the same events."""
     import datetime as dt
 
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
     from ajtwin.cli.advise import advise
     from ajtwin.cli.forecast import forecast
     from ajtwin.io.records import write_record

@@ -225,7 +225,8 @@ def test_observer_uses_the_calibrations_material_flow_gain():
 
 
 def test_label_cause_defers_to_the_vial_observer():
-    from ajtwin.apps.anomaly import DetectorSettings, label_cause
+    from ajtwin.apps.detection.causes import label_cause
+    from ajtwin.apps.detection.settings import DetectorSettings
 
     s = DetectorSettings()
     qm_deficit = ([-1, 0, 0, 0, -2], [60] * 5, [0, 0, 0, 0, -4])
@@ -261,7 +262,7 @@ def _detector_arrays(vial_truth, n):
 
 
 def test_detectors_raise_vial_low_from_the_observer_and_label_it():
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
 
     n = 5400
     falling = 0.7 - 0.25 * np.arange(n) / n  # 0.70 → 0.45 mL in 90 min (0.17 mL/h)

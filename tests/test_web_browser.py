@@ -174,7 +174,7 @@ def test_new_print_appears_without_reload(server, page):
 
 
 def test_whatif_forecast_and_advice(server, registry, page, shots):
-    from ajtwin.apps.forecast import Change, forecast, input_schedule
+    from ajtwin.apps.planning.forecast import Change, forecast, input_schedule
     from ajtwin.web.data import RegistryView
 
     page.goto(server.page_url("/whatif/lab1"))

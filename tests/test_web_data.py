@@ -10,7 +10,7 @@ import pytest
 from ajtwin.web.access import check_access, is_loopback
 from click.testing import CliRunner
 
-from ajtwin.apps.anomaly import AnomalyEvent
+from ajtwin.apps.detection.streaming import AnomalyEvent
 from ajtwin.cli.dashboard import dashboard
 from ajtwin.store.registry import Registry, RegistryError
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
@@ -116,7 +116,7 @@ def _fake_commissioning(offset_um: float):
 
 
 def test_fleet_and_machine_show_calibration_maintenance_and_mismatch(store):
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
     from ajtwin.store.calibration import record_maintenance, save_calibration
     from ajtwin.web.pages import fleet_rows
 
@@ -465,7 +465,7 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
 def test_fleet_and_machine_page_agree_on_mismatch_versus_alarm(tmp_path):
     """The guard's own 'mismatch, not a fault' events make the status mismatch on both pages;
     a fault alarm in the same latest print makes it alarm on both (they used to disagree)."""
-    from ajtwin.apps.mismatch import MISMATCH_CAUSE
+    from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
     from ajtwin.web.app import _status
 
     guard = {"mismatch": True, "first_s": 30.0, "outputs": ["carrier_pressure_Pa"], "states": [],

@@ -86,4 +86,3 @@ def main():
     ink building up in tube and nozzle), warns early, and forecasts what an
     input change will do. Units: µm, mL, mA, sccm, Pa (SPEC §3).
     """
-

@@ -35,8 +35,8 @@ def advise(
     """Inputs (I_A, Q_c, Q_s) within the machine's limits that reach a target linewidth
     with least overspray, from the machine's current state."""
     # lazy CLI loading: the library (JAX) is imported when the command runs, not for --help
-    from ajtwin.apps.advise import advise as run_advise
-    from ajtwin.apps.forecast import parse_duration
+    from ajtwin.apps.planning.advice import advise as run_advise
+    from ajtwin.apps.planning.forecast import parse_duration
     from ajtwin.engine.start import machine_twin
     from ajtwin.store.registry import RegistryError
 

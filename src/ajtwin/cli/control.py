@@ -137,7 +137,7 @@ def _control_live(
     import asyncio
     import logging
 
-    from ajtwin.apps.control import ControlSettings, TargetError
+    from ajtwin.apps.planning.mpc import ControlSettings, TargetError
     from ajtwin.live.control_link import ControlLink, LinkRefused
     from ajtwin.store.registry import Registry, RegistryError
 
@@ -248,9 +248,10 @@ def simulate(
     """
     from tqdm import tqdm
 
-    from ajtwin.apps.control import ControlSettings, TargetError
-    from ajtwin.apps.control_sim import STRATEGIES, compare, resolve_scenario
+    from ajtwin.apps.planning.closed_loop import STRATEGIES, resolve_scenario
+    from ajtwin.apps.planning.mpc import ControlSettings, TargetError
     from ajtwin.simulation.scenarios import load_scenario
+    from ajtwin.studies.control import compare
 
     chosen = tuple(s.strip() for s in strategies.split(",") if s.strip())
     unknown = [s for s in chosen if s not in STRATEGIES]
@@ -317,7 +318,7 @@ def merge(runs, out_dir):
     """
     import json
 
-    from ajtwin.apps.control_sim import merge_results, metrics_table
+    from ajtwin.studies.control import merge_results, metrics_table
 
     try:
         merged = merge_results(runs)

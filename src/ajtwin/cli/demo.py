@@ -125,8 +125,8 @@ def demo_command(out_dir, seed, clean_min, fault_min, onset_min, live, port, kee
     if keep_open or port:
         raise click.UsageError("--port and --keep-open go with --live")
     from ajtwin.apps import report
-    from ajtwin.apps.advise import advise
-    from ajtwin.apps.forecast import forecast, input_schedule, parse_change
+    from ajtwin.apps.planning.advice import advise
+    from ajtwin.apps.planning.forecast import forecast, input_schedule, parse_change
     from ajtwin.cli.vision import render
     from ajtwin.engine.ingest import ingest_record
     from ajtwin.engine.video import join_video

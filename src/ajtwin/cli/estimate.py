@@ -169,12 +169,12 @@ def estimate(
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
     frame = run.to_frame(smoothed=smooth)
-    from ajtwin.apps.mismatch import assess_run
+    from ajtwin.apps.detection.mismatch import assess_run
 
     # the guard: never return states from a model that does not fit without saying so
     mismatch = assess_run(run, record)
     frame["mismatch"] = mismatch.flags
-    from ajtwin.apps.mismatch import data_share, determined_states, load_guard_settings
+    from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
     from ajtwin.model import STATE_NAMES
 
     # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
@@ -221,5 +221,3 @@ def estimate(
 
         estimate_figure(record, run, plot_path)
         click.echo(f"wrote {plot_path}")
-
-

@@ -71,8 +71,13 @@ def forecast(
 ):
     """Forecast L_w, L_o, P_c, P_s (± σ) from the machine's last state under planned inputs."""
     # lazy CLI loading: the library (JAX) is imported when the command runs, not for --help
-    from ajtwin.apps.forecast import forecast as run_forecast
-    from ajtwin.apps.forecast import input_schedule, parse_change, parse_duration, plot_forecast
+    from ajtwin.apps.planning.forecast import forecast as run_forecast
+    from ajtwin.apps.planning.forecast import (
+        input_schedule,
+        parse_change,
+        parse_duration,
+        plot_forecast,
+    )
     from ajtwin.engine.start import input_response_at_end, machine_twin
     from ajtwin.store.registry import RegistryError
 
@@ -135,5 +140,3 @@ def forecast(
     plot = out.with_suffix(".png") if plot is None else plot
     plot_forecast(fc, plot, title=f"{machine_name}: forecast (±2σ)")
     click.echo(f"wrote {out} and {plot}")
-
-

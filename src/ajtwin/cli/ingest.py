@@ -5,9 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from tqdm import tqdm
 
 from ajtwin.cli.options import STATE_LABELS, BoundedFloat, open_registry, store_option
-from ajtwin.store.registry import printable
+from ajtwin.io.records import RecordError
+from ajtwin.store.registry import RegistryError, printable
 
 
 @click.command()
@@ -29,11 +31,8 @@ from ajtwin.store.registry import printable
 @store_option
 def ingest(machine_name, record, video, um_per_px, progress, store):
     """Run the machine's twin over RECORD (from its last state and θ) and store it."""
-    from tqdm import tqdm
 
     from ajtwin.engine.ingest import ingest_file
-    from ajtwin.io.records import RecordError
-    from ajtwin.store.registry import RegistryError
 
     if video is not None and um_per_px is None:
         raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")

@@ -3,13 +3,19 @@ calibrations``: the machine registry (docs/registry.md, docs/calibration.md)."""
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 
 import click
 import numpy as np
+import pandas as pd
 
 from ajtwin.cli.options import STATE_LABELS, open_registry, store_option
-from ajtwin.store.registry import printable
+from ajtwin.engine.chain import chain_start, state_violations
+from ajtwin.io.records import RecordError, read_record
+from ajtwin.store.archive import export_machine, import_machine
+from ajtwin.store.compaction import compact
+from ajtwin.store.registry import STATUS_DROPPED, STATUS_OK, RegistryError, printable
 
 
 def _range(text):
@@ -36,7 +42,6 @@ def machine():
 @store_option
 def add(name, current_range, carrier_range, sheath_range, notes, store):
     """Register machine NAME (default limits: I_A 300–440 mA, Q_c 15–35, Q_s 30–80 sccm)."""
-    from ajtwin.store.registry import RegistryError
 
     limits = {}
     for key, text in (
@@ -75,7 +80,6 @@ def list_machines(store):
 @store_option
 def show(name, store):
     """The machine's current twin: last state ± σ, θ, limits, recent anomalies."""
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -138,9 +142,6 @@ def show(name, store):
 @store_option
 def history(name, csv_path, store):
     """One row per print: end states, θ and anomaly count."""
-    import pandas as pd
-
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -170,8 +171,6 @@ def history(name, csv_path, store):
 def drop(name, seq, reason, store):
     """Take print SEQ out of NAME's chain (kept for history; the next ingest starts from
     the newest print still in the chain)."""
-    from ajtwin.engine.chain import chain_start
-    from ajtwin.store.registry import STATUS_DROPPED, RegistryError
 
     reg = open_registry(store)
     try:
@@ -179,7 +178,9 @@ def drop(name, seq, reason, store):
         chain = chain_start(reg, name)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"print #{p['seq']} of {printable(name)!r} dropped from the chain ({printable(reason)})")
+    click.echo(
+        f"print #{p['seq']} of {printable(name)!r} dropped from the chain ({printable(reason)})"
+    )
     start = "the initial-state fit" if chain.from_seq is None else f"print #{chain.from_seq}'s end"
     click.echo(f"  the next ingest starts from {start} state")
 
@@ -190,8 +191,6 @@ def drop(name, seq, reason, store):
 @store_option
 def restore(name, seq, store):
     """Put a dropped or excluded print SEQ back into NAME's chain."""
-    from ajtwin.engine.chain import state_violations
-    from ajtwin.store.registry import STATUS_OK, RegistryError
 
     reg = open_registry(store)
     try:
@@ -220,10 +219,6 @@ def restore(name, seq, store):
 @store_option
 def compact_command(name, keep_covariances_days, store):
     """Apply the storage policy and covariance retention to NAME, then VACUUM."""
-    import sqlite3
-
-    from ajtwin.store.compaction import compact
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -246,8 +241,6 @@ def compact_command(name, keep_covariances_days, store):
 @store_option
 def export_command(name, out, store):
     """Write machine NAME (all prints, arrays, anomalies, live sessions) to a tar archive."""
-    from ajtwin.store.archive import export_machine
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -267,8 +260,6 @@ def export_command(name, out, store):
 @store_option
 def import_command(archive, as_name, store):
     """Add the machine of an `ajtwin machine export` ARCHIVE to the registry."""
-    from ajtwin.store.archive import import_machine
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store, create=True)
     try:
@@ -317,11 +308,10 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
     Prints each calibration parameter with its standard error and whether the print
     determined it; stores it in the registry (the history is kept).
     """
-    from ajtwin.estimation.commission import CommissioningError, commission, parse_known
-    from ajtwin.io.records import RecordError, read_record
-    from ajtwin.model.calibration import write_calibration_file
-    from ajtwin.store.calibration import save_calibration
-    from ajtwin.store.registry import RegistryError
+    # lazy CLI loading: the fit loads JAX, `machine --help` must not
+    from ajtwin.engine.commissioning import commission_machine, save_commissioning
+    from ajtwin.engine.commissioning import write_calibration as write_calibration_toml
+    from ajtwin.estimation.commission import CommissioningError, parse_known
 
     try:
         known = parse_known(known_items)
@@ -336,9 +326,35 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
             raise click.ClickException(str(exc)) from None
     try:
         rec = read_record(record)
-        result = commission(rec, known=known, vial_fill_ml=vial_ml, where=str(record))
+        done = commission_machine(
+            rec,
+            known=known,
+            vial_fill_ml=vial_ml,
+            where=str(record),
+            learn_noise_scale=reg is not None,
+        )
     except (RecordError, CommissioningError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
+    result = done.result
+    _echo_commissioning(name, record, result)
+    if out_path is not None:
+        provenance = {
+            "machine": name,
+            "print": str(record),
+            "samples": result.n_samples,
+            "vial_fill_mL": vial_ml,
+            "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
+        }
+        write_calibration_toml(out_path, result, provenance)
+        click.echo(f"wrote {out_path}")
+    if reg is not None:
+        # the detectors of the next print start with this machine's noise scale
+        cal_id = save_commissioning(reg, name, done, str(record))
+        click.echo(f"stored as calibration {cal_id} of {name!r} in {reg.path}")
+
+
+def _echo_commissioning(name, record, result) -> None:
+    """The fitted calibration, one parameter a line, with its standard error and prior."""
     click.echo(f"commissioning of {name} from {record} ({result.n_samples} s):")
     click.echo(f"  {'parameter':26s} {'value':>11s} {'std error':>10s} {'prior σ':>9s}  print")
     for row in result.table():
@@ -352,32 +368,6 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
     click.echo(f"  mean NIS per output {result.mean_nis:.2f} (1 = the calibrated model fits)")
     factors = ", ".join(f"{v:.2f}" for v in np.asarray(result.noise_factors))
     click.echo(f"  output noise of this machine / tuned σ (L_w, L_o, P_c, P_s, Q_m): {factors}")
-    provenance = {
-        "machine": name,
-        "print": str(record),
-        "samples": result.n_samples,
-        "vial_fill_mL": vial_ml,
-        "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
-    }
-    if out_path is not None:
-        from ajtwin.model import OUTPUT_NAMES
-
-        write_calibration_file(
-            out_path,
-            result.calibration,
-            result.std,
-            provenance,
-            covariance=result.calibration_cov,
-            noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(result.noise_factors).tolist())),
-        )
-        click.echo(f"wrote {out_path}")
-    if reg is not None:
-        from ajtwin.engine.commissioning import commissioning_long_run_history
-
-        # the detectors of the next print start with this machine's noise scale
-        history = commissioning_long_run_history(rec, result)
-        cal_id = save_calibration(reg, name, result, str(record), long_run_history=history)
-        click.echo(f"stored as calibration {cal_id} of {name!r} in {reg.path}")
 
 
 @machine.command("maintain")
@@ -391,8 +381,8 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
 @store_option
 def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
     """Record a maintenance event on machine NAME; the next print starts from it."""
+    # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
     from ajtwin.store.calibration import record_maintenance
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -419,10 +409,8 @@ def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
 @store_option
 def calibrations(name, store):
     """Every commissioning of machine NAME (oldest first) and its maintenance events."""
-    import pandas as pd
-
+    # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
     from ajtwin.store.calibration import calibration_history, maintenance_history
-    from ajtwin.store.registry import RegistryError
 
     reg = open_registry(store)
     try:
@@ -442,6 +430,7 @@ def calibrations(name, store):
 
 def describe_calibration(reg, name) -> list[str]:
     """Lines for `machine show`: the active calibration and the last mismatch status."""
+    # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
     from ajtwin.store.calibration import active_calibration
 
     active = active_calibration(reg, name)

@@ -184,5 +184,3 @@ def plot(record_path, output, aliases, nominal):
         raise click.ClickException(str(exc)) from None
     plot_record(record, output, nominal=nominal)
     click.echo(f"{output}: {record.meta.get('scenario')} ({len(record)} samples)")
-
-

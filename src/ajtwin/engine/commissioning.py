@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.apps.anomaly import DetectorSettings, detect_run
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.engine.chain import carry_over
 from ajtwin.estimation.commission import CommissioningResult, commission
 from ajtwin.estimation.twin import Twin

@@ -34,7 +34,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-from ajtwin.apps.anomaly import DetectorSettings
+from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.engine.chain import chain_start, judge_run
 from ajtwin.engine.ingest import save_print
 from ajtwin.engine.samples import Sample

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.apps.anomaly import detect_run
-from ajtwin.apps.mismatch import assess_run, data_share, determined_states, relabel_events
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.mismatch import assess_run, data_share, determined_states, relabel_events
 from ajtwin.engine.chain import chain_start, judge_run
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video

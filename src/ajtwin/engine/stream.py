@@ -49,7 +49,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.apps.anomaly import CUSUM_CHANNELS, AnomalyDetector, DetectorSettings
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.samples import MAX_GAP_S, Sample
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.filters import EKFCarry, ekf_init, ekf_step

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ajtwin.apps.control import TargetError
+from ajtwin.apps.planning.mpc import TargetError
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
 
@@ -111,7 +111,7 @@ class ControlLink:
         on_decision=None,
         vial_fill_ml: float | None = None,
     ):
-        from ajtwin.apps.control import ControlSettings, check_target
+        from ajtwin.apps.planning.mpc import ControlSettings, check_target
 
         # the vial's fill as weighed at the refill: the start of the controller's ink
         # balance and of the vial observer (None: the twin's default, 1 mL)
@@ -154,8 +154,8 @@ class ControlLink:
     def prepare(self):
         """Build the twin and the MPC (and compile them); done on the first connection
         unless called before (a test calls it before the server's clock starts)."""
-        from ajtwin.apps.advise import effective_bounds
-        from ajtwin.apps.control_sim import MPCTwin
+        from ajtwin.apps.planning.advice import effective_bounds
+        from ajtwin.engine.control import MPCTwin
         from ajtwin.estimation import Twin
 
         if self.controller is not None:
@@ -176,7 +176,7 @@ class ControlLink:
     def check_reachable(self, mean, cov) -> tuple[float, float]:
         """Once the twin has a state: is the target reachable within the limits from it?
         :class:`TargetError` with the reachable range when not (nothing is written)."""
-        from ajtwin.apps.control import check_target, reachable_linewidth
+        from ajtwin.apps.planning.mpc import check_target, reachable_linewidth
 
         reach = reachable_linewidth(self.controller.twin, mean, cov, self.bounds)
         check_target(self.target_um, reach)
@@ -186,7 +186,7 @@ class ControlLink:
 
     def _apply_eu_ranges(self, ranges: dict) -> None:
         """Intersect the limits with the server's EURange of each set-point."""
-        from ajtwin.apps.advise import effective_bounds
+        from ajtwin.apps.planning.advice import effective_bounds
 
         changed = False
         for column, (low, high) in ranges.items():
@@ -345,8 +345,8 @@ class ControlLink:
         return np.array([float(await n.read_value()) for n in setpoints.values()])
 
     async def _decide(self, setpoints) -> None:
-        from ajtwin.apps.control import clip_command
-        from ajtwin.apps.control_sim import Decision
+        from ajtwin.apps.planning.mpc import clip_command
+        from ajtwin.apps.planning.strategies import Decision
 
         s = self.settings
         t = float(self.last_time + 1)

@@ -101,7 +101,7 @@ def _number(text, what: str) -> float:
 
 
 def _duration(text, what: str) -> float:
-    from ajtwin.apps.forecast import parse_duration
+    from ajtwin.apps.planning.forecast import parse_duration
 
     try:
         return parse_duration(str(text))
@@ -122,7 +122,7 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
 
     Raises InputError with a sentence naming the field when a value cannot be used.
     """
-    from ajtwin.apps.forecast import Change, input_schedule
+    from ajtwin.apps.planning.forecast import Change, input_schedule
 
     if not isinstance(body, dict):
         raise InputError("the request must be a JSON object")
@@ -391,7 +391,7 @@ def create_app(
         return await asyncio.to_thread(run_forecast, name, body)
 
     def run_forecast(name: str, body):
-        from ajtwin.apps.forecast import forecast
+        from ajtwin.apps.planning.forecast import forecast
 
         twin, mean, cov, u_now, limits, seq = view.forecast_start(name)
         schedule, changes, horizon_s, options = parse_forecast_request(body, limits, u_now)
@@ -428,7 +428,7 @@ def create_app(
         return await asyncio.to_thread(run_advise, name, body)
 
     def run_advise(name: str, body):
-        from ajtwin.apps.advise import advise
+        from ajtwin.apps.planning.advice import advise
 
         req = parse_advise_request(body)
         twin, mean, cov, u_now, limits, seq = view.forecast_start(name, req["nominal_theta"])
@@ -588,7 +588,7 @@ def _status(entry: dict, publisher: LivePublisher) -> str:
     if entry.get("status") == "alarm":
         return "alarm"
     if entry.get("prints") is not None:  # machine detail: the fleet's rule (data.fleet)
-        from ajtwin.apps.mismatch import MISMATCH_CAUSE
+        from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 
         prints = entry["prints"]
         last_seq = prints[-1]["seq"] if prints else None

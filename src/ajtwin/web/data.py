@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ajtwin.apps.anomaly import cusum_thresholds
-from ajtwin.apps.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.detection.settings import cusum_thresholds
 from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import queries
 from ajtwin.store.registry import Registry, RegistryError
@@ -328,7 +328,8 @@ class RegistryView:
         predicted outputs, inputs, θ per step, the detectors (CUSUM g per channel with
         thresholds, windowed-NIS −log₁₀ p with its threshold) and the print's alarms.
         """
-        from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings, detect_anomalies
+        from ajtwin.apps.detection.batch import detect_anomalies
+        from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 
         key = (name, int(seq), int(max_points))
         if key in self._series_cache:  # a stored print never changes: reuse its series

@@ -72,7 +72,7 @@ class VirtualPrintFeed:
     # ------------------------------------------------------------------ compute
     def prepare(self) -> list[dict]:
         """Simulate, run the twin and the detectors; returns the samples to publish."""
-        from ajtwin.apps.anomaly import detect_run
+        from ajtwin.apps.detection.batch import detect_run
         from ajtwin.estimation import Twin
         from ajtwin.simulation import load_scenario, simulate
 

@@ -104,7 +104,7 @@ def sample_from_engine(message: dict) -> dict | None:
     as a dashboard sample (module docstring). Provisional steps give None: the committed
     step for the same time follows and is the one drawn.
     """
-    from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings
+    from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
     from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.data import detector_thresholds
 

@@ -310,7 +310,7 @@ def assess(
 
 def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
     """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
-    from ajtwin.apps.anomaly import normalised_innovations
+    from ajtwin.apps.detection.statistics import normalised_innovations
 
     f = run.filtered
     e = normalised_innovations(

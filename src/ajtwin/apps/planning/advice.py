@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
-from ajtwin.apps.forecast import forecast
+from ajtwin.apps.planning.forecast import forecast
 from ajtwin.model import INPUT_NAMES
 
 #: validity range of H's Box–Behnken fit (SPEC §4 / paper App. B.3)

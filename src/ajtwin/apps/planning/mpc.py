@@ -54,8 +54,8 @@ import numpy as np
 from scipy import optimize
 
 from ajtwin._jax import jax, jnp
-from ajtwin.apps.advise import effective_bounds
-from ajtwin.apps.forecast import _forecast_scan
+from ajtwin.apps.planning.advice import effective_bounds
+from ajtwin.apps.planning.forecast import _forecast_scan
 from ajtwin.config import load_toml
 from ajtwin.model import INPUT_NAMES
 
@@ -177,11 +177,11 @@ def reachable_linewidth(twin, mean, cov, bounds, settle_s: int = 60, grid: int =
     """
     axes = [np.linspace(lo, hi, grid) for lo, hi in bounds]
     settings = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    lw = np.asarray(_steady_linewidths(twin, mean, cov, settings, settle_s))
+    lw = np.asarray(steady_linewidths(twin, mean, cov, settings, settle_s))
     return float(lw.min()), float(lw.max())
 
 
-def _steady_linewidths(twin, mean, cov, settings, settle_s):
+def steady_linewidths(twin, mean, cov, settings, settle_s):
     fn = _steady_fn(settle_s)
     return fn(
         twin.spec,

@@ -8,7 +8,7 @@ import io
 
 import numpy as np
 
-from ajtwin.apps.anomaly import cusum_thresholds
+from ajtwin.apps.detection.settings import cusum_thresholds
 
 OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
 STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [–]")

@@ -21,7 +21,9 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.apps.anomaly import DetectorSettings, detect_anomalies, detection_delay
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.settings import DetectorSettings
+from ajtwin.studies.detection import detection_delay
 
 FAULT_SCENARIOS = (
     "nozzle_clog",

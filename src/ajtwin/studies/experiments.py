@@ -247,7 +247,7 @@ def run_exp3(
     ``truth`` picks the virtual printer's generator: ``"model"`` (default) or ``"alt"``
     (:mod:`ajtwin.simulation.truth_alt`, evaluation only).
     """
-    from ajtwin.apps.forecast import forecast
+    from ajtwin.apps.planning.forecast import forecast
     from ajtwin.simulation import run_virtual_print
 
     vp = run_virtual_print("exp3", seed, truth_generator=truth)

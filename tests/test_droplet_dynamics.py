@@ -206,8 +206,8 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
 @pytest.mark.parametrize("truth", ["model", "alt"])
 def test_oracle_is_the_generators_droplet_law(truth, monkeypatch):
     """Without the random wander the oracle forecast of d_a is the truth itself."""
-    from ajtwin.estimation.experiments import droplet_oracle_forecast
     from ajtwin.simulation import run_virtual_print, truth_alt
+    from ajtwin.studies.experiments import droplet_oracle_forecast
 
     overrides = {"truth": {"droplet_ou_sd_um": 0.0}}
     if truth == "alt":
@@ -289,7 +289,7 @@ def test_forecast_cli_transition_option(tmp_path):
 def test_exp3_input_following_beats_the_paper_row(truth):
     """Held-out seed 3 (docs/forecast.md): the droplet row that follows the inputs forecasts
     L_w better than the paper's, θ no longer makes it worse, and the band holds the truth."""
-    from ajtwin.estimation.experiments import run_exp3
+    from ajtwin.studies.experiments import run_exp3
 
     _, _, paper = run_exp3(3, {"transition": "paper"}, truth=truth)
     _, _, following = run_exp3(3, {"transition": "input_following"}, truth=truth)

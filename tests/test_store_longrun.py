@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ajtwin.apps.soak import covariance_health, memory_mb, soak_machine, soak_print
+from ajtwin.studies.soak import covariance_health, memory_mb, soak_machine, soak_print
 
 
 def test_covariance_health_catches_what_it_should():

@@ -84,7 +84,7 @@ def test_live_demo_serves_the_dashboard_and_keeps_it_open(clog_record, tmp_path,
     import urllib.request
 
     import ajtwin.cli.demo as demo_cli
-    import ajtwin.live.demo as live_demo
+    import ajtwin.studies.live_demo as live_demo
     from ajtwin.engine.samples import Sample
 
     def print_without_opcua(out, url, seed, engine, echo):

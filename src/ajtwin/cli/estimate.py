@@ -217,7 +217,7 @@ def estimate(
             err=True,
         )
     if plot_path:
-        from ajtwin.estimation.plots import estimate_figure
+        from ajtwin.estimation.plotting import estimate_figure
 
         estimate_figure(record, run, plot_path)
         click.echo(f"wrote {plot_path}")

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import click
+from tqdm import tqdm
 
 from ajtwin.cli.options import parse_seeds
 
@@ -39,9 +40,9 @@ from ajtwin.cli.options import parse_seeds
 )
 def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""
-    from tqdm import tqdm
-
-    from ajtwin.estimation.experiments import run_experiment
+    # lazy CLI loading: the experiments load JAX and matplotlib when they run
+    from ajtwin.studies.experiment_figures import experiment_figures
+    from ajtwin.studies.experiments import run_experiment
 
     if seed is not None and seeds_text is not None:
         raise click.UsageError("give --seed or --seeds, not both")
@@ -54,6 +55,7 @@ def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition
             {"noise_profile": noise_profile, "transition": transition},
             progress=lambda _: bar.update(1),
             truth=truth,
+            figures=experiment_figures,
         )
     click.echo(json.dumps(result["summary"], indent=1, default=float))
     click.echo(f"wrote figures and {Path(out_dir) / 'metrics.json'}")

@@ -2,30 +2,20 @@
 
 from __future__ import annotations
 
-import csv
-import functools
 import json
-import warnings
-from collections import Counter
 from pathlib import Path
 
 import click
-import numpy as np
+import pandas as pd
 
 from ajtwin.cli.options import BoundedFloat, join_options
-from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
-
-STATUS_HINTS = {
-    "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",
-    "blank_frame": "frames are featureless — nothing in focus?",
-    "no_line": "no straight line found (Canny/Hough); lines must lie within 45° of horizontal",
-    "line_fills_frame": (
-        "the line leaves no substrate background in the frame — the line is wider than the "
-        "frame can show; check --um-per-px and the field of view"
-    ),
-    "no_shoulder": "no shoulder peak (iii) in the brightness profile",
-    "overspray_outside_frame": "the overspray does not end inside the analysed band",
-}
+from ajtwin.io.records import (  # one bound for options and metadata
+    MAX_PLATEN_SPEED_MM_S,
+    PrintRecord,
+    RecordError,
+    read_record,
+    write_record,
+)
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -161,9 +151,9 @@ def render(
     and material_flow_mL_s become a line cross-section (cross-section = Q_m / platen
     speed); without it a constant line of --linewidth/--overspray/--area is rendered.
     """
-    from ajtwin.units import cross_section_um2
-    from ajtwin.vision.profile import line_profile, minimum_area_um2
-    from ajtwin.vision.render import RenderSettings, render_video
+    # lazy CLI loading: rendering loads OpenCV, `render --help` must not
+    from ajtwin.vision.record_render import ConstantLine, render_record_video
+    from ajtwin.vision.render import RenderSettings
 
     shape = _parse_size(size)
     overrides = {"tilt_deg": tilt_deg}
@@ -182,83 +172,32 @@ def render(
         raise click.BadParameter(str(exc)) from None
     if fps <= 0:
         raise click.BadParameter(f"--fps must be > 0, got {fps}")
-
-    extra = {}
+    rec = None
     if record is not None:
-        from ajtwin.io.records import RecordError, read_record
-
         try:
             rec = read_record(record)
         except (RecordError, FileNotFoundError) as exc:
             raise click.ClickException(str(exc)) from None
-        speed = platen_speed_mm_s or float(rec.meta.get("platen_speed_mm_s", 1.0))
-        data = rec.data
-        data = data[data["time_s"] >= start_s]
-        if duration_s is not None:
-            data = data[data["time_s"] < start_s + duration_s]
-        if data.empty:
-            raise click.ClickException(f"{record}: no rows in the requested time window")
-        extra = {
-            "record": str(record),
-            "scenario": rec.meta.get("scenario"),
-            "machine_id": rec.meta.get("machine_id"),
-        }
-        times = data["time_s"].to_numpy(float) - start_s
-        lw = data["linewidth_um"].to_numpy(float)
-        ov = data["overspray_um"].to_numpy(float)
-        flow = data["material_flow_mL_s"].to_numpy(float)
-    else:
-        speed = platen_speed_mm_s or 1.0
-        duration = 10.0 if duration_s is None else duration_s
-        times = np.arange(0.0, duration, 1.0)
-        lw = np.full(times.size, linewidth_um)
-        ov = np.full(times.size, overspray_um)
-        flow = np.full(times.size, np.nan)
-    area = np.where(np.isfinite(flow), cross_section_um2(flow, speed), area_um2)
-    reach = float(np.nanmax(0.5 * lw + 1.6 * ov)) if np.isfinite(lw).any() else 100.0
-    r_um = np.arange(-reach - 20.0, reach + 20.0, 0.05)
-    # rows without a usable line hold the previous one (the first falls back to the options)
-    usable = np.isfinite(lw) & np.isfinite(ov) & (lw > 0) & (ov > 0) & np.isfinite(area)
-    source_row = np.where(usable, np.arange(lw.size), -1)
-    source_row = np.maximum.accumulate(source_row)
-    held = int((~usable).sum())
-    small = int(
-        np.sum(
-            area[usable]
-            < [minimum_area_um2(a, b) for a, b in zip(lw[usable], ov[usable], strict=True)]
+    try:
+        video = render_record_video(
+            rec,
+            out,
+            fps=fps,
+            shape=shape,
+            settings=settings,
+            start_s=start_s,
+            duration_s=duration_s,
+            platen_speed_mm_s=platen_speed_mm_s,
+            constant=ConstantLine(linewidth_um, overspray_um, area_um2),
+            seed=seed,
+            truth_path=truth,
+            extra_truth={} if record is None else {"record": str(record)},
         )
-    )
-    if held:
-        click.echo(f"note: {held} seconds without linewidth/overspray: previous line held")
-    if small:
-        click.echo(
-            f"note: {small} seconds with too little material for the requested overspray "
-            "(its visible part will be shorter)"
-        )
-
-    def profile_for(row: int) -> np.ndarray:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # counted above
-            if row < 0:
-                return line_profile(r_um, linewidth_um, overspray_um, area_um2)
-            return line_profile(r_um, lw[row], ov[row], area[row])
-
-    profiles = _LazyProfiles(source_row, profile_for)
-    truth_path = render_video(
-        r_um,
-        profiles,
-        times,
-        out,
-        fps=fps,
-        duration_s=float(times[-1]) + 1.0,
-        shape=shape,
-        settings=settings,
-        platen_speed_mm_s=speed,
-        seed=seed,
-        truth_path=truth,
-        extra_truth={**extra, "print_start_s": start_s},
-    )
-    click.echo(f"wrote {out} and {truth_path}")
+    except ValueError as exc:  # no row of the record in the time window
+        raise click.ClickException(f"{record}: {exc}") from None
+    for note in video.notes:
+        click.echo(f"note: {note}")
+    click.echo(f"wrote {out} and {video.truth_path}")
 
 
 @click.command()
@@ -320,127 +259,43 @@ def extract(
     platen_speed_mm_s,
     progress,
 ):
-    """Linewidth and overspray from alignment-camera video (paper App. A, SPEC §9).
+    """Linewidth and overspray from alignment-camera video (paper App. A, model reference §9).
 
     SOURCE is a video (mp4/avi/...), a folder of images or one PNG/TIFF.  Frames are
     streamed one at a time.  The CSV has one row per frame: frame, time_s, linewidth_um,
     overspray_um, linewidth_std_um, overspray_std_um (spread over the batches), n_batches
     (batches measured) and status (ok, or why the frame gave no value).
     """
-    import pandas as pd
-    from tqdm import tqdm
-
-    from ajtwin.vision.extract import LineExtractor, VisionInputError, open_source
-    from ajtwin.vision.extract import annotate as draw
+    # lazy CLI loading: OpenCV is imported when the command runs, not for --help
+    from ajtwin.vision.extract import VisionInputError
     from ajtwin.vision.join import check_linewidth_scale
+    from ajtwin.vision.video_features import extract_video
 
     try:
-        frames = open_source(source, fps)
-        extractor = LineExtractor(um_per_px, batch=batch)
-    except VisionInputError as exc:
-        raise click.ClickException(str(exc)) from None
-    columns = [
-        "frame",
-        "time_s",
-        "linewidth_um",
-        "overspray_um",
-        "linewidth_std_um",
-        "overspray_std_um",
-        "n_batches",
-        "status",
-    ]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    batch_path = out.with_name(out.stem + "_batches.csv") if per_batch else None
-    statuses: Counter = Counter()
-    widths = []
-    writer = None
-    annotated_dir = None
-    try:
-        with (
-            # decoding runs in a background thread, beside the feature extraction below
-            frames.prefetched() as decoded,
-            out.open("w", newline="") as fh,
-            batch_path.open("w", newline="") if batch_path else _Null() as bfh,
-        ):
-            table = csv.DictWriter(fh, fieldnames=columns)
-            table.writeheader()
-            batch_table = None
-            if batch_path:
-                batch_table = csv.writer(bfh)
-                batch_table.writerow(
-                    [
-                        "frame",
-                        "time_s",
-                        "batch",
-                        "col_start",
-                        "col_end",
-                        "linewidth_um",
-                        "overspray_um",
-                        "status",
-                    ]
-                )
-            bar = tqdm(
-                decoded,
-                total=frames.count,
-                unit="frame",
-                desc=f"extract {source.name}",
-                disable=not progress,
-            )
-            for index, time_s, gray in bar:
-                result = extractor.process(gray, index=index, time_s=time_s)
-                row = result.row()
-                table.writerow(
-                    {k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()}
-                )
-                statuses[result.status] += 1
-                if np.isfinite(result.linewidth_um):
-                    widths.append(result.linewidth_um)
-                if batch_table is not None:
-                    for number, b in enumerate(result.batches):
-                        batch_table.writerow(
-                            [
-                                index,
-                                f"{time_s:.4f}",
-                                number,
-                                b.col_start,
-                                b.col_end,
-                                f"{b.linewidth_um:.4f}",
-                                f"{b.overspray_um:.4f}",
-                                b.status,
-                            ]
-                        )
-                if annotate is not None:
-                    canvas = draw(gray, result)
-                    if annotate.suffix.lower() in (".mp4", ".avi", ".mkv"):
-                        if writer is None:
-                            writer = _open_writer(annotate, frames.fps, canvas.shape)
-                        writer.write(canvas)
-                    else:
-                        import cv2
-
-                        annotated_dir = annotate
-                        annotate.mkdir(parents=True, exist_ok=True)
-                        cv2.imwrite(str(annotate / f"frame_{index:06d}.png"), canvas)
-    except VisionInputError as exc:
-        raise click.ClickException(str(exc)) from None
-    finally:
-        if writer is not None:
-            writer.release()
-    total = sum(statuses.values())
-    summary = ", ".join(f"{k}: {v}" for k, v in statuses.most_common())
-    click.echo(f"wrote {out} ({total} frames; {summary})")
-    if batch_path:
-        click.echo(f"wrote {batch_path}")
-    if annotate is not None:
-        click.echo(f"wrote {annotated_dir or annotate}")
-    good = sum(statuses[s] for s in ("ok", "few_batches"))
-    if good == 0:
-        reasons = "; ".join(
-            f"{k} ({v} frames): {STATUS_HINTS.get(k, k)}" for k, v in statuses.most_common()
+        done = extract_video(
+            source,
+            um_per_px,
+            out,
+            batch=batch,
+            per_batch=per_batch,
+            annotate_to=annotate,
+            fps=fps,
+            progress=progress,
         )
-        raise click.ClickException(f"no frame of {source} gave a linewidth — {reasons}")
+    except VisionInputError as exc:
+        raise click.ClickException(str(exc)) from None
+    summary = ", ".join(f"{k}: {v}" for k, v in done.statuses.most_common())
+    click.echo(f"wrote {out} ({done.n_frames} frames; {summary})")
+    if done.batch_path:
+        click.echo(f"wrote {done.batch_path}")
+    if done.annotated is not None:
+        click.echo(f"wrote {done.annotated}")
+    if done.n_measured == 0:
+        raise click.ClickException(
+            f"no frame of {source} gave a linewidth — {done.failure_reasons()}"
+        )
     try:
-        check_linewidth_scale(widths, um_per_px, source)
+        check_linewidth_scale(done.widths, um_per_px, source)
     except VisionInputError as exc:
         raise click.ClickException(str(exc)) from None
     if join_record is not None:
@@ -456,41 +311,6 @@ def extract(
         )
 
 
-class _LazyProfiles:
-    """A sequence of profiles computed on demand (a 90-min print never sits in memory)."""
-
-    def __init__(self, rows: np.ndarray, make):
-        self.rows = rows
-        self.make = functools.lru_cache(maxsize=8)(make)
-
-    def __len__(self) -> int:
-        return int(self.rows.size)
-
-    def __getitem__(self, index: int) -> np.ndarray:
-        return self.make(int(self.rows[index]))
-
-
-class _Null:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
-
-
-def _open_writer(path: Path, fps: float, shape):
-    import cv2
-
-    fourcc = "mp4v" if path.suffix.lower() == ".mp4" else "FFV1"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    writer = cv2.VideoWriter(
-        str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (shape[1], shape[0]), True
-    )
-    if not writer.isOpened():
-        raise click.ClickException(f"{path}: OpenCV cannot write this video here")
-    return writer
-
-
 def _join(
     record_path,
     join_out,
@@ -501,7 +321,7 @@ def _join(
     source,
     um_per_px,
 ):
-    from ajtwin.io.records import PrintRecord, RecordError, read_record, write_record
+    # lazy CLI loading: the join loads OpenCV's vision package
     from ajtwin.vision.join import join_features
 
     try:

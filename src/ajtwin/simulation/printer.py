@@ -82,7 +82,7 @@ def _ou(rng: np.random.Generator, n: int, sd: float, tau_s: float, start=None) -
     return lfilter([1.0], [1.0, -a], noise)
 
 
-def _first_order_lag(target: np.ndarray, tau_s: float) -> np.ndarray:
+def first_order_lag(target: np.ndarray, tau_s: float) -> np.ndarray:
     """y_{k+1} = y_k + (1 − e^{−1/τ})(target_k − y_k), starting in equilibrium y_0 = target_0."""
     if tau_s <= 0:
         return target.copy()
@@ -209,7 +209,7 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
     ) + truth["droplet_current_um_per_mA"] * (
         mfc_inputs[:, 0] - truth["droplet_reference_current_mA"]
     )
-    input_shift = _first_order_lag(input_target, truth["droplet_input_lag_s"])
+    input_shift = first_order_lag(input_target, truth["droplet_input_lag_s"])
     # the trend starts at trend_um_per_h and levels off after ~droplet_trend_time_s
     # (a drift that kept its rate for 8 h would leave the physical range of d_a)
     trend_time_s = truth["droplet_trend_time_s"]

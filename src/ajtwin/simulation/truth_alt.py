@@ -46,7 +46,9 @@ def load_alt_settings() -> dict:
     return packaged_toml("data/truth_alt.toml")
 
 
-def _lag(signal: np.ndarray, tau_s: float) -> np.ndarray:
+def lag_filter(signal: np.ndarray, tau_s: float) -> np.ndarray:
+    """The second generator's first-order lag: y_k = (1 − b) y_{k−1} + b signal_k,
+    b = 1 − e^{−1/τ} [τ in s], starting in equilibrium with ``signal[0]``."""
     b = 1.0 - np.exp(-1.0 / tau_s)
     y, _ = lfilter([b], [1.0, -(1.0 - b)], signal, zi=[(1.0 - b) * signal[0]])
     return y
@@ -71,7 +73,7 @@ def alt_processes(scenario, processes, seed: int, settings: dict | None = None):
     target = d["carrier_um_per_sccm"] * (processes.mfc_inputs[:, 1] - 23.0) + d[
         "current_um_per_mA"
     ] * (processes.mfc_inputs[:, 0] - 375.0)
-    response = _lag(_lag(target, d["lag_s"][0]), d["lag_s"][1])
+    response = lag_filter(lag_filter(target, d["lag_s"][0]), d["lag_s"][1])
     processes.droplet_um = np.maximum(start + walk + response, 0.5)
 
     g = cfg["generation"]

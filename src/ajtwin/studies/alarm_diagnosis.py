@@ -31,6 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.engine.commissioning import calibrated_twin, commissioned_start
+from ajtwin.simulation.printer import run_virtual_print
+from ajtwin.studies.detection import KEYS, detector_arrays
+from ajtwin.studies.machine import commission_virtual_machine
+
 CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 
@@ -49,14 +55,13 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
         out["clog_onset_s"] = float(out["clog"].pop("onset_s"))
         return out
 
-    from bench_machine import calibrated_twin, commission_machine
 
-    from ajtwin.apps.evaluate import detector_arrays
-    from ajtwin.engine.chain import carry_over
-    from ajtwin.simulation.printer import run_virtual_print
 
-    comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)
-    start = carry_over(result.end_state, result.end_state_cov)
+    comm, done, _ = commission_virtual_machine(
+        print_seed, truth, machine_seed=machine_seed, learn_noise_scale=False
+    )
+    result = done.result
+    start = commissioned_start(result)
 
     def twin():
         return calibrated_twin(result)
@@ -105,8 +110,6 @@ def _lag1(x: np.ndarray) -> float:
 
 
 def detect(arrays: dict, settings=None, history=None):
-    from ajtwin.apps.detection.batch import detect_anomalies
-    from ajtwin.apps.evaluate import KEYS
 
     return detect_anomalies(*(arrays[f] for f in KEYS), settings=settings, long_run_history=history)
 

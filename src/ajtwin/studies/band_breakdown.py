@@ -14,17 +14,21 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from bench_machine import calibrated_twin, commission_machine, print_seed_of
+
+from ajtwin.engine.commissioning import calibrated_twin, commissioned_start
+from ajtwin.simulation.printer import run_virtual_print
+from ajtwin.studies.machine import commission_virtual_machine, print_seed_of
 
 STATES = {"d_a": 0, "V_l": 1, "ΔR_N": 3, "φ_A": 4}
 
 
 def breakdown(machine_seed: int, truth: str) -> dict:
-    from ajtwin.engine.chain import carry_over
-    from ajtwin.simulation.printer import run_virtual_print
 
     print_seed = print_seed_of(machine_seed)
-    comm, result, _ = commission_machine(print_seed, truth, machine_seed=machine_seed)
+    comm, done, _ = commission_virtual_machine(
+        print_seed, truth, machine_seed=machine_seed, learn_noise_scale=False
+    )
+    result = done.result
     nxt = run_virtual_print(
         "exp1",
         seed=print_seed + 1,
@@ -33,7 +37,7 @@ def breakdown(machine_seed: int, truth: str) -> dict:
         truth_generator=truth,
     )
     twin = calibrated_twin(result)
-    run = twin.run(nxt.record, start=carry_over(result.end_state, result.end_state_cov))
+    run = twin.run(nxt.record, start=commissioned_start(result))
     total = run.stds
     calibration = np.sqrt(np.maximum(np.diagonal(run.calibration_covariances, 0, 1, 2), 0.0))
     error = run.means - nxt.states

@@ -28,6 +28,10 @@ import time
 
 import numpy as np
 
+from ajtwin.apps.planning.strategies import start_inputs
+from ajtwin.engine.control import simulate_strategy
+from ajtwin.estimation import Twin
+
 CASES = {
     "default": {},
     "no_jitter": {
@@ -42,9 +46,6 @@ STRATEGIES = ("pi", "mpc_twin")
 
 
 def main(seeds=(1, 2, 3), minutes: float = 45.0, target: float = 65.0) -> dict:
-    from ajtwin.apps.planning.strategies import start_inputs
-    from ajtwin.engine.control import simulate_strategy
-    from ajtwin.estimation import Twin
 
     u0, _ = start_inputs(Twin.default(), target)
     out: dict = {"seeds": list(seeds), "minutes": minutes, "target_um": target, "cases": {}}

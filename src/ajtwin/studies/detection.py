@@ -8,22 +8,24 @@ alarms per 10 print-hours on clean prints. The twin runs (the slow part) are cac
 
 Examples
 --------
->>> from ajtwin.apps.evaluate import twin_arrays                       # doctest: +SKIP
+>>> from ajtwin.studies.detection import twin_arrays                       # doctest: +SKIP
 >>> arrays = twin_arrays("nozzle_clog", seed=0, cache_dir="/tmp/ajtwin-eval")  # doctest: +SKIP
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
 import click
 import numpy as np
 
-from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.batch import DetectionResult, detect_anomalies
 from ajtwin.apps.detection.settings import DetectorSettings
-from ajtwin.studies.detection import detection_delay
+from ajtwin.estimation import Twin
+from ajtwin.simulation import simulate
 
 FAULT_SCENARIOS = (
     "nozzle_clog",
@@ -52,6 +54,30 @@ KEYS = (
     "covariances",
 )
 
+
+#: where the twin runs over the scenarios are cached (delete it to re-measure)
+DEFAULT_CACHE = os.environ.get("AJTWIN_ANOMALY_CACHE", "/tmp/ajtwin-anomaly-cache")
+
+
+def detection_delay(result: DetectionResult, fault_onset_s: float | None) -> dict:
+    """Delay of the first event at or after the fault onset, and false alarms before it.
+
+    Returns
+    -------
+    dict with ``delay_s`` (NaN when missed), ``cause`` of that event, ``false_alarms``
+    (events detected before the onset; all events for a clean print).
+    """
+    if fault_onset_s is None or not np.isfinite(fault_onset_s):
+        return {"delay_s": float("nan"), "cause": None, "false_alarms": len(result.events)}
+    before = [ev for ev in result.events if ev.detected_s < fault_onset_s]
+    after = [ev for ev in result.events if ev.detected_s >= fault_onset_s]
+    if not after:
+        return {"delay_s": float("nan"), "cause": None, "false_alarms": len(before)}
+    return {
+        "delay_s": after[0].detected_s - fault_onset_s,
+        "cause": after[0].cause,
+        "false_alarms": len(before),
+    }
 
 def detector_arrays(run, record) -> dict:
     """What the detectors read from a twin run on ``record``, as NumPy arrays, named as
@@ -85,8 +111,6 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
             out = {k: data[k] for k in data.files}
         out["meta"] = json.loads(str(out.pop("meta_json")))
         return out
-    from ajtwin.estimation import Twin
-    from ajtwin.simulation import simulate
 
     rec = simulate(scenario, seed=seed, duration_min=duration_min)
     t0 = time.perf_counter()
@@ -178,8 +202,27 @@ def evaluate(
     }
 
 
+
+def summary_figures(cache_dir=DEFAULT_CACHE) -> dict:
+    """Detection delay and cause per fault scenario (seeds 0-2, 90 min), false alarms per
+    10 print-hours on clean_long (seeds 0 and 1, 8 h): the figures of the validation table."""
+    result = evaluate(cache_dir, seeds=(0, 1, 2), clean_seeds=(0, 1), progress=None)
+    out = {}
+    for scenario in sorted({r["scenario"] for r in result["faults"]}):
+        rows = [r for r in result["faults"] if r["scenario"] == scenario]
+        delays = [r["delay_s"] for r in rows]
+        out[f"{scenario}_delay_s_per_seed"] = delays
+        out[f"{scenario}_cause_correct"] = sum(r["cause"] == r["expected_cause"] for r in rows)
+        out[f"{scenario}_false_alarms_before_onset"] = sum(
+            r["false_alarms_before_onset"] for r in rows
+        )
+    out["clean_long_hours"] = round(result["clean_hours"], 2)
+    out["clean_long_alarm_events"] = result["false_alarm_events"]
+    out["false_alarms_per_10_print_hours"] = result["false_alarms_per_10h"]
+    return out
+
 @click.command()
-@click.option("--cache", "cache_dir", default="/tmp/ajtwin-anomaly-cache", show_default=True)
+@click.option("--cache", "cache_dir", default=DEFAULT_CACHE, show_default=True)
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated fault seeds.")
 @click.option("--clean-seeds", default="0", show_default=True)
 @click.option("--json-out", default=None, help="Write the full result as JSON.")

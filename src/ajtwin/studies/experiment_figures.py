@@ -1,4 +1,4 @@
-"""Figures of the estimation results (paper §8, App. G–H), matplotlib, PNG."""
+"""Figures of the paper's experiments (paper §8, App. G–H), matplotlib, PNG."""
 
 from __future__ import annotations
 
@@ -10,56 +10,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ajtwin.model import STATE_NAMES  # noqa: E402
-
-STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [–]")
-OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
-INPUT_LABELS = ("I_A [mA]", "Q_c [sccm]", "Q_s [sccm]")
-
-
-def _minutes(record):
-    return np.asarray(record.time_s) / 60.0
-
-
-def plot_states(ax_row, minutes, runs: dict, truth=None, check_minutes=(30, 60, 90)):
-    """runs: label -> (means (T,5), stds (T,5) or None, style dict)."""
-    for i, ax in enumerate(ax_row):
-        for label, (means, stds, style) in runs.items():
-            ax.plot(minutes[: len(means)], means[:, i], label=label, lw=1.1, **style)
-            if stds is not None:
-                ax.plot(
-                    minutes,
-                    means[:, i] + 2 * stds[:, i],
-                    ls=":",
-                    lw=0.8,
-                    color=style.get("color", "k"),
-                )
-                ax.plot(
-                    minutes,
-                    means[:, i] - 2 * stds[:, i],
-                    ls=":",
-                    lw=0.8,
-                    color=style.get("color", "k"),
-                )
-        if truth is not None:
-            ax.plot(minutes, truth[:, i], color="tab:red", lw=0.8, alpha=0.6, label="truth")
-            ks = [min(int(m * 60), len(truth) - 1) for m in check_minutes]
-            ax.plot(minutes[ks], truth[ks, i], "o", color="tab:red", ms=5)
-        ax.set_title(STATE_LABELS[i], fontsize=9)
-        ax.set_xlabel("time [min]")
-        ax.tick_params(labelsize=7)
-    ax_row[0].legend(fontsize=7, loc="best")
-
-
-def _save(fig, path):
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+from ajtwin.estimation.plotting import (  # noqa: E402
+    INPUT_LABELS,
+    OUTPUT_LABELS,
+    STATE_LABELS,
+    minutes_of,
+    plot_states,
+    save_figure,
+)
+from ajtwin.estimation.twin import Twin  # noqa: E402
+from ajtwin.model.names import STATE_NAMES  # noqa: E402
+from ajtwin.studies.experiments import explain_linewidth_changes, setpoints  # noqa: E402
 
 
 def exp1_figures(record, series, out: Path):
-    minutes = _minutes(record)
+    minutes = minutes_of(record)
     truth = record.true_states
     em, ekf = series["em"], series["ekf"]
     fig, axes = plt.subplots(1, 5, figsize=(20, 4))
@@ -73,7 +38,7 @@ def exp1_figures(record, series, out: Path):
         truth,
     )
     fig.suptitle("Exp 1: open-loop vs closed-loop states; truth (red) with checks at 30/60/90 min")
-    paths = [_save(fig, out / "exp1_states.png")]
+    paths = [save_figure(fig, out / "exp1_states.png")]
 
     fig, axes = plt.subplots(1, 5, figsize=(20, 3.6))
     pred = np.asarray(em.filtered.predicted_outputs)
@@ -85,7 +50,7 @@ def exp1_figures(record, series, out: Path):
         ax.set_title(f"{OUTPUT_LABELS[i]}: predicted − measured [%]", fontsize=9)
         ax.set_xlabel("time [min]")
     fig.suptitle("Exp 1: output percentage error of the closed-loop twin (one-step prediction)")
-    paths.append(_save(fig, out / "exp1_output_errors.png"))
+    paths.append(save_figure(fig, out / "exp1_output_errors.png"))
 
     fig, axes = plt.subplots(1, 5, figsize=(20, 4))
     plot_states(
@@ -98,7 +63,7 @@ def exp1_figures(record, series, out: Path):
         truth,
     )
     fig.suptitle("Exp 1 ablation (App. G): EKF alone vs EKF + EM")
-    paths.append(_save(fig, out / "exp1_ablation.png"))
+    paths.append(save_figure(fig, out / "exp1_ablation.png"))
     paths.append(
         theta_figure(
             em.theta_history,
@@ -121,18 +86,17 @@ def theta_figure(history, path, title):
         ax.set_xlabel("time [min]")
         ax.tick_params(labelsize=7)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def exp2_figures(record, series, out: Path):
-    from ajtwin.estimation.experiments import _setpoints
 
-    minutes = _minutes(record)
+    minutes = minutes_of(record)
     em = series["em"]
     fig, axes = plt.subplots(3, 5, figsize=(20, 10))
     for i in range(3):
         axes[0, i].plot(minutes, record.inputs[:, i], lw=0.5, color="tab:gray")
-        axes[0, i].plot(minutes, _setpoints(record.inputs)[:, i], lw=1.2, color="k")
+        axes[0, i].plot(minutes, setpoints(record.inputs)[:, i], lw=1.2, color="k")
         axes[0, i].set_title(INPUT_LABELS[i], fontsize=9)
     for i in (0, 1):
         axes[0, 3 + i].plot(
@@ -158,7 +122,7 @@ def exp2_figures(record, series, out: Path):
     axes[2, 3].axis("off")
     axes[2, 4].axis("off")
     fig.suptitle("Exp 2: input steps; inferred states explain the output drift")
-    paths = [_save(fig, out / "exp2_states.png")]
+    paths = [save_figure(fig, out / "exp2_states.png")]
     return paths
 
 
@@ -187,11 +151,11 @@ def exp2_drift_figure(explained: list, path):
     ax.set_ylabel("contribution to ΔL_w [µm]")
     ax.legend(fontsize=7)
     ax.set_title("Exp 2: which state explains the linewidth change")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def exp3_figures(record, series, out: Path):
-    minutes = _minutes(record)
+    minutes = minutes_of(record)
     n_cal = series["n_cal"]
     after = minutes[n_cal:]
     fig, axes = plt.subplots(1, 2, figsize=(15, 4.5))
@@ -225,16 +189,13 @@ def exp3_figures(record, series, out: Path):
         ax.set_xlabel("time [min]")
     axes[0].legend(fontsize=8)
     fig.suptitle("Exp 3: θ calibrated on t < 37.6 min, open-loop forecast afterwards")
-    return [_save(fig, out / "exp3_forecast.png")]
+    return [save_figure(fig, out / "exp3_forecast.png")]
 
 
 def experiment_figures(name, record, series, out: Path):
     if name == "exp1":
         return exp1_figures(record, series, out)
     if name == "exp2":
-        from ajtwin.estimation.experiments import explain_linewidth_changes
-        from ajtwin.estimation.twin import Twin
-
         paths = exp2_figures(record, series, out)
         explained = explain_linewidth_changes(Twin.default(), series["em"], record)
         paths.append(exp2_drift_figure(explained, out / "exp2_drift_explained.png"))
@@ -244,17 +205,3 @@ def experiment_figures(name, record, series, out: Path):
     raise ValueError(name)
 
 
-def estimate_figure(record, run, path):
-    """States (±2σ, truth when present) and measured vs predicted outputs of one run."""
-    minutes = _minutes(record)
-    fig, axes = plt.subplots(2, 5, figsize=(20, 7.5))
-    truth = record.true_states if record.has_truth else None
-    plot_states(axes[0], minutes, {"twin ±2σ": (run.means, run.stds, {"color": "k"})}, truth)
-    pred = np.asarray(run.filtered.predicted_outputs)
-    for i, ax in enumerate(axes[1]):
-        ax.plot(minutes, record.outputs[:, i], lw=0.4, color="tab:gray", label="measured")
-        ax.plot(minutes, pred[:, i], lw=1, color="k", label="twin")
-        ax.set_title(OUTPUT_LABELS[i], fontsize=9)
-        ax.set_xlabel("time [min]")
-    axes[1, 0].legend(fontsize=7)
-    return _save(fig, path)

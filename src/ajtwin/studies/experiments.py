@@ -20,10 +20,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import median_filter
 
+from ajtwin.apps.planning.forecast import forecast
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.twin import Twin, TwinRun
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
+from ajtwin.simulation import run_virtual_print, simulate
+from ajtwin.simulation.printer import first_order_lag
+from ajtwin.simulation.truth_alt import lag_filter, load_alt_settings
 from ajtwin.units import um_to_nm
 
 CHECK_MINUTES = (30, 60, 90)
@@ -73,7 +78,6 @@ def open_loop_from_start(twin: Twin, run: TwinRun, inputs) -> np.ndarray:
 
 # --------------------------------------------------------------------------- #
 def run_exp1(seed: int, twin_overrides: dict | None = None):
-    from ajtwin.simulation import simulate
 
     record = simulate("exp1", seed)
     truth = record.true_states
@@ -109,7 +113,6 @@ def run_exp1(seed: int, twin_overrides: dict | None = None):
 
 
 def run_exp2(seed: int, twin_overrides: dict | None = None):
-    from ajtwin.simulation import simulate
 
     record = simulate("exp2", seed)
     truth = record.true_states
@@ -133,7 +136,7 @@ def explain_linewidth_changes(twin: Twin, run: TwinRun, record, span_s: int = 30
     through the output model, with the nozzle term evaluated exactly.
     """
     inputs = record.inputs
-    changed = np.flatnonzero(np.any(np.abs(np.diff(_setpoints(inputs), axis=0)) > 0.5, axis=1))
+    changed = np.flatnonzero(np.any(np.abs(np.diff(setpoints(inputs), axis=0)) > 0.5, axis=1))
     # one set-point change shows as a few adjacent indices after the median filter: keep the first
     steps = [int(k) + 1 for n, k in enumerate(changed) if n == 0 or k - changed[n - 1] > 120]
     edges = [0, *steps, len(inputs)]
@@ -175,10 +178,8 @@ def explain_linewidth_changes(twin: Twin, run: TwinRun, record, span_s: int = 30
     return out
 
 
-def _setpoints(inputs, width: int = 61):
+def setpoints(inputs, width: int = 61):
     """Median-filtered inputs (MFC jitter removed) to locate set-point steps."""
-    from scipy.ndimage import median_filter
-
     return median_filter(inputs, size=(width, 1), mode="nearest")
 
 
@@ -193,7 +194,6 @@ def droplet_oracle_forecast(vp, start: int, truth: str = "model") -> np.ndarray:
 
     Returns d_a (T − start − 1,) for t = start + 1 … T − 1 [µm].
     """
-    from ajtwin.simulation.printer import _first_order_lag
 
     droplet = np.asarray(vp.processes.droplet_um, dtype=float)
     u = vp.processes.mfc_inputs
@@ -201,19 +201,18 @@ def droplet_oracle_forecast(vp, start: int, truth: str = "model") -> np.ndarray:
     t = np.arange(n, dtype=float)
     h = t[start + 1 :] - start
     if truth == "alt":
-        from ajtwin.simulation.truth_alt import _lag, load_alt_settings
 
         d = load_alt_settings()["droplet"]
         target = d["carrier_um_per_sccm"] * (u[:, 1] - 23.0) + d["current_um_per_mA"] * (
             u[:, 0] - 375.0
         )
-        response = _lag(_lag(target, d["lag_s"][0]), d["lag_s"][1])
+        response = lag_filter(lag_filter(target, d["lag_s"][0]), d["lag_s"][1])
         return droplet[start] + response[start + 1 :] - response[start]
     cfg = vp.scenario.config["truth"]
     target = cfg["droplet_carrier_um_per_sccm"] * (
         u[:, 1] - cfg["droplet_reference_carrier_sccm"]
     ) + cfg["droplet_current_um_per_mA"] * (u[:, 0] - cfg["droplet_reference_current_mA"])
-    shift = _first_order_lag(target, cfg["droplet_input_lag_s"])
+    shift = first_order_lag(target, cfg["droplet_input_lag_s"])
     rate = vp.processes.draws["droplet_trend_um_per_h"] / 3600.0
     tau = cfg["droplet_trend_time_s"]
     trend = rate * tau * -np.expm1(-t / tau) if tau > 0 else rate * t
@@ -247,8 +246,6 @@ def run_exp3(
     ``truth`` picks the virtual printer's generator: ``"model"`` (default) or ``"alt"``
     (:mod:`ajtwin.simulation.truth_alt`, evaluation only).
     """
-    from ajtwin.apps.planning.forecast import forecast
-    from ajtwin.simulation import run_virtual_print
 
     vp = run_virtual_print("exp3", seed, truth_generator=truth)
     record = vp.record
@@ -471,13 +468,14 @@ def run_experiment(
     twin_overrides=None,
     progress=None,
     truth: str = "model",
+    figures=None,
 ) -> dict:
-    """Run an experiment over seeds, write figures (first seed) and metrics.json.
+    """Run an experiment over seeds and write metrics.json (and figures of the first seed).
 
-    ``truth="alt"`` runs exp3 on the second truth generator (evaluation only).
+    ``truth="alt"`` runs exp3 on the second truth generator (evaluation only);
+    ``figures(name, record, series, out_dir)`` draws the first seed's figures
+    (:func:`ajtwin.studies.experiment_figures.experiment_figures`).
     """
-    from ajtwin.estimation import plots
-
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {name!r}; choose one of {sorted(EXPERIMENTS)}")
     out = Path(out_dir)
@@ -489,8 +487,8 @@ def run_experiment(
         extra = {"truth": truth} if name == "exp3" else {}
         record, series, metrics = EXPERIMENTS[name](seed, twin_overrides, **extra)
         per_seed.append(metrics)
-        if i == 0:
-            plots.experiment_figures(name, record, series, out)
+        if i == 0 and figures is not None:
+            figures(name, record, series, out)
         if progress:
             progress(seed)
     result = {

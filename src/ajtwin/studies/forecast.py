@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 import time
@@ -25,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.estimation.experiments import run_experiment
+from ajtwin.studies import machine_description
+from ajtwin.studies.experiments import run_experiment
 
 
 def seeds_from(text: str) -> list[int]:
@@ -153,7 +153,7 @@ def main(argv=None) -> dict:
                 print(lines[-1], flush=True)
     lines += [
         "",
-        f"CPU time {time.process_time() - started:.0f} s; load {os.getloadavg()[0]:.1f}.",
+        f"CPU time {time.process_time() - started:.0f} s on {machine_description()}.",
     ]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     (out / "summary.json").write_text(json.dumps({"seeds": seeds, "profiles": profiles}))

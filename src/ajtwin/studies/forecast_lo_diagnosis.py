@@ -16,10 +16,10 @@ import numpy as np
 from ajtwin.apps.planning.forecast import forecast
 from ajtwin.estimation import Twin
 from ajtwin.estimation.em import run_em
-from ajtwin.estimation.experiments import EXP3_CALIBRATION_END_S
 from ajtwin.model.names import STATE_NAMES
 from ajtwin.model.system import output_function
 from ajtwin.simulation import run_virtual_print
+from ajtwin.studies.experiments import EXP3_CALIBRATION_END_S
 
 
 def _rms(a) -> float:

@@ -22,6 +22,12 @@ import sys
 import time
 from pathlib import Path
 
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.live.link import OpcUaLink
+from ajtwin.store.registry import Registry
+from ajtwin.web.publisher import LivePublisher
+from ajtwin.web.server import BackgroundServer
+
 ONSET_MIN = 4.0
 DURATION_MIN = 7.0
 SPEED = 30.0
@@ -52,8 +58,6 @@ def run_live_demo(
         Called once the print has ended and the summary is written, while the dashboard
         still serves (``ajtwin demo --live --keep-open`` waits in it for Ctrl-C).
     """
-    from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.store.registry import Registry
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -67,8 +71,6 @@ def run_live_demo(
     try:
         if dashboard_port is not None:
             # before the printer starts, so a person can open the page for the whole print
-            from ajtwin.web.publisher import LivePublisher
-            from ajtwin.web.server import BackgroundServer
 
             publisher = LivePublisher()
             engine.subscribe(publisher.publish_engine)
@@ -95,7 +97,6 @@ def run_live_demo(
 
 def _serve_and_follow(out: Path, url: str, seed: int, engine, echo) -> dict:
     """The printer server child, the live link and a second (event) client; the summary."""
-    from ajtwin.live.link import OpcUaLink
 
     env = dict(os.environ)
     src = str(Path(__file__).resolve().parents[2])

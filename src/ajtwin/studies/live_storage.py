@@ -13,12 +13,13 @@ import sqlite3
 import sys
 import time
 
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.samples import Sample
+from ajtwin.simulation import simulate
+from ajtwin.store.registry import Registry
+
 
 def main(minutes: float = 90.0, path: str = "live-storage.sqlite") -> dict:
-    from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
-    from ajtwin.simulation import simulate
-    from ajtwin.store.registry import Registry
 
     for suffix in ("", "-wal", "-shm"):
         if os.path.exists(path + suffix):

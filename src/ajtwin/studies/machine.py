@@ -30,8 +30,20 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "docs" / "results" / "machine"
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.mismatch import assess_run, relabel_events
+from ajtwin.engine.commissioning import (
+    calibrated_twin,
+    commission_machine,
+    commissioned_start,
+    commissioning_long_run_history,
+)
+from ajtwin.estimation.twin import Twin
+from ajtwin.simulation.printer import run_virtual_print
+from ajtwin.studies import machine_description
+
+#: where the full run writes (relative to the working directory: the repository's root)
+OUT = Path("docs") / "results" / "machine"
 MACHINE_SEEDS = (1001, 1002, 1003, 1004, 1005)
 CHECK_MIN = (30, 60, 90)
 STATES = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
@@ -65,8 +77,6 @@ def _square_z(run, states):
 
 
 def _run(twin, record, start=None, long_run_history=None):
-    from ajtwin.apps.detection.batch import detect_run
-    from ajtwin.apps.detection.mismatch import assess_run, relabel_events
 
     t0 = time.process_time()
     run = twin.run(record, start=start)
@@ -81,15 +91,16 @@ def print_seed_of(machine_seed: int) -> int:
     return 2001 + 10 * (machine_seed - MACHINE_SEEDS[0])
 
 
-def commission_machine(print_seed, truth="alt", machine=None, machine_seed=None):
-    """The machine's 20-min commissioning print and its calibration.
+def commission_virtual_machine(
+    print_seed, truth="alt", machine=None, machine_seed=None, learn_noise_scale=True
+):
+    """A virtual machine's 20-min commissioning print, commissioned as ``ajtwin machine
+    commission`` does (:func:`ajtwin.engine.commissioning.commission_machine`).
 
     d_a is known from a droplet sizer: truth + N(0, 0.1 µm), declared ±0.1 µm.
-    Returns (commissioning print, CommissioningResult, CPU seconds of the fit).
+    ``learn_noise_scale``: also the detectors' long-run statistics (not timed).
+    Returns (commissioning print, Commissioning, CPU seconds of the fit).
     """
-    from ajtwin.estimation.commission import commission
-    from ajtwin.simulation.printer import run_virtual_print
-
     rng = np.random.default_rng(print_seed)
     comm = run_virtual_print(
         "commissioning",
@@ -99,36 +110,24 @@ def commission_machine(print_seed, truth="alt", machine=None, machine_seed=None)
         truth_generator=truth,
     )
     measured_da = float(comm.states[0, 0] + DROPLET_SIZER_STD_UM * rng.standard_normal())
+    known = {"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
     t0 = time.process_time()
-    result = commission(
-        comm.record, known={"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
-    )
-    return comm, result, time.process_time() - t0
-
-
-def calibrated_twin(result):
-    """The twin of a commissioned machine (its calibration, SEs and noise factors)."""
-    from ajtwin.estimation.twin import Twin
-
-    return Twin.default(
-        calibration=result.calibration,
-        calibration_cov=result.calibration_cov,
-        noise_factors=result.noise_factors,
-    )
+    done = commission_machine(comm.record, known=known, learn_noise_scale=False)
+    cpu = time.process_time() - t0
+    if learn_noise_scale:
+        # the detectors' long-run noise scale of this machine, as `machine commission` stores it
+        done.long_run_history = commissioning_long_run_history(comm.record, done.result)
+    return comm, done, cpu
 
 
 def evaluate_machine(
     machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
 ):
-    from ajtwin.engine.chain import carry_over
-    from ajtwin.estimation.twin import Twin
-    from ajtwin.simulation.printer import run_virtual_print
 
-    comm, result, commission_cpu = commission_machine(print_seed, truth, machine, machine_seed)
-    # the detectors' long-run noise scale of this machine, as `machine commission` stores it
-    from ajtwin.engine.commissioning import commissioning_long_run_history
-
-    history = commissioning_long_run_history(comm.record, result)
+    comm, done, commission_cpu = commission_virtual_machine(
+        print_seed, truth, machine, machine_seed
+    )
+    result, history = done.result, done.long_run_history
     truth_cal = comm.machine.calibration()._asdict()
     recovery = {
         row["parameter"]: {
@@ -147,7 +146,7 @@ def evaluate_machine(
         continue_from=comm.record,
         truth_generator=truth,
     )
-    start = carry_over(result.end_state, result.end_state_cov)
+    start = commissioned_start(result)
     checks = [m for m in CHECK_MIN if m <= minutes]
     after_run, after_status, after_events, after_cpu = _run(
         calibrated_twin(result),
@@ -207,8 +206,6 @@ def evaluate_machine(
 
 def evaluate_nominal(print_seed=2101, minutes=90.0):
     """The nominal machine, never commissioned: the guard must stay silent."""
-    from ajtwin.estimation.twin import Twin
-    from ajtwin.simulation.printer import run_virtual_print
 
     out = {}
     for generator in ("alt", "model"):
@@ -312,13 +309,13 @@ def run_all(
     return results
 
 
-def _markdown(results: dict, command: str, load: str) -> str:
+def _markdown(results: dict, command: str, computer: str) -> str:
     s = results["summary"]
     lines = [
         "# Issue 12 — the twin on machines it was not built from",
         "",
         f"Command: `{command}`  ",
-        f"Load at start: {load}; wall {results['wall_s']:.0f} s.",
+        f"Computer: {computer}; wall {results['wall_s']:.0f} s.",
         (
             "Evaluation on the SECOND truth generator (`--truth alt`, tuned nothing); machines "
             if results.get("truth", "alt") == "alt"
@@ -391,13 +388,10 @@ def main() -> dict:
 
 
 if __name__ == "__main__":
-    import os
-
     quick = "--quick" in sys.argv
     n_machines = None
     if "--machines" in sys.argv:
         n_machines = int(sys.argv[sys.argv.index("--machines") + 1])
-    load = open("/proc/loadavg").read().split()[:3] if os.path.exists("/proc/loadavg") else "?"
     seeds = None
     if "--seeds" in sys.argv:  # e.g. 1006-1020: more held-out machines, results_1006_1020.*
         first, last = (int(v) for v in sys.argv[sys.argv.index("--seeds") + 1].split("-"))
@@ -420,12 +414,12 @@ if __name__ == "__main__":
     )
     (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
     (OUT / f"{name}.partial.json").unlink(missing_ok=True)  # the whole run is in name.json
-    command = "python benchmarks/bench_machine.py" + (" --quick" if quick else "")
+    command = "python -m ajtwin.studies.machine" + (" --quick" if quick else "")
     if n_machines:
         command += f" --machines {n_machines}"
     if seeds:
         command += f" --seeds {first}-{last}"
     if truth != "alt":
         command += f" --truth {truth}"
-    (OUT / f"{name}.md").write_text(_markdown(results, command, " ".join(load)))
-    print(_markdown(results, command, " ".join(load)))
+    (OUT / f"{name}.md").write_text(_markdown(results, command, machine_description()))
+    print(_markdown(results, command, machine_description()))

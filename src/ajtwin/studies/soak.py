@@ -25,10 +25,19 @@ Example
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
+
+from ajtwin.engine.chain import carry_over, state_limits
+from ajtwin.engine.ingest import ingest_record
+from ajtwin.estimation import Twin
+from ajtwin.simulation import simulate
+from ajtwin.store.registry import Registry
 
 
 def memory_mb() -> tuple[float, float]:
@@ -81,7 +90,6 @@ class SoakReport:
         )  # fmt: skip
 
     def table(self):
-        import pandas as pd
 
         return pd.DataFrame(self.chunks)
 
@@ -111,9 +119,6 @@ def soak_print(
     -------
     SoakReport
     """
-    from ajtwin.engine.chain import carry_over, state_limits
-    from ajtwin.estimation import Twin
-    from ajtwin.simulation import simulate
 
     twin = Twin.default()
     prior_std = np.asarray(twin.config.theta_prior_std, dtype=float)
@@ -197,14 +202,8 @@ def soak_machine(
     CPU time of ``history`` and ``machine`` + ``last_print`` (what ``machine show`` reads)
     right after it.
     """
-    import tempfile
-    from pathlib import Path
 
-    import pandas as pd
 
-    from ajtwin.engine.ingest import ingest_record
-    from ajtwin.simulation import simulate
-    from ajtwin.store.registry import Registry
 
     folder = None
     if store is None:

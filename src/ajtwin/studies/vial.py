@@ -32,14 +32,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.estimation import Twin
+from ajtwin.estimation.vial import observe_vial
+from ajtwin.simulation import simulate
+from ajtwin.studies import machine_description
+from ajtwin.studies.detection import KEYS, detector_arrays
+
 CHECK_MIN = (30, 60, 90)
 
 
@@ -50,9 +55,6 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
     if path.exists():
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
-    from ajtwin.apps.evaluate import detector_arrays
-    from ajtwin.estimation import Twin
-    from ajtwin.simulation import simulate
 
     rec = simulate(scenario, seed=seed, duration_min=duration_min, truth_generator=truth)
     fill = float(rec.meta["scenario_config"]["initial"]["vial_volume_mL"])
@@ -73,9 +75,6 @@ def _case(scenario, seed, truth, variant, cache: Path, duration_min=None) -> dic
 
 
 def _evaluate(arrays: dict, variant: str) -> dict:
-    from ajtwin.apps.detection.batch import detect_anomalies
-    from ajtwin.apps.evaluate import KEYS
-    from ajtwin.estimation.vial import observe_vial
 
     inputs = None if variant == "before" else arrays["inputs"]
     det = detect_anomalies(*(arrays[k] for k in KEYS), inputs=inputs)
@@ -135,7 +134,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     if args.out is None:
         args.out = str(
-            Path(args.cache) / "quick" if args.quick else ROOT / "docs" / "results" / "vial"
+            Path(args.cache) / "quick" if args.quick else Path("docs") / "results" / "vial"
         )
     cache = Path(args.cache)
     seeds = (1,) if args.quick else (1, 2, 3, 4, 5)
@@ -167,8 +166,8 @@ def main(argv=None) -> dict:
             flush=True,
         )
     result = {
-        "command": "python benchmarks/bench_vial.py" + (" --quick" if args.quick else ""),
-        "load_at_start": os.getloadavg(),
+        "command": "python -m ajtwin.studies.vial" + (" --quick" if args.quick else ""),
+        "computer": machine_description(),
         "wall_s": time.perf_counter() - t0,
         "rows": rows,
     }
@@ -216,8 +215,8 @@ def _markdown(result) -> str:
         "# Issue 18 — the vial: before/after",
         "",
         f"Command: `{result['command']}`  ",
-        "Load at start: {:.2f} {:.2f} {:.2f}; wall {:.0f} s (twin runs cached).".format(
-            *result["load_at_start"], result["wall_s"]
+        "Computer: {}; wall {:.0f} s (twin runs cached).".format(
+            result["computer"], result["wall_s"]
         ),
         "",
         "## ink_running_low: cause of the first alarm event (target: ink_low on ≥ 4 of 5)",

@@ -2,41 +2,12 @@
 
 from __future__ import annotations
 
-import ipaddress
 import os
-import secrets
 
 import click
 
 from ajtwin.cli.options import store_option
-
-TOKEN_ENV = "AJTWIN_DASHBOARD_TOKEN"
-
-
-def is_loopback(host: str) -> bool:
-    """True for 127.0.0.0/8, ::1 and ``localhost``.
-
-    >>> is_loopback("127.0.0.1"), is_loopback("localhost"), is_loopback("0.0.0.0")
-    (True, True, False)
-    """
-    if host.strip().lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-def check_access(host: str, token: str | None) -> None:
-    """Refuse to serve beyond this computer without a token (click.UsageError)."""
-    if not is_loopback(host) and not token:
-        raise click.UsageError(
-            f"serving on {host} makes the dashboard reachable from other computers: give an "
-            f"access token with --token (or ${TOKEN_ENV}), e.g. --token "
-            f"{secrets.token_urlsafe(16)}"
-        )
-    if token is not None and len(token) < 8:
-        raise click.UsageError("the access token must have at least 8 characters")
+from ajtwin.web.access import TOKEN_ENV, check_access
 
 
 @click.command()
@@ -118,8 +89,8 @@ def dashboard(
     publisher = LivePublisher()
     feeds = []
     if virtual_scenario:
+        from ajtwin.engine.replay import VirtualPrintFeed
         from ajtwin.simulation import load_scenario
-        from ajtwin.web.feed import VirtualPrintFeed
 
         try:
             has_fault = load_scenario(virtual_scenario).fault_kind != "none"

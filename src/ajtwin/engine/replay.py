@@ -1,17 +1,19 @@
-"""A live print on the virtual printer, fed sample by sample to a :class:`LivePublisher`.
+"""A virtual print replayed as a live feed, sample by sample, to a publisher
+(:class:`ajtwin.web.publisher.LivePublisher`: ``ajtwin dashboard --virtual-print``).
 
-Stand-in for the streaming engine (``ajtwin live``) until it lands, and the source of the
-dashboard's live tests and benchmark: the virtual printer simulates a print
+The source of the dashboard's live tests and benchmark: the virtual printer simulates a
+print
 (:func:`ajtwin.simulation.simulate`), the twin runs over it (:class:`ajtwin.estimation.Twin`,
 EKF + EM, the same code ``ajtwin ingest`` runs) and the anomaly detectors over the twin's
-innovations (:func:`ajtwin.apps.anomaly.detect_run`); the result is then replayed at
+innovations (:func:`ajtwin.apps.detection.batch.detect_run`); the result is then replayed at
 ``rate_hz`` samples per second of wall time: sample k carries x̂_k ± σ, the truth, the
 one-step prediction, the measurement, the detectors' statistics at k, and the alarms
 whose detection time is k. No physics is done here.
 
 Parameters (:class:`VirtualPrintFeed`)
 --------------------------------------
-publisher : LivePublisher
+publisher : LivePublisher or any object with ``open_print``, ``publish``, ``end_print``,
+    ``announce`` and ``n_subscribers``
 machine : str, the name the samples carry
 scenario : str, a virtual-printer scenario (``nozzle_clog``, ``exp1``, …)
 seed : int
@@ -22,7 +24,7 @@ wait_for_viewer_s : float, hold the replay until a page subscribes (at most this
 
 Example
 -------
->>> from ajtwin.web.publisher import LivePublisher
+>>> from ajtwin.web.publisher import LivePublisher             # doctest: +SKIP
 >>> feed = VirtualPrintFeed(LivePublisher(), "vm1", "nozzle_clog", minutes=8,
 ...                         onset_min=3, rate_hz=50)          # doctest: +SKIP
 >>> feed.start(); feed.join(timeout=120)                       # doctest: +SKIP
@@ -35,7 +37,10 @@ import time
 
 import numpy as np
 
-from ajtwin.web.data import detector_thresholds
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.settings import cusum_thresholds
+from ajtwin.estimation import Twin
+from ajtwin.simulation import load_scenario, simulate
 
 
 class VirtualPrintFeed:
@@ -72,10 +77,6 @@ class VirtualPrintFeed:
     # ------------------------------------------------------------------ compute
     def prepare(self) -> list[dict]:
         """Simulate, run the twin and the detectors; returns the samples to publish."""
-        from ajtwin.apps.detection.batch import detect_run
-        from ajtwin.estimation import Twin
-        from ajtwin.simulation import load_scenario, simulate
-
         overrides = None
         if self.onset_min is not None and load_scenario(self.scenario).fault_kind != "none":
             overrides = {"fault": {"onset_min": float(self.onset_min)}}
@@ -90,7 +91,7 @@ class VirtualPrintFeed:
         nis = np.asarray(f.nis)
         g = np.maximum(det.cusum_pos, det.cusum_neg)
         log_p = -np.log10(np.maximum(det.window_nis_p, 1e-300))
-        thresholds = detector_thresholds(det.settings)
+        thresholds = [float(h) for h in cusum_thresholds(det.settings)]
         nis_threshold = float(-np.log10(det.settings.nis_alpha))
         truth = record.true_states if record.has_truth else None
         by_step: dict[int, list] = {}

@@ -161,21 +161,21 @@ def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
 
 
 def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkeypatch):
-    from ajtwin.apps.detection import streaming as anomaly
-    from ajtwin.engine import stream as engine
+    from ajtwin.engine import ingest
+    from ajtwin.engine.start import carried_long_run_history
 
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("m")
     seen = []
-    real = anomaly.detect_run
+    real = ingest.detect_run
 
     def spy(run, record, settings=None, long_run_history=None):
         seen.append(long_run_history)
         return real(run, record, settings, long_run_history)
 
-    monkeypatch.setattr(anomaly, "detect_run", spy)
-    first = engine.ingest_record(reg, "m", two_prints[0])
-    engine.ingest_record(reg, "m", two_prints[1])
+    monkeypatch.setattr(ingest, "detect_run", spy)
+    first = ingest.ingest_record(reg, "m", two_prints[0])
+    ingest.ingest_record(reg, "m", two_prints[1])
     assert seen[0] is None  # a new machine: nothing to carry
     stored = json.loads(
         reg._conn.execute(
@@ -187,7 +187,7 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
     assert len(stored["blocks"]["30"]) == 9 and len(stored["blocks"]["60"]) == 4
     # a dropped print's statistics are not carried (the print before it is)
     reg.set_status("m", 2, R.STATUS_DROPPED, "test")
-    assert engine.carried_long_run_history(reg, "m") == stored
+    assert carried_long_run_history(reg, "m") == stored
 
 
 def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_prints):

@@ -138,7 +138,6 @@ class MPCTwin(MPCStrategy):
         return decision
 
 
-
 STRATEGY_CLASSES = {
     "open_loop": OpenLoop,
     "pi": PIController,

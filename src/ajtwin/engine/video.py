@@ -12,7 +12,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from ajtwin.io.records import PrintRecord
-from ajtwin.vision.join import check_linewidth_scale, join_features
+from ajtwin.vision import join as vision_join
 
 
 def join_video(
@@ -59,8 +59,8 @@ def join_video(
         counts = features["status"].value_counts().to_dict() if len(features) else {}
         raise ValueError(f"{video}: no frame gave a linewidth (statuses: {counts})")
     good = features["status"].isin(("ok", "ok_std_fallback", "few_batches"))
-    check_linewidth_scale(features.loc[good, "linewidth_um"], um_per_px, video)
-    joined, summary = join_features(
+    vision_join.check_linewidth_scale(features.loc[good, "linewidth_um"], um_per_px, video)
+    joined, summary = vision_join.join_features(
         record.data,
         features,
         platen_speed_mm_s=float(record.meta.get("platen_speed_mm_s", 1.0)),
@@ -68,5 +68,3 @@ def join_video(
     meta = dict(record.meta)
     meta["vision"] = {"video": str(video), **summary}
     return PrintRecord(joined, meta), summary, features, annotated
-
-

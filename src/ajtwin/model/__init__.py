@@ -67,6 +67,7 @@ def __getattr__(name):
         return getattr(importlib.import_module("ajtwin.model.system"), name)
     raise AttributeError(f"module 'ajtwin.model' has no attribute {name!r}")
 
+
 __all__ = [
     "DigitalModel",
     "PhysicalParameters",

@@ -52,5 +52,3 @@ def plot_open_loop(times_s, states, outputs, path, title="Open-loop run"):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
-
-

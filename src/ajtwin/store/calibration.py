@@ -233,5 +233,3 @@ def pending_maintenance(registry, machine: str, since_unix: float = 0.0) -> list
         (machine_id, _last_seq(registry, machine), since_unix),
     ).fetchall()
     return [json.loads(r["event_json"]) for r in rows]
-
-

@@ -55,8 +55,6 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
         out["clog_onset_s"] = float(out["clog"].pop("onset_s"))
         return out
 
-
-
     comm, done, _ = commission_virtual_machine(
         print_seed, truth, machine_seed=machine_seed, learn_noise_scale=False
     )

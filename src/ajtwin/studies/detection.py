@@ -79,6 +79,7 @@ def detection_delay(result: DetectionResult, fault_onset_s: float | None) -> dic
         "false_alarms": len(before),
     }
 
+
 def detector_arrays(run, record) -> dict:
     """What the detectors read from a twin run on ``record``, as NumPy arrays, named as
     :data:`KEYS` (``measurements`` = the record's outputs), plus the record's true states
@@ -202,7 +203,6 @@ def evaluate(
     }
 
 
-
 def summary_figures(cache_dir=DEFAULT_CACHE) -> dict:
     """Detection delay and cause per fault scenario (seeds 0-2, 90 min), false alarms per
     10 print-hours on clean_long (seeds 0 and 1, 8 h): the figures of the validation table."""
@@ -220,6 +220,7 @@ def summary_figures(cache_dir=DEFAULT_CACHE) -> dict:
     out["clean_long_alarm_events"] = result["false_alarm_events"]
     out["false_alarms_per_10_print_hours"] = result["false_alarms_per_10h"]
     return out
+
 
 @click.command()
 @click.option("--cache", "cache_dir", default=DEFAULT_CACHE, show_default=True)

@@ -203,5 +203,3 @@ def experiment_figures(name, record, series, out: Path):
     if name == "exp3":
         return exp3_figures(record, series, out)
     raise ValueError(name)
-
-

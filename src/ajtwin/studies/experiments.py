@@ -26,9 +26,8 @@ from ajtwin.apps.planning.forecast import forecast
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.twin import Twin, TwinRun
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
-from ajtwin.simulation import run_virtual_print, simulate
+from ajtwin.simulation import run_virtual_print, simulate, truth_alt
 from ajtwin.simulation.printer import first_order_lag
-from ajtwin.simulation.truth_alt import lag_filter, load_alt_settings
 from ajtwin.units import um_to_nm
 
 CHECK_MINUTES = (30, 60, 90)
@@ -201,12 +200,11 @@ def droplet_oracle_forecast(vp, start: int, truth: str = "model") -> np.ndarray:
     t = np.arange(n, dtype=float)
     h = t[start + 1 :] - start
     if truth == "alt":
-
-        d = load_alt_settings()["droplet"]
+        d = truth_alt.load_alt_settings()["droplet"]
         target = d["carrier_um_per_sccm"] * (u[:, 1] - 23.0) + d["current_um_per_mA"] * (
             u[:, 0] - 375.0
         )
-        response = lag_filter(lag_filter(target, d["lag_s"][0]), d["lag_s"][1])
+        response = truth_alt.lag_filter(truth_alt.lag_filter(target, d["lag_s"][0]), d["lag_s"][1])
         return droplet[start] + response[start + 1 :] - response[start]
     cfg = vp.scenario.config["truth"]
     target = cfg["droplet_carrier_um_per_sccm"] * (

@@ -203,8 +203,6 @@ def soak_machine(
     right after it.
     """
 
-
-
     folder = None
     if store is None:
         folder = tempfile.TemporaryDirectory(prefix="ajtwin-soak-")

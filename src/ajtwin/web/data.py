@@ -37,6 +37,7 @@ import pandas as pd
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.detection.settings import cusum_thresholds
 from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
 from ajtwin.store import queries
 from ajtwin.store.registry import Registry, RegistryError
 
@@ -341,7 +342,7 @@ class RegistryView:
             needed = ("measurements", "predicted_outputs", "innovation_variances", "nis")
             if all(k in a for k in needed):
                 # P_k's diagonal where only key frames of P are kept (the registry's rule)
-                detector_inputs = self.registry.detector_inputs(p["id"])
+                detector_inputs = stored_detector_inputs(self.registry, p["id"])
         t = a["time_s"]
         idx = decimate(len(t), max_points)
         out = {

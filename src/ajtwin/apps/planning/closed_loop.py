@@ -213,4 +213,3 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
 # --------------------------------------------------------------------------- #
 # Merging runs made apart (per seed, per scenario, per truth generator)
 # --------------------------------------------------------------------------- #
-

@@ -32,6 +32,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.cfd.geometry import Geometry, load_geometry
+from ajtwin.cfd.physics import load_cfd_parameters
 
 #: SIMPLE iterations per mesh level: the coarse mesh reaches U residuals of 1e-7 in ~250;
 #: a fixed count, because the wedge's U_z residual stalls near 1e-6 and would block
@@ -442,8 +443,6 @@ def write_case(
     """
     g = geometry or load_geometry()
     if kinematic_viscosity is None:
-        from ajtwin.cfd.physics import load_cfd_parameters
-
         kinematic_viscosity = load_cfd_parameters().gas_viscosity / g.gas_density
     root = Path(directory)
     for sub in ("0", "constant", "system"):

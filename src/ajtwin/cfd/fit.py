@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import tomli_w
 
 from ajtwin.cfd.physics import load_cfd_parameters
 from ajtwin.config import load_toml
@@ -317,7 +318,6 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
 
 
 def write_toml(document: dict, path: str | Path) -> Path:
-    import tomli_w
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

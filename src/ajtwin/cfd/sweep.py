@@ -22,8 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
+from tqdm import tqdm
 
+from ajtwin.cfd import foam
 from ajtwin.cfd.case import CaseSpec
+from ajtwin.cfd.run import run_case
 from ajtwin.config import load_toml
 
 SUMMARY_NAME = "summary.csv"
@@ -71,7 +74,6 @@ def _case_task(
     spec_fields: dict, case_dir: str, diameters: list[float], n_droplets: int, azimuths: int
 ) -> dict:
     """Worker side: run one case; never raises (errors come back as data)."""
-    from ajtwin.cfd.run import run_case
 
     spec = CaseSpec(**spec_fields)
     start = time.perf_counter()
@@ -182,9 +184,6 @@ def run_sweep(
         Re-run cases that failed before (their ``failed.json`` is replaced).
     """
     from dask.distributed import Client, LocalCluster, as_completed
-    from tqdm import tqdm
-
-    from ajtwin.cfd import foam
 
     foam.foam_environment()  # fail early and clearly without OpenFOAM
     root = Path(root)

@@ -29,6 +29,7 @@ import numpy as np
 
 from ajtwin.cfd.flowfield import VelocityGrid
 from ajtwin.cfd.physics import CfdParameters
+from ajtwin.model.droplets import cunningham_slip_correction
 
 ACTIVE, LANDED, WALL, ESCAPED, STALLED = 0, 1, 2, 3, 4
 STATUS_NAMES = {
@@ -42,7 +43,6 @@ STATUS_NAMES = {
 
 def slip_correction(diameter_m, mean_free_path_m):
     """Cunningham C_c; the model's own implementation, as NumPy."""
-    from ajtwin.model.droplets import cunningham_slip_correction
 
     return np.asarray(cunningham_slip_correction(np.asarray(diameter_m), mean_free_path_m))
 

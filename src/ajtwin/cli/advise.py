@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from ajtwin.cli.options import SHORT, open_registry, parse_inputs, store_option
+from ajtwin.store.registry import RegistryError
 
 
 @click.command()
@@ -38,7 +39,6 @@ def advise(
     from ajtwin.apps.planning.advice import advise as run_advise
     from ajtwin.apps.planning.forecast import parse_duration
     from ajtwin.engine.start import machine_twin
-    from ajtwin.store.registry import RegistryError
 
     try:
         settle_s = int(round(parse_duration(settle)))

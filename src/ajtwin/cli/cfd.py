@@ -9,10 +9,12 @@ ajtwin cfd report OUT [--compare FINE_SWEEP]            validation figures, mesh
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
 import click
+import pandas as pd
 
 from ajtwin.config import packaged_toml, read_toml
 
@@ -57,6 +59,7 @@ def _spec_options(func):
 
 
 def _spec(deposition, carrier, sheath, mesh_level):
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.case import CaseSpec
 
     try:
@@ -66,6 +69,7 @@ def _spec(deposition, carrier, sheath, mesh_level):
 
 
 def _geometry(path):
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.geometry import load_geometry
 
     try:
@@ -85,16 +89,17 @@ _droplet_range_option = click.option(
 
 def _fit_window(droplet_range) -> tuple[float, float]:
     """The d_a window of the fit: the option if given, else sweep.toml's [fit]."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.fit import fit_settings
 
     return tuple(droplet_range) if droplet_range else fit_settings()["droplet_range_um"]
 
 
 def _foam_errors(func):
-    import functools
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.cfd.foam import OpenFoamError, OpenFoamMissing
 
         try:
@@ -117,6 +122,7 @@ def cfd():
 @_spec_options
 def case(out, geometry, deposition, carrier, sheath, mesh_level):
     """Write an OpenFOAM case (axisymmetric wedge of the deposition head) to OUT."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.case import write_case
 
     spec = _spec(deposition, carrier, sheath, mesh_level)
@@ -144,6 +150,7 @@ def case(out, geometry, deposition, carrier, sheath, mesh_level):
 @_foam_errors
 def run(out, geometry, deposition, carrier, sheath, mesh_level, diameters, droplets, force):
     """Solve one case and report max gas speed, R_3^N, linewidth and overspray."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.run import run_case
 
     spec = _spec(deposition, carrier, sheath, mesh_level)
@@ -190,6 +197,7 @@ def run(out, geometry, deposition, carrier, sheath, mesh_level, diameters, dropl
 @_foam_errors
 def sweep(out, design, design_file, mesh_level, scheduler, workers, no_retry_failed):
     """Run or resume a sweep in OUT (finished cases are skipped, failures recorded)."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd.sweep import load_design, run_sweep
 
     try:
@@ -246,8 +254,8 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
     ajtwin/data/output_coefficients.toml (with --reference pointing at the
     provisional file that supplies alpha^phi).
     """
-    import pandas as pd
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd import fit as fitting
     from ajtwin.cfd.report import sweep_metadata
 
@@ -303,8 +311,8 @@ def fit(sweep_dir, coefficients_out, resistance_out, reference, table_record, dr
 )
 def report(sweep_dir, fine_dir, json_out, droplet_range, plot_out):
     """Validation figures against the paper (and a mesh-independence comparison)."""
-    import pandas as pd
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cfd import fit as fitting
     from ajtwin.cfd import report as reporting
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import click
 
 from ajtwin.cli.options import join_options
+from ajtwin.io.records import PrintRecord, RecordError, read_record, write_record
 
 _SMOOTHING_HELP = (
     "σ (µm) of the Gaussian smoothing of profilometer scans before registration "
@@ -31,6 +32,7 @@ def _smoothing_option(f):
 
 
 def _synthetic(n_pairs, n_columns, seed, um_per_px, progress, scan_smoothing_um=None):
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.synth import synthetic_labelled, synthetic_pairs
 
     pairs = synthetic_pairs(
@@ -55,6 +57,7 @@ def _load_data(
     progress,
     scan_smoothing_um=None,
 ):
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import load_dataset
 
     if synthetic:
@@ -73,6 +76,7 @@ def _load_data(
 
 @functools.cache
 def _training_recipe() -> dict:
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import settings
 
     return settings()["training"]
@@ -219,6 +223,7 @@ def _training_options(f):
 
 
 def _config(kw):
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.train import TrainConfig
 
     return TrainConfig(
@@ -258,6 +263,7 @@ def cnn():
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def synth(out_dir, n_pairs, n_columns, seed, um_per_px, scan_smoothing_um, progress):
     """Render synthetic training data: OUT_DIR/pairs.npz and OUT_DIR/columns.npz."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import save_dataset
 
     pairs, labelled = _synthetic(n_pairs, n_columns, seed, um_per_px, progress, scan_smoothing_um)
@@ -284,6 +290,7 @@ def pairs(manifest, um_per_px, out, half_width_px, scan_smoothing_um):
     Columns: frame, column_px, line_row_px, scan, scan_row, scan_pixel_size_um
     (blank = from the scan file), optional height_unit. See docs/profile_cnn.md.
     """
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import pairs_from_manifest, save_dataset
 
     try:
@@ -307,6 +314,7 @@ def pairs(manifest, um_per_px, out, half_width_px, scan_smoothing_um):
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def columns(video, um_per_px, out, batch, fps, progress):
     """Stage-2 data from real VIDEO: batch columns labelled by the CV extractor."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import save_dataset
     from ajtwin.profile_cnn.frames import labelled_columns_from_video
     from ajtwin.vision.extract import VisionInputError
@@ -339,6 +347,7 @@ def columns(video, um_per_px, out, batch, fps, progress):
 )
 def train(out, checkpoint, resume, init_path, **kw):
     """Train the CNN: stage 1 on profile pairs, stage 2 on CV-labelled columns."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.model import ProfileModel
     from ajtwin.profile_cnn.train import train_restarts
 
@@ -409,6 +418,7 @@ def crossval(k, only, out, **kw):
     Writes OUT after every fold; re-running with the same settings skips the
     folds already done.
     """
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.evaluate import cross_validate
 
     pairs_ds, labelled = _load_data(
@@ -455,6 +465,7 @@ def crossval(k, only, out, **kw):
 )
 def score(model_path, pairs_path, columns_path):
     """Score a model on held-out data sets (MAEs, Q_m error), as JSON."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import load_dataset
     from ajtwin.profile_cnn.evaluate import score as score_model
     from ajtwin.profile_cnn.model import ProfileModel, set_threads
@@ -478,6 +489,7 @@ def score(model_path, pairs_path, columns_path):
 @click.option("--out", type=click.Path(dir_okay=False), required=True)
 def cv_summary(parts, out):
     """Merge cross-validation JSONs of folds run in separate processes (--only-fold)."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.evaluate import summarize
 
     merged = None
@@ -494,6 +506,7 @@ def cv_summary(parts, out):
     merged["folds"].sort(key=lambda f: f["fold"])
     merged["summary"] = summarize(merged["folds"])
     Path(out).write_text(json.dumps(merged, indent=2))
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.evaluate import report_table
 
     click.echo(report_table(merged["summary"]))
@@ -531,6 +544,7 @@ def infer(
     CSV columns: frame, time_s, material_flow_mL_s, then material_flow_std_mL_s
     (spread over the frame's batches), cross_section_um2, n_columns, status.
     """
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.infer import infer_video
     from ajtwin.profile_cnn.model import ProfileModel, set_threads
     from ajtwin.vision.extract import VisionInputError
@@ -567,7 +581,7 @@ def infer(
 
 
 def _join(record_path, join_out, table, start_offset_s, camera_offset_um, speed, video, model):
-    from ajtwin.io.records import PrintRecord, RecordError, read_record, write_record
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.infer import join_material_flow
 
     record_path = Path(record_path)

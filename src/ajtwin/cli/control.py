@@ -7,11 +7,16 @@ over OPC UA (:mod:`ajtwin.live.control_link`).
 
 from __future__ import annotations
 
+import asyncio
+import json
+import logging
 from pathlib import Path
 
 import click
+from tqdm import tqdm
 
 from ajtwin.cli.options import parse_seeds, store_option
+from ajtwin.store.registry import Registry, RegistryError
 
 
 def _parse_horizon(text) -> int | None:
@@ -134,12 +139,10 @@ def _control_live(
     verbose,
     vial_fill_ml=None,
 ):
-    import asyncio
-    import logging
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.planning.mpc import ControlSettings, TargetError
     from ajtwin.live.control_link import ControlLink, LinkRefused
-    from ajtwin.store.registry import Registry, RegistryError
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -246,8 +249,8 @@ def simulate(
     Writes DIR/<scenario>/seed<N>/<strategy>.parquet (the closed-loop print, record format)
     with <strategy>_commands.csv, DIR/metrics.json and one figure DIR/<scenario>.png.
     """
-    from tqdm import tqdm
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.planning.closed_loop import STRATEGIES, resolve_scenario
     from ajtwin.apps.planning.mpc import ControlSettings, TargetError
     from ajtwin.simulation.scenarios import load_scenario
@@ -316,8 +319,8 @@ def merge(runs, out_dir):
     recomputed summaries; a scenario of the second truth generator as NAME@alt) and
     OUT/metrics.md (the comparison table), and prints the table.
     """
-    import json
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.studies.control import merge_results, metrics_table
 
     try:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import click
 
 from ajtwin.cli.options import store_option
+from ajtwin.store.registry import RegistryError, default_store_path
 from ajtwin.web.access import TOKEN_ENV, check_access
 
 
@@ -75,20 +77,20 @@ def dashboard(
     Bound to 127.0.0.1 by default; any other address needs --token. Open the printed
     address in a browser; every script is served by this process (no internet needed).
     """
-    from pathlib import Path
-
-    from ajtwin.store.registry import RegistryError, default_store_path
 
     check_access(host, token)
     path = Path(store) if store else default_store_path()
+    # lazy CLI loading: imported when the command runs, not for --help
     import uvicorn
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.web.app import create_app
     from ajtwin.web.publisher import LivePublisher
 
     publisher = LivePublisher()
     feeds = []
     if virtual_scenario:
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.engine.replay import VirtualPrintFeed
         from ajtwin.simulation import load_scenario
 
@@ -123,6 +125,7 @@ def dashboard(
     url = f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
     click.echo(f"ajtwin dashboard on {path}: open {url}  (Ctrl-C stops it)", err=True)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.web.websocket import SERVER_OPTIONS
 
     uvicorn.run(app, host=host, port=port, log_level="warning", **SERVER_OPTIONS)

@@ -6,8 +6,11 @@ from pathlib import Path
 
 import click
 import numpy as np
+from tqdm import tqdm
 
 from ajtwin.cli.options import BoundedFloat, check_vial_fill
+from ajtwin.io.records import read_record
+from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
 
 def parse_early_em(text: str) -> tuple:
@@ -119,10 +122,9 @@ def estimate(
     plot_path,
 ):
     """Run the twin over a print record: hidden states with uncertainty, θ history."""
-    from tqdm import tqdm
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.estimation.twin import Twin
-    from ajtwin.io.records import read_record
 
     try:
         record = read_record(record_path)
@@ -130,7 +132,7 @@ def estimate(
         raise click.ClickException(str(exc)) from None
     calibration = calibration_cov = noise_factors = None
     if calibration_path is not None:
-        from ajtwin.model import OUTPUT_NAMES
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.model.calibration import read_calibration_file
 
         try:
@@ -169,13 +171,14 @@ def estimate(
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
     frame = run.to_frame(smoothed=smooth)
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.detection.mismatch import assess_run
 
     # the guard: never return states from a model that does not fit without saying so
     mismatch = assess_run(run, record)
     frame["mismatch"] = mismatch.flags
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
-    from ajtwin.model import STATE_NAMES
 
     # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
     share = data_share(run.filtered)
@@ -217,6 +220,7 @@ def estimate(
             err=True,
         )
     if plot_path:
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.estimation.plotting import estimate_figure
 
         estimate_figure(record, run, plot_path)

@@ -8,6 +8,7 @@ import click
 import numpy as np
 
 from ajtwin.cli.options import SHORT, open_registry, parse_inputs, store_option
+from ajtwin.store.registry import RegistryError
 
 
 @click.command()
@@ -79,7 +80,6 @@ def forecast(
         plot_forecast,
     )
     from ajtwin.engine.start import input_response_at_end, machine_twin
-    from ajtwin.store.registry import RegistryError
 
     try:
         horizon_s = parse_duration(horizon)

@@ -32,6 +32,7 @@ from ajtwin.store.registry import RegistryError, printable
 def ingest(machine_name, record, video, um_per_px, progress, store):
     """Run the machine's twin over RECORD (from its last state and θ) and store it."""
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.ingest import ingest_file
 
     if video is not None and um_per_px is None:

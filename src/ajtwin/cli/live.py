@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from pathlib import Path
 
@@ -68,8 +69,8 @@ def live(
     store,
 ):
     """Run the live twin beside a machine (OPC UA, or a growing CSV with --follow)."""
-    import asyncio
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.fleet import LiveEngine
     from ajtwin.live.link import LinkRefused, OpcUaLink, follow_csv
 
@@ -78,6 +79,7 @@ def live(
         raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.model.droplet_dynamics import transition_profiles
 
     if transition not in transition_profiles():
@@ -97,6 +99,7 @@ def live(
     dashboard = None
     if dashboard_port is not None:
         # the dashboard in a thread of this process; every engine message is pushed to it
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.web.publisher import LivePublisher
         from ajtwin.web.server import BackgroundServer
 
@@ -107,6 +110,7 @@ def live(
         dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
         click.echo(f"dashboard: open {dashboard.url}", err=True)
     if generate_certificate:
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.live.printer_server import ensure_certificate
 
         if certificate is None or private_key is None:

@@ -10,7 +10,9 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin import units
 from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
 
 
@@ -121,8 +123,6 @@ def check_vial_fill(ctx, param, value):
     """Click callback: the vial fill level must be in (0, V_v) mL (V_v from parameters.toml)."""
     if value is None:
         return value
-    from ajtwin import units
-    from ajtwin.model import load_parameters
 
     capacity = units.m3_to_ml(load_parameters().vial_volume)
     if not 0.0 < value < capacity:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
+from urllib.parse import urlparse
 
 import click
 
@@ -77,9 +79,8 @@ def serve(
     verbose,
 ):
     """Serve N virtual printers over OPC UA in real (--speed 1) or accelerated time."""
-    import asyncio
-    from urllib.parse import urlparse
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine, ensure_certificate
 
     configure_logging(verbose)

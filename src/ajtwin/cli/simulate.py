@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from ajtwin.cli.options import BoundedFloat
+from ajtwin.io.records import RecordError, read_record, write_record
 
 
 @click.command()
@@ -92,6 +93,7 @@ def simulate(
 
     Example: ajtwin simulate --scenario exp3 --seed 1 --out print.parquet
     """
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.scenarios import list_scenarios, load_scenario
 
     if list_only:
@@ -103,13 +105,11 @@ def simulate(
         raise click.UsageError("--out is required (a .parquet or .csv path)")
     if out.suffix.lower() not in (".parquet", ".pq", ".csv"):
         raise click.BadParameter(f"{out}: use a .parquet or .csv suffix", param_hint="--out")
-    from ajtwin.io.records import write_record
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.printer import simulate as run
 
     previous = None
     if continue_from is not None:
-        from ajtwin.io.records import RecordError, read_record
-
         try:
             previous = read_record(continue_from)
         except RecordError as exc:
@@ -143,6 +143,7 @@ def simulate(
             + ", ".join(f"{k} {v:.4g}" for k, v in cal.items())
         )
     if plot_path is not None:
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.simulation.plotting import plot_record
 
         plot_record(record, plot_path)
@@ -175,7 +176,7 @@ def plot(record_path, output, aliases, nominal):
 
     Example: ajtwin plot print.parquet -o print.png
     """
-    from ajtwin.io.records import RecordError, read_record
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.plotting import plot_record
 
     try:

@@ -31,6 +31,7 @@ import numpy as np
 from ajtwin._jax import jnp
 from ajtwin.config import packaged_toml
 from ajtwin.estimation.filters import DEFAULT_SCALING, ModelFunctions, ModelSpec, Scaling, ekf
+from ajtwin.estimation.twin import TwinConfig
 from ajtwin.model import DigitalModel
 from ajtwin.model.calibration import (
     CALIBRATION_NAMES,
@@ -263,7 +264,6 @@ def commission(
     CommissioningError
         The print is too short, has no input steps, or lacks camera/pressure data.
     """
-    from ajtwin.estimation.twin import TwinConfig
 
     if record is not None:
         inputs, measurements = record.inputs, record.outputs

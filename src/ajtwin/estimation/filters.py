@@ -40,6 +40,8 @@ P_{k+1,k|N} = P_{k+1|N} J_kᵀ is returned for the EM M-step.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -505,8 +507,6 @@ def ekf_fleet_threaded(
     ``workers``: default ``os.cpu_count()``, at most one block per machine. Returns
     NumPy arrays with the leading machine axis.
     """
-    import os
-    from concurrent.futures import ThreadPoolExecutor
 
     arrays = [np.asarray(a) for a in (prior_means, prior_covs, inputs, measurements, thetas)]
     n_machines = arrays[0].shape[0]

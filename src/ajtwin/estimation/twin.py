@@ -21,7 +21,9 @@ import numpy as np
 import pandas as pd
 
 from ajtwin._jax import jax, jnp
+from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
 from ajtwin.estimation.em import run_em
+from ajtwin.estimation.em_calibration import output_m_step
 from ajtwin.estimation.filters import (
     DEFAULT_SCALING,
     FilterResult,
@@ -38,7 +40,10 @@ from ajtwin.estimation.record_checks import (
     check_output_scales,
     observed_states,
 )
+from ajtwin.estimation.vial import load_vial_settings, observe_vial
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
+from ajtwin.model.calibration import CalibratedCoefficients, Calibration
+from ajtwin.model.droplet_dynamics import DropletStep, augment_inputs, load_droplet_dynamics
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import check_input
 
@@ -123,15 +128,12 @@ class TwinConfig:
             initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
             initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
-        from ajtwin.estimation.vial import load_vial_settings
 
         initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
         base = replace(
             cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
         )
         if base.transition != "paper":
-            from ajtwin.model.droplet_dynamics import load_droplet_dynamics
-
             dynamics = load_droplet_dynamics(base.transition)
             # the profile's bound on θ_da (its MAP prior), unless the caller set one
             if dynamics.theta_prior_std > 0 and "theta_prior_std" not in overrides:
@@ -290,7 +292,6 @@ def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFun
     functions = model_functions(method)
     if transition == "paper":
         return functions
-    from ajtwin.model.droplet_dynamics import DropletStep, load_droplet_dynamics
 
     dynamics = load_droplet_dynamics(transition)
     if dynamics.is_paper:
@@ -392,8 +393,6 @@ class Twin:
         self._learned_var = None
         coefficients = jnp.asarray(model.coefficient_matrix)
         if calibration is not None:
-            from ajtwin.model.calibration import CalibratedCoefficients
-
             coefficients = CalibratedCoefficients(coefficients, calibration)
         update_mask = None
         if config.vial_consider:
@@ -419,7 +418,6 @@ class Twin:
     @property
     def droplet_dynamics(self):
         """The transition profile (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
-        from ajtwin.model.droplet_dynamics import load_droplet_dynamics
 
         return load_droplet_dynamics(self.config.transition)
 
@@ -428,7 +426,6 @@ class Twin:
         (T, 4) for an ``input_following`` profile, unchanged otherwise."""
         if self.config.transition == "paper":
             return np.asarray(inputs, dtype=float)
-        from ajtwin.model.droplet_dynamics import augment_inputs
 
         return augment_inputs(inputs, self.droplet_dynamics, response0, self.spec.dt)
 
@@ -455,8 +452,6 @@ class Twin:
 
     def _output_em(self, smoothed, inputs, measurements) -> dict:
         """Line offsets and output noise by EM over a window (pressures never)."""
-        from ajtwin.estimation.em_calibration import output_m_step
-        from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 
         c = self.config
         commissioned = self.commissioned_calibration or Calibration.identity()
@@ -681,8 +676,6 @@ class Twin:
         self.theta = theta
         calibration_covariances = None
         if self.calibration is not None and self.calibration_cov is not None:
-            from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
-
             calibration_covariances = calibration_state_covariance(
                 self.spec,
                 filtered,
@@ -693,8 +686,6 @@ class Twin:
             )
         vial = None
         if np.isfinite(measurements[:, 4]).any():
-            from ajtwin.estimation.vial import observe_vial
-
             gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
             vial = observe_vial(
                 inputs,

@@ -33,6 +33,7 @@ Examples
 
 from __future__ import annotations
 
+import codecs
 import copy
 import csv
 import json
@@ -728,7 +729,6 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
 
 def _first_non_utf8(path: Path) -> tuple[int, int]:
     """File line (from 1) and value of the first byte that is not valid UTF-8."""
-    import codecs
 
     decoder = codecs.getincrementaldecoder("utf-8")()
     lines = 1

@@ -34,10 +34,22 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from asyncua import ua
 
-from ajtwin.apps.planning.mpc import TargetError
+from ajtwin.apps.planning.advice import effective_bounds
+from ajtwin.apps.planning.mpc import (
+    ControlSettings,
+    TargetError,
+    check_target,
+    clip_command,
+    reachable_linewidth,
+)
+from ajtwin.apps.planning.strategies import Decision
+from ajtwin.engine.control import MPCTwin
+from ajtwin.estimation import Twin
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.control")
 
@@ -111,14 +123,12 @@ class ControlLink:
         on_decision=None,
         vial_fill_ml: float | None = None,
     ):
-        from ajtwin.apps.planning.mpc import ControlSettings, check_target
 
         # the vial's fill as weighed at the refill: the start of the controller's ink
         # balance and of the vial observer (None: the twin's default, 1 mL)
         if vial_fill_ml is not None and not (np.isfinite(vial_fill_ml) and vial_fill_ml > 0):
             raise ValueError(f"vial fill = {vial_fill_ml!r} mL must be a positive number")
         self.vial_fill_ml = vial_fill_ml
-        from ajtwin.store.registry import DEFAULT_LIMITS
 
         self.url, self.machine = url, machine
         self.target_um = check_target(target_um)
@@ -154,9 +164,6 @@ class ControlLink:
     def prepare(self):
         """Build the twin and the MPC (and compile them); done on the first connection
         unless called before (a test calls it before the server's clock starts)."""
-        from ajtwin.apps.planning.advice import effective_bounds
-        from ajtwin.engine.control import MPCTwin
-        from ajtwin.estimation import Twin
 
         if self.controller is not None:
             return
@@ -176,7 +183,6 @@ class ControlLink:
     def check_reachable(self, mean, cov) -> tuple[float, float]:
         """Once the twin has a state: is the target reachable within the limits from it?
         :class:`TargetError` with the reachable range when not (nothing is written)."""
-        from ajtwin.apps.planning.mpc import check_target, reachable_linewidth
 
         reach = reachable_linewidth(self.controller.twin, mean, cov, self.bounds)
         check_target(self.target_um, reach)
@@ -186,7 +192,6 @@ class ControlLink:
 
     def _apply_eu_ranges(self, ranges: dict) -> None:
         """Intersect the limits with the server's EURange of each set-point."""
-        from ajtwin.apps.planning.advice import effective_bounds
 
         changed = False
         for column, (low, high) in ranges.items():
@@ -243,7 +248,6 @@ class ControlLink:
         return self.decisions
 
     async def _session(self, stop):
-        from asyncua import ua
 
         client = await self._login._client()
         self._client = client
@@ -345,8 +349,6 @@ class ControlLink:
         return np.array([float(await n.read_value()) for n in setpoints.values()])
 
     async def _decide(self, setpoints) -> None:
-        from ajtwin.apps.planning.mpc import clip_command
-        from ajtwin.apps.planning.strategies import Decision
 
         s = self.settings
         t = float(self.last_time + 1)
@@ -403,7 +405,6 @@ class ControlLink:
             self.on_decision(record)
 
     async def _write(self, setpoints, values: dict, probe: bool = False) -> None:
-        from asyncua import ua
 
         for column, value in values.items():
             if not probe:  # the probe writes back the machine's own values

@@ -28,9 +28,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from asyncua import Client, ua
 
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 from ajtwin.live.opcua import (
     HEALTH_STATES,
     NAMESPACE_URI,
@@ -184,7 +186,6 @@ class OpcUaLink:
         self._announce("ended")
 
     async def _client(self):
-        from asyncua import Client
 
         client = Client(self.url, timeout=self.timeout_s)
         client.session_timeout = 30000
@@ -203,7 +204,6 @@ class OpcUaLink:
         return client
 
     async def _session(self, stop):
-        from asyncua import ua
 
         client = await self._client()
         async with client:
@@ -279,7 +279,6 @@ class OpcUaLink:
 
     async def _connected(self, client, nodes) -> None:
         """The link is up: publish it, and write each machine's ``Health/LinkStatus``."""
-        from asyncua import ua
 
         gap_s = None if self._lost_at is None else time.time() - self._lost_at
         attempts = self._attempt
@@ -298,7 +297,6 @@ class OpcUaLink:
                 log.warning("%s: could not write Health/LinkStatus (%s)", name, exc)
 
     async def _nodes(self, client, idx, name) -> dict:
-        from asyncua import ua
 
         def node(*parts):
             return client.get_node(ua.NodeId(node_path(name, *parts), idx))
@@ -343,7 +341,6 @@ class OpcUaLink:
         return messages
 
     async def _publish(self, client, nodes, messages):
-        from asyncua import ua
 
         latest = {}
         for m in messages:
@@ -453,7 +450,6 @@ async def follow_csv(
     Returns the registry print id when the print was closed after ``idle_timeout_s``
     seconds without a new line (None: stopped, the session stays open and resumable).
     """
-    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 
     path = Path(path)
     header = None

@@ -48,6 +48,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from ajtwin.config import packaged_toml
 from ajtwin.units import m_to_um, to_si
@@ -79,7 +80,6 @@ def smooth_scan(h_um, pixel_size_um: float, sigma_um: float) -> np.ndarray:
         raise ValueError(f"scan smoothing σ must be ≥ 0 µm, got {sigma_um}")
     if sigma_um == 0:
         return h
-    from scipy.ndimage import gaussian_filter1d
 
     return gaussian_filter1d(h, sigma_um / pixel_size_um, mode="nearest", truncate=4.0)
 

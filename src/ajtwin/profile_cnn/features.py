@@ -38,7 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter1d
 
+from ajtwin.profile_cnn.data import default_scan_smoothing_um
 from ajtwin.vision.features import find_edges
 from ajtwin.vision.profile import optics as vision_optics
 
@@ -199,9 +201,6 @@ def read_features(h_um, um_per_px: float, *, sigma_um: float | None = None, trie
     fallback : ndarray (N,) bool
         Profiles read through the smoothing fallback.
     """
-    from scipy.ndimage import gaussian_filter1d
-
-    from ajtwin.profile_cnn.data import default_scan_smoothing_um
 
     h = np.atleast_2d(np.asarray(h_um, dtype=np.float64))
     lw, ov = features_numpy(h, um_per_px)

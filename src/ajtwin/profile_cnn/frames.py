@@ -16,9 +16,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from tqdm.auto import tqdm
 
+from ajtwin.profile_cnn.data import ColumnDataset
 from ajtwin.vision import features as vision_features
-from ajtwin.vision.extract import FrameResult, LineExtractor, to_gray
+from ajtwin.vision.extract import FrameResult, LineExtractor, open_source, to_gray
 
 
 @dataclass
@@ -131,10 +133,6 @@ def labelled_columns_from_video(
     -------
     ColumnDataset
     """
-    from tqdm.auto import tqdm
-
-    from ajtwin.profile_cnn.data import ColumnDataset
-    from ajtwin.vision.extract import open_source
 
     frames = open_source(source, fps)
     extractor = LineExtractor(um_per_px, batch=batch)

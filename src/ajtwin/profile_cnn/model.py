@@ -8,6 +8,7 @@ and returns height profiles in µm on the column's pixel grid.
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,6 @@ def set_threads(n_threads: int | None = None) -> int:
     threads were 6–20× *slower* than one (barrier spinning when other
     processes hold the cores); give 2 on an idle machine.
     """
-    import os
 
     if n_threads is None:
         n_threads = int(os.environ.get("AJTWIN_TORCH_THREADS", 1))

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -576,7 +576,6 @@ def train_restarts(
         The kept model (its meta lists every restart's seed and score), all
         trainers, and the index of the kept one.
     """
-    from dataclasses import replace
 
     n = int(config.restarts)
     if n < 1:

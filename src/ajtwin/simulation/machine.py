@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ajtwin.config import packaged_toml
+from ajtwin.model import DigitalModel
 from ajtwin.model.calibration import Calibration, apply_calibration
 
 #: Reference operating point of the line levels [mA, sccm, sccm], d_a [µm], V_l [mL].
@@ -110,7 +111,6 @@ def nominal_machine() -> MachineDeviation:
 
 def _reference_lines() -> np.ndarray:
     """Nominal (L_w, L_o) [µm] at the reference point."""
-    from ajtwin.model import DigitalModel
 
     model = DigitalModel.default()
     aerosol = float(model.steady_aerosol_fraction(REFERENCE_INPUT, REFERENCE_VIAL_ML))

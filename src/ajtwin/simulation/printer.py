@@ -40,10 +40,11 @@ from ajtwin.io.records import (
     PrintRecord,
 )
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
-from ajtwin.model.system import output_function
+from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
+from ajtwin.simulation.truth_alt import alt_measure, alt_processes, integrate_alt_truth
 
 # Named random streams, in a fixed order (append only: never reorder).
 STREAMS = (
@@ -101,7 +102,6 @@ def true_line_coefficients(nominal: np.ndarray, factors: np.ndarray, params) -> 
     point (d_a 3.5 µm, φ_A in balance at 375 mA/23 sccm/1 mL, clean nozzle, Q_s 50 sccm):
     the mismatch is in how the line *responds*, not a constant bias.
     """
-    from ajtwin.model.system import steady_aerosol_fraction
 
     truth = np.array(nominal, dtype=float).copy()
     truth[:, :7] = nominal[:, :7] * factors
@@ -425,15 +425,11 @@ def run_virtual_print(
     if truth_generator not in ("model", "alt"):
         raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import alt_processes
-
         processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
     x0 = true_initial_state(scenario, processes, params, streams)
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import integrate_alt_truth
-
         truth = integrate_alt_truth(
             x0,
             processes.droplet_um,
@@ -464,8 +460,6 @@ def run_virtual_print(
     # this machine's plumbing, gauges, line model and camera (identity: nominal machine)
     outputs_true = deviation.apply(outputs_true, states, processes.head_inputs, params)
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import alt_measure
-
         inputs, outputs = alt_measure(scenario, processes, outputs_true, int(seed))
     else:
         inputs, outputs = measure(scenario, processes, outputs_true, streams)

@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from asyncua import Client, ua
+
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.live.link import OpcUaLink
 from ajtwin.store.registry import Registry
@@ -138,7 +140,6 @@ def _serve_and_follow(out: Path, url: str, seed: int, engine, echo) -> dict:
     t0 = time.monotonic()
 
     async def listen(done: asyncio.Event):
-        from asyncua import Client, ua
 
         while not done.is_set():
             try:

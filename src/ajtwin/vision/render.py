@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import scipy.fft
 from scipy.ndimage import gaussian_filter1d
+from tqdm import tqdm
 
 from ajtwin.units import mm_per_s_to_um_per_s
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
@@ -521,7 +522,6 @@ def render_video(
     -------
     Path of the truth JSON.
     """
-    from tqdm import tqdm
 
     settings = RenderSettings.from_defaults() if settings is None else settings
     settings.validate()

@@ -41,9 +41,12 @@ from fastapi import FastAPI, Request, Response, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, PlainTextResponse
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.planning.advice import advise
+from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, parse_duration
 from ajtwin.store.registry import RegistryError
 from ajtwin.web import pages
-from ajtwin.web.data import NAMES, RegistryView
+from ajtwin.web.data import KEY_STATES, NAMES, STATE_UNITS, RegistryView, json_list
 from ajtwin.web.publisher import LivePublisher, event_text
 from ajtwin.web.watcher import RegistryWatcher
 
@@ -101,7 +104,6 @@ def _number(text, what: str) -> float:
 
 
 def _duration(text, what: str) -> float:
-    from ajtwin.apps.planning.forecast import parse_duration
 
     try:
         return parse_duration(str(text))
@@ -122,7 +124,6 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
 
     Raises InputError with a sentence naming the field when a value cannot be used.
     """
-    from ajtwin.apps.planning.forecast import Change, input_schedule
 
     if not isinstance(body, dict):
         raise InputError("the request must be a JSON object")
@@ -391,7 +392,6 @@ def create_app(
         return await asyncio.to_thread(run_forecast, name, body)
 
     def run_forecast(name: str, body):
-        from ajtwin.apps.planning.forecast import forecast
 
         twin, mean, cov, u_now, limits, seq = view.forecast_start(name)
         schedule, changes, horizon_s, options = parse_forecast_request(body, limits, u_now)
@@ -428,7 +428,6 @@ def create_app(
         return await asyncio.to_thread(run_advise, name, body)
 
     def run_advise(name: str, body):
-        from ajtwin.apps.planning.advice import advise
 
         req = parse_advise_request(body)
         twin, mean, cov, u_now, limits, seq = view.forecast_start(name, req["nominal_theta"])
@@ -554,8 +553,6 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
     if printing or entry.get("live_only"):
         entry["live"] = {"time_s": latest["time_s"], "printing": printing}
         if latest.get("states") is not None:
-            from ajtwin.web.data import KEY_STATES, STATE_UNITS, json_list
-
             samples = publisher.snapshot(name)
             step = max(1, len(samples) // 60)
             trend_t = [s["time_s"] for s in samples[::step] if s.get("states")]
@@ -588,8 +585,6 @@ def _status(entry: dict, publisher: LivePublisher) -> str:
     if entry.get("status") == "alarm":
         return "alarm"
     if entry.get("prints") is not None:  # machine detail: the fleet's rule (data.fleet)
-        from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
-
         prints = entry["prints"]
         last_seq = prints[-1]["seq"] if prints else None
         if any(

@@ -31,14 +31,20 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+import click
 import numpy as np
 import pandas as pd
 
+from ajtwin.apps.detection.batch import detect_anomalies
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
-from ajtwin.apps.detection.settings import cusum_thresholds
-from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
 from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
+from ajtwin.engine.start import machine_twin
+from ajtwin.io.records import read_record
+from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
+from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import queries
+from ajtwin.store.calibration import active_calibration, maintenance_history
 from ajtwin.store.registry import Registry, RegistryError
 
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
@@ -109,8 +115,6 @@ def care_fields(registry, name: str) -> dict:
       ``outputs`` and ``states`` it names, ``first_s``, ``fixes``;
       ``model_fit`` — ``{"seq", "ok"}`` whenever the newest print was checked.
     """
-    from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
-    from ajtwin.store.calibration import active_calibration, maintenance_history
 
     out: dict = {}
     active = active_calibration(registry, name)
@@ -312,8 +316,6 @@ class RegistryView:
             path = _source_file(print_row["source"])
             if path is not None:
                 try:
-                    from ajtwin.io.records import read_record
-
                     record = read_record(path)
                     if record.has_truth and len(record) == int(print_row["n_samples"]):
                         truth = np.asarray(record.true_states, dtype=float)
@@ -329,8 +331,6 @@ class RegistryView:
         predicted outputs, inputs, θ per step, the detectors (CUSUM g per channel with
         thresholds, windowed-NIS −log₁₀ p with its threshold) and the print's alarms.
         """
-        from ajtwin.apps.detection.batch import detect_anomalies
-        from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 
         key = (name, int(seq), int(max_points))
         if key in self._series_cache:  # a stored print never changes: reuse its series
@@ -399,9 +399,6 @@ class RegistryView:
         """(twin with the machine's θ, mean, cov, inputs now, limits, last seq): the start
         ``ajtwin forecast``/``advise`` use, from the same function
         (:func:`ajtwin.apps.cli.machine_twin`)."""
-        import click
-
-        from ajtwin.engine.start import machine_twin
 
         with self._lock:
             try:

@@ -51,6 +51,10 @@ import threading
 import time
 from collections import deque
 
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+from ajtwin.web.data import detector_thresholds
+
 
 def link_text(link: dict | None) -> str:
     """The operator's sentence for a link state (see :meth:`LivePublisher.publish_link`).
@@ -104,9 +108,6 @@ def sample_from_engine(message: dict) -> dict | None:
     as a dashboard sample (module docstring). Provisional steps give None: the committed
     step for the same time follows and is the one drawn.
     """
-    from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
-    from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
-    from ajtwin.web.data import detector_thresholds
 
     if not isinstance(message, dict):
         raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")

@@ -26,6 +26,10 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+from ajtwin.web.access import check_access
+from ajtwin.web.app import create_app
+from ajtwin.web.websocket import SERVER_OPTIONS
+
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--headless",
@@ -156,14 +160,10 @@ class BackgroundServer:
                  startup_timeout_s: float = 30.0):  # fmt: skip
         import uvicorn
 
-        from ajtwin.web.access import check_access
-        from ajtwin.web.app import create_app
-
         check_access(host, token)
         self.port = free_port() if not port else int(port)
         self.url = f"http://{host}:{self.port}/"
         app = create_app(store, token=token, publisher=publisher)
-        from ajtwin.web.websocket import SERVER_OPTIONS
 
         config = uvicorn.Config(
             app, host=host, port=self.port, log_level="warning", **SERVER_OPTIONS

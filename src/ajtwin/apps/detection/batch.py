@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 from ajtwin.apps.detection.streaming import AnomalyDetector
@@ -31,7 +32,6 @@ class DetectionResult:
     long_run_history: dict | None = None
 
     def events_frame(self):
-        import pandas as pd
 
         rows = [
             {

@@ -37,7 +37,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ajtwin import units
+from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.config import packaged_toml
+from ajtwin.estimation.filters import DEFAULT_SCALING
+from ajtwin.model import load_parameters
+from ajtwin.model.limits import StateLimits
 from ajtwin.model.names import OUTPUT_NAMES, STATE_NAMES
 
 #: Likely fix per output / state.
@@ -138,8 +142,6 @@ def assess(
         The states' σ (display units): with them a deposit estimated below zero by more
         than its noise (``negative_deposit_*`` in ``data/mismatch.toml``) is a finding.
     """
-    from ajtwin.model import load_parameters
-    from ajtwin.model.limits import StateLimits
 
     g = settings or load_guard_settings()
     t = np.asarray(time_s, dtype=float)
@@ -310,7 +312,6 @@ def assess(
 
 def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
     """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
-    from ajtwin.apps.detection.statistics import normalised_innovations
 
     f = run.filtered
     e = normalised_innovations(
@@ -359,7 +360,6 @@ def data_share(filtered) -> np.ndarray:
     >>> data_share(f)[:, 0].tolist()                        # 1 − 0.5/1, 1 − 0.5/(1 + 0.5)
     [0.5, 0.6666666666666667]
     """
-    from ajtwin.estimation.filters import DEFAULT_SCALING
 
     scale = np.asarray(DEFAULT_SCALING.state, dtype=float)
     outer = np.outer(scale, scale)

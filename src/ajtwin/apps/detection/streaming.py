@@ -32,6 +32,7 @@ from ajtwin.apps.detection.statistics import (
     nis_tail_probability,
     normalised_innovations,
 )
+from ajtwin.estimation.vial import VialObserver
 
 
 @dataclass
@@ -184,8 +185,6 @@ class AnomalyDetector:
         running_low = None
         if inputs is not None:
             if self.vial_observer is None:
-                from ajtwin.estimation.vial import VialObserver
-
                 sd = float(np.sqrt(max(float(np.asarray(covariance)[1, 1]), 1e-12)))
                 self.vial_observer = VialObserver(fill_ml=float(mean[1]), fill_std_ml=sd)
             self.vial_status = self.vial_observer.update(inputs, float(measurement[4]))

@@ -21,6 +21,7 @@ from scipy import optimize
 
 from ajtwin.apps.planning.forecast import forecast
 from ajtwin.model import INPUT_NAMES
+from ajtwin.store.registry import DEFAULT_LIMITS
 
 #: validity range of H's Box–Behnken fit (SPEC §4 / paper App. B.3)
 H_FIT_LIMITS = {"atomizer_current_mA": (300.0, 440.0), "carrier_flow_sccm": (15.0, 35.0)}
@@ -55,7 +56,6 @@ class Advice:
 
 def effective_bounds(limits: dict | None) -> list[tuple[float, float]]:
     """Machine limits ∩ H-fit validity, per input, as (low, high)."""
-    from ajtwin.store.registry import DEFAULT_LIMITS
 
     limits = limits or DEFAULT_LIMITS
     bounds = []

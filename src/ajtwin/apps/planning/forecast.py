@@ -27,10 +27,13 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
+from ajtwin import units
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
+from ajtwin.estimation.filters import model_functions
+from ajtwin.estimation.twin import predict
 from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
-from ajtwin.model.system import check_input, output_function
+from ajtwin.model.system import aerosol_level_theta_std, check_input, output_function
 
 INPUT_ALIASES = {
     "i_a": 0,
@@ -164,7 +167,6 @@ def _output_moments(spec, m, p, u):
 
 
 def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
-    from ajtwin.estimation.twin import predict
 
     def body(carry, u):
         m, p = carry
@@ -192,7 +194,6 @@ def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level
     in the filter's scaled coordinates (θ_φA scaled by √q_θ). With q_θ → 0 the x block is
     :func:`ajtwin.estimation.twin.predict`'s covariance (tested).
     """
-    from ajtwin.estimation.filters import model_functions
 
     step = (functions or model_functions("euler")).step
     s = spec.scaling.state
@@ -229,8 +230,6 @@ def aerosol_level_variance(twin, mean, first_input, wander_per_sqrt_h: float) ->
     """q_θ [1/s² per step]: θ_φA's random-walk variance per step that makes the steady
     aerosol fraction wander by ``wander_per_sqrt_h`` (relative σ per √hour) at the forecast's
     first inputs and vial level (:func:`ajtwin.model.system.aerosol_level_theta_std`)."""
-    from ajtwin import units
-    from ajtwin.model.system import aerosol_level_theta_std
 
     per_sqrt_s = units.per_sqrt_h_to_per_sqrt_s(wander_per_sqrt_h)
     std = aerosol_level_theta_std(first_input, float(mean[1]), twin.spec.params, per_sqrt_s)

@@ -46,7 +46,7 @@ Examples
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -57,7 +57,9 @@ from ajtwin._jax import jax, jnp
 from ajtwin.apps.planning.advice import effective_bounds
 from ajtwin.apps.planning.forecast import _forecast_scan
 from ajtwin.config import load_toml
+from ajtwin.estimation.vial import ink_volume_drawn_ml
 from ajtwin.model import INPUT_NAMES
+from ajtwin.model.droplet_dynamics import input_response
 
 # --------------------------------------------------------------------------- #
 # Settings
@@ -127,7 +129,6 @@ class ControlSettings:
         except KeyError as exc:
             raise ValueError(f"{source}: missing key {exc}") from None
         settings = cls(**values, source=source)
-        from dataclasses import replace
 
         settings = replace(settings, **overrides)
         settings.validate()
@@ -302,7 +303,6 @@ def vial_level_from_material_flow(
     (evaporation, a leak) is the vial observer's to find — so it is an upper bound on
     the level: when even this is below the stop level, the vial is low.
     """
-    from ajtwin.estimation.vial import ink_volume_drawn_ml
 
     if not (np.isfinite(fill_ml) and fill_ml >= 0):
         raise ValueError(f"vial fill = {fill_ml!r} mL must be a non-negative number")
@@ -439,7 +439,6 @@ def model_inputs(inputs, functions=None):
     at its equilibrium with the first input (as :func:`ajtwin.apps.forecast.forecast`).
     Any other profile reads the three inputs unchanged.
     """
-    from ajtwin.model.droplet_dynamics import input_response
 
     dynamics = getattr(getattr(functions, "step", None), "dynamics", None)
     if dynamics is None or not dynamics.follows_inputs:

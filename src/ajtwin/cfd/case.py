@@ -88,6 +88,43 @@ class CaseSpec:
         return float(units.sccm_to_m3_per_s(self.carrier_flow_sccm + self.sheath_flow_sccm))
 
 
+#: boundary faces as (block, side) with side in {"xmin", "xmax", "rmin", "rmax"}
+_PATCHES = {
+    "carrierInlet": [("A1", "xmin")],
+    "sheathInlet": [("A2", "xmin")],
+    "walls": [
+        ("A1", "rmax"),
+        ("A2", "rmin"),
+        ("B2", "xmin"),
+        ("A2", "rmax"),
+        ("B3", "rmax"),
+        ("C3", "rmax"),
+        ("D3", "rmax"),
+        ("E4", "xmin"),
+    ],
+    "substrate": [(f"E{i}", "xmax") for i in range(1, 6)],
+    "ambient": [("E5", "xmin")],
+    "outlet": [("E5", "rmax")],
+}
+
+
+def _quad(xa, xb, ra_top, rb_top, ra_bot, rb_bot):
+    """Corners of a block: p0 (xa, ra_bot), p1 (xb, rb_bot), p2 (xb, rb_top), p3 (xa, ra_top)."""
+    return ((xa, ra_bot), (xb, rb_bot), (xb, rb_top), (xa, ra_top))
+
+
+def _cell_counts(m: dict, level: int):
+    """Cells per block of the mesh settings ``m`` at refinement ``level``: radial per ring
+    (carrier, wall, sheath), lip, ambient, and axial per section."""
+    n_rad = [m["carrier_cells_radial"], m["wall_cells_radial"], m["sheath_cells_radial"]]
+    n_rad = [int(n * level) for n in n_rad]
+    n_ax = {
+        section: int(m[f"{section}_cells_axial"] * level)
+        for section in ("inlet", "mixing", "cone", "orifice", "gap")
+    }
+    return n_rad, int(m["lip_cells_radial"] * level), int(m["ambient_cells_radial"] * level), n_ax
+
+
 def _block_layout(g: Geometry, spec: CaseSpec):
     """2-D points, blocks (corner points, counts, grading) and boundary faces."""
     m = g.mesh
@@ -104,31 +141,17 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         g.exit_x,
         g.substrate_x,
     )
-    n_rad = [m["carrier_cells_radial"], m["wall_cells_radial"], m["sheath_cells_radial"]]
-    n_rad = [int(n * level) for n in n_rad]
-    n_lip = int(m["lip_cells_radial"] * level)
-    n_amb = int(m["ambient_cells_radial"] * level)
-    n_ax = {
-        "inlet": int(m["inlet_cells_axial"] * level),
-        "mixing": int(m["mixing_cells_axial"] * level),
-        "cone": int(m["cone_cells_axial"] * level),
-        "orifice": int(m["orifice_cells_axial"] * level),
-        "gap": int(m["gap_cells_axial"] * level),
-    }
+    n_rad, n_lip, n_amb, n_ax = _cell_counts(m, level)
     uniform = "1"
     cone_grading = str(float(m["cone_grading"]))
     gap_grading = str(m.get("gap_grading", "((0.5 0.5 4) (0.5 0.5 0.25))"))
     blocks = []  # (name, (p0, p1, p2, p3), (nx, nr), (gx, gr))
 
-    def quad(xa, xb, ra_top, rb_top, ra_bot, rb_bot):
-        # p0 (xa, ra_bot), p1 (xb, rb_bot), p2 (xb, rb_top), p3 (xa, ra_top)
-        return ((xa, ra_bot), (xb, rb_bot), (xb, rb_top), (xa, ra_top))
-
     # inlet section: carrier core and sheath annulus (no block in the tube wall)
     blocks.append(
         (
             "A1",
-            quad(x_in, x_mix, radii_top[1], radii_top[1], 0.0, 0.0),
+            _quad(x_in, x_mix, radii_top[1], radii_top[1], 0.0, 0.0),
             (n_ax["inlet"], n_rad[0]),
             (uniform, uniform),
         )
@@ -136,7 +159,7 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "A2",
-            quad(x_in, x_mix, radii_top[3], radii_top[3], radii_top[2], radii_top[2]),
+            _quad(x_in, x_mix, radii_top[3], radii_top[3], radii_top[2], radii_top[2]),
             (n_ax["inlet"], n_rad[2]),
             (uniform, uniform),
         )
@@ -145,7 +168,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"B{i + 1}",
-                quad(x_mix, x_cone, radii_top[i + 1], radii_top[i + 1], radii_top[i], radii_top[i]),
+                _quad(
+                    x_mix, x_cone, radii_top[i + 1], radii_top[i + 1], radii_top[i], radii_top[i]
+                ),
                 (n_ax["mixing"], n_rad[i]),
                 (uniform, uniform),
             )
@@ -153,7 +178,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"C{i + 1}",
-                quad(x_cone, x_ori, radii_top[i + 1], radii_tip[i + 1], radii_top[i], radii_tip[i]),
+                _quad(
+                    x_cone, x_ori, radii_top[i + 1], radii_tip[i + 1], radii_top[i], radii_tip[i]
+                ),
                 (n_ax["cone"], n_rad[i]),
                 (cone_grading, uniform),
             )
@@ -161,7 +188,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"D{i + 1}",
-                quad(x_ori, x_exit, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]),
+                _quad(
+                    x_ori, x_exit, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]
+                ),
                 (n_ax["orifice"], n_rad[i]),
                 (uniform, uniform),
             )
@@ -169,7 +198,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"E{i + 1}",
-                quad(x_exit, x_sub, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]),
+                _quad(
+                    x_exit, x_sub, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]
+                ),
                 (n_ax["gap"], n_rad[i]),
                 (gap_grading, uniform),
             )
@@ -177,7 +208,7 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "E4",
-            quad(x_exit, x_sub, g.lip_radius, g.lip_radius, tip, tip),
+            _quad(x_exit, x_sub, g.lip_radius, g.lip_radius, tip, tip),
             (n_ax["gap"], n_lip),
             (gap_grading, str(float(m["lip_grading"]))),
         )
@@ -185,30 +216,12 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "E5",
-            quad(x_exit, x_sub, g.outer_radius, g.outer_radius, g.lip_radius, g.lip_radius),
+            _quad(x_exit, x_sub, g.outer_radius, g.outer_radius, g.lip_radius, g.lip_radius),
             (n_ax["gap"], n_amb),
             (gap_grading, str(float(m["ambient_grading"]))),
         )
     )
-    # boundary faces as (block, side) with side in {"xmin", "xmax", "rmin", "rmax"}
-    patches = {
-        "carrierInlet": [("A1", "xmin")],
-        "sheathInlet": [("A2", "xmin")],
-        "walls": [
-            ("A1", "rmax"),
-            ("A2", "rmin"),
-            ("B2", "xmin"),
-            ("A2", "rmax"),
-            ("B3", "rmax"),
-            ("C3", "rmax"),
-            ("D3", "rmax"),
-            ("E4", "xmin"),
-        ],
-        "substrate": [(f"E{i}", "xmax") for i in range(1, 6)],
-        "ambient": [("E5", "xmin")],
-        "outlet": [("E5", "rmax")],
-    }
-    return blocks, patches
+    return blocks, {name: list(faces) for name, faces in _PATCHES.items()}
 
 
 # local vertex numbering of an OpenFOAM hex: p0..p3 at the back (z<0), p4..p7 front

@@ -87,14 +87,28 @@ def _recipe(key):
     return _training_recipe()[key]
 
 
-def _training_options(f):
-    options = [
+def _apply(options, f):
+    """Decorate ``f`` with click options (the first listed is the first shown)."""
+    for option in reversed(options):
+        f = option(f)
+    return f
+
+
+def _schedule_options() -> list:
+    """Seed, epochs, batch size and learning rates of the two training stages."""
+    return [
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--stage1-epochs", type=int, default=100, show_default=True),
         click.option("--stage2-epochs", type=int, default=50, show_default=True),
         click.option("--batch-size", type=int, default=32, show_default=True),
         click.option("--stage1-lr", type=float, default=1e-3, show_default=True),
         click.option("--stage2-lr", type=float, default=2e-4, show_default=True),
+    ]
+
+
+def _recipe_options() -> list:
+    """The options whose defaults are the training recipe (``data/profile_cnn.toml``)."""
+    return [
         click.option(
             "--stage1-area-weight",
             type=float,
@@ -140,6 +154,12 @@ def _training_options(f):
             show_default=f"{_recipe('restart_finalists')}, data/profile_cnn.toml",
             help="Restarts finished after the screen.",
         ),
+    ]
+
+
+def _loss_and_network_options() -> list:
+    """The loss terms beside the paper's, the network and its width, torch threads."""
+    return [
         click.option(
             "--stage1-brightness-weight",
             type=float,
@@ -177,6 +197,12 @@ def _training_options(f):
             help="Channels of the first stage (default: 64 = ResNet-18's 64-512; U-Net 16).",
         ),
         click.option("--threads", type=int, default=None, help="torch threads (default 1)."),
+    ]
+
+
+def _data_options() -> list:
+    """Where the training data come from: synthetic, or stage-1/stage-2 files."""
+    return [
         click.option("--synthetic", is_flag=True, help="Train on synthetic rendered data."),
         click.option(
             "--pairs",
@@ -217,9 +243,12 @@ def _training_options(f):
         ),
         click.option("--progress/--no-progress", default=True, show_default=True),
     ]
-    for option in reversed(options):
-        f = option(f)
-    return f
+
+
+def _training_options(f):
+    """Every option of ``cnn train`` and ``cnn crossval``."""
+    options = _schedule_options() + _recipe_options() + _loss_and_network_options()
+    return _apply(options + _data_options(), f)
 
 
 def _config(kw):

@@ -203,25 +203,6 @@ def ingest_record(
     mismatch = assess_run(run, record)
     detection.events = relabel_events(detection.events, mismatch)
 
-    f = run.filtered
-    hist = run.theta_history
-    arrays = {
-        "time_s": run.time_s,
-        "means": run.means,
-        "stds": run.stds,
-        "covariances": np.asarray(f.covariances),
-        "predicted_means": np.asarray(f.predicted_means),
-        "predicted_outputs": np.asarray(f.predicted_outputs),
-        "innovation_variances": np.asarray(f.innovation_variances),
-        "measurements": record.outputs,
-        "inputs": record.inputs,
-        "nis": np.asarray(f.nis),
-        "n_measured": np.asarray(f.n_measured),
-        "reinitialised": np.asarray(f.reinitialised),
-        "theta_per_step": run.theta_per_step,
-        "theta_history_time_s": hist["time_s"].to_numpy(float),
-        "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
-    }
     try:
         print_id, summary = save_print(
             registry,
@@ -229,7 +210,7 @@ def ingest_record(
             record,
             digest=digest,
             source=source,
-            arrays=arrays,
+            arrays=run_arrays(run, record),
             events=detection.events,
             start=(run.start_mean, run.start_cov),
             end=(run.end_mean, run.end_cov),
@@ -270,6 +251,30 @@ def ingest_record(
         run=run,
         detection=detection,
     )
+
+
+def run_arrays(run, record) -> dict:
+    """The per-second arrays the registry keeps of a twin run over a print (names as
+    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them)."""
+    f = run.filtered
+    hist = run.theta_history
+    return {
+        "time_s": run.time_s,
+        "means": run.means,
+        "stds": run.stds,
+        "covariances": np.asarray(f.covariances),
+        "predicted_means": np.asarray(f.predicted_means),
+        "predicted_outputs": np.asarray(f.predicted_outputs),
+        "innovation_variances": np.asarray(f.innovation_variances),
+        "measurements": record.outputs,
+        "inputs": record.inputs,
+        "nis": np.asarray(f.nis),
+        "n_measured": np.asarray(f.n_measured),
+        "reinitialised": np.asarray(f.reinitialised),
+        "theta_per_step": run.theta_per_step,
+        "theta_history_time_s": hist["time_s"].to_numpy(float),
+        "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
+    }
 
 
 def ingest_file(

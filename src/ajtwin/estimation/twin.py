@@ -550,6 +550,61 @@ class Twin:
         progress : callable(int), optional
             Called with the number of steps done (for a progress bar).
         """
+        inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
+        n = len(inputs)
+        initial = None
+        if start is None:
+            initial = self.initial_state(inputs, measurements)
+            mean, cov = initial.mean, initial.covariance
+        else:
+            mean, cov = (np.asarray(a, dtype=float) for a in start)
+        start_mean, start_cov = mean.copy(), cov.copy()
+        seen = observed_states(
+            self.model.params,
+            self.spec.coefficients,
+            start_mean,
+            self.limits.upper - self.limits.lower,
+            inputs,
+            measurements,
+            self.config.measurement_std,
+        )
+        # the transition variant's extra input column (input response), if it has one
+        model_inputs = self.model_inputs(inputs)
+        if not self.config.em:
+            thetas = np.tile(self.theta, (n, 1))
+            filtered = self._filter(mean, cov, model_inputs, measurements, self.theta)
+            theta, history = self.theta.copy(), []
+            if progress:
+                progress(n)
+        else:
+            filtered, theta, thetas, history = self._filter_with_em(
+                mean, cov, model_inputs, measurements, time_s, progress
+            )
+        smoothed = None
+        if smooth:
+            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
+            smoothed = rts_smoother(self.spec, consistent)
+        self.theta = theta
+        return TwinRun(
+            time_s=time_s,
+            filtered=filtered,
+            smoothed=smoothed,
+            theta_per_step=thetas,
+            theta_history=_theta_history_frame(history),
+            initial=initial,
+            start_mean=start_mean,
+            start_cov=start_cov,
+            end_mean=np.asarray(filtered.means[-1]),
+            end_cov=np.asarray(filtered.covariances[-1]),
+            calibration_covariances=self._calibration_covariances(filtered, model_inputs),
+            seen=seen,
+            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
+            vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
+        )
+
+    def _checked_arrays(self, record, inputs, measurements, time_s):
+        """Inputs (T, 3), measurements (T, 5) and times (T,) of a print, checked against the
+        model (a record's inputs and output scales; shapes; at least 2 samples)."""
         if record is not None:
             inputs, measurements, time_s = record.inputs, record.outputs, record.time_s
             where = str(record.meta.get("source_file", "<record>"))
@@ -570,149 +625,124 @@ class Twin:
         if n < 2:
             raise ValueError("a print needs at least 2 samples")
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
+        return inputs, measurements, time_s
 
-        initial = None
-        if start is None:
-            initial = self.initial_state(inputs, measurements)
-            mean, cov = initial.mean, initial.covariance
-        else:
-            mean, cov = (np.asarray(a, dtype=float) for a in start)
-        start_mean, start_cov = mean.copy(), cov.copy()
-        seen = observed_states(
-            self.model.params,
-            self.spec.coefficients,
-            start_mean,
-            self.limits.upper - self.limits.lower,
-            inputs,
-            measurements,
-            self.config.measurement_std,
-        )
+    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress):
+        """The filter in chunks between EM boundaries; EM over the trailing window at each
+        boundary, its θ and re-filtered end state taking effect from there (the module's
+        chunking). Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
         c = self.config
-        # the transition profile's extra input column (input response), if it has one
-        model_inputs = self.model_inputs(inputs)
+        n = len(model_inputs)
+        every, window = int(c.every_s), int(c.window_s)
+        if every < 1 or window < 2:
+            raise ValueError("EM needs every_s >= 1 and window_s >= 2")
+        early = em_early_steps(c)
         theta = self.theta.copy()
-        history = []
         thetas = np.zeros((n, 5))
-
-        if not c.em:
-            thetas[:] = theta
-            filtered = self._filter(mean, cov, model_inputs, measurements, theta)
-            if progress:
-                progress(n)
-        else:
-            every, window = int(c.every_s), int(c.window_s)
-            if every < 1 or window < 2:
-                raise ValueError("EM needs every_s >= 1 and window_s >= 2")
-            early = em_early_steps(c)
-            pieces, starts = [], []
-            pos = 0
-            while pos < n:
-                end = min(next_em_boundary(pos, every, early), n)
-                seg = self._filter(
-                    mean,
-                    cov,
-                    _pad(model_inputs[pos:end], every, None),
-                    _pad(measurements[pos:end], every, np.nan),
-                    theta,
+        pieces, starts, history = [], [], []
+        pos = 0
+        while pos < n:
+            end = min(next_em_boundary(pos, every, early), n)
+            seg = self._filter(
+                mean,
+                cov,
+                _pad(model_inputs[pos:end], every, None),
+                _pad(measurements[pos:end], every, np.nan),
+                theta,
+            )
+            seg = _slice(seg, end - pos)
+            pieces.append(seg)
+            starts.append(pos)
+            thetas[pos:end] = theta
+            last_mean = np.asarray(seg.means[-1])
+            last_cov = np.asarray(seg.covariances[-1])
+            pos = end
+            if em_due(pos, every, window, early) and pos < n:
+                w0 = max(pos - window, 0)
+                em, learned = self._em_over_window(
+                    pieces, starts, w0, pos, model_inputs, measurements, theta
                 )
-                seg = _slice(seg, end - pos)
-                pieces.append(seg)
-                starts.append(pos)
-                thetas[pos:end] = theta
-                last_mean = np.asarray(seg.means[-1])
-                last_cov = np.asarray(seg.covariances[-1])
-                pos = end
-                if em_due(pos, every, window, early) and pos < n:
-                    w0 = max(pos - window, 0)
-                    # the piece holding step w0
-                    piece = int(np.searchsorted(starts, w0, side="right")) - 1
-                    offset = w0 - starts[piece]
-                    prior_mean = pieces[piece].predicted_means[offset]
-                    prior_cov = pieces[piece].predicted_covariances[offset]
-                    em = run_em(
-                        self.spec,
-                        prior_mean,
-                        prior_cov,
-                        model_inputs[w0:pos],
-                        measurements[w0:pos],
-                        theta,
-                        self.process_cov,
-                        self.measurement_var,
-                        theta_prior_precision=self.theta_prior_precision,
-                        max_iterations=c.em_max_iterations,
-                        tolerance=c.em_tolerance,
-                        gate=c.gate_sigma,
-                        functions=self.functions,
-                    )
-                    theta = em.theta
-                    learned = {}
-                    if c.learn_line_offsets or c.learn_output_noise:
-                        learned = self._output_em(
-                            em.smoothed, model_inputs[w0:pos], measurements[w0:pos]
-                        )
-                    last_mean = np.asarray(em.filtered.means)[-1]
-                    last_cov = np.asarray(em.filtered.covariances)[-1]
-                    history.append(
-                        {
-                            "time_s": float(time_s[pos - 1]),
-                            "window_start_s": float(time_s[w0]),
-                            "iterations": em.iterations,
-                            "converged": em.converged,
-                            "log_likelihood": em.log_likelihood,
-                            **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
-                            **learned,
-                        }
-                    )
-                if pos < n:
-                    mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
-                if progress:
-                    progress(pos)
-            filtered = _concat(pieces)
+                theta = em.theta
+                last_mean = np.asarray(em.filtered.means)[-1]
+                last_cov = np.asarray(em.filtered.covariances)[-1]
+                history.append(
+                    {
+                        "time_s": float(time_s[pos - 1]),
+                        "window_start_s": float(time_s[w0]),
+                        "iterations": em.iterations,
+                        "converged": em.converged,
+                        "log_likelihood": em.log_likelihood,
+                        **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
+                        **learned,
+                    }
+                )
+            if pos < n:
+                mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
+            if progress:
+                progress(pos)
+        return _concat(pieces), theta, thetas, history
 
-        smoothed = None
-        if smooth:
-            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
-            smoothed = rts_smoother(self.spec, consistent)
-        self.theta = theta
-        calibration_covariances = None
-        if self.calibration is not None and self.calibration_cov is not None:
-            calibration_covariances = calibration_state_covariance(
-                self.spec,
-                filtered,
-                model_inputs,
-                self.measurement_var,
-                self.calibration_cov,
-                self.functions,
-            )
-        vial = None
-        if np.isfinite(measurements[:, 4]).any():
-            gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
-            vial = observe_vial(
-                inputs,
-                measurements[:, 4],
-                fill_ml=float(start_mean[1]),
-                fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
-                material_flow_gain=abs(gain),
-                params=self.model.params,
-            )
-        columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
-            f"theta_{name}" for name in STATE_NAMES
-        ]
-        if history and len(history[-1]) > len(columns):
-            columns += [k for k in history[-1] if k not in columns]
-        return TwinRun(
-            time_s=time_s,
-            filtered=filtered,
-            smoothed=smoothed,
-            theta_per_step=thetas,
-            theta_history=pd.DataFrame(history, columns=columns),
-            initial=initial,
-            start_mean=start_mean,
-            start_cov=start_cov,
-            end_mean=np.asarray(filtered.means[-1]),
-            end_cov=np.asarray(filtered.covariances[-1]),
-            calibration_covariances=calibration_covariances,
-            seen=seen,
-            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
-            vial=vial,
+    def _em_over_window(self, pieces, starts, w0, pos, model_inputs, measurements, theta):
+        """EM over steps [w0, pos) from the filter's prediction of step w0 (in the chunk that
+        holds it); with ``learn_line_offsets``/``learn_output_noise`` also the output EM.
+        Returns (EM result, the learned output parameters as a dict)."""
+        c = self.config
+        piece = int(np.searchsorted(starts, w0, side="right")) - 1
+        offset = w0 - starts[piece]
+        em = run_em(
+            self.spec,
+            pieces[piece].predicted_means[offset],
+            pieces[piece].predicted_covariances[offset],
+            model_inputs[w0:pos],
+            measurements[w0:pos],
+            theta,
+            self.process_cov,
+            self.measurement_var,
+            theta_prior_precision=self.theta_prior_precision,
+            max_iterations=c.em_max_iterations,
+            tolerance=c.em_tolerance,
+            gate=c.gate_sigma,
+            functions=self.functions,
         )
+        learned = {}
+        if c.learn_line_offsets or c.learn_output_noise:
+            learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
+        return em, learned
+
+    def _calibration_covariances(self, filtered, model_inputs):
+        """The states' covariance from the calibration's uncertainty (None: none given)."""
+        if self.calibration is None or self.calibration_cov is None:
+            return None
+        return calibration_state_covariance(
+            self.spec,
+            filtered,
+            model_inputs,
+            self.measurement_var,
+            self.calibration_cov,
+            self.functions,
+        )
+
+    def _observe_vial(self, inputs, measurements, start_mean, start_cov):
+        """The vial observer over the print's Q_m (None when Q_m was never measured)."""
+        if not np.isfinite(measurements[:, 4]).any():
+            return None
+        gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
+        return observe_vial(
+            inputs,
+            measurements[:, 4],
+            fill_ml=float(start_mean[1]),
+            fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
+            material_flow_gain=abs(gain),
+            params=self.model.params,
+        )
+
+
+def _theta_history_frame(history: list) -> pd.DataFrame:
+    """EM's history as a table: time, window start, iterations, convergence, log-likelihood,
+    θ per state (and the learned output parameters, when learned)."""
+    columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
+        f"theta_{name}" for name in STATE_NAMES
+    ]
+    if history and len(history[-1]) > len(columns):
+        columns += [k for k in history[-1] if k not in columns]
+    return pd.DataFrame(history, columns=columns)

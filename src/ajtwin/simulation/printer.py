@@ -159,8 +159,31 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         if setpoints.shape != (n, 3):
             raise ValueError(f"setpoints must be ({n}, 3); got {setpoints.shape}")
 
-    # MFCs regulate around the set-point with a short correlation (AR(1)); the
-    # atomizer current wanders sample to sample.
+    mfc_inputs = _mfc_inputs(streams, meas, setpoints)
+    kind = fault["kind"]
+    onset_s = scenario.fault_onset_s
+    after = (t >= onset_s) if onset_s is not None else np.zeros(n, dtype=bool)
+    leak = np.zeros(n)
+    if kind == "carrier_leak":
+        ramp_s = max(float(fault["ramp_min"]) * 60.0, 1.0)
+        leak = float(fault["leak_fraction"]) * np.clip((t - onset_s) / ramp_s, 0.0, 1.0)
+    head_inputs = mfc_inputs.copy()
+    head_inputs[:, 1] *= 1.0 - leak
+    droplet, draws = _droplet_size(streams, truth, mfc_inputs, t)
+    drivers, draws["generation_offset"] = _drivers(streams, truth, fault, t, after, onset_s)
+    drift = np.zeros((n, 2))
+    if kind == "pressure_sensor_drift":
+        hours = np.clip(t - onset_s, 0.0, None) / 3600.0
+        drift[:, 0] = fault["carrier_pressure_drift_Pa_per_h"] * hours
+        drift[:, 1] = fault["sheath_pressure_drift_Pa_per_h"] * hours
+    return Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+
+
+def _mfc_inputs(streams: dict, meas: dict, setpoints: np.ndarray) -> np.ndarray:
+    """The inputs the controllers deliver (T, 3) [mA, sccm, sccm]: MFCs regulate around the
+    set-point with a short correlation (AR(1)); the atomizer current wanders sample to
+    sample."""
+    n = len(setpoints)
     jitter = np.stack(
         [
             streams["current_jitter"].standard_normal(n) * meas["atomizer_current_jitter_mA"],
@@ -181,20 +204,14 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
     )
     mfc_inputs = setpoints + jitter
     mfc_inputs[:, 1:] = np.maximum(mfc_inputs[:, 1:], 0.1)
+    return mfc_inputs
 
-    kind = fault["kind"]
-    onset_s = scenario.fault_onset_s
-    after = (t >= onset_s) if onset_s is not None else np.zeros(n, dtype=bool)
 
-    leak = np.zeros(n)
-    if kind == "carrier_leak":
-        ramp_s = max(float(fault["ramp_min"]) * 60.0, 1.0)
-        leak = float(fault["leak_fraction"]) * np.clip((t - onset_s) / ramp_s, 0.0, 1.0)
-    head_inputs = mfc_inputs.copy()
-    head_inputs[:, 1] *= 1.0 - leak
-
-    # Droplet size: seeded start, seeded linear trend, slow OU wander, and a lagged
-    # shift that follows carrier flow and atomizer current.
+def _droplet_size(streams: dict, truth: dict, mfc_inputs: np.ndarray, t: np.ndarray):
+    """The true droplet size (T,) [µm]: a seeded start, a seeded trend that levels off, a
+    slow OU wander and a lagged shift that follows carrier flow and atomizer current;
+    with the draws behind it (start incl. the first shift, trend rate)."""
+    n = len(t)
     droplet_start = truth["droplet_median_um"] + truth["droplet_offset_sd_um"] * float(
         streams["droplet_offset"].standard_normal()
     )
@@ -217,9 +234,20 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         trend = trend_um_per_h / 3600.0 * trend_time_s * -np.expm1(-t / trend_time_s)
     else:
         trend = trend_um_per_h * t / 3600.0
-    droplet = droplet_start + trend + wander + input_shift
-    droplet = np.maximum(droplet, 0.5)
+    droplet = np.maximum(droplet_start + trend + wander + input_shift, 0.5)
+    draws = {
+        "droplet_start_um": droplet_start + float(input_shift[0]),
+        "droplet_trend_um_per_h": trend_um_per_h,
+    }
+    return droplet, draws
 
+
+def _drivers(streams: dict, truth: dict, fault: dict, t, after, onset_s):
+    """The slow drivers (T, 4): generation efficiency (seeded offset and OU wander; an
+    atomizer dropout), tube and nozzle deposition factors (a clog), evaporation [mL/s];
+    with the generation offset drawn."""
+    n = len(t)
+    kind = fault["kind"]
     generation_offset = truth["generation_offset_sd"] * float(
         streams["generation_offset"].standard_normal()
     )
@@ -235,7 +263,6 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         duration_s = float(fault["duration_min"]) * 60.0
         active = after if duration_s <= 0 else after & (t < onset_s + duration_s)
         generation = np.where(active, generation * float(fault["generation_fraction"]), generation)
-
     nozzle_factor = np.full(n, float(truth["nozzle_deposition_factor"]))
     if kind == "nozzle_clog":
         clog = float(fault["nozzle_deposition_multiplier"])
@@ -250,19 +277,7 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         ],
         axis=-1,
     )
-
-    drift = np.zeros((n, 2))
-    if kind == "pressure_sensor_drift":
-        hours = np.clip(t - onset_s, 0.0, None) / 3600.0
-        drift[:, 0] = fault["carrier_pressure_drift_Pa_per_h"] * hours
-        drift[:, 1] = fault["sheath_pressure_drift_Pa_per_h"] * hours
-
-    draws = {
-        "droplet_start_um": droplet_start + float(input_shift[0]),
-        "droplet_trend_um_per_h": trend_um_per_h,
-        "generation_offset": generation_offset,
-    }
-    return Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+    return drivers, generation_offset
 
 
 def measure(

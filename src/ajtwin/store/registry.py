@@ -878,53 +878,32 @@ class Registry:
             if dup is not None:
                 raise RegistryError(f"this print is already print {dup[0]} of {printable(name)!r}")
             seq = 1 if last is None else last + 1
-            cur = conn.execute(
-                "INSERT INTO prints (machine_id, seq, content_hash, ingested_at, source, "
-                "n_samples, duration_s, meta_json, summary_json, start_mean, start_cov, "
-                "end_mean, end_cov, theta_before, theta_after, status, status_reason, "
-                "long_run_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    machine["id"],
-                    seq,
-                    content_hash,
-                    _now(),
-                    source,
-                    int(n_samples),
-                    float(duration_s),
-                    json.dumps(meta, default=str),
-                    json.dumps(summary, default=str),
-                    to_npy(np.asarray(start_mean, dtype=float)),
-                    to_npy(np.asarray(start_cov, dtype=float)),
-                    to_npy(np.asarray(end_mean, dtype=float)),
-                    to_npy(np.asarray(end_cov, dtype=float)),
-                    to_npy(np.asarray(theta_before, dtype=float)),
-                    to_npy(np.asarray(theta_after, dtype=float)),
-                    status,
-                    status_reason,
-                    json.dumps(long_run_history),
-                ),
-            )
-            print_id = cur.lastrowid
-            conn.executemany(
-                "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
-                [(print_id, key, blob, codec) for key, (codec, blob) in encoded.items()],
-            )
-            conn.executemany(
-                "INSERT INTO anomalies (print_id, detected_s, onset_s, cause, description, "
-                "detectors, evidence_json) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                [
-                    (
-                        print_id,
-                        ev.detected_s,
-                        ev.onset_s,
-                        ev.cause,
-                        ev.description,
-                        ", ".join(ev.detectors),
-                        json.dumps(ev.evidence),
+            row = {
+                "machine_id": machine["id"],
+                "seq": seq,
+                "content_hash": content_hash,
+                "ingested_at": _now(),
+                "source": source,
+                "n_samples": int(n_samples),
+                "duration_s": float(duration_s),
+                "meta_json": json.dumps(meta, default=str),
+                "summary_json": json.dumps(summary, default=str),
+                **{
+                    key: to_npy(np.asarray(value, dtype=float))
+                    for key, value in (
+                        ("start_mean", start_mean),
+                        ("start_cov", start_cov),
+                        ("end_mean", end_mean),
+                        ("end_cov", end_cov),
+                        ("theta_before", theta_before),
+                        ("theta_after", theta_after),
                     )
-                    for ev in anomalies
-                ],
-            )
+                },
+                "status": status,
+                "status_reason": status_reason,
+                "long_run_json": json.dumps(long_run_history),
+            }
+            print_id = self._insert_print(row, encoded, anomalies)
             dropped = 0
             if live_session is not None:
                 dropped = self._end_live_session(live_session, print_id, keep_live_steps)
@@ -937,6 +916,37 @@ class Registry:
             raise
         if dropped:
             self.release_free_pages()
+        return int(print_id)
+
+    def _insert_print(self, row: dict, encoded: dict, anomalies: list) -> int:
+        """Inside save_print's transaction: the print's row, its encoded arrays and its
+        anomalies; the new print's id."""
+        columns = ", ".join(row)
+        cur = self._conn.execute(
+            f"INSERT INTO prints ({columns}) VALUES ({', '.join('?' * len(row))})",
+            tuple(row.values()),
+        )
+        print_id = cur.lastrowid
+        self._conn.executemany(
+            "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
+            [(print_id, key, blob, codec) for key, (codec, blob) in encoded.items()],
+        )
+        self._conn.executemany(
+            "INSERT INTO anomalies (print_id, detected_s, onset_s, cause, description, "
+            "detectors, evidence_json) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [
+                (
+                    print_id,
+                    ev.detected_s,
+                    ev.onset_s,
+                    ev.cause,
+                    ev.description,
+                    ", ".join(ev.detectors),
+                    json.dumps(ev.evidence),
+                )
+                for ev in anomalies
+            ],
+        )
         return int(print_id)
 
     def _end_live_session(self, session_id: int, print_id: int, keep_steps: bool) -> int:

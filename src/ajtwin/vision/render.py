@@ -522,7 +522,6 @@ def render_video(
     -------
     Path of the truth JSON.
     """
-
     settings = RenderSettings.from_defaults() if settings is None else settings
     settings.validate()
     out_path = Path(out_path)
@@ -545,9 +544,7 @@ def render_video(
     substrate = Substrate(shape, settings, rng)
     speed_um_s = mm_per_s_to_um_per_s(platen_speed_mm_s)
     dr = float(r_um[1] - r_um[0]) if r_um.size > 1 else 1.0
-    stride = max(1, int(round(truth_step_um / dr)))
-    truth_profiles: list[dict] = []
-    frames: list[dict] = []
+    truth = _VideoTruth(r_um, profiles, profile_times_s, max(1, int(round(truth_step_um / dr))))
     try:
         for k in tqdm(
             range(n_frames), desc=f"render {out_path.name}", unit="frame", disable=not progress
@@ -559,32 +556,10 @@ def render_video(
                 r_um, h, shape, settings, rng=rng, substrate=substrate, travel_um=speed_um_s * t
             )
             writer.write(frame)
-            while len(truth_profiles) <= index:
-                j = len(truth_profiles)
-                hj = np.asarray(profiles[j], dtype=float)
-                lw, ov = profile_features(r_um, hj)
-                truth_profiles.append(
-                    {
-                        "index": j,
-                        "time_s": float(profile_times_s[j]),
-                        "linewidth_um": lw,
-                        "overspray_um": ov,
-                        "area_um2": float(np.trapezoid(hj, r_um)),
-                        "h_um": np.round(hj[::stride], 6).tolist(),
-                    }
-                )
-            frames.append(
-                {
-                    "frame": k,
-                    "time_s": t,
-                    "profile": index,
-                    "linewidth_um": truth_profiles[index]["linewidth_um"],
-                    "overspray_um": truth_profiles[index]["overspray_um"],
-                }
-            )
+            truth.add_frame(k, t, index)
     finally:
         writer.release()
-    truth = {
+    document = {
         "video": out_path.name,
         "fps": fps,
         "n_frames": n_frames,
@@ -594,13 +569,50 @@ def render_video(
         "seed": seed,
         "settings": dataclasses.asdict(settings),
         "definitions": "linewidth/overspray of the true profile: ajtwin.vision.profile_features",
-        "r_um": np.round(r_um[::stride], 6).tolist(),
-        "profiles": truth_profiles,
-        "frames": frames,
+        "r_um": np.round(r_um[:: truth.stride], 6).tolist(),
+        "profiles": truth.profiles,
+        "frames": truth.frames,
         **(extra_truth or {}),
     }
-    truth_path.write_text(json.dumps(truth, allow_nan=True))
+    truth_path.write_text(json.dumps(document, allow_nan=True))
     return truth_path
+
+
+class _VideoTruth:
+    """The ground truth of a rendered video, grown frame by frame: each profile shown (its
+    reference linewidth and overspray, area, the profile on a coarser grid) and, per frame,
+    which profile it shows."""
+
+    def __init__(self, r_um, profiles, profile_times_s, stride: int):
+        self.r_um, self.source, self.times, self.stride = r_um, profiles, profile_times_s, stride
+        self.profiles: list[dict] = []
+        self.frames: list[dict] = []
+
+    def add_frame(self, k: int, t: float, index: int) -> None:
+        """Frame ``k`` at ``t`` [s] shows profile ``index`` (its truth added when new)."""
+        while len(self.profiles) <= index:
+            j = len(self.profiles)
+            hj = np.asarray(self.source[j], dtype=float)
+            lw, ov = profile_features(self.r_um, hj)
+            self.profiles.append(
+                {
+                    "index": j,
+                    "time_s": float(self.times[j]),
+                    "linewidth_um": lw,
+                    "overspray_um": ov,
+                    "area_um2": float(np.trapezoid(hj, self.r_um)),
+                    "h_um": np.round(hj[:: self.stride], 6).tolist(),
+                }
+            )
+        self.frames.append(
+            {
+                "frame": k,
+                "time_s": t,
+                "profile": index,
+                "linewidth_um": self.profiles[index]["linewidth_um"],
+                "overspray_um": self.profiles[index]["overspray_um"],
+            }
+        )
 
 
 def iter_profile_frames(

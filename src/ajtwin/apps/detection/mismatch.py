@@ -142,150 +142,188 @@ def assess(
         The states' σ (display units): with them a deposit estimated below zero by more
         than its noise (``negative_deposit_*`` in ``data/mismatch.toml``) is a finding.
     """
-
     g = settings or load_guard_settings()
     t = np.asarray(time_s, dtype=float)
     t = t - t[0]
     means = np.asarray(means, dtype=float)
     e = np.asarray(normalised_innovations, dtype=float)
-    n = len(t)
-    limits = limits or StateLimits.load(load_parameters())
-    active = t >= float(g["warmup_s"])
-    flags = np.zeros(n, dtype=bool)
-    findings = []  # (first index, kind, name, sentence)
+    found = _Findings(t, t >= float(g["warmup_s"]))
+    _state_range_findings(found, means, limits or StateLimits.load(load_parameters()))
+    if stds is not None:
+        _negative_deposit_findings(found, means, np.asarray(stds, dtype=float), g)
+    learned = None
+    if level_learned_s is not None:
+        learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
+    _output_bias_findings(found, _output_bias(t, e, g, learned), g)
+    _nis_findings(found, nis, n_measured, g)
+    start_only = set()
+    if start_mean is not None and start_cov is not None:
+        start_only = _start_surprise_findings(found, means, start_mean, start_cov, g)
+    return _verdict(found, start_only)
 
-    def first(mask):
-        hits = np.flatnonzero(mask & active)
+
+class _Findings:
+    """The guard's findings over one print: (first index, kind, name, sentence) each, and
+    the seconds at which any holds (after the warm-up ``active``)."""
+
+    def __init__(self, t: np.ndarray, active: np.ndarray):
+        self.t = t
+        self.active = active
+        self.flags = np.zeros(len(t), dtype=bool)
+        self.items: list[tuple[int, str, str, str]] = []
+
+    def first(self, mask) -> int | None:
+        """The first active index where ``mask`` holds (None: nowhere)."""
+        hits = np.flatnonzero(mask & self.active)
         return int(hits[0]) if hits.size else None
 
+    def add(self, mask, kind: str, name: str, sentence) -> int | None:
+        """Record a finding where ``mask`` holds; ``sentence(k)`` says it at its first index."""
+        k = self.first(mask)
+        if k is not None:
+            self.flags |= mask & self.active
+            self.items.append((k, kind, name, sentence(k)))
+        return k
+
+
+def _state_range_findings(found: _Findings, means: np.ndarray, limits) -> None:
+    """A state outside its physical range (``data/state_limits.toml``)."""
     inside = limits.inside(means)
     for i, name in enumerate(STATE_NAMES):
-        k = first(~inside[:, i])
-        if k is not None:
-            flags |= ~inside[:, i] & active
-            findings.append((k, "state", name, f"{limits.violations(means[k])[0]} at {t[k]:.0f} s"))
-
-    if stds is not None:
-        # a deposit is never negative: an estimate below 0 by more than its own noise means
-        # the pressures are read through a model that does not fit (a gauge's zero or span,
-        # a line's resistance), the signature of an uncommissioned machine whose deviations
-        # mimic other states (held-out alt machines 1029, 1135: ΔR_N −42 / −76 nm at σ 0.6 nm)
-        stds = np.asarray(stds, dtype=float)
-        floor = float(g.get("negative_deposit_floor_um", np.inf))
-        k_sigma = float(g.get("negative_deposit_sigma", np.inf))
-        for name in ("tube_deposition_um", "nozzle_deposition_um"):
-            i = STATE_NAMES.index(name)
-            below = means[:, i] < -(floor + k_sigma * stds[:, i])
-            k = first(below)
-            if k is not None:
-                flags |= below & active
-                findings.append(
-                    (
-                        k,
-                        "state",
-                        name,
-                        f"{name} = {units.um_to_nm(means[k, i]):.1f} nm is below zero by "
-                        f"{-means[k, i] / max(stds[k, i], 1e-300):.0f} σ at {t[k]:.0f} s: a "
-                        "deposit cannot be negative",
-                    )
-                )
-
-    e_bias = e.copy()
-    before = None
-    if level_learned_s is not None:
-        # before EM's first θ the twin has no parameter for the print's own atomizer level
-        # (φ_A follows the generation model within seconds): a Q_m level offset then is the
-        # print-to-print variation the start prior allows, not a misfit (docs/calibration.md)
-        learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
-        before = t < learned
-        level_columns = [OUTPUT_NAMES.index(name) for name in g.get("level_learned_outputs", [])]
-        e_bias[np.ix_(before, level_columns)] = np.nan
-    bias = _rolling_mean(e_bias, int(g["bias_window_s"]))
-    if before is not None:
-        # ... and a whole window of samples after it: the θ update itself moves φ_A for tens
-        # of seconds, so a part-window mean right after it is no evidence
-        unlearned = t < learned + float(g["bias_window_s"])
-        bias[np.ix_(unlearned, level_columns)] = np.nan
-        # the level also moves the outputs that read φ_A beside others (L_o): while Q_m says
-        # the level is off the same way, their bias is the level's, not a line misfit
-        level = _rolling_mean(
-            e[:, OUTPUT_NAMES.index("material_flow_mL_s")], int(g["bias_window_s"])
+        found.add(
+            ~inside[:, i],
+            "state",
+            name,
+            lambda k: f"{limits.violations(means[k])[0]} at {found.t[k]:.0f} s",
         )
-        level_evidence = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
-        for name in g.get("level_explained_outputs", []):
-            j = OUTPUT_NAMES.index(name)
-            same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
-            explained = unlearned & same_way & (np.abs(np.nan_to_num(level)) >= level_evidence)
-            bias[explained, j] = np.nan
-    # a bias needs a full window of evidence (or the print so far, after its own minimum)
-    evidence = t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
-    for j, name in enumerate(OUTPUT_NAMES):
-        mask = evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"]))
-        k = first(mask)
-        if k is not None:
-            flags |= mask & active
-            direction = "above" if bias[k, j] > 0 else "below"
-            findings.append(
-                (
-                    k,
-                    "output",
-                    name,
-                    f"{name} persistently {direction} the model ({bias[k, j]:+.2f} σ mean "
-                    f"over {int(g['bias_window_s'])} s) from {t[k]:.0f} s",
-                )
-            )
 
+
+def _negative_deposit_findings(found: _Findings, means, stds, g: dict) -> None:
+    """A deposit below zero by more than its own noise.
+
+    A deposit is never negative: an estimate below 0 by more than its own noise means the
+    pressures are read through a model that does not fit (a gauge's zero or span, a line's
+    resistance), the signature of an uncommissioned machine whose deviations mimic other
+    states (held-out alt machines 1029, 1135: ΔR_N −42 / −76 nm at σ 0.6 nm).
+    """
+    floor = float(g.get("negative_deposit_floor_um", np.inf))
+    k_sigma = float(g.get("negative_deposit_sigma", np.inf))
+    for name in ("tube_deposition_um", "nozzle_deposition_um"):
+        i = STATE_NAMES.index(name)
+        found.add(
+            means[:, i] < -(floor + k_sigma * stds[:, i]),
+            "state",
+            name,
+            lambda k, i=i, name=name: (
+                f"{name} = {units.um_to_nm(means[k, i]):.1f} nm is below zero by "
+                f"{-means[k, i] / max(stds[k, i], 1e-300):.0f} σ at {found.t[k]:.0f} s: a "
+                "deposit cannot be negative"
+            ),
+        )
+
+
+def _output_bias(t: np.ndarray, e: np.ndarray, g: dict, learned: float | None) -> np.ndarray:
+    """Rolling mean of the normalised innovations (T, 5) over ``bias_window_s``, NaN where it
+    is no evidence of a misfit.
+
+    Before EM's first θ (``learned`` [s from the start]) the twin has no parameter for
+    the print's own atomizer level (φ_A follows the generation model within seconds): a
+    Q_m level offset then is the print-to-print variation the start prior allows, not a
+    misfit; and a whole window after it neither (the θ update itself moves φ_A for tens
+    of seconds). Outputs that read φ_A beside others (L_o) are not judged while Q_m says
+    the level is off the same way.
+    """
+    window = int(g["bias_window_s"])
+    e_bias = e.copy()
+    if learned is None:
+        return _rolling_mean(e_bias, window)
+    level_columns = [OUTPUT_NAMES.index(name) for name in g.get("level_learned_outputs", [])]
+    e_bias[np.ix_(t < learned, level_columns)] = np.nan
+    bias = _rolling_mean(e_bias, window)
+    unlearned = t < learned + float(g["bias_window_s"])
+    bias[np.ix_(unlearned, level_columns)] = np.nan
+    level = _rolling_mean(e[:, OUTPUT_NAMES.index("material_flow_mL_s")], window)
+    level_evidence = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
+    for name in g.get("level_explained_outputs", []):
+        j = OUTPUT_NAMES.index(name)
+        same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
+        explained = unlearned & same_way & (np.abs(np.nan_to_num(level)) >= level_evidence)
+        bias[explained, j] = np.nan
+    return bias
+
+
+def _output_bias_findings(found: _Findings, bias: np.ndarray, g: dict) -> None:
+    """An output persistently above or below the model (a full window of evidence, or the
+    print so far after its own minimum)."""
+    evidence = found.t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    for j, name in enumerate(OUTPUT_NAMES):
+        found.add(
+            evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])),
+            "output",
+            name,
+            lambda k, j=j, name=name: (
+                f"{name} persistently {'above' if bias[k, j] > 0 else 'below'} the model "
+                f"({bias[k, j]:+.2f} σ mean over {int(g['bias_window_s'])} s) from "
+                f"{found.t[k]:.0f} s"
+            ),
+        )
+
+
+def _nis_findings(found: _Findings, nis, n_measured, g: dict) -> None:
+    """The mean NIS per output over ``nis_window_s`` outside [``nis_low``, ``nis_high``]."""
+    t = found.t
     per_output = np.asarray(nis, dtype=float) / np.maximum(np.asarray(n_measured, float), 1)
     rolling_nis = _rolling_mean(per_output[:, None], int(g["nis_window_s"]))[:, 0]
     full = t >= min(float(g["nis_window_s"]), max(t[-1], 0.0))
     mask = full & ((rolling_nis < float(g["nis_low"])) | (rolling_nis > float(g["nis_high"])))
-    k = first(mask)
-    if k is not None:
-        flags |= mask & active
-        findings.append(
-            (
-                k,
-                "nis",
-                "nis",
-                f"mean NIS per output {rolling_nis[k]:.2f} over {int(g['nis_window_s'])} s "
-                f"(1 = consistent; allowed {g['nis_low']}–{g['nis_high']}) at {t[k]:.0f} s",
-            )
-        )
+    found.add(
+        mask,
+        "nis",
+        "nis",
+        lambda k: (
+            f"mean NIS per output {rolling_nis[k]:.2f} over {int(g['nis_window_s'])} s "
+            f"(1 = consistent; allowed {g['nis_low']}–{g['nis_high']}) at {t[k]:.0f} s"
+        ),
+    )
 
+
+def _start_surprise_findings(found: _Findings, means, start_mean, start_cov, g: dict) -> set:
+    """A state that moves many prior σ within ``start_window_s`` of the start; the names.
+
+    A carried-over start has a tight prior (the previous print's end) and the filter
+    re-converges d_a and φ_A in the first minute, moving the deposits by ~1 nm through
+    their correlation: only a move beyond the floor is a misfit's signature.
+    """
+    floor = np.array([float(g.get("start_floor", {}).get(name, 0.0)) for name in STATE_NAMES])
+    var = np.maximum(np.diag(np.asarray(start_cov, float)), 1e-300) + floor**2
+    z = np.abs(means - np.asarray(start_mean, float)) / np.sqrt(var)
+    window = found.t <= float(g["start_window_s"])
     start_only = set()
-    if start_mean is not None and start_cov is not None:
-        # a carried-over start has a tight prior (the previous print's end) and the filter
-        # re-converges d_a and φ_A in the first minute, moving the deposits by ~1 nm
-        # through their correlation: only a move beyond the floor is a misfit's signature
-        floor = np.array([float(g.get("start_floor", {}).get(name, 0.0)) for name in STATE_NAMES])
-        var = np.maximum(np.diag(np.asarray(start_cov, float)), 1e-300) + floor**2
-        z = np.abs(means - np.asarray(start_mean, float)) / np.sqrt(var)
-        window = t <= float(g["start_window_s"])
-        for name in g["start_states"]:
-            i = STATE_NAMES.index(name)
-            mask = window & (z[:, i] > float(g["start_sigma"]))
-            k = first(mask)
-            if k is not None:
-                flags |= mask & active
-                start_only.add(name)
-                findings.append(
-                    (
-                        k,
-                        "state",
-                        name,
-                        f"{name} moved {z[k, i]:.1f} prior σ within {t[k]:.0f} s of the start "
-                        f"({start_mean[i]:.4g} → {means[k, i]:.4g}): faster than the machine "
-                        "can change",
-                    )
-                )
+    for name in g["start_states"]:
+        i = STATE_NAMES.index(name)
+        k = found.add(
+            window & (z[:, i] > float(g["start_sigma"])),
+            "state",
+            name,
+            lambda k, i=i, name=name: (
+                f"{name} moved {z[k, i]:.1f} prior σ within {found.t[k]:.0f} s of the start "
+                f"({start_mean[i]:.4g} → {means[k, i]:.4g}): faster than the machine "
+                "can change"
+            ),
+        )
+        if k is not None:
+            start_only.add(name)
+    return start_only
 
-    if not findings:
-        return MismatchStatus(False, None, flags=flags)
-    findings.sort(key=lambda f: f[0])
+
+def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
+    """The findings as the guard's status: first time, outputs, states, reasons, fixes."""
+    if not found.items:
+        return MismatchStatus(False, None, flags=found.flags)
+    findings = sorted(found.items, key=lambda f: f[0])
     outputs = sorted({f[2] for f in findings if f[1] == "output"}, key=OUTPUT_NAMES.index)
     states = sorted({f[2] for f in findings if f[1] == "state"}, key=STATE_NAMES.index)
-    names = [f[2] for f in findings]
-    fixes = list(dict.fromkeys(FIXES[nm] for nm in names))
+    fixes = list(dict.fromkeys(FIXES[f[2]] for f in findings))
     reasons = [f[3] for f in findings]
     message = (
         "model–machine mismatch: "
@@ -299,13 +337,13 @@ def assess(
     start_states = sorted(start_only - out_of_range, key=STATE_NAMES.index)
     return MismatchStatus(
         True,
-        float(t[findings[0][0]]),
+        float(found.t[findings[0][0]]),
         outputs,
         states,
         reasons,
         fixes,
         message,
-        flags,
+        found.flags,
         start_states,
     )
 

@@ -182,13 +182,7 @@ class AnomalyDetector:
         self.corrections.append(mean - np.asarray(predicted_mean, dtype=float))
         self.stds.append(np.sqrt(np.maximum(np.diag(np.asarray(covariance, dtype=float)), 1e-300)))
         self.vial.append(float(mean[1]))
-        running_low = None
-        if inputs is not None:
-            if self.vial_observer is None:
-                sd = float(np.sqrt(max(float(np.asarray(covariance)[1, 1]), 1e-12)))
-                self.vial_observer = VialObserver(fill_ml=float(mean[1]), fill_std_ml=sd)
-            self.vial_status = self.vial_observer.update(inputs, float(measurement[4]))
-            running_low = self.vial_status.running_low
+        running_low = self._observe_vial(inputs, measurement, mean, covariance)
         self.vial_running_low.append(running_low)
         self._observer_vial.append(np.nan if running_low is None else self.vial_status.vial_ml)
         p_step = float(nis_tail_probability([nis], [n_measured])[0])
@@ -199,29 +193,7 @@ class AnomalyDetector:
         if np.isfinite(nis_robust) and np.nansum(e**2) > 0:
             nis_robust *= np.nansum(e_clip**2) / np.nansum(e**2)
         _, _, p_win = self.window.update(nis_robust, n_measured)
-
-        raw = []
-        q = e_clip[4]
-        tau = float(s.material_flow_reference_s)
-        if self.start is None and np.isfinite(q):  # warm-up: the print's Q_m level so far
-            self._q_sum += q
-            self._q_n += 1
-        if self.start is not None:
-            # + the common-mode pressure channel; each divided by its long-run σ
-            channels = np.append(e_clip, e_clip[2] + e_clip[3])
-            if tau > 0:
-                # Q_m tested against the print's own level (DetectorSettings): a change
-                # during the print is a fault, the level it started at is this print's
-                # atomizer efficiency, which the twin learns by EM only after minutes
-                if self._q_ref is None:
-                    self._q_ref = self._q_sum / self._q_n if self._q_n else 0.0
-                channels[4] = q - self._q_ref
-                if np.isfinite(q):
-                    self._q_ref += (q - self._q_ref) / tau
-            channels = channels / self.long_run.update(channels / self.long_run_reference)
-            for a in self.cusum.update(k, channels):
-                sign = "+" if a.direction > 0 else "−"
-                raw.append((a.step, a.change_step, f"cusum{sign} {CUSUM_CHANNELS[a.output]}"))
+        raw = self._cusum_alarms(k, e_clip)
         crossing = (
             self.start is not None and p_win < s.nis_alpha and k >= self.start + self.window_steps
         )
@@ -235,6 +207,67 @@ class AnomalyDetector:
             raw.append((k, k, "V_l low"))
         raw.sort()
 
+        raised, finalised = self._group_alarms(raw, t)
+        return DetectorStep(
+            k,
+            t,
+            e,
+            p_step,
+            p_win,
+            self.cusum.g_pos.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
+            self.cusum.g_neg.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
+            [name for _, _, name in raw],
+            [self.events[i] for i in raised],
+            [self.events[i] for i in finalised],
+        )
+
+    def _observe_vial(self, inputs, measurement, mean, covariance) -> bool | None:
+        """The vial observer's step (started from the twin's V_l ± σ at the first step
+        with inputs); whether the vial is running low (None: no inputs, no observer)."""
+        if inputs is None:
+            return None
+        if self.vial_observer is None:
+            sd = float(np.sqrt(max(float(np.asarray(covariance)[1, 1]), 1e-12)))
+            self.vial_observer = VialObserver(fill_ml=float(mean[1]), fill_std_ml=sd)
+        self.vial_status = self.vial_observer.update(inputs, float(measurement[4]))
+        return self.vial_status.running_low
+
+    def _cusum_alarms(self, k: int, e_clip: np.ndarray) -> list:
+        """The CUSUM alarms of step k: (step, change step, label) each.
+
+        Before the warm-up ends only Q_m's level is learned: the print's own level (its
+        atomizer efficiency, which the twin learns by EM only after minutes) is Q_m's
+        reference, then an EWMA of it (``material_flow_reference_s``); a change during the
+        print is a fault. Each channel (five outputs and the common-mode pressure sum) is
+        divided by its long-run σ.
+        """
+        s = self.settings
+        q = e_clip[4]
+        tau = float(s.material_flow_reference_s)
+        if self.start is None:
+            if np.isfinite(q):  # warm-up: the print's Q_m level so far
+                self._q_sum += q
+                self._q_n += 1
+            return []
+        channels = np.append(e_clip, e_clip[2] + e_clip[3])
+        if tau > 0:
+            if self._q_ref is None:
+                self._q_ref = self._q_sum / self._q_n if self._q_n else 0.0
+            channels[4] = q - self._q_ref
+            if np.isfinite(q):
+                self._q_ref += (q - self._q_ref) / tau
+        channels = channels / self.long_run.update(channels / self.long_run_reference)
+        raw = []
+        for a in self.cusum.update(k, channels):
+            sign = "+" if a.direction > 0 else "−"
+            raw.append((a.step, a.change_step, f"cusum{sign} {CUSUM_CHANNELS[a.output]}"))
+        return raw
+
+    def _group_alarms(self, raw: list, t: float) -> tuple[list, list]:
+        """Merge the step's alarms into events (a new event, or the last one when close
+        and of a joining family) and relabel the open events; the indices of the events
+        raised and of those whose evidence window closed at this step."""
+        s = self.settings
         raised = []
         for alarm in raw:
             last = self.groups[-1][-1][0] if self.groups else None
@@ -254,18 +287,7 @@ class AnomalyDetector:
                 self.final[i] = True
                 finalised.append(i)
             self.events[i] = self._event(group, k_end)
-        return DetectorStep(
-            k,
-            t,
-            e,
-            p_step,
-            p_win,
-            self.cusum.g_pos.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
-            self.cusum.g_neg.copy() if self.cusum.started else np.zeros(len(CUSUM_CHANNELS)),
-            [name for _, _, name in raw],
-            [self.events[i] for i in raised],
-            [self.events[i] for i in finalised],
-        )
+        return raised, finalised
 
     def _deposit_alarm(self, k: int) -> list:
         """The filter's push on the nozzle deposit over the last ``deposit_window_s``.

@@ -101,114 +101,131 @@ def advise(
     if not np.isfinite(target_linewidth_um) or target_linewidth_um <= 0:
         raise ValueError(f"target linewidth must be > 0 µm, got {target_linewidth_um}")
     bounds = effective_bounds(limits)
-    lo = np.array([b[0] for b in bounds])
-    hi = np.array([b[1] for b in bounds])
-    span = hi - lo
-
-    def predict(u):
-        fc = forecast(twin, mean, cov, np.tile(u, (settle_s, 1)))
-        return fc.output_means[-1], fc.output_stds[-1]
-
-    cache: dict = {}
-
-    def outputs(z):
-        key = tuple(np.round(z, 12))
-        if key not in cache:
-            cache[key] = predict(lo + np.clip(z, 0, 1) * span)[0]
-        return cache[key]
-
-    def objective(z):
-        return outputs(z)[1]  # overspray, µm
-
+    settled = _SettledOutputs(twin, mean, cov, bounds, settle_s)
     current = np.asarray(current_inputs, dtype=float)
-    starts = [np.clip((current - lo) / span, 0, 1), np.full(3, 0.5)]
+    starts = [np.clip((current - settled.lo) / settled.span, 0, 1), np.full(3, 0.5)]
     starts += [
         np.array(c, dtype=float) for c in ((0.2, 0.2, 0.8), (0.8, 0.8, 0.2), (0.2, 0.8, 0.5))
     ]
-    on_target = {"type": "eq", "fun": lambda z: outputs(z)[0] - target_linewidth_um}
-
-    def solve(constraints):
-        found = []
-        for z0 in starts:
-            res = optimize.minimize(
-                objective,
-                z0,
-                method="SLSQP",
-                bounds=[(0.0, 1.0)] * 3,
-                constraints=constraints,
-                options={"maxiter": 100, "ftol": 1e-6, "eps": 1e-4},
-            )
-            z = np.clip(res.x, 0, 1)
-            y = outputs(z)
-            hits = abs(y[0] - target_linewidth_um) <= tolerance_um
-            below = max_overspray_um is None or y[1] <= max_overspray_um + 1e-6
-            found.append(
-                {
-                    "z": z,
-                    "lw": float(y[0]),
-                    "lo": float(y[1]),
-                    "hits": bool(hits),
-                    "ok": bool(below),
-                }
-            )
-        return found
-
+    target = float(target_linewidth_um)
+    on_target = {"type": "eq", "fun": lambda z: settled.outputs(z)[0] - target}
     constraints = [on_target]
     if max_overspray_um is not None:
-        constraints.append({"type": "ineq", "fun": lambda z: max_overspray_um - outputs(z)[1]})
-    candidates = solve(constraints)
+        constraints.append(
+            {"type": "ineq", "fun": lambda z: max_overspray_um - settled.outputs(z)[1]}
+        )
+    accept = (target, tolerance_um, max_overspray_um)
+    candidates = _least_overspray(settled, starts, constraints, *accept)
     feasible = [c for c in candidates if c["hits"] and c["ok"]]
     if not feasible and max_overspray_um is not None:
         # the linewidth may be reachable, only not within the overspray limit
-        candidates += solve([on_target])
+        candidates += _least_overspray(settled, starts, [on_target], *accept)
         feasible = [c for c in candidates if c["hits"]]
     if feasible:
         best = min(feasible, key=lambda c: c["lo"])
         reachable = True
-        if best["ok"]:
-            message = "target reached"
-        else:
+        message = "target reached"
+        if not best["ok"]:
             message = (
                 f"target linewidth reached, but the least overspray there is {best['lo']:.1f} µm "
                 f"> the limit {max_overspray_um:g} µm"
             )
     else:
-        # closest linewidth within the bounds
-        res = min(
-            (
-                optimize.minimize(
-                    lambda z: (outputs(z)[0] - target_linewidth_um) ** 2,
-                    z0,
-                    method="L-BFGS-B",
-                    bounds=[(0.0, 1.0)] * 3,
-                    options={"eps": 1e-4},
-                )
-                for z0 in starts
-            ),
-            key=lambda r: r.fun,
-        )
-        y = outputs(res.x)
-        best = {"z": np.clip(res.x, 0, 1), "lw": float(y[0]), "lo": float(y[1]), "ok": False}
+        best = _closest_linewidth(settled, starts, target)
         reachable = False
         message = (
             f"target {target_linewidth_um:g} µm not reachable within the limits; "
             f"closest linewidth {best['lw']:.2f} µm"
         )
-    u_best = lo + best["z"] * span
+    u_best = settled.inputs(best["z"])
     names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
-    m, s = predict(u_best)
-    cm, cs = predict(current)
+    m, s = settled.predict(u_best)
+    cm, cs = settled.predict(current)
     return Advice(
         inputs=u_best,
         predicted={n: (float(m[i]), float(s[i])) for i, n in enumerate(names)},
         current_inputs=current,
         current_predicted={n: (float(cm[i]), float(cs[i])) for i, n in enumerate(names)},
         reachable=reachable,
-        target_linewidth_um=float(target_linewidth_um),
+        target_linewidth_um=target,
         max_overspray_um=max_overspray_um,
         bounds=bounds,
         settle_s=settle_s,
         message=message,
-        candidates=[{**c, "u": (lo + c["z"] * span).tolist()} for c in candidates],
+        candidates=[{**c, "u": settled.inputs(c["z"]).tolist()} for c in candidates],
         overspray_ok=max_overspray_um is None or float(m[1]) <= max_overspray_um + 1e-6,
     )
+
+
+class _SettledOutputs:
+    """The outputs ``settle_s`` seconds after setting inputs u and holding them, from the
+    machine's state (the forecast), over inputs normalised to z ∈ [0, 1]³ within the bounds
+    (cached: the optimiser asks for the same z many times)."""
+
+    def __init__(self, twin, mean, cov, bounds, settle_s: int):
+        self.twin, self.mean, self.cov, self.settle_s = twin, mean, cov, settle_s
+        self.lo = np.array([b[0] for b in bounds])
+        self.span = np.array([b[1] for b in bounds]) - self.lo
+        self.cache: dict = {}
+
+    def inputs(self, z) -> np.ndarray:
+        """The inputs [mA, sccm, sccm] of a normalised z (clipped to the bounds)."""
+        return self.lo + np.clip(z, 0, 1) * self.span
+
+    def predict(self, u):
+        """(means (5,), σ (5,)) of the outputs after ``settle_s`` s at inputs u."""
+        fc = forecast(self.twin, self.mean, self.cov, np.tile(u, (self.settle_s, 1)))
+        return fc.output_means[-1], fc.output_stds[-1]
+
+    def outputs(self, z) -> np.ndarray:
+        """The settled output means (5,) at normalised inputs z."""
+        key = tuple(np.round(z, 12))
+        if key not in self.cache:
+            self.cache[key] = self.predict(self.inputs(z))[0]
+        return self.cache[key]
+
+
+def _least_overspray(settled, starts, constraints, target, tolerance_um, max_overspray_um):
+    """Least overspray under ``constraints`` (SLSQP) from each start: one candidate each,
+    with its linewidth, overspray, whether it hits the target and keeps the limit."""
+    found = []
+    for z0 in starts:
+        res = optimize.minimize(
+            lambda z: settled.outputs(z)[1],  # overspray, µm
+            z0,
+            method="SLSQP",
+            bounds=[(0.0, 1.0)] * 3,
+            constraints=constraints,
+            options={"maxiter": 100, "ftol": 1e-6, "eps": 1e-4},
+        )
+        z = np.clip(res.x, 0, 1)
+        y = settled.outputs(z)
+        found.append(
+            {
+                "z": z,
+                "lw": float(y[0]),
+                "lo": float(y[1]),
+                "hits": bool(abs(y[0] - target) <= tolerance_um),
+                "ok": bool(max_overspray_um is None or y[1] <= max_overspray_um + 1e-6),
+            }
+        )
+    return found
+
+
+def _closest_linewidth(settled, starts, target) -> dict:
+    """The inputs within the bounds whose settled linewidth is closest to ``target``."""
+    res = min(
+        (
+            optimize.minimize(
+                lambda z: (settled.outputs(z)[0] - target) ** 2,
+                z0,
+                method="L-BFGS-B",
+                bounds=[(0.0, 1.0)] * 3,
+                options={"eps": 1e-4},
+            )
+            for z0 in starts
+        ),
+        key=lambda r: r.fun,
+    )
+    y = settled.outputs(res.x)
+    return {"z": np.clip(res.x, 0, 1), "lw": float(y[0]), "lo": float(y[1]), "ok": False}

@@ -103,10 +103,12 @@ def sccm_to_m3_per_s(q):
 
 
 def um_to_m(length):
+    """µm → m."""
     return length * UM_IN_M
 
 
 def m_to_um(length):
+    """m → µm."""
     return length / UM_IN_M
 
 
@@ -121,10 +123,12 @@ def per_sqrt_h_to_per_sqrt_s(rate):
 
 
 def ml_to_m3(volume):
+    """mL → m³."""
     return volume * ML_IN_M3
 
 
 def m3_to_ml(volume):
+    """m³ → mL."""
     return volume / ML_IN_M3
 
 
@@ -134,6 +138,7 @@ def um3_per_s_to_ml_per_s(rate):
 
 
 def mm_per_s_to_um_per_s(speed):
+    """mm/s → µm/s."""
     return speed * 1e3
 
 

@@ -64,6 +64,7 @@ class CaseSpec:
 
     @property
     def iterations(self) -> int:
+        """simpleFoam iterations of the case (the given maximum, else by mesh level)."""
         return int(self.max_iterations or ITERATIONS_PER_LEVEL * self.mesh_level)
 
     def __post_init__(self):
@@ -78,6 +79,7 @@ class CaseSpec:
 
     @property
     def name(self) -> str:
+        """A folder name that says the case: ΔR_N, Q_c, Q_s and mesh level."""
         return (
             f"dRN{self.nozzle_deposition_um:.3f}_Qc{self.carrier_flow_sccm:.2f}"
             f"_Qs{self.sheath_flow_sccm:.2f}_m{self.mesh_level}"
@@ -85,6 +87,7 @@ class CaseSpec:
 
     @property
     def total_flow_m3_s(self) -> float:
+        """Carrier plus sheath flow [m³/s]."""
         return float(units.sccm_to_m3_per_s(self.carrier_flow_sccm + self.sheath_flow_sccm))
 
 
@@ -315,6 +318,7 @@ def _field(cls, obj, dimensions, internal, boundary: dict[str, str]) -> str:
 
 
 def velocity_field(g: Geometry, spec: CaseSpec) -> str:
+    """The ``0/U`` file: fixed inlet velocities of carrier and sheath, no-slip walls."""
     inlet = inlet_velocities(g, spec)
 
     def fixed(v):
@@ -340,6 +344,7 @@ def velocity_field(g: Geometry, spec: CaseSpec) -> str:
 
 
 def pressure_field() -> str:
+    """The ``0/p`` file: zero gradient at inlets and walls, 0 at the outlet and ambient."""
     zero_gradient = "        type zeroGradient;"
     return _field(
         "volScalarField",
@@ -359,6 +364,7 @@ def pressure_field() -> str:
 
 
 def control_dict(spec: CaseSpec) -> str:
+    """The ``system/controlDict`` of the case: simpleFoam, steady, the case's iterations."""
     return (
         FOAM_HEADER.format(cls="dictionary", location="system", obj="controlDict")
         + f"""

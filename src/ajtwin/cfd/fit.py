@@ -318,7 +318,7 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
 
 
 def write_toml(document: dict, path: str | Path) -> Path:
-
+    """Write a TOML document (tomli-w), creating the folder; the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomli_w.dumps(document))

@@ -30,12 +30,14 @@ class CellField:
     volume: np.ndarray
 
     def save(self, path):
+        """Write the cell field to a compressed ``.npz``."""
         np.savez_compressed(
             path, x=self.x, r=self.r, ux=self.ux, ur=self.ur, p=self.p, volume=self.volume
         )
 
     @classmethod
     def load(cls, path):
+        """Read a cell field written by :meth:`save`."""
         with np.load(path) as data:
             return cls(**{k: data[k] for k in ("x", "r", "ux", "ur", "p", "volume")})
 

@@ -93,6 +93,7 @@ class Geometry:
 
     @property
     def substrate_x(self) -> float:
+        """Axial position of the substrate [m]: the nozzle exit plus the standoff."""
         return self.exit_x + self.standoff
 
     def tip_radius_at(self, nozzle_deposition_um: float) -> float:

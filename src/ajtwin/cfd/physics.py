@@ -22,6 +22,26 @@ from ajtwin.config import load_toml
 
 @dataclass(frozen=True)
 class CfdParameters:
+    """The physical parameters the CFD macro-model uses (SI units).
+
+    Attributes
+    ----------
+    gas_viscosity : float
+        η_gas [Pa s].
+    droplet_density : float
+        ρ_p [kg/m³].
+    mean_free_path : float
+        λ [m].
+    gravity : float
+        g [m/s²].
+    nozzle_radius : float
+        r_N0 [m].
+    droplet_cv : float
+        Coefficient of variation of the droplet size [–].
+    droplet_spread_factor : float
+        Footprint diameter / droplet diameter [–].
+    """
+
     gas_viscosity: float  # η_gas [Pa s]
     droplet_density: float  # ρ_p [kg/m³]
     mean_free_path: float  # λ [m]

@@ -35,6 +35,22 @@ SWEEP_META = "sweep.json"
 
 @dataclass
 class Design:
+    """A named sweep design of ``sweep.toml``: the cases and how droplets are tracked.
+
+    Attributes
+    ----------
+    name, description : str
+    cases : list of CaseSpec
+    droplet_diameters_um : list of float
+        Droplet sizes tracked on every case [µm].
+    n_droplets, azimuths : int
+        Droplets per size, and azimuthal copies of each.
+    nominal : (float, float, float)
+        The nominal (ΔR_N [µm], Q_c, Q_s [sccm]).
+    mesh_level : int
+    extra : dict
+    """
+
     name: str
     description: str
     cases: list[CaseSpec]
@@ -147,6 +163,7 @@ def summary_rows(result: dict) -> list[dict]:
 
 
 def write_summary(results: list[dict], root: Path) -> pd.DataFrame:
+    """Write ``summary.csv`` (one row per case and droplet size, sorted); the table."""
     rows = [row for result in results for row in summary_rows(result)]
     table = pd.DataFrame(rows)
     if not table.empty:

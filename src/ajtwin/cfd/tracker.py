@@ -49,12 +49,27 @@ def slip_correction(diameter_m, mean_free_path_m):
 
 @dataclass
 class TrackResult:
+    """Droplets tracked on a solved flow field.
+
+    Attributes
+    ----------
+    landing_radius : array
+        |r| where each droplet hit the substrate [m] (NaN otherwise).
+    status : array of int
+        ACTIVE/LANDED/WALL/ESCAPED/STALLED per droplet.
+    flight_time : array
+        [s].
+    steps : int
+        Integration steps taken.
+    """
+
     landing_radius: np.ndarray  # [m], |r| where the droplet hit the substrate (NaN otherwise)
     status: np.ndarray  # ACTIVE/LANDED/WALL/ESCAPED/STALLED per droplet
     flight_time: np.ndarray  # [s]
     steps: int
 
     def fractions(self) -> dict[str, float]:
+        """Share of the droplets per status name."""
         n = max(len(self.status), 1)
         return {STATUS_NAMES[k]: float(np.sum(self.status == k) / n) for k in STATUS_NAMES}
 

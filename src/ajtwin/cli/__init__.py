@@ -51,6 +51,7 @@ class LazyGroup(click.Group):
     """A click group whose subcommands are imported on first use."""
 
     def list_commands(self, ctx):
+        """The commands whose module is installed, sorted."""
         return sorted(name for name in SUBCOMMANDS if self._available(name))
 
     @staticmethod
@@ -62,6 +63,7 @@ class LazyGroup(click.Group):
         return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
 
     def get_command(self, ctx, name):
+        """The command ``name``, its module imported now (None: unknown)."""
         if name not in SUBCOMMANDS or not self._available(name):
             return None
         target, _ = SUBCOMMANDS[name]
@@ -70,6 +72,7 @@ class LazyGroup(click.Group):
         return getattr(module, attr, None)
 
     def format_commands(self, ctx, formatter):
+        """The command list of ``--help`` from :data:`SUBCOMMANDS` (no module imported)."""
         rows = [(name, SUBCOMMANDS[name][1]) for name in self.list_commands(ctx)]
         if rows:
             with formatter.section("Commands"):

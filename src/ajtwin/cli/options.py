@@ -94,6 +94,7 @@ class BoundedFloat(click.ParamType):
         self.low, self.high, self.closed, self.allow_inf = low, high, closed, allow_inf
 
     def convert(self, value, param, ctx):
+        """The value as a float inside the bounds, else a click error naming the bound."""
         if isinstance(value, float | int) and not isinstance(value, bool):
             number = float(value)
         else:

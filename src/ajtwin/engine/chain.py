@@ -88,6 +88,7 @@ class ChainStart:
 
     @property
     def description(self) -> str:
+        """Where the print starts, in words (and the prints passed over, and why)."""
         text = "initial fit" if self.from_seq is None else f"print {self.from_seq}"
         if self.skipped:
             text += " (skipped " + "; ".join(self.skipped) + ")"

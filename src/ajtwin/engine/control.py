@@ -112,6 +112,8 @@ class MPCTwin(MPCStrategy):
         return reasons
 
     def decide(self, t, u):
+        """Stop for the ink, hold for a safety reason, else the MPC's command from the twin's
+        state."""
         if self.ink_stop:
             # latched: nothing the controller does brings the ink back
             return Decision(u.copy(), "stop", self.ink_stop)

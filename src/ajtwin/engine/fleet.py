@@ -247,6 +247,7 @@ class LiveEngine:
         return out
 
     def poll_and_publish(self) -> list[dict]:
+        """Messages of EM results that landed, recorded in the live log and published."""
         messages = self.poll()
         self._record(messages)
         self._publish(messages)

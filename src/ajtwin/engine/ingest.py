@@ -29,6 +29,26 @@ from ajtwin.store.registry import RegistryError, record_hash
 
 @dataclass
 class IngestResult:
+    """What an ingest did.
+
+    Attributes
+    ----------
+    machine : str
+    print_id, seq : int
+        The stored print (the existing one for a duplicate).
+    duplicate : bool
+        The print was ingested before (nothing changed).
+    content_hash : str
+    n_samples : int
+    events : list of AnomalyEvent
+    summary : dict
+        The summary the registry keeps.
+    seconds : float
+        Wall time of the ingest.
+    run : TwinRun or None
+    detection : DetectionResult or None
+    """
+
     machine: str
     print_id: int
     seq: int

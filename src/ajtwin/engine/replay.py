@@ -164,13 +164,16 @@ class VirtualPrintFeed:
             self.done.set()
 
     def start(self) -> VirtualPrintFeed:
+        """Prepare and replay in a background thread; returns the feed."""
         self.publisher.open_print(self.machine)
         self._thread = threading.Thread(target=self._run, name="virtual-print-feed", daemon=True)
         self._thread.start()
         return self
 
     def stop(self) -> None:
+        """Ask the replay to stop after its current sample."""
         self._stop.set()
 
     def join(self, timeout: float | None = None) -> bool:
+        """Wait (at most ``timeout`` seconds) for the replay to end; whether it did."""
         return self.done.wait(timeout)

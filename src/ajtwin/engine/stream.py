@@ -201,10 +201,12 @@ class TwinStream:
     # ------------------------------------------------------------------ #
     @property
     def n_committed(self) -> int:
+        """Steps committed so far (stepped with the θ in force, stored, given to the detectors)."""
         return len(self.history)
 
     @property
     def em_running(self) -> bool:
+        """Whether an EM update runs in a worker thread now."""
         return self._em_future is not None
 
     def feed(self, sample: Sample) -> list[dict]:

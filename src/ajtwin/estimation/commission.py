@@ -52,6 +52,7 @@ class CommissioningError(ValueError):
 
 
 def load_commissioning_settings() -> dict:
+    """Commissioning's priors and checks with their provenance (``data/commissioning.toml``)."""
     return packaged_toml("data/commissioning.toml")
 
 

@@ -41,6 +41,8 @@ LEARNABLE_NOISE = (0, 1, 4)
 
 
 def load_em_calibration_settings() -> dict:
+    """Which output parameters EM may learn online, with their provenance
+    (``data/em_calibration.toml``)."""
     return packaged_toml("data/em_calibration.toml")["em_calibration"]
 
 

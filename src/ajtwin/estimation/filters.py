@@ -80,6 +80,16 @@ def model_functions(method: str) -> ModelFunctions:
 
 
 class Scaling(NamedTuple):
+    """Scales that make the filter's arithmetic well conditioned.
+
+    Attributes
+    ----------
+    state : array (5,)
+        Typical size of each state (display units).
+    output : array (5,)
+        Typical size of each output.
+    """
+
     state: jnp.ndarray  # (5,)
     output: jnp.ndarray  # (5,)
 
@@ -117,6 +127,18 @@ class FilterResult(NamedTuple):
 
 
 class SmootherResult(NamedTuple):
+    """The RTS smoother over a print.
+
+    Attributes
+    ----------
+    means : array (T, 5)
+        x̂_{k|N}.
+    covariances : array (T, 5, 5)
+        P_{k|N}.
+    lag_one_covariances : array (T − 1, 5, 5)
+        Cov(x_{k+1}, x_k | all data).
+    """
+
     means: jnp.ndarray  # (T, 5) x̂_{k|N}
     covariances: jnp.ndarray  # (T, 5, 5) P_{k|N}
     lag_one_covariances: jnp.ndarray  # (T-1, 5, 5) Cov(x_{k+1}, x_k | all)

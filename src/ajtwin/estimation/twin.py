@@ -205,6 +205,7 @@ class TwinRun:
 
     @property
     def means(self) -> np.ndarray:
+        """Filtered state means (T, 5), display units."""
         return np.asarray(self.filtered.means)
 
     def _total_cov(self, covariances) -> np.ndarray:
@@ -220,6 +221,7 @@ class TwinRun:
 
     @property
     def stds(self) -> np.ndarray:
+        """State σ (T, 5): the filter's, plus the calibration's share when known."""
         covariances = self._total_cov(self.filtered.covariances)
         return np.sqrt(np.maximum(np.diagonal(covariances, 0, 1, 2), 0))
 
@@ -405,6 +407,18 @@ class Twin:
     def default(
         cls, calibration=None, calibration_cov=None, noise_factors=None, **config_overrides
     ) -> Twin:
+        """The twin on the packaged model, optionally calibrated to a machine.
+
+        Parameters
+        ----------
+        calibration : Calibration, optional
+        calibration_cov : array (11, 11), optional
+            Its covariance.
+        noise_factors : array (5,), optional
+            The machine's output noise over the tuned σ.
+        **config_overrides
+            :class:`TwinConfig` fields.
+        """
         model = DigitalModel.default()
         return cls(
             model,
@@ -431,10 +445,12 @@ class Twin:
 
     @property
     def process_cov(self) -> np.ndarray:
+        """Σ_ξ: the process noise covariance (5, 5) per second."""
         return np.diag(np.asarray(self.config.process_std) ** 2)
 
     @property
     def measurement_std(self) -> np.ndarray:
+        """Output noise σ (5,) [µm, µm, Pa, Pa, mL/s], calibrated to the machine."""
         std = np.asarray(self.config.measurement_std, dtype=float)
         if self.calibration is not None:
             # σ_Qm is relative to the nominal Q_m (noise.toml): it scales with the gain
@@ -446,6 +462,7 @@ class Twin:
 
     @property
     def measurement_var(self) -> np.ndarray:
+        """Output noise variances (5,): learned online when EM learns them, else σ²."""
         if self._learned_var is not None:
             return self._learned_var
         return self.measurement_std**2
@@ -481,6 +498,7 @@ class Twin:
 
     @property
     def theta_prior_precision(self) -> np.ndarray:
+        """Precision (5,) of θ's prior in EM (0: none; V_l's held at 0 as a consider state)."""
         std = np.asarray(self.config.theta_prior_std, dtype=float)
         precision = np.where(np.isfinite(std), 1.0 / std**2, 0.0)
         if self.config.vial_consider:
@@ -490,6 +508,15 @@ class Twin:
         return precision
 
     def initial_state(self, inputs, measurements) -> InitialFit:
+        """The initial-state fit over the first ``initial_samples`` samples.
+
+        Parameters
+        ----------
+        inputs : array (T, 3)
+            [mA, sccm, sccm].
+        measurements : array (T, 5)
+            Display units, NaN = not measured.
+        """
         c = self.config
         return fit_initial_state(
             self.model.params,

@@ -234,6 +234,7 @@ class PrintRecord:
 
     @property
     def has_truth(self) -> bool:
+        """Whether the record carries the true states (a virtual print)."""
         return all(c in self.data.columns for c in TRUTH_COLUMNS)
 
     @property
@@ -245,6 +246,7 @@ class PrintRecord:
 
     @property
     def duration_s(self) -> float:
+        """Time from the first to the last sample [s]."""
         t = self.time_s
         return float(t[-1] - t[0]) if len(t) else 0.0
 

@@ -119,13 +119,16 @@ class VirtualMachine:
         self._t0 = None
 
     def start(self, now: float) -> None:
+        """Start the simulated clock at wall time ``now`` [s] (at ``start_s`` simulated)."""
         self._t0 = now - self.start_s / self.speed
 
     def simulated_time(self, now: float) -> float:
+        """The simulated print time [s] at wall time ``now`` [s]."""
         return (now - self._t0) * self.speed
 
     @property
     def n_samples(self) -> int:
+        """Seconds of the whole print."""
         return self.printer.n
 
     @property

@@ -74,9 +74,11 @@ class Calibration(NamedTuple):
 
     @classmethod
     def identity(cls) -> Calibration:
+        """The nominal machine: gains 1, offsets 0."""
         return cls()
 
     def is_identity(self) -> bool:
+        """Whether this is the nominal machine's calibration."""
         return all(float(a) == b for a, b in zip(self, IDENTITY, strict=True))
 
 
@@ -146,10 +148,15 @@ def apply_calibration(y, x, u, params, calibration: Calibration):
 
 
 def calibration_to_dict(calibration: Calibration) -> dict:
+    """{parameter name: value} (display units)."""
     return {name: float(v) for name, v in zip(CALIBRATION_NAMES, calibration, strict=True)}
 
 
 def calibration_from_dict(values: dict, where: str = "calibration") -> Calibration:
+    """A Calibration from {parameter name: value}; missing parameters are the identity's.
+
+    Raises ValueError naming ``where`` and the parameter for unknown names or non-numbers.
+    """
     unknown = sorted(set(values) - set(CALIBRATION_NAMES))
     if unknown:
         raise ValueError(f"{where}: unknown calibration parameter(s) {unknown}")

@@ -92,6 +92,7 @@ class DropletDynamics:
 
     @property
     def is_paper(self) -> bool:
+        """Whether this is the paper's droplet row (no input dependence)."""
         return self.form == "paper"
 
     @property

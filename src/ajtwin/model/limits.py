@@ -49,6 +49,9 @@ class StateLimits:
 
     @classmethod
     def load(cls, params: PhysicalParameters, path: str | Path | None = None) -> StateLimits:
+        """The ranges of ``data/state_limits.toml`` (or ``path``), the geometry-dependent ones
+        resolved with ``params`` (tube and nozzle radius, vial capacity).
+        """
         source = "ajtwin/data/state_limits.toml" if path is None else path
         data = load_toml(path, "data/state_limits.toml", what="state limits")
         vial_ml = units.m3_to_ml(params.vial_volume)

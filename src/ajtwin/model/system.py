@@ -319,6 +319,7 @@ def check_input(u) -> np.ndarray:
 
 
 def check_theta(theta) -> np.ndarray:
+    """θ as a finite array (5,) [1/s]; None is θ = 0."""
     if theta is None:
         return np.zeros(N_STATES)
     theta = _as_array(theta, "theta", N_STATES)
@@ -363,6 +364,7 @@ class DigitalModel:
 
     @property
     def coefficient_matrix(self) -> np.ndarray:
+        """The output coefficients as a (2, 8) array (rows L_w, L_o)."""
         return coefficient_matrix(self.coefficients)
 
     # -- public API in display units, NumPy in/out --------------------------------

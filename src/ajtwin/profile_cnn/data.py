@@ -104,6 +104,7 @@ class HeightMap:
 
     @property
     def n_sections(self) -> int:
+        """Cross-sections in the map."""
         return self.height_um.shape[0]
 
     def section(self, row: int, n_rows: int = 1) -> np.ndarray:
@@ -508,9 +509,12 @@ class ColumnDataset:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels per column."""
         return self.columns.shape[1]
 
     def subset(self, index) -> ColumnDataset:
+        """The columns at ``index`` (an index array or slice) with their labels."""
+
         def take(a):
             return None if a is None else a[index]
 

@@ -55,6 +55,7 @@ class Optics:
 
     @classmethod
     def from_package(cls) -> Optics:
+        """The brightness constants of ``vision/optics.toml``."""
         b = vision_optics()["brightness"]
         return cls(float(b["slope_scale"]), float(b["floor"]), float(b["overspray_threshold"]))
 

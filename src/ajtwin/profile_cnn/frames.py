@@ -43,14 +43,17 @@ class FrameColumns:
 
     @property
     def cv_linewidth_um(self) -> np.ndarray:
+        """The camera algorithm's linewidth per batch [µm]."""
         return np.array([b.linewidth_um for b in self.result.batches], dtype=float)
 
     @property
     def cv_overspray_um(self) -> np.ndarray:
+        """The camera algorithm's overspray per batch [µm]."""
         return np.array([b.overspray_um for b in self.result.batches], dtype=float)
 
     @property
     def cv_ok(self) -> np.ndarray:
+        """Which batches the camera algorithm measured."""
         ok = (vision_features.OK, vision_features.STD_FALLBACK)
         return np.array([b.status in ok for b in self.result.batches], dtype=bool)
 

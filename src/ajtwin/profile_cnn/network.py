@@ -47,12 +47,14 @@ class NetworkConfig:
     depth: int = 3
 
     def to_dict(self) -> dict:
+        """The configuration as plain values (saved with the model)."""
         d = asdict(self)
         d["blocks_per_stage"] = list(self.blocks_per_stage)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> NetworkConfig:
+        """A configuration saved by :meth:`to_dict` (older models: the ResNet)."""
         d = dict(d)  # models saved before the U-Net option have no arch/depth: ResNet
         d["blocks_per_stage"] = tuple(d["blocks_per_stage"])
         return cls(**d)
@@ -81,6 +83,7 @@ class BasicBlock1d(nn.Module):
             self.shortcut = nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Two convolutions with a residual connection: (N, C_in, L) → (N, C_out, L')."""
         out = self.relu(self.bn1(self.conv1(x)))
         out = self.bn2(self.conv2(out))
         return self.relu(out + self.shortcut(x))
@@ -144,6 +147,7 @@ class ResNet18Profile(nn.Module):
                 nn.init.zeros_(m.bn2.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Columns (N, L) or (N, 1, L) → height profiles (N, L) [scaled units]."""
         if x.dim() == 2:
             x = x.unsqueeze(1)
         if x.shape[-1] != self.config.n_pixels:
@@ -217,6 +221,7 @@ class UNet1dProfile(nn.Module):
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Columns (N, L) or (N, 1, L) → height profiles (N, L) [scaled units]."""
         if x.dim() == 2:
             x = x.unsqueeze(1)
         if x.shape[-1] != self.config.n_pixels:

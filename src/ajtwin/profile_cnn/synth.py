@@ -47,6 +47,18 @@ FRAME_SHAPE = (320, 800)  # rows, cols: 16 batches of 50 columns per frame
 
 @dataclasses.dataclass(frozen=True)
 class LineRanges:
+    """Ranges the synthetic lines are drawn from.
+
+    Attributes
+    ----------
+    linewidth_um, overspray_um : (float, float)
+        Uniform ranges [µm].
+    area_factor : (float, float)
+        Cross-section as a multiple of the least area that shows the overspray.
+    raggedness_um : float
+        σ of the edges' random shifts [µm].
+    """
+
     linewidth_um: tuple[float, float] = (32.0, 52.0)
     overspray_um: tuple[float, float] = (16.0, 34.0)
     area_factor: tuple[float, float] = (1.3, 3.0)

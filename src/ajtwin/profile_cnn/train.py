@@ -138,6 +138,7 @@ class TrainConfig:
     split_seed: int | None = None
 
     def to_dict(self) -> dict:
+        """The configuration as plain values (saved with the model and the checkpoint)."""
         return asdict(self)
 
 
@@ -160,6 +161,8 @@ def _augment(x: torch.Tensor, ys: list[torch.Tensor], gen: torch.Generator, max_
 
 
 def data_fingerprint(*datasets: ColumnDataset | None) -> str:
+    """SHA-256 of the training data (columns and labels), so a checkpoint resumes only on the same
+    data."""
     h = hashlib.sha256()
     for ds in datasets:
         if ds is None:

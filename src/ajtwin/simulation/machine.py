@@ -67,6 +67,7 @@ class MachineDeviation:
 
     @property
     def is_nominal(self) -> bool:
+        """Whether this machine is the nominal model (no deviation)."""
         return self.calibration().is_identity()
 
     def calibration(self) -> Calibration:
@@ -87,6 +88,7 @@ class MachineDeviation:
         )
 
     def as_dict(self) -> dict:
+        """The deviations and the calibration they amount to, as plain values."""
         out = asdict(self)
         out["equivalent_calibration"] = {
             k: float(v) for k, v in self.calibration()._asdict().items()
@@ -95,6 +97,7 @@ class MachineDeviation:
 
     @classmethod
     def from_dict(cls, values: dict) -> MachineDeviation:
+        """A deviation saved by :meth:`as_dict`."""
         fields = {k: v for k, v in values.items() if k != "equivalent_calibration"}
         return cls(**fields)
 
@@ -106,6 +109,7 @@ class MachineDeviation:
 
 
 def nominal_machine() -> MachineDeviation:
+    """The machine the nominal model describes (no deviation)."""
     return MachineDeviation()
 
 

@@ -126,10 +126,12 @@ class Scenario:
 
     @property
     def fault_kind(self) -> str:
+        """The scenario's fault (``none`` for a clean print)."""
         return self.config["fault"]["kind"]
 
     @property
     def fault_onset_s(self) -> float | None:
+        """When the fault begins [s] (None: no fault)."""
         if self.fault_kind == "none":
             return None
         return float(self.config["fault"]["onset_min"]) * 60.0

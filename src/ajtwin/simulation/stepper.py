@@ -145,6 +145,7 @@ class SteppedPrinter:
 
     @property
     def done(self) -> bool:
+        """Whether the print has ended."""
         return self.k >= self.n
 
     @property
@@ -274,4 +275,5 @@ class SteppedPrinter:
 
     @property
     def true_states(self) -> np.ndarray:
+        """The true states so far (k, 5), display units."""
         return self._true_states[: self.k]

@@ -43,6 +43,7 @@ CHUNK_S = 600
 
 
 def load_alt_settings() -> dict:
+    """The second generator's settings with their provenance (``data/truth_alt.toml``)."""
     return packaged_toml("data/truth_alt.toml")
 
 

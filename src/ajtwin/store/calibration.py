@@ -207,6 +207,7 @@ def record_maintenance(
 
 
 def maintenance_history(registry, machine: str) -> pd.DataFrame:
+    """One row per maintenance event of a machine (oldest first): when, after which print, what."""
     machine_id = registry.machine(machine)["id"]
     if not _has_tables(registry):
         return pd.DataFrame()

@@ -314,12 +314,14 @@ def default_store_path() -> Path:
 
 
 def to_npy(array) -> bytes:
+    """An array as ``.npy`` bytes (no pickle)."""
     buf = io.BytesIO()
     np.save(buf, np.asarray(array), allow_pickle=False)
     return buf.getvalue()
 
 
 def from_npy(blob: bytes) -> np.ndarray:
+    """The array of ``.npy`` bytes (no pickle)."""
     return np.load(io.BytesIO(blob), allow_pickle=False)
 
 
@@ -562,6 +564,7 @@ class Registry:
             raise
 
     def close(self):
+        """Close the connection (a closed registry cannot be used again)."""
         if self._conn is not None:
             self._conn.close()
             self._conn = None
@@ -596,6 +599,7 @@ class Registry:
         return self.machine(name)
 
     def machine(self, name: str) -> dict:
+        """The machine's row with its limits and print count (RegistryError: unknown)."""
         name = str(name).strip()
         row = self._conn.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
         if row is None:
@@ -619,6 +623,7 @@ class Registry:
         return out
 
     def machines(self) -> list[dict]:
+        """Every machine's name and creation time, by name."""
         rows = self._conn.execute("SELECT name, created_at FROM machines ORDER BY name").fetchall()
         return [dict(r) for r in rows]
 
@@ -683,6 +688,7 @@ class Registry:
             yield self._print_row(row)
 
     def find_print(self, name: str, content_hash: str) -> dict | None:
+        """The machine's print with this content hash (None: not ingested)."""
         machine = self.machine(name)
         row = self._conn.execute(
             "SELECT * FROM prints WHERE machine_id = ? AND content_hash = ?",
@@ -691,12 +697,14 @@ class Registry:
         return None if row is None else self._print_row(row)
 
     def get_print(self, print_id: int) -> dict:
+        """The print with this id (RegistryError when there is none)."""
         row = self._conn.execute("SELECT * FROM prints WHERE id = ?", (print_id,)).fetchone()
         if row is None:
             raise RegistryError(f"no print with id {print_id}")
         return self._print_row(row)
 
     def print_by_seq(self, name: str, seq: int) -> dict:
+        """The machine's print number ``seq`` (RegistryError saying how many it has)."""
         machine = self.machine(name)
         row = None
         if -(2**63) <= int(seq) < 2**63:  # beyond SQLite's integers there is no print
@@ -783,6 +791,8 @@ class Registry:
         return pd.DataFrame(records)
 
     def anomalies(self, name: str) -> pd.DataFrame:
+        """One row per anomaly of the machine's prints: seq, detected_s, onset_s, cause,
+        description, detectors."""
         machine = self.machine(name)
         rows = self._conn.execute(
             "SELECT p.seq, a.detected_s, a.onset_s, a.cause, a.description, a.detectors "

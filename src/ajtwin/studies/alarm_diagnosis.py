@@ -108,11 +108,26 @@ def _lag1(x: np.ndarray) -> float:
 
 
 def detect(arrays: dict, settings=None, history=None):
-
+    """The detectors over cached twin arrays (with the carried long-run statistics)."""
     return detect_anomalies(*(arrays[f] for f in KEYS), settings=settings, long_run_history=history)
 
 
 def diagnose(truth: str, machines, settings=None, minutes: float = 90.0, carry=True) -> dict:
+    """Alarms on the clean and the clogging print of each machine: first causes, false alarms
+    per 10 h, clog delays and labels, the innovations' statistics.
+
+    Parameters
+    ----------
+    truth : str
+        ``alt`` or ``model``: the printer's truth generator.
+    machines : iterable of int
+        Machine seeds.
+    settings : DetectorSettings, optional
+    minutes : float
+        Length of the clean print [min].
+    carry : bool
+        Start the detectors with the commissioning print's long-run statistics.
+    """
     first = Counter()
     causes = Counter()
     hours = 0.0

@@ -23,7 +23,8 @@ STATES = {"d_a": 0, "V_l": 1, "ΔR_N": 3, "φ_A": 4}
 
 
 def breakdown(machine_seed: int, truth: str) -> dict:
-
+    """Per state: the σ of the filter and of the calibration, the error and z of a commissioned
+    machine's next print."""
     print_seed = print_seed_of(machine_seed)
     comm, done, _ = commission_virtual_machine(
         print_seed, truth, machine_seed=machine_seed, learn_noise_scale=False
@@ -56,6 +57,7 @@ def breakdown(machine_seed: int, truth: str) -> dict:
 
 
 def main(argv=None) -> None:
+    """Print the breakdown for the machines given on the command line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--truth", choices=("model", "alt"), default="model")
     parser.add_argument("--machines", default="1006,1007,1008")

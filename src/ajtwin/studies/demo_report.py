@@ -24,6 +24,7 @@ def _plt():
 
 
 def figure_png(fig) -> bytes:
+    """A matplotlib figure as PNG bytes (the figure is closed)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     _plt().close(fig)
@@ -31,6 +32,7 @@ def figure_png(fig) -> bytes:
 
 
 def img_tag(png: bytes, alt: str) -> str:
+    """An ``<img>`` with the PNG embedded (base64)."""
     data = base64.b64encode(png).decode()
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
@@ -119,6 +121,8 @@ def states_figure(prints) -> bytes:
 
 
 def detectors_figure(detection, fault_onset_s=None) -> bytes:
+    """Normalised innovations, CUSUM statistics and windowed-NIS over a print, with the onset and
+    alarms."""
     plt = _plt()
     fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
     t = detection.time_s / 60
@@ -151,6 +155,7 @@ def detectors_figure(detection, fault_onset_s=None) -> bytes:
 
 
 def forecast_figure(fc, title) -> bytes:
+    """The four outputs' forecast ± 2σ."""
     plt = _plt()
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     t = fc.time_s / 60
@@ -169,6 +174,7 @@ def forecast_figure(fc, title) -> bytes:
 
 
 def frame_png(bgr) -> bytes:
+    """A BGR video frame as PNG bytes."""
     import cv2
 
     ok, buf = cv2.imencode(".png", bgr)
@@ -178,6 +184,7 @@ def frame_png(bgr) -> bytes:
 
 
 def table_html(header, rows) -> str:
+    """An HTML table (cells escaped)."""
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join(
         "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows
@@ -196,6 +203,7 @@ th{background:#f3f3f3} .note{color:#555;font-size:0.9em} h2{margin-top:1.6em}
 
 
 def html_page(title: str, sections: list[tuple[str, str]]) -> str:
+    """One self-contained HTML page: a title and (heading, HTML) sections."""
     parts = [
         f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
     ]

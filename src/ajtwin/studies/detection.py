@@ -135,6 +135,7 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
 
 
 def detect_arrays(arrays: dict, settings: DetectorSettings | None = None):
+    """The detectors over a case's cached twin arrays (and its inputs, for the vial observer)."""
     return detect_anomalies(
         *(arrays[k] for k in KEYS), settings=settings, inputs=arrays.get("inputs")
     )

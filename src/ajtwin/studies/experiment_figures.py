@@ -24,6 +24,7 @@ from ajtwin.studies.experiments import explain_linewidth_changes, setpoints  # n
 
 
 def exp1_figures(record, series, out: Path):
+    """Exp 1: states ± 2σ (EKF+EM and EKF alone) against the truth, and θ over time."""
     minutes = minutes_of(record)
     truth = record.true_states
     em, ekf = series["em"], series["ekf"]
@@ -75,6 +76,7 @@ def exp1_figures(record, series, out: Path):
 
 
 def theta_figure(history, path, title):
+    """θ per state over the print (EM's updates)."""
     fig, axes = plt.subplots(1, 5, figsize=(20, 3.4))
     for i, ax in enumerate(axes):
         col = f"theta_{STATE_NAMES[i]}"
@@ -90,7 +92,7 @@ def theta_figure(history, path, title):
 
 
 def exp2_figures(record, series, out: Path):
-
+    """Exp 2: inputs and set-points, outputs measured and predicted, states ± 2σ."""
     minutes = minutes_of(record)
     em = series["em"]
     fig, axes = plt.subplots(3, 5, figsize=(20, 10))
@@ -127,6 +129,7 @@ def exp2_figures(record, series, out: Path):
 
 
 def exp2_drift_figure(explained: list, path):
+    """The linewidth change between steady stretches split into its contributions."""
     labels = [
         "droplet_diameter",
         "aerosol_fraction",
@@ -155,6 +158,7 @@ def exp2_drift_figure(explained: list, path):
 
 
 def exp3_figures(record, series, out: Path):
+    """Exp 3: the forecast after the calibration window against the noise-free truth."""
     minutes = minutes_of(record)
     n_cal = series["n_cal"]
     after = minutes[n_cal:]
@@ -193,6 +197,7 @@ def exp3_figures(record, series, out: Path):
 
 
 def experiment_figures(name, record, series, out: Path):
+    """The figures of experiment ``name`` (exp1, exp2, exp3) into ``out``; their paths."""
     if name == "exp1":
         return exp1_figures(record, series, out)
     if name == "exp2":

@@ -77,7 +77,10 @@ def open_loop_from_start(twin: Twin, run: TwinRun, inputs) -> np.ndarray:
 
 # --------------------------------------------------------------------------- #
 def run_exp1(seed: int, twin_overrides: dict | None = None):
+    """Exp 1 on one seed: the twin with and without EM against the truth.
 
+    Returns (record, runs, metrics).
+    """
     record = simulate("exp1", seed)
     truth = record.true_states
     timings = {}
@@ -112,7 +115,7 @@ def run_exp1(seed: int, twin_overrides: dict | None = None):
 
 
 def run_exp2(seed: int, twin_overrides: dict | None = None):
-
+    """Exp 2 on one seed: input steps, the twin's states and the explained linewidth changes."""
     record = simulate("exp2", seed)
     truth = record.true_states
     twin = Twin.default(**(twin_overrides or {}))

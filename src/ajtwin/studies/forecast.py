@@ -29,6 +29,7 @@ from ajtwin.studies.experiments import run_experiment
 
 
 def seeds_from(text: str) -> list[int]:
+    """Seeds from ``1-5`` or ``1,3,7``."""
     if "-" in text:
         a, b = text.split("-")
         return list(range(int(a), int(b) + 1))
@@ -36,6 +37,7 @@ def seeds_from(text: str) -> list[int]:
 
 
 def exp3_rows(profile: str, truth: str, result: dict) -> list[str]:
+    """Table rows of one droplet-row variant and truth generator over the exp3 seeds."""
     per = result["per_seed"]
 
     def col(fn):
@@ -85,6 +87,7 @@ def pooled_row(profile: str, truth: str, result: dict) -> str:
 
 
 def exp12_row(name: str, profile: str, result: dict) -> str:
+    """A table row of exp1/exp2 under one droplet-row variant: worst errors and ±2σ coverage."""
     t = result["summary"]["targets"]
     cov = result["summary"]["coverage_em"]
     covs = " ".join(f"{cov[k]['mean']:.3f}" for k in cov)
@@ -95,6 +98,8 @@ def exp12_row(name: str, profile: str, result: dict) -> str:
 
 
 def main(argv=None) -> dict:
+    """Run the forecast study (exp3 per droplet-row variant and truth, optionally exp1/exp2); its
+    figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--out", default=None, help="Result folder [default: a new temporary folder]."

@@ -27,6 +27,7 @@ def _rms(a) -> float:
 
 
 def diagnose(seed: int, truth: str) -> dict:
+    """Where exp3's overspray forecast error comes from on one seed: state, θ and output terms."""
     vp = run_virtual_print("exp3", seed, truth_generator=truth)
     rec, n = vp.record, int(EXP3_CALIBRATION_END_S)
     twin = Twin.default(em=False, transition="input_following")
@@ -72,6 +73,7 @@ def diagnose(seed: int, truth: str) -> dict:
 
 
 def main() -> list:
+    """Run the diagnosis for the seeds and generators on the command line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="2,5")
     parser.add_argument("--truth", default="model,alt")

@@ -20,7 +20,9 @@ from ajtwin.store.registry import Registry
 
 
 def main(minutes: float = 90.0, path: str = "live-storage.sqlite") -> dict:
-
+    """Bytes per print-hour of a registry that runs live: a ``minutes`` virtual print fed to
+    the live engine, stored in ``path``.
+    """
     for suffix in ("", "-wal", "-shm"):
         if os.path.exists(path + suffix):
             os.remove(path + suffix)

@@ -123,7 +123,21 @@ def commission_virtual_machine(
 def evaluate_machine(
     machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
 ):
+    """One virtual machine: commission it, then its next print by the calibrated and by the
+    nominal twin (errors, coverage, alarms, the guard) and a clog (delay, label).
 
+    Parameters
+    ----------
+    machine_seed : int, optional
+        A drawn held-out machine; or ``machine`` by name (``paper``).
+    print_seed : int
+    minutes : float
+        Length of the clean print [min].
+    clog : bool
+        Also the clogging print.
+    truth : str
+        ``alt`` (evaluation) or ``model``.
+    """
     comm, done, commission_cpu = commission_virtual_machine(
         print_seed, truth, machine, machine_seed
     )
@@ -225,6 +239,8 @@ def evaluate_nominal(print_seed=2101, minutes=90.0):
 
 
 def summarise(results: dict) -> dict:
+    """Worst errors, coverage ranges, false alarms per 10 h, clog delays, the guard and rms z over
+    the machines."""
     machines = results["machines"]
     worst = {}
     for phase in ("after", "before"):

@@ -79,10 +79,12 @@ class SoakReport:
 
     @property
     def guard_firings(self) -> int:
+        """Steps at which the divergence guard reset the filter."""
         return len(self.guard_steps)
 
     @property
     def healthy(self) -> bool:
+        """Every chunk finite, symmetric, positive definite, physical and with a finite θ."""
         return all(
             c["finite"] and c["max_asymmetry"] < 1e-9 and c["min_corr_eig"] > 0
             and c["means_physical"] and c["theta_finite"]
@@ -90,7 +92,7 @@ class SoakReport:
         )  # fmt: skip
 
     def table(self):
-
+        """One row per chunk of the soak."""
         return pd.DataFrame(self.chunks)
 
 

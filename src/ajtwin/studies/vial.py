@@ -125,6 +125,7 @@ def _evaluate(arrays: dict, variant: str) -> dict:
 
 
 def main(argv=None) -> dict:
+    """Run the vial study (``--quick``: 1 seed of 20-min prints); its figures."""
     if argv is None:  # make bench (benchmarks/run_all.py): the quick version
         argv = ["--quick"]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -100,6 +100,8 @@ class RenderSettings:
         return cls(**{**base, **overrides})
 
     def validate(self) -> None:
+        """Raise ValueError for a setting out of its range (pixel size, gray levels, noise, blur
+        ...)."""
         if not (np.isfinite(self.um_per_px) and self.um_per_px > 0):
             raise ValueError(f"um_per_px must be > 0, got {self.um_per_px}")
         if not 0 < self.background_gray <= 255:

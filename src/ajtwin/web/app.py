@@ -170,6 +170,8 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
 
 
 def parse_advise_request(body: dict) -> dict:
+    """The advice form's fields checked: target, overspray limit, settle time, θ choice (InputError
+    naming the field)."""
     if not isinstance(body, dict):
         raise InputError("the request must be a JSON object")
     target = _number(body.get("target"), "target linewidth")
@@ -401,6 +403,7 @@ def _add_machine_routes(app: FastAPI, view: RegistryView, publisher: LivePublish
 
 
 async def json_body(request: Request):
+    """A request's JSON body (InputError when it is not JSON or nested absurdly deep)."""
     try:
         return await request.json()
     except (json.JSONDecodeError, UnicodeDecodeError):

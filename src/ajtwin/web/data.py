@@ -185,6 +185,7 @@ class RegistryView:
         self._series_cache: dict[tuple, dict] = {}
 
     def close(self):
+        """Close the registry connection."""
         self.registry.close()
 
     # ------------------------------------------------------------------ changes

@@ -186,6 +186,7 @@ class Subscription:
         self.queue.put_nowait(event)
 
     async def get(self) -> dict:
+        """The next event (waits)."""
         return await self.queue.get()
 
 
@@ -333,17 +334,20 @@ class LivePublisher:
 
     # ------------------------------------------------------------------ listening
     def subscribe(self, loop: asyncio.AbstractEventLoop | None = None) -> Subscription:
+        """A new subscription whose queue receives every event from now on."""
         sub = Subscription(loop or asyncio.get_running_loop())
         with self._lock:
             self._subscribers.add(sub)
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
+        """Stop sending events to ``sub``."""
         with self._lock:
             self._subscribers.discard(sub)
 
     @property
     def n_subscribers(self) -> int:
+        """Open subscriptions (pages listening)."""
         with self._lock:
             return len(self._subscribers)
 
@@ -354,19 +358,23 @@ class LivePublisher:
             return list(self._samples.get(machine, ()))
 
     def alarms(self, machine: str) -> list[dict]:
+        """The alarms of the machine's live print so far."""
         with self._lock:
             return list(self._alarms.get(machine, ()))
 
     def machines(self) -> list[str]:
+        """Machines that published a sample, by name."""
         with self._lock:
             return sorted(self._samples)
 
     def is_printing(self, machine: str) -> bool:
+        """Whether the machine published within ``printing_timeout_s``."""
         with self._lock:
             seen = self._last_seen.get(machine)
         return seen is not None and time.monotonic() - seen < self.printing_timeout_s
 
     def latest(self, machine: str) -> dict | None:
+        """The machine's newest sample (None: none yet)."""
         with self._lock:
             buffer = self._samples.get(machine)
             return buffer[-1] if buffer else None

@@ -82,6 +82,7 @@ class DashboardProcess:
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> DashboardProcess:
+        """Start ``ajtwin dashboard`` as a child process and wait (bounded) until it answers."""
         cmd = [sys.executable, "-m", "ajtwin.cli", "dashboard", "--store", self.store]
         cmd += ["--host", self.host, "--port", str(self.port), *self.extra_args]
         if self.token:
@@ -123,6 +124,7 @@ class DashboardProcess:
         return url
 
     def stop(self, timeout_s: float = 15.0) -> None:
+        """Stop the child by its PID (SIGTERM, then SIGKILL after ``timeout_s``)."""
         if self.proc is not None and self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGTERM)
             try:

@@ -32,7 +32,7 @@ class DetectionResult:
     long_run_history: dict | None = None
 
     def events_frame(self):
-
+        """The events as a table: detected_s, onset_s [s], cause, description, detectors."""
         rows = [
             {
                 "detected_s": ev.detected_s,

@@ -67,6 +67,7 @@ FIXES = {
 
 
 def load_guard_settings() -> dict:
+    """The guard's thresholds with their provenance (``data/mismatch.toml`` ``[guard]``)."""
     return packaged_toml("data/mismatch.toml")["guard"]
 
 
@@ -87,6 +88,7 @@ class MismatchStatus:
     start_states: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
+        """The verdict as plain JSON-friendly values (without the per-second ``flags``)."""
         out = asdict(self)
         out.pop("flags")
         return out

@@ -39,6 +39,20 @@ from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 
 @dataclass
 class CusumAlarm:
+    """One CUSUM alarm.
+
+    Attributes
+    ----------
+    step : int
+        Index where g crossed the threshold.
+    change_step : int
+        Estimated change point (the last index with g = 0).
+    output : int
+        Column of the normalised innovations e.
+    direction : int
+        +1: innovations positive (measured above predicted), −1: below.
+    """
+
     step: int  # index where g crossed the threshold
     change_step: int  # estimated change point (last index with g = 0)
     output: int  # column of e

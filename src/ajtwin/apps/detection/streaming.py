@@ -47,6 +47,7 @@ class AnomalyEvent:
     evidence: dict = field(default_factory=dict)  # mean normalised innovations etc.
 
     def to_dict(self) -> dict:
+        """The event as a plain dict (JSON-friendly)."""
         return asdict(self)
 
 

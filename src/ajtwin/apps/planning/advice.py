@@ -29,6 +29,32 @@ H_FIT_LIMITS = {"atomizer_current_mA": (300.0, 440.0), "carrier_flow_sccm": (15.
 
 @dataclass
 class Advice:
+    """Recommended inputs and what they and the current inputs will do.
+
+    Attributes
+    ----------
+    inputs : array (3,)
+        Recommended [I_A mA, Q_c sccm, Q_s sccm].
+    predicted : dict
+        Output name → (mean, σ) ``settle_s`` after the change.
+    current_inputs : array (3,)
+    current_predicted : dict
+        The same for the inputs now.
+    reachable : bool
+        The target linewidth is reachable within the limits.
+    target_linewidth_um, max_overspray_um : float
+    bounds : list of (low, high)
+        The search range per input (the machine's limits).
+    settle_s : int
+        When the outputs are judged [s after the change].
+    message : str
+        The verdict in words.
+    candidates : list of dict
+        Every local optimum tried.
+    overspray_ok : bool
+        The predicted overspray keeps the limit.
+    """
+
     inputs: np.ndarray  # (3,) recommended [I_A mA, Q_c sccm, Q_s sccm]
     predicted: dict  # output name -> (mean, std) after the settling time
     current_inputs: np.ndarray
@@ -43,6 +69,7 @@ class Advice:
     overspray_ok: bool = True  # predicted overspray within max_overspray_um
 
     def rows(self):
+        """One row per input and output: (name, now, advised, σ of the advised output or None)."""
         names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
         out = []
         for i, name in enumerate(INPUT_NAMES):

@@ -42,6 +42,26 @@ def resolve_scenario(name):
 
 @dataclass
 class ClosedLoopRun:
+    """One closed-loop print.
+
+    Attributes
+    ----------
+    strategy, scenario : str
+    seed : int
+    target_um : float
+        Target linewidth [µm].
+    record : PrintRecord
+        What the printer logged.
+    commands : DataFrame
+        One row per control period: the command, status, reason, solve time.
+    true_outputs : array (T, 5)
+        The printer's noise-free outputs.
+    setpoints : array (T, 3)
+        The set-points in force each second [mA, sccm, sccm].
+    metrics : dict
+        :func:`closed_loop_metrics`.
+    """
+
     strategy: str
     scenario: str
     seed: int

@@ -55,6 +55,18 @@ _UNITS_S = {"": 1.0, "s": 1.0, "sec": 1.0, "min": 60.0, "m": 60.0, "h": 3600.0}
 
 
 class Change(NamedTuple):
+    """A planned input change.
+
+    Attributes
+    ----------
+    time_s : float
+        Seconds after the forecast's start.
+    input_index : int
+        0 I_A [mA], 1 Q_c [sccm], 2 Q_s [sccm].
+    value : float
+        The new value (display units).
+    """
+
     time_s: float  # seconds after the forecast start
     input_index: int  # 0 I_A [mA], 1 Q_c [sccm], 2 Q_s [sccm]
     value: float  # display units
@@ -122,6 +134,7 @@ class Forecast:
             self.warnings = range_warnings(self)
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per second: time, inputs, output means and σ, state means and σ."""
         frame = pd.DataFrame({"time_s": self.time_s})
         for i, name in enumerate(INPUT_NAMES):
             frame[name] = self.inputs[:, i]

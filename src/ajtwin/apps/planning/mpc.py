@@ -135,6 +135,7 @@ class ControlSettings:
         return settings
 
     def validate(self) -> None:
+        """Raise ValueError for inconsistent settings (move starts, horizon, limits)."""
         starts = self.move_starts_s
         if not starts or starts[0] != 0 or any(b <= a for a, b in zip(starts, starts[1:])):
             raise ValueError(f"move_starts_s must start at 0 and increase; got {starts}")
@@ -183,6 +184,22 @@ def reachable_linewidth(twin, mean, cov, bounds, settle_s: int = 60, grid: int =
 
 
 def steady_linewidths(twin, mean, cov, settings, settle_s):
+    """The linewidth [µm] ``settle_s`` seconds after each input setting, from the twin's state.
+
+    Parameters
+    ----------
+    twin : Twin
+    mean : array (5,), cov : array (5, 5)
+        The state now (display units).
+    settings : array (N, 3)
+        Input settings [mA, sccm, sccm].
+    settle_s : int
+        Seconds held.
+
+    Returns
+    -------
+    array (N,)
+    """
     fn = _steady_fn(settle_s)
     return fn(
         twin.spec,
@@ -405,6 +422,21 @@ def clip_command(u, u_prev, bounds, max_step):
 
 @dataclass
 class MPCSolution:
+    """The MPC's answer at one period.
+
+    Attributes
+    ----------
+    command : array (3,)
+        The input to apply now [mA, sccm, sccm].
+    plan : array (M, 3)
+        The planned moves.
+    predicted_linewidth, predicted_linewidth_std, predicted_overspray : array (H,)
+        L̂_w ± σ and L̂_o over the horizon under the plan [µm].
+    cost : float
+    solve_s : float
+        CPU seconds of the solve (process time).
+    """
+
     command: np.ndarray  # (3,) the input to apply now [mA, sccm, sccm]
     plan: np.ndarray  # (M, 3) the planned moves
     predicted_linewidth: np.ndarray  # (H,) L̂_w over the horizon under the plan [µm]

@@ -80,6 +80,23 @@ def start_inputs(twin, target_um, limits=None, max_overspray_um=None):
 
 @dataclass
 class Decision:
+    """A controller's decision for the next period.
+
+    Attributes
+    ----------
+    command : array (3,)
+        Inputs to set [mA, sccm, sccm].
+    status : str
+        ``act``, ``hold``, ``warm-up`` or ``stop`` (latched: the ink ran low).
+    reason : str
+    solve_s : float
+        CPU seconds of the MPC solve (NaN: none).
+    predicted_linewidth_um, predicted_linewidth_std_um : float
+        The MPC's prediction at the horizon's end.
+    step_scale : float
+        Fraction of the rate limit allowed (< 1 when L_w is uncertain).
+    """
+
     command: np.ndarray
     status: str = "act"  # act | hold | warm-up | stop (latched: the ink ran low)
     reason: str = ""
@@ -90,15 +107,19 @@ class Decision:
 
 
 class OpenLoop:
+    """The start inputs, held for the whole print (the baseline without feedback)."""
+
     name = "open_loop"
 
     def __init__(self, **_):
         pass
 
     def observe(self, chunk):
+        """Nothing to learn from a period's data."""
         pass
 
     def decide(self, t, u):
+        """Hold the inputs."""
         return Decision(u.copy(), "hold", "open loop: inputs fixed at the start")
 
 
@@ -133,9 +154,11 @@ class PIController:
         self.measured = []
 
     def observe(self, chunk):
+        """Keep the period's measured linewidth."""
         self.measured.append(chunk.outputs[:, 0])
 
     def decide(self, t, u):
+        """Q_c from the PI law on the period-mean linewidth error (anti-windup at the limits)."""
         y = np.concatenate(self.measured) if self.measured else np.array([])
         self.measured = []
         if not np.isfinite(y).any():
@@ -202,6 +225,8 @@ class MPCNominal(MPCStrategy):
         self.response = None  # input response r (input_following profiles): equilibrium first
 
     def observe(self, chunk):
+        """The initial fit once enough samples arrived, then the open-loop prediction under the
+        inputs."""
         twin = self.twin
         if self.mean is None:
             self.first_u += list(chunk.inputs)
@@ -229,6 +254,7 @@ class MPCNominal(MPCStrategy):
             self.response = next_response(float(last[3]), last[:3], twin.droplet_dynamics)
 
     def decide(self, t, u):
+        """The MPC's command from the propagated nominal state (wait for the initial fit)."""
         if self.mean is None:
             return Decision(u.copy(), "warm-up", "waiting for the initial fit")
         g = self.twin.model.coefficient_matrix[0]

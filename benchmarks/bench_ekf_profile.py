@@ -1,4 +1,4 @@
-"""Where one EKF step's time goes (issue 13): the step with parts taken out.
+"""Where one EKF step's time goes: the step with parts taken out.
 
 All variants run the real :func:`ajtwin.estimation.filters.ekf_step` algebra
 structure over the 5,400-step exp1 print as a ``lax.scan``; each leaves out one

@@ -1,6 +1,6 @@
 """Fit the droplet size's input response (c_c, c_I, τ_u) for data/transition.toml.
 
-Issue 18, extension 1. On TRAINING prints of the first truth generator only
+On TRAINING prints of the first truth generator only
 (commissioning + exp2 scenarios, seeds 101–105; the experiments report on seeds 1–5
 and on the second generator, which tunes nothing): the twin with the paper's
 transition smooths d_a (EKF + RTS, no EM), then a least-squares fit

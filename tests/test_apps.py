@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ajtwin.studies.detection import detection_delay
 from click.testing import CliRunner
 from scipy import stats
 
@@ -24,6 +23,7 @@ from ajtwin.apps.planning.forecast import (
     parse_change,
     parse_duration,
 )
+from ajtwin.studies.detection import detection_delay
 
 # --------------------------------------------------------------------------- detectors
 

@@ -1,4 +1,4 @@
-"""Closed-loop control (issue 17): limits, holding a target, disturbance, safety, targets."""
+"""Closed-loop control: limits, holding a target, disturbance, safety, targets."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 12: which states this print's data determined (ΔR_T: the prior's band)."""
+"""which states this print's data determined (ΔR_T: the prior's band)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Optional droplet-size dynamics of the transition (issue 18): data/transition.toml profiles.
+"""Optional droplet-size dynamics of the transition: data/transition.toml profiles.
 
 Hand-computed rates, the closed forms of the saturating drift and of the input response,
 linearity in θ (the premise of the closed-form M-step), the M-step recovering a known θ_da
@@ -183,7 +183,7 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
     # d_a's row does not see the other states: its variance is a random walk's, with the
     # filter's σ_da (noise.toml) unless the profile sets a forecast σ
     sigma_da = following.config.process_std[0]
-    assert dyn.forecast_droplet_std_um == 3e-3  # data/transition.toml (issue 18)
+    assert dyn.forecast_droplet_std_um == 3e-3  # data/transition.toml
     for result, sigma in ((fc, dyn.forecast_droplet_std_um), (paper, sigma_da)):
         var = result.state_stds[-1, 0] ** 2
         assert var == pytest.approx(1e-4 + 900 * sigma**2, rel=1e-9)

@@ -1,4 +1,4 @@
-"""Fuzzing the input surfaces with hypothesis (issue 14): record reader, scenario loader, CLI.
+"""Fuzzing the input surfaces with hypothesis: record reader, scenario loader, CLI.
 
 Every generated input must give either a valid result or a clear error of a defined type
 whose message names the file — never a traceback of another type, a hang or a silently

@@ -1,4 +1,4 @@
-"""Fuzzing the wire surfaces with hypothesis (issue 14): the dashboard's HTTP API and the
+"""Fuzzing the wire surfaces with hypothesis: the dashboard's HTTP API and the
 live engine's OPC UA sample intake.
 
 HTTP (:mod:`ajtwin.web.app`, in-process with fastapi's TestClient, no port): every route

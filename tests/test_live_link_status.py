@@ -1,4 +1,4 @@
-"""The machine link's state on the live engine's publish path (issue 15: an operator-visible
+"""The machine link's state on the live engine's publish path (an operator-visible
 status when the OPC UA server goes away), in process on loopback, every wait bounded.
 """
 

@@ -1,4 +1,4 @@
-"""Issue 12: the detectors' long-run noise scale carried from commissioning / the previous
+"""the detectors' long-run noise scale carried from commissioning / the previous
 print through the registry (schema 5), and Q_m tested against the print's own level."""
 
 from __future__ import annotations

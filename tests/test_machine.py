@@ -1,4 +1,4 @@
-"""Issue 12: virtual machines, per-machine calibration, commissioning (SPEC §11)."""
+"""virtual machines, per-machine calibration, commissioning (model reference §11)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 12: the model–machine mismatch guard, commissioned clogs, maintenance events."""
+"""the model–machine mismatch guard, commissioned clogs, maintenance events."""
 
 from __future__ import annotations
 
@@ -116,7 +116,9 @@ def test_guard_flags_a_deposit_below_zero_beyond_its_noise():
     ],
     ids=["line_offset_-30um", "pressure_gain_+8%"],
 )
-def test_guard_fires_on_the_issues_two_failures_within_5_min(machine, expect_output, expect_state):
+def test_guard_fires_on_an_offset_line_and_a_gauge_gain_within_5_min(
+    machine, expect_output, expect_state
+):
     record = simulate("exp1", seed=301, duration_min=6.0, machine=machine)
     _, status = _guard(record)
     assert status.mismatch

@@ -1,4 +1,4 @@
-"""A machine without a camera, and a camera that drops out (issue 14).
+"""A machine without a camera, and a camera that drops out.
 
 Truth is the virtual printer (ajtwin.simulation): a print whose L_w, L_o and Q_m columns are
 removed must still give finite states, ΔR_N within 5 nm of the truth from the pressures,

@@ -3,7 +3,7 @@
 A reduced instance of the reported runs (docs/profile_cnn.md): 125 pairs, 600
 CV-labelled columns, for the half-width ResNet-18 (40 + 10 epochs, 3 min) and
 the 1-D U-Net (100 + 50 epochs, 5.5 min). The limits are what these runs
-reached (2026-11-23, with the scan smoothing), with a margin:
+reached (with the scan smoothing), with a margin:
 
 * ResNet-18: fine-tuning lowers the overspray error (18.0 → 3.9 µm vs CV
   labels) but not the linewidth error (17.0 → 18.7 µm): its dense head does not

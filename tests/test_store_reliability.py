@@ -1,5 +1,5 @@
-"""Registry reliability (issue 14): hostile/damaged stores (findings T5–T8 and the security
-notes), schema migration, the print chain (findings S3/S4), the storage policy and
+"""Registry reliability: hostile/damaged stores (and the security notes), schema
+migration, the print chain (impossible end states), the storage policy and
 compaction, export/import."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
 from ajtwin.store.registry import Registry, RegistryError
 
-#: ajtwin 0.1's registry (main before issue 14), verbatim: a registry written by it must open.
+#: ajtwin 0.1's registry (schema version 1), verbatim: a registry written by it must open.
 V1_STATEMENTS = """
 CREATE TABLE IF NOT EXISTS info (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS machines (
@@ -198,9 +198,9 @@ def test_t5_prints_table_without_info_is_refused_untouched(tmp_path):
 @pytest.mark.parametrize(
     ("version", "application", "message"),
     [
-        ("abc", None, "not an ajtwin registry"),  # finding T6, as built there
+        ("abc", None, "not an ajtwin registry"),  # a version that is not a number
         ("abc", R.APPLICATION, "schema_version 'abc' is not a number"),
-        ("2", None, "not an ajtwin registry"),  # finding T6: printed a sqlite3.Row before
+        ("2", None, "not an ajtwin registry"),  # once printed a sqlite3.Row
         (str(R.SCHEMA_VERSION + 1), R.APPLICATION, "written by a newer ajtwin"),
     ],
 )
@@ -328,7 +328,7 @@ def test_names_stripped_and_control_characters_refused(tmp_path):
 # --------------------------------------------------------------------- schema migration
 def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     store = tmp_path / "v1.sqlite"
-    impossible = GOOD * np.array([1, -1, 1, 1, 1])  # V_l < 0: S3's kind of end state
+    impossible = GOOD * np.array([1, -1, 1, 1, 1])  # V_l < 0: an impossible end state
     _write_v1(store, [GOOD, GOOD * 1.01, impossible])
     res = run_cli("show", "old", "--store", store)
     assert res.exit_code == 0, res.output
@@ -403,7 +403,7 @@ def test_chain_skips_excluded_and_dropped_prints(tmp_path):
     _fake_print(reg, "m", "p1", GOOD, None)
     _fake_print(reg, "m", "p2", GOOD * 0.9, 1)
     bad = GOOD.copy()
-    bad[0] = 534.0  # finding S3's droplet
+    bad[0] = 534.0  # a 534 µm droplet: impossible
     _fake_print(reg, "m", "p3", bad, 2, status="excluded")
     start = chain_start(reg, "m")
     assert start.from_seq == 2 and start.latest_seq == 3
@@ -427,13 +427,13 @@ def test_chain_skips_excluded_and_dropped_prints(tmp_path):
 
 
 def test_bad_print_does_not_poison_the_next_one(tmp_path):
-    """Findings S3/S4: an impossible ingest is stored excluded; the next clean print of
+    """An impossible ingest is stored excluded; the next clean print of
     the machine starts from the initial fit, as on a fresh machine."""
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
 
     ext = simulate("exp1", seed=1, duration_min=4.0)
-    # the findings' ext.parquet also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
+    # the damaged print also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
     # what the model gives at its inputs, which the input check now refuses before the twin
     # runs (tests/test_bad_inputs.py); L_w/L_o alone still give d_a 534 µm, for the chain
     full = simulate("exp1", seed=1, duration_min=4.0)

@@ -1,4 +1,4 @@
-"""V_l: the twin's consider state and the vial observer (issue 18)."""
+"""V_l: the twin's consider state and the vial observer."""
 
 from __future__ import annotations
 

@@ -7,12 +7,12 @@ import threading
 
 import numpy as np
 import pytest
-from ajtwin.web.access import check_access, is_loopback
 from click.testing import CliRunner
 
 from ajtwin.apps.detection.streaming import AnomalyEvent
 from ajtwin.cli.dashboard import dashboard
 from ajtwin.store.registry import Registry, RegistryError
+from ajtwin.web.access import check_access, is_loopback
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
 from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
 from ajtwin.web.publisher import LivePublisher
@@ -400,8 +400,8 @@ def test_engine_messages_become_samples():
     assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
     assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
     assert s["detectors"]["cusum"] == [1.0, 0.5, 17.0, 12.0, 3.0, 20.0]
-    # h per channel: 16 σ but for P_c and P_s on their own, 24 σ since 2026-11-25 (a gauge's
-    # slow noise; docs/anomalies.md). Q_m moved to k = 0.7, h = 16 (was 30) before that.
+    # h per channel: 16 σ but for P_c and P_s on their own, 24 σ (a gauge's slow noise);
+    # Q_m at k = 0.7, h = 16.
     assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 24.0, 24.0, 16.0, 16.0]
     assert s["detectors"]["window_nis_log10p"] == pytest.approx(12.0)
     assert s["alarms"] == [
@@ -417,7 +417,7 @@ def test_engine_messages_become_samples():
 
 def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
     """The live link's state (engine message without a step) → pushed to the machine's page,
-    kept for /api/machine and drawn as a badge in the fleet rows (issue 15)."""
+    kept for /api/machine and drawn as a badge in the fleet rows."""
     import json
     import urllib.request
 

@@ -1,6 +1,6 @@
 """Unit conversions — the only place in ajtwin where units are converted.
 
-The public API and files speak the *display units* of SPEC §3:
+The public API and files speak the *display units* of model reference §3:
 
 ========  =====================================  =========
 symbol    quantity                               unit
@@ -30,7 +30,7 @@ Examples
 
 from __future__ import annotations
 
-# 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (SPEC §3).
+# 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (model reference §3).
 SCCM_IN_ML_PER_S = 1.0 / 60.0
 ML_IN_M3 = 1e-6
 UM_IN_M = 1e-6

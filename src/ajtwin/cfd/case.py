@@ -1,4 +1,4 @@
-"""OpenFOAM case generator: axisymmetric wedge of the deposition head (SPEC §8).
+"""OpenFOAM case generator: axisymmetric wedge of the deposition head (model reference §8).
 
 :func:`write_case` writes a complete ``simpleFoam`` case (laminar, steady,
 incompressible N₂) for one (ΔR_N, Q_c, Q_s) and mesh level: ``blockMeshDict``

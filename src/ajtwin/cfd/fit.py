@@ -1,4 +1,4 @@
-"""Fit the output-model coefficients and R_3^N(ΔR_N) to a CFD sweep (SPEC §5, §8).
+"""Fit the output-model coefficients and R_3^N(ΔR_N) to a CFD sweep (model reference §5, §8).
 
 The output model (paper eqs. 14–15) with independent effects,
 
@@ -309,7 +309,7 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
             ),
             "post_processing": "random azimuth, line summation, spread 3.8, b at 80 % of peak, "
             "L_w = 2.1 b, overspray to 1 % of h at each linewidth edge "
-            "(SPEC §8)",
+            "(model reference §8)",
         },
     }
     for output in ("linewidth", "overspray"):

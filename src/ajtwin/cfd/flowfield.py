@@ -56,7 +56,7 @@ def plane_average(cells: CellField, x_plane: float, r_min: float = 0.0, r_max: f
 
 
 def flow_summary(cells: CellField, g: Geometry, total_flow_m3_s: float) -> dict:
-    """Figures the report compares against the paper (SPEC §8).
+    """Figures the report compares against the paper (model reference §8).
 
     Returns max gas speed [m/s], static pressures [Pa] at the carrier and sheath
     inlets, at the cone entry and at the nozzle exit, and R_3^N [Pa s/m³] =

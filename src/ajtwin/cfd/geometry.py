@@ -1,4 +1,4 @@
-"""Axisymmetric geometry of the deposition head (SPEC §8, paper App. C).
+"""Axisymmetric geometry of the deposition head (model reference §8, paper App. C).
 
 The dimensions live in ``geometry.toml`` (µm, each with its source); this module
 turns them into SI lengths, the axial stations of the model and the wall radius

@@ -2,7 +2,7 @@
 
 Only values, converted to SI through :mod:`ajtwin.units`; nothing is duplicated
 in code. Spread factor, b/a ratio, 80 % peak and 1 % edge are the paper's CFD
-post-processing constants (SPEC §6, §8).
+post-processing constants (model reference §6, §8).
 
 Examples
 --------

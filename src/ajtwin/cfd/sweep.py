@@ -1,4 +1,4 @@
-"""Parallel, resumable CFD sweep through Dask (SPEC §8).
+"""Parallel, resumable CFD sweep through Dask (model reference §8).
 
 Each gas case (ΔR_N, Q_c, Q_s) is one Dask task: OpenFOAM solve, then every
 droplet median d_a tracked on that one flow field. Cases whose ``result.json``

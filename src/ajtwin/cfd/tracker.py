@@ -1,4 +1,4 @@
-"""Droplet tracking on the solved OpenFOAM gas field (one-way coupled, SPEC §8).
+"""Droplet tracking on the solved OpenFOAM gas field (one-way coupled, model reference §8).
 
 Why a Python tracker and not ``icoUncoupledKinematicParcelFoam``: the droplets
 need Stokes drag *with Cunningham slip* (not among v1912's drag models without

@@ -1,4 +1,4 @@
-"""``ajtwin cfd`` — build the output macro-model from OpenFOAM (SPEC §8).
+"""``ajtwin cfd`` — build the output macro-model from OpenFOAM (model reference §8).
 
 ajtwin cfd case  OUT --dRN 0 --qc 23 --qs 50           write an OpenFOAM case
 ajtwin cfd run   OUT --dRN 0 --qc 23 --qs 50 --da 3.5  solve + droplets + L_w, L_o

@@ -1,4 +1,4 @@
-"""Click options and helpers shared by the commands: the registry option, bounded numbers,
+"""Click options and small functions shared by the commands: the registry option, bounded numbers,
 the video-join options, logging."""
 
 from __future__ import annotations

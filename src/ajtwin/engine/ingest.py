@@ -338,6 +338,6 @@ def detector_inputs(registry, print_id: int) -> dict:
         "means": a["means"],
         "predicted_means": a["predicted_means"],
         "covariances": covariances,
-        # the vial observer's inputs (issue 18); older prints without them: twin's V_l
+        # the vial observer's inputs; older prints without them: twin's V_l
         "inputs": a.get("inputs"),
     }

@@ -114,7 +114,7 @@ def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
     From its newest commissioning when that came after its last print (the print starts
     where commissioning left the machine, :func:`machine_start`),
     else from the newest print in the chain that stored them; None for a new machine (the
-    detectors then start at scale 1 and learn it from the print, as before issue 12).
+    detectors then start at scale 1 and learn it from the print).
     Without it a CUSUM meets a wandering gauge in the first minutes of every print with
     no scale for it (docs/anomalies.md).
     """

@@ -1,4 +1,4 @@
-"""Commissioning: fit a machine's calibration from a commissioning print (SPEC §11).
+"""Commissioning: fit a machine's calibration from a commissioning print (model reference §11).
 
 A commissioning print starts from a cleaned nozzle and a weighed fill and steps the
 inputs across the operating window (scenario ``commissioning``). The calibration c
@@ -11,7 +11,7 @@ started from the priors of ``data/commissioning.toml`` (overridden by ``known`` 
 and iterated: each pass re-linearises around the previous pass's calibration. The
 final covariance of c gives the standard errors; a parameter whose posterior σ is not
 below ``determined_ratio`` × its prior σ is reported as *not determined by the print*
-(its value is then the prior's). Confounded by construction (SPEC §11): the line
+(its value is then the prior's). Confounded by construction (model reference §11): the line
 offsets with d_a, the Q_m gain with φ_A — give ``known`` values to pin them.
 
 Examples

@@ -1,4 +1,4 @@
-"""Expectation–maximisation of the drift parameters θ (paper Algorithm 2, SPEC §7).
+"""Expectation–maximisation of the drift parameters θ (paper Algorithm 2, model reference §7).
 
 E-step: EKF + RTS over a window with θ⁽ⁱ⁾. M-step: minimise
 

@@ -13,7 +13,7 @@ E-step (EKF + RTS over the window, the machine's calibration inside g):
 * **output noise variances** R_j = mean_k [ (r_kj − Δo_j)² + (H_k P_{k|N} H_kᵀ)_jj ]
   for L_w, L_o and Q_m, clipped to ``noise_bounds`` × the tuned value.
 
-Nothing about the pressures is learned online (SPEC §11): a pressure offset is
+Nothing about the pressures is learned online (model reference §11): a pressure offset is
 indistinguishable from nozzle deposition, so a learned one would hide a clog — and so
 would a pressure noise variance learned from a window with a clog in it (tried: the
 clog went undetected). Pressures change only at commissioning or maintenance.

@@ -1,4 +1,4 @@
-"""Initial-state fit (paper §7.1, SPEC §7).
+"""Initial-state fit (paper §7.1, model reference §7).
 
     x̂₀ = argmin Σ_{k=1..n} ‖y_k − g(x₀, u_k)‖²_{Σ_w⁻¹}   s.t.  ΔR_T = ΔR_N = 0,
 

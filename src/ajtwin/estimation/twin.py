@@ -81,7 +81,7 @@ class TwinConfig:
     # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
-    # droplet-size dynamics: a profile of data/transition.toml ("paper" = SPEC §4 unchanged)
+    # droplet-size dynamics: a profile of data/transition.toml ("paper" = model reference §4 unchanged)
     transition: str = "paper"
 
     noise_profile: str = "calibrated"
@@ -95,14 +95,14 @@ class TwinConfig:
     ) -> TwinConfig:
         """Filter tuning from ``noise.toml``.
 
-        ``noise_profile="calibrated"`` (default) or ``"paper"`` (SPEC §6 values,
+        ``noise_profile="calibrated"`` (default) or ``"paper"`` (model reference §6 values,
         σ_Qm = 20 % of the nominal Q_m).
         """
         model = model or DigitalModel.default()
         noise = load_noise(profile=noise_profile)
         proc = noise["process"]
         meas = noise["measurement"]
-        # nominal Q_m at the Exp 1 operating point (SPEC §6: the paper's value is unusable)
+        # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is unusable)
         u = np.array([375.0, 23.0, 50.0])
         phi = float(model.steady_aerosol_fraction(u, 1.0))
         q_m = float(model.outputs(np.array([3.5, 1.0, 0.0, 0.0, phi]), u)[4])
@@ -367,7 +367,7 @@ class Twin:
     theta : array (5,), optional
         Starting drift parameters (the machine's learned θ; default zeros).
     calibration : Calibration, optional
-        The machine's calibration of the output model (SPEC §11); None = the nominal
+        The machine's calibration of the output model (model reference §11); None = the nominal
         machine (the packaged model exactly).
     calibration_cov : array (11, 11), optional
         Its covariance from commissioning: the reported state σ then include what the

@@ -1,7 +1,7 @@
 """The vial observer: the ink volume V_l told apart from the atomizer's efficiency.
 
 No output of the twin measures V_l. Its only signature is the droplet generation
-H(V_l, Q_c, I_A) (SPEC §4) behind the measured material flow: at the aerosol's steady
+H(V_l, Q_c, I_A) (model reference §4) behind the measured material flow: at the aerosol's steady
 state (φ_A relaxes in ~5 s) Q_m = g φ_m η H, with g the machine's Q_m gain and η the
 atomizer's efficiency relative to the generation fit. Q_m alone sees only the product
 η H(V_l). What separates the two is *how* they may change:

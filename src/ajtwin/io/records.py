@@ -3,7 +3,7 @@
 A :class:`PrintRecord` holds
 
 * ``data`` — a pandas DataFrame sampled at 1 Hz with the columns of
-  :data:`INPUT_COLUMNS` and :data:`OUTPUT_COLUMNS` (display units, SPEC §3) after
+  :data:`INPUT_COLUMNS` and :data:`OUTPUT_COLUMNS` (display units, model reference §3) after
   ``time_s``, optionally the truth columns :data:`TRUTH_COLUMNS` of a virtual print.
   NaN means "no measurement at this second" and is kept as such.
 * ``meta`` — a dict with at least ``machine_id``, ``scenario``, ``seed``,

@@ -239,7 +239,7 @@ class OpcUaLink:
             self._set_status(f"connected, following {', '.join(nodes)}")
             await self._connected(client, nodes)
             states = {name: "printing" for name in nodes}
-            buffered: set[str] = set()  # machines whose buffer came in this session
+            buffered: set[str] = set()  # machines whose buffer came on this connection
             last_check = time.monotonic()
             while stop is None or not stop.is_set():
                 try:

@@ -1,4 +1,4 @@
-"""The physics macro-model of the AJ printer (paper §6, SPEC §3–6).
+"""The physics macro-model of the AJ printer (paper §6, model reference §3–6).
 
 Sub-models, each a named pure JAX function:
 

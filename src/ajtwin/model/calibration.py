@@ -1,4 +1,4 @@
-"""Per-machine calibration of the output model g (SPEC §11).
+"""Per-machine calibration of the output model g (model reference §11).
 
 No two printers share plumbing, gauges or camera optics. A machine's measured outputs
 are the nominal model's outputs seen through its calibration:

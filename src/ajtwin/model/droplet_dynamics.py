@@ -1,7 +1,7 @@
-"""Optional droplet-size dynamics of the transition model (issue 18, paper's future work).
+"""Optional droplet-size dynamics of the transition model (paper's future work).
 
 The paper's transition holds the droplet size by a pure drift, dd_a/dt = θ_da d_a
-(SPEC §4): over a forecast horizon that drift extrapolates exponentially, and the
+(model reference §4): over a forecast horizon that drift extrapolates exponentially, and the
 droplet size cannot follow an input change. ``data/transition.toml`` offers profiles
 that change only the d_a row of the transition (the other rows are
 :func:`ajtwin.model.system.transition_rates`):

@@ -1,7 +1,7 @@
 """Loading the packaged parameter and coefficient files.
 
-The physical parameters (SPEC §6) live in ``ajtwin/data/parameters.toml``, the
-output-model coefficients (SPEC §5) in ``ajtwin/data/output_coefficients.toml``;
+The physical parameters (model reference §6) live in ``ajtwin/data/parameters.toml``, the
+output-model coefficients (model reference §5) in ``ajtwin/data/output_coefficients.toml``;
 each value carries a unit and a provenance. This module reads them and returns
 immutable pytrees of floats in SI (:class:`PhysicalParameters`) or display units
 (:class:`OutputCoefficients`), ready to pass to the pure JAX model functions.
@@ -164,7 +164,7 @@ NOISE_PROFILES = ("calibrated", "paper")
 def load_noise(path: str | Path | None = None, profile: str = "paper") -> dict:
     """Filter tuning noise as ``{"process": {...}, "measurement": {...}, "initial": {...}}``.
 
-    ``profile="paper"`` gives the SPEC §6 / paper App. E values; ``"calibrated"``
+    ``profile="paper"`` gives the model reference §6 / paper App. E values; ``"calibrated"``
     the twin's default, tuned on virtual-printer training prints (see the file).
     """
     raw = _read_toml(path, "noise.toml")

@@ -1,6 +1,6 @@
-"""The assembled digital model: transition f and output g (paper §6, SPEC §4–5).
+"""The assembled digital model: transition f and output g (paper §6, model reference §4–5).
 
-State, input and output vectors are in display units (SPEC §3):
+State, input and output vectors are in display units (model reference §3):
 
 * x = [d_a µm, V_l mL, ΔR_T µm, ΔR_N µm, φ_A]
 * u = [I_A mA, Q_c sccm, Q_s sccm]
@@ -13,7 +13,7 @@ The pure functions here (:func:`transition_rates`, :func:`output_function`,
 :class:`DigitalModel` wraps them for users with input checks and NumPy I/O.
 
 The transition is linear in θ: f(x, u; θ) = f(x, u; 0) + θ ⊙ x — which is
-what gives the EM M-step its closed form (SPEC §7).
+what gives the EM M-step its closed form (model reference §7).
 """
 
 from __future__ import annotations
@@ -143,7 +143,7 @@ def output_function(x, u, params: PhysicalParameters, coefficients):
     params : PhysicalParameters
     coefficients : array (2, 8) or CalibratedCoefficients
         :func:`coefficient_matrix` of the output coefficients, or that matrix with a
-        machine's :class:`~ajtwin.model.calibration.Calibration` (SPEC §11), which is
+        machine's :class:`~ajtwin.model.calibration.Calibration` (model reference §11), which is
         then applied to the nominal outputs.
     """
     if isinstance(coefficients, CalibratedCoefficients):
@@ -352,7 +352,7 @@ class DigitalModel:
 
     @classmethod
     def default(cls) -> DigitalModel:
-        """Packaged parameters (SPEC §6) and output coefficients (SPEC §5)."""
+        """Packaged parameters (model reference §6) and output coefficients (model reference §5)."""
         return cls(load_parameters(), load_output_coefficients())
 
     @classmethod

@@ -2,7 +2,7 @@
 
 Stage-2 fine-tuning (paper §5) needs linewidth and overspray *computed from the
 predicted profile* with gradients. The definitions are the project's reference,
-:func:`ajtwin.vision.profile.profile_features` (SPEC §9 applied to the noiseless
+:func:`ajtwin.vision.profile.profile_features` (model reference §9 applied to the noiseless
 brightness of a profile through the optics model of ``vision/optics.toml``)::
 
     B(r)/B_bg = floor + (1 − floor) / (1 + |dh/dr| / slope_scale)
@@ -189,7 +189,7 @@ def features_numpy(h_um, um_per_px: float) -> tuple[np.ndarray, np.ndarray]:
 def read_features(h_um, um_per_px: float, *, sigma_um: float | None = None, tries: int = 3):
     """Linewidth and overspray of predicted profiles, defined on every profile if possible.
 
-    The SPEC §9 definitions react to sub-nm slopes, so a profile with a small
+    The model reference §9 definitions react to sub-nm slopes, so a profile with a small
     ripple on its tail may have no clean threshold crossing or shoulder peak
     (``nan``). Those profiles — and only those — are read again after a
     Gaussian smoothing of σ = ``sigma_um`` (default: the scan smoothing the

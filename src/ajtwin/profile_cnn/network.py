@@ -1,6 +1,6 @@
 """1-D ResNet-18 that maps a grayscale column across the line to a height profile.
 
-Paper §5 (SPEC §9): "A ResNet-18 model was selected as the network architecture,
+Paper §5 (model reference §9): "A ResNet-18 model was selected as the network architecture,
 with the input consisting of grayscale image columns of size (200, 1) … we modify
 the final layer with a dense linear layer to enable direct height regression."
 
@@ -173,7 +173,7 @@ class ConvBlock1d(nn.Sequential):
 
 
 class UNet1dProfile(nn.Module):
-    """Small 1-D U-Net (Ronneberger et al. 2015): the "simpler model" of issue #19.
+    """Small 1-D U-Net (Ronneberger et al. 2015): a simpler model than the paper's ResNet.
 
     The ResNet's global average pool squeezes the column into one vector and a
     dense head re-creates 200 heights, so an edge's position must survive a

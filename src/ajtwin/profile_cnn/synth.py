@@ -109,8 +109,8 @@ def synthetic_pairs(
     ``scan_smoothing_um`` (default: the packaged setting) smooths each scan
     before registration, as for real scans. ``edge_raggedness_um`` (default: the
     renderer's, the same as the stage-2 frames of :func:`synthetic_labelled`) is
-    the along-line raggedness of the rendered frame. Why not straight lines (0,
-    as before 2026-11-25): a batch column of a ragged edge is smeared, and a
+    the along-line raggedness of the rendered frame. Why not straight lines
+    (0): a batch column of a ragged edge is smeared, and a
     network trained on straight pairs read the stage-2 columns' area 1.1–2.5 %
     low (stage 1, training seeds 0–3, held-out seed 11: Q_m error 3.0–3.6 % on
     ragged columns, 1.8–2.2 % on straight ones; trained on ragged pairs 2.4–2.8 %,

@@ -1,4 +1,4 @@
-"""Two-stage training of the height-profile CNN (paper §5, SPEC §9).
+"""Two-stage training of the height-profile CNN (paper §5, model reference §9).
 
 Stage 1: supervised MSE between predicted and profilometer profiles
 (the paper's 125 scans). Stage 2: fine-tuning on many columns labelled only

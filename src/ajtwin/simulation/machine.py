@@ -1,4 +1,4 @@
-"""Virtual machines that differ from the nominal model (SPEC §11, issue 12).
+"""Virtual machines that differ from the nominal model (model reference §11).
 
 A real AJ 300 has its own plumbing, gauges, nozzle and camera. A virtual machine is
 the nominal machine seen through a :class:`MachineDeviation`: carrier- and sheath-line

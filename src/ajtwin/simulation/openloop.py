@@ -12,7 +12,7 @@ import numpy as np
 
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel
 
-#: Exp 1 inputs (SPEC §10): I_A 375 mA, Q_c 23 sccm, Q_s 50 sccm.
+#: Exp 1 inputs (model reference §10): I_A 375 mA, Q_c 23 sccm, Q_s 50 sccm.
 EXP1_INPUTS = (375.0, 23.0, 50.0)
 
 

@@ -38,7 +38,7 @@ def nominal_open_loop(record: PrintRecord):
     """The nominal digital model's open-loop states and outputs for a record with truth.
 
     Starts from the true state at the first sample, with the twin's prior of a clean
-    tube and nozzle (ΔR_T = ΔR_N = 0, SPEC §7), θ = 0, Euler at 1 s, driven by the
+    tube and nozzle (ΔR_T = ΔR_N = 0, model reference §7), θ = 0, Euler at 1 s, driven by the
     measured inputs. Returns (states (T, 5), outputs (T, 5)).
     """
 

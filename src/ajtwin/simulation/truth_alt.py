@@ -1,4 +1,4 @@
-"""A second, structurally different truth generator — for evaluation only (issue 12).
+"""A second, structurally different truth generator — for evaluation only.
 
 The first generator (:mod:`ajtwin.simulation.truth`) tuned the twin (noise.toml, the
 detector and guard thresholds). Figures claimed for real machines are measured on this

@@ -1,4 +1,4 @@
-"""Per-machine calibrations and maintenance events in the registry (SPEC §11).
+"""Per-machine calibrations and maintenance events in the registry (model reference §11).
 
 Two tables of the registry (schema migration 4 of :mod:`ajtwin.store.registry`; export,
 import and compact carry them like the prints):

@@ -81,7 +81,7 @@ TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
 APPLICATION = "ajtwin-registry"
 
 #: Default operating limits of a machine: the validity range of H's Box–Behnken fit
-#: (Q_c 15–35 sccm, I_A 300–440 mA; SPEC §4) and an assumed sheath range around the
+#: (Q_c 15–35 sccm, I_A 300–440 mA; model reference §4) and an assumed sheath range around the
 #: paper's 48–53 sccm.
 DEFAULT_LIMITS = {
     "atomizer_current_mA": [300.0, 440.0],
@@ -225,7 +225,7 @@ def _migrate_to_3(conn):
 
 
 #: A machine's calibrations (one row per commissioning, the newest active) and its
-#: maintenance events (:mod:`ajtwin.store.calibration`, SPEC §11). Never edit: add a migration.
+#: maintenance events (:mod:`ajtwin.store.calibration`, model reference §11). Never edit: add a migration.
 _CALIBRATION_SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,

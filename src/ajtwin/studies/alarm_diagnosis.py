@@ -1,24 +1,24 @@
-"""Where do the false alarms on clean prints come from? (issue 12, docs/anomalies.md)
+"""Where do the false alarms on clean prints come from? (docs/anomalies.md)
 
 Runs, per (truth generator, machine seed): a 20-min ``commissioning`` print →
 :func:`~ajtwin.estimation.commission.commission`, then the calibrated twin on the next
 90-min clean ``exp1`` print and on a 30-min ``nozzle_clog`` print (onset 15 min), exactly
-as ``benchmarks/bench_machine.py`` does. The twin's filter outputs are cached (npz under
+as :mod:`ajtwin.studies.machine` does. The twin's filter outputs are cached (npz under
 ``/tmp/ajtwin-alarm-cache``) so detector settings can be tried in seconds.
 
 Reports, per detector channel (windowed NIS, CUSUM± per output, common-mode pressure),
 how many clean-print events it started, and the clog detection delays.
 
 The detectors' long-run noise scale is carried from the commissioning print (the
-calibrated twin over it, :func:`~ajtwin.apps.anomaly.commissioning_long_run_history`) to
+calibrated twin over it, :func:`~ajtwin.engine.commissioning.commissioning_long_run_history`) to
 the clean and the clog print, as ``ajtwin machine commission`` + ``ajtwin ingest`` do
-(``--no-carry``: each print on its own, as before issue 12's carried history).
+(``--no-carry``: each print on its own, without the carried history).
 
 Tuning set: ``--truth model --machines 11,12,13,14,15`` (first generator, machine seeds not
 used for evaluation). Evaluation: ``--truth alt --machines 1001,1002,1003,1004,1005``
-(print seeds as in bench_machine.py).
+(print seeds as in ajtwin.studies.machine).
 
-    python benchmarks/alarm_diagnosis.py --truth model --machines 11,12,13,14,15
+    python -m ajtwin.studies.alarm_diagnosis --truth model --machines 11,12,13,14,15
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    # v5: weighed fills, a cleaned nozzle's residue and φ_A's 5 % prior (2026-11-26) — bump
+    # v5: weighed fills, a cleaned nozzle's residue and φ_A's 5 % prior — bump
     # whenever the twin's runs or the virtual printer's truth change
     key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v5".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
@@ -95,7 +95,7 @@ def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> di
 
 
 def _print_seed(truth: str, machine_seed: int, index: int) -> int:
-    """The print seed bench_machine.py gives this machine (alt: 2001 + 10·(seed − 1001))."""
+    """The print seed ajtwin.studies.machine gives this machine (alt: 2001 + 10·(seed − 1001))."""
     if truth == "alt" and machine_seed >= 1001:
         return 2001 + 10 * (machine_seed - 1001)
     return (2001 if truth == "alt" else 3001) + 10 * index

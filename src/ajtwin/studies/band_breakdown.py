@@ -1,12 +1,12 @@
 """Where a commissioned twin's ±2σ band comes from: the filter's σ vs the calibration term.
 
-Per machine (as ``bench_machine``: 20-min commissioning print, d_a known ±0.1 µm, then the
+Per machine (as :mod:`ajtwin.studies.machine`: 20-min commissioning print, d_a known ±0.1 µm, then the
 next 90-min exp1 print run by the calibrated twin), per state: the median total σ, its
 filter part and its calibration part C_k = A Σ_c Aᵀ (``run.calibration_covariances``,
 :mod:`ajtwin.estimation.calibration_uncertainty`), the rms error, and the rms z with the
 total σ and with the filter's σ alone. rms z ≈ 1 is an honest band.
 
-    python benchmarks/band_breakdown.py --truth model --machines 1006,1007,1008
+    python -m ajtwin.studies.band_breakdown --truth model --machines 1006,1007,1008
 """
 
 from __future__ import annotations

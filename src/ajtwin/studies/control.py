@@ -21,7 +21,7 @@ from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import write_record
 from ajtwin.model.names import INPUT_NAMES
 
-#: the drift scenarios of the comparison (issue 17); slow_clog ships with the controller
+#: the drift scenarios of the comparison; slow_clog ships with the controller
 DRIFT_SCENARIOS = ("exp1", "clean_long", "ink_running_low", "slow_clog")
 
 

@@ -1,6 +1,6 @@
 """Why MPC on the twin is ~1× PI on the virtual printer: the measurement noise sets the floor.
 
-    .venv/bin/python benchmarks/control_limits.py [--seeds 1-5] [--minutes 45] [--out F.json]
+    python -m ajtwin.studies.control_limits [--seeds 1-5] [--minutes 45] [--out F.json]
 
 Runs PI and the MPC on the twin in closed loop on exp1 (target 65 µm) four times over the
 same seeds, removing one source of noise at a time from the virtual printer

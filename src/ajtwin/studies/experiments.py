@@ -9,7 +9,7 @@
 * ``exp3`` — θ calibrated by EM on t < 37.6 min, then an open-loop forecast of
   L_w, L_o afterwards: calibrated vs uncalibrated vs truth.
 
-The virtual printer's truth is not the twin's model (SPEC §10), so these
+The virtual printer's truth is not the twin's model (model reference §10), so these
 figures measure the twin against something it does not contain.
 """
 
@@ -31,7 +31,7 @@ from ajtwin.simulation.printer import first_order_lag
 from ajtwin.units import um_to_nm
 
 CHECK_MINUTES = (30, 60, 90)
-#: states whose closed-loop error is judged relative to truth (SPEC §10 / issue 4)
+#: states whose closed-loop error is judged relative to truth (model reference §10)
 RELATIVE_STATES = (0, 1, 4)
 NOZZLE = 3
 EXP3_CALIBRATION_END_S = 37.6 * 60

@@ -1,4 +1,4 @@
-"""Exp 3 forecast skill of the transition profiles on both truth generators (issue 18).
+"""Exp 3 forecast skill of the transition profiles on both truth generators.
 
 Runs ``ajtwin experiment exp3`` for every profile of data/transition.toml named below on
 the virtual printer's first truth generator ("model", which tuned the profiles on seeds
@@ -7,9 +7,9 @@ exp1/exp2 (the filter's accuracy and coverage) for the profiles; writes each run
 figures and metrics.json under OUT/<experiment>_<profile>_<truth>/ and a summary table
 OUT/summary.md with the before (paper) / after figures.
 
-Run:  PYTHONPATH=src python benchmarks/bench_forecast.py --out docs/results/forecast
+Run:  python -m ajtwin.studies.forecast --out docs/results/forecast
       [--profiles paper,input_following,mean_reverting] [--seeds 1-5] [--with-exp12]
-      PYTHONPATH=src python benchmarks/bench_forecast.py --out docs/results/forecast/seeds_1_40 \
+      python -m ajtwin.studies.forecast --out docs/results/forecast/seeds_1_40 \
       --profiles paper,input_following --seeds 1-40      # the pooled bands (summary.md, top table)
 """
 
@@ -109,7 +109,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--seeds", default="1-5")
     parser.add_argument("--with-exp12", action="store_true")
     args = parser.parse_args(argv)
-    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_forecast-"))
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ajtwin-forecast-study-"))
     out.mkdir(parents=True, exist_ok=True)
     seeds = seeds_from(args.seeds)
     profiles = args.profiles.split(",")
@@ -133,7 +133,7 @@ def main(argv=None) -> dict:
             pooled.append(pooled_row(profile, truth, result))
             print("\n".join(table[-2:]), flush=True)
     lines = [
-        "# Exp 3 forecast skill by transition profile (benchmarks/bench_forecast.py)",
+        "# Exp 3 forecast skill by transition profile (python -m ajtwin.studies.forecast)",
         "",
         f"Seeds {seeds[0]}–{seeds[-1]} (held out); the profiles were tuned on the first "
         "generator's training seeds (101–105; input_following's forecast σ_da on 101–140).",

@@ -1,4 +1,4 @@
-"""Where the exp3 L_o forecast error comes from (issue 18: L_o's ±2σ band on the alt generator).
+"""Where the exp3 L_o forecast error comes from (L_o's ±2σ band on the alt generator).
 
 For each seed: the calibrated forecast (input_following, EM on t < 37.6 min) against the
 noise-free truth, split into the part due to the line coefficients (the twin's nominal g
@@ -6,7 +6,7 @@ vs the virtual printer's true coefficients, on the twin's states) and the part d
 forecast states (true coefficients, twin states vs true states); then the L_o RMS with one
 state at a time replaced by its truth, which names the state that carries the error.
 
-    python benchmarks/forecast_lo_diagnosis.py [--seeds 2,5] [--truth model,alt]
+    python -m ajtwin.studies.forecast_lo_diagnosis [--seeds 2,5] [--truth model,alt]
 """
 
 import argparse

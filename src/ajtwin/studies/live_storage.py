@@ -2,7 +2,7 @@
 "Storage policy"): one exp1 print fed to the live engine sample by sample; the registry
 file (after a WAL checkpoint) while the session is open and after it closed.
 
-Usage: PYTHONPATH=src python benchmarks/measure_live_storage.py [MINUTES] [REGISTRY]
+Usage: python -m ajtwin.studies.live_storage [MINUTES] [REGISTRY]
 (default 90 min, ./live-storage.sqlite, overwritten).
 """
 

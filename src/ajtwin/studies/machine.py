@@ -1,4 +1,4 @@
-"""Issue 12 targets: the twin on machines it was not built from (docs/calibration.md).
+"""The twin on machines it was not built from: held-out virtual machines, commissioned.
 
 Held-out virtual machines (machine seeds 1001–1005, print seeds 2001+) on the SECOND
 truth generator (``truth_generator="alt"``, which tuned nothing), plus the nominal
@@ -16,7 +16,7 @@ machine and the paper's machine. Per machine:
 4. a 30-min ``nozzle_clog`` print (onset 15 min) on the commissioned machine:
    detection delay and label.
 
-``python benchmarks/bench_machine.py [--quick]`` writes
+``python -m ajtwin.studies.machine [--quick]`` writes
 ``docs/results/machine/results.json`` and ``summary.md``; ``main()`` (``make bench``)
 runs the quick version (one machine, shorter prints).
 """
@@ -328,7 +328,7 @@ def run_all(
 def _markdown(results: dict, command: str, computer: str) -> str:
     s = results["summary"]
     lines = [
-        "# Issue 12 — the twin on machines it was not built from",
+        "# The twin on machines it was not built from",
         "",
         f"Command: `{command}`  ",
         f"Computer: {computer}; wall {results['wall_s']:.0f} s.",

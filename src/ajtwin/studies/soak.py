@@ -1,6 +1,6 @@
 """Long runs of the twin over the virtual printer: numerical health, memory, speed.
 
-Two soaks (issue 14, "Long runs"):
+Two soaks ("Long runs"):
 
 * :func:`soak_print` — one long virtual print (hours to a week) through the twin, fed
   to it in consecutive chunks as a streaming engine would (each chunk starts from the

@@ -1,4 +1,4 @@
-"""Issue 18, the vial: V_l observable and honestly uncertain, ink running low labelled.
+"""The vial: V_l observable and honestly uncertain, ink running low labelled.
 
 Before (the twin updating V_l from the generation signature, detectors on the twin's
 V_l) against after (V_l a consider state in the twin, the vial observer beside it,
@@ -18,7 +18,7 @@ The twin is told the vial's fill (the scenario's initial volume, weighed at load
 σ 3 µL as in noise.toml); ``ink_running_low`` is also run with the twin told 1.0 mL
 (a fill nobody weighed) to show what the fill is worth.
 
-    python benchmarks/bench_vial.py [--quick] [--cache DIR] [--out DIR]
+    python -m ajtwin.studies.vial [--quick] [--cache DIR] [--out DIR]
 
 ``main()`` without arguments (``make bench``) runs ``--quick`` (seed 1, 20-min prints)
 and writes beside the cache, not into docs/.
@@ -126,7 +126,7 @@ def _evaluate(arrays: dict, variant: str) -> dict:
 
 def main(argv=None) -> dict:
     """Run the vial study (``--quick``: 1 seed of 20-min prints); its figures."""
-    if argv is None:  # make bench (benchmarks/run_all.py): the quick version
+    if argv is None:  # called without arguments: the quick version
         argv = ["--quick"]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1 seed, 20-min prints (make bench)")
@@ -181,7 +181,7 @@ def main(argv=None) -> dict:
 
 
 def _figures(rows, wall_s) -> dict:
-    """Flat named figures for benchmarks/run_all.py."""
+    """Flat named figures (name → value) of the run."""
     figures = {"wall_s": round(wall_s, 1)}
     for truth in ("model", "alt"):
         for variant in ("before", "after"):
@@ -213,7 +213,7 @@ def _pick(rows, scenario, truth, variant):
 def _markdown(result) -> str:
     rows = result["rows"]
     lines = [
-        "# Issue 18 — the vial: before/after",
+        "# The vial: before/after",
         "",
         f"Command: `{result['command']}`  ",
         "Computer: {}; wall {:.0f} s (twin runs cached).".format(

@@ -1,4 +1,4 @@
-"""Linewidth and overspray from alignment-camera frames (paper App. A, SPEC §9).
+"""Linewidth and overspray from alignment-camera frames (paper App. A, model reference §9).
 
 Per frame:
 

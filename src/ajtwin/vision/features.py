@@ -1,4 +1,4 @@
-"""The 1-D core of the paper's linewidth/overspray definitions (SPEC §9, paper App. A).
+"""The 1-D core of the paper's linewidth/overspray definitions (model reference §9, paper App. A).
 
 One grayscale cross-section of the line (a batch mean of image columns, or the brightness
 of a true height profile) goes in; the points the paper names come out:

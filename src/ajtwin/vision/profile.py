@@ -3,7 +3,7 @@
 Three pieces that the renderer, the extractor's tests, the height-profile CNN and the
 virtual printer share, so that they all mean the same thing by "linewidth" and "overspray":
 
-* :func:`brightness_from_profile` — the camera's optical model (SPEC §9: flat = bright,
+* :func:`brightness_from_profile` — the camera's optical model (model reference §9: flat = bright,
   steep = dark): ``B = background * (floor + (1 - floor) / (1 + |dh/dr| / slope_scale))``.
   Its constants live in ``optics.toml`` next to this module.
 * :func:`profile_features` — the paper's definitions (App. A) applied to the *noiseless*
@@ -69,7 +69,7 @@ def _brightness_constants(slope_scale, floor):
 
 
 def brightness_from_slope(slope, *, background=1.0, slope_scale=None, floor=None):
-    """Brightness seen by the alignment camera for a surface slope (SPEC §9).
+    """Brightness seen by the alignment camera for a surface slope (model reference §9).
 
     Parameters
     ----------
@@ -183,7 +183,7 @@ def profile_feature_points(r_um, h_um, *, threshold=None) -> tuple[EdgePoints, f
 def profile_features(r_um, h_um, *, threshold=None) -> tuple[float, float]:
     """Linewidth and one-sided overspray of a true height profile (the reference values).
 
-    The paper's image definitions (SPEC §9, App. A) applied to the noiseless brightness
+    The paper's image definitions (model reference §9, App. A) applied to the noiseless brightness
     of the profile (no pixels, no blur, no noise).  The profile is first resampled with a
     shape-preserving PCHIP interpolant onto a uniform 0.02 µm grid (unless already that
     fine); slopes are forward differences, and points are taken at the sample (no sub-sample

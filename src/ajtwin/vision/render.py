@@ -3,7 +3,7 @@
 A height profile h(r) across the printed line becomes a top-down 8-bit grayscale frame:
 
 1. brightness falls with the deposit's slope
-   (:func:`~ajtwin.vision.profile.brightness_from_profile`, SPEC §9), evaluated on a fine
+   (:func:`~ajtwin.vision.profile.brightness_from_profile`, model reference §9), evaluated on a fine
    grid in line coordinates (s along the line, d across it);
    the two shoulders and the two overspray edges of that map are stretched independently
    along the line by smooth random fields (edge raggedness — the paper's random shoulder

@@ -2,7 +2,7 @@
 
 Every page and the registry watcher get their data through :class:`RegistryView`, so a
 change of the registry's schema (migrations, new per-machine fields) touches this module
-only. Values are in SPEC §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
+only. Values are in model reference §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
 plain lists with NaN → ``None`` (JSON has no NaN).
 
 A machine's commissioning (active calibration ± standard errors), maintenance and the

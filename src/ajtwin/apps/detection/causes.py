@@ -9,7 +9,7 @@ import numpy as np
 
 from ajtwin.apps.detection.settings import DetectorSettings
 
-#: The likely-cause labels (paper §4; issue 8).
+#: The likely-cause labels (paper §4).
 CAUSES = {
     "nozzle_clog": "nozzle clog (both pressures rising, ΔR_N growing)",
     "carrier_leak": (
@@ -31,7 +31,7 @@ def label_cause(
     settings: DetectorSettings,
     vial_running_low: bool | None = None,
 ) -> str:
-    """The likely cause from the pattern of outputs and states (issue 8 rules).
+    """The likely cause from the pattern of outputs and states.
 
     Parameters
     ----------
@@ -63,7 +63,7 @@ def label_cause(
     'ink_low'
     """
     if vial_running_low is not None:
-        # the vial observer (issue 18) sees the vial apart from the atomizer: it decides
+        # the vial observer sees the vial apart from the atomizer: it decides
         if vial_running_low:
             return "ink_low"
         vial_mL = np.nan
@@ -85,7 +85,7 @@ def label_cause(
     # clog's start, not the carrier line (a leak LOWERS P_c; a gauge creeping up alone
     # pushes ΔR_N while P_s falls below the deposit's prediction). Held-out alt machines
     # 1037/1042: P_c +0.73/+0.77σ, P_s +0.23/+0.20σ, ΔR_N +49/+58σ were labelled carrier
-    # leak by the rule below (set 2026-11-25, issue 12)
+    # leak by the rule below
     if shift[3] > zs and z[pc] > zs and z[ps] > 0:
         return "nozzle_clog"
     # less carrier reaching the head lowers P_c (and P_s through the nozzle); a P_c

@@ -85,7 +85,9 @@ class DetectorSettings:
     merge_other_family_s: float = _D["merge_other_family_s"]  # ... another family: only this
     evidence_s: float = _D["evidence_s"]  # seconds after detection used for the cause label
     significance_z: float = _D["significance_z"]  # |mean e|·√n above this = output moved
-    vial_low_mL: float = _D["vial_low_mL"]  # the low end of H's Box–Behnken fit (SPEC §4)
+    vial_low_mL: float = _D[
+        "vial_low_mL"
+    ]  # the low end of H's Box–Behnken fit (model reference §4)
     warmup_s: float = _D["warmup_s"]  # ignore the initial transient of the filter
     innovation_clip_sigma: float = _D["innovation_clip_sigma"]  # Huber clip of e
     # Q_m's CUSUM reference: the print's own level (warm-up mean, then an EWMA with this

@@ -47,7 +47,7 @@ INPUT_ALIASES = {
     "sheath_flow": 2,
     **{name.lower(): i for i, name in enumerate(INPUT_NAMES)},
 }
-#: beyond these the forecast leaves the range the model was built for (SPEC §3: ΔR_N
+#: beyond these the forecast leaves the range the model was built for (model reference §3: ΔR_N
 #: 0–0.1 µm typical; the virtual printer's clog reaches ~0.45 µm) — flagged, not clipped
 MODEL_RANGE = {"nozzle_deposition_um": 0.5, "linewidth_um": 200.0}
 

@@ -81,7 +81,8 @@ class TwinConfig:
     # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
-    # droplet-size dynamics: a profile of data/transition.toml ("paper" = model reference §4 unchanged)
+    # droplet-size dynamics: a profile of data/transition.toml ("paper" = model reference §4
+    # unchanged)
     transition: str = "paper"
 
     noise_profile: str = "calibrated"
@@ -102,7 +103,8 @@ class TwinConfig:
         noise = load_noise(profile=noise_profile)
         proc = noise["process"]
         meas = noise["measurement"]
-        # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is unusable)
+        # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is
+        # unusable)
         u = np.array([375.0, 23.0, 50.0])
         phi = float(model.steady_aerosol_fraction(u, 1.0))
         q_m = float(model.outputs(np.array([3.5, 1.0, 0.0, 0.0, phi]), u)[4])

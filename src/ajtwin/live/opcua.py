@@ -22,7 +22,8 @@ The node id of a variable is ``ns=<idx>;s=<name>/Monitoring/Process/CarrierPress
 Alarms are ``TwinAlarmEventType`` events (Machine, Cause, OnsetTime, DetectedTime,
 Detectors, AlarmState) emitted by the Server object whenever a twin writes ``Health/Alarm``.
 
-This module holds only names, units and the functions that spell them; :mod:`ajtwin.live.printer_server` and
+This module holds only names, units and the functions that spell them;
+:mod:`ajtwin.live.printer_server` and
 :mod:`ajtwin.live.link` are the server and the client.
 """
 

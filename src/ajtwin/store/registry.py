@@ -225,7 +225,8 @@ def _migrate_to_3(conn):
 
 
 #: A machine's calibrations (one row per commissioning, the newest active) and its
-#: maintenance events (:mod:`ajtwin.store.calibration`, model reference §11). Never edit: add a migration.
+#: maintenance events (:mod:`ajtwin.store.calibration`, model reference §11). Never edit: add a
+#: migration.
 _CALIBRATION_SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,

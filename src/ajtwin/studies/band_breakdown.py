@@ -1,6 +1,7 @@
 """Where a commissioned twin's ±2σ band comes from: the filter's σ vs the calibration term.
 
-Per machine (as :mod:`ajtwin.studies.machine`: 20-min commissioning print, d_a known ±0.1 µm, then the
+Per machine (as :mod:`ajtwin.studies.machine`: 20-min commissioning print, d_a known ±0.1 µm, then
+the
 next 90-min exp1 print run by the calibrated twin), per state: the median total σ, its
 filter part and its calibration part C_k = A Σ_c Aᵀ (``run.calibration_covariances``,
 :mod:`ajtwin.estimation.calibration_uncertainty`), the rms error, and the rms z with the

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Reproduces docs/results/control/ (docs/control.md): the closed-loop comparison, target
+# Reproduces docs/figures/control/ (docs/validation.md, "Control"): the closed-loop comparison, target
 # 65 µm, on the first truth generator (which tuned the controller) and the second (`--truth
 # alt`, evaluation only), merged into one table, plus the noise-floor benchmark.
 #
-#   docs/results/control/regenerate.sh            # everything, ~1 h CPU on 2 cores
-#   docs/results/control/regenerate.sh exp1 ink_running_low_alt   # some runs, then the merge
+#   docs/figures/control/regenerate.sh            # everything, ~1 h CPU on 2 cores
+#   docs/figures/control/regenerate.sh exp1 ink_running_low_alt   # some runs, then the merge
 #
 # One run per scenario and generator into $WORK/<run>/ (records, commands, figure), then
 # `ajtwin control merge` of every run found there into this folder: metrics.json (per seed
@@ -46,7 +46,7 @@ for dir in "$WORK"/*/; do
 done
 "$AJ" control merge "${done_runs[@]}" --out "$HERE"
 
-# PI against the twin's MPC as the printer's noise is removed (docs/control.md)
+# PI against the twin's MPC as the printer's noise is removed (docs/explanation/control-jitter-floor.md)
 if [ $# -eq 0 ]; then
-  "$PY" "$ROOT/benchmarks/control_limits.py" --seeds 1-5 --minutes 30 --out "$HERE/limits.json"
+  "$PY" -m ajtwin.studies.control_limits --seeds 1-5 --minutes 30 --out "$HERE/limits.json"
 fi

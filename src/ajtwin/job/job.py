@@ -670,7 +670,7 @@ class Job:
         elif suffix == ".csv":
             with path.open("w", encoding="utf-8", newline="") as handle:
                 handle.write(f"# {_META_KEY}: {meta}\n")
-                table.to_csv(handle, index=False, float_format="%.9g")
+                table.to_csv(handle, index=False)
         else:
             raise ValueError(
                 f"{path}: the timeline is written as .parquet, .pq or .csv, not {path.suffix!r}"

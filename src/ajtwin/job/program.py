@@ -869,8 +869,8 @@ class _Reader:
                     ln,
                     raw,
                     f"the segmented path starts at ({x0:g}, {y0:g}) but {where} left the stage at "
-                    f"({self.x:g}, {self.y:g}), {gap * 1000:.3g} um away (tolerance "
-                    f"{self.tol * 1000:g} um): an arc or line before it does not end where the "
+                    f"({self.x:g}, {self.y:g}), {_distance(gap)} away (tolerance "
+                    f"{_distance(self.tol)}): an arc or line before it does not end where the "
                     "program expects",
                 )
         self.seg_open, self.seg_line, self.seg_axes = True, ln, axes
@@ -1090,6 +1090,10 @@ class _Reader:
                 self.seg_open = False
             return
         self._arc(cx, cy, sweep, None, speed, source, ln, raw, implicit, "arc2")
+
+
+def _distance(mm: float) -> str:
+    return f"{mm:.4g} mm" if mm >= 1.0 else f"{mm * 1000:.4g} um"
 
 
 def _axis_number(token) -> int | None:

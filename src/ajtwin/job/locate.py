@@ -9,9 +9,9 @@ to each (point to line, point to arc), all in NumPy over (point, chunk) pairs, i
 Why a grid and not a k-d tree over sampled trace points: distances are exact (no sampling
 error to trade against memory), the build is a few array operations, and AJ parts are
 dense and fairly uniform (a 19 µm serpentine fill next to sparse fiducials), so a fixed
-cell keeps the candidates per query small. The cell defaults to 50 µm (about one to three
-AJ linewidths, so a neighbourhood holds a handful of traces even in the fills), larger on
-very long programs so the index keeps about 200 000 chunks at most.
+cell keeps the candidates per query small. The cell defaults to 20 µm (about one AJ
+linewidth, so a query of a few µm reads one to four cells of a few traces each, even in the
+fills), larger on very long programs so the index keeps about 400 000 chunks at most.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ _FIELDS = (
     "a0_rad",
     "sweep_rad",
 )
-_MIN_CELL_MM = 0.05
-_MAX_CHUNKS = 200_000
+_MIN_CELL_MM = 0.02
+_MAX_CHUNKS = 400_000
 _BATCH_PAIRS = 4_000_000
 _TIE_MM = 1e-9
 
@@ -93,7 +93,7 @@ class TraceIndex:
     ----------
     job : ajtwin.job.Job
     cell_mm : float, optional
-        Grid cell and chunk length [mm]; default: 0.05 mm, or the printed length / 200 000
+        Grid cell and chunk length [mm]; default: 0.02 mm, or the printed length / 400 000
         when larger.
 
     Examples
@@ -207,65 +207,51 @@ class TraceIndex:
         best_chunk = np.full(x.size, -1, dtype=np.int64)
         best_d = np.full(x.size, np.inf)
         best_f = np.zeros(x.size)
-        best_t = np.full(x.size, -np.inf)
-        reach = int(math.ceil(radius_mm / self.cell_mm))
-        offsets = np.arange(-reach, reach + 1)
         nx, ny = self.shape
         if self.order.size:
-            cx = np.floor((x - self.origin[0]) / self.cell_mm).astype(np.int64)
-            cy = np.floor((y - self.origin[1]) / self.cell_mm).astype(np.int64)
-            per_point = (2 * reach + 1) ** 2 * max(1, int(np.diff(self.cell_start).mean() * 4) + 1)
+            # the cells under each point's square [x - r, x + r] x [y - r, y + r]
+            c, (ox, oy) = self.cell_mm, self.origin
+            lo_x = np.floor((x - radius_mm - ox) / c).astype(np.int64)
+            hi_x = np.floor((x + radius_mm - ox) / c).astype(np.int64)
+            lo_y = np.floor((y - radius_mm - oy) / c).astype(np.int64)
+            hi_y = np.floor((y + radius_mm - oy) / c).astype(np.int64)
+            span = int(math.ceil(2 * radius_mm / c)) + 1
+            per_point = span * span * max(1, int(4 * self.order.size / max(nx * ny, 1)) + 1)
             batch = max(1, _BATCH_PAIRS // per_point)
             for lo in range(0, x.size, batch):
-                hi = min(x.size, lo + batch)
+                sel = np.arange(lo, min(x.size, lo + batch))
                 self._query_batch(
-                    np.arange(lo, hi),
+                    sel,
                     x,
                     y,
-                    cx,
-                    cy,
-                    offsets,
-                    nx,
-                    ny,
+                    (lo_x, hi_x, lo_y, hi_y),
+                    span,
                     radius_mm,
                     before,
                     best_chunk,
                     best_d,
                     best_f,
-                    best_t,
                 )
         return self._hits(best_chunk, best_d, best_f, x, y, shape)
 
-    def _query_batch(
-        self,
-        points,
-        x,
-        y,
-        cx,
-        cy,
-        offsets,
-        nx,
-        ny,
-        radius,
-        before,
-        best_chunk,
-        best_d,
-        best_f,
-        best_t,
-    ):
-        ox, oy = np.meshgrid(offsets, offsets, indexing="ij")
-        gx = cx[points][:, None] + ox.ravel()[None, :]
-        gy = cy[points][:, None] + oy.ravel()[None, :]
-        valid = (gx >= 0) & (gx < nx) & (gy >= 0) & (gy < ny)
-        cell = np.where(valid, gx * ny + gy, 0)
+    def _query_batch(self, points, x, y, box, span, radius, before, best_chunk, best_d, best_f):
+        lo_x, hi_x, lo_y, hi_y = (b[points] for b in box)
+        nx, ny = self.shape
+        k = np.arange(span)
+        gx = lo_x[:, None, None] + k[None, :, None]
+        gy = lo_y[:, None, None] + k[None, None, :]
+        valid = (gx <= hi_x[:, None, None]) & (gy <= hi_y[:, None, None])
+        valid &= (gx >= 0) & (gx < nx) & (gy >= 0) & (gy < ny)
+        cell = np.where(valid, gx * ny + gy, 0).reshape(points.size, -1)
         start = self.cell_start[cell]
-        stop = np.where(valid, self.cell_start[cell + 1], start)
+        stop = np.where(valid.reshape(points.size, -1), self.cell_start[cell + 1], start)
         count = (stop - start).ravel()
-        if not count.any():
+        total = int(count.sum())
+        if total == 0:
             return
-        point = np.repeat(np.repeat(points, offsets.size**2), count)
-        k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-        chunk = self.order[np.repeat(start.ravel(), count) + k]
+        point = np.repeat(np.repeat(points, span * span), count)
+        offset = np.arange(total) - np.repeat(np.cumsum(count) - count, count)
+        chunk = self.order[np.repeat(start.ravel(), count) + offset]
         c = self.chunk
         d, f = closest_point(
             x[point],
@@ -282,28 +268,42 @@ class TraceIndex:
             c["sweep"][chunk],
             c["length"][chunk],
         )
+        keep = d <= radius
+        if before is not None:
+            s = self.job.segments
+            parent = self.parent[chunk]
+            f_parent = self.f_start[chunk] + f * (self.f_end[chunk] - self.f_start[chunk])
+            t_all = s["t0_s"][parent] + f_parent * (s["t1_s"][parent] - s["t0_s"][parent])
+            keep &= t_all < before[point]
+        if not keep.any():
+            return
+        point, chunk, d, f = point[keep], chunk[keep], d[keep], f[keep]
         s = self.job.segments
         parent = self.parent[chunk]
         f_parent = self.f_start[chunk] + f * (self.f_end[chunk] - self.f_start[chunk])
         t = s["t0_s"][parent] + f_parent * (s["t1_s"][parent] - s["t0_s"][parent])
-        keep = d <= radius
-        if before is not None:
-            keep &= t < before[point]
-        if not keep.any():
-            return
-        point, chunk, d, f, t = point[keep], chunk[keep], d[keep], f[keep], t[keep]
-        # nearest first; at equal distance (within _TIE_MM) the latest print
-        d_key = np.round(d / _TIE_MM)
-        order = np.lexsort((-t, d_key, point))
-        point, chunk, d, f, t = point[order], chunk[order], d[order], f[order], t[order]
-        first = np.r_[True, point[1:] != point[:-1]]
+        # pairs are grouped by point (in order). The nearest trace wins; traces through the
+        # same place (within _TIE_MM in distance and position: a part printed again on
+        # itself) are told apart by time, the latest print winning.
+        starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
+        sizes = np.diff(np.r_[starts, point.size])
+        d_min = np.repeat(np.minimum.reduceat(d, starts), sizes)
+        is_min = np.flatnonzero(d == d_min)
+        reference = is_min[np.r_[True, point[is_min][1:] != point[is_min][:-1]]]
+        near = np.flatnonzero(d <= d_min + _TIE_MM)
+        g = {k: s[k][parent[near]] for k in _FIELDS}
+        px, py = point_at(*g.values(), f_parent[near])
+        ref_of = np.repeat(np.arange(starts.size), sizes)[near]
+        ref_x, ref_y = px[np.searchsorted(near, reference)], py[np.searchsorted(near, reference)]
+        same = np.hypot(px - ref_x[ref_of], py - ref_y[ref_of]) <= _TIE_MM
+        tied = near[same]
+        t_tied = np.full(point.size, -np.inf)
+        t_tied[tied] = t[tied]
+        t_max = np.repeat(np.maximum.reduceat(t_tied, starts), sizes)
+        chosen = np.flatnonzero(t_tied == t_max)
+        first = chosen[np.r_[True, point[chosen][1:] != point[chosen][:-1]]]
         p = point[first]
-        better = (d[first] < best_d[p] - _TIE_MM) | (
-            (np.abs(d[first] - best_d[p]) <= _TIE_MM) & (t[first] > best_t[p])
-        )
-        p = p[better]
-        sel = np.flatnonzero(first)[better]
-        best_chunk[p], best_d[p], best_f[p], best_t[p] = chunk[sel], d[sel], f[sel], t[sel]
+        best_chunk[p], best_d[p], best_f[p] = chunk[first], d[first], f[first]
 
     def _hits(self, best_chunk, best_d, best_f, x, y, shape) -> TraceHits:
         s = self.job.segments

@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.job import ProgramError, read_program, read_program_text
+from ajtwin.job import ProgramError, ProgramWarning, read_program, read_program_text
 
 GOOD_START = "ptp/ev (X,Y),0,0,gDblRapidSpeed\nStart gIntSubBuffer,ShutterOpen\n"
+CLOSE = "Start gIntSubBuffer,ShutterClose\n"
 
 
 def refused(text: str, **kwargs) -> ProgramError:
@@ -61,7 +62,11 @@ def test_arc1_end_off_its_circle_is_refused():
     error = refused(text)
     assert error.line == 4 and "not on the circle" in error.reason and "10 um" in error.reason
     # within the documented tolerance (1 um) it is read
-    ok = GOOD_START + "MSEG (X,Y),0,0\narc1 (X,Y),1,0,1,1.0009,+\nENDS (X,Y)\n"
+    ok = (
+        GOOD_START
+        + "MSEG (X,Y),0,0\narc1 (X,Y),1,0,1,1.0009,+\nENDS (X,Y)\ntill ^X_AST.#MOVE\n"
+        + CLOSE
+    )
     assert read_program_text(ok).summary()["printed_length_mm"] > 0
 
 
@@ -111,7 +116,7 @@ def test_motion_beyond_the_stage_travel_is_refused():
     assert error.line == 5 and "travel" in error.reason and "310.000 mm" in error.reason
     assert "Optomec Aerosol Jet 300" in error.reason
     # inside the travel it is read; with the stage origin given, absolute limits count
-    inside = GOOD_START + "ptp/e (X,Y),100,0\nptp/e (X,Y),-150,0\n"
+    inside = GOOD_START + "ptp/e (X,Y),100,0\nptp/e (X,Y),-150,0\n" + CLOSE
     assert read_program_text(inside).summary()["travel_bbox_mm"][0] == -150
     error = refused(inside, stage_origin_mm=(100.0, 100.0))
     assert error.line == 4 and "outside the 0-300 mm" in error.reason
@@ -130,9 +135,15 @@ def test_a_program_that_moves_nothing_is_refused():
 
 
 def test_skip_unknown_skips_what_does_not_move_the_stage_with_one_warning_per_kind():
-    text = GOOD_START + 'DISP "a"\nptp/e (X,Y),1,0\nDISP "b"\nENABLE X\nStart gIntSubBuffer,Purge\n'
+    text = (
+        GOOD_START
+        + 'DISP "a"\nptp/e (X,Y),1,0\nDISP "b"\nENABLE X\nStart gIntSubBuffer,Purge\n'
+        + "Start gIntSubBuffer,ShutterClose\n"
+    )
     refused(text)
-    job = read_program_text(text, skip_unknown=True)
+    with pytest.warns(ProgramWarning) as caught:
+        job = read_program_text(text, skip_unknown=True)
+    assert len(caught) == 3 and all(str(w.message).startswith("<text>: skipped") for w in caught)
     assert job.summary()["printed_length_mm"] == pytest.approx(1.0)
     kinds = job.warnings
     assert len(kinds) == 3
@@ -144,8 +155,10 @@ def test_skip_unknown_skips_what_does_not_move_the_stage_with_one_warning_per_ki
 
 
 def test_if_block_with_motion_is_skipped_with_a_warning():
-    text = GOOD_START + "If (gIntFindFids = 1)\n  ptp/e (X,Y),5,5\n  Stop\nEnd\nptp/e (X,Y),1,0\n"
-    job = read_program_text(text)
+    block = "If (gIntFindFids = 1)\n  ptp/e (X,Y),5,5\n  Stop\nEnd\n"
+    text = GOOD_START + block + "ptp/e (X,Y),1,0\n" + CLOSE
+    with pytest.warns(ProgramWarning, match="1 motion command"):
+        job = read_program_text(text)
     assert job.summary()["travel_bbox_mm"] == [0.0, 0.0, 1.0, 0.0]
     assert any("lines 3-6" in w and "1 motion command" in w for w in job.warnings)
 
@@ -171,4 +184,21 @@ def test_job_show_reports_a_bad_program_without_a_traceback(tmp_path):
     skipped = tmp_path / "skip.prg"
     skipped.write_text(GOOD_START + 'DISP "x"\nptp/e (X,Y),1,0\n')
     result = CliRunner().invoke(main, ["job", "show", str(skipped), "--skip-unknown"])
-    assert result.exit_code == 0 and "warning: skipped 1 'disp'" in result.output
+    assert result.exit_code == 0
+    assert f"warning: {skipped}: skipped 1 'disp' statement(s)" in result.output
+
+
+def test_a_program_ending_with_the_shutter_open_is_read_with_a_warning():
+    with pytest.warns(ProgramWarning, match="ends with the shutter open"):
+        job = read_program_text(GOOD_START + "ptp/e (X,Y),1,0\n")
+    assert job.end_shutter_open and job.state_at(5.0).shutter_open
+
+
+def test_shutter_switched_while_the_stage_moves_acts_mid_move_with_a_warning():
+    """Without till, ACSPL+ runs on past ENDS: the shutter closes as the path starts."""
+    text = GOOD_START + "MSEG (X,Y),0,0\nline (X,Y),4,0\nENDS (X,Y)\nwait 500\n" + CLOSE
+    with pytest.warns(ProgramWarning, match="while the stage is still moving"):
+        job = read_program_text(text, process_speed_mm_s=2.0)
+    assert job.summary()["printed_length_mm"] == pytest.approx(1.0)  # 0.5 s at 2 mm/s
+    assert job.summary()["rapid_length_mm"] == pytest.approx(3.0)
+    assert job.state_at(1.0).x_mm == pytest.approx(2.0) and not job.state_at(1.0).shutter_open

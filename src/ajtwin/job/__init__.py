@@ -27,6 +27,7 @@ Examples
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,12 @@ def read_program(
     -------
     Job
 
+    Warns
+    -----
+    ProgramWarning
+        Once per kind of statement skipped (``skip_unknown``), for an If block holding
+        motion, and for a program that ends with the shutter open (also in ``Job.warnings``).
+
     Raises
     ------
     ProgramError
@@ -179,6 +186,8 @@ def read_program_text(
     job = Job.from_program(parsed, stage=stage, settings=settings)
     _check_travel(job, stage, stage_origin_mm, text)
     _note_unused_speeds(job, process_speed_mm_s, rapid_speed_mm_s)
+    for text_of_warning in job.warnings:
+        warnings.warn(f"{path}: {text_of_warning}", ProgramWarning, stacklevel=2)
     return job
 
 

@@ -163,8 +163,6 @@ def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, 
     if repeat_to is not None:
         the_job = the_job.repeat(repeat_to)
     summary = the_job.summary()
-    for text in summary["warnings"]:
-        click.echo(f"warning: {text}", err=True)
     if out is not None:
         the_job.write_timeline(out)
     if plot is not None:

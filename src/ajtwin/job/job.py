@@ -281,7 +281,8 @@ def _number_strokes(seg: dict) -> dict:
     before = np.cumsum(printed) - printed
     first = np.flatnonzero(starts)
     s0 = np.full(is_open.size, np.nan)
-    s0[is_open] = (before - before[first][np.maximum(stroke, 0)])[is_open]
+    if first.size:
+        s0[is_open] = (before - before[first][np.maximum(stroke, 0)])[is_open]
     seg["stroke"], seg["s0_mm"] = stroke, s0
     return seg
 
@@ -374,6 +375,10 @@ class Job:
             )
         seg = _segments_from_program(parsed)
         end_open = bool(parsed.shutter_open[-1]) if parsed.shutter_open.size else False
+        warnings = list(parsed.warnings)
+        if end_open:
+            line = int(parsed.shutter_line[-1])
+            warnings.append(f"the program ends with the shutter open (opened at line {line})")
         return cls(
             seg,
             path=parsed.path,
@@ -381,7 +386,7 @@ class Job:
             speed_sources=parsed.speed_sources,
             feature_names=parsed.feature_names,
             notes=parsed.notes,
-            warnings=parsed.warnings,
+            warnings=warnings,
             stage=stage,
             settings=settings,
             return_source=parsed.return_source,

@@ -250,6 +250,7 @@ class _Reader:
         self.ignored_targets: dict[str, int] = {}
         self.dynamics: dict[str, int] = {}
         self.shutter_is_open = False
+        self.moving_shutter: dict[str, list] = {}
 
         # segmented path state
         self.seg_open = False
@@ -520,6 +521,12 @@ class _Reader:
                 f"skipped {count} '{kind}' statement(s) that do not move the stage (first at line "
                 f"{line})"
             )
+        for action, (line, count) in self.moving_shutter.items():
+            self.warnings.append(
+                f"the shutter is told to {action} while the stage is still moving ({count} "
+                f"time(s), first at line {line}): the program does not wait for the motion "
+                "(no till or /e before it), so it acts mid-move"
+            )
         for target, line in self.ignored_targets.items():
             self.notes.append(
                 f"line {line}: assignments to {target} do not change the timeline and are ignored"
@@ -637,6 +644,9 @@ class _Reader:
             self.dynamics.setdefault(name.upper() + target[len(name) :], ln)
 
     def _shutter(self, is_open: bool, ln: int) -> None:
+        if self.tm > self.tp:
+            entry = self.moving_shutter.setdefault("open" if is_open else "close", [ln, 0])
+            entry[1] += 1
         self.ev_t.append(self.tp)
         self.ev_open.append(is_open)
         self.ev_line.append(ln)

@@ -641,7 +641,7 @@ class _Reader:
         self.env[target] = (value, origin, "program", text)
         name = target.split("(")[0]
         if name in ("acc", "dec", "jerk", "kdec"):
-            self.dynamics.setdefault(name.upper() + target[len(name) :], ln)
+            self.dynamics.setdefault(lhs.strip(), ln)
 
     def _shutter(self, is_open: bool, ln: int) -> None:
         if self.tm > self.tp:

@@ -21,12 +21,14 @@ def job():
     """The machine's program (Optomec AJ ACSPL+ .prg): summary, timeline, part plot."""
 
 
-def _minutes(seconds: float) -> str:
+def _duration(seconds: float) -> str:
+    """``12.34 s``, or ``2600.96 s (43 min 21 s)`` from a minute on."""
     if seconds < 60:
-        return f"{seconds:.1f} s"
+        return f"{seconds:.2f} s"
     hours, rest = divmod(int(round(seconds)), 3600)
     minutes, secs = divmod(rest, 60)
-    return f"{hours} h {minutes:02d} min {secs:02d} s" if hours else f"{minutes} min {secs:02d} s"
+    clock = f"{hours} h {minutes:02d} min {secs:02d} s" if hours else f"{minutes} min {secs:02d} s"
+    return f"{seconds:.2f} s ({clock})"
 
 
 def _origin(use: dict, option: str) -> str:
@@ -49,8 +51,7 @@ def _format_summary(summary: dict) -> str:
         ("rapids", f"{summary['rapid_length_mm']:.3f} mm with the shutter closed"),
         (
             "print time",
-            f"{summary['print_time_s']:.2f} s ({_minutes(summary['print_time_s'])}), program "
-            "start to end",
+            f"{_duration(summary['print_time_s'])}, program start to end",
         ),
     ]
     box = summary["bbox_mm"]

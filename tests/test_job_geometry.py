@@ -85,7 +85,7 @@ def test_the_public_programs_u_turns_are_clockwise_semicircles():
     assert arcs.sum() == 2
     top = job.state_at(1.0 / 2 + (0.5 * 1.5708) / 2)  # after the line and the first arc
     assert (top.x_mm, top.y_mm) == pytest.approx((0.5, 1.5), abs=1e-5)
-    # the arcs end 3.7 um below y = 1 (1.57080 is not exactly pi/2): the last line is shorter
+    # the arcs end 3.7 nm below y = 1 (1.57080 is not exactly pi/2): the last line is shorter
     end_y = 1 + 0.5 * math.sin(PI - 2 * 1.5708)
     assert job.summary()["printed_length_mm"] == pytest.approx(1 + 1.5708 + end_y, rel=1e-12)
 

@@ -42,6 +42,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "printer": ("ajtwin.live.cli:printer", "The virtual printer as a live OPC UA machine."),
     "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
     "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
+    "job": ("ajtwin.job.cli:job", "The machine's program: summary, timeline, part plot."),
 }
 
 

@@ -44,6 +44,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "printer": ("ajtwin.cli.printer:printer", "The virtual printer as a live OPC UA machine."),
     "live": ("ajtwin.cli.live:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
     "dashboard": ("ajtwin.cli.dashboard:dashboard", "Browser dashboard: fleet, machines, what-if."),
+    "job": ("ajtwin.cli.job:job", "The machine's program: summary, timeline, part plot."),
 }
 
 

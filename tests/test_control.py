@@ -353,7 +353,8 @@ def test_converges_after_a_step_disturbance(control_settings):
 def test_full_comparison_exp1(tmp_path):
     """The comparison on exp1, seeds 1–5 (~10 min on 2 idle cores): the MPC on the twin is
     ≥ 3× below the open loop in RMS error and inside every limit. (The issue's second aim,
-    ≥ 1.5× below PI, is not met — docs/control.md says why — so it is not asserted.)"""
+    ≥ 1.5× below PI, is not met — docs/howto/closed-loop-control.md says why — so it is not
+    asserted.)"""
     from ajtwin.studies.control import compare
 
     results = compare(["exp1"], range(1, 6), 65.0, tmp_path, log=lambda _: None)

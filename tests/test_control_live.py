@@ -135,7 +135,7 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
 
 
 def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
-    """An anonymous session may not write set-points (docs/opcua.md): `ajtwin control`
+    """An anonymous session may not write set-points (docs/reference/opcua.md): `ajtwin control`
     stops before any control with a message that says what to give."""
     import asyncio
     import threading

@@ -287,7 +287,8 @@ def test_forecast_cli_transition_option(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("truth", ["model", "alt"])
 def test_exp3_input_following_beats_the_paper_row(truth):
-    """Held-out seed 3 (docs/forecast.md): the droplet row that follows the inputs forecasts
+    """Held-out seed 3 (docs/explanation/forecast-droplet-dynamics.md): the droplet row that
+    follows the inputs forecasts
     L_w better than the paper's, θ no longer makes it worse, and the band holds the truth."""
     from ajtwin.studies.experiments import run_exp3
 

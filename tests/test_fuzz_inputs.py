@@ -43,7 +43,7 @@ from ajtwin.io.records import (
 
 CORPUS = Path(__file__).parent / "fuzz_corpus"
 #: Outcome counts of the record fuzzers; written as JSON lines to $AJTWIN_FUZZ_REPORT (if set)
-#: after each test, for docs/reliability.md.
+#: after each test, for docs/validation.md.
 OUTCOMES: Counter = Counter()
 
 

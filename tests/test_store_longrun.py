@@ -1,6 +1,6 @@
 """Long runs: a long virtual print through the twin, and many prints of one
 machine through the registry. Small instances run by default; a day, a week and a year
-of daily prints behind ``slow`` (figures in docs/reliability.md)."""
+of daily prints behind ``slow`` (figures in docs/validation.md)."""
 
 from __future__ import annotations
 

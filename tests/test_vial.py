@@ -106,7 +106,8 @@ def test_twin_vial_band_holds_the_truth_when_the_atomizer_is_off_the_fit():
 def test_twin_vial_band_is_the_fill_error_when_the_fill_is_not_the_told_one(fill_error_sigma):
     """Loaded δ off the told fill, the twin's V_l error stays δ and its σ the fill's:
     z = δ/σ_fill all print long, so across prints whose fills are drawn at σ_fill (the
-    scenarios' `vial_weighing_sd_mL`) the band covers ~95 % (docs/estimation.md). Here δ is
+    scenarios' `vial_weighing_sd_mL`) the band covers ~95 %
+    (docs/explanation/vial-consider-state.md). Here δ is
     set by hand, so the scenario's own weighing error is switched off."""
     with (resources.files("ajtwin") / "data" / "noise.toml").open("rb") as fh:
         fill_std = tomllib.load(fh)["calibrated"]["initial"]["vial_fill_std_mL"]["value"]

@@ -180,14 +180,16 @@ def _loss_and_network_options() -> list:
             default=1000.0,
             show_default=True,
             help="Stage-2 anchor keeping each column's area (Q_m) at the stage-1 model's; "
-            "0 = the paper's pure feature loss (inflates Q_m; see docs/profile_cnn.md).",
+            "0 = the paper's pure feature loss (inflates Q_m; see "
+            "docs/explanation/profile-cnn.md).",
         ),
         click.option(
             "--arch",
             type=click.Choice(["resnet18", "unet1d"]),
             default=_recipe("arch"),
             show_default=f"{_recipe('arch')}, data/profile_cnn.toml",
-            help="Network: the paper's 1-D ResNet-18, or a small 1-D U-Net (docs/profile_cnn.md).",
+            help="Network: the paper's 1-D ResNet-18, or a small 1-D U-Net "
+            "(docs/explanation/profile-cnn.md).",
         ),
         click.option(
             "--width",
@@ -317,7 +319,7 @@ def pairs(manifest, um_per_px, out, half_width_px, scan_smoothing_um):
     """Build stage-1 pairs from real frames and profilometer scans (MANIFEST CSV).
 
     Columns: frame, column_px, line_row_px, scan, scan_row, scan_pixel_size_um
-    (blank = from the scan file), optional height_unit. See docs/profile_cnn.md.
+    (blank = from the scan file), optional height_unit. See docs/explanation/profile-cnn.md.
     """
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.data import pairs_from_manifest, save_dataset

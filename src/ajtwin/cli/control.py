@@ -1,4 +1,4 @@
-"""``ajtwin control``: closed-loop control of linewidth (docs/control.md).
+"""``ajtwin control``: closed-loop control of linewidth (docs/howto/closed-loop-control.md).
 
 ``ajtwin control simulate`` runs the strategies in closed loop with the virtual printer.
 ``ajtwin control --machine M --target-linewidth W --opcua URL`` controls a live machine
@@ -39,7 +39,11 @@ def _parse_horizon(text) -> int | None:
 
 
 @click.group(invoke_without_command=True)
-@click.option("--machine", default=None, help="Machine name (live control; see docs/control.md).")
+@click.option(
+    "--machine",
+    default=None,
+    help="Machine name (live control; see docs/howto/closed-loop-control.md).",
+)
 @click.option("--target-linewidth", "target", type=float, default=None, help="Target L_w [µm].")
 @click.option("--max-overspray", type=float, default=None, help="Soft limit on L_o [µm].")
 @click.option("--horizon", default=None, help="MPC horizon, e.g. 120s (default: control.toml).")
@@ -84,7 +88,8 @@ def control(
     store,
     verbose,
 ):
-    """Closed-loop control of linewidth: MPC from the twin's state (docs/control.md).
+    """Closed-loop control of linewidth: MPC from the twin's state
+    (docs/howto/closed-loop-control.md).
 
     With --machine/--target-linewidth/--opcua: control a live machine, writing its three
     set-points over OPC UA every control period (within its limits and rate limits; held,

@@ -36,7 +36,7 @@ from ajtwin.cli.options import parse_seeds
     default="paper",
     show_default=True,
     help="Droplet-size dynamics: a profile of ajtwin/data/transition.toml "
-    "(paper, input_following, mean_reverting; docs/forecast.md).",
+    "(paper, input_following, mean_reverting; docs/explanation/forecast-droplet-dynamics.md).",
 )
 def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""

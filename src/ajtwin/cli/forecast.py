@@ -55,7 +55,8 @@ from ajtwin.store.registry import RegistryError
     default="paper",
     show_default=True,
     help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml; "
-    "input_following lets d_a follow planned Q_c/I_A changes (docs/forecast.md).",
+    "input_following lets d_a follow planned Q_c/I_A changes "
+    "(docs/explanation/forecast-droplet-dynamics.md).",
 )
 @store_option
 def forecast(

@@ -1,4 +1,5 @@
-"""``ajtwin ingest``: run a machine's twin over a finished print and store it (docs/registry.md)."""
+"""``ajtwin ingest``: run a machine's twin over a finished print and store it
+(docs/reference/registry.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""``ajtwin live``: the live twin beside a machine, over OPC UA or a growing CSV (docs/live.md)."""
+"""``ajtwin live``: the live twin beside a machine, over OPC UA or a growing CSV
+(docs/howto/run-the-live-twin.md)."""
 
 from __future__ import annotations
 
@@ -45,7 +46,7 @@ from ajtwin.cli.options import configure_logging, open_registry, store_option
     show_default=True,
     help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml "
     "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
-    "docs/forecast.md).",
+    "docs/explanation/forecast-droplet-dynamics.md).",
 )
 @click.option("--verbose", is_flag=True)
 @store_option

@@ -1,5 +1,6 @@
 """``ajtwin machine add|list|show|history|drop|restore|compact|export|import|commission|maintain|
-calibrations``: the machine registry (docs/registry.md, docs/calibration.md)."""
+calibrations``: the machine registry (docs/reference/registry.md,
+docs/howto/commission-a-machine.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""``ajtwin printer serve``: the virtual printer as a live OPC UA machine (docs/opcua.md)."""
+"""``ajtwin printer serve``: the virtual printer as a live OPC UA machine
+(docs/reference/opcua.md)."""
 
 from __future__ import annotations
 

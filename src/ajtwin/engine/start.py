@@ -116,7 +116,7 @@ def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
     else from the newest print in the chain that stored them; None for a new machine (the
     detectors then start at scale 1 and learn it from the print).
     Without it a CUSUM meets a wandering gauge in the first minutes of every print with
-    no scale for it (docs/anomalies.md).
+    no scale for it (docs/explanation/detectors.md).
     """
     chain = chain if chain is not None else chain_start(registry, machine)
     active = active_calibration(registry, machine)

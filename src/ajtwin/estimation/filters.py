@@ -493,7 +493,7 @@ def ekf_fleet(
     The machines are filtered one after the other (``lax.map``), not vectorised
     (``vmap``): one machine's scan is small enough for XLA:CPU to compile into a
     single kernel (``ajtwin._jax``), a vmapped scan over the fleet is not and runs
-    op by op — about half the machine-steps per second (docs/performance.md). Same
+    op by op — about half the machine-steps per second (docs/explanation/performance.md). Same
     results as :func:`ekf` per machine.
     """
 

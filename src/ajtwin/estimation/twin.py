@@ -61,7 +61,7 @@ class TwinConfig:
     # after the start; those >= window_s are dropped): θ_φA holds the print's atomizer
     # level from the first of them instead of from window_s on. Why 120 s: on held-out alt
     # machines the twin's φ_A level before the first EM left L_o and Q_m ±0.4…0.6σ off
-    # for 10 min, the most common false alarm (9 of ~40 events; docs/anomalies.md)
+    # for 10 min, the most common false alarm (9 of ~40 events; docs/explanation/detectors.md)
     early_em_s: tuple = (120,)
     em_max_iterations: int = 10
     em_tolerance: float = 1e-3  # nats per step
@@ -251,7 +251,8 @@ class TwinRun:
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
         if self.vial is not None:
             # V_l above is the twin's consider state (fill − modelled draw); these read it
-            # from the measured Q_m with the atomizer's efficiency apart (docs/estimation.md)
+            # from the measured Q_m with the atomizer's efficiency apart
+            # (docs/explanation/vial-consider-state.md)
             frame["vial_observed_mL"] = self.vial.vial_ml
             frame["vial_observed_mL_std"] = self.vial.vial_std_ml
             frame["vial_loss_rate_mL_per_h"] = self.vial.loss_rate_ml_per_h
@@ -272,7 +273,7 @@ def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
     which contracts its variance to the process noise's (≈ 2.6 % against the prior's
     50 %), and on the virtual printer the truth's generation wander then lies outside
     ±2σ a third of the time. The offset of a real atomizer's generation from the model
-    is what no pressure can see (docs/reliability.md, "A machine without a camera").
+    is what no pressure can see (docs/validation.md, "A machine without a camera").
     Returns None when every state was fitted from data.
     """
     if initial is None or not initial.states_from_prior or seen is None:

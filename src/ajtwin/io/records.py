@@ -16,7 +16,7 @@ CSV with only the columns is valid and gets :data:`DEFAULT_META`). Messy logs ar
 handled in the open: column aliases (``aliases.toml``), NaN kept, irregular time
 stamps resampled to 1 s with a warning; a wrong unit scale, non-monotonic time, a
 missing required column or a non-numeric cell is rejected with an error naming the
-file, row and column. The schema is documented in ``docs/record_format.md``.
+file, row and column. The schema is documented in ``docs/reference/record-format.md``.
 
 Examples
 --------
@@ -379,7 +379,7 @@ def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
         raise RecordError(
             f"{where}: missing required column(s) {', '.join(map(repr, missing))}; "
             f"found {', '.join(map(repr, map(str, df.columns)))}. If your log names them "
-            "differently, add the names to an alias file (see docs/record_format.md)."
+            "differently, add the names to an alias file (see docs/reference/record-format.md)."
         )
     if "material_flow_mL_s" not in df.columns:
         warnings.warn(
@@ -965,7 +965,8 @@ def write_record(record: PrintRecord, path: str | Path) -> Path:
         pq.write_table(table.replace_schema_metadata(schema_meta), path)
     elif suffix == ".csv":
         with path.open("w", encoding="utf-8", newline="") as fh:
-            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} (docs/record_format.md)\n")
+            page = "docs/reference/record-format.md"
+            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} ({page})\n")
             fh.write(CSV_META_PREFIX + json.dumps(meta) + "\n")
             record.data.to_csv(fh, index=False)
     else:

@@ -6,7 +6,7 @@ subscription; every buffer through :func:`ajtwin.live.link.buffer_samples`), fee
 samples to the streaming twin (:class:`ajtwin.live.engine.TwinStream`, inside
 :class:`ajtwin.apps.control_sim.MPCTwin` — the very controller ``ajtwin control simulate``
 runs against the virtual printer) and, every ``period_s`` seconds of print, writes the
-MPC's command to the three writable set-point nodes (docs/opcua.md):
+MPC's command to the three writable set-point nodes (docs/reference/opcua.md):
 
 * the command in force is read back from the set-point nodes before each decision (an
   operator's change or a refused write is what the controller starts from);
@@ -324,7 +324,7 @@ class ControlLink:
 
     def _feed(self, value) -> int:
         """New rows of the SampleBuffer → the twin; how many samples were fed."""
-        try:  # the buffer's NaN padding (docs/opcua.md) is not a problem worth a log line
+        try:  # the buffer's NaN padding (docs/reference/opcua.md) is not a problem worth a log line
             rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
             value = rows[~np.all(np.isnan(rows), axis=1)]
         except (TypeError, ValueError, OverflowError):

@@ -1,4 +1,4 @@
-"""The OPC UA address space of an AJ printer (after OPC 40540 / 40001; docs/opcua.md).
+"""The OPC UA address space of an AJ printer (after OPC 40540 / 40001; docs/reference/opcua.md).
 
 One namespace, ``urn:ajtwin:aerosol-jet`` (its index is looked up by URI), string node
 ids that spell the browse path::

@@ -114,7 +114,7 @@ def synthetic_pairs(
     network trained on straight pairs read the stage-2 columns' area 1.1–2.5 %
     low (stage 1, training seeds 0–3, held-out seed 11: Q_m error 3.0–3.6 % on
     ragged columns, 1.8–2.2 % on straight ones; trained on ragged pairs 2.4–2.8 %,
-    bias +0.1…+1.1 %; docs/profile_cnn.md). The warp that makes the raggedness
+    bias +0.1…+1.1 %; docs/explanation/profile-cnn.md). The warp that makes the raggedness
     moves each row's shoulders by zero-mean shifts, so the mean cross-section
     under a batch is the straight profile to first order: the scan's target.
 

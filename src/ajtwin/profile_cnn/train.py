@@ -70,7 +70,7 @@ class TrainConfig:
         i.e. 64–512 channels; U-Net: 16). Smaller only for tests.
     arch : {"resnet18", "unet1d"}
         The paper's ResNet-18 (default) or the small 1-D U-Net compared in
-        docs/profile_cnn.md.
+        docs/explanation/profile-cnn.md.
     n_threads : int, optional
         torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
     grad_clip : float
@@ -93,14 +93,14 @@ class TrainConfig:
         Independent trainings (seeds ``seed``, ``seed + 1``, …; one validation
         split, drawn from ``seed``) of which the one with the best stage-2
         validation score is kept (:func:`train_restarts`). Stage 2 ends in a
-        minimum that depends on the initialisation (docs/profile_cnn.md, *Edges*);
+        minimum that depends on the initialisation (docs/explanation/profile-cnn.md, *Edges*);
         the validation score tracks held-out truth, so picking among a few runs by
         it is a selection on training data only. Needs ``stage2_val_fraction`` > 0.
     restart_screen_epochs : int
         With restarts: train every restart only to this stage-2 epoch, then
         finish the ``restart_finalists`` best by validation score so far and keep
         the best of those (0 = finish every restart). A run that reaches a good
-        stage-2 minimum shows it early (docs/profile_cnn.md), so screening lets
+        stage-2 minimum shows it early (docs/explanation/profile-cnn.md), so screening lets
         more initialisations be tried in the same time.
     restart_finalists : int
         Restarts finished after the screen.

@@ -2,7 +2,7 @@
 
 :func:`difference_from_nominal` runs the nominal model open loop (θ = 0, Euler at 1 s)
 from the print's *true* initial state with its measured inputs, and reports truth minus
-nominal; :func:`scenario_table` does it over scenarios and seeds (docs/scenarios.md).
+nominal; :func:`scenario_table` does it over scenarios and seeds (docs/reference/scenarios.md).
 
 Examples
 --------

@@ -544,7 +544,7 @@ def simulate(
         A packaged scenario (``exp1``, ``exp2``, ``exp3``, ``nozzle_clog``,
         ``carrier_leak``, ``pressure_sensor_drift``, ``atomizer_dropout``,
         ``ink_running_low``, ``clean_long``), a scenario TOML file, or a dict of
-        overrides of ``base.toml`` (docs/scenarios.md).
+        overrides of ``base.toml`` (docs/reference/scenarios.md).
     seed : int
         Seed of every random process; the same seed gives the same record.
     duration_min : float, optional

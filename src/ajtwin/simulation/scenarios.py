@@ -6,7 +6,7 @@ sensors add (``[measurement]``) and which fault strikes when (``[fault]``). The
 packaged ones are ``exp1``, ``exp2``, ``exp3`` (model reference §10), ``nozzle_clog``,
 ``carrier_leak``, ``pressure_sensor_drift``, ``atomizer_dropout``,
 ``ink_running_low`` and ``clean_long``; a user's file of the same form works too
-and needs only the keys it changes. Every key and its value: ``docs/scenarios.md``.
+and needs only the keys it changes. Every key and its value: ``docs/reference/scenarios.md``.
 
 Examples
 --------

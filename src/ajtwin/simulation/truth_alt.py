@@ -2,7 +2,8 @@
 
 The first generator (:mod:`ajtwin.simulation.truth`) tuned the twin (noise.toml, the
 detector and guard thresholds). Figures claimed for real machines are measured on this
-one, which tuned nothing (docs/calibration.md). Selected by ``--truth alt``; its
+one, which tuned nothing (docs/explanation/per-machine-calibration.md). Selected by
+``--truth alt``; its
 constants live in ``data/truth_alt.toml``. What differs:
 
 * **droplet size d_a** — a random walk with Poisson jumps (atomizer mode hops) plus a

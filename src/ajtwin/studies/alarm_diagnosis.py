@@ -1,4 +1,4 @@
-"""Where do the false alarms on clean prints come from? (docs/anomalies.md)
+"""Where do the false alarms on clean prints come from? (docs/explanation/detectors.md)
 
 Runs, per (truth generator, machine seed): a 20-min ``commissioning`` print →
 :func:`~ajtwin.estimation.commission.commission`, then the calibrated twin on the next

@@ -1,4 +1,4 @@
-"""Bytes per print-hour of a machine's registry when it runs live (docs/reliability.md,
+"""Bytes per print-hour of a machine's registry when it runs live (docs/validation.md,
 "Storage policy"): one exp1 print fed to the live engine sample by sample; the registry
 file (after a WAL checkpoint) while the session is open and after it closed.
 

@@ -1,4 +1,4 @@
-"""ajtwin.web — the browser dashboard (docs/dashboard.md).
+"""ajtwin.web — the browser dashboard (docs/howto/dashboard.md).
 
 A FastAPI application (:func:`ajtwin.web.app.create_app`) serves three pages — the fleet,
 one machine, and a what-if/advice form — from the machine registry, and pushes updates

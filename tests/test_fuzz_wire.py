@@ -8,8 +8,8 @@ token in header, cookie and query. Property: 2xx with a well-formed body (strict
 NaN; or an HTML page), or 4xx with a human-readable message; never 5xx, never a
 traceback in the body; a token-protected app never answers 2xx without the right token.
 
-OPC UA (:func:`ajtwin.live.engine.clean_sample`, :func:`ajtwin.live.link.buffer_samples`,
-:class:`ajtwin.live.engine.TwinStream`, no server): values as they arrive (NaN, ±inf,
+OPC UA (:func:`ajtwin.engine.samples.clean_sample`, :func:`ajtwin.live.link.buffer_samples`,
+:class:`ajtwin.engine.stream.TwinStream`, no server): values as they arrive (NaN, ±inf,
 huge/tiny, strings, bytes, None, lists, out-of-range, wrong buffer shapes, duplicate,
 older and far-future time stamps). Property: each sample is accepted, treated as missing
 or dropped, with a log line whenever it is not accepted as is; nothing raises; the

@@ -7,5 +7,5 @@
 * :mod:`~ajtwin.cfd.profile` — landing radii → height profile → L_w, L_o (model reference §8).
 * :mod:`~ajtwin.cfd.sweep` — Dask sweep, resumable; designs in ``sweep.toml``.
 * :mod:`~ajtwin.cfd.fit` — output-model coefficients and R_3^N(ΔR_N) fits.
-* :mod:`~ajtwin.cfd.cli` — ``ajtwin cfd case|run|sweep|fit|report``.
+* :mod:`~ajtwin.cli.cfd` — ``ajtwin cfd case|run|sweep|fit|report``.
 """

@@ -46,7 +46,7 @@ class Commissioning:
         The fitted calibration with its standard errors and the machine's end state.
     long_run_history : dict or None
         The detectors' long-run statistics on the commissioning print
-        (:meth:`ajtwin.apps.anomaly.AnomalyDetector.long_run_history`).
+        (:meth:`ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`).
     """
 
     result: CommissioningResult
@@ -87,7 +87,7 @@ def commissioning_long_run_history(
 
     The commissioned twin runs over the print it was fitted from, as it will run over the
     next one, and the detectors' block differences are returned
-    (:meth:`~ajtwin.apps.anomaly.AnomalyDetector.long_run_history`). The input steps of a
+    (:meth:`~ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`). The input steps of a
     commissioning print move single block means, which the robust scale ignores.
 
     Parameters

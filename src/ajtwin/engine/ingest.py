@@ -171,7 +171,7 @@ def ingest_record(
     Hash the print (duplicate → stop before any work), start from the machine's chain
     (:func:`ajtwin.engine.chain.chain_start`: the newest good print's end state and θ; the
     initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
-    the detectors (:func:`~ajtwin.apps.anomaly.detect_run`, the live detectors over the
+    the detectors (:func:`~ajtwin.apps.detection.batch.detect_run`, the live detectors over the
     arrays), judge the run (:func:`ajtwin.engine.chain.judge_run`) and store everything in
     one transaction.
 
@@ -320,7 +320,7 @@ def ingest_file(
 
 
 def detector_inputs(registry, print_id: int) -> dict:
-    """Keyword arguments of :func:`ajtwin.apps.anomaly.detect_anomalies` for a stored
+    """Keyword arguments of :func:`ajtwin.apps.detection.batch.detect_anomalies` for a stored
     print: what re-running the detectors needs (they use P_k's diagonal only, so
     where the full sequence is not kept it is diag(σ_k²) from the stored σ)."""
     a = registry.print_arrays(print_id)

@@ -2,9 +2,9 @@
 
 :class:`TwinStream` keeps one machine's twin in step with its data, a sample at a time,
 with the same math as the batch :meth:`ajtwin.estimation.Twin.run` and
-:func:`ajtwin.apps.anomaly.detect_anomalies`: the EKF step is
+:func:`ajtwin.apps.detection.batch.detect_anomalies`: the EKF step is
 :func:`ajtwin.estimation.filters.ekf_step` (the batch ``lax.scan``'s body plus units), the
-detectors are :class:`ajtwin.apps.anomaly.AnomalyDetector` (which the batch runs over
+detectors are :class:`ajtwin.apps.detection.streaming.AnomalyDetector` (which the batch runs over
 arrays). So a record fed sample by sample gives the batch's states, θ and events.
 
 Semantics (shared with ``Twin.run``)

@@ -3,20 +3,20 @@
 :class:`ControlLink` follows one machine the way ``ajtwin live`` does (the login, security
 and refusal handling of :class:`ajtwin.live.link.OpcUaLink`; the ``SampleBuffer``
 subscription; every buffer through :func:`ajtwin.live.link.buffer_samples`), feeds the
-samples to the streaming twin (:class:`ajtwin.live.engine.TwinStream`, inside
-:class:`ajtwin.apps.control_sim.MPCTwin` — the very controller ``ajtwin control simulate``
+samples to the streaming twin (:class:`ajtwin.engine.stream.TwinStream`, inside
+:class:`ajtwin.engine.control.MPCTwin` — the very controller ``ajtwin control simulate``
 runs against the virtual printer) and, every ``period_s`` seconds of print, writes the
 MPC's command to the three writable set-point nodes (docs/reference/opcua.md):
 
 * the command in force is read back from the set-point nodes before each decision (an
   operator's change or a refused write is what the controller starts from);
-* every command passes :func:`ajtwin.apps.control.clip_command`: inside the machine's
+* every command passes :func:`ajtwin.apps.planning.mpc.clip_command`: inside the machine's
   limits (registry ∩ the nodes' ``EURange`` ∩ the validity range of the fit) and within
   the rate limits × the print time since the last write;
 * no write during the warm-up, while the twin reports a model–machine mismatch or an
   alarm it cannot act on (the reasons are logged; the machine keeps what it has);
 * the target is checked when the twin has its first state: unreachable within the limits
-  from that state → :class:`~ajtwin.apps.control.TargetError` naming the reachable range;
+  from that state → :class:`~ajtwin.apps.planning.mpc.TargetError` naming the reachable range;
 * writing needs an authenticated session: at the start the set-points in force are
   written back unchanged, so a refusal stops the link with a clear message before any
   control (``LinkRefused``); a refused login or certificate likewise.

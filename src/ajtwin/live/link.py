@@ -2,7 +2,7 @@
 
 :class:`OpcUaLink` subscribes to each machine's ``Monitoring/Process/SampleBuffer``
 (the last samples as rows, so a notification that coalesces several samples loses none),
-feeds new samples to a :class:`~ajtwin.live.engine.LiveEngine` (batched over machines),
+feeds new samples to a :class:`~ajtwin.engine.fleet.LiveEngine` (batched over machines),
 and writes the twin's states ± σ, status and cause back to ``Monitoring/Health``; every
 raised or finalised alarm is written to ``Health/Alarm``, which the server turns into a
 ``TwinAlarmEventType`` event. When a machine's ``PrintState`` says ``finished`` and its
@@ -401,7 +401,7 @@ def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, 
 
     Returns
     -------
-    samples : cleaned samples (:func:`~ajtwin.live.engine.clean_sample`), in buffer order
+    samples : cleaned samples (:func:`~ajtwin.engine.samples.clean_sample`), in buffer order
     last : the newest time taken (unchanged if none)
     problems : log lines for everything refused, treated as missing or dropped
     """

@@ -97,7 +97,7 @@ def save_calibration(
     """Store a :class:`~ajtwin.estimation.commission.CommissioningResult`; returns its id.
 
     ``long_run_history``: the detectors' long-run statistics on the commissioning print
-    (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`), carried to the next print.
+    (:func:`ajtwin.engine.commissioning.commissioning_long_run_history`), carried to the next print.
     """
     ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]

@@ -7,7 +7,7 @@ predicted outputs, NIS, θ history, covariance key frames) are stored as compres
 array blobs (:mod:`ajtwin.store.arrays`); anomalies as rows. The next print of a machine
 starts from the end state and θ of the last print *in the chain* (``status = 'ok'``): a
 print whose states left the physical range is kept for history but marked
-``excluded`` and never becomes a start (:mod:`ajtwin.store.chain`).
+``excluded`` and never becomes a start (:mod:`ajtwin.engine.chain`).
 
 Guarantees
 ----------
@@ -272,7 +272,7 @@ def _migrate_to_4(conn):
 def _migrate_to_5(conn):
     """The anomaly detectors' long-run statistics (``long_run_json``, JSON, 'null' for rows
     written before): per print, what it leaves the machine's next print; per calibration,
-    what the commissioning print showed (:func:`ajtwin.live.engine.carried_long_run_history`)."""
+    what the commissioning print showed (:func:`ajtwin.engine.start.carried_long_run_history`)."""
     for table in ("prints", "calibrations"):
         columns = {r[1] for r in conn.execute(f"PRAGMA table_info({table})").fetchall()}
         if "long_run_json" not in columns:
@@ -296,7 +296,7 @@ MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
 PRINT_TABLES = ["print_arrays", "anomalies"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
-#: ``print_id`` renumbered, by :func:`ajtwin.store.maintenance.copy_machine`.
+#: ``print_id`` renumbered, by :func:`ajtwin.store.archive.copy_machine`.
 LIVE_SESSION_TABLES = ["live_samples", "live_states", "live_events"]
 
 
@@ -848,7 +848,7 @@ class Registry:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
         ``long_run_history``: the detectors' long-run statistics at the print's end
-        (:meth:`ajtwin.apps.anomaly.AnomalyDetector.long_run_history`), read back by
+        (:meth:`ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`), read back by
         :meth:`long_run_history` for the machine's next print.
 
         ``live_session``: the live session (:mod:`ajtwin.store.live_log`) this print ends;

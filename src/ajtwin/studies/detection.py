@@ -4,7 +4,7 @@ Detection delay per fault scenario (first event at/after ``fault_onset_s``) and 
 alarms per 10 print-hours on clean prints. The twin runs (the slow part) are cached as
 ``.npz`` files so that detector settings can be re-evaluated in seconds.
 
-    python -m ajtwin.apps.evaluate [--cache DIR] [--seeds 0] [--clean-seeds 0]
+    python -m ajtwin.studies.detection [--cache DIR] [--seeds 0] [--clean-seeds 0]
 
 Examples
 --------

@@ -239,7 +239,7 @@ def run_exp3(
     Three forecasts of the noise-free true outputs after 37.6 min:
 
     * calibrated — the twin (its transition profile) from the EM-filtered state at 37.6 min
-      with θ from EM, with its ±2σ band (:func:`ajtwin.apps.forecast.forecast`);
+      with θ from EM, with its ±2σ band (:func:`ajtwin.apps.planning.forecast.forecast`);
     * θ withheld — the same twin and filtered state, θ = 0 (what θ adds);
     * uncalibrated — the paper's baseline: the static physics model (paper transition,
       θ = 0) open loop from the fitted start state at t = 0.

@@ -10,7 +10,7 @@ machine and the paper's machine. Per machine:
    print) run by the calibrated twin, started where commissioning left the machine:
    errors at 30/60/90 min, ±2σ coverage, alarms, the mismatch guard; the detectors start
    with the long-run noise scale the calibrated twin showed on the commissioning print
-   (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`, as the registry carries it);
+   (:func:`ajtwin.engine.commissioning.commissioning_long_run_history`, as the registry carries it);
 3. BEFORE: the same print run by the uncalibrated (nominal) twin, as a new user would:
    errors, coverage, alarms, when the guard fires;
 4. a 30-min ``nozzle_clog`` print (onset 15 min) on the commissioned machine:

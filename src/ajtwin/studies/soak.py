@@ -12,7 +12,7 @@ Two soaks ("Long runs"):
   VmHWM from ``/proc/self/status``). Days are simulated one by one with
   ``continue_from`` (the atomizer restarts each day, the vial and deposits carry on).
 * :func:`soak_machine` — many short prints of one machine back to back through the
-  registry (:func:`ajtwin.live.engine.ingest_record`): the chain carries the state and
+  registry (:func:`ajtwin.engine.ingest.ingest_record`): the chain carries the state and
   θ; records per print the end state, θ and the time ``machine history``/``machine show``
   take as the registry grows.
 

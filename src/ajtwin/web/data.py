@@ -103,7 +103,7 @@ def care_fields(registry, name: str) -> dict:
     """Commissioning, maintenance and the model–machine guard of machine ``name``.
 
     Read through :mod:`ajtwin.store.calibration` and the newest print's summary (its
-    ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.mismatch.assess_run`).
+    ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.detection.mismatch.assess_run`).
     Keys present only when there is something to show:
 
     * ``commissioned_at`` — ISO time of the active (newest) calibration;
@@ -399,7 +399,7 @@ class RegistryView:
     def forecast_start(self, name: str, nominal_theta: bool = False):
         """(twin with the machine's θ, mean, cov, inputs now, limits, last seq): the start
         ``ajtwin forecast``/``advise`` use, from the same function
-        (:func:`ajtwin.apps.cli.machine_twin`)."""
+        (:func:`ajtwin.engine.start.machine_twin`)."""
 
         with self._lock:
             try:

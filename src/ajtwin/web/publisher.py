@@ -1,7 +1,7 @@
 """In-process publish/subscribe between a live twin and the dashboard's open pages.
 
 A live engine (``ajtwin live … --dashboard``) or the virtual-print feed
-(:mod:`ajtwin.web.feed`) calls :meth:`LivePublisher.publish` once per sample, from any
+(:mod:`ajtwin.engine.replay`) calls :meth:`LivePublisher.publish` once per sample, from any
 thread; every open page's websocket holds a :class:`Subscription` (an asyncio queue) and
 receives the sample as JSON within one event-loop turn. The registry watcher announces
 committed prints through the same object, so a page has one stream to listen to.
@@ -26,7 +26,7 @@ through unchanged)::
                  alarms the twin raised at this sample
 
 A machine link's state (``ajtwin live``: connected, reconnecting since T, …; see
-:meth:`ajtwin.live.engine.LiveEngine.publish_link`) is kept per machine and pushed as
+:meth:`ajtwin.engine.fleet.LiveEngine.publish_link`) is kept per machine and pushed as
 ``{"type": "link", "machine", "link": {…, "text"}}``; ``text`` (:func:`link_text`) is
 what the pages show.
 
@@ -103,7 +103,7 @@ def _number(value) -> float | None:
 
 
 def sample_from_engine(message: dict) -> dict | None:
-    """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
+    """A live-engine message (``ajtwin.engine.stream``: states etc. as {name: value} dicts,
     ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
     as a dashboard sample (module docstring). Provisional steps give None: the committed
     step for the same time follows and is the one drawn.
@@ -277,7 +277,7 @@ class LivePublisher:
 
     def publish_link(self, machine: str, link: dict) -> None:
         """The state of the link feeding ``machine`` (``state``, ``since``, ``attempt``, …;
-        see :meth:`ajtwin.live.engine.LiveEngine.publish_link`); kept and pushed to pages."""
+        see :meth:`ajtwin.engine.fleet.LiveEngine.publish_link`); kept and pushed to pages."""
         if not isinstance(link, dict):
             raise ValueError(f"a link state is a dict, got {type(link).__name__}")
         link = _clean({**link, "text": link_text(link)})

@@ -18,7 +18,7 @@ CAUSES = {
     "atomizer": "atomizer trouble (Q_m and φ_A falling)",
     "ink_low": "ink running out (V_l low or falling towards it; vial observer)",
     "unexplained": "unexplained deviation",
-    # set by ajtwin.apps.mismatch.relabel_events: the model does not fit the machine
+    # set by ajtwin.apps.detection.mismatch.relabel_events: the model does not fit the machine
     "model_machine_mismatch": "model–machine mismatch, not a fault (commission the machine)",
 }
 

@@ -4,7 +4,7 @@ The paper's "process tolerance control" with a human in the loop: from the machi
 current state estimate, find I_A, Q_c, Q_s within the machine's limits (and the validity
 range of H's fit, Q_c 15–35 sccm, I_A 300–440 mA) such that the forecast linewidth after a
 settling time equals the target, overspray is least (and below ``max_overspray_um`` when
-given). Each candidate is scored with :func:`ajtwin.apps.forecast.forecast` (the same EKF
+given). Each candidate is scored with :func:`ajtwin.apps.planning.forecast.forecast` (the same EKF
 prediction the forecast uses), so the answer carries its uncertainty.
 
 Optimiser: SciPy SLSQP on inputs scaled to [0, 1], from several starts (the current

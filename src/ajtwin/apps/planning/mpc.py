@@ -9,7 +9,7 @@ The plan
 Move blocking: ``M`` piecewise-constant moves v_0 … v_{M−1} (3 inputs each) start at
 ``move_starts_s`` and hold to the end of the horizon H (default 60 s, moves at 0/10/30 s;
 why: ``data/control.toml``). The model is the twin's own: the EKF prediction
-(x̂ ← f_d(x̂, u; θ), P ← F P Fᵀ + Σ_ξ, :func:`ajtwin.apps.forecast._forecast_scan`) runs
+(x̂ ← f_d(x̂, u; θ), P ← F P Fᵀ + Σ_ξ, :func:`ajtwin.apps.planning.forecast._forecast_scan`) runs
 second by second over the horizon, giving L̂_w,k ± σ_k and L̂_o,k. The cost (all terms
 dimensionless) is
 
@@ -21,7 +21,7 @@ with v_{−1} the command in force, ρ the rate limits and Δt_j the time betwee
 The band term keeps L_w's 2σ band inside ±tol where the mean alone would not.
 
 Constraints (hard): lo ≤ v_j ≤ hi (the machine's limits ∩ the validity range of H's fit,
-:func:`ajtwin.apps.advise.effective_bounds`) and |v_j − v_{j−1}| ≤ ρ Δt_j (rate limits).
+:func:`ajtwin.apps.planning.advice.effective_bounds`) and |v_j − v_{j−1}| ≤ ρ Δt_j (rate limits).
 Optimiser: SciPy SLSQP on inputs scaled to [0, 1], value and gradient from one jitted
 ``jax.value_and_grad``; warm-started from the previous plan shifted by one period.
 
@@ -468,7 +468,7 @@ def model_inputs(inputs, functions=None):
     A transition profile that follows the inputs (``input_following``,
     :mod:`ajtwin.model.droplet_dynamics`) reads a 4th column, the droplet size's input
     response r; it is filtered here from the plan as :func:`augment_inputs` does, starting
-    at its equilibrium with the first input (as :func:`ajtwin.apps.forecast.forecast`).
+    at its equilibrium with the first input (as :func:`ajtwin.apps.planning.forecast.forecast`).
     Any other profile reads the three inputs unchanged.
     """
 

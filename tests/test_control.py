@@ -472,14 +472,14 @@ def test_ink_stop_latch_ignores_a_later_all_clear(twin, control_settings):
     np.testing.assert_array_equal(again.command, u0 + np.array([5.0, 0.0, 0.0]))
 
 
-@pytest.mark.parametrize("profile", ["mean_reverting", "input_following"])
-def test_mpc_plans_with_the_twins_transition_profile(profile, control_settings):
-    """The MPC's prediction is the twin's own forecast (its transition profile, the one
+@pytest.mark.parametrize("variant", ["mean_reverting", "input_following"])
+def test_mpc_plans_with_the_twins_transition_variant(variant, control_settings):
+    """The MPC's prediction is the twin's own forecast (its transition variant, the one
     θ was learned on), not the paper's step: the plan's L̂_w equals ``forecast`` under the
     planned inputs."""
     from ajtwin.apps.planning.forecast import forecast
 
-    tw = Twin.default(transition=profile)
+    tw = Twin.default(transition=variant)
     controller = MPC(tw, control_settings)
     u = np.array([375.0, 23.0, 50.0])
     mean = np.array([3.3, 1.0, 0.0, 0.0, float(tw.model.steady_aerosol_fraction(u, 1.0))])

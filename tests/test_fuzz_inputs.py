@@ -562,7 +562,7 @@ def test_fuzz_estimate_options(profile, tmp_path):
         assert p["gate"] > 0 and not math.isnan(p["gate"])
         assert 0 < p["vial_ml"] < capacity and math.isfinite(p["vial_ml"])
         assert p["window"] >= 2 and p["every"] >= 1
-        assert p["noise_profile"] in ("calibrated", "paper")
+        assert p["noise_tuning"] in ("calibrated", "paper")
 
     run()
 

@@ -42,7 +42,7 @@ def camera_less_run(clog_print):
 
 
 def test_prior_start_values_come_from_the_data_file(clog_print, camera_less_run):
-    prior = load_noise(profile="calibrated")["prior_initial"]
+    prior = load_noise(tuning="calibrated")["prior_initial"]
     initial = camera_less_run.initial
     assert initial.states_from_prior == ("droplet_diameter_um", "aerosol_fraction")
     assert initial.mean[DA] == prior["droplet_diameter_mean_um"]
@@ -72,7 +72,7 @@ def test_camera_less_bands_stay_at_what_the_model_alone_gives(clog_print, camera
         _blind(clog_print, LINE_COLUMNS + ["carrier_pressure_Pa", "sheath_pressure_Pa"])
     )
     pressures_only = Twin.default(em=False).run(_blind(clog_print, LINE_COLUMNS))
-    prior_sigma = load_noise(profile="calibrated")["prior_initial"]["droplet_diameter_um"]
+    prior_sigma = load_noise(tuning="calibrated")["prior_initial"]["droplet_diameter_um"]
     for run in (pressures_only, camera_less_run):
         assert np.all(run.stds[:, DA] >= prior_sigma * (1 - 1e-9))  # never narrowed by data
     np.testing.assert_allclose(pressures_only.stds[:, DA], nothing.stds[:, DA], rtol=0.02)

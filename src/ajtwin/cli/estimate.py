@@ -71,11 +71,11 @@ def parse_early_em(text: str) -> tuple:
 )
 @click.option(
     "--noise",
-    "noise_profile",
+    "noise_tuning",
     type=click.Choice(["calibrated", "paper"]),
     default="calibrated",
     show_default=True,
-    help="Filter tuning profile (noise.toml).",
+    help="The filter's noise tuning (noise.toml).",
 )
 @click.option(
     "--vial-ml",
@@ -115,7 +115,7 @@ def estimate(
     every,
     early_em,
     gate,
-    noise_profile,
+    noise_tuning,
     vial_ml,
     calibration_path,
     theta_out,
@@ -152,7 +152,7 @@ def estimate(
         calibration=calibration,
         calibration_cov=calibration_cov,
         noise_factors=noise_factors,
-        noise_profile=noise_profile,
+        noise_tuning=noise_tuning,
         em=em,
         window_s=window,
         every_s=every,

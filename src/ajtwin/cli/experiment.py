@@ -18,7 +18,7 @@ from ajtwin.cli.options import parse_seeds
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True)
 @click.option(
     "--noise",
-    "noise_profile",
+    "noise_tuning",
     type=click.Choice(["calibrated", "paper"]),
     default="calibrated",
     show_default=True,
@@ -35,10 +35,10 @@ from ajtwin.cli.options import parse_seeds
     "--transition",
     default="paper",
     show_default=True,
-    help="Droplet-size dynamics: a profile of ajtwin/data/transition.toml "
+    help="Droplet-size dynamics: a variant of ajtwin/data/transition.toml "
     "(paper, input_following, mean_reverting; docs/explanation/forecast-droplet-dynamics.md).",
 )
-def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition):
+def experiment(name, seed, seeds_text, out_dir, noise_tuning, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""
     # lazy CLI loading: the experiments load JAX and matplotlib when they run
     from ajtwin.studies.experiment_figures import experiment_figures
@@ -52,7 +52,7 @@ def experiment(name, seed, seeds_text, out_dir, noise_profile, truth, transition
             name,
             seeds,
             out_dir,
-            {"noise_profile": noise_profile, "transition": transition},
+            {"noise_tuning": noise_tuning, "transition": transition},
             progress=lambda _: bar.update(1),
             truth=truth,
             figures=experiment_figures,

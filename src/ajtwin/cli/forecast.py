@@ -54,7 +54,7 @@ from ajtwin.store.registry import RegistryError
     "--transition",
     default="paper",
     show_default=True,
-    help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml; "
+    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml; "
     "input_following lets d_a follow planned Q_c/I_A changes "
     "(docs/explanation/forecast-droplet-dynamics.md).",
 )

@@ -44,7 +44,7 @@ from ajtwin.cli.options import configure_logging, open_registry, store_option
     "--transition",
     default="paper",
     show_default=True,
-    help="Droplet-size row of the twin: a profile of ajtwin/data/transition.toml "
+    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml "
     "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
     "docs/explanation/forecast-droplet-dynamics.md).",
 )
@@ -81,11 +81,11 @@ def live(
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
     # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.model.droplet_dynamics import transition_profiles
+    from ajtwin.model.droplet_dynamics import transition_variants
 
-    if transition not in transition_profiles():
+    if transition not in transition_variants():
         raise click.BadParameter(
-            f"no profile {transition!r}; choose one of {', '.join(transition_profiles())}",
+            f"no variant {transition!r}; choose one of {', '.join(transition_variants())}",
             param_hint="--transition",
         )
     registry = open_registry(store, create=True)  # the live twin writes

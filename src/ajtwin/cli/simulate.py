@@ -63,9 +63,9 @@ from ajtwin.io.records import RecordError, read_record, write_record
 )
 @click.option(
     "--machine",
-    "machine_profile",
+    "machine_name",
     default=None,
-    help="A machine profile instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or 'nominal'.",
+    help="A named machine instead: 'paper' (L_w ≈ 43, L_o ≈ 29 µm at 23/50 sccm) or 'nominal'.",
 )
 @click.option(
     "--truth",
@@ -85,7 +85,7 @@ def simulate(
     plot_path,
     continue_from,
     machine_seed,
-    machine_profile,
+    machine_name,
     truth_generator,
     list_only,
 ):
@@ -121,7 +121,7 @@ def simulate(
             seed,
             duration_min,
             continue_from=previous,
-            machine=machine_profile,
+            machine=machine_name,
             machine_seed=machine_seed,
             truth_generator=truth_generator,
         )

@@ -87,8 +87,8 @@ def commissioning_long_run_history(
 
     The commissioned twin runs over the print it was fitted from, as it will run over the
     next one, and the detectors' block differences are returned
-    (:meth:`~ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`). The input steps of a
-    commissioning print move single block means, which the robust scale ignores.
+    (:meth:`~ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`). The input
+    steps of a commissioning print move single block means, which the robust scale ignores.
 
     Parameters
     ----------

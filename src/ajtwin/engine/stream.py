@@ -177,7 +177,7 @@ class TwinStream:
         self._responds: np.ndarray | None = None  # (5 outputs, 5 states)
         self._floor_relative = np.zeros(5)
         # the droplet size's input response r for the next committed step (a transition
-        # profile that follows the inputs; the batch twin's Twin.model_inputs, one sample
+        # variant that follows the inputs; the batch twin's Twin.model_inputs, one sample
         # at a time)
         self._dynamics = twin.droplet_dynamics if twin.config.transition != "paper" else None
         self._response: float | None = None

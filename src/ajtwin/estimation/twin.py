@@ -81,26 +81,26 @@ class TwinConfig:
     # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
-    # droplet-size dynamics: a profile of data/transition.toml ("paper" = model reference §4
+    # droplet-size dynamics: a variant of data/transition.toml ("paper" = model reference §4
     # unchanged)
     transition: str = "paper"
 
-    noise_profile: str = "calibrated"
+    noise_tuning: str = "calibrated"
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
     learn_line_offsets: bool = False
     learn_output_noise: bool = False
 
     @classmethod
     def default(
-        cls, model: DigitalModel | None = None, noise_profile: str = "calibrated", **overrides
+        cls, model: DigitalModel | None = None, noise_tuning: str = "calibrated", **overrides
     ) -> TwinConfig:
         """Filter tuning from ``noise.toml``.
 
-        ``noise_profile="calibrated"`` (default) or ``"paper"`` (model reference §6 values,
+        ``noise_tuning="calibrated"`` (default) or ``"paper"`` (model reference §6 values,
         σ_Qm = 20 % of the nominal Q_m).
         """
         model = model or DigitalModel.default()
-        noise = load_noise(profile=noise_profile)
+        noise = load_noise(tuning=noise_tuning)
         proc = noise["process"]
         meas = noise["measurement"]
         # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is
@@ -132,12 +132,10 @@ class TwinConfig:
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
 
         initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
-        base = replace(
-            cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
-        )
+        base = replace(cls(process, measurement, noise_tuning=noise_tuning, **initial), **overrides)
         if base.transition != "paper":
             dynamics = load_droplet_dynamics(base.transition)
-            # the profile's bound on θ_da (its MAP prior), unless the caller set one
+            # the variant's bound on θ_da (its MAP prior), unless the caller set one
             if dynamics.theta_prior_std > 0 and "theta_prior_std" not in overrides:
                 prior = list(base.theta_prior_std)
                 prior[0] = dynamics.theta_prior_std
@@ -289,9 +287,9 @@ def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
 
 
 def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFunctions:
-    """The model the estimators run: discretisation ``method`` and a ``transition`` profile.
+    """The model the estimators run: discretisation ``method`` and a ``transition`` variant.
 
-    ``transition`` names a profile of ``data/transition.toml``
+    ``transition`` names a variant of ``data/transition.toml``
     (:mod:`ajtwin.model.droplet_dynamics`); ``"paper"`` is the paper's model itself.
     """
     functions = model_functions(method)
@@ -434,13 +432,13 @@ class Twin:
     # ------------------------------------------------------------------ #
     @property
     def droplet_dynamics(self):
-        """The transition profile (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
+        """The transition variant (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
 
         return load_droplet_dynamics(self.config.transition)
 
     def model_inputs(self, inputs, response0: float | None = None) -> np.ndarray:
         """Inputs (T, 3) as the transition reads them: with the input-response column
-        (T, 4) for an ``input_following`` profile, unchanged otherwise."""
+        (T, 4) for an ``input_following`` variant, unchanged otherwise."""
         if self.config.transition == "paper":
             return np.asarray(inputs, dtype=float)
 

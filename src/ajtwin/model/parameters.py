@@ -158,19 +158,20 @@ def read_output_coefficient_file(path: str | Path | None = None) -> dict:
     return _read_toml(path, "output_coefficients.toml")
 
 
-NOISE_PROFILES = ("calibrated", "paper")
+#: the filter tunings of ``noise.toml``
+NOISE_TUNINGS = ("calibrated", "paper")
 
 
-def load_noise(path: str | Path | None = None, profile: str = "paper") -> dict:
+def load_noise(path: str | Path | None = None, tuning: str = "paper") -> dict:
     """Filter tuning noise as ``{"process": {...}, "measurement": {...}, "initial": {...}}``.
 
-    ``profile="paper"`` gives the model reference §6 / paper App. E values; ``"calibrated"``
+    ``tuning="paper"`` gives the model reference §6 / paper App. E values; ``"calibrated"``
     the twin's default, tuned on virtual-printer training prints (see the file).
     """
     raw = _read_toml(path, "noise.toml")
-    if profile not in NOISE_PROFILES:
-        raise ValueError(f"noise profile {profile!r}; choose one of {NOISE_PROFILES}")
-    source = raw if profile == "paper" else raw[profile]
+    if tuning not in NOISE_TUNINGS:
+        raise ValueError(f"noise tuning {tuning!r}; choose one of {NOISE_TUNINGS}")
+    source = raw if tuning == "paper" else raw[tuning]
     out = {
         group: {name: float(v["value"]) for name, v in source[group].items()}
         for group in ("process", "measurement")

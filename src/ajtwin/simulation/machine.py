@@ -4,8 +4,8 @@ A real AJ 300 has its own plumbing, gauges, nozzle and camera. A virtual machine
 the nominal machine seen through a :class:`MachineDeviation`: carrier- and sheath-line
 resistance factors, pressure-gauge gains and offsets, line-model levels and gains for
 L_w and L_o, a camera scale and a Q_m gain. The sizes of the seeded draws live in
-``data/machine_variation.toml`` (``[machine_variation]``), fixed profiles such as the
-paper's machine in its ``[profiles.*]`` tables.
+``data/machine_variation.toml`` (``[machine_variation]``), named machines such as the
+paper's machine in its ``[machines.*]`` tables.
 
 The deviation acts on the virtual printer's noise-free outputs (before sensor noise):
 
@@ -161,15 +161,15 @@ def draw_machine(seed: int, variation: dict | None = None) -> MachineDeviation:
     )
 
 
-def machine_profile(name: str, variation: dict | None = None) -> MachineDeviation:
-    """A fixed machine profile from the data file (e.g. ``"paper"``)."""
+def named_machine(name: str, variation: dict | None = None) -> MachineDeviation:
+    """A named machine of the data file (e.g. ``"paper"``)."""
     if name == "nominal":
         return nominal_machine()
-    profiles = (variation or load_machine_variation()).get("profiles", {})
-    if name not in profiles:
-        known = ", ".join(["nominal", *sorted(profiles)])
-        raise ValueError(f"unknown machine profile {name!r} (known: {known})")
-    p = dict(profiles[name])
+    machines = (variation or load_machine_variation()).get("machines", {})
+    if name not in machines:
+        known = ", ".join(["nominal", *sorted(machines)])
+        raise ValueError(f"unknown named machine {name!r} (known: {known})")
+    p = dict(machines[name])
     ref_lw, ref_lo = _reference_lines()
     lw_gain = float(p.pop("linewidth_gain", 1.0))
     lo_gain = float(p.pop("overspray_gain", 1.0))
@@ -185,9 +185,9 @@ def machine_profile(name: str, variation: dict | None = None) -> MachineDeviatio
 
 
 def resolve_machine(machine=None, machine_seed: int | None = None) -> MachineDeviation:
-    """A MachineDeviation from a profile name / deviation / dict and/or a seed."""
+    """A MachineDeviation from a machine name / deviation / dict and/or a seed."""
     if machine is not None and machine_seed is not None:
-        raise ValueError("give a machine profile or a machine seed, not both")
+        raise ValueError("give a named machine or a machine seed, not both")
     if machine_seed is not None:
         return draw_machine(machine_seed)
     if machine is None:
@@ -196,4 +196,4 @@ def resolve_machine(machine=None, machine_seed: int | None = None) -> MachineDev
         return machine
     if isinstance(machine, dict):
         return MachineDeviation.from_dict(machine)
-    return machine_profile(str(machine))
+    return named_machine(str(machine))

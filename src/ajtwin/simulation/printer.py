@@ -558,7 +558,7 @@ def simulate(
         prints differently. Explicit ``overrides["initial"]`` keys win. The machine of the
         previous print is kept unless ``machine``/``machine_seed`` name another.
     machine : str, dict or MachineDeviation, optional
-        A machine profile (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
+        A named machine (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
         an explicit deviation (:mod:`ajtwin.simulation.machine`). Default: nominal machine.
     machine_seed : int, optional
         Draw the machine's deviations from this seed (independent of ``seed``).

@@ -238,7 +238,7 @@ def run_exp3(
 
     Three forecasts of the noise-free true outputs after 37.6 min:
 
-    * calibrated — the twin (its transition profile) from the EM-filtered state at 37.6 min
+    * calibrated — the twin (its transition variant) from the EM-filtered state at 37.6 min
       with θ from EM, with its ±2σ band (:func:`ajtwin.apps.planning.forecast.forecast`);
     * θ withheld — the same twin and filtered state, θ = 0 (what θ adds);
     * uncalibrated — the paper's baseline: the static physics model (paper transition,
@@ -252,7 +252,7 @@ def run_exp3(
     record = vp.record
     n_cal = int(EXP3_CALIBRATION_END_S)
     twin = Twin.default(em=False, **(twin_overrides or {}))
-    # inputs as the twin's transition reads them (a profile may add the input response)
+    # inputs as the twin's transition reads them (a variant may add the input response)
     model_inputs = twin.model_inputs(record.inputs)
     response_at_start = float(model_inputs[n_cal - 1, -1]) if model_inputs.shape[1] > 3 else None
     calibration = twin.run(

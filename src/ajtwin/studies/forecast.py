@@ -1,16 +1,16 @@
-"""Exp 3 forecast skill of the transition profiles on both truth generators.
+"""Exp 3 forecast skill of the transition variants on both truth generators.
 
-Runs ``ajtwin experiment exp3`` for every profile of data/transition.toml named below on
-the virtual printer's first truth generator ("model", which tuned the profiles on seeds
+Runs ``ajtwin experiment exp3`` for every variant of data/transition.toml named below on
+the virtual printer's first truth generator ("model", which tuned the variants on seeds
 101–105) and on the second ("alt", evaluation only), held-out seeds 1–5, and optionally
-exp1/exp2 (the filter's accuracy and coverage) for the profiles; writes each run's
-figures and metrics.json under OUT/<experiment>_<profile>_<truth>/ and a summary table
+exp1/exp2 (the filter's accuracy and coverage) for the variants; writes each run's
+figures and metrics.json under OUT/<experiment>_<variant>_<truth>/ and a summary table
 OUT/summary.md with the before (paper) / after figures.
 
 Run:  python -m ajtwin.studies.forecast --out docs/results/forecast
-      [--profiles paper,input_following,mean_reverting] [--seeds 1-5] [--with-exp12]
+      [--variants paper,input_following,mean_reverting] [--seeds 1-5] [--with-exp12]
       python -m ajtwin.studies.forecast --out docs/results/forecast/seeds_1_40 \
-      --profiles paper,input_following --seeds 1-40      # the pooled bands (summary.md, top table)
+      --variants paper,input_following --seeds 1-40      # the pooled bands (summary.md, top table)
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def seeds_from(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def exp3_rows(profile: str, truth: str, result: dict) -> list[str]:
+def exp3_rows(variant: str, truth: str, result: dict) -> list[str]:
     """Table rows of one droplet-row variant and truth generator over the exp3 seeds."""
     per = result["per_seed"]
 
@@ -47,7 +47,7 @@ def exp3_rows(profile: str, truth: str, result: dict) -> list[str]:
     ab = "ablation_same_start_state_without_theta_vs_noise_free_truth"
     s = result["summary"]
     lines = [
-        f"| {profile} | {truth} | L_w | {col(lambda m: m[f]['linewidth_calibrated_um'])} "
+        f"| {variant} | {truth} | L_w | {col(lambda m: m[f]['linewidth_calibrated_um'])} "
         f"| {col(lambda m: m[f]['linewidth_uncalibrated_um'])} "
         f"| {col(lambda m: m[ab]['linewidth_um'])} "
         f"| {col(lambda m: m['linewidth_rmse_ratio_calibrated_over_uncalibrated'])} "
@@ -55,7 +55,7 @@ def exp3_rows(profile: str, truth: str, result: dict) -> list[str]:
         f"| {col(lambda m: m['linewidth_rmse_ratio_calibrated_over_theta_withheld'])} "
         f"| {col(lambda m: m['forecast_band_coverage']['linewidth'])} "
         f"| {col(lambda m: m['oracle_droplet_forecast']['linewidth_um'])} |",
-        f"| {profile} | {truth} | L_o | {col(lambda m: m[f]['overspray_calibrated_um'])} "
+        f"| {variant} | {truth} | L_o | {col(lambda m: m[f]['overspray_calibrated_um'])} "
         f"| {col(lambda m: m[f]['overspray_uncalibrated_um'])} "
         f"| {col(lambda m: m[ab]['overspray_um'])} "
         f"| {col(lambda m: m['overspray_rmse_ratio_calibrated_over_uncalibrated'])} "
@@ -67,7 +67,7 @@ def exp3_rows(profile: str, truth: str, result: dict) -> list[str]:
     return lines
 
 
-def pooled_row(profile: str, truth: str, result: dict) -> str:
+def pooled_row(variant: str, truth: str, result: dict) -> str:
     """One line over all seeds: a seed's band is all or nothing when its error is
     systematic, so the band's honesty is judged pooled (85–99 %), not seed by seed."""
     per = result["per_seed"]
@@ -79,20 +79,20 @@ def pooled_row(profile: str, truth: str, result: dict) -> str:
     ratio = np.array([m["linewidth_rmse_ratio_calibrated_over_uncalibrated"] for m in per])
     withheld = np.array([m["linewidth_rmse_ratio_calibrated_over_theta_withheld"] for m in per])
     return (
-        f"| {profile} | {truth} | {len(per)} | {band_w.mean():.3f} ({(band_w < 0.85).sum()}) "
+        f"| {variant} | {truth} | {len(per)} | {band_w.mean():.3f} ({(band_w < 0.85).sum()}) "
         f"| {band_o.mean():.3f} ({(band_o < 0.85).sum()}) "
         f"| {np.sqrt(np.mean(cal**2) / np.mean(uncal**2)):.2f} ({(ratio <= 0.5).sum()}) "
         f"| {np.median(withheld):.3f} ({(withheld < 1).sum()}) |"
     )
 
 
-def exp12_row(name: str, profile: str, result: dict) -> str:
+def exp12_row(name: str, variant: str, result: dict) -> str:
     """A table row of exp1/exp2 under one droplet-row variant: worst errors and ±2σ coverage."""
     t = result["summary"]["targets"]
     cov = result["summary"]["coverage_em"]
     covs = " ".join(f"{cov[k]['mean']:.3f}" for k in cov)
     return (
-        f"| {name} | {profile} | {t['worst_relative_error_pct']:.2f} | "
+        f"| {name} | {variant} | {t['worst_relative_error_pct']:.2f} | "
         f"{t['worst_nozzle_error_nm']:.2f} | {covs} |"
     )
 
@@ -104,7 +104,9 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--out", default=None, help="Result folder [default: a new temporary folder]."
     )
-    parser.add_argument("--profiles", default="paper,input_following,mean_reverting")
+    parser.add_argument(
+        "--variants", "--variants", dest="variants", default="paper,input_following,mean_reverting"
+    )
     parser.add_argument("--truths", default="model,alt")
     parser.add_argument("--seeds", default="1-5")
     parser.add_argument("--with-exp12", action="store_true")
@@ -112,30 +114,30 @@ def main(argv=None) -> dict:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ajtwin-forecast-study-"))
     out.mkdir(parents=True, exist_ok=True)
     seeds = seeds_from(args.seeds)
-    profiles = args.profiles.split(",")
+    variants = args.variants.split(",")
     started = time.process_time()
     table = [
-        "| profile | truth | output | calibrated RMSE µm (seeds) | uncalibrated | θ withheld "
+        "| variant | truth | output | calibrated RMSE µm (seeds) | uncalibrated | θ withheld "
         "| cal/uncal | cal/θ-withheld | ±2σ coverage | oracle-d_a RMSE |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     pooled = [
-        "| profile | truth | seeds | L_w ±2σ coverage, pooled (seeds < 85 %) | L_o (seeds < 85 %) "
+        "| variant | truth | seeds | L_w ±2σ coverage, pooled (seeds < 85 %) | L_o (seeds < 85 %) "
         "| L_w RMSE cal/uncal, pooled (seeds ≤ 0.5) | cal/θ-withheld, median (seeds < 1) |",
         "|---|---|---|---|---|---|---|",
     ]
-    for profile in profiles:
+    for variant in variants:
         for truth in args.truths.split(","):
-            target = out / f"exp3_{profile}_{truth}"
-            overrides = {"noise_profile": "calibrated", "transition": profile}
+            target = out / f"exp3_{variant}_{truth}"
+            overrides = {"noise_tuning": "calibrated", "transition": variant}
             result = run_experiment("exp3", seeds, target, overrides, truth=truth)
-            table += exp3_rows(profile, truth, result)
-            pooled.append(pooled_row(profile, truth, result))
+            table += exp3_rows(variant, truth, result)
+            pooled.append(pooled_row(variant, truth, result))
             print("\n".join(table[-2:]), flush=True)
     lines = [
-        "# Exp 3 forecast skill by transition profile (python -m ajtwin.studies.forecast)",
+        "# Exp 3 forecast skill by transition variant (python -m ajtwin.studies.forecast)",
         "",
-        f"Seeds {seeds[0]}–{seeds[-1]} (held out); the profiles were tuned on the first "
+        f"Seeds {seeds[0]}–{seeds[-1]} (held out); the variants were tuned on the first "
         "generator's training seeds (101–105; input_following's forecast σ_da on 101–140).",
         "",
         *pooled,
@@ -145,29 +147,29 @@ def main(argv=None) -> dict:
     if args.with_exp12:
         lines += [
             "",
-            "| experiment | profile | worst rel. error d_a/V_l/φ_A % | worst ΔR_N nm "
+            "| experiment | variant | worst rel. error d_a/V_l/φ_A % | worst ΔR_N nm "
             "| ±2σ coverage d_a V_l ΔR_T ΔR_N φ_A |",
             "|---|---|---|---|---|",
         ]
         for name in ("exp1", "exp2"):
-            for profile in profiles:
-                target = out / f"{name}_{profile}"
-                overrides = {"noise_profile": "calibrated", "transition": profile}
+            for variant in variants:
+                target = out / f"{name}_{variant}"
+                overrides = {"noise_tuning": "calibrated", "transition": variant}
                 result = run_experiment(name, seeds, target, overrides)
-                lines.append(exp12_row(name, profile, result))
+                lines.append(exp12_row(name, variant, result))
                 print(lines[-1], flush=True)
     lines += [
         "",
         f"CPU time {time.process_time() - started:.0f} s on {machine_description()}.",
     ]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
-    (out / "summary.json").write_text(json.dumps({"seeds": seeds, "profiles": profiles}))
+    (out / "summary.json").write_text(json.dumps({"seeds": seeds, "variants": variants}))
     print(f"wrote {out / 'summary.md'}")
     return {
         "summary_md": str(out / "summary.md"),
         "experiments_cpu_s": round(time.process_time() - started, 1),
         "seeds": args.seeds,
-        "profiles": args.profiles,
+        "variants": args.variants,
     }
 
 

@@ -11,7 +11,8 @@ to open pages over a websocket. Updates come from two sources:
 
 Everything the pages need is read through :mod:`ajtwin.web.data` (one adapter between
 the registry's schema and the pages). Nothing here computes physics: forecasts and advice
-call :mod:`ajtwin.apps.planning.forecast` and :mod:`ajtwin.apps.planning.advice`, the functions behind
+call :mod:`ajtwin.apps.planning.forecast` and :mod:`ajtwin.apps.planning.advice`, the functions
+behind
 ``ajtwin forecast`` and ``ajtwin advise``.
 
 Start it with ``ajtwin dashboard [--store PATH] [--host 127.0.0.1 --port 8050]``.

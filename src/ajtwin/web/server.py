@@ -3,7 +3,7 @@
 :class:`DashboardProcess` starts ``ajtwin dashboard`` on 127.0.0.1 and a free port, waits
 (bounded) until it answers, and stops it by its own PID. :func:`launch_chromium` opens
 Debian's ``/usr/bin/chromium`` through Playwright (``playwright install`` cannot download
-a browser here) with a fresh profile and no background networking.
+a browser here) with a fresh user-data folder and no background networking.
 
 Example
 -------
@@ -196,15 +196,15 @@ class BackgroundServer:
 
 
 def launch_chromium(playwright, user_data_dir=None):
-    """A headless Debian chromium (persistent context in a fresh profile folder).
+    """A headless Debian chromium (persistent context in a fresh user-data folder).
 
     Returns the Playwright BrowserContext; close it when done.
     """
     if not Path(CHROMIUM).exists():
         raise FileNotFoundError(f"{CHROMIUM} not found: run `make chromium`")
-    profile = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
+    data_dir = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
     return playwright.chromium.launch_persistent_context(
-        str(profile),
+        str(data_dir),
         executable_path=CHROMIUM,
         args=CHROMIUM_ARGS,
         headless=True,

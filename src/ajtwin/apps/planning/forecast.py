@@ -165,7 +165,7 @@ def range_warnings(fc) -> list[str]:
     return out
 
 
-#: the transition profile's aerosol-level wander in forecasts (data/transition.toml)
+#: the transition variant's aerosol-level wander in forecasts (data/transition.toml)
 WANDER_KEY = "forecast_aerosol_wander_per_sqrt_h"
 
 
@@ -272,12 +272,12 @@ def forecast(
     include_measurement_noise : bool
         Add the sensors' σ² to the output variances.
     input_response0 : float, optional
-        For a twin whose transition profile follows the inputs
+        For a twin whose transition variant follows the inputs
         (:mod:`ajtwin.model.droplet_dynamics`): the droplet size's input response r [µm]
         at the start; default its equilibrium with the first planned input.
     aerosol_wander_per_sqrt_h : float, optional
         Relative σ per √h of the aerosol level over the horizon (θ_φA a random walk,
-        :func:`_forecast_scan_level_walk`); default the transition profile's
+        :func:`_forecast_scan_level_walk`); default the transition variant's
         ``forecast_aerosol_wander_per_sqrt_h`` (data/transition.toml), 0 = none.
 
     Returns
@@ -290,7 +290,7 @@ def forecast(
     process_cov = np.array(twin.process_cov, dtype=float)
     if hasattr(twin, "model_inputs"):
         model_inputs = twin.model_inputs(inputs, input_response0)
-        # a transition profile may set d_a's long-horizon wander for forecasts
+        # a transition variant may set d_a's long-horizon wander for forecasts
         droplet_std = twin.droplet_dynamics.forecast_droplet_std_um
         if droplet_std > 0:
             process_cov[0, 0] = droplet_std**2
@@ -302,7 +302,7 @@ def forecast(
         jnp.asarray(theta, dtype=float),
         jnp.asarray(process_cov),
     )
-    # the twin's own model (discretisation, transition profile): the one its θ was learned on
+    # the twin's own model (discretisation, transition variant): the one its θ was learned on
     functions = getattr(twin, "functions", None)
     wander = aerosol_wander_per_sqrt_h
     if wander is None:

@@ -465,11 +465,11 @@ class _PlanArrays(NamedTuple):
 def model_inputs(inputs, functions=None):
     """Inputs (H, 3) as the twin's transition reads them (jit-able).
 
-    A transition profile that follows the inputs (``input_following``,
+    A transition variant that follows the inputs (``input_following``,
     :mod:`ajtwin.model.droplet_dynamics`) reads a 4th column, the droplet size's input
     response r; it is filtered here from the plan as :func:`augment_inputs` does, starting
     at its equilibrium with the first input (as :func:`ajtwin.apps.planning.forecast.forecast`).
-    Any other profile reads the three inputs unchanged.
+    Any other variant reads the three inputs unchanged.
     """
 
     dynamics = getattr(getattr(functions, "step", None), "dynamics", None)
@@ -482,7 +482,7 @@ def model_inputs(inputs, functions=None):
 def plan_trajectory(z, plan, spec, mean, cov, theta, process_cov, functions=None):
     """Moves (M, 3) from scaled z (3M,), and over the horizon outputs (H, 5), variances (H, 5).
 
-    ``functions``: the twin's model (discretisation, transition profile; ``twin.functions``),
+    ``functions``: the twin's model (discretisation, transition variant; ``twin.functions``),
     the one its θ was learned on; None = the paper's Euler step.
     """
     n_moves = plan.gaps.shape[0]
@@ -570,7 +570,7 @@ class MPC:
         self.move_gaps = np.diff(np.concatenate([[starts[0] - s.period_s], starts])).astype(float)
         self.rates = np.asarray(s.rate_limits, dtype=float)
         self.max_linearisations = int(s.max_linearisations)
-        # the twin's own model (discretisation, transition profile), as its forecast uses
+        # the twin's own model (discretisation, transition variant), as its forecast uses
         self.functions = getattr(twin, "functions", None)
         self.plan_arrays = _PlanArrays(
             jnp.asarray(self.lo),

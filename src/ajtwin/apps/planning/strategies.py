@@ -222,7 +222,7 @@ class MPCNominal(MPCStrategy):
         self.mean = self.cov = None
         self.first_u, self.first_y = [], []
         self.theta = np.zeros(5)
-        self.response = None  # input response r (input_following profiles): equilibrium first
+        self.response = None  # input response r (input_following variants): equilibrium first
 
     def observe(self, chunk):
         """The initial fit once enough samples arrived, then the open-loop prediction under the
@@ -238,7 +238,7 @@ class MPCNominal(MPCStrategy):
             inputs = np.array(self.first_u)  # the fit is the state at the first sample
         else:
             inputs = chunk.inputs
-        # the twin's own model (transition profile), as the MPC plans with; a profile that
+        # the twin's own model (transition variant), as the MPC plans with; a variant that
         # follows the inputs reads the response column, filtered as the forecast does
         if hasattr(twin, "model_inputs"):
             inputs = twin.model_inputs(inputs, self.response)

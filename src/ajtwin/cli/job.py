@@ -147,6 +147,7 @@ def _format_summary(summary: dict) -> str:
 )
 def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, repeat_to, machine):
     """Read PROGRAM and print what it prints: strokes, lengths, time, box, speeds."""
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.job import ProgramError, read_program
 
     if out is not None and out.suffix.lower() not in (".parquet", ".pq", ".csv"):
@@ -167,6 +168,7 @@ def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, 
     if out is not None:
         the_job.write_timeline(out)
     if plot is not None:
+        # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.job.plot import plot_part
 
         plot_part(the_job, plot)

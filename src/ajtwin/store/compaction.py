@@ -35,6 +35,12 @@ def file_bytes(path) -> int:
     return total
 
 
+def checkpointed_bytes(registry: Registry) -> int:
+    """Bytes of the registry file after its write-ahead log is checkpointed into it."""
+    _checkpoint(registry._conn)
+    return int(Path(registry.path).stat().st_size)
+
+
 def _checkpoint(conn):
     conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 

@@ -16,6 +16,7 @@ import time
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.engine.samples import Sample
 from ajtwin.simulation import simulate
+from ajtwin.store.compaction import checkpointed_bytes
 from ajtwin.store.registry import Registry
 
 
@@ -31,8 +32,7 @@ def main(minutes: float = 90.0, path: str = "live-storage.sqlite") -> dict:
     registry.add_machine("M")
 
     def size() -> int:
-        registry._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        return os.path.getsize(path)
+        return checkpointed_bytes(registry)
 
     empty = size()
     engine = LiveEngine(registry, asynchronous=False)

@@ -2,7 +2,7 @@
 virtual printer (``ajtwin control simulate``), the runs' metrics merged into one table
 (``ajtwin control merge``) and a figure per scenario.
 
-Run as ``python -m ajtwin.studies.control`` is not needed: the study is a command.
+Run through its commands, ``ajtwin control simulate`` and ``ajtwin control merge``.
 """
 
 from __future__ import annotations

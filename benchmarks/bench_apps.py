@@ -1,50 +1,27 @@
-"""Figures of the applications: detection delay per fault, false alarms on clean_long,
-ingest / forecast / advise timings.
+"""Speed of the applications: ingest of a 30-min print, the duplicate check, a 30-min
+forecast and input advice (first call, with JAX compilation, and warm).
 
-    .venv/bin/python benchmarks/bench_apps.py            # ~10 min cold, seconds when cached
+    .venv/bin/python benchmarks/bench_apps.py
 
-Twin runs over the scenarios are cached in /tmp/ajtwin-anomaly-cache (ajtwin.apps.evaluate);
-delete it to re-measure from scratch. Fault scenarios: seeds 0-2 (90 min each); clean_long:
-seeds 0 and 1 (8 h each).
+The detectors' accuracy (delay per fault, false alarms on clean prints) is a study:
+``python -m ajtwin.studies.detection``.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-CACHE = os.environ.get("AJTWIN_ANOMALY_CACHE", "/tmp/ajtwin-anomaly-cache")
-
-
-def detection_figures() -> dict:
-    from ajtwin.apps.evaluate import evaluate
-
-    result = evaluate(CACHE, seeds=(0, 1, 2), clean_seeds=(0, 1), progress=None)
-    out = {}
-    for scenario in sorted({r["scenario"] for r in result["faults"]}):
-        rows = [r for r in result["faults"] if r["scenario"] == scenario]
-        delays = [r["delay_s"] for r in rows]
-        out[f"{scenario}_delay_s_per_seed"] = delays
-        out[f"{scenario}_cause_correct"] = sum(r["cause"] == r["expected_cause"] for r in rows)
-        out[f"{scenario}_false_alarms_before_onset"] = sum(
-            r["false_alarms_before_onset"] for r in rows
-        )
-    out["clean_long_hours"] = round(result["clean_hours"], 2)
-    out["clean_long_alarm_events"] = result["false_alarm_events"]
-    out["false_alarms_per_10_print_hours"] = result["false_alarms_per_10h"]
-    return out
-
 
 def timing_figures() -> dict:
-    from ajtwin.apps.advise import advise
-    from ajtwin.apps.forecast import forecast, input_schedule, parse_change
+    from ajtwin.apps.planning.advice import advise
+    from ajtwin.apps.planning.forecast import forecast, input_schedule, parse_change
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.estimation import Twin
-    from ajtwin.live.engine import ingest_record
     from ajtwin.simulation import simulate
     from ajtwin.store.registry import Registry
 
@@ -93,10 +70,9 @@ def timing_figures() -> dict:
 def main() -> dict:
     figures = {}
     figures.update(timing_figures())
-    figures.update(detection_figures())
     figures["note"] = (
         "ingest = twin (EKF+EM) + detectors + one SQLite transaction for a 30-min print; "
-        "first call includes JAX compilation. Detection: default DetectorSettings."
+        "first call includes JAX compilation."
     )
     return figures
 

@@ -2,7 +2,7 @@
 
 Times blockMesh + simpleFoam (mesh level 1, 4400 cells, 600 SIMPLE iterations),
 the velocity-grid resampling, droplet tracking (3000 droplets of d_a = 3.5 µm)
-and the SPEC §8 post-processing (32 azimuths per droplet).
+and the model reference §8 post-processing (32 azimuths per droplet).
 """
 
 from __future__ import annotations

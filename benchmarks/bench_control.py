@@ -17,7 +17,7 @@ import numpy as np
 
 
 def main() -> dict:
-    from ajtwin.apps.control import MPC, ControlSettings
+    from ajtwin.apps.planning.mpc import MPC, ControlSettings
     from ajtwin.estimation import Twin
     from ajtwin.simulation import simulate
 

@@ -29,8 +29,8 @@ import numpy as np
 
 
 def make_fleet(store: Path, n_machines: int = 50) -> None:
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     reg = Registry(store)

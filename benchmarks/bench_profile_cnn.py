@@ -5,7 +5,7 @@ Figures:
 * inference columns/s of the full-width network (64–512 channels), 1 and 2 torch
   threads, batches of 512 columns;
 * training columns/s of stage 1 (profile MSE) and stage 2 (feature loss,
-  including the per-column SPEC §9 walk), 1 thread, batches of 32;
+  including the per-column model reference §9 walk), 1 thread, batches of 32;
 * the implied training time of the default model
   (``ajtwin cnn train --synthetic``: 125 pairs × 100 epochs + 4000 columns × 50
   epochs) — extrapolated from the measured rates, not run here;

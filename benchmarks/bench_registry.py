@@ -69,9 +69,9 @@ def _cpu(fn, repeat=5):
 
 
 def main() -> dict:
-    from ajtwin.live.engine import ingest_record
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.maintenance import compact, file_bytes
+    from ajtwin.store.compaction import compact, file_bytes
     from ajtwin.store.registry import Registry
 
     figures = {}

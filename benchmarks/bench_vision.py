@@ -9,7 +9,7 @@ or with all benches via ``make bench``.
   the mp4 read by ``open_source`` and every frame extracted, once with the plain iterator
   (one thread) and once with ``FrameSource.prefetched`` (decoding in a second thread).
 * Profile: share of the per-frame time per stage (the extractor's own stage clock).
-* Accuracy: extracted minus true linewidth/overspray (SPEC §9 definitions on the true
+* Accuracy: extracted minus true linewidth/overspray (model reference §9 definitions on the true
   profile, :func:`ajtwin.vision.profile_features`) on 1280x1024 frames, over tilts
   (-10..10°), sensor noise (2 and 6 gray levels) and edge raggedness (0, 0.5, 1, 2 µm),
   3 seeds each; plus the same frames after an mp4 (mp4v) encode/decode round trip.

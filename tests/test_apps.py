@@ -7,23 +7,23 @@ import pytest
 from click.testing import CliRunner
 from scipy import stats
 
-from ajtwin.apps.anomaly import (
-    DetectorSettings,
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.causes import label_cause
+from ajtwin.apps.detection.settings import DetectorSettings
+from ajtwin.apps.detection.statistics import (
     cusum,
-    detect_anomalies,
-    detection_delay,
-    label_cause,
     nis_tail_probability,
     normalised_innovations,
     windowed_nis,
 )
-from ajtwin.apps.forecast import (
+from ajtwin.apps.planning.forecast import (
     Change,
     forecast,
     input_schedule,
     parse_change,
     parse_duration,
 )
+from ajtwin.studies.detection import detection_delay
 
 # --------------------------------------------------------------------------- detectors
 
@@ -183,7 +183,7 @@ def test_deposit_push_catches_a_clog_the_pressures_hide():
 
 def test_real_nozzle_clog_detected_quickly():
     """Virtual printer + default twin: a clog from 5 min is caught within 2 min, as a clog."""
-    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.apps.detection.batch import detect_run
     from ajtwin.estimation import Twin
     from ajtwin.simulation import simulate
 
@@ -260,7 +260,7 @@ def test_forecast_aerosol_level_walk_matches_monte_carlo(twin_and_state):
     spread of runs whose θ_φA walks with the same per-step variance; the relative σ of the
     steady φ_A grows as w·√(t/h); a vanishing wander gives the plain forecast."""
     from ajtwin._jax import jax, jnp
-    from ajtwin.apps.forecast import aerosol_level_variance
+    from ajtwin.apps.planning.forecast import aerosol_level_variance
     from ajtwin.estimation import Twin
     from ajtwin.model.system import euler_step
 
@@ -321,7 +321,7 @@ def test_forecast_flags_extrapolation(twin_and_state):
 
 
 def test_advice_reaches_target_with_least_overspray(twin_and_state):
-    from ajtwin.apps.advise import advise
+    from ajtwin.apps.planning.advice import advise
 
     twin, mean, cov = twin_and_state
     twin.theta = np.zeros(5)
@@ -352,7 +352,7 @@ def test_advice_reaches_target_with_least_overspray(twin_and_state):
 
 
 def test_advice_unreachable(twin_and_state):
-    from ajtwin.apps.advise import advise
+    from ajtwin.apps.planning.advice import advise
 
     twin, mean, cov = twin_and_state
     adv = advise(twin, mean, cov, [375, 23, 50], 5.0, settle_s=30)
@@ -360,7 +360,8 @@ def test_advice_unreachable(twin_and_state):
 
 
 def test_forecast_and_advise_cli(tmp_path):
-    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.cli.advise import advise
+    from ajtwin.cli.forecast import forecast
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"
@@ -420,7 +421,7 @@ def test_forecast_and_advise_cli(tmp_path):
 
 def test_long_run_scale_sees_coloured_noise_not_a_fault_step():
     """AR(1) noise: σ_LR = σ_w/(1 − φ) (hand-computed); a step bias must not inflate it."""
-    from ajtwin.apps.anomaly import LongRunScale
+    from ajtwin.apps.detection.statistics import LongRunScale
 
     rng = np.random.default_rng(3)
     n, phi = 12000, 0.8

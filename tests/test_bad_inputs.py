@@ -1,9 +1,8 @@
-"""Regression tests for the bad-input findings (shared/findings/bad-inputs-9f0e67c.md).
+"""Bad inputs get clear errors, never tracebacks or silent wrong results.
 
-Each test reproduces one item of the findings file as it was found (the same corruption
-of a virtual print) and pins the outcome now: a clear error naming file, row and column,
-or a warning naming the line, never a traceback of another type, a hang or a silently
-wrong record. Item names (T1 …, S1 …, "vague") follow the findings file.
+Each test reproduces one corruption of a virtual print (or one hostile file) and pins the
+outcome: a clear error naming file, row and column, or a warning naming the line, never a
+traceback of another type, a hang or a silently wrong record.
 """
 
 from __future__ import annotations
@@ -18,7 +17,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.io.files import InputFileError, check_regular_file
+from ajtwin.config import InputFileError, check_regular_file
 from ajtwin.io.records import RecordError, read_record, write_record
 from ajtwin.simulation import simulate
 
@@ -27,7 +26,7 @@ COLUMNS9 = slice(0, 9)
 
 @pytest.fixture(scope="module")
 def virtual_print():
-    """A 3-minute virtual print (with truth) — the findings used a 5-minute exp1 print."""
+    """A 3-minute virtual print (with truth)."""
     return simulate("exp1", seed=1, duration_min=3.0)
 
 
@@ -59,16 +58,16 @@ def _no_hang(function, timeout_s=30.0, fifo=None):
 
 
 # --------------------------------------------------------------------------- #
-# Tracebacks T1–T4, T9
+# What once ended in a traceback: a clear error now
 # --------------------------------------------------------------------------- #
-def test_T1_csv_metadata_not_an_object(tmp_path, table):
+def test_csv_metadata_that_is_not_an_object_is_refused(tmp_path, table):
     path = tmp_path / "ml.csv"
     path.write_text("# meta: [1, 2, 3]\n" + table.to_csv(index=False))
     with pytest.raises(RecordError, match=r"ml\.csv: line 1: metadata must be a JSON object"):
         read_record(path)
 
 
-def test_T2_parquet_metadata_not_an_object(tmp_path, virtual_print):
+def test_parquet_metadata_that_is_not_an_object_is_refused(tmp_path, virtual_print):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -81,7 +80,7 @@ def test_T2_parquet_metadata_not_an_object(tmp_path, virtual_print):
         read_record(tmp_path / "bj.parquet")
 
 
-def test_T3_units_not_an_object(tmp_path, table):
+def test_units_that_are_not_an_object_are_refused(tmp_path, table):
     path = tmp_path / "mu.csv"
     path.write_text('# meta: {"units": "SI"}\n' + table.to_csv(index=False))
     with pytest.raises(RecordError, match=r"mu\.csv: metadata 'units' = 'SI'"):
@@ -89,7 +88,7 @@ def test_T3_units_not_an_object(tmp_path, table):
 
 
 @pytest.mark.parametrize("stamp", [1.7e9, 2e7, 1e300])
-def test_T4_one_wild_time_stamp_is_named_not_resampled(tmp_path, table, stamp):
+def test_one_wild_time_stamp_is_named_not_resampled(tmp_path, table, stamp):
     """An epoch time stamp in the last row once made the resampler allocate 12.7 GiB."""
     table.loc[len(table) - 1, "time_s"] = stamp
     path = tmp_path / "epoch.csv"
@@ -100,7 +99,7 @@ def test_T4_one_wild_time_stamp_is_named_not_resampled(tmp_path, table, stamp):
         read_record(path)
 
 
-def test_T4_a_real_gap_is_still_resampled(tmp_path, table):
+def test_a_real_gap_is_still_resampled(tmp_path, table):
     """A 20-minute logger pause is a gap (NaN), not a wild time stamp."""
     table.loc[len(table) // 2 :, "time_s"] += 1200.0
     path = tmp_path / "gap.csv"
@@ -111,7 +110,7 @@ def test_T4_a_real_gap_is_still_resampled(tmp_path, table):
     assert np.isnan(record.outputs[len(table) // 2 + 10, 2])
 
 
-def test_T9_scenario_directory_device_fifo(tmp_path):
+def test_scenario_path_that_is_a_directory_device_or_fifo_is_refused(tmp_path):
     from ajtwin.simulation.scenarios import load_scenario
 
     with pytest.raises(InputFileError, match="is a directory"):
@@ -131,7 +130,7 @@ def test_T9_scenario_directory_device_fifo(tmp_path):
 
 
 def test_hang_record_fifo_in_reader_and_cli(tmp_path):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     fifo = tmp_path / "f.csv"
     os.mkfifo(fifo)
@@ -156,7 +155,7 @@ def test_regular_file_check_uses_stat_only(tmp_path):
 
 
 # --------------------------------------------------------------------------- #
-# Silent wrong results S1, S2, S5–S9
+# What once gave a silently wrong result: an error or a warning now
 # --------------------------------------------------------------------------- #
 def _cut_last_line(table, keep_fields=4, keep_chars=3) -> str:
     lines = table.to_csv(index=False).splitlines()
@@ -166,7 +165,7 @@ def _cut_last_line(table, keep_fields=4, keep_chars=3) -> str:
     )
 
 
-def test_S1_csv_cut_mid_line_drops_the_row_and_names_the_line(tmp_path, table):
+def test_csv_cut_mid_line_drops_the_row_and_names_the_line(tmp_path, table):
     path = tmp_path / "tr.csv"
     path.write_text(_cut_last_line(table))
     with pytest.warns(UserWarning, match=rf"line {len(table) + 1} \(the last\) has 5 of 9 fields"):
@@ -176,7 +175,7 @@ def test_S1_csv_cut_mid_line_drops_the_row_and_names_the_line(tmp_path, table):
     np.testing.assert_array_equal(record.data[columns], table.iloc[:-1][columns])
 
 
-def test_S1_short_line_inside_the_file_is_refused(tmp_path, table):
+def test_short_line_inside_the_file_is_refused(tmp_path, table):
     lines = table.to_csv(index=False).splitlines()
     lines[10] = ",".join(lines[10].split(",")[:5])
     path = tmp_path / "mid.csv"
@@ -185,7 +184,7 @@ def test_S1_short_line_inside_the_file_is_refused(tmp_path, table):
         read_record(path)
 
 
-def test_S1_whole_last_line_without_line_end_warns(tmp_path, table):
+def test_whole_last_line_without_line_end_warns(tmp_path, table):
     path = tmp_path / "noeol.csv"
     path.write_text(table.to_csv(index=False).rstrip("\n"))
     with pytest.warns(UserWarning, match="does not end with a line end"):
@@ -193,7 +192,7 @@ def test_S1_whole_last_line_without_line_end_warns(tmp_path, table):
     assert len(record) == len(table)
 
 
-def test_S2_material_flow_in_microlitres_is_refused(tmp_path, table):
+def test_material_flow_in_microlitres_is_refused(tmp_path, table):
     from ajtwin.estimation import Twin
 
     table["material_flow_mL_s"] *= 1000.0
@@ -206,7 +205,7 @@ def test_S2_material_flow_in_microlitres_is_refused(tmp_path, table):
         Twin.default(em=False).run(record)  # … but 1000× what the machine can give
 
 
-def test_S2_scale_check_passes_every_virtual_fault(virtual_print):
+def test_scale_check_passes_every_virtual_fault(virtual_print):
     """No scenario of the virtual printer trips the unit-slip check (no false refusal)."""
     from ajtwin.estimation.record_checks import check_output_scales
     from ajtwin.estimation.twin import Twin
@@ -219,7 +218,7 @@ def test_S2_scale_check_passes_every_virtual_fault(virtual_print):
         )
 
 
-def test_S6_duplicated_column_is_named(tmp_path, table):
+def test_duplicated_column_is_named(tmp_path, table):
     text = table.to_csv(index=False).splitlines()
     header = text[0].split(",")
     header[-1] = "carrier_flow_sccm"  # material_flow's column now repeats column 3
@@ -230,7 +229,7 @@ def test_S6_duplicated_column_is_named(tmp_path, table):
         read_record(path)
 
 
-def test_S6_duplicated_parquet_column_is_named(tmp_path, table):
+def test_duplicated_parquet_column_is_named(tmp_path, table):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -256,14 +255,14 @@ def test_S6_duplicated_parquet_column_is_named(tmp_path, table):
         ({"units": {"linewidth_um": 3}}, "units"),
     ],
 )
-def test_S7_metadata_is_validated(tmp_path, table, meta, key):
+def test_metadata_is_validated(tmp_path, table, meta, key):
     path = tmp_path / "m.csv"
     path.write_text("# meta: " + json.dumps(meta) + "\n" + table.to_csv(index=False))
     with pytest.raises(RecordError, match=rf"m\.csv: metadata '{key}'"):
         read_record(path)
 
 
-def test_S7_valid_metadata_still_reads(tmp_path, virtual_print):
+def test_valid_metadata_still_reads(tmp_path, virtual_print):
     path = write_record(virtual_print, tmp_path / "ok.csv")
     back = read_record(path)
     assert back.meta["seed"] == virtual_print.meta["seed"]
@@ -286,8 +285,8 @@ def test_S7_valid_metadata_still_reads(tmp_path, virtual_print):
         ("--every", "0"),
     ],
 )
-def test_S8_estimate_options_are_validated(tmp_path, virtual_print, option, value):
-    from ajtwin.estimation.cli import estimate
+def test_estimate_options_are_validated(tmp_path, virtual_print, option, value):
+    from ajtwin.cli.estimate import estimate
 
     path = write_record(virtual_print, tmp_path / "p.parquet")
     result = CliRunner().invoke(estimate, [str(path), "--out", str(tmp_path / "s.csv"),
@@ -297,10 +296,10 @@ def test_S8_estimate_options_are_validated(tmp_path, virtual_print, option, valu
     assert not (tmp_path / "s.csv").exists()
 
 
-def test_S8_bounded_float_accepts_the_valid_edges():
+def test_bounded_float_accepts_the_valid_edges():
     import click
 
-    from ajtwin.io.cli_options import BoundedFloat
+    from ajtwin.cli.options import BoundedFloat
 
     gate = BoundedFloat(0.0, float("inf"), allow_inf=True)
     assert gate.convert("inf", None, None) == float("inf")
@@ -312,7 +311,7 @@ def test_S8_bounded_float_accepts_the_valid_edges():
 
 @pytest.fixture(scope="module")
 def small_video(tmp_path_factory, virtual_print):
-    from ajtwin.vision.cli import render
+    from ajtwin.cli.vision import render
 
     folder = tmp_path_factory.mktemp("video")
     record = write_record(virtual_print.window(0, 30), folder / "p.parquet")
@@ -322,10 +321,10 @@ def small_video(tmp_path_factory, virtual_print):
     return record, video
 
 
-def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypatch):
+def test_ingest_video_applies_the_same_check_as_extract(small_video, monkeypatch):
     """`ingest --video --um-per-px 1e300` once stored 1e302 µm lines: one shared check now."""
     import ajtwin.vision.join as join
-    from ajtwin.store.ingest import join_video
+    from ajtwin.engine.video import join_video
     from ajtwin.vision.extract import VisionInputError
 
     record_path, video = small_video
@@ -338,7 +337,7 @@ def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypa
     monkeypatch.setattr(join, "check_linewidth_scale",
                         lambda *a: calls.append(a) or original(*a))  # fmt: skip
     joined, *_ = join_video(record, video, 0.75, progress=False)
-    from ajtwin.vision.cli import extract
+    from ajtwin.cli.vision import extract
 
     argv = [str(video), "--um-per-px", "1e300", "--out", str(video.with_suffix(".csv"))]
     result = CliRunner().invoke(extract, [*argv, "--no-progress"])
@@ -347,8 +346,9 @@ def test_S5_ingest_video_applies_the_same_check_as_extract(small_video, monkeypa
     assert np.nanmax(joined.outputs[:, 0]) < 200
 
 
-def test_S5_ingest_cli_refuses_and_stores_nothing(small_video, tmp_path):
-    from ajtwin.store.cli import ingest, machine
+def test_ingest_cli_refuses_and_stores_nothing(small_video, tmp_path):
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
     from ajtwin.store.registry import Registry
 
     record_path, video = small_video
@@ -362,8 +362,8 @@ def test_S5_ingest_cli_refuses_and_stores_nothing(small_video, tmp_path):
     assert Registry(store).last_print("M") is None
 
 
-def test_S9_truncated_video_warns(tmp_path):
-    from ajtwin.vision.cli import render
+def test_truncated_video_warns(tmp_path):
+    from ajtwin.cli.vision import render
     from ajtwin.vision.extract import TruncatedVideoWarning, open_source
 
     video = tmp_path / "cam.avi"
@@ -424,7 +424,7 @@ def test_vague_nan_input_and_one_row_name_file_row_column(tmp_path, table):
 
 
 def test_vague_errors_reach_the_cli_with_the_file_name(tmp_path, table):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     table.loc[17, "carrier_flow_sccm"] = np.nan
     path = tmp_path / "nan.csv"

@@ -310,7 +310,7 @@ def test_fit_settings_reject_a_bad_window_and_carry_the_paper_points(tmp_path):
     from ajtwin.cfd.fit import fit_settings
 
     packaged = fit_settings()
-    assert packaged["paper_reference"]["max_speed_m_s_25_50"] == 91.7  # SPEC §8
+    assert packaged["paper_reference"]["max_speed_m_s_25_50"] == 91.7  # model reference §8
     assert packaged["paper_reference"]["linewidth_um"] == 43.0
     bad = tmp_path / "sweep.toml"
     bad.write_text("[fit]\ndroplet_range_um = [4.0, 3.0]\n")

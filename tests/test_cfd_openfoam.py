@@ -37,7 +37,7 @@ def test_missing_openfoam_says_what_to_do(monkeypatch, tmp_path):
     try:
         with pytest.raises(foam.OpenFoamMissing, match="make openfoam"):
             foam.foam_environment()
-        from ajtwin.cfd.cli import cfd
+        from ajtwin.cli.cfd import cfd
 
         result = CliRunner().invoke(cfd, ["run", str(tmp_path / "case")])
         assert result.exit_code != 0
@@ -80,7 +80,7 @@ def test_one_coarse_case_end_to_end_through_the_sweep(tmp_path):
     # max speed between the bore's mean (plug) and twice it (Poiseuille)
     assert mean_speed < row["max_speed_m_s"] < 2 * mean_speed
     # pressure to drive the flow out of the tip: at least the exit dynamic head plus the
-    # Poiseuille loss of cone and bore; at most twice the head (parabolic profile) plus it
+    # Poiseuille loss of cone and bore; at most twice the head (parabolic flow) plus it
     head = 0.5 * g.gas_density * mean_speed**2
     cone = (
         8

@@ -1,4 +1,5 @@
-"""CFD post-processing (SPEC §8) on hand-made landing distributions with known answers."""
+"""CFD post-processing (model reference §8) on hand-made landing distributions with known
+answers."""
 
 import numpy as np
 import pytest

@@ -30,7 +30,7 @@ def test_full_sweep_reproduces_the_committed_fit(tmp_path):
     fit = fitting.fit_output_model(table, reference, limit, window)
     resistance = fitting.fit_tip_resistance(table, (0.0, 23.0, 50.0), max_speed_m_s=limit)
 
-    # paper reference points (SPEC §8)
+    # paper reference points (model reference §8)
     assert 80.0 < case_value(table, "max_speed_m_s", 0.0, 25.0, 50.0) < 120.0  # paper 91.7
     assert resistance["cfd_a0_pa_s_m3"] == pytest.approx(4.57e9, rel=0.2)
     signs = fitting.sensitivity_signs(fit)

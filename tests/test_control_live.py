@@ -72,7 +72,7 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
     import asyncio
 
     pytest.importorskip("asyncua")
-    from ajtwin.apps.control import ControlSettings
+    from ajtwin.apps.planning.mpc import ControlSettings
     from ajtwin.live.control_link import ControlLink
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine
     from ajtwin.store.registry import DEFAULT_LIMITS
@@ -135,7 +135,7 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
 
 
 def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
-    """An anonymous session may not write set-points (docs/opcua.md): `ajtwin control`
+    """An anonymous session may not write set-points (docs/reference/opcua.md): `ajtwin control`
     stops before any control with a message that says what to give."""
     import asyncio
     import threading
@@ -189,8 +189,8 @@ def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
 
 
 def test_live_control_bad_targets_name_the_reachable_range():
-    from ajtwin.apps.control import TargetError
-    from ajtwin.apps.control_sim import nominal_state
+    from ajtwin.apps.planning.mpc import TargetError
+    from ajtwin.apps.planning.strategies import nominal_state
     from ajtwin.estimation import Twin
     from ajtwin.live.control_link import ControlLink
 
@@ -203,7 +203,7 @@ def test_live_control_bad_targets_name_the_reachable_range():
         twin = Twin.default()
 
     link.controller = Controller()
-    from ajtwin.apps.advise import effective_bounds
+    from ajtwin.apps.planning.advice import effective_bounds
 
     link.bounds = effective_bounds(link.limits)
     mean, cov = nominal_state(Controller.twin, [375.0, 23.0, 50.0])

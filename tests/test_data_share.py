@@ -1,4 +1,4 @@
-"""Issue 12: which states this print's data determined (ΔR_T: the prior's band)."""
+"""which states this print's data determined (ΔR_T: the prior's band)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.apps.mismatch import data_share, determined_states, load_guard_settings
+from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
 from ajtwin.estimation.filters import DEFAULT_SCALING
 from ajtwin.model import STATE_NAMES
 
@@ -46,7 +46,7 @@ def record():
 
 
 def test_tube_deposition_is_not_determined_and_the_cli_says_so(tmp_path, record):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
     from ajtwin.io.records import write_record
 
     path = tmp_path / "p.parquet"
@@ -67,8 +67,8 @@ def test_tube_deposition_is_not_determined_and_the_cli_says_so(tmp_path, record)
 
 
 def test_machine_show_names_the_undetermined_state(tmp_path, record):
-    from ajtwin.live.engine import ingest_record
-    from ajtwin.store.cli import machine
+    from ajtwin.cli.machine import machine
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"

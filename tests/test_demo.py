@@ -7,7 +7,7 @@ import re
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.demo import demo_command
+from ajtwin.cli.demo import demo_command
 
 
 def _check_report(out):

@@ -93,12 +93,6 @@ def test_docs_carry_no_reference_outside_the_repository_and_no_work_diary_wordin
     assert not found, f"{path.relative_to(ROOT)}: " + "; ".join(found)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the commands' help texts in src/ still cite 'SPEC §N' and pre-restructure docs "
-    "paths (docs/control.md, docs/forecast.md, docs/profile_cnn.md); once the code says "
-    "'model reference §N' and the new paths, regenerate cli.md and drop this mark",
-)
 def test_cli_reference_cites_no_working_note_and_no_missing_docs_page():
     text = CLI_PAGE.read_text(encoding="utf-8")
     stale = SPEC_WORD.findall(text) + [

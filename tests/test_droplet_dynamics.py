@@ -1,4 +1,4 @@
-"""Optional droplet-size dynamics of the transition (issue 18): data/transition.toml profiles.
+"""Optional droplet-size dynamics of the transition: data/transition.toml variants.
 
 Hand-computed rates, the closed forms of the saturating drift and of the input response,
 linearity in θ (the premise of the closed-form M-step), the M-step recovering a known θ_da
@@ -20,7 +20,7 @@ from ajtwin.model.droplet_dynamics import (
     load_droplet_dynamics,
     model_input,
     next_response,
-    transition_profiles,
+    transition_variants,
 )
 
 PARAMS = load_parameters()
@@ -28,24 +28,24 @@ X = np.array([3.2, 1.0, 2e-4, 0.03, 4.6e-7])
 U = np.array([375.0, 25.0, 50.0])
 
 
-def test_profiles_load_with_provenance():
-    assert {"paper", "mean_reverting", "input_following"} <= set(transition_profiles())
-    for name in transition_profiles():
+def test_variants_load_with_provenance():
+    assert {"paper", "mean_reverting", "input_following"} <= set(transition_variants())
+    for name in transition_variants():
         dyn = load_droplet_dynamics(name)
         assert dyn.provenance, name
     assert twin_functions("euler", "paper") is AJ_EULER  # the default path is untouched
 
 
-def test_bad_profile_and_keys_name_the_file(tmp_path):
-    with pytest.raises(ValueError, match="transition.toml.*no transition profile 'nope'"):
+def test_bad_variant_and_keys_name_the_file(tmp_path):
+    with pytest.raises(ValueError, match="transition.toml.*no transition variant 'nope'"):
         load_droplet_dynamics("nope")
     bad = tmp_path / "t.toml"
-    bad.write_text('[profiles.x]\nform = "mean_reverting"\nrelaxaton_time_s = 5\n')
+    bad.write_text('[variants.x]\nform = "mean_reverting"\nrelaxaton_time_s = 5\n')
     with pytest.raises(
-        ValueError, match=r"t.toml \[profiles.x\]: unknown keys \['relaxaton_time_s'\]"
+        ValueError, match=r"t.toml \[variants.x\]: unknown keys \['relaxaton_time_s'\]"
     ):
         load_droplet_dynamics("x", bad)
-    bad.write_text('[profiles.x]\nform = "exponential"\n')
+    bad.write_text('[variants.x]\nform = "exponential"\n')
     with pytest.raises(ValueError, match="form = 'exponential'"):
         load_droplet_dynamics("x", bad)
 
@@ -108,7 +108,7 @@ def test_model_input_sample_by_sample_gives_augment_inputs_rows():
         row, response = model_input(u, response, dyn)
         rows.append(row)
     np.testing.assert_array_equal(np.array(rows), augment_inputs(inputs, dyn))
-    # a profile that does not follow the inputs passes them through
+    # a variant that does not follow the inputs passes them through
     same, r = model_input(inputs[0], None, load_droplet_dynamics("mean_reverting"))
     assert r is None and np.array_equal(same, inputs[0])
 
@@ -164,8 +164,8 @@ def test_m_step_recovers_theta_da_under_the_mean_reverting_row():
     assert theta[0] == pytest.approx(1.5e-5, rel=1e-6)
 
 
-def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
-    from ajtwin.apps.forecast import forecast
+def test_forecast_follows_a_planned_carrier_step_only_with_the_variant():
+    from ajtwin.apps.planning.forecast import forecast
 
     inputs = np.tile([375.0, 23.0, 50.0], (900, 1))
     inputs[60:, 1] = 26.0
@@ -181,17 +181,17 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
     paper = forecast(Twin.default(), x0, cov, inputs, np.zeros(5))
     assert paper.state_means[-1, 0] == pytest.approx(3.5, abs=1e-12)
     # d_a's row does not see the other states: its variance is a random walk's, with the
-    # filter's σ_da (noise.toml) unless the profile sets a forecast σ
+    # filter's σ_da (noise.toml) unless the variant sets a forecast σ
     sigma_da = following.config.process_std[0]
-    assert dyn.forecast_droplet_std_um == 3e-3  # data/transition.toml (issue 18)
+    assert dyn.forecast_droplet_std_um == 3e-3  # data/transition.toml
     for result, sigma in ((fc, dyn.forecast_droplet_std_um), (paper, sigma_da)):
         var = result.state_stds[-1, 0] ** 2
         assert var == pytest.approx(1e-4 + 900 * sigma**2, rel=1e-9)
-    import ajtwin.model.droplet_dynamics as module
+    import ajtwin.estimation.twin as module  # where the twin looks its variant up
 
     narrower = dataclasses.replace(dyn, forecast_droplet_std_um=2e-3)
     original = module.load_droplet_dynamics
-    module.load_droplet_dynamics = lambda profile, path=None: narrower
+    module.load_droplet_dynamics = lambda variant, path=None: narrower
     try:
         fc = forecast(following, x0, cov, inputs, np.zeros(5))
     finally:
@@ -206,8 +206,8 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_profile():
 @pytest.mark.parametrize("truth", ["model", "alt"])
 def test_oracle_is_the_generators_droplet_law(truth, monkeypatch):
     """Without the random wander the oracle forecast of d_a is the truth itself."""
-    from ajtwin.estimation.experiments import droplet_oracle_forecast
     from ajtwin.simulation import run_virtual_print, truth_alt
+    from ajtwin.studies.experiments import droplet_oracle_forecast
 
     overrides = {"truth": {"droplet_ou_sd_um": 0.0}}
     if truth == "alt":
@@ -234,7 +234,7 @@ def test_forecast_cli_transition_option(tmp_path):
     import pandas as pd
     from click.testing import CliRunner
 
-    from ajtwin.apps.cli import forecast
+    from ajtwin.cli.forecast import forecast
     from ajtwin.store.registry import Registry
 
     store = tmp_path / "r.sqlite"
@@ -275,21 +275,22 @@ def test_forecast_cli_transition_option(tmp_path):
     d_a = frames["input_following"]["droplet_diameter_um"].iloc[-1]
     assert d_a - 3.5 == pytest.approx(settled, rel=1e-6)
     assert frames["paper"]["droplet_diameter_um"].iloc[-1] == pytest.approx(3.5, abs=1e-9)
-    # with the machine's θ: the profile bounds θ_da to ±2σ of its prior; the paper compounds it
+    # with the machine's θ: the variant bounds θ_da to ±2σ of its prior; the paper compounds it
     res = runner.invoke(forecast, [*args, "--transition", "input_following"])
     assert res.exit_code == 0, res.output
     bounded = pd.read_csv(tmp_path / "input_following.csv")["droplet_diameter_um"].iloc[-1]
     assert bounded - d_a == pytest.approx(3.5 * 2 * dyn.theta_prior_std * 1200, rel=0.05)
     res = runner.invoke(forecast, [*args, "--transition", "nope"])
-    assert res.exit_code != 0 and "no transition profile 'nope'" in res.output
+    assert res.exit_code != 0 and "no transition variant 'nope'" in res.output
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("truth", ["model", "alt"])
 def test_exp3_input_following_beats_the_paper_row(truth):
-    """Held-out seed 3 (docs/forecast.md): the droplet row that follows the inputs forecasts
+    """Held-out seed 3 (docs/explanation/forecast-droplet-dynamics.md): the droplet row that
+    follows the inputs forecasts
     L_w better than the paper's, θ no longer makes it worse, and the band holds the truth."""
-    from ajtwin.estimation.experiments import run_exp3
+    from ajtwin.studies.experiments import run_exp3
 
     _, _, paper = run_exp3(3, {"transition": "paper"}, truth=truth)
     _, _, following = run_exp3(3, {"transition": "input_following"}, truth=truth)

@@ -1,4 +1,4 @@
-"""Issue 12: online EM of the line offsets and output noise — never the pressures."""
+"""online EM of the line offsets and output noise — never the pressures."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def test_m_step_learns_a_line_offset_step_and_the_noise_but_not_the_pressures():
     assert cal.linewidth_offset_um == pytest.approx(expected, rel=1e-9)
     assert cal.linewidth_offset_um == pytest.approx(-26.0, abs=0.3)
     assert cal.overspray_offset_um == pytest.approx(0.0, abs=0.5)
-    # the pressures and every gain stay as commissioned (SPEC §11)
+    # the pressures and every gain stay as commissioned (model reference §11)
     for name in (
         "carrier_gauge_offset_Pa",
         "sheath_gauge_offset_Pa",
@@ -58,7 +58,7 @@ def test_m_step_learns_a_line_offset_step_and_the_noise_but_not_the_pressures():
 
 
 def test_online_em_keeps_a_clog_a_clog():
-    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.apps.detection.batch import detect_run
     from ajtwin.estimation.twin import Twin
     from ajtwin.simulation.printer import simulate
 
@@ -79,7 +79,7 @@ def test_online_em_keeps_a_clog_a_clog():
         events[learn] = [(e.cause, e.detected_s) for e in detect_run(run, record).events]
         if learn:
             assert {"linewidth_offset_um", "noise_std_linewidth_um"} <= set(run.theta_history)
-            # nothing about the pressures was learned (SPEC §11)
+            # nothing about the pressures was learned (model reference §11)
             for name in ("carrier_gauge_offset_Pa", "sheath_gauge_offset_Pa"):
                 assert getattr(twin.calibration, name) == 0.0
             assert np.array_equal(twin.measurement_var[2:4], twin.measurement_std[2:4] ** 2)

@@ -4,11 +4,12 @@ import json
 
 import numpy as np
 
-from ajtwin.estimation.experiments import explain_linewidth_changes, run_experiment
+from ajtwin.studies.experiment_figures import experiment_figures
+from ajtwin.studies.experiments import explain_linewidth_changes, run_experiment
 
 
 def test_exp3_end_to_end(tmp_path):
-    result = run_experiment("exp3", [2], tmp_path)
+    result = run_experiment("exp3", [2], tmp_path, figures=experiment_figures)
     assert (tmp_path / "exp3_forecast.png").stat().st_size > 20_000
     saved = json.loads((tmp_path / "metrics.json").read_text())
     m = saved["per_seed"][0]

@@ -1,4 +1,4 @@
-"""Fuzzing the input surfaces with hypothesis (issue 14): record reader, scenario loader, CLI.
+"""Fuzzing the input surfaces with hypothesis: record reader, scenario loader, CLI.
 
 Every generated input must give either a valid result or a clear error of a defined type
 whose message names the file — never a traceback of another type, a hang or a silently
@@ -43,7 +43,7 @@ from ajtwin.io.records import (
 
 CORPUS = Path(__file__).parent / "fuzz_corpus"
 #: Outcome counts of the record fuzzers; written as JSON lines to $AJTWIN_FUZZ_REPORT (if set)
-#: after each test, for docs/reliability.md.
+#: after each test, for docs/validation.md.
 OUTCOMES: Counter = Counter()
 
 
@@ -442,7 +442,8 @@ def _toml_value(value) -> str:
 
 @pytest.mark.parametrize("profile", PROFILES)
 def test_fuzz_scenario_loader(profile, tmp_path):
-    from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+    from ajtwin.model.names import INPUT_NAMES
+    from ajtwin.model.system import INPUT_LIMITS
     from ajtwin.simulation.scenarios import load_scenario
 
     path = tmp_path / "fuzz.toml"
@@ -531,7 +532,7 @@ number_text = st.one_of(
 @pytest.mark.parametrize("profile", PROFILES)
 def test_fuzz_estimate_options(profile, tmp_path):
     from ajtwin import units
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
     from ajtwin.model import load_parameters
 
     record = tmp_path / "p.csv"
@@ -561,7 +562,7 @@ def test_fuzz_estimate_options(profile, tmp_path):
         assert p["gate"] > 0 and not math.isnan(p["gate"])
         assert 0 < p["vial_ml"] < capacity and math.isfinite(p["vial_ml"])
         assert p["window"] >= 2 and p["every"] >= 1
-        assert p["noise_profile"] in ("calibrated", "paper")
+        assert p["noise_tuning"] in ("calibrated", "paper")
 
     run()
 

@@ -1,4 +1,4 @@
-"""Fuzzing the wire surfaces with hypothesis (issue 14): the dashboard's HTTP API and the
+"""Fuzzing the wire surfaces with hypothesis: the dashboard's HTTP API and the
 live engine's OPC UA sample intake.
 
 HTTP (:mod:`ajtwin.web.app`, in-process with fastapi's TestClient, no port): every route
@@ -8,8 +8,8 @@ token in header, cookie and query. Property: 2xx with a well-formed body (strict
 NaN; or an HTML page), or 4xx with a human-readable message; never 5xx, never a
 traceback in the body; a token-protected app never answers 2xx without the right token.
 
-OPC UA (:func:`ajtwin.live.engine.clean_sample`, :func:`ajtwin.live.link.buffer_samples`,
-:class:`ajtwin.live.engine.TwinStream`, no server): values as they arrive (NaN, ±inf,
+OPC UA (:func:`ajtwin.engine.samples.clean_sample`, :func:`ajtwin.live.link.buffer_samples`,
+:class:`ajtwin.engine.stream.TwinStream`, no server): values as they arrive (NaN, ±inf,
 huge/tiny, strings, bytes, None, lists, out-of-range, wrong buffer shapes, duplicate,
 older and far-future time stamps). Property: each sample is accepted, treated as missing
 or dropped, with a log line whenever it is not accepted as is; nothing raises; the
@@ -401,7 +401,8 @@ def _as_float_vector(value, n):
 def check_clean(sample, problems, time_s, u_in, y_in):
     """The contract of clean_sample for one wire sample (independent of its code)."""
     from ajtwin.io.records import OUTPUT_COLUMNS, PLAUSIBLE_RANGES
-    from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+    from ajtwin.model.names import INPUT_NAMES
+    from ajtwin.model.system import INPUT_LIMITS
 
     assert all(isinstance(p, str) and len(p) > 10 for p in problems)
     if sample is None:
@@ -434,7 +435,7 @@ def check_clean(sample, problems, time_s, u_in, y_in):
 
 @pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_clean_sample(profile):
-    from ajtwin.live.engine import clean_sample
+    from ajtwin.engine.samples import clean_sample
 
     @settings(settings.get_profile(profile))
     @given(
@@ -452,7 +453,7 @@ def test_fuzz_clean_sample(profile):
 @pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_sample_buffer(profile):
     """Link.SampleBuffer values → samples: the pure conversion the OPC UA link uses."""
-    from ajtwin.live.engine import clean_sample
+    from ajtwin.engine.samples import clean_sample
     from ajtwin.live.link import buffer_samples
     from ajtwin.live.opcua import SAMPLE_WIDTH
 
@@ -516,7 +517,8 @@ class _Lines(logging.Handler):
 @pytest.fixture(scope="module")
 def fitted_start():
     """A start state fitted from ten nominal samples (the stream's own initial fit)."""
-    from ajtwin.live.engine import Sample, TwinStream
+    from ajtwin.engine.samples import Sample
+    from ajtwin.engine.stream import TwinStream
 
     stream = TwinStream.new("fit", twin_overrides={"em": False}, asynchronous=False)
     for k in range(stream.config.initial_samples):
@@ -528,7 +530,8 @@ def fitted_start():
 @pytest.mark.parametrize("profile", WIRE_PROFILES)
 def test_fuzz_stream_intake(profile, fitted_start):
     """Wire samples → clean_sample → TwinStream.feed, in any time order."""
-    from ajtwin.live.engine import MAX_GAP_S, TwinStream, clean_sample
+    from ajtwin.engine.samples import MAX_GAP_S, clean_sample
+    from ajtwin.engine.stream import TwinStream
 
     steps = st.one_of(
         st.just(1.0),  # mostly the next second: the filter has to run
@@ -641,7 +644,7 @@ def test_deeply_nested_json_is_a_422(clients):
     ],
 )
 def test_wire_values_that_raised_or_were_dropped(time_s, u, y):
-    from ajtwin.live.engine import clean_sample
+    from ajtwin.engine.samples import clean_sample
 
     sample, problems = clean_sample(time_s, u, y, where="aj1")
     assert problems and problems[0].startswith("aj1: ")
@@ -655,8 +658,9 @@ def test_wire_values_that_raised_or_were_dropped(time_s, u, y):
 def test_far_future_time_stamp_is_dropped_not_filled(fitted_start, caplog, monkeypatch):
     """t = 1e7 s after t = 0 was filled with 10 million missing steps (minutes, memory);
     t = 1e300 was accepted as a time."""
-    from ajtwin.live import engine
-    from ajtwin.live.engine import Sample, TwinStream, clean_sample
+    from ajtwin.engine import stream as engine
+    from ajtwin.engine.samples import Sample, clean_sample
+    from ajtwin.engine.stream import TwinStream
 
     monkeypatch.setattr(engine, "MAX_GAP_S", 5)  # the real limit (hours) works the same
     MAX_GAP_S = 5

@@ -1,4 +1,4 @@
-"""Fuzzing the dashboard's websocket (issue 14) with hypothesis, as tests/test_fuzz_wire.py
+"""Fuzzing the dashboard's websocket with hypothesis, as tests/test_fuzz_wire.py
 fuzzes its HTTP API and the OPC UA intake.
 
 Two surfaces:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ajtwin.apps.anomaly import detect_run
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin
-from ajtwin.live.engine import Sample, TwinStream, clean_sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 
@@ -102,7 +103,7 @@ def test_stream_equals_batch_with_early_em(clog_record, asynchronous, early, tim
 
 @pytest.mark.parametrize("asynchronous", [False, True])
 def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchronous):
-    """The input_following profile reads the input response r as a 4th input: the stream
+    """The input_following variant reads the input response r as a 4th input: the stream
     carries it sample by sample (model.droplet_dynamics.model_input) through EM
     boundaries and held samples, and equals the batch twin's Twin.model_inputs run."""
     rec = clog_record
@@ -126,7 +127,7 @@ def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchro
     assert _relative(arrays["covariances"], np.asarray(run.filtered.covariances)) < 1e-9
     assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
     assert _relative(stream.theta, batch_twin.theta) < 1e-9
-    # the paper profile on the same inputs differs: the response column is not ignored
+    # the paper variant on the same inputs differs: the response column is not ignored
     paper = Twin.default(**FAST_EM).run(inputs=u, measurements=rec.outputs, time_s=rec.time_s)
     assert _relative(paper.means[:, 0], run.means[:, 0]) > 1e-3
 
@@ -169,7 +170,7 @@ def test_clean_sample_bad_wire_data():
 
 @pytest.mark.parametrize("transition", ["paper", "input_following"])
 def test_engine_many_machines_batched_equals_single(clog_record, transition):
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
 
     rec = clog_record.window(0, 200)
     overrides = {**FAST_EM, "transition": transition}
@@ -195,7 +196,7 @@ def test_engine_many_machines_batched_equals_single(clog_record, transition):
 
 
 def test_kill_and_resume_from_registry(clog_record, tmp_path):
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.store.live_log import LiveLog
     from ajtwin.store.registry import Registry
 
@@ -251,8 +252,8 @@ def test_kill_and_resume_from_registry(clog_record, tmp_path):
 def test_follow_growing_csv(clog_record, tmp_path, caplog):
     import asyncio
 
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
-    from ajtwin.live.engine import LiveEngine
     from ajtwin.live.link import follow_csv
     from ajtwin.store.live_log import LiveLog
     from ajtwin.store.registry import Registry
@@ -299,7 +300,7 @@ def test_follow_growing_csv(clog_record, tmp_path, caplog):
     assert "line 32: not numbers" in caplog.text
 
 
-def test_live_cli_refuses_an_unknown_transition_profile(tmp_path):
+def test_live_cli_refuses_an_unknown_transition_variant(tmp_path):
     from click.testing import CliRunner
 
     from ajtwin.cli import main
@@ -312,4 +313,4 @@ def test_live_cli_refuses_an_unknown_transition_profile(tmp_path):
         + ["--store", str(tmp_path / "s.sqlite")],
     )
     assert result.exit_code == 2
-    assert "no profile 'nope'" in result.output and "input_following" in result.output
+    assert "no variant 'nope'" in result.output and "input_following" in result.output

@@ -1,4 +1,4 @@
-"""The machine link's state on the live engine's publish path (issue 15: an operator-visible
+"""The machine link's state on the live engine's publish path (an operator-visible
 status when the OPC UA server goes away), in process on loopback, every wait bounded.
 """
 
@@ -12,7 +12,7 @@ import pytest
 
 asyncua = pytest.importorskip("asyncua")
 
-from ajtwin.live.engine import LiveEngine  # noqa: E402
+from ajtwin.engine.fleet import LiveEngine  # noqa: E402
 from ajtwin.live.link import OpcUaLink  # noqa: E402
 from ajtwin.web.pages import fleet_rows  # noqa: E402
 from ajtwin.web.publisher import LivePublisher  # noqa: E402

@@ -170,7 +170,7 @@ def test_live_twin_raises_clog_alarm_over_opcua(tmp_path):
 def test_security_refusals_and_setpoints(tmp_path):
     from asyncua import Client, ua
 
-    from ajtwin.live.engine import LiveEngine
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.live.link import LinkRefused, OpcUaLink
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine, ensure_certificate
 

@@ -1,4 +1,4 @@
-"""Issue 12: the detectors' long-run noise scale carried from commissioning / the previous
+"""the detectors' long-run noise scale carried from commissioning / the previous
 print through the registry (schema 5), and Q_m tested against the print's own level."""
 
 from __future__ import annotations
@@ -9,13 +9,10 @@ import sqlite3
 import numpy as np
 import pytest
 
-from ajtwin.apps.anomaly import (
-    CUSUM_CHANNELS,
-    AnomalyDetector,
-    DetectorSettings,
-    carried_differences,
-    detect_anomalies,
-)
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.statistics import carried_differences
+from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.store import registry as R
 from ajtwin.store.registry import Registry
 
@@ -138,7 +135,8 @@ def two_prints():
 
 
 def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
-    from ajtwin.live.engine import carried_long_run_history, ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import carried_long_run_history
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -163,21 +161,21 @@ def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
 
 
 def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkeypatch):
-    from ajtwin.apps import anomaly
-    from ajtwin.live import engine
+    from ajtwin.engine import ingest
+    from ajtwin.engine.start import carried_long_run_history
 
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("m")
     seen = []
-    real = anomaly.detect_run
+    real = ingest.detect_run
 
     def spy(run, record, settings=None, long_run_history=None):
         seen.append(long_run_history)
         return real(run, record, settings, long_run_history)
 
-    monkeypatch.setattr(anomaly, "detect_run", spy)
-    first = engine.ingest_record(reg, "m", two_prints[0])
-    engine.ingest_record(reg, "m", two_prints[1])
+    monkeypatch.setattr(ingest, "detect_run", spy)
+    first = ingest.ingest_record(reg, "m", two_prints[0])
+    ingest.ingest_record(reg, "m", two_prints[1])
     assert seen[0] is None  # a new machine: nothing to carry
     stored = json.loads(
         reg._conn.execute(
@@ -189,11 +187,12 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
     assert len(stored["blocks"]["30"]) == 9 and len(stored["blocks"]["60"]) == 4
     # a dropped print's statistics are not carried (the print before it is)
     reg.set_status("m", 2, R.STATUS_DROPPED, "test")
-    assert engine.carried_long_run_history(reg, "m") == stored
+    assert carried_long_run_history(reg, "m") == stored
 
 
 def test_commissioning_history_is_carried_until_the_next_print(tmp_path, two_prints):
-    from ajtwin.live.engine import carried_long_run_history, ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import carried_long_run_history
     from ajtwin.model.calibration import IDENTITY, Calibration
     from ajtwin.store.calibration import save_calibration
 
@@ -266,7 +265,7 @@ def test_a_clog_after_a_quiet_false_alarm_of_the_same_family_is_its_own_event():
 
 
 def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
-    from ajtwin.apps.anomaly import label_cause
+    from ajtwin.apps.detection.causes import label_cause
 
     s = DetectorSettings()
     # held-out machine 1006 (alt): P_s +0.69σ, P_c +0.13σ over 159 s, ΔR_N pushed +45σ
@@ -278,7 +277,7 @@ def test_deposit_seen_on_one_gauge_with_delta_rn_pushed_up_is_a_clog():
 
 
 def test_clog_start_with_p_c_up_and_p_s_within_noise_is_a_clog_not_a_leak():
-    from ajtwin.apps.anomaly import label_cause
+    from ajtwin.apps.detection.causes import label_cause
 
     s = DetectorSettings()
     # held-out machine 1037 (alt), 120 s of evidence: P_c +0.73σ (z 8.0), P_s +0.23σ
@@ -295,7 +294,8 @@ def test_clog_start_with_p_c_up_and_p_s_within_noise_is_a_clog_not_a_leak():
 def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):
     """`ajtwin live`: a closed live print stores its detectors' statistics; the machine's
     next live print starts its detectors with them."""
-    from ajtwin.live.engine import LiveEngine, Sample
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.engine.samples import Sample
 
     first, second = two_prints
     reg = Registry(tmp_path / "r.sqlite")

@@ -1,4 +1,4 @@
-"""Issue 12: virtual machines, per-machine calibration, commissioning (SPEC §11)."""
+"""virtual machines, per-machine calibration, commissioning (model reference §11)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from ajtwin.model.calibration import (
     read_calibration_file,
     write_calibration_file,
 )
-from ajtwin.simulation.machine import draw_machine, load_machine_variation, machine_profile
+from ajtwin.simulation.machine import draw_machine, load_machine_variation, named_machine
 from ajtwin.simulation.printer import run_virtual_print, simulate
 
 
@@ -116,12 +116,12 @@ def test_paper_machine_prints_the_papers_lines():
     droplet = rec.data["true_droplet_diameter_um"].to_numpy()
     lw = rec.data["linewidth_um"].to_numpy()
     lo = rec.data["overspray_um"].to_numpy()
-    # the profile is anchored at d_a = 3.5 µm; correct for this seed's droplet size
+    # the paper machine is anchored at d_a = 3.5 µm; correct for this seed's droplet size
     alpha = DigitalModel.default().coefficient_matrix[:, 0]
     assert np.mean(lw - alpha[0] * (droplet - 3.5)) == pytest.approx(43.0, abs=1.5)
     assert np.mean(lo - alpha[1] * (droplet - 3.5)) == pytest.approx(29.0, abs=1.5)
-    with pytest.raises(ValueError, match="unknown machine profile"):
-        machine_profile("nonesuch")
+    with pytest.raises(ValueError, match="unknown named machine"):
+        named_machine("nonesuch")
 
 
 def test_commissioning_recovers_the_machine_within_its_standard_errors(commissioned):

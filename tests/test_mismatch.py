@@ -1,4 +1,4 @@
-"""Issue 12: the model–machine mismatch guard, commissioned clogs, maintenance events."""
+"""the model–machine mismatch guard, commissioned clogs, maintenance events."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.apps.anomaly import detect_run
-from ajtwin.apps.mismatch import MISMATCH_CAUSE, assess, assess_run, relabel_events
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE, assess, assess_run, relabel_events
 from ajtwin.estimation.commission import commission
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.machine import MachineDeviation
@@ -116,7 +116,9 @@ def test_guard_flags_a_deposit_below_zero_beyond_its_noise():
     ],
     ids=["line_offset_-30um", "pressure_gain_+8%"],
 )
-def test_guard_fires_on_the_issues_two_failures_within_5_min(machine, expect_output, expect_state):
+def test_guard_fires_on_an_offset_line_and_a_gauge_gain_within_5_min(
+    machine, expect_output, expect_state
+):
     record = simulate("exp1", seed=301, duration_min=6.0, machine=machine)
     _, status = _guard(record)
     assert status.mismatch
@@ -160,8 +162,8 @@ def test_clog_on_a_commissioned_machine_is_detected_and_labelled():
 
 
 def test_mismatch_relabels_start_events_but_not_later_faults():
-    from ajtwin.apps.anomaly import AnomalyEvent
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
+    from ajtwin.apps.detection.streaming import AnomalyEvent
 
     status = MismatchStatus(True, 40.0, ["overspray_um"], [], ["r"], ["f"], "m", np.ones(10, bool))
     early = AnomalyEvent(75.0, 20.0, "nozzle_clog", "clog")
@@ -176,8 +178,9 @@ def test_mismatch_relabels_start_events_but_not_later_faults():
 
 
 def test_maintenance_resets_what_it_names(tmp_path):
-    from ajtwin.store.calibration import apply_maintenance, maintenance_history, record_maintenance
-    from ajtwin.store.ingest import ingest_record
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import apply_maintenance
+    from ajtwin.store.calibration import maintenance_history, record_maintenance
     from ajtwin.store.registry import Registry
 
     mean = np.array([3.4, 0.7, 1e-4, 0.09, 4.5e-7])
@@ -230,9 +233,9 @@ def test_cli_commission_refuses_and_maintain_needs_an_action(tmp_path):
 
 
 def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
-    from ajtwin.apps.cli import machine_twin
+    from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.start import machine_twin
     from ajtwin.store.calibration import calibration_history, save_calibration
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     reg = Registry(tmp_path / "r.sqlite")
@@ -256,8 +259,8 @@ def test_registry_calibration_reaches_ingest_forecast_and_history(tmp_path):
 def test_start_surprise_explains_start_alarms_only():
     """A deposit that jumped at the start names P_c/P_s, but a clog on P_c/P_s an hour later
     is a clog; a deposit out of range is a misfit for the whole print."""
-    from ajtwin.apps.anomaly import AnomalyEvent
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
+    from ajtwin.apps.detection.streaming import AnomalyEvent
 
     def clog(detected_s, onset_s):
         return AnomalyEvent(detected_s, onset_s, "nozzle_clog", "clog", detectors=["cusum+ P_c"])
@@ -275,7 +278,7 @@ def test_carried_over_print_keeps_its_clog_label(tmp_path):
     """The demo's chain: a clean print, then a print of the same machine that clogs at
     20 min. The filter's re-convergence at the second print's start moves ΔR_N by ~1.6 nm
     (2.8 σ of the carried-over prior): that is no mismatch, and the clog is a clog."""
-    from ajtwin.live.engine import ingest_record
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     registry = Registry(tmp_path / "r.sqlite")

@@ -1,4 +1,4 @@
-"""The physics model against SPEC hand values, limits, conservation and autodiff."""
+"""The physics model against hand-computed values, limits, conservation and autodiff."""
 
 import math
 
@@ -36,7 +36,7 @@ X_CLEAN = np.array([3.5, 1.0, 0.0, 0.0, 4.6192e-7])
 
 
 # --------------------------------------------------------------------------- #
-# Hand values from SPEC §5 and §4
+# Hand values from model reference §5 and §4
 # --------------------------------------------------------------------------- #
 def test_pressures_match_spec_hand_values():
     y = MODEL.outputs(X_CLEAN, U_EXP1)
@@ -261,7 +261,7 @@ def test_open_loop_exp1_states_are_physical():
     xs = MODEL.simulate(x0, np.tile(U_EXP1, (5400, 1)))
     assert np.all(np.diff(xs[:, 1]) < 0)  # vial drains
     assert np.all(np.diff(xs[:, 2]) > 0) and np.all(np.diff(xs[:, 3]) > 0)  # deposits grow
-    assert 1e-4 < xs[-1, 2] < 1e-3  # tube: SPEC typical 0–1e-3 µm
+    assert 1e-4 < xs[-1, 2] < 1e-3  # tube: typical 0–1e-3 µm (model reference §3)
     assert 5e-3 < xs[-1, 3] < 0.1  # nozzle: tens of nm at most over 90 min
     assert xs[-1, 1] == pytest.approx(1.0 - 5400 * 1.77e-7, rel=1e-3)
 
@@ -375,10 +375,9 @@ def test_bad_dt_and_method():
 
 def test_from_files_round_trip_and_errors(tmp_path):
     import tomllib
+    from importlib import resources
 
-    from ajtwin.model.parameters import DATA
-
-    text = (DATA / "parameters.toml").read_text()
+    text = (resources.files("ajtwin") / "data" / "parameters.toml").read_text()
     custom = tmp_path / "params.toml"
     custom.write_text(text.replace('value = 10.0\nunit = "mm"', 'value = 20.0\nunit = "mm"'))
     m = DigitalModel.from_files(parameters=custom)

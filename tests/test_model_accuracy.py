@@ -1,8 +1,8 @@
-"""The fast model against a 64-node, fully converged reference (issue 13).
+"""The fast model against a 64-node, fully converged reference.
 
 The transition f uses an 8-node Gauss–Hermite rule for the droplet integrals
 and 3 Newton steps for the critical radius x_c. These tests prove, over the
-whole operating box of SPEC §3 (states and inputs, corners included), that
+whole operating box of model reference §3 (states and inputs, corners included), that
 this changes f and its Jacobian by ≤ 1e-6 relative against the same physics
 at 64 nodes and 12 Newton steps, and that x_c matches the root of the quartic
 found independently by NumPy's companion-matrix solver. The droplet integrals'
@@ -31,7 +31,7 @@ PARAMS = load_parameters()
 # 12 Newton steps: converged to rounding from any start in (0, 1] (the quartic test below)
 REFERENCE = {"quadrature_order": 64, "newton_steps": 12}
 
-# SPEC §3 typical ranges; flows: the span of every scenario (15–35, 30–80 sccm) widened
+# model reference §3 typical ranges; flows: the span of every scenario (15–35, 30–80 sccm) widened
 STATE_BOX = [(2.5, 4.0), (0.5, 1.5), (0.0, 1e-3), (0.0, 0.1), (1e-7, 1e-6)]
 INPUT_BOX = [(300.0, 440.0), (10.0, 50.0), (20.0, 120.0)]
 

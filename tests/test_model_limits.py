@@ -30,7 +30,7 @@ def test_bounds_resolved_against_geometry(limits):
 @pytest.mark.parametrize(
     ("index", "value", "name"),
     [
-        (0, 534.0, "droplet_diameter_um"),  # findings S3
+        (0, 534.0, "droplet_diameter_um"),  # a 534 µm droplet
         (0, -1.07, "droplet_diameter_um"),
         (1, -2.35, "vial_volume_mL"),
         (1, 0.0, "vial_volume_mL"),  # an empty vial is no state to print from

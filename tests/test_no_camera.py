@@ -1,4 +1,4 @@
-"""A machine without a camera, and a camera that drops out (issue 14).
+"""A machine without a camera, and a camera that drops out.
 
 Truth is the virtual printer (ajtwin.simulation): a print whose L_w, L_o and Q_m columns are
 removed must still give finite states, ΔR_N within 5 nm of the truth from the pressures,
@@ -42,7 +42,7 @@ def camera_less_run(clog_print):
 
 
 def test_prior_start_values_come_from_the_data_file(clog_print, camera_less_run):
-    prior = load_noise(profile="calibrated")["prior_initial"]
+    prior = load_noise(tuning="calibrated")["prior_initial"]
     initial = camera_less_run.initial
     assert initial.states_from_prior == ("droplet_diameter_um", "aerosol_fraction")
     assert initial.mean[DA] == prior["droplet_diameter_mean_um"]
@@ -72,7 +72,7 @@ def test_camera_less_bands_stay_at_what_the_model_alone_gives(clog_print, camera
         _blind(clog_print, LINE_COLUMNS + ["carrier_pressure_Pa", "sheath_pressure_Pa"])
     )
     pressures_only = Twin.default(em=False).run(_blind(clog_print, LINE_COLUMNS))
-    prior_sigma = load_noise(profile="calibrated")["prior_initial"]["droplet_diameter_um"]
+    prior_sigma = load_noise(tuning="calibrated")["prior_initial"]["droplet_diameter_um"]
     for run in (pressures_only, camera_less_run):
         assert np.all(run.stds[:, DA] >= prior_sigma * (1 - 1e-9))  # never narrowed by data
     np.testing.assert_allclose(pressures_only.stds[:, DA], nothing.stds[:, DA], rtol=0.02)
@@ -113,7 +113,7 @@ def test_camera_dropout_keeps_states_finite_and_widens_the_bands():
 
 
 def test_estimate_cli_on_a_camera_less_record(tmp_path, clog_print):
-    from ajtwin.estimation.cli import estimate
+    from ajtwin.cli.estimate import estimate
 
     record = _blind(clog_print.window(0, 300), LINE_COLUMNS)
     data = record.data.drop(columns=LINE_COLUMNS)  # the columns removed, not only NaN
@@ -130,7 +130,8 @@ def test_estimate_cli_on_a_camera_less_record(tmp_path, clog_print):
 
 
 def test_ingest_cli_on_a_camera_less_record(tmp_path, clog_print):
-    from ajtwin.store.cli import ingest, machine
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
 
     record = _blind(clog_print.window(0, 300), LINE_COLUMNS)
     path = write_record(record, tmp_path / "nocam.parquet")
@@ -189,7 +190,8 @@ def test_camera_less_aerosol_band_holds_the_truth(truth_generator):
 
 def test_live_stream_reports_the_same_camera_less_bands_as_the_batch_twin(clog_print):
     """One math path: the live twin's published σ and stored arrays carry the same floor."""
-    from ajtwin.live.engine import Sample, TwinStream
+    from ajtwin.engine.samples import Sample
+    from ajtwin.engine.stream import TwinStream
 
     record = _blind(clog_print.window(0, 180), LINE_COLUMNS)
     run = Twin.default(em=False).run(record)

@@ -3,7 +3,7 @@
 ``ajtwin/data/output_coefficients.toml`` is fitted by ``ajtwin cfd fit`` to the
 committed OpenFOAM sweep table (``ajtwin/cfd/results/``); refitting that table
 must give the file back. ``output_coefficients_provisional.toml`` keeps the
-pre-CFD derivation (SPEC §5) for the record and is still checked against it.
+pre-CFD derivation (model reference §5) for the record and is still checked against it.
 """
 
 import math
@@ -55,7 +55,7 @@ def test_packaged_coefficients_are_the_fit_of_the_committed_sweep_table():
             )
 
 
-def test_linewidth_flow_and_deposition_signs_the_issue_names():
+def test_linewidth_widens_with_carrier_and_deposit_and_narrows_with_sheath():
     lw = DigitalModel.default().coefficients.linewidth
     assert lw.carrier_flow > 0  # more carrier: wider
     assert lw.sheath_flow < 0  # more sheath: more focused

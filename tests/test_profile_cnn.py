@@ -1,4 +1,4 @@
-"""Height-profile CNN (paper §5, SPEC §9): network, data, features, Q_m, training.
+"""Height-profile CNN (paper §5, model reference §9): network, data, features, Q_m, training.
 
 Small, real instances only (a narrow network, a few epochs); the full 10-fold
 cross-validation is ``test_profile_cnn_slow.py`` (marked slow).
@@ -146,7 +146,7 @@ def test_material_flow_of_line_profile_matches_its_area():
         h_fine = line_profile(R_FINE, 43.0, 29.0, 15.0)
     h = register_profile(h_fine, 0.02, PX, level=False)
     assert cross_section_area_um2(h, PX) == pytest.approx(15.0, rel=1e-3)
-    # SPEC §3 typical Q_m 1.5e-8 mL/s: 15 µm² at 1 mm/s
+    # model reference §3 typical Q_m 1.5e-8 mL/s: 15 µm² at 1 mm/s
     assert material_flow_ml_s(h, PX, 1.0) == pytest.approx(1.5e-8, rel=1e-3)
 
 

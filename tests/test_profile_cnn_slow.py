@@ -1,13 +1,13 @@
 """Slow: 10-fold cross-validation of the two-stage CNN on rendered synthetic data.
 
-A reduced instance of the reported runs (docs/profile_cnn.md): 125 pairs, 600
+A reduced instance of the reported runs (docs/explanation/profile-cnn.md): 125 pairs, 600
 CV-labelled columns, for the half-width ResNet-18 (40 + 10 epochs, 3 min) and
 the 1-D U-Net (100 + 50 epochs, 5.5 min). The limits are what these runs
-reached (2026-11-23, with the scan smoothing), with a margin:
+reached (with the scan smoothing), with a margin:
 
 * ResNet-18: fine-tuning lowers the overspray error (18.0 → 3.9 µm vs CV
   labels) but not the linewidth error (17.0 → 18.7 µm): its dense head does not
-  place edges (docs/profile_cnn.md, *Edges*); Q_m stays within ~5 %.
+  place edges (docs/explanation/profile-cnn.md, *Edges*); Q_m stays within ~5 %.
 * U-Net (its default 100 + 50 epochs): fine-tuning lowers both errors
   (linewidth 22.3 → 7.8 µm, overspray 8.6 → 2.0 µm); Q_m within ~6 %.
 """

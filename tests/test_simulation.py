@@ -66,7 +66,7 @@ def test_packaged_scenarios_load_and_are_listed():
     assert sorted(PACKAGED) == list_scenarios()
     durations = {name: load_scenario(name).duration_s for name in PACKAGED}
     assert durations["clean_long"] == 8 * 3600
-    assert durations["commissioning"] == 20 * 60  # SPEC §11: a short print
+    assert durations["commissioning"] == 20 * 60  # model reference §11: a short print
     assert all(d == 5400 for n, d in durations.items() if n not in ("clean_long", "commissioning"))
 
 
@@ -177,7 +177,7 @@ def test_droplet_size_follows_carrier_step_with_lag():
 
 
 def hand_pressures(carrier_sccm, sheath_sccm, tube_um, nozzle_um):
-    """P_c, P_s from SPEC §5/§6 written out independently of ajtwin.model."""
+    """P_c, P_s from model reference §5/§6 written out independently of ajtwin.model."""
     qc = carrier_sccm / 60 * 1e-6
     qs = sheath_sccm / 60 * 1e-6
     r_tube = 8 * 1.76e-5 * 0.4572 / (np.pi * (7.89e-4 - tube_um * 1e-6) ** 4)

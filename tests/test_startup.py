@@ -105,7 +105,7 @@ def test_estimate_help_does_not_load_torch_opencv_or_matplotlib():
 def test_estimate_path_does_not_load_torch_opencv_or_matplotlib():
     code = (
         "import sys, json\n"
-        "import ajtwin.estimation.twin, ajtwin.io.records, ajtwin.estimation.cli\n"
+        "import ajtwin.estimation.twin, ajtwin.io.records, ajtwin.cli.estimate\n"
         "print(json.dumps(sorted(m for m in ('torch', 'cv2', 'matplotlib') if m in sys.modules)))"
     )
     assert json.loads(_python(code)) == []

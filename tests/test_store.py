@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.engine.ingest import detector_inputs
 from ajtwin.store.registry import (
     DEFAULT_LIMITS,
     TEST_SLEEP_ENV,
@@ -190,9 +191,10 @@ def test_writer_commits_without_hook(tmp_path):
 
 def test_ingest_chain_and_cli(tmp_path):
     """Real twin on two short prints: the second starts from the first's end; CLI works."""
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.cli import ingest, machine
 
     first = simulate("exp1", seed=3, duration_min=3.0)
     second = simulate("exp1", seed=4, duration_min=3.0, continue_from=first)
@@ -234,9 +236,9 @@ def test_ingest_chain_and_cli(tmp_path):
     assert abs(p2["end_mean"][1] - truth_end[1]) < 0.05
 
     # the stored arrays are enough to re-run the detectors: same events as stored
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
 
-    again = detect_anomalies(**reg.detector_inputs(p2["id"]))
+    again = detect_anomalies(**detector_inputs(reg, p2["id"]))
     stored = reg.anomalies("lab")
     stored = stored[stored["seq"] == 2]
     assert len(again.events) == len(stored)
@@ -272,10 +274,11 @@ def test_not_a_registry(tmp_path):
 
 def test_ingest_with_video_cli(tmp_path):
     """--video fills L_w/L_o from the camera (ajtwin.vision) before the twin runs."""
+    from ajtwin.cli.ingest import ingest
+    from ajtwin.cli.machine import machine
+    from ajtwin.cli.vision import render
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.cli import ingest, machine
-    from ajtwin.vision.cli import render
 
     rec = simulate("exp1", seed=7, duration_min=1.0)
     write_record(rec, tmp_path / "p.parquet")

@@ -10,17 +10,18 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.engine.chain import chain_start
+from ajtwin.engine.start import machine_start
 from ajtwin.store import registry as R
+from ajtwin.store.archive import export_machine, import_machine
 from ajtwin.store.calibration import (
     active_calibration,
     calibration_history,
-    machine_start,
     maintenance_history,
     record_maintenance,
     save_calibration,
 )
-from ajtwin.store.chain import chain_start
-from ajtwin.store.maintenance import compact, export_machine, import_machine
+from ajtwin.store.compaction import compact
 from ajtwin.store.registry import Registry
 
 CAL_TABLES = {"calibrations", "maintenance_events"}
@@ -77,7 +78,7 @@ def test_new_registry_has_the_tables_at_schema_4(tmp_path):
 
 
 def test_export_import_carries_calibrations_and_maintenance(tmp_path, commissioned):
-    from ajtwin.store.cli import machine
+    from ajtwin.cli.machine import machine
 
     reg = Registry(tmp_path / "a.sqlite")
     reg.add_machine("lab")

@@ -8,12 +8,15 @@ import sqlite3
 import numpy as np
 import pytest
 
-from ajtwin.live.engine import LiveEngine, Sample
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.ingest import detector_inputs
+from ajtwin.engine.samples import Sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 from ajtwin.store import registry as R
+from ajtwin.store.archive import export_machine, import_machine
+from ajtwin.store.compaction import compact
 from ajtwin.store.live_log import LiveLog
-from ajtwin.store.maintenance import compact, export_machine, import_machine
 from ajtwin.store.registry import Registry
 
 LIVE_TABLES = {"live_sessions", "live_samples", "live_states", "live_events"}
@@ -189,7 +192,7 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     """The default policy: the per-step rows exist while the session is open (to resume
     it) and go in the transaction that stores the print; the file shrinks back to what the
     same print costs when ingested; nothing a later command reads is lost."""
-    from ajtwin.apps.anomaly import detect_run
+    from ajtwin.apps.detection.batch import detect_run
     from ajtwin.estimation import Twin
 
     reg = Registry(tmp_path / "a.sqlite")
@@ -215,7 +218,7 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
 
     # the same print ingested by batch into another registry costs the same file bytes
     # (± one page per table) as the live one now does
-    from ajtwin.store.ingest import ingest_record
+    from ajtwin.engine.ingest import ingest_record
 
     other = Registry(tmp_path / "b.sqlite")
     other.add_machine("lab")
@@ -240,11 +243,12 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     import pandas as pd
     from click.testing import CliRunner
 
-    from ajtwin.apps.anomaly import detect_anomalies
-    from ajtwin.apps.cli import advise, forecast
-    from ajtwin.store.cli import machine
+    from ajtwin.apps.detection.batch import detect_anomalies
+    from ajtwin.cli.advise import advise
+    from ajtwin.cli.forecast import forecast
+    from ajtwin.cli.machine import machine
 
-    again = detect_anomalies(**reg.detector_inputs(print_id))
+    again = detect_anomalies(**detector_inputs(reg, print_id))
     assert [(e.detected_s, e.cause) for e in again.events] == stored
     forecasts = []
     for registry, name in ((reg, "live"), (other, "batch")):
@@ -288,7 +292,7 @@ def test_a_live_session_killed_before_its_print_is_stored_keeps_its_rows(record,
     _feed(engine, "lab", record, 0, OPEN_STEPS)
     sid = engine.sessions["lab"].session_id
     # another writer stores a print of the machine meanwhile: save_print refuses (stale)
-    from ajtwin.store.ingest import ingest_record
+    from ajtwin.engine.ingest import ingest_record
 
     ingest_record(reg, "lab", record.window(0, 30))
     with pytest.raises(R.RegistryError, match="while this ingest ran"):

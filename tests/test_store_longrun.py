@@ -1,13 +1,13 @@
-"""Long runs (issue 14): a long virtual print through the twin, and many prints of one
+"""Long runs: a long virtual print through the twin, and many prints of one
 machine through the registry. Small instances run by default; a day, a week and a year
-of daily prints behind ``slow`` (figures in docs/reliability.md)."""
+of daily prints behind ``slow`` (figures in docs/validation.md)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ajtwin.apps.soak import covariance_health, memory_mb, soak_machine, soak_print
+from ajtwin.studies.soak import covariance_health, memory_mb, soak_machine, soak_print
 
 
 def test_covariance_health_catches_what_it_should():
@@ -87,7 +87,7 @@ def twenty_prints(tmp_path_factory):
 def test_machine_many_prints_carry_over_exactly(twenty_prints):
     """20 prints of one machine: each starts exactly (bit for bit) from the previous end
     and θ; the registry adds no numerical drift; history and show use indexes."""
-    from ajtwin.store.chain import carry_over
+    from ajtwin.engine.chain import carry_over
     from ajtwin.store.registry import Registry
 
     store, table = twenty_prints
@@ -141,13 +141,13 @@ def year_of_prints(tmp_path_factory):
 def test_machine_year_of_daily_prints(year_of_prints):
     _, table = year_of_prints
     # vial: 0.02 mL (2 % of the vial): the estimator's V_l bias over many short prints
-    # reached 0.014 mL in this run before V_l became a consider state (issue 18)
+    # reached 0.014 mL in this run before V_l became a consider state
     _check_machine_soak(table, 365, vial_tol_ml=0.02)
 
 
 @pytest.mark.slow
 def test_machine_year_vial_band_covers_the_truth(year_of_prints):
     # was a strict xfail: the vial estimate, updated from the generation signature, stayed
-    # near 1 mL with σ ~0.7 µL while the truth emptied; V_l is a consider state since
-    # issue 18 (docs/estimation.md), so its band is the fill's σ carried from print to print
+    # near 1 mL with σ ~0.7 µL while the truth emptied; V_l is a consider state, so its band
+    # is the fill's σ carried from print to print
     assert _vial_within_band(*year_of_prints).all()

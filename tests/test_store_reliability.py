@@ -1,5 +1,5 @@
-"""Registry reliability (issue 14): hostile/damaged stores (findings T5–T8 and the security
-notes), schema migration, the print chain (findings S3/S4), the storage policy and
+"""Registry reliability: hostile/damaged stores (and the security notes), schema
+migration, the print chain (impossible end states), the storage policy and
 compaction, export/import."""
 
 from __future__ import annotations
@@ -17,12 +17,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.cli.ingest import ingest
+from ajtwin.cli.machine import machine
+from ajtwin.engine.ingest import detector_inputs
 from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
-from ajtwin.store.cli import ingest, machine
 from ajtwin.store.registry import Registry, RegistryError
 
-#: ajtwin 0.1's registry (main before issue 14), verbatim: a registry written by it must open.
+#: ajtwin 0.1's registry (schema version 1), verbatim: a registry written by it must open.
 V1_STATEMENTS = """
 CREATE TABLE IF NOT EXISTS info (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS machines (
@@ -196,9 +198,9 @@ def test_t5_prints_table_without_info_is_refused_untouched(tmp_path):
 @pytest.mark.parametrize(
     ("version", "application", "message"),
     [
-        ("abc", None, "not an ajtwin registry"),  # finding T6, as built there
+        ("abc", None, "not an ajtwin registry"),  # a version that is not a number
         ("abc", R.APPLICATION, "schema_version 'abc' is not a number"),
-        ("2", None, "not an ajtwin registry"),  # finding T6: printed a sqlite3.Row before
+        ("2", None, "not an ajtwin registry"),  # once printed a sqlite3.Row
         (str(R.SCHEMA_VERSION + 1), R.APPLICATION, "written by a newer ajtwin"),
     ],
 )
@@ -254,7 +256,7 @@ def test_t8_crafted_blobs_give_a_clear_error_and_never_unpickle(tmp_path, monkey
         res = run_cli(*args, "--store", store)
         assert res.exit_code == 1, res.output
         assert "registry damaged at print 1 (id 1), column end_mean" in res.output
-    from ajtwin.apps.cli import forecast
+    from ajtwin.cli.forecast import forecast
 
     res = CliRunner().invoke(forecast, ["--machine", "M", "--store", str(store)])
     assert res.exit_code == 1 and "registry damaged at print 1" in res.output
@@ -326,7 +328,7 @@ def test_names_stripped_and_control_characters_refused(tmp_path):
 # --------------------------------------------------------------------- schema migration
 def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     store = tmp_path / "v1.sqlite"
-    impossible = GOOD * np.array([1, -1, 1, 1, 1])  # V_l < 0: S3's kind of end state
+    impossible = GOOD * np.array([1, -1, 1, 1, 1])  # V_l < 0: an impossible end state
     _write_v1(store, [GOOD, GOOD * 1.01, impossible])
     res = run_cli("show", "old", "--store", store)
     assert res.exit_code == 0, res.output
@@ -343,7 +345,7 @@ def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     a = reg.print_arrays(1)  # legacy .npy blobs read as they were
     assert a["covariances"].shape == (600, 5, 5) and a["means"].dtype == np.float64
     # compaction re-encodes them by the policy and shrinks the file
-    from ajtwin.store.maintenance import compact
+    from ajtwin.store.compaction import compact
 
     stats = compact(reg, "old", keep_covariances_days=36500)
     assert stats["reencoded"] == 3 and stats["bytes_after"] < stats["bytes_before"] / 2
@@ -392,7 +394,7 @@ def test_concurrent_first_open_migrates_once(tmp_path):
 
 # --------------------------------------------------------------------- the chain
 def test_chain_skips_excluded_and_dropped_prints(tmp_path):
-    from ajtwin.store.chain import chain_start
+    from ajtwin.engine.chain import chain_start
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -401,7 +403,7 @@ def test_chain_skips_excluded_and_dropped_prints(tmp_path):
     _fake_print(reg, "m", "p1", GOOD, None)
     _fake_print(reg, "m", "p2", GOOD * 0.9, 1)
     bad = GOOD.copy()
-    bad[0] = 534.0  # finding S3's droplet
+    bad[0] = 534.0  # a 534 µm droplet: impossible
     _fake_print(reg, "m", "p3", bad, 2, status="excluded")
     start = chain_start(reg, "m")
     assert start.from_seq == 2 and start.latest_seq == 3
@@ -425,13 +427,13 @@ def test_chain_skips_excluded_and_dropped_prints(tmp_path):
 
 
 def test_bad_print_does_not_poison_the_next_one(tmp_path):
-    """Findings S3/S4: an impossible ingest is stored excluded; the next clean print of
+    """An impossible ingest is stored excluded; the next clean print of
     the machine starts from the initial fit, as on a fresh machine."""
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
 
     ext = simulate("exp1", seed=1, duration_min=4.0)
-    # the findings' ext.parquet also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
+    # the damaged print also set P_c = 9.9e5 Pa and P_s = 101 Pa: 175x and 1/56 of
     # what the model gives at its inputs, which the input check now refuses before the twin
     # runs (tests/test_bad_inputs.py); L_w/L_o alone still give d_a 534 µm, for the chain
     full = simulate("exp1", seed=1, duration_min=4.0)
@@ -491,11 +493,12 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     re-run of the detectors still work, with the same events."""
     import datetime as dt
 
-    from ajtwin.apps.anomaly import detect_anomalies
-    from ajtwin.apps.cli import advise, forecast
+    from ajtwin.apps.detection.batch import detect_anomalies
+    from ajtwin.cli.advise import advise
+    from ajtwin.cli.forecast import forecast
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.maintenance import compact, file_bytes
+    from ajtwin.store.compaction import compact, file_bytes
 
     rec = simulate("nozzle_clog", seed=5, duration_min=12.0,
                    overrides={"fault": {"onset_min": 4.0}})  # fmt: skip
@@ -519,7 +522,7 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     assert set(alarm_steps) <= set(before["covariance_steps"].tolist())
 
     def later_commands():
-        again = detect_anomalies(**reg.detector_inputs(p["id"]))
+        again = detect_anomalies(**detector_inputs(reg, p["id"]))
         assert [e.detected_s for e in again.events] == events["detected_s"].tolist()
         assert [e.cause for e in again.events] == events["cause"].tolist()
         runner = CliRunner()
@@ -605,7 +608,7 @@ def test_import_refuses_damaged_or_foreign_archives(tmp_path):
     reg.add_machine("lab")
     _fake_print(reg, "lab", "p1", GOOD, None)
     archive = tmp_path / "lab.tar"
-    from ajtwin.store.maintenance import export_machine
+    from ajtwin.store.archive import export_machine
 
     manifest = export_machine(reg, "lab", archive)
     with tarfile.open(archive) as tar:
@@ -701,8 +704,8 @@ def test_guard_firings_are_counted_and_stored(tmp_path):
     """One absurd linewidth sample (1e300 µm, an in-memory record no reader checked):
     the divergence guard resets the filter there; the ingest counts the firing in the
     summary and stores it per step."""
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
 
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("M")

@@ -1,4 +1,4 @@
-"""V_l: the twin's consider state and the vial observer (issue 18)."""
+"""V_l: the twin's consider state and the vial observer."""
 
 from __future__ import annotations
 
@@ -106,7 +106,8 @@ def test_twin_vial_band_holds_the_truth_when_the_atomizer_is_off_the_fit():
 def test_twin_vial_band_is_the_fill_error_when_the_fill_is_not_the_told_one(fill_error_sigma):
     """Loaded δ off the told fill, the twin's V_l error stays δ and its σ the fill's:
     z = δ/σ_fill all print long, so across prints whose fills are drawn at σ_fill (the
-    scenarios' `vial_weighing_sd_mL`) the band covers ~95 % (docs/estimation.md). Here δ is
+    scenarios' `vial_weighing_sd_mL`) the band covers ~95 %
+    (docs/explanation/vial-consider-state.md). Here δ is
     set by hand, so the scenario's own weighing error is switched off."""
     with (resources.files("ajtwin") / "data" / "noise.toml").open("rb") as fh:
         fill_std = tomllib.load(fh)["calibrated"]["initial"]["vial_fill_std_mL"]["value"]
@@ -225,7 +226,8 @@ def test_observer_uses_the_calibrations_material_flow_gain():
 
 
 def test_label_cause_defers_to_the_vial_observer():
-    from ajtwin.apps.anomaly import DetectorSettings, label_cause
+    from ajtwin.apps.detection.causes import label_cause
+    from ajtwin.apps.detection.settings import DetectorSettings
 
     s = DetectorSettings()
     qm_deficit = ([-1, 0, 0, 0, -2], [60] * 5, [0, 0, 0, 0, -4])
@@ -261,7 +263,7 @@ def _detector_arrays(vial_truth, n):
 
 
 def test_detectors_raise_vial_low_from_the_observer_and_label_it():
-    from ajtwin.apps.anomaly import detect_anomalies
+    from ajtwin.apps.detection.batch import detect_anomalies
 
     n = 5400
     falling = 0.7 - 0.25 * np.arange(n) / n  # 0.70 → 0.45 mL in 90 min (0.17 mL/h)

@@ -1,4 +1,4 @@
-"""Vision core: profile model, reference definitions, renderer, extractor (SPEC §9)."""
+"""Vision core: profile model, reference definitions, renderer, extractor (model reference §9)."""
 
 from __future__ import annotations
 
@@ -276,7 +276,7 @@ def _extract(tilt, noise, raggedness, seed=0, shape=(480, 640), lw=43.0, ov=29.0
 @pytest.mark.parametrize("tilt", [-10.0, -4.0, 0.0, 6.0, 10.0])
 @pytest.mark.parametrize("noise", [2.0, 6.0])
 def test_extraction_matches_truth_across_tilts(tilt, noise):
-    """Issue 5 target: linewidth within 1 µm, overspray within 3 µm, tilts up to ±10°."""
+    """Linewidth within 1 µm, overspray within 3 µm, tilts up to ±10°."""
     result, (lw_true, ov_true) = _extract(tilt, noise, raggedness=0.5, seed=int(tilt) + 20)
     assert result.status == "ok"
     assert result.angle_deg == pytest.approx(tilt, abs=0.3)

@@ -308,7 +308,8 @@ def test_join_features_bins_frames_by_second():
 def test_render_from_record_then_extract_and_join(tmp_path):
     record_path = write_record(_record(4), tmp_path / "print.parquet")
     video = tmp_path / "print.avi"
-    # raggedness 0.5 µm: the paper's batch averaging widens ragged lines (docs/vision.md)
+    # raggedness 0.5 µm: the paper's batch averaging widens ragged lines
+    # (docs/howto/measure-lines-from-video.md)
     result = run(
         "render",
         record_path,

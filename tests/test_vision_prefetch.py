@@ -66,7 +66,7 @@ def test_prefetched_yields_exactly_the_plain_frames(tmp_path, depth, name, codec
 
 
 def test_prefetched_truncated_video_warns_in_the_caller(tmp_path):
-    from ajtwin.vision.cli import render
+    from ajtwin.cli.vision import render
 
     video = tmp_path / "cam.avi"
     render.main(["--out", str(video), "--duration", "10", "--size", "320x240"],

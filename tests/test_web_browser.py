@@ -38,9 +38,9 @@ def shots(tmp_path_factory):
 def registry(tmp_path_factory):
     """A registry with a real twin run: 'lab1' printed 6 min with a nozzle clog from 3 min
     (virtual printer; the record file stays, so the truth is known), 'lab2' has no prints."""
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     folder = tmp_path_factory.mktemp("registry")
@@ -174,7 +174,7 @@ def test_new_print_appears_without_reload(server, page):
 
 
 def test_whatif_forecast_and_advice(server, registry, page, shots):
-    from ajtwin.apps.forecast import Change, forecast, input_schedule
+    from ajtwin.apps.planning.forecast import Change, forecast, input_schedule
     from ajtwin.web.data import RegistryView
 
     page.goto(server.page_url("/whatif/lab1"))
@@ -291,11 +291,11 @@ def test_token_required(registry, tmp_path, browser):
 def commissioned_registry(tmp_path_factory):
     """'lab3': commissioned on its commissioning print (virtual machine seed 3), then its
     pressure gauges read 8 % high — the next print's model–machine guard fires."""
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.estimation.commission import commission
     from ajtwin.simulation import simulate
     from ajtwin.simulation.machine import MachineDeviation
     from ajtwin.store.calibration import save_calibration
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
 
     store = tmp_path_factory.mktemp("commissioned") / "r.sqlite"
@@ -351,9 +351,9 @@ def test_machine_page_shows_calibration_and_mismatch(
 def test_machine_page_of_a_90_min_print(browser, tmp_path, shots):
     """A 90-min print with a nozzle clog from 60 min (docs/dashboard/machine_90min.png): the
     figures are decimated to at most MAX_POINTS points, the clog is found after its onset."""
+    from ajtwin.engine.ingest import ingest_record
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.ingest import ingest_record
     from ajtwin.store.registry import Registry
     from ajtwin.web.data import MAX_POINTS
 

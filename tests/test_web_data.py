@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.apps.anomaly import AnomalyEvent
+from ajtwin.apps.detection.streaming import AnomalyEvent
+from ajtwin.cli.dashboard import dashboard
 from ajtwin.store.registry import Registry, RegistryError
+from ajtwin.web.access import check_access, is_loopback
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
-from ajtwin.web.cli import check_access, dashboard, is_loopback
 from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
 from ajtwin.web.publisher import LivePublisher
 from ajtwin.web.watcher import RegistryWatcher
@@ -115,7 +116,7 @@ def _fake_commissioning(offset_um: float):
 
 
 def test_fleet_and_machine_show_calibration_maintenance_and_mismatch(store):
-    from ajtwin.apps.mismatch import MismatchStatus
+    from ajtwin.apps.detection.mismatch import MismatchStatus
     from ajtwin.store.calibration import record_maintenance, save_calibration
     from ajtwin.web.pages import fleet_rows
 
@@ -375,7 +376,7 @@ def click_usage_error():
 
 def test_engine_messages_become_samples():
     """The live engine's message format (dicts by name, raised events) → dashboard samples."""
-    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+    from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.publisher import sample_from_engine
 
     states = dict(zip(STATE_NAMES, [3.5, 0.99, 1e-4, 0.05, 4.6e-7]))
@@ -399,8 +400,8 @@ def test_engine_messages_become_samples():
     assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
     assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
     assert s["detectors"]["cusum"] == [1.0, 0.5, 17.0, 12.0, 3.0, 20.0]
-    # h per channel: 16 σ but for P_c and P_s on their own, 24 σ since 2026-11-25 (a gauge's
-    # slow noise; docs/anomalies.md). Q_m moved to k = 0.7, h = 16 (was 30) before that.
+    # h per channel: 16 σ but for P_c and P_s on their own, 24 σ (a gauge's slow noise);
+    # Q_m at k = 0.7, h = 16.
     assert s["detectors"]["cusum_thresholds"] == [16.0, 16.0, 24.0, 24.0, 16.0, 16.0]
     assert s["detectors"]["window_nis_log10p"] == pytest.approx(12.0)
     assert s["alarms"] == [
@@ -416,7 +417,7 @@ def test_engine_messages_become_samples():
 
 def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
     """The live link's state (engine message without a step) → pushed to the machine's page,
-    kept for /api/machine and drawn as a badge in the fleet rows (issue 15)."""
+    kept for /api/machine and drawn as a badge in the fleet rows."""
     import json
     import urllib.request
 
@@ -464,7 +465,7 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
 def test_fleet_and_machine_page_agree_on_mismatch_versus_alarm(tmp_path):
     """The guard's own 'mismatch, not a fault' events make the status mismatch on both pages;
     a fault alarm in the same latest print makes it alarm on both (they used to disagree)."""
-    from ajtwin.apps.mismatch import MISMATCH_CAUSE
+    from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
     from ajtwin.web.app import _status
 
     guard = {"mismatch": True, "first_s": 30.0, "outputs": ["carrier_pressure_Pa"], "states": [],

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ajtwin.live.engine import LiveEngine, Sample
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.samples import Sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 from ajtwin.web.publisher import LivePublisher
@@ -52,8 +53,8 @@ def test_engine_messages_reach_the_publisher(clog_record):
 
 
 def test_live_command_serves_the_dashboard(clog_record, tmp_path):
+    from ajtwin.cli.live import live
     from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
-    from ajtwin.live.cli import live
 
     rec = clog_record.window(0, 60)
     columns = ["time_s", *INPUT_COLUMNS, *OUTPUT_COLUMNS]
@@ -82,9 +83,9 @@ def test_live_demo_serves_the_dashboard_and_keeps_it_open(clog_record, tmp_path,
     import json
     import urllib.request
 
-    import ajtwin.demo as demo_cli
-    import ajtwin.live.demo as live_demo
-    from ajtwin.live.engine import Sample
+    import ajtwin.cli.demo as demo_cli
+    import ajtwin.studies.live_demo as live_demo
+    from ajtwin.engine.samples import Sample
 
     def print_without_opcua(out, url, seed, engine, echo):
         for k in range(20):

@@ -1,6 +1,6 @@
 """ajtwin — a digital twin of Aerosol Jet (AJ) printers.
 
-Areas (SPEC §2): :mod:`ajtwin.model` (physics macro-model f, g),
+Areas (model reference §2): :mod:`ajtwin.model` (physics macro-model f, g),
 :mod:`ajtwin.estimation` (initial fit, EKF, RTS, EM), :mod:`ajtwin.simulation`
 (virtual printer, forecasts), :mod:`ajtwin.vision`, :mod:`ajtwin.profile_cnn`,
 :mod:`ajtwin.cfd`, :mod:`ajtwin.apps`, :mod:`ajtwin.io`, :mod:`ajtwin.store`.

@@ -116,7 +116,7 @@ def exported_jit(
     that are compiled in as constants whenever all their leaves are concrete scalars.
     XLA then folds what depends on them alone (the droplet quadrature's nodes, the
     slip correction's 1/λ, …) instead of recomputing it at every step of a scan: a
-    third of an EKF step (docs/performance.md, Round 5). Each distinct value compiles
+    third of an EKF step (docs/explanation/performance.md, Round 5). Each distinct value compiles
     a program of its own (the parameters are the packaged ones in every twin, so in
     practice one); a field holding tracers (under ``grad``/``vmap`` of the caller) is
     passed as an ordinary argument — the same function either way.

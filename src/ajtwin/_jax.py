@@ -48,6 +48,7 @@ True
 import os
 import stat
 import sys
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -62,7 +63,6 @@ FLAGS_SINCE_JAXLIB = (0, 7, 1)
 
 
 def _jaxlib_version() -> tuple[int, ...]:
-    from importlib.metadata import PackageNotFoundError, version
 
     try:
         text = version("jaxlib")
@@ -109,6 +109,7 @@ if "jax" not in sys.modules and _jaxlib_version() >= FLAGS_SINCE_JAXLIB:
         os.environ.get("AJTWIN_XLA_SMALL_LOOP_BYTES"),
         platform.machine(),
     )
+
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

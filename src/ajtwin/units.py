@@ -1,6 +1,6 @@
 """Unit conversions — the only place in ajtwin where units are converted.
 
-The public API and files speak the *display units* of SPEC §3:
+The public API and files speak the *display units* of model reference §3:
 
 ========  =====================================  =========
 symbol    quantity                               unit
@@ -30,7 +30,7 @@ Examples
 
 from __future__ import annotations
 
-# 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (SPEC §3).
+# 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (model reference §3).
 SCCM_IN_ML_PER_S = 1.0 / 60.0
 ML_IN_M3 = 1e-6
 UM_IN_M = 1e-6
@@ -103,10 +103,12 @@ def sccm_to_m3_per_s(q):
 
 
 def um_to_m(length):
+    """µm → m."""
     return length * UM_IN_M
 
 
 def m_to_um(length):
+    """m → µm."""
     return length / UM_IN_M
 
 
@@ -121,10 +123,12 @@ def per_sqrt_h_to_per_sqrt_s(rate):
 
 
 def ml_to_m3(volume):
+    """mL → m³."""
     return volume * ML_IN_M3
 
 
 def m3_to_ml(volume):
+    """m³ → mL."""
     return volume / ML_IN_M3
 
 
@@ -134,6 +138,7 @@ def um3_per_s_to_ml_per_s(rate):
 
 
 def mm_per_s_to_um_per_s(speed):
+    """mm/s → µm/s."""
     return speed * 1e3
 
 

@@ -1,1 +1,2 @@
-"""ajtwin.apps"""
+"""Applications of the twin: detection (:mod:`ajtwin.apps.detection`) and planning
+(:mod:`ajtwin.apps.planning`)."""

@@ -1,4 +1,4 @@
-"""OpenFOAM case generator: axisymmetric wedge of the deposition head (SPEC §8).
+"""OpenFOAM case generator: axisymmetric wedge of the deposition head (model reference §8).
 
 :func:`write_case` writes a complete ``simpleFoam`` case (laminar, steady,
 incompressible N₂) for one (ΔR_N, Q_c, Q_s) and mesh level: ``blockMeshDict``
@@ -32,6 +32,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.cfd.geometry import Geometry, load_geometry
+from ajtwin.cfd.physics import load_cfd_parameters
 
 #: SIMPLE iterations per mesh level: the coarse mesh reaches U residuals of 1e-7 in ~250;
 #: a fixed count, because the wedge's U_z residual stalls near 1e-6 and would block
@@ -63,6 +64,7 @@ class CaseSpec:
 
     @property
     def iterations(self) -> int:
+        """simpleFoam iterations of the case (the given maximum, else by mesh level)."""
         return int(self.max_iterations or ITERATIONS_PER_LEVEL * self.mesh_level)
 
     def __post_init__(self):
@@ -77,6 +79,7 @@ class CaseSpec:
 
     @property
     def name(self) -> str:
+        """A folder name that says the case: ΔR_N, Q_c, Q_s and mesh level."""
         return (
             f"dRN{self.nozzle_deposition_um:.3f}_Qc{self.carrier_flow_sccm:.2f}"
             f"_Qs{self.sheath_flow_sccm:.2f}_m{self.mesh_level}"
@@ -84,7 +87,45 @@ class CaseSpec:
 
     @property
     def total_flow_m3_s(self) -> float:
+        """Carrier plus sheath flow [m³/s]."""
         return float(units.sccm_to_m3_per_s(self.carrier_flow_sccm + self.sheath_flow_sccm))
+
+
+#: boundary faces as (block, side) with side in {"xmin", "xmax", "rmin", "rmax"}
+_PATCHES = {
+    "carrierInlet": [("A1", "xmin")],
+    "sheathInlet": [("A2", "xmin")],
+    "walls": [
+        ("A1", "rmax"),
+        ("A2", "rmin"),
+        ("B2", "xmin"),
+        ("A2", "rmax"),
+        ("B3", "rmax"),
+        ("C3", "rmax"),
+        ("D3", "rmax"),
+        ("E4", "xmin"),
+    ],
+    "substrate": [(f"E{i}", "xmax") for i in range(1, 6)],
+    "ambient": [("E5", "xmin")],
+    "outlet": [("E5", "rmax")],
+}
+
+
+def _quad(xa, xb, ra_top, rb_top, ra_bot, rb_bot):
+    """Corners of a block: p0 (xa, ra_bot), p1 (xb, rb_bot), p2 (xb, rb_top), p3 (xa, ra_top)."""
+    return ((xa, ra_bot), (xb, rb_bot), (xb, rb_top), (xa, ra_top))
+
+
+def _cell_counts(m: dict, level: int):
+    """Cells per block of the mesh settings ``m`` at refinement ``level``: radial per ring
+    (carrier, wall, sheath), lip, ambient, and axial per section."""
+    n_rad = [m["carrier_cells_radial"], m["wall_cells_radial"], m["sheath_cells_radial"]]
+    n_rad = [int(n * level) for n in n_rad]
+    n_ax = {
+        section: int(m[f"{section}_cells_axial"] * level)
+        for section in ("inlet", "mixing", "cone", "orifice", "gap")
+    }
+    return n_rad, int(m["lip_cells_radial"] * level), int(m["ambient_cells_radial"] * level), n_ax
 
 
 def _block_layout(g: Geometry, spec: CaseSpec):
@@ -103,31 +144,17 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         g.exit_x,
         g.substrate_x,
     )
-    n_rad = [m["carrier_cells_radial"], m["wall_cells_radial"], m["sheath_cells_radial"]]
-    n_rad = [int(n * level) for n in n_rad]
-    n_lip = int(m["lip_cells_radial"] * level)
-    n_amb = int(m["ambient_cells_radial"] * level)
-    n_ax = {
-        "inlet": int(m["inlet_cells_axial"] * level),
-        "mixing": int(m["mixing_cells_axial"] * level),
-        "cone": int(m["cone_cells_axial"] * level),
-        "orifice": int(m["orifice_cells_axial"] * level),
-        "gap": int(m["gap_cells_axial"] * level),
-    }
+    n_rad, n_lip, n_amb, n_ax = _cell_counts(m, level)
     uniform = "1"
     cone_grading = str(float(m["cone_grading"]))
     gap_grading = str(m.get("gap_grading", "((0.5 0.5 4) (0.5 0.5 0.25))"))
     blocks = []  # (name, (p0, p1, p2, p3), (nx, nr), (gx, gr))
 
-    def quad(xa, xb, ra_top, rb_top, ra_bot, rb_bot):
-        # p0 (xa, ra_bot), p1 (xb, rb_bot), p2 (xb, rb_top), p3 (xa, ra_top)
-        return ((xa, ra_bot), (xb, rb_bot), (xb, rb_top), (xa, ra_top))
-
     # inlet section: carrier core and sheath annulus (no block in the tube wall)
     blocks.append(
         (
             "A1",
-            quad(x_in, x_mix, radii_top[1], radii_top[1], 0.0, 0.0),
+            _quad(x_in, x_mix, radii_top[1], radii_top[1], 0.0, 0.0),
             (n_ax["inlet"], n_rad[0]),
             (uniform, uniform),
         )
@@ -135,7 +162,7 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "A2",
-            quad(x_in, x_mix, radii_top[3], radii_top[3], radii_top[2], radii_top[2]),
+            _quad(x_in, x_mix, radii_top[3], radii_top[3], radii_top[2], radii_top[2]),
             (n_ax["inlet"], n_rad[2]),
             (uniform, uniform),
         )
@@ -144,7 +171,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"B{i + 1}",
-                quad(x_mix, x_cone, radii_top[i + 1], radii_top[i + 1], radii_top[i], radii_top[i]),
+                _quad(
+                    x_mix, x_cone, radii_top[i + 1], radii_top[i + 1], radii_top[i], radii_top[i]
+                ),
                 (n_ax["mixing"], n_rad[i]),
                 (uniform, uniform),
             )
@@ -152,7 +181,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"C{i + 1}",
-                quad(x_cone, x_ori, radii_top[i + 1], radii_tip[i + 1], radii_top[i], radii_tip[i]),
+                _quad(
+                    x_cone, x_ori, radii_top[i + 1], radii_tip[i + 1], radii_top[i], radii_tip[i]
+                ),
                 (n_ax["cone"], n_rad[i]),
                 (cone_grading, uniform),
             )
@@ -160,7 +191,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"D{i + 1}",
-                quad(x_ori, x_exit, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]),
+                _quad(
+                    x_ori, x_exit, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]
+                ),
                 (n_ax["orifice"], n_rad[i]),
                 (uniform, uniform),
             )
@@ -168,7 +201,9 @@ def _block_layout(g: Geometry, spec: CaseSpec):
         blocks.append(
             (
                 f"E{i + 1}",
-                quad(x_exit, x_sub, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]),
+                _quad(
+                    x_exit, x_sub, radii_tip[i + 1], radii_tip[i + 1], radii_tip[i], radii_tip[i]
+                ),
                 (n_ax["gap"], n_rad[i]),
                 (gap_grading, uniform),
             )
@@ -176,7 +211,7 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "E4",
-            quad(x_exit, x_sub, g.lip_radius, g.lip_radius, tip, tip),
+            _quad(x_exit, x_sub, g.lip_radius, g.lip_radius, tip, tip),
             (n_ax["gap"], n_lip),
             (gap_grading, str(float(m["lip_grading"]))),
         )
@@ -184,30 +219,12 @@ def _block_layout(g: Geometry, spec: CaseSpec):
     blocks.append(
         (
             "E5",
-            quad(x_exit, x_sub, g.outer_radius, g.outer_radius, g.lip_radius, g.lip_radius),
+            _quad(x_exit, x_sub, g.outer_radius, g.outer_radius, g.lip_radius, g.lip_radius),
             (n_ax["gap"], n_amb),
             (gap_grading, str(float(m["ambient_grading"]))),
         )
     )
-    # boundary faces as (block, side) with side in {"xmin", "xmax", "rmin", "rmax"}
-    patches = {
-        "carrierInlet": [("A1", "xmin")],
-        "sheathInlet": [("A2", "xmin")],
-        "walls": [
-            ("A1", "rmax"),
-            ("A2", "rmin"),
-            ("B2", "xmin"),
-            ("A2", "rmax"),
-            ("B3", "rmax"),
-            ("C3", "rmax"),
-            ("D3", "rmax"),
-            ("E4", "xmin"),
-        ],
-        "substrate": [(f"E{i}", "xmax") for i in range(1, 6)],
-        "ambient": [("E5", "xmin")],
-        "outlet": [("E5", "rmax")],
-    }
-    return blocks, patches
+    return blocks, {name: list(faces) for name, faces in _PATCHES.items()}
 
 
 # local vertex numbering of an OpenFOAM hex: p0..p3 at the back (z<0), p4..p7 front
@@ -301,6 +318,7 @@ def _field(cls, obj, dimensions, internal, boundary: dict[str, str]) -> str:
 
 
 def velocity_field(g: Geometry, spec: CaseSpec) -> str:
+    """The ``0/U`` file: fixed inlet velocities of carrier and sheath, no-slip walls."""
     inlet = inlet_velocities(g, spec)
 
     def fixed(v):
@@ -326,6 +344,7 @@ def velocity_field(g: Geometry, spec: CaseSpec) -> str:
 
 
 def pressure_field() -> str:
+    """The ``0/p`` file: zero gradient at inlets and walls, 0 at the outlet and ambient."""
     zero_gradient = "        type zeroGradient;"
     return _field(
         "volScalarField",
@@ -345,6 +364,7 @@ def pressure_field() -> str:
 
 
 def control_dict(spec: CaseSpec) -> str:
+    """The ``system/controlDict`` of the case: simpleFoam, steady, the case's iterations."""
     return (
         FOAM_HEADER.format(cls="dictionary", location="system", obj="controlDict")
         + f"""
@@ -442,8 +462,6 @@ def write_case(
     """
     g = geometry or load_geometry()
     if kinematic_viscosity is None:
-        from ajtwin.cfd.physics import load_cfd_parameters
-
         kinematic_viscosity = load_cfd_parameters().gas_viscosity / g.gas_density
     root = Path(directory)
     for sub in ("0", "constant", "system"):

@@ -1,4 +1,4 @@
-"""Fit the output-model coefficients and R_3^N(ΔR_N) to a CFD sweep (SPEC §5, §8).
+"""Fit the output-model coefficients and R_3^N(ΔR_N) to a CFD sweep (model reference §5, §8).
 
 The output model (paper eqs. 14–15) with independent effects,
 
@@ -16,14 +16,15 @@ paper's polynomial.
 
 from __future__ import annotations
 
-import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import tomli_w
 
 from ajtwin.cfd.physics import load_cfd_parameters
+from ajtwin.config import load_toml
 
 #: The schema the twin reads (ajtwin.model.parameters.Coefficients).
 COEFFICIENT_KEYS = (
@@ -42,14 +43,7 @@ _OUTPUT_COLUMN = {"linewidth": "linewidth_um", "overspray": "overspray_um"}
 def fit_settings(path: str | Path | None = None) -> dict:
     """Fit settings from ``sweep.toml``: the droplet window of the linear d_a term
     (``[fit]``) and the paper's reference points (``[paper_reference]``)."""
-    from importlib import resources
-
-    text = (
-        (resources.files("ajtwin") / "cfd" / "sweep.toml").read_text()
-        if path is None
-        else Path(path).read_text()
-    )
-    doc = tomllib.loads(text)
+    doc = load_toml(path, "cfd/sweep.toml", what="sweep")
     settings = doc.get("fit", {})
     lo, hi = (float(v) for v in settings.get("droplet_range_um", (0.0, np.inf)))
     if not 0.0 <= lo < hi:
@@ -315,7 +309,7 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
             ),
             "post_processing": "random azimuth, line summation, spread 3.8, b at 80 % of peak, "
             "L_w = 2.1 b, overspray to 1 % of h at each linewidth edge "
-            "(SPEC §8)",
+            "(model reference §8)",
         },
     }
     for output in ("linewidth", "overspray"):
@@ -324,16 +318,11 @@ def coefficient_document(fit: dict, meta: dict) -> dict:
 
 
 def write_toml(document: dict, path: str | Path) -> Path:
-    import tomli_w
-
+    """Write a TOML document (tomli-w), creating the folder; the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomli_w.dumps(document))
     return path
-
-
-def read_toml(path: str | Path) -> dict:
-    return tomllib.loads(Path(path).read_text())
 
 
 def resistance_document(resistance: dict, meta: dict) -> dict:

@@ -30,12 +30,14 @@ class CellField:
     volume: np.ndarray
 
     def save(self, path):
+        """Write the cell field to a compressed ``.npz``."""
         np.savez_compressed(
             path, x=self.x, r=self.r, ux=self.ux, ur=self.ur, p=self.p, volume=self.volume
         )
 
     @classmethod
     def load(cls, path):
+        """Read a cell field written by :meth:`save`."""
         with np.load(path) as data:
             return cls(**{k: data[k] for k in ("x", "r", "ux", "ur", "p", "volume")})
 
@@ -54,7 +56,7 @@ def plane_average(cells: CellField, x_plane: float, r_min: float = 0.0, r_max: f
 
 
 def flow_summary(cells: CellField, g: Geometry, total_flow_m3_s: float) -> dict:
-    """Figures the report compares against the paper (SPEC §8).
+    """Figures the report compares against the paper (model reference §8).
 
     Returns max gas speed [m/s], static pressures [Pa] at the carrier and sheath
     inlets, at the cone entry and at the nozzle exit, and R_3^N [Pa s/m³] =

@@ -37,6 +37,7 @@ class OpenFoamError(RuntimeError):
 
 
 def bashrc_path() -> Path:
+    """OpenFOAM's environment script (``$AJTWIN_OPENFOAM_BASHRC`` or Debian's)."""
     return Path(os.environ.get("AJTWIN_OPENFOAM_BASHRC", str(DEFAULT_BASHRC)))
 
 

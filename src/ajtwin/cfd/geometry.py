@@ -1,4 +1,4 @@
-"""Axisymmetric geometry of the deposition head (SPEC §8, paper App. C).
+"""Axisymmetric geometry of the deposition head (model reference §8, paper App. C).
 
 The dimensions live in ``geometry.toml`` (µm, each with its source); this module
 turns them into SI lengths, the axial stations of the model and the wall radius
@@ -19,14 +19,13 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin import units
+from ajtwin.config import load_toml
 
 _LENGTHS = (
     "carrier_radius",
@@ -94,6 +93,7 @@ class Geometry:
 
     @property
     def substrate_x(self) -> float:
+        """Axial position of the substrate [m]: the nozzle exit plus the standoff."""
         return self.exit_x + self.standoff
 
     def tip_radius_at(self, nozzle_deposition_um: float) -> float:
@@ -169,13 +169,8 @@ def load_geometry(path: str | Path | None = None) -> Geometry:
         Naming the file and entry when a dimension is missing, not positive, or
         the layout is inconsistent (e.g. tube wider than the chamber).
     """
-    if path is None:
-        text = (resources.files("ajtwin") / "cfd" / "geometry.toml").read_text()
-        where = "packaged geometry.toml"
-    else:
-        text = Path(path).read_text()
-        where = str(path)
-    raw = tomllib.loads(text)
+    where = "packaged geometry.toml" if path is None else str(path)
+    raw = load_toml(path, "cfd/geometry.toml", what="geometry")
     values: dict[str, float] = {}
     for name in (
         *_LENGTHS,

@@ -2,7 +2,7 @@
 
 Only values, converted to SI through :mod:`ajtwin.units`; nothing is duplicated
 in code. Spread factor, b/a ratio, 80 % peak and 1 % edge are the paper's CFD
-post-processing constants (SPEC §6, §8).
+post-processing constants (model reference §6, §8).
 
 Examples
 --------
@@ -13,16 +13,35 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 from ajtwin import units
+from ajtwin.config import load_toml
 
 
 @dataclass(frozen=True)
 class CfdParameters:
+    """The physical parameters the CFD macro-model uses (SI units).
+
+    Attributes
+    ----------
+    gas_viscosity : float
+        η_gas [Pa s].
+    droplet_density : float
+        ρ_p [kg/m³].
+    mean_free_path : float
+        λ [m].
+    gravity : float
+        g [m/s²].
+    nozzle_radius : float
+        r_N0 [m].
+    droplet_cv : float
+        Coefficient of variation of the droplet size [–].
+    droplet_spread_factor : float
+        Footprint diameter / droplet diameter [–].
+    """
+
     gas_viscosity: float  # η_gas [Pa s]
     droplet_density: float  # ρ_p [kg/m³]
     mean_free_path: float  # λ [m]
@@ -52,13 +71,8 @@ _NAMES = {
 
 def load_cfd_parameters(path: str | Path | None = None) -> CfdParameters:
     """Read the CFD-relevant entries of a parameter file (default: the packaged one)."""
-    if path is None:
-        text = (resources.files("ajtwin") / "data" / "parameters.toml").read_text()
-        where = "packaged parameters.toml"
-    else:
-        text = Path(path).read_text()
-        where = str(path)
-    raw = tomllib.loads(text)
+    where = "packaged parameters.toml" if path is None else str(path)
+    raw = load_toml(path, "data/parameters.toml", what="parameter")
     values = {}
     for field_name, key in _NAMES.items():
         if key not in raw or "value" not in raw[key] or "unit" not in raw[key]:

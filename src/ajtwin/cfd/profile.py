@@ -1,4 +1,4 @@
-"""From droplet landing radii to linewidth and overspray (SPEC §8, paper App. C.1).
+"""From droplet landing radii to linewidth and overspray (model reference §8, paper App. C.1).
 
 1. Each landing radius gets a random azimuth → a 2-D point on the substrate.
 2. The printed line sums the points along the print direction, so only the
@@ -10,7 +10,7 @@
 4. b = the longest interval where h > 0.8 h_max; L_w = 2.1 b (the paper's b/a).
 5. Linewidth edges at the centre of b ± L_w/2; on each side the overspray is the
    distance from the edge outward to where h falls to 1 % of h at that edge;
-   L_o is the mean of the two sides (SPEC §9 convention).
+   L_o is the mean of the two sides (model reference §9 convention).
 
 All lengths in µm here (the display unit of L_w and L_o).
 
@@ -126,7 +126,7 @@ def line_metrics(
     width_ratio: float = 2.1,
     edge_fraction: float = 0.01,
 ) -> dict:
-    """Linewidth and overspray of a CFD height profile (paper App. C.1, SPEC §8).
+    """Linewidth and overspray of a CFD height profile (paper App. C.1, model reference §8).
 
     Parameters
     ----------

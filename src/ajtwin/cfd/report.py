@@ -8,6 +8,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.cfd.fit import (
+    COEFFICIENT_KEYS,
+    fit_output_model,
+    fit_settings,
+    predict,
+    sensitivity_signs,
+)
+
 
 def sweep_metadata(sweep_dir: str | Path, table: pd.DataFrame) -> dict:
     """Design, mesh, OpenFOAM version, wall time and cell count of a finished sweep."""
@@ -61,7 +69,6 @@ def case_value(
 def validation(table: pd.DataFrame, fit: dict, resistance: dict) -> dict:
     """The issue's validation figures from one sweep (display units); the paper's
     reference points come from ``[paper_reference]`` in sweep.toml."""
-    from ajtwin.cfd.fit import fit_settings, predict, sensitivity_signs
 
     paper = fit_settings()["paper_reference"]
     return {
@@ -103,7 +110,6 @@ def mesh_comparison(
     droplet_range_um: tuple[float, float] | None = None,
 ) -> dict:
     """Coefficients fitted to the same cases on two meshes, and their change."""
-    from ajtwin.cfd.fit import COEFFICIENT_KEYS, fit_output_model
 
     a, b = matched_rows(coarse, fine)
     fit_a = fit_output_model(a, reference, max_speed_m_s, droplet_range_um)

@@ -1,4 +1,4 @@
-"""Parallel, resumable CFD sweep through Dask (SPEC §8).
+"""Parallel, resumable CFD sweep through Dask (model reference §8).
 
 Each gas case (ΔR_N, Q_c, Q_s) is one Dask task: OpenFOAM solve, then every
 droplet median d_a tracked on that one flow field. Cases whose ``result.json``
@@ -17,15 +17,17 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 import traceback
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import pandas as pd
+from tqdm import tqdm
 
+from ajtwin.cfd import foam
 from ajtwin.cfd.case import CaseSpec
+from ajtwin.cfd.run import run_case
+from ajtwin.config import load_toml
 
 SUMMARY_NAME = "summary.csv"
 SWEEP_META = "sweep.json"
@@ -33,6 +35,22 @@ SWEEP_META = "sweep.json"
 
 @dataclass
 class Design:
+    """A named sweep design of ``sweep.toml``: the cases and how droplets are tracked.
+
+    Attributes
+    ----------
+    name, description : str
+    cases : list of CaseSpec
+    droplet_diameters_um : list of float
+        Droplet sizes tracked on every case [µm].
+    n_droplets, azimuths : int
+        Droplets per size, and azimuthal copies of each.
+    nominal : (float, float, float)
+        The nominal (ΔR_N [µm], Q_c, Q_s [sccm]).
+    mesh_level : int
+    extra : dict
+    """
+
     name: str
     description: str
     cases: list[CaseSpec]
@@ -46,12 +64,7 @@ class Design:
 
 def load_design(name: str, path: str | Path | None = None, mesh_level: int | None = None) -> Design:
     """A named sweep design from ``sweep.toml`` (or ``path``); ``mesh_level`` overrides."""
-    text = (
-        (resources.files("ajtwin") / "cfd" / "sweep.toml").read_text()
-        if path is None
-        else Path(path).read_text()
-    )
-    designs = tomllib.loads(text).get("designs", {})
+    designs = load_toml(path, "cfd/sweep.toml", what="sweep").get("designs", {})
     if name not in designs:
         raise ValueError(f"unknown sweep design {name!r}; known: {', '.join(sorted(designs))}")
     d = designs[name]
@@ -77,7 +90,6 @@ def _case_task(
     spec_fields: dict, case_dir: str, diameters: list[float], n_droplets: int, azimuths: int
 ) -> dict:
     """Worker side: run one case; never raises (errors come back as data)."""
-    from ajtwin.cfd.run import run_case
 
     spec = CaseSpec(**spec_fields)
     start = time.perf_counter()
@@ -151,6 +163,7 @@ def summary_rows(result: dict) -> list[dict]:
 
 
 def write_summary(results: list[dict], root: Path) -> pd.DataFrame:
+    """Write ``summary.csv`` (one row per case and droplet size, sorted); the table."""
     rows = [row for result in results for row in summary_rows(result)]
     table = pd.DataFrame(rows)
     if not table.empty:
@@ -188,9 +201,6 @@ def run_sweep(
         Re-run cases that failed before (their ``failed.json`` is replaced).
     """
     from dask.distributed import Client, LocalCluster, as_completed
-    from tqdm import tqdm
-
-    from ajtwin.cfd import foam
 
     foam.foam_environment()  # fail early and clearly without OpenFOAM
     root = Path(root)

@@ -1,4 +1,4 @@
-"""Droplet tracking on the solved OpenFOAM gas field (one-way coupled, SPEC §8).
+"""Droplet tracking on the solved OpenFOAM gas field (one-way coupled, model reference §8).
 
 Why a Python tracker and not ``icoUncoupledKinematicParcelFoam``: the droplets
 need Stokes drag *with Cunningham slip* (not among v1912's drag models without
@@ -29,6 +29,7 @@ import numpy as np
 
 from ajtwin.cfd.flowfield import VelocityGrid
 from ajtwin.cfd.physics import CfdParameters
+from ajtwin.model.droplets import cunningham_slip_correction
 
 ACTIVE, LANDED, WALL, ESCAPED, STALLED = 0, 1, 2, 3, 4
 STATUS_NAMES = {
@@ -42,19 +43,33 @@ STATUS_NAMES = {
 
 def slip_correction(diameter_m, mean_free_path_m):
     """Cunningham C_c; the model's own implementation, as NumPy."""
-    from ajtwin.model.droplets import cunningham_slip_correction
 
     return np.asarray(cunningham_slip_correction(np.asarray(diameter_m), mean_free_path_m))
 
 
 @dataclass
 class TrackResult:
+    """Droplets tracked on a solved flow field.
+
+    Attributes
+    ----------
+    landing_radius : array
+        |r| where each droplet hit the substrate [m] (NaN otherwise).
+    status : array of int
+        ACTIVE/LANDED/WALL/ESCAPED/STALLED per droplet.
+    flight_time : array
+        [s].
+    steps : int
+        Integration steps taken.
+    """
+
     landing_radius: np.ndarray  # [m], |r| where the droplet hit the substrate (NaN otherwise)
     status: np.ndarray  # ACTIVE/LANDED/WALL/ESCAPED/STALLED per droplet
     flight_time: np.ndarray  # [s]
     steps: int
 
     def fractions(self) -> dict[str, float]:
+        """Share of the droplets per status name."""
         n = max(len(self.status), 1)
         return {STATUS_NAMES[k]: float(np.sum(self.status == k) / n) for k in STATUS_NAMES}
 

@@ -1,4 +1,4 @@
-"""State and parameter estimation (paper §7, SPEC §7): initial fit, EKF, RTS, EM."""
+"""State and parameter estimation (paper §7, model reference §7): initial fit, EKF, RTS, EM."""
 
 from ajtwin.estimation.em import m_step, run_em
 from ajtwin.estimation.filters import (

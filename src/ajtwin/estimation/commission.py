@@ -1,4 +1,4 @@
-"""Commissioning: fit a machine's calibration from a commissioning print (SPEC §11).
+"""Commissioning: fit a machine's calibration from a commissioning print (model reference §11).
 
 A commissioning print starts from a cleaned nozzle and a weighed fill and steps the
 inputs across the operating window (scenario ``commissioning``). The calibration c
@@ -11,7 +11,7 @@ started from the priors of ``data/commissioning.toml`` (overridden by ``known`` 
 and iterated: each pass re-linearises around the previous pass's calibration. The
 final covariance of c gives the standard errors; a parameter whose posterior σ is not
 below ``determined_ratio`` × its prior σ is reported as *not determined by the print*
-(its value is then the prior's). Confounded by construction (SPEC §11): the line
+(its value is then the prior's). Confounded by construction (model reference §11): the line
 offsets with d_a, the Q_m gain with φ_A — give ``known`` values to pin them.
 
 Examples
@@ -24,14 +24,14 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 
 import numpy as np
 
 from ajtwin._jax import jnp
+from ajtwin.config import packaged_toml
 from ajtwin.estimation.filters import DEFAULT_SCALING, ModelFunctions, ModelSpec, Scaling, ekf
+from ajtwin.estimation.twin import TwinConfig
 from ajtwin.model import DigitalModel
 from ajtwin.model.calibration import (
     CALIBRATION_NAMES,
@@ -41,14 +41,8 @@ from ajtwin.model.calibration import (
     Calibration,
     calibration_from_vector,
 )
-from ajtwin.model.system import (
-    N_STATES,
-    STATE_NAMES,
-    check_input,
-    euler_step,
-    output_function,
-    steady_aerosol_fraction,
-)
+from ajtwin.model.names import N_STATES, STATE_NAMES
+from ajtwin.model.system import check_input, euler_step, output_function, steady_aerosol_fraction
 
 N_CAL = len(CALIBRATION_NAMES)
 
@@ -58,8 +52,8 @@ class CommissioningError(ValueError):
 
 
 def load_commissioning_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "commissioning.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    """Commissioning's priors and checks with their provenance (``data/commissioning.toml``)."""
+    return packaged_toml("data/commissioning.toml")
 
 
 def _augmented_step(z, u, theta, params, dt):
@@ -271,8 +265,6 @@ def commission(
     CommissioningError
         The print is too short, has no input steps, or lacks camera/pressure data.
     """
-    from ajtwin.estimation.twin import TwinConfig
-
     if record is not None:
         inputs, measurements = record.inputs, record.outputs
         where = where or str(record.meta.get("source_file", "the commissioning print"))
@@ -298,33 +290,78 @@ def commission(
     unknown = sorted(set(known) - set(STATE_NAMES))
     if unknown:
         raise ValueError(f"known: unknown state(s) {unknown} (use {', '.join(STATE_NAMES)})")
-
-    prior = settings["state_prior"]
-    aerosol = float(steady_aerosol_fraction(inputs[0], vial_fill_ml, model.params))
-    priors = {
-        "droplet_diameter_um": (
-            prior["droplet_diameter_um"]["mean"],
-            prior["droplet_diameter_um"]["std"],
-        ),
-        "vial_volume_mL": (vial_fill_ml, prior["vial_volume_std_mL"]["value"]),
-        "tube_deposition_um": (
-            prior["tube_deposition_um"]["mean"],
-            prior["tube_deposition_um"]["std"],
-        ),
-        "nozzle_deposition_um": (
-            prior["nozzle_deposition_um"]["mean"],
-            prior["nozzle_deposition_um"]["std"],
-        ),
-        "aerosol_fraction": (aerosol, prior["aerosol_fraction_relative_std"]["value"] * aerosol),
-    }
-    priors.update({k: (float(m), float(s)) for k, (m, s) in known.items()})
-    x_mean = np.array([priors[n][0] for n in STATE_NAMES])
-    x_std = np.array([priors[n][1] for n in STATE_NAMES])
+    priors = state_priors(settings, inputs[0], vial_fill_ml, model, known)
     cal_prior_std = np.array(
         [float(settings["calibration_prior_std"][n]) for n in CALIBRATION_NAMES]
     )
-    cal_mean = np.array(IDENTITY, dtype=float)
+    result, cal_mean = _augmented_filter(
+        model, priors, cal_prior_std, inputs, measurements, process_std, measurement_std,
+        int(checks["passes"]), where,
+    )  # fmt: skip
+    end = np.asarray(result.means[-1])
+    end_cov = np.asarray(result.covariances[-1])
+    aerosol_std = None if "aerosol_fraction" in known else (
+        settings["state_prior"]["aerosol_fraction_relative_std"]["value"]
+    )  # fmt: skip
+    cal_std, calibration_cov = _calibration_errors(result, measurements, cal_mean, aerosol_std)
+    ratio = float(checks["determined_ratio"])
+    nis = np.asarray(result.nis)
+    n_meas = np.maximum(np.asarray(result.n_measured), 1)
+    return CommissioningResult(
+        calibration=Calibration(*(float(v) for v in cal_mean)),
+        std=dict(zip(CALIBRATION_NAMES, cal_std.tolist(), strict=True)),
+        prior_std=dict(zip(CALIBRATION_NAMES, cal_prior_std.tolist(), strict=True)),
+        determined={
+            n: bool(cal_std[i] < ratio * cal_prior_std[i]) for i, n in enumerate(CALIBRATION_NAMES)
+        },
+        priors={k: list(v) for k, v in priors.items()},
+        n_samples=len(inputs),
+        mean_nis=float(np.mean(nis / n_meas)),
+        end_state=end[:N_STATES],
+        end_state_std=np.sqrt(np.maximum(np.diag(end_cov)[:N_STATES], 0.0)),
+        end_state_cov=end_cov[:N_STATES, :N_STATES],
+        calibration_cov=calibration_cov,
+        noise_factors=noise_factors(result, measurements),
+        notes=_confounding_notes(priors, known, aerosol_std),
+    )
 
+
+def state_priors(settings: dict, u0, vial_fill_ml: float, model, known: dict) -> dict:
+    """The start state's prior {name: (mean, std)} (display units) of a commissioning print.
+
+    Parameters
+    ----------
+    settings : dict
+        ``data/commissioning.toml`` (its ``state_prior`` table).
+    u0 : array (3,)
+        The print's first inputs [mA, sccm, sccm] (φ_A's mean: the generation model there).
+    vial_fill_ml : float
+        The weighed fill [mL].
+    model : DigitalModel
+    known : dict
+        States known at the start {name: (mean, std)}; they replace the priors.
+    """
+    prior = settings["state_prior"]
+    aerosol = float(steady_aerosol_fraction(u0, vial_fill_ml, model.params))
+    priors = {
+        name: (prior[name]["mean"], prior[name]["std"])
+        for name in ("droplet_diameter_um", "tube_deposition_um", "nozzle_deposition_um")
+    }
+    priors["vial_volume_mL"] = (vial_fill_ml, prior["vial_volume_std_mL"]["value"])
+    relative = prior["aerosol_fraction_relative_std"]["value"]
+    priors["aerosol_fraction"] = (aerosol, relative * aerosol)
+    priors.update({k: (float(m), float(s)) for k, (m, s) in known.items()})
+    return {name: priors[name] for name in STATE_NAMES}
+
+
+def _augmented_filter(
+    model, priors, cal_prior_std, inputs, measurements, process_std, measurement_std, passes, where
+):
+    """The EKF over [x, c] (the calibration c as constant states), ``passes`` times, each
+    pass starting c where the last ended. Returns (the last filter result, c at its end)."""
+    x_mean = np.array([priors[n][0] for n in STATE_NAMES])
+    x_std = np.array([priors[n][1] for n in STATE_NAMES])
+    cal_mean = np.array(IDENTITY, dtype=float)
     scaling = Scaling(
         jnp.concatenate([DEFAULT_SCALING.state, jnp.asarray(cal_prior_std)]),
         DEFAULT_SCALING.output,
@@ -334,13 +371,11 @@ def commission(
     process_cov[:N_STATES, :N_STATES] = np.diag(process_std**2)
     prior_cov = np.diag(np.concatenate([x_std, cal_prior_std]) ** 2)
     thetas = np.zeros(N_STATES + N_CAL)
-
     result = None
-    for _ in range(int(checks["passes"])):
-        prior_mean = np.concatenate([x_mean, cal_mean])
+    for _ in range(passes):
         result = ekf(
             spec,
-            prior_mean,
+            np.concatenate([x_mean, cal_mean]),
             prior_cov,
             inputs,
             measurements,
@@ -353,55 +388,46 @@ def commission(
         if not np.all(np.isfinite(end)):
             raise CommissioningError(f"{where}: the commissioning filter diverged")
         cal_mean = end[N_STATES:]
+    return result, cal_mean
+
+
+def _calibration_errors(result, measurements, cal_mean, aerosol_relative_std):
+    """Standard errors (11,) and covariance Σ_c (11, 11) of the fitted calibration.
+
+    The filter's σ inflated by the residuals' misfit per output; the Q_m gain's σ also
+    carries the generation model's uncertainty (``aerosol_relative_std``, None when φ_A
+    was known): φ_A is held near H/Q_c by the model, so the filter's σ of the gain ignores
+    it. Σ_c keeps the filter's correlations with these standard errors.
+    """
     end_cov = np.asarray(result.covariances[-1])
     inflation = residual_inflation(result, measurements)
     cal_std = (
         np.sqrt(np.maximum(np.diag(end_cov)[N_STATES:], 0.0)) * inflation[list(PARAMETER_OUTPUT)]
     )
-    # φ_A is held near H/Q_c by the model, so the filter's σ of the Q_m gain ignores that
-    # the generation model itself is uncertain: add that (the aerosol prior) in quadrature
-    if "aerosol_fraction" not in known:
+    if aerosol_relative_std is not None:
         gain_index = CALIBRATION_NAMES.index("material_flow_gain")
-        relative = prior["aerosol_fraction_relative_std"]["value"]
-        cal_std[gain_index] = np.hypot(cal_std[gain_index], relative * cal_mean[gain_index])
-    # Σ_c: the filter's correlations with the (inflated) standard errors
+        cal_std[gain_index] = np.hypot(
+            cal_std[gain_index], aerosol_relative_std * cal_mean[gain_index]
+        )
     block = end_cov[N_STATES:, N_STATES:]
     raw_std = np.sqrt(np.maximum(np.diag(block), 1e-300))
     correlation = block / np.outer(raw_std, raw_std)
-    calibration_cov = correlation * np.outer(cal_std, cal_std)
-    ratio = float(checks["determined_ratio"])
-    determined = {
-        n: bool(cal_std[i] < ratio * cal_prior_std[i]) for i, n in enumerate(CALIBRATION_NAMES)
-    }
+    return cal_std, correlation * np.outer(cal_std, cal_std)
+
+
+def _confounding_notes(priors: dict, known: dict, aerosol_relative_std) -> list[str]:
+    """What the print could not separate, and which prior decided it instead."""
     notes = []
-    for name in ("linewidth_offset_um", "overspray_offset_um"):
-        if "droplet_diameter_um" not in known:
-            notes.append(
-                f"{name} rests on the droplet-size prior "
-                f"({priors['droplet_diameter_um'][0]}±{priors['droplet_diameter_um'][1]} µm): "
-                "d_a and the line offsets are confounded (SPEC §11)"
-            )
-            break
-    if "aerosol_fraction" not in known:
+    if "droplet_diameter_um" not in known:
+        mean, std = priors["droplet_diameter_um"]
+        notes.append(
+            f"linewidth_offset_um rests on the droplet-size prior ({mean}±{std} µm): "
+            "d_a and the line offsets are confounded (model reference §11)"
+        )
+    if aerosol_relative_std is not None:
         notes.append(
             "material_flow_gain rests on the aerosol-fraction prior (the generation model, "
-            f"±{prior['aerosol_fraction_relative_std']['value']:.0%}): φ_A and the Q_m gain "
-            "are confounded (SPEC §11)"
+            f"±{aerosol_relative_std:.0%}): φ_A and the Q_m gain are confounded "
+            "(model reference §11)"
         )
-    nis = np.asarray(result.nis)
-    n_meas = np.maximum(np.asarray(result.n_measured), 1)
-    return CommissioningResult(
-        calibration=Calibration(*(float(v) for v in cal_mean)),
-        std=dict(zip(CALIBRATION_NAMES, cal_std.tolist(), strict=True)),
-        prior_std=dict(zip(CALIBRATION_NAMES, cal_prior_std.tolist(), strict=True)),
-        determined=determined,
-        priors={k: list(v) for k, v in priors.items()},
-        n_samples=len(inputs),
-        mean_nis=float(np.mean(nis / n_meas)),
-        end_state=end[:N_STATES],
-        end_state_std=np.sqrt(np.maximum(np.diag(end_cov)[:N_STATES], 0.0)),
-        end_state_cov=end_cov[:N_STATES, :N_STATES],
-        calibration_cov=calibration_cov,
-        noise_factors=noise_factors(result, measurements),
-        notes=notes,
-    )
+    return notes

@@ -1,4 +1,4 @@
-"""Expectation–maximisation of the drift parameters θ (paper Algorithm 2, SPEC §7).
+"""Expectation–maximisation of the drift parameters θ (paper Algorithm 2, model reference §7).
 
 E-step: EKF + RTS over a window with θ⁽ⁱ⁾. M-step: minimise
 
@@ -38,6 +38,21 @@ from ajtwin.estimation.filters import (
 
 
 class EMStep(NamedTuple):
+    """The result of EM over one window.
+
+    Attributes
+    ----------
+    theta : array (5,)
+        The drift parameters θ [1/s].
+    iterations : int
+    converged : bool
+    log_likelihood : float
+        Of the window under the final θ's E-step.
+    filtered : FilterResult
+        Of the last E-step.
+    smoothed : SmootherResult
+    """
+
     theta: np.ndarray  # (5,)
     iterations: int
     converged: bool

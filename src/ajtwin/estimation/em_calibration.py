@@ -13,7 +13,7 @@ E-step (EKF + RTS over the window, the machine's calibration inside g):
 * **output noise variances** R_j = mean_k [ (r_kj − Δo_j)² + (H_k P_{k|N} H_kᵀ)_jj ]
   for L_w, L_o and Q_m, clipped to ``noise_bounds`` × the tuned value.
 
-Nothing about the pressures is learned online (SPEC §11): a pressure offset is
+Nothing about the pressures is learned online (model reference §11): a pressure offset is
 indistinguishable from nozzle deposition, so a learned one would hide a clog — and so
 would a pressure noise variance learned from a window with a clog in it (tried: the
 clog went undetected). Pressures change only at commissioning or maintenance.
@@ -27,12 +27,10 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
-from importlib import resources
-
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.config import packaged_toml
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 
 #: Outputs whose offset may be learned online: L_w, L_o (never the pressures).
@@ -43,8 +41,9 @@ LEARNABLE_NOISE = (0, 1, 4)
 
 
 def load_em_calibration_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "em_calibration.toml").open("rb") as handle:
-        return tomllib.load(handle)["em_calibration"]
+    """Which output parameters EM may learn online, with their provenance
+    (``data/em_calibration.toml``)."""
+    return packaged_toml("data/em_calibration.toml")["em_calibration"]
 
 
 def _as_calibrated(spec):

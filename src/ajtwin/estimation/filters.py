@@ -40,6 +40,8 @@ P_{k+1,k|N} = P_{k+1|N} J_kᵀ is returned for the EM M-step.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -78,6 +80,16 @@ def model_functions(method: str) -> ModelFunctions:
 
 
 class Scaling(NamedTuple):
+    """Scales that make the filter's arithmetic well conditioned.
+
+    Attributes
+    ----------
+    state : array (5,)
+        Typical size of each state (display units).
+    output : array (5,)
+        Typical size of each output.
+    """
+
     state: jnp.ndarray  # (5,)
     output: jnp.ndarray  # (5,)
 
@@ -115,6 +127,18 @@ class FilterResult(NamedTuple):
 
 
 class SmootherResult(NamedTuple):
+    """The RTS smoother over a print.
+
+    Attributes
+    ----------
+    means : array (T, 5)
+        x̂_{k|N}.
+    covariances : array (T, 5, 5)
+        P_{k|N}.
+    lag_one_covariances : array (T − 1, 5, 5)
+        Cov(x_{k+1}, x_k | all data).
+    """
+
     means: jnp.ndarray  # (T, 5) x̂_{k|N}
     covariances: jnp.ndarray  # (T, 5, 5) P_{k|N}
     lag_one_covariances: jnp.ndarray  # (T-1, 5, 5) Cov(x_{k+1}, x_k | all)
@@ -469,7 +493,7 @@ def ekf_fleet(
     The machines are filtered one after the other (``lax.map``), not vectorised
     (``vmap``): one machine's scan is small enough for XLA:CPU to compile into a
     single kernel (``ajtwin._jax``), a vmapped scan over the fleet is not and runs
-    op by op — about half the machine-steps per second (docs/performance.md). Same
+    op by op — about half the machine-steps per second (docs/explanation/performance.md). Same
     results as :func:`ekf` per machine.
     """
 
@@ -505,8 +529,6 @@ def ekf_fleet_threaded(
     ``workers``: default ``os.cpu_count()``, at most one block per machine. Returns
     NumPy arrays with the leading machine axis.
     """
-    import os
-    from concurrent.futures import ThreadPoolExecutor
 
     arrays = [np.asarray(a) for a in (prior_means, prior_covs, inputs, measurements, thetas)]
     n_machines = arrays[0].shape[0]

@@ -1,4 +1,4 @@
-"""Initial-state fit (paper §7.1, SPEC §7).
+"""Initial-state fit (paper §7.1, model reference §7).
 
     x̂₀ = argmin Σ_{k=1..n} ‖y_k − g(x₀, u_k)‖²_{Σ_w⁻¹}   s.t.  ΔR_T = ΔR_N = 0,
 
@@ -26,6 +26,22 @@ from ajtwin.model.system import output_function, steady_aerosol_fraction
 
 
 class InitialFit(NamedTuple):
+    """The initial-state fit.
+
+    Attributes
+    ----------
+    mean : array (5,)
+        Display units.
+    covariance : array (5, 5)
+    cost : float
+        ½ Σ weighted squared residuals at the optimum.
+    n_samples : int
+    success : bool
+    message : str
+    states_from_prior : tuple of str
+        States no early sample constrained (their start is the prior's).
+    """
+
     mean: np.ndarray  # (5,) display units
     covariance: np.ndarray  # (5, 5)
     cost: float  # ½ Σ weighted squared residuals at the optimum

@@ -21,7 +21,9 @@ import numpy as np
 import pandas as pd
 
 from ajtwin._jax import jax, jnp
+from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
 from ajtwin.estimation.em import run_em
+from ajtwin.estimation.em_calibration import output_m_step
 from ajtwin.estimation.filters import (
     DEFAULT_SCALING,
     FilterResult,
@@ -38,7 +40,10 @@ from ajtwin.estimation.record_checks import (
     check_output_scales,
     observed_states,
 )
+from ajtwin.estimation.vial import load_vial_settings, observe_vial
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
+from ajtwin.model.calibration import CalibratedCoefficients, Calibration
+from ajtwin.model.droplet_dynamics import DropletStep, augment_inputs, load_droplet_dynamics
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import check_input
 
@@ -56,7 +61,7 @@ class TwinConfig:
     # after the start; those >= window_s are dropped): θ_φA holds the print's atomizer
     # level from the first of them instead of from window_s on. Why 120 s: on held-out alt
     # machines the twin's φ_A level before the first EM left L_o and Q_m ±0.4…0.6σ off
-    # for 10 min, the most common false alarm (9 of ~40 events; docs/anomalies.md)
+    # for 10 min, the most common false alarm (9 of ~40 events; docs/explanation/detectors.md)
     early_em_s: tuple = (120,)
     em_max_iterations: int = 10
     em_tolerance: float = 1e-3  # nats per step
@@ -76,28 +81,30 @@ class TwinConfig:
     # V_l as a consider state (data/vial.toml [twin]): not updated from the confounded
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
-    # droplet-size dynamics: a profile of data/transition.toml ("paper" = SPEC §4 unchanged)
+    # droplet-size dynamics: a variant of data/transition.toml ("paper" = model reference §4
+    # unchanged)
     transition: str = "paper"
 
-    noise_profile: str = "calibrated"
+    noise_tuning: str = "calibrated"
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
     learn_line_offsets: bool = False
     learn_output_noise: bool = False
 
     @classmethod
     def default(
-        cls, model: DigitalModel | None = None, noise_profile: str = "calibrated", **overrides
+        cls, model: DigitalModel | None = None, noise_tuning: str = "calibrated", **overrides
     ) -> TwinConfig:
         """Filter tuning from ``noise.toml``.
 
-        ``noise_profile="calibrated"`` (default) or ``"paper"`` (SPEC §6 values,
+        ``noise_tuning="calibrated"`` (default) or ``"paper"`` (model reference §6 values,
         σ_Qm = 20 % of the nominal Q_m).
         """
         model = model or DigitalModel.default()
-        noise = load_noise(profile=noise_profile)
+        noise = load_noise(tuning=noise_tuning)
         proc = noise["process"]
         meas = noise["measurement"]
-        # nominal Q_m at the Exp 1 operating point (SPEC §6: the paper's value is unusable)
+        # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is
+        # unusable)
         u = np.array([375.0, 23.0, 50.0])
         phi = float(model.steady_aerosol_fraction(u, 1.0))
         q_m = float(model.outputs(np.array([3.5, 1.0, 0.0, 0.0, phi]), u)[4])
@@ -123,17 +130,12 @@ class TwinConfig:
             initial["droplet_prior_um"] = prior["droplet_diameter_mean_um"]
             initial["droplet_prior_std_um"] = prior["droplet_diameter_um"]
             initial["aerosol_prior_relative_std"] = prior["aerosol_fraction_relative"]
-        from ajtwin.estimation.vial import load_vial_settings
 
         initial["vial_consider"] = bool(load_vial_settings()["twin"]["vial_consider"])
-        base = replace(
-            cls(process, measurement, noise_profile=noise_profile, **initial), **overrides
-        )
+        base = replace(cls(process, measurement, noise_tuning=noise_tuning, **initial), **overrides)
         if base.transition != "paper":
-            from ajtwin.model.droplet_dynamics import load_droplet_dynamics
-
             dynamics = load_droplet_dynamics(base.transition)
-            # the profile's bound on θ_da (its MAP prior), unless the caller set one
+            # the variant's bound on θ_da (its MAP prior), unless the caller set one
             if dynamics.theta_prior_std > 0 and "theta_prior_std" not in overrides:
                 prior = list(base.theta_prior_std)
                 prior[0] = dynamics.theta_prior_std
@@ -203,6 +205,7 @@ class TwinRun:
 
     @property
     def means(self) -> np.ndarray:
+        """Filtered state means (T, 5), display units."""
         return np.asarray(self.filtered.means)
 
     def _total_cov(self, covariances) -> np.ndarray:
@@ -218,6 +221,7 @@ class TwinRun:
 
     @property
     def stds(self) -> np.ndarray:
+        """State σ (T, 5): the filter's, plus the calibration's share when known."""
         covariances = self._total_cov(self.filtered.covariances)
         return np.sqrt(np.maximum(np.diagonal(covariances, 0, 1, 2), 0))
 
@@ -245,7 +249,8 @@ class TwinRun:
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
         if self.vial is not None:
             # V_l above is the twin's consider state (fill − modelled draw); these read it
-            # from the measured Q_m with the atomizer's efficiency apart (docs/estimation.md)
+            # from the measured Q_m with the atomizer's efficiency apart
+            # (docs/explanation/vial-consider-state.md)
             frame["vial_observed_mL"] = self.vial.vial_ml
             frame["vial_observed_mL_std"] = self.vial.vial_std_ml
             frame["vial_loss_rate_mL_per_h"] = self.vial.loss_rate_ml_per_h
@@ -266,7 +271,7 @@ def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
     which contracts its variance to the process noise's (≈ 2.6 % against the prior's
     50 %), and on the virtual printer the truth's generation wander then lies outside
     ±2σ a third of the time. The offset of a real atomizer's generation from the model
-    is what no pressure can see (docs/reliability.md, "A machine without a camera").
+    is what no pressure can see (docs/validation.md, "A machine without a camera").
     Returns None when every state was fitted from data.
     """
     if initial is None or not initial.states_from_prior or seen is None:
@@ -282,15 +287,14 @@ def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
 
 
 def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFunctions:
-    """The model the estimators run: discretisation ``method`` and a ``transition`` profile.
+    """The model the estimators run: discretisation ``method`` and a ``transition`` variant.
 
-    ``transition`` names a profile of ``data/transition.toml``
+    ``transition`` names a variant of ``data/transition.toml``
     (:mod:`ajtwin.model.droplet_dynamics`); ``"paper"`` is the paper's model itself.
     """
     functions = model_functions(method)
     if transition == "paper":
         return functions
-    from ajtwin.model.droplet_dynamics import DropletStep, load_droplet_dynamics
 
     dynamics = load_droplet_dynamics(transition)
     if dynamics.is_paper:
@@ -364,7 +368,7 @@ class Twin:
     theta : array (5,), optional
         Starting drift parameters (the machine's learned θ; default zeros).
     calibration : Calibration, optional
-        The machine's calibration of the output model (SPEC §11); None = the nominal
+        The machine's calibration of the output model (model reference §11); None = the nominal
         machine (the packaged model exactly).
     calibration_cov : array (11, 11), optional
         Its covariance from commissioning: the reported state σ then include what the
@@ -392,8 +396,6 @@ class Twin:
         self._learned_var = None
         coefficients = jnp.asarray(model.coefficient_matrix)
         if calibration is not None:
-            from ajtwin.model.calibration import CalibratedCoefficients
-
             coefficients = CalibratedCoefficients(coefficients, calibration)
         update_mask = None
         if config.vial_consider:
@@ -406,6 +408,18 @@ class Twin:
     def default(
         cls, calibration=None, calibration_cov=None, noise_factors=None, **config_overrides
     ) -> Twin:
+        """The twin on the packaged model, optionally calibrated to a machine.
+
+        Parameters
+        ----------
+        calibration : Calibration, optional
+        calibration_cov : array (11, 11), optional
+            Its covariance.
+        noise_factors : array (5,), optional
+            The machine's output noise over the tuned σ.
+        **config_overrides
+            :class:`TwinConfig` fields.
+        """
         model = DigitalModel.default()
         return cls(
             model,
@@ -418,26 +432,26 @@ class Twin:
     # ------------------------------------------------------------------ #
     @property
     def droplet_dynamics(self):
-        """The transition profile (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
-        from ajtwin.model.droplet_dynamics import load_droplet_dynamics
+        """The transition variant (:mod:`ajtwin.model.droplet_dynamics`) the twin runs."""
 
         return load_droplet_dynamics(self.config.transition)
 
     def model_inputs(self, inputs, response0: float | None = None) -> np.ndarray:
         """Inputs (T, 3) as the transition reads them: with the input-response column
-        (T, 4) for an ``input_following`` profile, unchanged otherwise."""
+        (T, 4) for an ``input_following`` variant, unchanged otherwise."""
         if self.config.transition == "paper":
             return np.asarray(inputs, dtype=float)
-        from ajtwin.model.droplet_dynamics import augment_inputs
 
         return augment_inputs(inputs, self.droplet_dynamics, response0, self.spec.dt)
 
     @property
     def process_cov(self) -> np.ndarray:
+        """Σ_ξ: the process noise covariance (5, 5) per second."""
         return np.diag(np.asarray(self.config.process_std) ** 2)
 
     @property
     def measurement_std(self) -> np.ndarray:
+        """Output noise σ (5,) [µm, µm, Pa, Pa, mL/s], calibrated to the machine."""
         std = np.asarray(self.config.measurement_std, dtype=float)
         if self.calibration is not None:
             # σ_Qm is relative to the nominal Q_m (noise.toml): it scales with the gain
@@ -449,14 +463,13 @@ class Twin:
 
     @property
     def measurement_var(self) -> np.ndarray:
+        """Output noise variances (5,): learned online when EM learns them, else σ²."""
         if self._learned_var is not None:
             return self._learned_var
         return self.measurement_std**2
 
     def _output_em(self, smoothed, inputs, measurements) -> dict:
         """Line offsets and output noise by EM over a window (pressures never)."""
-        from ajtwin.estimation.em_calibration import output_m_step
-        from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 
         c = self.config
         commissioned = self.commissioned_calibration or Calibration.identity()
@@ -486,6 +499,7 @@ class Twin:
 
     @property
     def theta_prior_precision(self) -> np.ndarray:
+        """Precision (5,) of θ's prior in EM (0: none; V_l's held at 0 as a consider state)."""
         std = np.asarray(self.config.theta_prior_std, dtype=float)
         precision = np.where(np.isfinite(std), 1.0 / std**2, 0.0)
         if self.config.vial_consider:
@@ -495,6 +509,15 @@ class Twin:
         return precision
 
     def initial_state(self, inputs, measurements) -> InitialFit:
+        """The initial-state fit over the first ``initial_samples`` samples.
+
+        Parameters
+        ----------
+        inputs : array (T, 3)
+            [mA, sccm, sccm].
+        measurements : array (T, 5)
+            Display units, NaN = not measured.
+        """
         c = self.config
         return fit_initial_state(
             self.model.params,
@@ -555,6 +578,61 @@ class Twin:
         progress : callable(int), optional
             Called with the number of steps done (for a progress bar).
         """
+        inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
+        n = len(inputs)
+        initial = None
+        if start is None:
+            initial = self.initial_state(inputs, measurements)
+            mean, cov = initial.mean, initial.covariance
+        else:
+            mean, cov = (np.asarray(a, dtype=float) for a in start)
+        start_mean, start_cov = mean.copy(), cov.copy()
+        seen = observed_states(
+            self.model.params,
+            self.spec.coefficients,
+            start_mean,
+            self.limits.upper - self.limits.lower,
+            inputs,
+            measurements,
+            self.config.measurement_std,
+        )
+        # the transition variant's extra input column (input response), if it has one
+        model_inputs = self.model_inputs(inputs)
+        if not self.config.em:
+            thetas = np.tile(self.theta, (n, 1))
+            filtered = self._filter(mean, cov, model_inputs, measurements, self.theta)
+            theta, history = self.theta.copy(), []
+            if progress:
+                progress(n)
+        else:
+            filtered, theta, thetas, history = self._filter_with_em(
+                mean, cov, model_inputs, measurements, time_s, progress
+            )
+        smoothed = None
+        if smooth:
+            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
+            smoothed = rts_smoother(self.spec, consistent)
+        self.theta = theta
+        return TwinRun(
+            time_s=time_s,
+            filtered=filtered,
+            smoothed=smoothed,
+            theta_per_step=thetas,
+            theta_history=_theta_history_frame(history),
+            initial=initial,
+            start_mean=start_mean,
+            start_cov=start_cov,
+            end_mean=np.asarray(filtered.means[-1]),
+            end_cov=np.asarray(filtered.covariances[-1]),
+            calibration_covariances=self._calibration_covariances(filtered, model_inputs),
+            seen=seen,
+            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
+            vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
+        )
+
+    def _checked_arrays(self, record, inputs, measurements, time_s):
+        """Inputs (T, 3), measurements (T, 5) and times (T,) of a print, checked against the
+        model (a record's inputs and output scales; shapes; at least 2 samples)."""
         if record is not None:
             inputs, measurements, time_s = record.inputs, record.outputs, record.time_s
             where = str(record.meta.get("source_file", "<record>"))
@@ -575,153 +653,124 @@ class Twin:
         if n < 2:
             raise ValueError("a print needs at least 2 samples")
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
+        return inputs, measurements, time_s
 
-        initial = None
-        if start is None:
-            initial = self.initial_state(inputs, measurements)
-            mean, cov = initial.mean, initial.covariance
-        else:
-            mean, cov = (np.asarray(a, dtype=float) for a in start)
-        start_mean, start_cov = mean.copy(), cov.copy()
-        seen = observed_states(
-            self.model.params,
-            self.spec.coefficients,
-            start_mean,
-            self.limits.upper - self.limits.lower,
-            inputs,
-            measurements,
-            self.config.measurement_std,
-        )
+    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress):
+        """The filter in chunks between EM boundaries; EM over the trailing window at each
+        boundary, its θ and re-filtered end state taking effect from there (the module's
+        chunking). Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
         c = self.config
-        # the transition profile's extra input column (input response), if it has one
-        model_inputs = self.model_inputs(inputs)
+        n = len(model_inputs)
+        every, window = int(c.every_s), int(c.window_s)
+        if every < 1 or window < 2:
+            raise ValueError("EM needs every_s >= 1 and window_s >= 2")
+        early = em_early_steps(c)
         theta = self.theta.copy()
-        history = []
         thetas = np.zeros((n, 5))
-
-        if not c.em:
-            thetas[:] = theta
-            filtered = self._filter(mean, cov, model_inputs, measurements, theta)
-            if progress:
-                progress(n)
-        else:
-            every, window = int(c.every_s), int(c.window_s)
-            if every < 1 or window < 2:
-                raise ValueError("EM needs every_s >= 1 and window_s >= 2")
-            early = em_early_steps(c)
-            pieces, starts = [], []
-            pos = 0
-            while pos < n:
-                end = min(next_em_boundary(pos, every, early), n)
-                seg = self._filter(
-                    mean,
-                    cov,
-                    _pad(model_inputs[pos:end], every, None),
-                    _pad(measurements[pos:end], every, np.nan),
-                    theta,
+        pieces, starts, history = [], [], []
+        pos = 0
+        while pos < n:
+            end = min(next_em_boundary(pos, every, early), n)
+            seg = self._filter(
+                mean,
+                cov,
+                _pad(model_inputs[pos:end], every, None),
+                _pad(measurements[pos:end], every, np.nan),
+                theta,
+            )
+            seg = _slice(seg, end - pos)
+            pieces.append(seg)
+            starts.append(pos)
+            thetas[pos:end] = theta
+            last_mean = np.asarray(seg.means[-1])
+            last_cov = np.asarray(seg.covariances[-1])
+            pos = end
+            if em_due(pos, every, window, early) and pos < n:
+                w0 = max(pos - window, 0)
+                em, learned = self._em_over_window(
+                    pieces, starts, w0, pos, model_inputs, measurements, theta
                 )
-                seg = _slice(seg, end - pos)
-                pieces.append(seg)
-                starts.append(pos)
-                thetas[pos:end] = theta
-                last_mean = np.asarray(seg.means[-1])
-                last_cov = np.asarray(seg.covariances[-1])
-                pos = end
-                if em_due(pos, every, window, early) and pos < n:
-                    w0 = max(pos - window, 0)
-                    # the piece holding step w0
-                    piece = int(np.searchsorted(starts, w0, side="right")) - 1
-                    offset = w0 - starts[piece]
-                    prior_mean = pieces[piece].predicted_means[offset]
-                    prior_cov = pieces[piece].predicted_covariances[offset]
-                    em = run_em(
-                        self.spec,
-                        prior_mean,
-                        prior_cov,
-                        model_inputs[w0:pos],
-                        measurements[w0:pos],
-                        theta,
-                        self.process_cov,
-                        self.measurement_var,
-                        theta_prior_precision=self.theta_prior_precision,
-                        max_iterations=c.em_max_iterations,
-                        tolerance=c.em_tolerance,
-                        gate=c.gate_sigma,
-                        functions=self.functions,
-                    )
-                    theta = em.theta
-                    learned = {}
-                    if c.learn_line_offsets or c.learn_output_noise:
-                        learned = self._output_em(
-                            em.smoothed, model_inputs[w0:pos], measurements[w0:pos]
-                        )
-                    last_mean = np.asarray(em.filtered.means)[-1]
-                    last_cov = np.asarray(em.filtered.covariances)[-1]
-                    history.append(
-                        {
-                            "time_s": float(time_s[pos - 1]),
-                            "window_start_s": float(time_s[w0]),
-                            "iterations": em.iterations,
-                            "converged": em.converged,
-                            "log_likelihood": em.log_likelihood,
-                            **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
-                            **learned,
-                        }
-                    )
-                if pos < n:
-                    mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
-                if progress:
-                    progress(pos)
-            filtered = _concat(pieces)
+                theta = em.theta
+                last_mean = np.asarray(em.filtered.means)[-1]
+                last_cov = np.asarray(em.filtered.covariances)[-1]
+                history.append(
+                    {
+                        "time_s": float(time_s[pos - 1]),
+                        "window_start_s": float(time_s[w0]),
+                        "iterations": em.iterations,
+                        "converged": em.converged,
+                        "log_likelihood": em.log_likelihood,
+                        **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
+                        **learned,
+                    }
+                )
+            if pos < n:
+                mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
+            if progress:
+                progress(pos)
+        return _concat(pieces), theta, thetas, history
 
-        smoothed = None
-        if smooth:
-            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
-            smoothed = rts_smoother(self.spec, consistent)
-        self.theta = theta
-        calibration_covariances = None
-        if self.calibration is not None and self.calibration_cov is not None:
-            from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
-
-            calibration_covariances = calibration_state_covariance(
-                self.spec,
-                filtered,
-                model_inputs,
-                self.measurement_var,
-                self.calibration_cov,
-                self.functions,
-            )
-        vial = None
-        if np.isfinite(measurements[:, 4]).any():
-            from ajtwin.estimation.vial import observe_vial
-
-            gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
-            vial = observe_vial(
-                inputs,
-                measurements[:, 4],
-                fill_ml=float(start_mean[1]),
-                fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
-                material_flow_gain=abs(gain),
-                params=self.model.params,
-            )
-        columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
-            f"theta_{name}" for name in STATE_NAMES
-        ]
-        if history and len(history[-1]) > len(columns):
-            columns += [k for k in history[-1] if k not in columns]
-        return TwinRun(
-            time_s=time_s,
-            filtered=filtered,
-            smoothed=smoothed,
-            theta_per_step=thetas,
-            theta_history=pd.DataFrame(history, columns=columns),
-            initial=initial,
-            start_mean=start_mean,
-            start_cov=start_cov,
-            end_mean=np.asarray(filtered.means[-1]),
-            end_cov=np.asarray(filtered.covariances[-1]),
-            calibration_covariances=calibration_covariances,
-            seen=seen,
-            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
-            vial=vial,
+    def _em_over_window(self, pieces, starts, w0, pos, model_inputs, measurements, theta):
+        """EM over steps [w0, pos) from the filter's prediction of step w0 (in the chunk that
+        holds it); with ``learn_line_offsets``/``learn_output_noise`` also the output EM.
+        Returns (EM result, the learned output parameters as a dict)."""
+        c = self.config
+        piece = int(np.searchsorted(starts, w0, side="right")) - 1
+        offset = w0 - starts[piece]
+        em = run_em(
+            self.spec,
+            pieces[piece].predicted_means[offset],
+            pieces[piece].predicted_covariances[offset],
+            model_inputs[w0:pos],
+            measurements[w0:pos],
+            theta,
+            self.process_cov,
+            self.measurement_var,
+            theta_prior_precision=self.theta_prior_precision,
+            max_iterations=c.em_max_iterations,
+            tolerance=c.em_tolerance,
+            gate=c.gate_sigma,
+            functions=self.functions,
         )
+        learned = {}
+        if c.learn_line_offsets or c.learn_output_noise:
+            learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
+        return em, learned
+
+    def _calibration_covariances(self, filtered, model_inputs):
+        """The states' covariance from the calibration's uncertainty (None: none given)."""
+        if self.calibration is None or self.calibration_cov is None:
+            return None
+        return calibration_state_covariance(
+            self.spec,
+            filtered,
+            model_inputs,
+            self.measurement_var,
+            self.calibration_cov,
+            self.functions,
+        )
+
+    def _observe_vial(self, inputs, measurements, start_mean, start_cov):
+        """The vial observer over the print's Q_m (None when Q_m was never measured)."""
+        if not np.isfinite(measurements[:, 4]).any():
+            return None
+        gain = 1.0 if self.calibration is None else float(self.calibration.material_flow_gain)
+        return observe_vial(
+            inputs,
+            measurements[:, 4],
+            fill_ml=float(start_mean[1]),
+            fill_std_ml=float(np.sqrt(max(start_cov[1, 1], 1e-12))),
+            material_flow_gain=abs(gain),
+            params=self.model.params,
+        )
+
+
+def _theta_history_frame(history: list) -> pd.DataFrame:
+    """EM's history as a table: time, window start, iterations, convergence, log-likelihood,
+    θ per state (and the learned output parameters, when learned)."""
+    columns = ["time_s", "window_start_s", "iterations", "converged", "log_likelihood"] + [
+        f"theta_{name}" for name in STATE_NAMES
+    ]
+    if history and len(history[-1]) > len(columns):
+        columns += [k for k in history[-1] if k not in columns]
+    return pd.DataFrame(history, columns=columns)

@@ -1,7 +1,7 @@
 """The vial observer: the ink volume V_l told apart from the atomizer's efficiency.
 
 No output of the twin measures V_l. Its only signature is the droplet generation
-H(V_l, Q_c, I_A) (SPEC §4) behind the measured material flow: at the aerosol's steady
+H(V_l, Q_c, I_A) (model reference §4) behind the measured material flow: at the aerosol's steady
 state (φ_A relaxes in ~5 s) Q_m = g φ_m η H, with g the machine's Q_m gain and η the
 atomizer's efficiency relative to the generation fit. Q_m alone sees only the product
 η H(V_l). What separates the two is *how* they may change:
@@ -57,14 +57,13 @@ Example
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from typing import NamedTuple
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.config import load_toml
 from ajtwin.model.atomizer import net_droplet_generation
 from ajtwin.model.parameters import PhysicalParameters, load_parameters
 
@@ -75,15 +74,7 @@ _MIN_GENERATION = 1e-12
 
 def load_vial_settings(path=None) -> dict:
     """``data/vial.toml`` as ``{"twin": {...}, "observer": {...}, "low": {...}}`` of values."""
-    if path is None:
-        with (resources.files("ajtwin") / "data" / "vial.toml").open("rb") as fh:
-            raw = tomllib.load(fh)
-    else:
-        from pathlib import Path
-
-        from ajtwin.io.files import read_toml_file
-
-        raw = read_toml_file(Path(path), what="vial settings")
+    raw = load_toml(path, "data/vial.toml", what="vial settings")
     out = {}
     for group in ("twin", "observer", "low"):
         if group not in raw:
@@ -112,6 +103,8 @@ class VialSettings:
 
     @classmethod
     def load(cls, path=None) -> VialSettings:
+        """The observer's and the low-vial rule's settings from ``data/vial.toml`` (or a user's
+        file)."""
         raw = load_vial_settings(path)
         return cls(**raw["observer"], **raw["low"])
 
@@ -133,6 +126,16 @@ class ObserverModel(NamedTuple):
 def observer_model(
     settings: VialSettings, params: PhysicalParameters | None = None, dt: float = 1.0
 ) -> ObserverModel:
+    """The vial observer's linear-Gaussian model for one step of ``dt`` seconds.
+
+    Parameters
+    ----------
+    settings : VialSettings
+    params : PhysicalParameters, optional
+        Default: the packaged parameters.
+    dt : float
+        Step [s].
+    """
     params = params or load_parameters()
     s = settings
     decay = float(np.exp(-dt / s.efficiency_wander_time_s))
@@ -174,6 +177,17 @@ def _observation(x, u, model: ObserverModel):
 
 
 class ObserverCarry(NamedTuple):
+    """The vial observer's state between steps.
+
+    Attributes
+    ----------
+    mean : array (4,)
+        x̂_{k|k−1}: V_l [mL], loss rate r [mL/h], efficiency offset c and wander w.
+    cov : array (4, 4)
+    step_low, step_high : array ()
+        CUSUMs of a downward and an upward step of Q_m against the prediction.
+    """
+
     mean: jnp.ndarray  # (4,) x̂_{k|k−1}
     cov: jnp.ndarray  # (4, 4)
     step_low: jnp.ndarray  # () CUSUM of a downward step of Q_m against the prediction
@@ -323,18 +337,22 @@ class VialEstimate:
 
     @property
     def vial_ml(self) -> np.ndarray:
+        """V_l per step [mL]."""
         return self.means[:, 0]
 
     @property
     def vial_std_ml(self) -> np.ndarray:
+        """σ of V_l per step [mL]."""
         return np.sqrt(np.maximum(self.covariances[:, 0, 0], 0.0))
 
     @property
     def loss_rate_ml_per_h(self) -> np.ndarray:
+        """The vial's unmodelled loss rate per step [mL/h]."""
         return self.means[:, 1]
 
     @property
     def efficiency(self) -> np.ndarray:
+        """The atomizer's efficiency exp(c + w) per step [–]."""
         return np.exp(self.means[:, 2] + self.means[:, 3])
 
     def first_running_low_s(self, time_s) -> float:
@@ -402,6 +420,9 @@ class VialObserver:
         self.latched = False
 
     def update(self, u, material_flow: float) -> VialStatus:
+        """One second: inputs u (3,) [mA, sccm, sccm] and the measured Q_m [mL/s] (NaN: not
+        measured); the vial's status now ('running low' latches).
+        """
         u = np.asarray(u, dtype=float)
         self.carry, (mean, cov, _, self.held) = _step_jit(
             self.model, self.carry, jnp.asarray(u), float(material_flow), self.gain

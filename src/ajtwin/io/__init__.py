@@ -1,4 +1,5 @@
-"""ajtwin.io — print records (machine logs and virtual prints), see docs/record_format.md."""
+"""ajtwin.io — print records (machine logs and virtual prints), see
+docs/reference/record-format.md."""
 
 from ajtwin.io.records import (
     DEFAULT_META,

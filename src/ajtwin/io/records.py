@@ -3,7 +3,7 @@
 A :class:`PrintRecord` holds
 
 * ``data`` — a pandas DataFrame sampled at 1 Hz with the columns of
-  :data:`INPUT_COLUMNS` and :data:`OUTPUT_COLUMNS` (display units, SPEC §3) after
+  :data:`INPUT_COLUMNS` and :data:`OUTPUT_COLUMNS` (display units, model reference §3) after
   ``time_s``, optionally the truth columns :data:`TRUTH_COLUMNS` of a virtual print.
   NaN means "no measurement at this second" and is kept as such.
 * ``meta`` — a dict with at least ``machine_id``, ``scenario``, ``seed``,
@@ -16,7 +16,7 @@ CSV with only the columns is valid and gets :data:`DEFAULT_META`). Messy logs ar
 handled in the open: column aliases (``aliases.toml``), NaN kept, irregular time
 stamps resampled to 1 s with a warning; a wrong unit scale, non-monotonic time, a
 missing required column or a non-numeric cell is rejected with an error naming the
-file, row and column. The schema is documented in ``docs/record_format.md``.
+file, row and column. The schema is documented in ``docs/reference/record-format.md``.
 
 Examples
 --------
@@ -33,20 +33,19 @@ Examples
 
 from __future__ import annotations
 
+import codecs
 import copy
 import csv
 import json
 import math
-import tomllib
 import warnings
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from ajtwin.io.files import InputFileError, check_regular_file, read_toml_file
+from ajtwin.config import InputFileError, check_regular_file, packaged_toml, read_toml
 
 FORMAT_VERSION = 1
 PARQUET_META_KEY = b"ajtwin"
@@ -235,6 +234,7 @@ class PrintRecord:
 
     @property
     def has_truth(self) -> bool:
+        """Whether the record carries the true states (a virtual print)."""
         return all(c in self.data.columns for c in TRUTH_COLUMNS)
 
     @property
@@ -246,6 +246,7 @@ class PrintRecord:
 
     @property
     def duration_s(self) -> float:
+        """Time from the first to the last sample [s]."""
         t = self.time_s
         return float(t[-1] - t[0]) if len(t) else 0.0
 
@@ -273,11 +274,9 @@ def load_aliases(path: str | Path | None = None) -> dict[str, str]:
 
     Keys are lower-cased and stripped; the canonical names map to themselves.
     """
-    tables = []
-    with (resources.files("ajtwin.io") / "aliases.toml").open("rb") as fh:
-        tables.append(tomllib.load(fh))
+    tables = [packaged_toml("io/aliases.toml")]
     if path is not None:
-        tables.append(read_toml_file(Path(path), what="alias"))
+        tables.append(read_toml(path, what="alias"))
     mapping: dict[str, str] = {c.lower(): c for c in UNITS}
     for table in tables:
         aliases = table.get("aliases", {})
@@ -380,7 +379,7 @@ def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
         raise RecordError(
             f"{where}: missing required column(s) {', '.join(map(repr, missing))}; "
             f"found {', '.join(map(repr, map(str, df.columns)))}. If your log names them "
-            "differently, add the names to an alias file (see docs/record_format.md)."
+            "differently, add the names to an alias file (see docs/reference/record-format.md)."
         )
     if "material_flow_mL_s" not in df.columns:
         warnings.warn(
@@ -732,7 +731,6 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
 
 def _first_non_utf8(path: Path) -> tuple[int, int]:
     """File line (from 1) and value of the first byte that is not valid UTF-8."""
-    import codecs
 
     decoder = codecs.getincrementaldecoder("utf-8")()
     lines = 1
@@ -967,7 +965,8 @@ def write_record(record: PrintRecord, path: str | Path) -> Path:
         pq.write_table(table.replace_schema_metadata(schema_meta), path)
     elif suffix == ".csv":
         with path.open("w", encoding="utf-8", newline="") as fh:
-            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} (docs/record_format.md)\n")
+            page = "docs/reference/record-format.md"
+            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} ({page})\n")
             fh.write(CSV_META_PREFIX + json.dumps(meta) + "\n")
             record.data.to_csv(fh, index=False)
     else:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.job.errors import ProgramError, ProgramWarning
+from ajtwin.job.geometry import segment_bbox
 from ajtwin.job.job import (
     SEGMENT_FIELDS,
     TIMELINE_COLUMNS,
@@ -198,7 +199,6 @@ def _line_text(text: str, line: int) -> str:
 
 def _check_travel(job: Job, stage: Stage, origin, text: str) -> None:
     """Refuse motion that does not fit in the stage's travel (naming its line)."""
-    from ajtwin.job.geometry import segment_bbox
 
     s = job.segments
     moving = np.flatnonzero(s["kind"] != KIND_DWELL)

@@ -24,6 +24,7 @@ import pandas as pd
 
 from ajtwin.job.errors import ProgramError
 from ajtwin.job.geometry import arc_steps, point_at, segment_bbox, tangent_at
+from ajtwin.job.locate import TraceIndex
 from ajtwin.job.program import (
     KIND_ARC,
     KIND_DWELL,
@@ -460,22 +461,27 @@ class Job:
 
     @property
     def segments(self) -> dict:
+        """The segment arrays by field name (:data:`SEGMENT_FIELDS`), one entry per segment."""
         return self._seg
 
     @property
     def n_segments(self) -> int:
+        """Segments of the timeline (lines, arcs, dwells)."""
         return int(self._seg["t0_s"].size)
 
     @property
     def n_strokes(self) -> int:
+        """Strokes: runs of segments printed with the shutter open."""
         return int(self._stroke_first.size)
 
     @property
     def duration_s(self) -> float:
+        """Time from the program's start to the end of its last segment [s]."""
         return float(self._seg["t1_s"][-1])
 
     @property
     def repetitions(self) -> int:
+        """How many times the program runs (its repetition offsets)."""
         return int(self.repetition_offsets_s.size)
 
     def segment_table(self) -> pd.DataFrame:
@@ -948,7 +954,6 @@ class Job:
 
     def trace_index(self, cell_mm: float | None = None):
         """The spatial index of the printed traces (built once per cell size, then cached)."""
-        from ajtwin.job.locate import TraceIndex
 
         key = cell_mm
         if key not in self._index:

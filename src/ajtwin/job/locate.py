@@ -83,6 +83,7 @@ class TraceHits:
     y_mm: np.ndarray
 
     def to_frame(self) -> pd.DataFrame:
+        """The hits as a table, one row per query point."""
         return pd.DataFrame({name: getattr(self, name) for name in self.__dataclass_fields__})
 
 

@@ -162,6 +162,36 @@ class _Stop(Exception):
     """STOP reached: the program ends."""
 
 
+def _gui_speeds(stage: Stage, process_speed_mm_s, rapid_speed_mm_s) -> tuple[tuple, tuple]:
+    """(value [mm/s], kind, origin) of the GUI's process and rapid speeds: the given ones,
+    else the defaults of ``stage.toml``."""
+    if process_speed_mm_s is None:
+        proc = (
+            stage.process_speed_mm_s,
+            "default",
+            f"the GUI's process speed, default of stage.toml ({stage.process_speed_source})",
+        )
+    else:
+        proc = (
+            _positive_speed(process_speed_mm_s, "process_speed_mm_s"),
+            "given",
+            "the GUI's process speed (given)",
+        )
+    if rapid_speed_mm_s is None:
+        rapid = (
+            stage.rapid_speed_mm_s,
+            "default",
+            f"the GUI's rapid speed, default of stage.toml ({stage.rapid_speed_source})",
+        )
+    else:
+        rapid = (
+            _positive_speed(rapid_speed_mm_s, "rapid_speed_mm_s"),
+            "given",
+            "the GUI's rapid speed (given)",
+        )
+    return proc, rapid
+
+
 class _Reader:
     def __init__(
         self,
@@ -187,30 +217,7 @@ class _Reader:
 
         self.sources: list[SpeedSource] = []
         self._source_index: dict[tuple, int] = {}
-        if process_speed_mm_s is None:
-            proc = (
-                stage.process_speed_mm_s,
-                "default",
-                f"the GUI's process speed, default of stage.toml ({stage.process_speed_source})",
-            )
-        else:
-            proc = (
-                _positive_speed(process_speed_mm_s, "process_speed_mm_s"),
-                "given",
-                "the GUI's process speed (given)",
-            )
-        if rapid_speed_mm_s is None:
-            rapid = (
-                stage.rapid_speed_mm_s,
-                "default",
-                f"the GUI's rapid speed, default of stage.toml ({stage.rapid_speed_source})",
-            )
-        else:
-            rapid = (
-                _positive_speed(rapid_speed_mm_s, "rapid_speed_mm_s"),
-                "given",
-                "the GUI's rapid speed (given)",
-            )
+        proc, rapid = _gui_speeds(stage, process_speed_mm_s, rapid_speed_mm_s)
         # name -> (value or None, origin, kind, text when not computable)
         self.env: dict[str, tuple] = {
             "gdblprocessspeed": (proc[0], proc[2], proc[1], None),
@@ -269,7 +276,11 @@ class _Reader:
         self.skip_motion = 0
 
         self.axes_cache: dict[str, tuple] = {}
-        self.handlers = {
+        self.handlers = self._command_handlers()
+
+    def _command_handlers(self) -> dict:
+        """The reader's method for each command word of the program (lower case)."""
+        return {
             "ptp": self._ptp,
             "mseg": self._mseg,
             "xseg": self._mseg,

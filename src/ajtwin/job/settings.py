@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from functools import cache
-from importlib import resources
 from pathlib import Path
+
+from ajtwin.config import load_toml
 
 __all__ = ["Stage", "ReaderSettings", "load_stage", "load_reader_settings"]
 
@@ -52,12 +52,8 @@ class ReaderSettings:
 
 
 def _read(name: str, path: str | Path | None) -> dict:
-    source = resources.files("ajtwin") / "data" / name if path is None else Path(path)
-    with source.open("rb") as handle:
-        try:
-            return tomllib.load(handle)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{source}: not valid TOML: {exc}") from None
+    # a user's file must be a regular file of bounded size; errors name it (InputFileError)
+    return load_toml(path, f"data/{name}", what=name.removesuffix(".toml"))
 
 
 def _positive(table: dict, key: str, where: str) -> float:

@@ -3,20 +3,20 @@
 :class:`ControlLink` follows one machine the way ``ajtwin live`` does (the login, security
 and refusal handling of :class:`ajtwin.live.link.OpcUaLink`; the ``SampleBuffer``
 subscription; every buffer through :func:`ajtwin.live.link.buffer_samples`), feeds the
-samples to the streaming twin (:class:`ajtwin.live.engine.TwinStream`, inside
-:class:`ajtwin.apps.control_sim.MPCTwin` — the very controller ``ajtwin control simulate``
+samples to the streaming twin (:class:`ajtwin.engine.stream.TwinStream`, inside
+:class:`ajtwin.engine.control.MPCTwin` — the very controller ``ajtwin control simulate``
 runs against the virtual printer) and, every ``period_s`` seconds of print, writes the
-MPC's command to the three writable set-point nodes (docs/opcua.md):
+MPC's command to the three writable set-point nodes (docs/reference/opcua.md):
 
 * the command in force is read back from the set-point nodes before each decision (an
   operator's change or a refused write is what the controller starts from);
-* every command passes :func:`ajtwin.apps.control.clip_command`: inside the machine's
+* every command passes :func:`ajtwin.apps.planning.mpc.clip_command`: inside the machine's
   limits (registry ∩ the nodes' ``EURange`` ∩ the validity range of the fit) and within
   the rate limits × the print time since the last write;
 * no write during the warm-up, while the twin reports a model–machine mismatch or an
   alarm it cannot act on (the reasons are logged; the machine keeps what it has);
 * the target is checked when the twin has its first state: unreachable within the limits
-  from that state → :class:`~ajtwin.apps.control.TargetError` naming the reachable range;
+  from that state → :class:`~ajtwin.apps.planning.mpc.TargetError` naming the reachable range;
 * writing needs an authenticated session: at the start the set-points in force are
   written back unchanged, so a refusal stops the link with a clear message before any
   control (``LinkRefused``); a refused login or certificate likewise.
@@ -34,10 +34,22 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from asyncua import ua
 
-from ajtwin.apps.control import TargetError
+from ajtwin.apps.planning.advice import effective_bounds
+from ajtwin.apps.planning.mpc import (
+    ControlSettings,
+    TargetError,
+    check_target,
+    clip_command,
+    reachable_linewidth,
+)
+from ajtwin.apps.planning.strategies import Decision
+from ajtwin.engine.control import MPCTwin
+from ajtwin.estimation import Twin
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.control")
 
@@ -111,14 +123,12 @@ class ControlLink:
         on_decision=None,
         vial_fill_ml: float | None = None,
     ):
-        from ajtwin.apps.control import ControlSettings, check_target
 
         # the vial's fill as weighed at the refill: the start of the controller's ink
         # balance and of the vial observer (None: the twin's default, 1 mL)
         if vial_fill_ml is not None and not (np.isfinite(vial_fill_ml) and vial_fill_ml > 0):
             raise ValueError(f"vial fill = {vial_fill_ml!r} mL must be a positive number")
         self.vial_fill_ml = vial_fill_ml
-        from ajtwin.store.registry import DEFAULT_LIMITS
 
         self.url, self.machine = url, machine
         self.target_um = check_target(target_um)
@@ -154,9 +164,6 @@ class ControlLink:
     def prepare(self):
         """Build the twin and the MPC (and compile them); done on the first connection
         unless called before (a test calls it before the server's clock starts)."""
-        from ajtwin.apps.advise import effective_bounds
-        from ajtwin.apps.control_sim import MPCTwin
-        from ajtwin.estimation import Twin
 
         if self.controller is not None:
             return
@@ -176,7 +183,6 @@ class ControlLink:
     def check_reachable(self, mean, cov) -> tuple[float, float]:
         """Once the twin has a state: is the target reachable within the limits from it?
         :class:`TargetError` with the reachable range when not (nothing is written)."""
-        from ajtwin.apps.control import check_target, reachable_linewidth
 
         reach = reachable_linewidth(self.controller.twin, mean, cov, self.bounds)
         check_target(self.target_um, reach)
@@ -186,7 +192,6 @@ class ControlLink:
 
     def _apply_eu_ranges(self, ranges: dict) -> None:
         """Intersect the limits with the server's EURange of each set-point."""
-        from ajtwin.apps.advise import effective_bounds
 
         changed = False
         for column, (low, high) in ranges.items():
@@ -243,7 +248,6 @@ class ControlLink:
         return self.decisions
 
     async def _session(self, stop):
-        from asyncua import ua
 
         client = await self._login._client()
         self._client = client
@@ -320,7 +324,7 @@ class ControlLink:
 
     def _feed(self, value) -> int:
         """New rows of the SampleBuffer → the twin; how many samples were fed."""
-        try:  # the buffer's NaN padding (docs/opcua.md) is not a problem worth a log line
+        try:  # the buffer's NaN padding (docs/reference/opcua.md) is not a problem worth a log line
             rows = np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH)
             value = rows[~np.all(np.isnan(rows), axis=1)]
         except (TypeError, ValueError, OverflowError):
@@ -345,8 +349,6 @@ class ControlLink:
         return np.array([float(await n.read_value()) for n in setpoints.values()])
 
     async def _decide(self, setpoints) -> None:
-        from ajtwin.apps.control import clip_command
-        from ajtwin.apps.control_sim import Decision
 
         s = self.settings
         t = float(self.last_time + 1)
@@ -403,7 +405,6 @@ class ControlLink:
             self.on_decision(record)
 
     async def _write(self, setpoints, values: dict, probe: bool = False) -> None:
-        from asyncua import ua
 
         for column, value in values.items():
             if not probe:  # the probe writes back the machine's own values

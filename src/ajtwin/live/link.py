@@ -2,7 +2,7 @@
 
 :class:`OpcUaLink` subscribes to each machine's ``Monitoring/Process/SampleBuffer``
 (the last samples as rows, so a notification that coalesces several samples loses none),
-feeds new samples to a :class:`~ajtwin.live.engine.LiveEngine` (batched over machines),
+feeds new samples to a :class:`~ajtwin.engine.fleet.LiveEngine` (batched over machines),
 and writes the twin's states ± σ, status and cause back to ``Monitoring/Health``; every
 raised or finalised alarm is written to ``Health/Alarm``, which the server turns into a
 ``TwinAlarmEventType`` event. When a machine's ``PrintState`` says ``finished`` and its
@@ -28,8 +28,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from asyncua import Client, ua
 
-from ajtwin.live.engine import LiveEngine, Sample, clean_sample
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 from ajtwin.live.opcua import (
     HEALTH_STATES,
     NAMESPACE_URI,
@@ -183,7 +186,6 @@ class OpcUaLink:
         self._announce("ended")
 
     async def _client(self):
-        from asyncua import Client
 
         client = Client(self.url, timeout=self.timeout_s)
         client.session_timeout = 30000
@@ -202,7 +204,6 @@ class OpcUaLink:
         return client
 
     async def _session(self, stop):
-        from asyncua import ua
 
         client = await self._client()
         async with client:
@@ -238,7 +239,7 @@ class OpcUaLink:
             self._set_status(f"connected, following {', '.join(nodes)}")
             await self._connected(client, nodes)
             states = {name: "printing" for name in nodes}
-            buffered: set[str] = set()  # machines whose buffer came in this session
+            buffered: set[str] = set()  # machines whose buffer came on this connection
             last_check = time.monotonic()
             while stop is None or not stop.is_set():
                 try:
@@ -278,7 +279,6 @@ class OpcUaLink:
 
     async def _connected(self, client, nodes) -> None:
         """The link is up: publish it, and write each machine's ``Health/LinkStatus``."""
-        from asyncua import ua
 
         gap_s = None if self._lost_at is None else time.time() - self._lost_at
         attempts = self._attempt
@@ -297,7 +297,6 @@ class OpcUaLink:
                 log.warning("%s: could not write Health/LinkStatus (%s)", name, exc)
 
     async def _nodes(self, client, idx, name) -> dict:
-        from asyncua import ua
 
         def node(*parts):
             return client.get_node(ua.NodeId(node_path(name, *parts), idx))
@@ -342,7 +341,6 @@ class OpcUaLink:
         return messages
 
     async def _publish(self, client, nodes, messages):
-        from asyncua import ua
 
         latest = {}
         for m in messages:
@@ -403,7 +401,7 @@ def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, 
 
     Returns
     -------
-    samples : cleaned samples (:func:`~ajtwin.live.engine.clean_sample`), in buffer order
+    samples : cleaned samples (:func:`~ajtwin.engine.samples.clean_sample`), in buffer order
     last : the newest time taken (unchanged if none)
     problems : log lines for everything refused, treated as missing or dropped
     """
@@ -452,7 +450,6 @@ async def follow_csv(
     Returns the registry print id when the print was closed after ``idle_timeout_s``
     seconds without a new line (None: stopped, the session stays open and resumable).
     """
-    from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 
     path = Path(path)
     header = None

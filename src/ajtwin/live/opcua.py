@@ -1,4 +1,4 @@
-"""The OPC UA address space of an AJ printer (after OPC 40540 / 40001; docs/opcua.md).
+"""The OPC UA address space of an AJ printer (after OPC 40540 / 40001; docs/reference/opcua.md).
 
 One namespace, ``urn:ajtwin:aerosol-jet`` (its index is looked up by URI), string node
 ids that spell the browse path::
@@ -22,7 +22,8 @@ The node id of a variable is ``ns=<idx>;s=<name>/Monitoring/Process/CarrierPress
 Alarms are ``TwinAlarmEventType`` events (Machine, Cause, OnsetTime, DetectedTime,
 Detectors, AlarmState) emitted by the Server object whenever a twin writes ``Health/Alarm``.
 
-This module holds only names, units and helpers; :mod:`ajtwin.live.printer_server` and
+This module holds only names, units and the functions that spell them;
+:mod:`ajtwin.live.printer_server` and
 :mod:`ajtwin.live.link` are the server and the client.
 """
 

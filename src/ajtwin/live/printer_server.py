@@ -38,7 +38,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from asyncua import Server, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.permission_rules import ADMIN_TYPES, USER_TYPES, User, UserRole
+from asyncua.ua.ua_binary import struct_from_binary as parse
+from asyncua.ua.uaerrors import BadCertificateUntrusted
+from cryptography import x509
+from cryptography.hazmat.primitives.serialization import Encoding
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from ajtwin import __version__
 from ajtwin.io.records import INPUT_COLUMNS
 from ajtwin.live.opcua import (
     ALARM_EVENT_TYPE,
@@ -53,6 +62,8 @@ from ajtwin.live.opcua import (
     node_path,
     unece_unit_id,
 )
+from ajtwin.simulation.stepper import SteppedPrinter
+from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.printer")
 
@@ -98,8 +109,6 @@ class VirtualMachine:
     MAX_BLOCK_S = 64
 
     def __post_init__(self):
-        from ajtwin.simulation.stepper import SteppedPrinter
-        from ajtwin.store.registry import DEFAULT_LIMITS
 
         if self.limits is None:
             self.limits = copy.deepcopy(DEFAULT_LIMITS)
@@ -110,13 +119,16 @@ class VirtualMachine:
         self._t0 = None
 
     def start(self, now: float) -> None:
+        """Start the simulated clock at wall time ``now`` [s] (at ``start_s`` simulated)."""
         self._t0 = now - self.start_s / self.speed
 
     def simulated_time(self, now: float) -> float:
+        """The simulated print time [s] at wall time ``now`` [s]."""
         return (now - self._t0) * self.speed
 
     @property
     def n_samples(self) -> int:
+        """Seconds of the whole print."""
         return self.printer.n
 
     @property
@@ -185,8 +197,6 @@ class _Ruleset:
     """Who may do what: anonymous reads and writes Health only; users everything."""
 
     def __init__(self):
-        from asyncua import ua
-        from asyncua.crypto.permission_rules import ADMIN_TYPES, USER_TYPES, UserRole
 
         self._ua = ua
         self._role = UserRole
@@ -201,8 +211,6 @@ class _Ruleset:
         if role == self._role.User:
             return action_type_id in self._user
         if action_type_id == self._write:
-            from asyncua.ua.ua_binary import struct_from_binary as parse
-
             try:
                 params = parse(self._ua.WriteParameters, body.copy())
                 ids = [str(w.NodeId.Identifier) for w in params.NodesToWrite]
@@ -216,7 +224,6 @@ class _Users:
     """Username/password users (and trusted client certificates as users)."""
 
     def __init__(self, users: dict[str, str], allow_anonymous: bool, trust_certificates: bool):
-        from asyncua.crypto.permission_rules import User, UserRole
 
         self.users = dict(users)
         self.allow_anonymous = allow_anonymous
@@ -240,8 +247,6 @@ class _Users:
 
 async def ensure_certificate(certificate: Path, private_key: Path, host: str, app_uri: str):
     """Create a self-signed certificate (DER) and key (PEM) unless both exist."""
-    from asyncua.crypto.cert_gen import setup_self_signed_certificate
-    from cryptography.x509.oid import ExtendedKeyUsageOID
 
     Path(certificate).parent.mkdir(parents=True, exist_ok=True)
     await setup_self_signed_certificate(
@@ -297,7 +302,6 @@ class PrinterServer:
         self._sent: dict[str, int] = {}
 
     async def _build(self):
-        from asyncua import Server, ua
 
         users = _Users(
             self.users, allow_anonymous=not self.users, trust_certificates=bool(self.trusted)
@@ -343,7 +347,6 @@ class PrinterServer:
         self.server = server
 
     async def _add_machine(self, folder, idx, name, machine) -> dict:
-        from asyncua import ua
 
         def nid(*parts):
             return ua.NodeId(node_path(name, *parts), idx)
@@ -496,7 +499,6 @@ class PrinterServer:
 
     async def _publish(self, now: float) -> bool:
         """Write every machine's new samples; False when all prints have finished."""
-        from asyncua import ua
 
         running = False
         for name, machine in self.machines.items():
@@ -546,7 +548,6 @@ class PrinterServer:
 
 
 async def _engineering_units(var, idx, nodeid, unit: str, code: str, eu_range=None):
-    from asyncua import ua
 
     info = ua.EUInformation(
         NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
@@ -562,9 +563,6 @@ async def _engineering_units(var, idx, nodeid, unit: str, code: str, eu_range=No
 
 def _trust_validator(folder: Path):
     """A certificate validator that accepts only the client certificates in ``folder``."""
-    from asyncua.ua.uaerrors import BadCertificateUntrusted
-    from cryptography import x509
-    from cryptography.hazmat.primitives.serialization import Encoding
 
     trusted = set()
     for path in sorted(folder.glob("*")):
@@ -591,6 +589,5 @@ def _trust_validator(folder: Path):
 
 
 def _version() -> str:
-    from ajtwin import __version__
 
     return __version__

@@ -1,4 +1,4 @@
-"""The physics macro-model of the AJ printer (paper §6, SPEC §3–6).
+"""The physics macro-model of the AJ printer (paper §6, model reference §3–6).
 
 Sub-models, each a named pure JAX function:
 
@@ -23,8 +23,23 @@ linewidth / overspray L_w, L_o         :func:`line_output.linewidth`, :func:`lin
 material flow Q_m                      :func:`line_output.material_flow`
 transition f, output g                 :func:`system.transition_rates`, ``output_function``
 =====================================  ==============================================
+
+The names of states, inputs and outputs (:mod:`~ajtwin.model.names`) and the parameter
+files (:mod:`~ajtwin.model.parameters`) load without JAX; the model's functions
+(:mod:`~ajtwin.model.system`) are imported on first use, so code that only names the
+states (the registry, the commands) stays light.
 """
 
+import importlib
+
+from ajtwin.model.names import (
+    INPUT_NAMES,
+    N_INPUTS,
+    N_OUTPUTS,
+    N_STATES,
+    OUTPUT_NAMES,
+    STATE_NAMES,
+)
 from ajtwin.model.parameters import (
     OutputCoefficients,
     PhysicalParameters,
@@ -32,23 +47,26 @@ from ajtwin.model.parameters import (
     load_output_coefficients,
     load_parameters,
 )
-from ajtwin.model.system import (
-    INPUT_NAMES,
-    N_INPUTS,
-    N_OUTPUTS,
-    N_STATES,
-    OUTPUT_NAMES,
-    STATE_NAMES,
-    DigitalModel,
-    coefficient_matrix,
-    euler_step,
-    ink_flows,
-    output_function,
-    rk4_step,
-    simulate_open_loop,
-    steady_aerosol_fraction,
-    transition_rates,
+
+#: the model's functions, from :mod:`ajtwin.model.system` on first use (it loads JAX)
+_SYSTEM = (
+    "DigitalModel",
+    "coefficient_matrix",
+    "euler_step",
+    "ink_flows",
+    "output_function",
+    "rk4_step",
+    "simulate_open_loop",
+    "steady_aerosol_fraction",
+    "transition_rates",
 )
+
+
+def __getattr__(name):
+    if name in _SYSTEM:
+        return getattr(importlib.import_module("ajtwin.model.system"), name)
+    raise AttributeError(f"module 'ajtwin.model' has no attribute {name!r}")
+
 
 __all__ = [
     "DigitalModel",

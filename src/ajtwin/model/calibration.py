@@ -1,4 +1,4 @@
-"""Per-machine calibration of the output model g (SPEC §11).
+"""Per-machine calibration of the output model g (model reference §11).
 
 No two printers share plumbing, gauges or camera optics. A machine's measured outputs
 are the nominal model's outputs seen through its calibration:
@@ -27,7 +27,6 @@ Examples
 from __future__ import annotations
 
 import datetime as _dt
-import tomllib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -35,6 +34,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin._jax import jnp
+from ajtwin.config import read_toml
 from ajtwin.model.fluidics import tube_resistance
 
 #: Order of the calibration vector (display units: µm, Pa; the rest dimensionless).
@@ -74,9 +74,11 @@ class Calibration(NamedTuple):
 
     @classmethod
     def identity(cls) -> Calibration:
+        """The nominal machine: gains 1, offsets 0."""
         return cls()
 
     def is_identity(self) -> bool:
+        """Whether this is the nominal machine's calibration."""
         return all(float(a) == b for a, b in zip(self, IDENTITY, strict=True))
 
 
@@ -146,10 +148,15 @@ def apply_calibration(y, x, u, params, calibration: Calibration):
 
 
 def calibration_to_dict(calibration: Calibration) -> dict:
+    """{parameter name: value} (display units)."""
     return {name: float(v) for name, v in zip(CALIBRATION_NAMES, calibration, strict=True)}
 
 
 def calibration_from_dict(values: dict, where: str = "calibration") -> Calibration:
+    """A Calibration from {parameter name: value}; missing parameters are the identity's.
+
+    Raises ValueError naming ``where`` and the parameter for unknown names or non-numbers.
+    """
     unknown = sorted(set(values) - set(CALIBRATION_NAMES))
     if unknown:
         raise ValueError(f"{where}: unknown calibration parameter(s) {unknown}")
@@ -225,12 +232,9 @@ def read_calibration_file(path) -> tuple[Calibration, dict]:
     """(Calibration, the whole file as a dict) from a calibration TOML."""
     path = Path(path)
     try:
-        with path.open("rb") as handle:
-            data = tomllib.load(handle)
+        data = read_toml(path, what="calibration")
     except FileNotFoundError:
         raise ValueError(f"{path}: no such calibration file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML: {exc}") from None
     if "calibration" not in data:
         raise ValueError(f"{path}: no [calibration] table")
     return calibration_from_dict(data["calibration"], str(path)), data

@@ -1,8 +1,8 @@
-"""Optional droplet-size dynamics of the transition model (issue 18, paper's future work).
+"""Optional droplet-size dynamics of the transition model (paper's future work).
 
 The paper's transition holds the droplet size by a pure drift, dd_a/dt = θ_da d_a
-(SPEC §4): over a forecast horizon that drift extrapolates exponentially, and the
-droplet size cannot follow an input change. ``data/transition.toml`` offers profiles
+(model reference §4): over a forecast horizon that drift extrapolates exponentially, and the
+droplet size cannot follow an input change. ``data/transition.toml`` offers variants
 that change only the d_a row of the transition (the other rows are
 :func:`ajtwin.model.system.transition_rates`):
 
@@ -18,14 +18,14 @@ that change only the d_a row of the transition (the other rows are
     i.e. dd_a/dt = θ_da d_a + (c·Δu − r)/τ_u. The response r depends on the inputs only,
     so it is not a state: :func:`augment_inputs` computes it from the input sequence
     (past and planned) and appends it as a 4th input column; the level keeps the paper's
-    random walk and θ_da, whose MAP prior the profile may tighten (``theta_prior_std``,
+    random walk and θ_da, whose MAP prior the variant may tighten (``theta_prior_std``,
     a bounded drift). Fed plain 3-column inputs, the step has no response term (the
     paper's row).
 
 θ enters linearly in every form (∂f/∂θ_da is d_ref or d_a), so the EM M-step keeps its
 closed form.
 
-Parameters (``data/transition.toml``, one table per profile, with provenance)
+Parameters (``data/transition.toml``, one table per variant, with provenance)
 -----------------------------------------------------------------------------
 form : ``"paper"``, ``"mean_reverting"`` or ``"input_following"``
 relaxation_time_s : τ [s] (mean_reverting); response_time_s : τ_u [s] (input_following)
@@ -59,22 +59,22 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
-from ajtwin.model.system import N_INPUTS, transition_rates
+from ajtwin.config import load_toml
+from ajtwin.model.names import N_INPUTS
+from ajtwin.model.system import transition_rates
 
 FORMS = ("paper", "mean_reverting", "input_following")
 
 
 @dataclass(frozen=True)
 class DropletDynamics:
-    """One profile of ``transition.toml`` (floats; hashable, so a static jit argument)."""
+    """One variant of ``transition.toml`` (floats; hashable, so a static jit argument)."""
 
     name: str = "paper"
     form: str = "paper"
@@ -92,6 +92,7 @@ class DropletDynamics:
 
     @property
     def is_paper(self) -> bool:
+        """Whether this is the paper's droplet row (no input dependence)."""
         return self.form == "paper"
 
     @property
@@ -111,43 +112,39 @@ class DropletDynamics:
         return self.reference_um + self.input_shift_um(u)
 
 
-def _transition_file(path: str | Path | None):
-    if path is not None:
-        return Path(path).open("rb")
-    return (resources.files("ajtwin") / "data" / "transition.toml").open("rb")
+def _transition_file(path: str | Path | None) -> dict:
+    return load_toml(path, "data/transition.toml", what="transition")
 
 
-def transition_profiles(path: str | Path | None = None) -> tuple[str, ...]:
-    """Names of the profiles in ``transition.toml`` (or the file at ``path``)."""
-    with _transition_file(path) as handle:
-        return tuple(tomllib.load(handle)["profiles"])
+def transition_variants(path: str | Path | None = None) -> tuple[str, ...]:
+    """Names of the variants in ``transition.toml`` (or the file at ``path``)."""
+    return tuple(_transition_file(path)["variants"])
 
 
-def load_droplet_dynamics(profile: str = "paper", path: str | Path | None = None):
-    """The droplet-dynamics profile ``profile`` of ``transition.toml``.
+def load_droplet_dynamics(variant: str = "paper", path: str | Path | None = None):
+    """The droplet-dynamics variant ``variant`` of ``transition.toml``.
 
-    Raises ValueError naming the file and the profile or key that is wrong.
+    Raises ValueError naming the file and the variant or key that is wrong.
     """
     where = str(path) if path is not None else "ajtwin/data/transition.toml"
-    with _transition_file(path) as handle:
-        raw = tomllib.load(handle)
-    profiles = raw.get("profiles", {})
-    if profile not in profiles:
-        raise ValueError(f"{where}: no transition profile {profile!r}; choose {sorted(profiles)}")
-    table = dict(profiles[profile])
+    raw = _transition_file(path)
+    variants = raw.get("variants", {})
+    if variant not in variants:
+        raise ValueError(f"{where}: no transition variant {variant!r}; choose {sorted(variants)}")
+    table = dict(variants[variant])
     form = table.pop("form", "paper")
     if form not in FORMS:
-        raise ValueError(f"{where} [profiles.{profile}]: form = {form!r}; choose one of {FORMS}")
+        raise ValueError(f"{where} [variants.{variant}]: form = {form!r}; choose one of {FORMS}")
     provenance = str(table.pop("provenance", ""))
     known = set(DropletDynamics.__dataclass_fields__) - {"name", "form", "provenance"}
     unknown = set(table) - known
     if unknown:
-        raise ValueError(f"{where} [profiles.{profile}]: unknown keys {sorted(unknown)}")
+        raise ValueError(f"{where} [variants.{variant}]: unknown keys {sorted(unknown)}")
     values = {key: float(value) for key, value in table.items()}
     for key in ("relaxation_time_s", "response_time_s"):
         if key in values and not values[key] > 0:
-            raise ValueError(f"{where} [profiles.{profile}]: {key} must be > 0")
-    return DropletDynamics(name=profile, form=form, provenance=provenance, **values)
+            raise ValueError(f"{where} [variants.{variant}]: {key} must be > 0")
+    return DropletDynamics(name=variant, form=form, provenance=provenance, **values)
 
 
 def input_response(inputs, dynamics: DropletDynamics, response0=None, dt=1.0):
@@ -176,7 +173,7 @@ def response_step(response, target, gain):
 
 def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = None, dt=1.0):
     """Inputs (T, 3) → (T, 4) with the input response r_k (:func:`input_response`) as
-    4th column [µm]. A profile that does not follow the inputs returns ``inputs`` unchanged.
+    4th column [µm]. A variant that does not follow the inputs returns ``inputs`` unchanged.
     """
     inputs = np.asarray(inputs, dtype=float)
     if not dynamics.follows_inputs:
@@ -198,7 +195,7 @@ def model_input(u, response: float | None, dynamics: DropletDynamics, dt=1.0):
 
     ``u`` (3,) [mA, sccm, sccm]; ``response`` r_k [µm], None at the first sample (then
     the equilibrium c·Δu_k, as :func:`augment_inputs` starts). Returns (u (4,) with r_k
-    appended, r_{k+1}); a profile that does not follow the inputs returns (u, None).
+    appended, r_{k+1}); a variant that does not follow the inputs returns (u, None).
     Fed sample by sample it gives :func:`augment_inputs`' rows (tested).
     """
     u = np.asarray(u, dtype=float)
@@ -210,7 +207,7 @@ def model_input(u, response: float | None, dynamics: DropletDynamics, dt=1.0):
 
 
 def droplet_rate(x, u, theta, dynamics: DropletDynamics):
-    """dd_a/dt [µm/s] of the profile (module docstring)."""
+    """dd_a/dt [µm/s] of the variant (module docstring)."""
     x, u, theta = jnp.asarray(x), jnp.asarray(u), jnp.asarray(theta)
     droplet_um = x[..., 0]
     if dynamics.form == "mean_reverting":
@@ -235,7 +232,7 @@ def extended_transition_rates(x, u, theta, params, dynamics: DropletDynamics):
 
 @dataclass(frozen=True)
 class DropletStep:
-    """f_d(x, u; θ) with a droplet profile: a hashable callable for ``ModelFunctions.step``.
+    """f_d(x, u; θ) with a droplet variant: a hashable callable for ``ModelFunctions.step``.
 
     ``method`` "euler" (x + Δt f) or "rk4" (input, and the response column, held over
     the step). Linear in θ as the paper's steps are.

@@ -4,14 +4,14 @@ All functions are pure JAX, SI units in and out unless a name says otherwise.
 
 * :func:`lognormal_quadrature` — Gauss–Hermite nodes in ln d for the
   log-normal droplet distribution p(d) with median d_a and a 25 % coefficient
-  of variation (σ_ln = sqrt(ln(1 + CV²)), SPEC §4); 8 nodes by default
+  of variation (σ_ln = sqrt(ln(1 + CV²)), model reference §4); 8 nodes by default
   (:data:`QUADRATURE_ORDER`).
 * :func:`cunningham_slip_correction` — C_c = 1 + Kn (1.257 + 0.4 e^{−1.1/Kn}),
   Kn = 2λ/d.
 * :func:`settling_velocity` — Stokes terminal velocity with slip,
   v_ts = ρ_p d² g C_c / (18 η_settle).
 * :func:`diffusion_coefficient` — Stokes–Einstein, D = k_B T C_c / (3π η_gas d)
-  (the paper prints 2π, a typo; SPEC §4).
+  (the paper prints 2π, a typo; model reference §4).
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def settling_velocity(diameter, droplet_density, gravity, settling_viscosity, me
     """Terminal settling velocity v_ts [m/s] of a droplet of diameter d [m].
 
     v_ts = ρ_p d² g C_c / (18 η_settle). η_settle is the paper's effective
-    (calibrated) viscosity, not N₂'s (SPEC §6).
+    (calibrated) viscosity, not N₂'s (model reference §6).
     """
     slip = cunningham_slip_correction(diameter, mean_free_path)
     return droplet_density * diameter**2 * gravity * slip / (18.0 * settling_viscosity)

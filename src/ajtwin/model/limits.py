@@ -18,23 +18,16 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin import units
+from ajtwin.config import load_toml
+from ajtwin.model.names import STATE_NAMES
 from ajtwin.model.parameters import PhysicalParameters
 
-STATE_NAMES = (
-    "droplet_diameter_um",
-    "vial_volume_mL",
-    "tube_deposition_um",
-    "nozzle_deposition_um",
-    "aerosol_fraction",
-)
 _DISPLAY_UNIT = ("µm", "mL", "µm", "µm", "")
 
 
@@ -56,9 +49,11 @@ class StateLimits:
 
     @classmethod
     def load(cls, params: PhysicalParameters, path: str | Path | None = None) -> StateLimits:
-        source = resources.files("ajtwin") / "data" / "state_limits.toml" if path is None else path
-        with open(source, "rb") if path is not None else source.open("rb") as handle:
-            data = tomllib.load(handle)
+        """The ranges of ``data/state_limits.toml`` (or ``path``), the geometry-dependent ones
+        resolved with ``params`` (tube and nozzle radius, vial capacity).
+        """
+        source = "ajtwin/data/state_limits.toml" if path is None else path
+        data = load_toml(path, "data/state_limits.toml", what="state limits")
         vial_ml = units.m3_to_ml(params.vial_volume)
         radius_um = {
             "tube_deposition_um": units.m_to_um(params.tube_radius),

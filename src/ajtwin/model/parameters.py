@@ -1,7 +1,7 @@
 """Loading the packaged parameter and coefficient files.
 
-The physical parameters (SPEC §6) live in ``ajtwin/data/parameters.toml``, the
-output-model coefficients (SPEC §5) in ``ajtwin/data/output_coefficients.toml``;
+The physical parameters (model reference §6) live in ``ajtwin/data/parameters.toml``, the
+output-model coefficients (model reference §5) in ``ajtwin/data/output_coefficients.toml``;
 each value carries a unit and a provenance. This module reads them and returns
 immutable pytrees of floats in SI (:class:`PhysicalParameters`) or display units
 (:class:`OutputCoefficients`), ready to pass to the pure JAX model functions.
@@ -18,15 +18,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import NamedTuple
 
 from ajtwin import units
-
-DATA = resources.files("ajtwin") / "data"
+from ajtwin.config import load_toml
 
 
 class PhysicalParameters(NamedTuple):
@@ -97,12 +94,8 @@ class ParameterRecord:
 
 
 def _read_toml(path: Path | None, default_name: str) -> dict:
-    if path is None:
-        with (DATA / default_name).open("rb") as fh:
-            return tomllib.load(fh)
-    from ajtwin.io.files import read_toml_file  # a regular file of bounded size: no hang
-
-    return read_toml_file(Path(path), what="parameter")
+    # a user's file must be a regular file of bounded size (no hang on a FIFO)
+    return load_toml(path, f"data/{default_name}", what="parameter")
 
 
 def parameter_records(path: str | Path | None = None) -> list[ParameterRecord]:
@@ -165,19 +158,20 @@ def read_output_coefficient_file(path: str | Path | None = None) -> dict:
     return _read_toml(path, "output_coefficients.toml")
 
 
-NOISE_PROFILES = ("calibrated", "paper")
+#: the filter tunings of ``noise.toml``
+NOISE_TUNINGS = ("calibrated", "paper")
 
 
-def load_noise(path: str | Path | None = None, profile: str = "paper") -> dict:
+def load_noise(path: str | Path | None = None, tuning: str = "paper") -> dict:
     """Filter tuning noise as ``{"process": {...}, "measurement": {...}, "initial": {...}}``.
 
-    ``profile="paper"`` gives the SPEC §6 / paper App. E values; ``"calibrated"``
+    ``tuning="paper"`` gives the model reference §6 / paper App. E values; ``"calibrated"``
     the twin's default, tuned on virtual-printer training prints (see the file).
     """
     raw = _read_toml(path, "noise.toml")
-    if profile not in NOISE_PROFILES:
-        raise ValueError(f"noise profile {profile!r}; choose one of {NOISE_PROFILES}")
-    source = raw if profile == "paper" else raw[profile]
+    if tuning not in NOISE_TUNINGS:
+        raise ValueError(f"noise tuning {tuning!r}; choose one of {NOISE_TUNINGS}")
+    source = raw if tuning == "paper" else raw[tuning]
     out = {
         group: {name: float(v["value"]) for name, v in source[group].items()}
         for group in ("process", "measurement")

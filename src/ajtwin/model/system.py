@@ -1,6 +1,6 @@
-"""The assembled digital model: transition f and output g (paper §6, SPEC §4–5).
+"""The assembled digital model: transition f and output g (paper §6, model reference §4–5).
 
-State, input and output vectors are in display units (SPEC §3):
+State, input and output vectors are in display units (model reference §3):
 
 * x = [d_a µm, V_l mL, ΔR_T µm, ΔR_N µm, φ_A]
 * u = [I_A mA, Q_c sccm, Q_s sccm]
@@ -13,7 +13,7 @@ The pure functions here (:func:`transition_rates`, :func:`output_function`,
 :class:`DigitalModel` wraps them for users with input checks and NumPy I/O.
 
 The transition is linear in θ: f(x, u; θ) = f(x, u; 0) + θ ⊙ x — which is
-what gives the EM M-step its closed form (SPEC §7).
+what gives the EM M-step its closed form (model reference §7).
 """
 
 from __future__ import annotations
@@ -30,6 +30,12 @@ from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
 from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
 from ajtwin.model.line_output import line_feature, material_flow
+from ajtwin.model.names import (
+    INPUT_NAMES,
+    N_INPUTS,
+    N_STATES,
+    STATE_NAMES,
+)
 from ajtwin.model.parameters import (
     OutputCoefficients,
     PhysicalParameters,
@@ -41,26 +47,6 @@ from ajtwin.model.transport import (
     nozzle_deposition_rate,
     tube_deposition_rate,
 )
-
-STATE_NAMES = (
-    "droplet_diameter_um",
-    "vial_volume_mL",
-    "tube_deposition_um",
-    "nozzle_deposition_um",
-    "aerosol_fraction",
-)
-INPUT_NAMES = ("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")
-OUTPUT_NAMES = (
-    "linewidth_um",
-    "overspray_um",
-    "carrier_pressure_Pa",
-    "sheath_pressure_Pa",
-    "material_flow_mL_s",
-)
-STATE_SYMBOLS = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
-INPUT_SYMBOLS = ("I_A", "Q_c", "Q_s")
-OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
-N_STATES, N_INPUTS, N_OUTPUTS = 5, 3, 5
 
 
 def coefficient_matrix(coefficients: OutputCoefficients) -> np.ndarray:
@@ -157,7 +143,7 @@ def output_function(x, u, params: PhysicalParameters, coefficients):
     params : PhysicalParameters
     coefficients : array (2, 8) or CalibratedCoefficients
         :func:`coefficient_matrix` of the output coefficients, or that matrix with a
-        machine's :class:`~ajtwin.model.calibration.Calibration` (SPEC §11), which is
+        machine's :class:`~ajtwin.model.calibration.Calibration` (model reference §11), which is
         then applied to the nominal outputs.
     """
     if isinstance(coefficients, CalibratedCoefficients):
@@ -333,6 +319,7 @@ def check_input(u) -> np.ndarray:
 
 
 def check_theta(theta) -> np.ndarray:
+    """θ as a finite array (5,) [1/s]; None is θ = 0."""
     if theta is None:
         return np.zeros(N_STATES)
     theta = _as_array(theta, "theta", N_STATES)
@@ -365,7 +352,7 @@ class DigitalModel:
 
     @classmethod
     def default(cls) -> DigitalModel:
-        """Packaged parameters (SPEC §6) and output coefficients (SPEC §5)."""
+        """Packaged parameters (model reference §6) and output coefficients (model reference §5)."""
         return cls(load_parameters(), load_output_coefficients())
 
     @classmethod
@@ -377,6 +364,7 @@ class DigitalModel:
 
     @property
     def coefficient_matrix(self) -> np.ndarray:
+        """The output coefficients as a (2, 8) array (rows L_w, L_o)."""
         return coefficient_matrix(self.coefficients)
 
     # -- public API in display units, NumPy in/out --------------------------------

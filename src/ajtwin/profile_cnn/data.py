@@ -42,15 +42,15 @@ from __future__ import annotations
 
 import csv
 import re
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
+from ajtwin.config import packaged_toml
 from ajtwin.units import m_to_um, to_si
 
 N_PIXELS = 200
@@ -60,8 +60,7 @@ EDGE_FRACTION = 0.15  # outer share of a scan on each side treated as bare subst
 @lru_cache(maxsize=1)
 def settings() -> dict:
     """The CNN data-path settings (``ajtwin/data/profile_cnn.toml``)."""
-    with (resources.files("ajtwin") / "data" / "profile_cnn.toml").open("rb") as fh:
-        return tomllib.load(fh)
+    return packaged_toml("data/profile_cnn.toml")
 
 
 def default_scan_smoothing_um() -> float:
@@ -81,7 +80,6 @@ def smooth_scan(h_um, pixel_size_um: float, sigma_um: float) -> np.ndarray:
         raise ValueError(f"scan smoothing σ must be ≥ 0 µm, got {sigma_um}")
     if sigma_um == 0:
         return h
-    from scipy.ndimage import gaussian_filter1d
 
     return gaussian_filter1d(h, sigma_um / pixel_size_um, mode="nearest", truncate=4.0)
 
@@ -106,6 +104,7 @@ class HeightMap:
 
     @property
     def n_sections(self) -> int:
+        """Cross-sections in the map."""
         return self.height_um.shape[0]
 
     def section(self, row: int, n_rows: int = 1) -> np.ndarray:
@@ -510,9 +509,12 @@ class ColumnDataset:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels per column."""
         return self.columns.shape[1]
 
     def subset(self, index) -> ColumnDataset:
+        """The columns at ``index`` (an index array or slice) with their labels."""
+
         def take(a):
             return None if a is None else a[index]
 

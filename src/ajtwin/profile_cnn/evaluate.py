@@ -11,7 +11,7 @@ Scores (all on columns the model never trained on):
 * ``qm_rel_error`` — mean |A_pred − A_true| / A_true of the cross-section area,
   which is the relative error of Q_m = ν·A at any platen speed;
   ``qm_rel_bias`` the signed mean;
-* ``feature_nan_fraction`` — share of predicted profiles on which the SPEC §9
+* ``feature_nan_fraction`` — share of predicted profiles on which the model reference §9
   definitions cannot be applied (no shoulder peak, tail leaving the column)
   even after the read-out's smoothing fallback
   (:func:`~ajtwin.profile_cnn.features.read_features`); the MAEs are over the

@@ -2,7 +2,7 @@
 
 Stage-2 fine-tuning (paper §5) needs linewidth and overspray *computed from the
 predicted profile* with gradients. The definitions are the project's reference,
-:func:`ajtwin.vision.profile.profile_features` (SPEC §9 applied to the noiseless
+:func:`ajtwin.vision.profile.profile_features` (model reference §9 applied to the noiseless
 brightness of a profile through the optics model of ``vision/optics.toml``)::
 
     B(r)/B_bg = floor + (1 − floor) / (1 + |dh/dr| / slope_scale)
@@ -38,7 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter1d
 
+from ajtwin.profile_cnn.data import default_scan_smoothing_um
 from ajtwin.vision.features import find_edges
 from ajtwin.vision.profile import optics as vision_optics
 
@@ -53,6 +55,7 @@ class Optics:
 
     @classmethod
     def from_package(cls) -> Optics:
+        """The brightness constants of ``vision/optics.toml``."""
         b = vision_optics()["brightness"]
         return cls(float(b["slope_scale"]), float(b["floor"]), float(b["overspray_threshold"]))
 
@@ -186,7 +189,7 @@ def features_numpy(h_um, um_per_px: float) -> tuple[np.ndarray, np.ndarray]:
 def read_features(h_um, um_per_px: float, *, sigma_um: float | None = None, tries: int = 3):
     """Linewidth and overspray of predicted profiles, defined on every profile if possible.
 
-    The SPEC §9 definitions react to sub-nm slopes, so a profile with a small
+    The model reference §9 definitions react to sub-nm slopes, so a profile with a small
     ripple on its tail may have no clean threshold crossing or shoulder peak
     (``nan``). Those profiles — and only those — are read again after a
     Gaussian smoothing of σ = ``sigma_um`` (default: the scan smoothing the
@@ -199,9 +202,6 @@ def read_features(h_um, um_per_px: float, *, sigma_um: float | None = None, trie
     fallback : ndarray (N,) bool
         Profiles read through the smoothing fallback.
     """
-    from scipy.ndimage import gaussian_filter1d
-
-    from ajtwin.profile_cnn.data import default_scan_smoothing_um
 
     h = np.atleast_2d(np.asarray(h_um, dtype=np.float64))
     lw, ov = features_numpy(h, um_per_px)

@@ -1,4 +1,4 @@
-"""Material flow from a height profile: Q_m = ν ∫ h dr (paper eq. for Q_m, SPEC §9).
+"""Material flow from a height profile: Q_m = ν ∫ h dr (paper eq. for Q_m, model reference §9).
 
 Units: h and r in µm, ν (platen speed) in mm/s, Q_m in mL/s of deposited
 volume. Conversions go through :mod:`ajtwin.units` (1 µm³ = 1e-12 mL).

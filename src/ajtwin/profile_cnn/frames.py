@@ -16,9 +16,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from tqdm.auto import tqdm
 
+from ajtwin.profile_cnn.data import ColumnDataset
 from ajtwin.vision import features as vision_features
-from ajtwin.vision.extract import FrameResult, LineExtractor, to_gray
+from ajtwin.vision.extract import FrameResult, LineExtractor, open_source, to_gray
 
 
 @dataclass
@@ -41,14 +43,17 @@ class FrameColumns:
 
     @property
     def cv_linewidth_um(self) -> np.ndarray:
+        """The camera algorithm's linewidth per batch [µm]."""
         return np.array([b.linewidth_um for b in self.result.batches], dtype=float)
 
     @property
     def cv_overspray_um(self) -> np.ndarray:
+        """The camera algorithm's overspray per batch [µm]."""
         return np.array([b.overspray_um for b in self.result.batches], dtype=float)
 
     @property
     def cv_ok(self) -> np.ndarray:
+        """Which batches the camera algorithm measured."""
         ok = (vision_features.OK, vision_features.STD_FALLBACK)
         return np.array([b.status in ok for b in self.result.batches], dtype=bool)
 
@@ -131,10 +136,6 @@ def labelled_columns_from_video(
     -------
     ColumnDataset
     """
-    from tqdm.auto import tqdm
-
-    from ajtwin.profile_cnn.data import ColumnDataset
-    from ajtwin.vision.extract import open_source
 
     frames = open_source(source, fps)
     extractor = LineExtractor(um_per_px, batch=batch)

@@ -8,6 +8,7 @@ and returns height profiles in µm on the column's pixel grid.
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,6 @@ def set_threads(n_threads: int | None = None) -> int:
     threads were 6–20× *slower* than one (barrier spinning when other
     processes hold the cores); give 2 on an idle machine.
     """
-    import os
 
     if n_threads is None:
         n_threads = int(os.environ.get("AJTWIN_TORCH_THREADS", 1))
@@ -70,6 +70,7 @@ class ProfileModel:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels per column the network takes."""
         return self.network.config.n_pixels
 
     def forward_um(self, normalized: torch.Tensor) -> torch.Tensor:
@@ -109,6 +110,7 @@ class ProfileModel:
     # ------------------------------------------------------------ persistence
 
     def state(self) -> dict:
+        """Everything needed to restore the model (torch.save-able)."""
         return {
             "format_version": FORMAT_VERSION,
             "network_config": self.network.config.to_dict(),
@@ -120,6 +122,7 @@ class ProfileModel:
 
     @classmethod
     def from_state(cls, state: dict) -> ProfileModel:
+        """The model saved as :attr:`state` (ValueError for another format version)."""
         if state.get("format_version") != FORMAT_VERSION:
             raise ValueError(
                 f"model format {state.get('format_version')!r}; this ajtwin reads {FORMAT_VERSION}"

@@ -1,6 +1,6 @@
 """1-D ResNet-18 that maps a grayscale column across the line to a height profile.
 
-Paper §5 (SPEC §9): "A ResNet-18 model was selected as the network architecture,
+Paper §5 (model reference §9): "A ResNet-18 model was selected as the network architecture,
 with the input consisting of grayscale image columns of size (200, 1) … we modify
 the final layer with a dense linear layer to enable direct height regression."
 
@@ -47,12 +47,14 @@ class NetworkConfig:
     depth: int = 3
 
     def to_dict(self) -> dict:
+        """The configuration as plain values (saved with the model)."""
         d = asdict(self)
         d["blocks_per_stage"] = list(self.blocks_per_stage)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> NetworkConfig:
+        """A configuration saved by :meth:`to_dict` (older models: the ResNet)."""
         d = dict(d)  # models saved before the U-Net option have no arch/depth: ResNet
         d["blocks_per_stage"] = tuple(d["blocks_per_stage"])
         return cls(**d)
@@ -81,6 +83,7 @@ class BasicBlock1d(nn.Module):
             self.shortcut = nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Two convolutions with a residual connection: (N, C_in, L) → (N, C_out, L')."""
         out = self.relu(self.bn1(self.conv1(x)))
         out = self.bn2(self.conv2(out))
         return self.relu(out + self.shortcut(x))
@@ -144,6 +147,7 @@ class ResNet18Profile(nn.Module):
                 nn.init.zeros_(m.bn2.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Columns (N, L) or (N, 1, L) → height profiles (N, L) [scaled units]."""
         if x.dim() == 2:
             x = x.unsqueeze(1)
         if x.shape[-1] != self.config.n_pixels:
@@ -169,7 +173,7 @@ class ConvBlock1d(nn.Sequential):
 
 
 class UNet1dProfile(nn.Module):
-    """Small 1-D U-Net (Ronneberger et al. 2015): the "simpler model" of issue #19.
+    """Small 1-D U-Net (Ronneberger et al. 2015): a simpler model than the paper's ResNet.
 
     The ResNet's global average pool squeezes the column into one vector and a
     dense head re-creates 200 heights, so an edge's position must survive a
@@ -217,6 +221,7 @@ class UNet1dProfile(nn.Module):
         nn.init.zeros_(self.head.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Columns (N, L) or (N, 1, L) → height profiles (N, L) [scaled units]."""
         if x.dim() == 2:
             x = x.unsqueeze(1)
         if x.shape[-1] != self.config.n_pixels:

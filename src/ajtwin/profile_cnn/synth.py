@@ -47,6 +47,18 @@ FRAME_SHAPE = (320, 800)  # rows, cols: 16 batches of 50 columns per frame
 
 @dataclasses.dataclass(frozen=True)
 class LineRanges:
+    """Ranges the synthetic lines are drawn from.
+
+    Attributes
+    ----------
+    linewidth_um, overspray_um : (float, float)
+        Uniform ranges [µm].
+    area_factor : (float, float)
+        Cross-section as a multiple of the least area that shows the overspray.
+    raggedness_um : float
+        σ of the edges' random shifts [µm].
+    """
+
     linewidth_um: tuple[float, float] = (32.0, 52.0)
     overspray_um: tuple[float, float] = (16.0, 34.0)
     area_factor: tuple[float, float] = (1.3, 3.0)
@@ -97,12 +109,12 @@ def synthetic_pairs(
     ``scan_smoothing_um`` (default: the packaged setting) smooths each scan
     before registration, as for real scans. ``edge_raggedness_um`` (default: the
     renderer's, the same as the stage-2 frames of :func:`synthetic_labelled`) is
-    the along-line raggedness of the rendered frame. Why not straight lines (0,
-    as before 2026-11-25): a batch column of a ragged edge is smeared, and a
+    the along-line raggedness of the rendered frame. Why not straight lines
+    (0): a batch column of a ragged edge is smeared, and a
     network trained on straight pairs read the stage-2 columns' area 1.1–2.5 %
     low (stage 1, training seeds 0–3, held-out seed 11: Q_m error 3.0–3.6 % on
     ragged columns, 1.8–2.2 % on straight ones; trained on ragged pairs 2.4–2.8 %,
-    bias +0.1…+1.1 %; docs/profile_cnn.md). The warp that makes the raggedness
+    bias +0.1…+1.1 %; docs/explanation/profile-cnn.md). The warp that makes the raggedness
     moves each row's shoulders by zero-mean shifts, so the mean cross-section
     under a batch is the straight profile to first order: the scan's target.
 

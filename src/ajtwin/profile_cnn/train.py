@@ -1,4 +1,4 @@
-"""Two-stage training of the height-profile CNN (paper §5, SPEC §9).
+"""Two-stage training of the height-profile CNN (paper §5, model reference §9).
 
 Stage 1: supervised MSE between predicted and profilometer profiles
 (the paper's 125 scans). Stage 2: fine-tuning on many columns labelled only
@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +70,7 @@ class TrainConfig:
         i.e. 64–512 channels; U-Net: 16). Smaller only for tests.
     arch : {"resnet18", "unet1d"}
         The paper's ResNet-18 (default) or the small 1-D U-Net compared in
-        docs/profile_cnn.md.
+        docs/explanation/profile-cnn.md.
     n_threads : int, optional
         torch intra-op threads (default 1, see :func:`~ajtwin.profile_cnn.model.set_threads`).
     grad_clip : float
@@ -93,14 +93,14 @@ class TrainConfig:
         Independent trainings (seeds ``seed``, ``seed + 1``, …; one validation
         split, drawn from ``seed``) of which the one with the best stage-2
         validation score is kept (:func:`train_restarts`). Stage 2 ends in a
-        minimum that depends on the initialisation (docs/profile_cnn.md, *Edges*);
+        minimum that depends on the initialisation (docs/explanation/profile-cnn.md, *Edges*);
         the validation score tracks held-out truth, so picking among a few runs by
         it is a selection on training data only. Needs ``stage2_val_fraction`` > 0.
     restart_screen_epochs : int
         With restarts: train every restart only to this stage-2 epoch, then
         finish the ``restart_finalists`` best by validation score so far and keep
         the best of those (0 = finish every restart). A run that reaches a good
-        stage-2 minimum shows it early (docs/profile_cnn.md), so screening lets
+        stage-2 minimum shows it early (docs/explanation/profile-cnn.md), so screening lets
         more initialisations be tried in the same time.
     restart_finalists : int
         Restarts finished after the screen.
@@ -138,6 +138,7 @@ class TrainConfig:
     split_seed: int | None = None
 
     def to_dict(self) -> dict:
+        """The configuration as plain values (saved with the model and the checkpoint)."""
         return asdict(self)
 
 
@@ -160,6 +161,8 @@ def _augment(x: torch.Tensor, ys: list[torch.Tensor], gen: torch.Generator, max_
 
 
 def data_fingerprint(*datasets: ColumnDataset | None) -> str:
+    """SHA-256 of the training data (columns and labels), so a checkpoint resumes only on the same
+    data."""
     h = hashlib.sha256()
     for ds in datasets:
         if ds is None:
@@ -576,7 +579,6 @@ def train_restarts(
         The kept model (its meta lists every restart's seed and score), all
         trainers, and the index of the kept one.
     """
-    from dataclasses import replace
 
     n = int(config.restarts)
     if n < 1:

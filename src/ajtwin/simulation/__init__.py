@@ -1,4 +1,4 @@
-"""ajtwin.simulation — the virtual AJ printer and its scenarios (docs/scenarios.md).
+"""ajtwin.simulation — the virtual AJ printer and its scenarios (docs/reference/scenarios.md).
 
 :func:`simulate` turns a scenario and a seed into a :class:`ajtwin.io.PrintRecord`
 with known truth; :func:`run_virtual_print` keeps everything behind it.

@@ -2,7 +2,7 @@
 
 :func:`difference_from_nominal` runs the nominal model open loop (θ = 0, Euler at 1 s)
 from the print's *true* initial state with its measured inputs, and reports truth minus
-nominal; :func:`scenario_table` does it over scenarios and seeds (docs/scenarios.md).
+nominal; :func:`scenario_table` does it over scenarios and seeds (docs/reference/scenarios.md).
 
 Examples
 --------
@@ -15,7 +15,11 @@ Examples
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
+from ajtwin.model import DigitalModel
+from ajtwin.simulation.printer import run_virtual_print
+from ajtwin.simulation.scenarios import list_scenarios
 from ajtwin.units import um_to_nm
 
 
@@ -29,7 +33,6 @@ def difference_from_nominal(virtual_print, last_s: int = 300) -> dict:
         ``L_w_um``, ``L_o_um``, ``P_c_Pa``, ``Q_m_percent`` (measured − nominal outputs),
         ``rms_L_w_um`` (measured − nominal L_w over the whole print).
     """
-    from ajtwin.model import DigitalModel
 
     model = DigitalModel.default()
     record = virtual_print.record
@@ -54,10 +57,6 @@ def difference_from_nominal(virtual_print, last_s: int = 300) -> dict:
 
 def scenario_table(scenarios=None, seeds=range(5)):
     """A pandas table: per scenario, mean/min/max over seeds of :func:`difference_from_nominal`."""
-    import pandas as pd
-
-    from ajtwin.simulation.printer import run_virtual_print
-    from ajtwin.simulation.scenarios import list_scenarios
 
     rows = []
     for name in scenarios or list_scenarios():

@@ -1,11 +1,11 @@
-"""Virtual machines that differ from the nominal model (SPEC §11, issue 12).
+"""Virtual machines that differ from the nominal model (model reference §11).
 
 A real AJ 300 has its own plumbing, gauges, nozzle and camera. A virtual machine is
 the nominal machine seen through a :class:`MachineDeviation`: carrier- and sheath-line
 resistance factors, pressure-gauge gains and offsets, line-model levels and gains for
 L_w and L_o, a camera scale and a Q_m gain. The sizes of the seeded draws live in
-``data/machine_variation.toml`` (``[machine_variation]``), fixed profiles such as the
-paper's machine in its ``[profiles.*]`` tables.
+``data/machine_variation.toml`` (``[machine_variation]``), named machines such as the
+paper's machine in its ``[machines.*]`` tables.
 
 The deviation acts on the virtual printer's noise-free outputs (before sensor noise):
 
@@ -28,12 +28,12 @@ True
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass
-from importlib import resources
 
 import numpy as np
 
+from ajtwin.config import packaged_toml
+from ajtwin.model import DigitalModel
 from ajtwin.model.calibration import Calibration, apply_calibration
 
 #: Reference operating point of the line levels [mA, sccm, sccm], d_a [µm], V_l [mL].
@@ -44,8 +44,7 @@ REFERENCE_VIAL_ML = 1.0
 
 def load_machine_variation() -> dict:
     """The packaged ``data/machine_variation.toml`` as a dict."""
-    with (resources.files("ajtwin") / "data" / "machine_variation.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    return packaged_toml("data/machine_variation.toml")
 
 
 @dataclass(frozen=True)
@@ -68,6 +67,7 @@ class MachineDeviation:
 
     @property
     def is_nominal(self) -> bool:
+        """Whether this machine is the nominal model (no deviation)."""
         return self.calibration().is_identity()
 
     def calibration(self) -> Calibration:
@@ -88,6 +88,7 @@ class MachineDeviation:
         )
 
     def as_dict(self) -> dict:
+        """The deviations and the calibration they amount to, as plain values."""
         out = asdict(self)
         out["equivalent_calibration"] = {
             k: float(v) for k, v in self.calibration()._asdict().items()
@@ -96,6 +97,7 @@ class MachineDeviation:
 
     @classmethod
     def from_dict(cls, values: dict) -> MachineDeviation:
+        """A deviation saved by :meth:`as_dict`."""
         fields = {k: v for k, v in values.items() if k != "equivalent_calibration"}
         return cls(**fields)
 
@@ -107,12 +109,12 @@ class MachineDeviation:
 
 
 def nominal_machine() -> MachineDeviation:
+    """The machine the nominal model describes (no deviation)."""
     return MachineDeviation()
 
 
 def _reference_lines() -> np.ndarray:
     """Nominal (L_w, L_o) [µm] at the reference point."""
-    from ajtwin.model import DigitalModel
 
     model = DigitalModel.default()
     aerosol = float(model.steady_aerosol_fraction(REFERENCE_INPUT, REFERENCE_VIAL_ML))
@@ -159,15 +161,15 @@ def draw_machine(seed: int, variation: dict | None = None) -> MachineDeviation:
     )
 
 
-def machine_profile(name: str, variation: dict | None = None) -> MachineDeviation:
-    """A fixed machine profile from the data file (e.g. ``"paper"``)."""
+def named_machine(name: str, variation: dict | None = None) -> MachineDeviation:
+    """A named machine of the data file (e.g. ``"paper"``)."""
     if name == "nominal":
         return nominal_machine()
-    profiles = (variation or load_machine_variation()).get("profiles", {})
-    if name not in profiles:
-        known = ", ".join(["nominal", *sorted(profiles)])
-        raise ValueError(f"unknown machine profile {name!r} (known: {known})")
-    p = dict(profiles[name])
+    machines = (variation or load_machine_variation()).get("machines", {})
+    if name not in machines:
+        known = ", ".join(["nominal", *sorted(machines)])
+        raise ValueError(f"unknown named machine {name!r} (known: {known})")
+    p = dict(machines[name])
     ref_lw, ref_lo = _reference_lines()
     lw_gain = float(p.pop("linewidth_gain", 1.0))
     lo_gain = float(p.pop("overspray_gain", 1.0))
@@ -183,9 +185,9 @@ def machine_profile(name: str, variation: dict | None = None) -> MachineDeviatio
 
 
 def resolve_machine(machine=None, machine_seed: int | None = None) -> MachineDeviation:
-    """A MachineDeviation from a profile name / deviation / dict and/or a seed."""
+    """A MachineDeviation from a machine name / deviation / dict and/or a seed."""
     if machine is not None and machine_seed is not None:
-        raise ValueError("give a machine profile or a machine seed, not both")
+        raise ValueError("give a named machine or a machine seed, not both")
     if machine_seed is not None:
         return draw_machine(machine_seed)
     if machine is None:
@@ -194,4 +196,4 @@ def resolve_machine(machine=None, machine_seed: int | None = None) -> MachineDev
         return machine
     if isinstance(machine, dict):
         return MachineDeviation.from_dict(machine)
-    return machine_profile(str(machine))
+    return named_machine(str(machine))

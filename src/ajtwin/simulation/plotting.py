@@ -14,6 +14,7 @@ import warnings
 from pathlib import Path
 
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TRUTH_COLUMNS, PrintRecord
+from ajtwin.model import DigitalModel
 
 LABELS = {
     "atomizer_current_mA": "I_A [mA]",
@@ -37,10 +38,9 @@ def nominal_open_loop(record: PrintRecord):
     """The nominal digital model's open-loop states and outputs for a record with truth.
 
     Starts from the true state at the first sample, with the twin's prior of a clean
-    tube and nozzle (ΔR_T = ΔR_N = 0, SPEC §7), θ = 0, Euler at 1 s, driven by the
+    tube and nozzle (ΔR_T = ΔR_N = 0, model reference §7), θ = 0, Euler at 1 s, driven by the
     measured inputs. Returns (states (T, 5), outputs (T, 5)).
     """
-    from ajtwin.model import DigitalModel
 
     model = DigitalModel.default()
     x0 = record.true_states[0].copy()

@@ -40,10 +40,11 @@ from ajtwin.io.records import (
     PrintRecord,
 )
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
-from ajtwin.model.system import output_function
+from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
+from ajtwin.simulation.truth_alt import alt_measure, alt_processes, integrate_alt_truth
 
 # Named random streams, in a fixed order (append only: never reorder).
 STREAMS = (
@@ -82,7 +83,7 @@ def _ou(rng: np.random.Generator, n: int, sd: float, tau_s: float, start=None) -
     return lfilter([1.0], [1.0, -a], noise)
 
 
-def _first_order_lag(target: np.ndarray, tau_s: float) -> np.ndarray:
+def first_order_lag(target: np.ndarray, tau_s: float) -> np.ndarray:
     """y_{k+1} = y_k + (1 − e^{−1/τ})(target_k − y_k), starting in equilibrium y_0 = target_0."""
     if tau_s <= 0:
         return target.copy()
@@ -101,7 +102,6 @@ def true_line_coefficients(nominal: np.ndarray, factors: np.ndarray, params) -> 
     point (d_a 3.5 µm, φ_A in balance at 375 mA/23 sccm/1 mL, clean nozzle, Q_s 50 sccm):
     the mismatch is in how the line *responds*, not a constant bias.
     """
-    from ajtwin.model.system import steady_aerosol_fraction
 
     truth = np.array(nominal, dtype=float).copy()
     truth[:, :7] = nominal[:, :7] * factors
@@ -159,8 +159,31 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         if setpoints.shape != (n, 3):
             raise ValueError(f"setpoints must be ({n}, 3); got {setpoints.shape}")
 
-    # MFCs regulate around the set-point with a short correlation (AR(1)); the
-    # atomizer current wanders sample to sample.
+    mfc_inputs = _mfc_inputs(streams, meas, setpoints)
+    kind = fault["kind"]
+    onset_s = scenario.fault_onset_s
+    after = (t >= onset_s) if onset_s is not None else np.zeros(n, dtype=bool)
+    leak = np.zeros(n)
+    if kind == "carrier_leak":
+        ramp_s = max(float(fault["ramp_min"]) * 60.0, 1.0)
+        leak = float(fault["leak_fraction"]) * np.clip((t - onset_s) / ramp_s, 0.0, 1.0)
+    head_inputs = mfc_inputs.copy()
+    head_inputs[:, 1] *= 1.0 - leak
+    droplet, draws = _droplet_size(streams, truth, mfc_inputs, t)
+    drivers, draws["generation_offset"] = _drivers(streams, truth, fault, t, after, onset_s)
+    drift = np.zeros((n, 2))
+    if kind == "pressure_sensor_drift":
+        hours = np.clip(t - onset_s, 0.0, None) / 3600.0
+        drift[:, 0] = fault["carrier_pressure_drift_Pa_per_h"] * hours
+        drift[:, 1] = fault["sheath_pressure_drift_Pa_per_h"] * hours
+    return Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+
+
+def _mfc_inputs(streams: dict, meas: dict, setpoints: np.ndarray) -> np.ndarray:
+    """The inputs the controllers deliver (T, 3) [mA, sccm, sccm]: MFCs regulate around the
+    set-point with a short correlation (AR(1)); the atomizer current wanders sample to
+    sample."""
+    n = len(setpoints)
     jitter = np.stack(
         [
             streams["current_jitter"].standard_normal(n) * meas["atomizer_current_jitter_mA"],
@@ -181,20 +204,14 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
     )
     mfc_inputs = setpoints + jitter
     mfc_inputs[:, 1:] = np.maximum(mfc_inputs[:, 1:], 0.1)
+    return mfc_inputs
 
-    kind = fault["kind"]
-    onset_s = scenario.fault_onset_s
-    after = (t >= onset_s) if onset_s is not None else np.zeros(n, dtype=bool)
 
-    leak = np.zeros(n)
-    if kind == "carrier_leak":
-        ramp_s = max(float(fault["ramp_min"]) * 60.0, 1.0)
-        leak = float(fault["leak_fraction"]) * np.clip((t - onset_s) / ramp_s, 0.0, 1.0)
-    head_inputs = mfc_inputs.copy()
-    head_inputs[:, 1] *= 1.0 - leak
-
-    # Droplet size: seeded start, seeded linear trend, slow OU wander, and a lagged
-    # shift that follows carrier flow and atomizer current.
+def _droplet_size(streams: dict, truth: dict, mfc_inputs: np.ndarray, t: np.ndarray):
+    """The true droplet size (T,) [µm]: a seeded start, a seeded trend that levels off, a
+    slow OU wander and a lagged shift that follows carrier flow and atomizer current;
+    with the draws behind it (start incl. the first shift, trend rate)."""
+    n = len(t)
     droplet_start = truth["droplet_median_um"] + truth["droplet_offset_sd_um"] * float(
         streams["droplet_offset"].standard_normal()
     )
@@ -209,7 +226,7 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
     ) + truth["droplet_current_um_per_mA"] * (
         mfc_inputs[:, 0] - truth["droplet_reference_current_mA"]
     )
-    input_shift = _first_order_lag(input_target, truth["droplet_input_lag_s"])
+    input_shift = first_order_lag(input_target, truth["droplet_input_lag_s"])
     # the trend starts at trend_um_per_h and levels off after ~droplet_trend_time_s
     # (a drift that kept its rate for 8 h would leave the physical range of d_a)
     trend_time_s = truth["droplet_trend_time_s"]
@@ -217,9 +234,20 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         trend = trend_um_per_h / 3600.0 * trend_time_s * -np.expm1(-t / trend_time_s)
     else:
         trend = trend_um_per_h * t / 3600.0
-    droplet = droplet_start + trend + wander + input_shift
-    droplet = np.maximum(droplet, 0.5)
+    droplet = np.maximum(droplet_start + trend + wander + input_shift, 0.5)
+    draws = {
+        "droplet_start_um": droplet_start + float(input_shift[0]),
+        "droplet_trend_um_per_h": trend_um_per_h,
+    }
+    return droplet, draws
 
+
+def _drivers(streams: dict, truth: dict, fault: dict, t, after, onset_s):
+    """The slow drivers (T, 4): generation efficiency (seeded offset and OU wander; an
+    atomizer dropout), tube and nozzle deposition factors (a clog), evaporation [mL/s];
+    with the generation offset drawn."""
+    n = len(t)
+    kind = fault["kind"]
     generation_offset = truth["generation_offset_sd"] * float(
         streams["generation_offset"].standard_normal()
     )
@@ -235,7 +263,6 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         duration_s = float(fault["duration_min"]) * 60.0
         active = after if duration_s <= 0 else after & (t < onset_s + duration_s)
         generation = np.where(active, generation * float(fault["generation_fraction"]), generation)
-
     nozzle_factor = np.full(n, float(truth["nozzle_deposition_factor"]))
     if kind == "nozzle_clog":
         clog = float(fault["nozzle_deposition_multiplier"])
@@ -250,19 +277,7 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         ],
         axis=-1,
     )
-
-    drift = np.zeros((n, 2))
-    if kind == "pressure_sensor_drift":
-        hours = np.clip(t - onset_s, 0.0, None) / 3600.0
-        drift[:, 0] = fault["carrier_pressure_drift_Pa_per_h"] * hours
-        drift[:, 1] = fault["sheath_pressure_drift_Pa_per_h"] * hours
-
-    draws = {
-        "droplet_start_um": droplet_start + float(input_shift[0]),
-        "droplet_trend_um_per_h": trend_um_per_h,
-        "generation_offset": generation_offset,
-    }
-    return Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+    return drivers, generation_offset
 
 
 def measure(
@@ -425,15 +440,11 @@ def run_virtual_print(
     if truth_generator not in ("model", "alt"):
         raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import alt_processes
-
         processes = alt_processes(scenario, processes, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
     x0 = true_initial_state(scenario, processes, params, streams)
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import integrate_alt_truth
-
         truth = integrate_alt_truth(
             x0,
             processes.droplet_um,
@@ -464,8 +475,6 @@ def run_virtual_print(
     # this machine's plumbing, gauges, line model and camera (identity: nominal machine)
     outputs_true = deviation.apply(outputs_true, states, processes.head_inputs, params)
     if truth_generator == "alt":
-        from ajtwin.simulation.truth_alt import alt_measure
-
         inputs, outputs = alt_measure(scenario, processes, outputs_true, int(seed))
     else:
         inputs, outputs = measure(scenario, processes, outputs_true, streams)
@@ -535,7 +544,7 @@ def simulate(
         A packaged scenario (``exp1``, ``exp2``, ``exp3``, ``nozzle_clog``,
         ``carrier_leak``, ``pressure_sensor_drift``, ``atomizer_dropout``,
         ``ink_running_low``, ``clean_long``), a scenario TOML file, or a dict of
-        overrides of ``base.toml`` (docs/scenarios.md).
+        overrides of ``base.toml`` (docs/reference/scenarios.md).
     seed : int
         Seed of every random process; the same seed gives the same record.
     duration_min : float, optional
@@ -549,7 +558,7 @@ def simulate(
         prints differently. Explicit ``overrides["initial"]`` keys win. The machine of the
         previous print is kept unless ``machine``/``machine_seed`` name another.
     machine : str, dict or MachineDeviation, optional
-        A machine profile (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
+        A named machine (``"paper"``, ``"nominal"``; ``data/machine_variation.toml``) or
         an explicit deviation (:mod:`ajtwin.simulation.machine`). Default: nominal machine.
     machine_seed : int, optional
         Draw the machine's deviations from this seed (independent of ``seed``).

@@ -3,10 +3,10 @@
 A scenario says what the operator does (input set-point steps), where the machine
 starts, how the truth differs from the twin's nominal model (``[truth]``), what the
 sensors add (``[measurement]``) and which fault strikes when (``[fault]``). The
-packaged ones are ``exp1``, ``exp2``, ``exp3`` (SPEC §10), ``nozzle_clog``,
+packaged ones are ``exp1``, ``exp2``, ``exp3`` (model reference §10), ``nozzle_clog``,
 ``carrier_leak``, ``pressure_sensor_drift``, ``atomizer_dropout``,
 ``ink_running_low`` and ``clean_long``; a user's file of the same form works too
-and needs only the keys it changes. Every key and its value: ``docs/scenarios.md``.
+and needs only the keys it changes. Every key and its value: ``docs/reference/scenarios.md``.
 
 Examples
 --------
@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import copy
 import math
-import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from ajtwin.io.files import read_toml_file
-from ajtwin.model.system import INPUT_LIMITS, INPUT_NAMES
+from ajtwin.config import packaged_toml, read_toml
+from ajtwin.model.names import INPUT_NAMES
+from ajtwin.model.system import INPUT_LIMITS
 
 SCENARIO_DIR = resources.files("ajtwin.simulation") / "scenarios"
 
@@ -47,20 +47,8 @@ FAULT_FIELDS = {
 }
 
 
-def _read_toml(source) -> dict:
-    """A packaged scenario (a resource) or a user's file (a regular file of bounded size)."""
-    if isinstance(source, Path):
-        # a directory, FIFO or /dev/zero must be refused before it is opened (hang, no end)
-        return read_toml_file(source, what="scenario")
-    try:
-        with source.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{source}: not valid TOML: {exc}") from None
-
-
 def _base() -> dict:
-    return _read_toml(SCENARIO_DIR / "base.toml")
+    return packaged_toml("simulation/scenarios/base.toml")
 
 
 def list_scenarios() -> list[str]:
@@ -138,10 +126,12 @@ class Scenario:
 
     @property
     def fault_kind(self) -> str:
+        """The scenario's fault (``none`` for a clean print)."""
         return self.config["fault"]["kind"]
 
     @property
     def fault_onset_s(self) -> float | None:
+        """When the fault begins [s] (None: no fault)."""
         if self.fault_kind == "none":
             return None
         return float(self.config["fault"]["onset_min"]) * 60.0
@@ -287,7 +277,8 @@ def load_scenario(
     if text.endswith(".toml") or path.exists():
         if not path.exists():
             raise FileNotFoundError(f"scenario file not found: {path}")
-        raw = _read_toml(path)
+        # a directory, FIFO or /dev/zero is refused before it is opened (hang, no end)
+        raw = read_toml(path, what="scenario")
         name = path.stem
         source = str(path)
     else:
@@ -297,7 +288,7 @@ def load_scenario(
                 f"unknown scenario {text!r}; packaged: {', '.join(list_scenarios())} "
                 "(or give a path to your own .toml file)"
             )
-        raw = _read_toml(packaged)
+        raw = packaged_toml(f"simulation/scenarios/{text}.toml")
         name = text
         source = f"packaged:{text}"
     config = _merge(base, raw, source)

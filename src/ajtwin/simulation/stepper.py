@@ -68,6 +68,12 @@ from ajtwin.simulation.printer import (
 )
 from ajtwin.simulation.scenarios import load_scenario
 from ajtwin.simulation.truth import scan_truth_seconds
+from ajtwin.simulation.truth_alt import (
+    alt_measure,
+    alt_processes,
+    load_alt_settings,
+    scan_alt_seconds,
+)
 
 
 @dataclass
@@ -116,8 +122,6 @@ class SteppedPrinter:
         self._true_outputs = np.full((self.n, 5), np.nan)
         self._substeps = int(scenario.config["truth"]["integration_substeps"])
         if truth == "alt":
-            from ajtwin.simulation.truth_alt import load_alt_settings
-
             self._alt = load_alt_settings()
             dep = self._alt["deposition"]
             self._deposition = (
@@ -131,20 +135,17 @@ class SteppedPrinter:
         """The exogenous processes for a schedule (the alt truth replaces d_a and η)."""
         processes = draw_processes(self.scenario, streams, setpoints=setpoints)
         if self.truth == "alt":
-            from ajtwin.simulation.truth_alt import alt_processes
-
             processes = alt_processes(self.scenario, processes, self.seed)
         return processes
 
     def _measure(self, processes, filled):
         if self.truth == "alt":
-            from ajtwin.simulation.truth_alt import alt_measure
-
             return alt_measure(self.scenario, processes, filled, self.seed, self._alt)
         return measure(self.scenario, processes, filled, make_streams(self.seed))
 
     @property
     def done(self) -> bool:
+        """Whether the print has ended."""
         return self.k >= self.n
 
     @property
@@ -190,8 +191,6 @@ class SteppedPrinter:
         # pad to the requested length so every chunk of one size shares a compilation
         idx = np.minimum(np.arange(k0, k0 + seconds), k1 - 1)
         if self.truth == "alt":
-            from ajtwin.simulation.truth_alt import scan_alt_seconds
-
             self._carry, emitted = scan_alt_seconds(
                 self._carry,
                 droplet[idx],
@@ -276,4 +275,5 @@ class SteppedPrinter:
 
     @property
     def true_states(self) -> np.ndarray:
+        """The true states so far (k, 5), display units."""
         return self._true_states[: self.k]

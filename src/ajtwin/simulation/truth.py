@@ -25,7 +25,8 @@ import numpy as np
 from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.model.atomizer import net_droplet_generation
-from ajtwin.model.system import N_STATES, output_function, transition_rates
+from ajtwin.model.names import N_STATES
+from ajtwin.model.system import output_function, transition_rates
 
 
 def true_generation(flow_input, vial_volume_ml, generation_multiplier, params):

@@ -1,8 +1,9 @@
-"""A second, structurally different truth generator — for evaluation only (issue 12).
+"""A second, structurally different truth generator — for evaluation only.
 
 The first generator (:mod:`ajtwin.simulation.truth`) tuned the twin (noise.toml, the
 detector and guard thresholds). Figures claimed for real machines are measured on this
-one, which tuned nothing (docs/calibration.md). Selected by ``--truth alt``; its
+one, which tuned nothing (docs/explanation/per-machine-calibration.md). Selected by
+``--truth alt``; its
 constants live in ``data/truth_alt.toml``. What differs:
 
 * **droplet size d_a** — a random walk with Poisson jumps (atomizer mode hops) plus a
@@ -30,14 +31,12 @@ Examples
 
 from __future__ import annotations
 
-import tomllib
-from importlib import resources
-
 import numpy as np
 from scipy.signal import lfilter
 
 from ajtwin import units
 from ajtwin._jax import jax, jnp
+from ajtwin.config import packaged_toml
 from ajtwin.model.system import output_function
 from ajtwin.simulation.truth import truth_rates
 
@@ -45,11 +44,13 @@ CHUNK_S = 600
 
 
 def load_alt_settings() -> dict:
-    with (resources.files("ajtwin") / "data" / "truth_alt.toml").open("rb") as handle:
-        return tomllib.load(handle)
+    """The second generator's settings with their provenance (``data/truth_alt.toml``)."""
+    return packaged_toml("data/truth_alt.toml")
 
 
-def _lag(signal: np.ndarray, tau_s: float) -> np.ndarray:
+def lag_filter(signal: np.ndarray, tau_s: float) -> np.ndarray:
+    """The second generator's first-order lag: y_k = (1 − b) y_{k−1} + b signal_k,
+    b = 1 − e^{−1/τ} [τ in s], starting in equilibrium with ``signal[0]``."""
     b = 1.0 - np.exp(-1.0 / tau_s)
     y, _ = lfilter([b], [1.0, -(1.0 - b)], signal, zi=[(1.0 - b) * signal[0]])
     return y
@@ -74,7 +75,7 @@ def alt_processes(scenario, processes, seed: int, settings: dict | None = None):
     target = d["carrier_um_per_sccm"] * (processes.mfc_inputs[:, 1] - 23.0) + d[
         "current_um_per_mA"
     ] * (processes.mfc_inputs[:, 0] - 375.0)
-    response = _lag(_lag(target, d["lag_s"][0]), d["lag_s"][1])
+    response = lag_filter(lag_filter(target, d["lag_s"][0]), d["lag_s"][1])
     processes.droplet_um = np.maximum(start + walk + response, 0.5)
 
     g = cfg["generation"]

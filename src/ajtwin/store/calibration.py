@@ -1,4 +1,4 @@
-"""Per-machine calibrations and maintenance events in the registry (SPEC §11).
+"""Per-machine calibrations and maintenance events in the registry (model reference §11).
 
 Two tables of the registry (schema migration 4 of :mod:`ajtwin.store.registry`; export,
 import and compact carry them like the prints):
@@ -31,7 +31,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from ajtwin.model.calibration import Calibration, calibration_from_dict, calibration_to_dict
+from ajtwin.model.calibration import calibration_from_dict, calibration_to_dict
 from ajtwin.store.registry import _CALIBRATION_SCHEMA
 
 # created by the registry's schema migration 4; kept here for registries opened before it
@@ -97,7 +97,7 @@ def save_calibration(
     """Store a :class:`~ajtwin.estimation.commission.CommissioningResult`; returns its id.
 
     ``long_run_history``: the detectors' long-run statistics on the commissioning print
-    (:func:`ajtwin.apps.anomaly.commissioning_long_run_history`), carried to the next print.
+    (:func:`ajtwin.engine.commissioning.commissioning_long_run_history`), carried to the next print.
     """
     ensure_tables(registry)
     machine_id = registry.machine(machine)["id"]
@@ -207,6 +207,7 @@ def record_maintenance(
 
 
 def maintenance_history(registry, machine: str) -> pd.DataFrame:
+    """One row per maintenance event of a machine (oldest first): when, after which print, what."""
     machine_id = registry.machine(machine)["id"]
     if not _has_tables(registry):
         return pd.DataFrame()
@@ -233,95 +234,3 @@ def pending_maintenance(registry, machine: str, since_unix: float = 0.0) -> list
         (machine_id, _last_seq(registry, machine), since_unix),
     ).fetchall()
     return [json.loads(r["event_json"]) for r in rows]
-
-
-#: Prior σ of a cleaned nozzle deposit [µm] and a weighed refill [mL] (as commissioning).
-def _maintenance_priors() -> tuple[float, float]:
-    from ajtwin.estimation.commission import load_commissioning_settings
-
-    prior = load_commissioning_settings()["state_prior"]
-    return prior["nozzle_deposition_um"]["std"], prior["vial_volume_std_mL"]["value"]
-
-
-def apply_maintenance(mean, cov, theta, events: list[dict]):
-    """Start state (mean (5,), cov (5, 5)) and θ (5,) after maintenance events.
-
-    Nozzle cleaned: ΔR_N → 0 with the cleaned-nozzle prior σ, uncorrelated with the rest
-    (and θ_RN → 0: a clog learned into θ must not carry on). Vial refilled: V_l → fill
-    with the weighing σ. Reset θ: θ → 0.
-    """
-    mean = np.array(mean, dtype=float)
-    cov = np.array(cov, dtype=float)
-    theta = np.array(theta, dtype=float)
-    nozzle_std, vial_std = _maintenance_priors()
-
-    def reset(index, value, std):
-        mean[index] = value
-        cov[index, :] = 0.0
-        cov[:, index] = 0.0
-        cov[index, index] = std**2
-
-    for event in events:
-        if event.get("nozzle_cleaned"):
-            reset(3, 0.0, nozzle_std)
-            theta[3] = 0.0
-        if event.get("vial_refilled_ml") is not None:
-            reset(1, float(event["vial_refilled_ml"]), vial_std)
-        if event.get("reset_theta"):
-            theta[:] = 0.0
-    return mean, cov, theta
-
-
-def calibration_or_none(registry, machine: str) -> Calibration | None:
-    active = active_calibration(registry, machine)
-    return None if active is None else active["calibration"]
-
-
-def machine_start(registry, machine: str, chain, twin_overrides: dict | None = None) -> dict:
-    """How the machine's next print starts, on top of the chain's start (SPEC §11).
-
-    The newest calibration (if any) and its noise factors and covariance; if it was fitted
-    after the newest print, the start is where commissioning left the machine; maintenance
-    events done since are applied (:func:`apply_maintenance`). Returns a dict with
-    ``start`` ((mean, cov) or None), ``theta`` (5,), ``twin_kwargs`` (for
-    :meth:`Twin.default`), ``started_from``, ``calibration_id``, ``maintenance``.
-    """
-    from ajtwin.store.chain import carry_over
-
-    start = chain.start
-    theta = np.zeros(5) if chain.theta is None else np.asarray(chain.theta, dtype=float)
-    started_from = chain.description
-    active = active_calibration(registry, machine)
-    overrides = dict(twin_overrides or {})
-    latest = 0 if chain.latest_seq is None else chain.latest_seq
-    since = 0.0
-    if active is not None and active["after_print_seq"] >= latest:
-        # commissioned since the last print: start where commissioning left the machine
-        start = carry_over(active["end_mean"], active["end_cov"])
-        since = active["created_unix"]
-        started_from = f"commissioning {active['id']}"
-    events = pending_maintenance(registry, machine, since)
-    if events:
-        if start is None:
-            refills = [e["vial_refilled_ml"] for e in events if e["vial_refilled_ml"] is not None]
-            if refills:
-                overrides.setdefault("vial_fill_ml", refills[-1])
-        else:
-            mean, cov, theta = apply_maintenance(start[0], start[1], theta, events)
-            start = (mean, cov)
-        started_from += " + maintenance"
-    twin_kwargs = dict(overrides)
-    if active is not None:
-        twin_kwargs.update(
-            calibration=active["calibration"],
-            calibration_cov=active["calibration_cov"],
-            noise_factors=active.get("noise_factors"),
-        )
-    return {
-        "start": start,
-        "theta": theta,
-        "twin_kwargs": twin_kwargs,
-        "started_from": started_from,
-        "calibration_id": None if active is None else int(active["id"]),
-        "maintenance": events,
-    }

@@ -60,6 +60,7 @@ class LiveLog:
         self._conn.execute("PRAGMA synchronous=NORMAL")
 
     def close(self):
+        """Close the log's connection."""
         self._conn.close()
 
     # ------------------------------------------------------------------ #
@@ -142,6 +143,7 @@ class LiveLog:
             raise
 
     def n_steps(self, session_id: int) -> int:
+        """Samples stored of a session."""
         row = self._conn.execute(
             "SELECT COUNT(*) FROM live_samples WHERE session_id = ?", (session_id,)
         ).fetchone()
@@ -163,6 +165,7 @@ class LiveLog:
         return t, u, y
 
     def states(self, session_id: int) -> list[dict]:
+        """The published messages of a session's committed steps, in step order."""
         rows = self._conn.execute(
             "SELECT message_json FROM live_states WHERE session_id = ? ORDER BY step",
             (session_id,),
@@ -170,6 +173,7 @@ class LiveLog:
         return [json.loads(r[0]) for r in rows]
 
     def events(self, session_id: int) -> list[dict]:
+        """A session's alarm events (raised and final), in detection order."""
         rows = self._conn.execute(
             "SELECT event_json FROM live_events WHERE session_id = ? ORDER BY detected_s, state",
             (session_id,),
@@ -177,6 +181,7 @@ class LiveLog:
         return [json.loads(r[0]) for r in rows]
 
     def close_session(self, session_id: int, print_id: int | None) -> None:
+        """Mark a session closed, with the print it became (None: nothing stored)."""
         self._conn.execute(
             "UPDATE live_sessions SET status = 'closed', print_id = ?, closed_at = ? WHERE id = ?",
             (print_id, time.time(), session_id),

@@ -7,7 +7,7 @@ predicted outputs, NIS, θ history, covariance key frames) are stored as compres
 array blobs (:mod:`ajtwin.store.arrays`); anomalies as rows. The next print of a machine
 starts from the end state and θ of the last print *in the chain* (``status = 'ok'``): a
 print whose states left the physical range is kept for history but marked
-``excluded`` and never becomes a start (:mod:`ajtwin.store.chain`).
+``excluded`` and never becomes a start (:mod:`ajtwin.engine.chain`).
 
 Guarantees
 ----------
@@ -72,6 +72,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.model.names import STATE_NAMES
 from ajtwin.store import arrays as _arrays
 
 #: environment variable: seconds to sleep inside the ingest transaction (crash tests only)
@@ -80,7 +81,7 @@ TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
 APPLICATION = "ajtwin-registry"
 
 #: Default operating limits of a machine: the validity range of H's Box–Behnken fit
-#: (Q_c 15–35 sccm, I_A 300–440 mA; SPEC §4) and an assumed sheath range around the
+#: (Q_c 15–35 sccm, I_A 300–440 mA; model reference §4) and an assumed sheath range around the
 #: paper's 48–53 sccm.
 DEFAULT_LIMITS = {
     "atomizer_current_mA": [300.0, 440.0],
@@ -157,13 +158,16 @@ def _migrate_to_2(conn):
     conn.execute(f"ALTER TABLE print_arrays ADD COLUMN codec TEXT NOT NULL DEFAULT '{_arrays.NPY}'")
     conn.execute("CREATE INDEX IF NOT EXISTS anomalies_by_print ON anomalies(print_id)")
     conn.execute("INSERT OR REPLACE INTO info VALUES ('application', ?)", (APPLICATION,))
-    # prints of a version-1 registry whose end state is impossible leave the chain
-    from ajtwin.store.chain import state_violations
 
+
+def _exclude_impossible_ends(conn, end_state_check) -> None:
+    """Prints of a version-1 registry (stored before the chain's range check) whose end state
+    ``end_state_check`` rejects leave the chain, the reason kept; inside the migration's
+    transaction. The judgement is the caller's: the store holds no physics."""
     rows = conn.execute("SELECT id, end_mean FROM prints").fetchall()
     for print_id, blob in rows:
         try:
-            problems = state_violations(_arrays.decode(blob, _arrays.NPY))
+            problems = end_state_check(_arrays.decode(blob, _arrays.NPY))
         except ValueError as exc:
             problems = [f"unreadable end state ({exc})"]
         if problems:
@@ -221,7 +225,8 @@ def _migrate_to_3(conn):
 
 
 #: A machine's calibrations (one row per commissioning, the newest active) and its
-#: maintenance events (:mod:`ajtwin.store.calibration`, SPEC §11). Never edit: add a migration.
+#: maintenance events (:mod:`ajtwin.store.calibration`, model reference §11). Never edit: add a
+#: migration.
 _CALIBRATION_SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibrations (
     id INTEGER PRIMARY KEY,
@@ -267,7 +272,7 @@ def _migrate_to_4(conn):
 def _migrate_to_5(conn):
     """The anomaly detectors' long-run statistics (``long_run_json``, JSON, 'null' for rows
     written before): per print, what it leaves the machine's next print; per calibration,
-    what the commissioning print showed (:func:`ajtwin.live.engine.carried_long_run_history`)."""
+    what the commissioning print showed (:func:`ajtwin.engine.start.carried_long_run_history`)."""
     for table in ("prints", "calibrations"):
         columns = {r[1] for r in conn.execute(f"PRAGMA table_info({table})").fetchall()}
         if "long_run_json" not in columns:
@@ -291,7 +296,7 @@ MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
 PRINT_TABLES = ["print_arrays", "anomalies"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
-#: ``print_id`` renumbered, by :func:`ajtwin.store.maintenance.copy_machine`.
+#: ``print_id`` renumbered, by :func:`ajtwin.store.archive.copy_machine`.
 LIVE_SESSION_TABLES = ["live_samples", "live_states", "live_events"]
 
 
@@ -310,12 +315,14 @@ def default_store_path() -> Path:
 
 
 def to_npy(array) -> bytes:
+    """An array as ``.npy`` bytes (no pickle)."""
     buf = io.BytesIO()
     np.save(buf, np.asarray(array), allow_pickle=False)
     return buf.getvalue()
 
 
 def from_npy(blob: bytes) -> np.ndarray:
+    """The array of ``.npy`` bytes (no pickle)."""
     return np.load(io.BytesIO(blob), allow_pickle=False)
 
 
@@ -387,6 +394,12 @@ class Registry:
         False and get a :class:`RegistryError` instead.
     policy : arrays.StoragePolicy, optional
         How per-second arrays are stored (default :class:`ajtwin.store.arrays.StoragePolicy`).
+    end_state_check : callable, optional
+        ``end_state_check(end_mean (5,)) -> list of problems``: when a version-1 registry is
+        migrated, its prints whose end state this rejects are excluded from the chain
+        (:func:`ajtwin.engine.chain.open_registry` passes the physical range check).
+        Without it they keep their status (the engine's chain start refuses such a start
+        anyway).
 
     Attributes
     ----------
@@ -394,9 +407,18 @@ class Registry:
         One message per migration applied while opening (empty when none).
     """
 
-    def __init__(self, path=None, timeout_s: float = 30.0, *, create: bool = True, policy=None):
+    def __init__(
+        self,
+        path=None,
+        timeout_s: float = 30.0,
+        *,
+        create: bool = True,
+        policy=None,
+        end_state_check=None,
+    ):
         self.path = Path(path) if path is not None else default_store_path()
         self.policy = policy or _arrays.StoragePolicy()
+        self.end_state_check = end_state_check
         self.migrated: list[str] = []
         self._conn = None
         exists = os.path.lexists(self.path)
@@ -527,6 +549,8 @@ class Registry:
                     self.migrated.append(
                         f"{self.path}: migrated registry schema {version} → {target} ({what})"
                     )
+                if target == 2 and not fresh and self.end_state_check is not None:
+                    _exclude_impossible_ends(self._conn, self.end_state_check)
                 version = target
             if not fresh:
                 missing = _V1_TABLES - self._tables()
@@ -541,6 +565,7 @@ class Registry:
             raise
 
     def close(self):
+        """Close the connection (a closed registry cannot be used again)."""
         if self._conn is not None:
             self._conn.close()
             self._conn = None
@@ -575,6 +600,7 @@ class Registry:
         return self.machine(name)
 
     def machine(self, name: str) -> dict:
+        """The machine's row with its limits and print count (RegistryError: unknown)."""
         name = str(name).strip()
         row = self._conn.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
         if row is None:
@@ -598,6 +624,7 @@ class Registry:
         return out
 
     def machines(self) -> list[dict]:
+        """Every machine's name and creation time, by name."""
         rows = self._conn.execute("SELECT name, created_at FROM machines ORDER BY name").fetchall()
         return [dict(r) for r in rows]
 
@@ -662,6 +689,7 @@ class Registry:
             yield self._print_row(row)
 
     def find_print(self, name: str, content_hash: str) -> dict | None:
+        """The machine's print with this content hash (None: not ingested)."""
         machine = self.machine(name)
         row = self._conn.execute(
             "SELECT * FROM prints WHERE machine_id = ? AND content_hash = ?",
@@ -670,12 +698,14 @@ class Registry:
         return None if row is None else self._print_row(row)
 
     def get_print(self, print_id: int) -> dict:
+        """The print with this id (RegistryError when there is none)."""
         row = self._conn.execute("SELECT * FROM prints WHERE id = ?", (print_id,)).fetchone()
         if row is None:
             raise RegistryError(f"no print with id {print_id}")
         return self._print_row(row)
 
     def print_by_seq(self, name: str, seq: int) -> dict:
+        """The machine's print number ``seq`` (RegistryError saying how many it has)."""
         machine = self.machine(name)
         row = None
         if -(2**63) <= int(seq) < 2**63:  # beyond SQLite's integers there is no print
@@ -713,29 +743,6 @@ class Registry:
                 ) from None
         return _arrays.expand(out)
 
-    def detector_inputs(self, print_id: int) -> dict:
-        """Keyword arguments of :func:`ajtwin.apps.anomaly.detect_anomalies` for a stored
-        print: what re-running the detectors needs (they use P_k's diagonal only, so
-        where the full sequence is not kept it is diag(σ_k²) from the stored σ)."""
-        a = self.print_arrays(print_id)
-        if "covariances" in a:
-            covariances = a["covariances"]
-        else:
-            covariances = np.einsum("ti,ij->tij", a["stds"] ** 2, np.eye(a["stds"].shape[1]))
-        return {
-            "time_s": a["time_s"],
-            "measurements": a["measurements"],
-            "predicted_outputs": a["predicted_outputs"],
-            "innovation_variances": a["innovation_variances"],
-            "nis": a["nis"],
-            "n_measured": a["n_measured"],
-            "means": a["means"],
-            "predicted_means": a["predicted_means"],
-            "covariances": covariances,
-            # the vial observer's inputs (issue 18); older prints without them: twin's V_l
-            "inputs": a.get("inputs"),
-        }
-
     def long_run_history(self, name: str) -> tuple[int, dict] | None:
         """(seq, statistics) of the detectors' long-run statistics stored with the newest
         print in the chain that has them (None: no such print)."""
@@ -755,8 +762,6 @@ class Registry:
     def history(self, name: str) -> pd.DataFrame:
         """One row per print: seq, id, time, duration, source, status, end states, θ,
         anomaly count."""
-        from ajtwin.model import STATE_NAMES
-
         machine = self.machine(name)
         rows = self._conn.execute(
             "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json, p.status,"
@@ -787,6 +792,8 @@ class Registry:
         return pd.DataFrame(records)
 
     def anomalies(self, name: str) -> pd.DataFrame:
+        """One row per anomaly of the machine's prints: seq, detected_s, onset_s, cause,
+        description, detectors."""
         machine = self.machine(name)
         rows = self._conn.execute(
             "SELECT p.seq, a.detected_s, a.onset_s, a.cause, a.description, a.detectors "
@@ -841,7 +848,7 @@ class Registry:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
         ``long_run_history``: the detectors' long-run statistics at the print's end
-        (:meth:`ajtwin.apps.anomaly.AnomalyDetector.long_run_history`), read back by
+        (:meth:`ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`), read back by
         :meth:`long_run_history` for the machine's next print.
 
         ``live_session``: the live session (:mod:`ajtwin.store.live_log`) this print ends;
@@ -882,53 +889,32 @@ class Registry:
             if dup is not None:
                 raise RegistryError(f"this print is already print {dup[0]} of {printable(name)!r}")
             seq = 1 if last is None else last + 1
-            cur = conn.execute(
-                "INSERT INTO prints (machine_id, seq, content_hash, ingested_at, source, "
-                "n_samples, duration_s, meta_json, summary_json, start_mean, start_cov, "
-                "end_mean, end_cov, theta_before, theta_after, status, status_reason, "
-                "long_run_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    machine["id"],
-                    seq,
-                    content_hash,
-                    _now(),
-                    source,
-                    int(n_samples),
-                    float(duration_s),
-                    json.dumps(meta, default=str),
-                    json.dumps(summary, default=str),
-                    to_npy(np.asarray(start_mean, dtype=float)),
-                    to_npy(np.asarray(start_cov, dtype=float)),
-                    to_npy(np.asarray(end_mean, dtype=float)),
-                    to_npy(np.asarray(end_cov, dtype=float)),
-                    to_npy(np.asarray(theta_before, dtype=float)),
-                    to_npy(np.asarray(theta_after, dtype=float)),
-                    status,
-                    status_reason,
-                    json.dumps(long_run_history),
-                ),
-            )
-            print_id = cur.lastrowid
-            conn.executemany(
-                "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
-                [(print_id, key, blob, codec) for key, (codec, blob) in encoded.items()],
-            )
-            conn.executemany(
-                "INSERT INTO anomalies (print_id, detected_s, onset_s, cause, description, "
-                "detectors, evidence_json) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                [
-                    (
-                        print_id,
-                        ev.detected_s,
-                        ev.onset_s,
-                        ev.cause,
-                        ev.description,
-                        ", ".join(ev.detectors),
-                        json.dumps(ev.evidence),
+            row = {
+                "machine_id": machine["id"],
+                "seq": seq,
+                "content_hash": content_hash,
+                "ingested_at": _now(),
+                "source": source,
+                "n_samples": int(n_samples),
+                "duration_s": float(duration_s),
+                "meta_json": json.dumps(meta, default=str),
+                "summary_json": json.dumps(summary, default=str),
+                **{
+                    key: to_npy(np.asarray(value, dtype=float))
+                    for key, value in (
+                        ("start_mean", start_mean),
+                        ("start_cov", start_cov),
+                        ("end_mean", end_mean),
+                        ("end_cov", end_cov),
+                        ("theta_before", theta_before),
+                        ("theta_after", theta_after),
                     )
-                    for ev in anomalies
-                ],
-            )
+                },
+                "status": status,
+                "status_reason": status_reason,
+                "long_run_json": json.dumps(long_run_history),
+            }
+            print_id = self._insert_print(row, encoded, anomalies)
             dropped = 0
             if live_session is not None:
                 dropped = self._end_live_session(live_session, print_id, keep_live_steps)
@@ -941,6 +927,37 @@ class Registry:
             raise
         if dropped:
             self.release_free_pages()
+        return int(print_id)
+
+    def _insert_print(self, row: dict, encoded: dict, anomalies: list) -> int:
+        """Inside save_print's transaction: the print's row, its encoded arrays and its
+        anomalies; the new print's id."""
+        columns = ", ".join(row)
+        cur = self._conn.execute(
+            f"INSERT INTO prints ({columns}) VALUES ({', '.join('?' * len(row))})",
+            tuple(row.values()),
+        )
+        print_id = cur.lastrowid
+        self._conn.executemany(
+            "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
+            [(print_id, key, blob, codec) for key, (codec, blob) in encoded.items()],
+        )
+        self._conn.executemany(
+            "INSERT INTO anomalies (print_id, detected_s, onset_s, cause, description, "
+            "detectors, evidence_json) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [
+                (
+                    print_id,
+                    ev.detected_s,
+                    ev.onset_s,
+                    ev.cause,
+                    ev.description,
+                    ", ".join(ev.detectors),
+                    json.dumps(ev.evidence),
+                )
+                for ev in anomalies
+            ],
+        )
         return int(print_id)
 
     def _end_live_session(self, session_id: int, print_id: int, keep_steps: bool) -> int:

@@ -1,4 +1,5 @@
-"""Alignment-camera vision: linewidth and overspray from video (paper §5, App. A; SPEC §9).
+"""Alignment-camera vision: linewidth and overspray from video (paper §5, App. A; model reference
+§9).
 
 * :mod:`ajtwin.vision.profile` — line cross-section model, slope -> brightness optics and the
   reference definitions applied to a true profile (:func:`profile_features`).

@@ -1,4 +1,4 @@
-"""Linewidth and overspray from alignment-camera frames (paper App. A, SPEC §9).
+"""Linewidth and overspray from alignment-camera frames (paper App. A, model reference §9).
 
 Per frame:
 
@@ -38,7 +38,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ajtwin.config import InputFileError, check_regular_file
 from ajtwin.vision import features as F
+from ajtwin.vision.errors import VisionInputError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
@@ -51,10 +53,6 @@ DOWNSCALE_ABOVE_PX = 800
 LINE_FILLS_FRAME = "line_fills_frame"
 TRACK_WINDOW_DEG = 3.0
 MIN_LINE_CONTRAST = 0.08  # a line's dark streak is at least this much below the substrate
-
-
-class VisionInputError(ValueError):
-    """Input the extractor cannot use (unreadable/empty video, wrong pixel size, ...)."""
 
 
 class TruncatedVideoWarning(UserWarning):
@@ -647,8 +645,6 @@ def open_source(path: str | Path, fps: float | None = None) -> FrameSource:
     if not path.exists():
         raise VisionInputError(f"{path}: no such file or folder")
     if not path.is_dir():
-        from ajtwin.io.files import InputFileError, check_regular_file
-
         try:  # a FIFO or device would block OpenCV's open forever
             check_regular_file(path, "video or image")
         except InputFileError as exc:

@@ -1,4 +1,4 @@
-"""The 1-D core of the paper's linewidth/overspray definitions (SPEC §9, paper App. A).
+"""The 1-D core of the paper's linewidth/overspray definitions (model reference §9, paper App. A).
 
 One grayscale cross-section of the line (a batch mean of image columns, or the brightness
 of a true height profile) goes in; the points the paper names come out:
@@ -270,10 +270,13 @@ class BatchEdges:
 
     @property
     def linewidth(self) -> np.ndarray:
+        """Linewidth per batch: shoulder to shoulder [µm]."""
         return self.shoulders[:, 1] - self.shoulders[:, 0]
 
     @property
     def overspray(self) -> np.ndarray:
+        """One-sided overspray per batch: the mean of the two shoulders' distances to their edges
+        [µm]."""
         left = self.shoulders[:, 0] - self.overspray_edges[:, 0]
         right = self.overspray_edges[:, 1] - self.shoulders[:, 1]
         return 0.5 * (left + right)

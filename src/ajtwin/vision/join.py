@@ -19,7 +19,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from ajtwin.io.records import PLAUSIBLE_RANGES
 from ajtwin.units import mm_per_s_to_um_per_s
+from ajtwin.vision.errors import VisionInputError
 
 GOOD_STATUS = ("ok", "ok_std_fallback", "few_batches")
 
@@ -162,8 +164,6 @@ def check_linewidth_scale(widths_um, um_per_px: float, source) -> float:
     VisionInputError
         No finite linewidth, or a median outside the range (naming the source and pixel size).
     """
-    from ajtwin.io.records import PLAUSIBLE_RANGES
-    from ajtwin.vision.extract import VisionInputError
 
     low, high = PLAUSIBLE_RANGES["linewidth_um"][:2]
     widths = np.asarray(widths_um, dtype=float)

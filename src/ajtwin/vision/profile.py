@@ -3,7 +3,7 @@
 Three pieces that the renderer, the extractor's tests, the height-profile CNN and the
 virtual printer share, so that they all mean the same thing by "linewidth" and "overspray":
 
-* :func:`brightness_from_profile` — the camera's optical model (SPEC §9: flat = bright,
+* :func:`brightness_from_profile` — the camera's optical model (model reference §9: flat = bright,
   steep = dark): ``B = background * (floor + (1 - floor) / (1 + |dh/dr| / slope_scale))``.
   Its constants live in ``optics.toml`` next to this module.
 * :func:`profile_features` — the paper's definitions (App. A) applied to the *noiseless*
@@ -45,21 +45,19 @@ Constants live in ``optics.toml`` ([brightness], [profile]).
 from __future__ import annotations
 
 import functools
-import tomllib
 import warnings
-from importlib import resources
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from ajtwin.config import packaged_toml
 from ajtwin.vision.features import EdgePoints, find_edges
 
 
 @functools.cache
 def optics() -> dict:
     """The optical/profile/render constants of ``optics.toml`` (with provenance comments)."""
-    text = resources.files("ajtwin.vision").joinpath("optics.toml").read_text()
-    return tomllib.loads(text)
+    return packaged_toml("vision/optics.toml")
 
 
 def _brightness_constants(slope_scale, floor):
@@ -71,7 +69,7 @@ def _brightness_constants(slope_scale, floor):
 
 
 def brightness_from_slope(slope, *, background=1.0, slope_scale=None, floor=None):
-    """Brightness seen by the alignment camera for a surface slope (SPEC §9).
+    """Brightness seen by the alignment camera for a surface slope (model reference §9).
 
     Parameters
     ----------
@@ -185,7 +183,7 @@ def profile_feature_points(r_um, h_um, *, threshold=None) -> tuple[EdgePoints, f
 def profile_features(r_um, h_um, *, threshold=None) -> tuple[float, float]:
     """Linewidth and one-sided overspray of a true height profile (the reference values).
 
-    The paper's image definitions (SPEC §9, App. A) applied to the noiseless brightness
+    The paper's image definitions (model reference §9, App. A) applied to the noiseless brightness
     of the profile (no pixels, no blur, no noise).  The profile is first resampled with a
     shape-preserving PCHIP interpolant onto a uniform 0.02 µm grid (unless already that
     fine); slopes are forward differences, and points are taken at the sample (no sub-sample
@@ -367,15 +365,48 @@ def line_profile(
     if not np.isfinite(raggedness_um) or raggedness_um < 0:
         raise ValueError(f"line_profile: raggedness_um must be >= 0, got {raggedness_um!r}")
     c, s95, foot, cfg = _shape_constants(overspray_um, tail_contrast)
-
     half = np.full(2, 0.5 * linewidth_um)
     ovs = np.full(2, float(overspray_um))
     if raggedness_um > 0:
         rng = np.random.default_rng() if rng is None else rng
         half = np.maximum(half + rng.normal(0.0, raggedness_um, 2), 0.25 * half)
         ovs = np.maximum(ovs + rng.normal(0.0, raggedness_um, 2), 0.5 * ovs)
+    shape = _fit_shape(half, ovs, area_um2, c * s95, s95, foot, cfg)
+    if shape["thinned"]:
+        warnings.warn(
+            f"line_profile: area {area_um2:.3g} µm² is below the "
+            f"{minimum_area_um2(linewidth_um, overspray_um, tail_contrast=c):.3g} µm² needed "
+            f"for a visible {overspray_um:.3g} µm overspray with a {linewidth_um:.3g} µm "
+            "line; thinning the tail (the visible overspray will be shorter)",
+            stacklevel=2,
+        )
+    return _draw_profile(np.asarray(r_um, dtype=float) - center_um, shape, foot)
+
+
+def _fit_shape(half, ovs, area_um2, peak_nominal, s95, foot, cfg) -> dict:
+    """Shoulder height, body height, tail geometry and ramp that give the area.
+
+    Parameters
+    ----------
+    half, ovs : array (2,)
+        Half linewidth and overspray of the left and right side [µm].
+    area_um2 : float
+        The cross-section [µm²].
+    peak_nominal : float
+        The tail's peak slope at the nominal contrast.
+    s95, foot : float
+        The 95 %-threshold slope and the tail's foot [µm].
+    cfg : dict
+        ``optics.toml``'s profile constants.
+
+    Returns
+    -------
+    dict
+        ``h_s`` shoulder height, ``body`` body height above it [µm], ``geometry`` (peak,
+        length) of each tail, ``ramp``, ``terrace``, ``body_half`` (2,) [µm] and
+        ``thinned`` (too little material: shoulder, tail and body scaled down together).
+    """
     body_span = half.sum()
-    peak_nominal = c * s95
     ramp = cfg["ramp_min_um"]
     thinned = False
     terrace = min(cfg["terrace_um"], 0.5 * half.min(), 0.5 * ovs.min())
@@ -405,23 +436,28 @@ def line_profile(
         if abs(new_ramp - ramp) < 1e-3:
             break
         ramp = new_ramp
-    if thinned:
-        warnings.warn(
-            f"line_profile: area {area_um2:.3g} µm² is below the "
-            f"{minimum_area_um2(linewidth_um, overspray_um, tail_contrast=c):.3g} µm² needed "
-            f"for a visible {overspray_um:.3g} µm overspray with a {linewidth_um:.3g} µm "
-            "line; thinning the tail (the visible overspray will be shorter)",
-            stacklevel=2,
-        )
+    return {
+        "h_s": h_s,
+        "body": body,
+        "geometry": geometry,
+        "ramp": ramp,
+        "terrace": terrace,
+        "body_half": body_half,
+        "thinned": thinned,
+    }
 
-    r = np.asarray(r_um, dtype=float) - center_um
+
+def _draw_profile(r: np.ndarray, shape: dict, foot: float) -> np.ndarray:
+    """Heights [µm] at positions ``r`` [µm from the centre]: a cosine body between the
+    shoulders, a flat terrace, then each side's tail (:func:`_fit_shape`'s ``shape``)."""
+    h_s, body, ramp, terrace = shape["h_s"], shape["body"], shape["ramp"], shape["terrace"]
     h = np.zeros_like(r)
     for side, sign in ((0, -1.0), (1, 1.0)):
         u = sign * r
         mask = (u >= 0) if side == 1 else (u > 0)
-        w = body_half[side]
+        w = shape["body_half"][side]
         start = w + terrace  # tail starts after the flat shoulder terrace
-        peak, length = geometry[side]
+        peak, length = shape["geometry"][side]
         in_body = mask & (u <= w)
         h[in_body] = h_s + body * 0.5 * (1.0 + np.cos(np.pi * u[in_body] / w))
         h[mask & (u > w) & (u <= start)] = h_s

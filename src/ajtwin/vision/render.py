@@ -3,7 +3,7 @@
 A height profile h(r) across the printed line becomes a top-down 8-bit grayscale frame:
 
 1. brightness falls with the deposit's slope
-   (:func:`~ajtwin.vision.profile.brightness_from_profile`, SPEC §9), evaluated on a fine
+   (:func:`~ajtwin.vision.profile.brightness_from_profile`, model reference §9), evaluated on a fine
    grid in line coordinates (s along the line, d across it);
    the two shoulders and the two overspray edges of that map are stretched independently
    along the line by smooth random fields (edge raggedness — the paper's random shoulder
@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import scipy.fft
 from scipy.ndimage import gaussian_filter1d
+from tqdm import tqdm
 
 from ajtwin.units import mm_per_s_to_um_per_s
 from ajtwin.vision.profile import brightness_from_profile, optics, profile_features
@@ -99,6 +100,8 @@ class RenderSettings:
         return cls(**{**base, **overrides})
 
     def validate(self) -> None:
+        """Raise ValueError for a setting out of its range (pixel size, gray levels, noise, blur
+        ...)."""
         if not (np.isfinite(self.um_per_px) and self.um_per_px > 0):
             raise ValueError(f"um_per_px must be > 0, got {self.um_per_px}")
         if not 0 < self.background_gray <= 255:
@@ -521,8 +524,6 @@ def render_video(
     -------
     Path of the truth JSON.
     """
-    from tqdm import tqdm
-
     settings = RenderSettings.from_defaults() if settings is None else settings
     settings.validate()
     out_path = Path(out_path)
@@ -545,9 +546,7 @@ def render_video(
     substrate = Substrate(shape, settings, rng)
     speed_um_s = mm_per_s_to_um_per_s(platen_speed_mm_s)
     dr = float(r_um[1] - r_um[0]) if r_um.size > 1 else 1.0
-    stride = max(1, int(round(truth_step_um / dr)))
-    truth_profiles: list[dict] = []
-    frames: list[dict] = []
+    truth = _VideoTruth(r_um, profiles, profile_times_s, max(1, int(round(truth_step_um / dr))))
     try:
         for k in tqdm(
             range(n_frames), desc=f"render {out_path.name}", unit="frame", disable=not progress
@@ -559,32 +558,10 @@ def render_video(
                 r_um, h, shape, settings, rng=rng, substrate=substrate, travel_um=speed_um_s * t
             )
             writer.write(frame)
-            while len(truth_profiles) <= index:
-                j = len(truth_profiles)
-                hj = np.asarray(profiles[j], dtype=float)
-                lw, ov = profile_features(r_um, hj)
-                truth_profiles.append(
-                    {
-                        "index": j,
-                        "time_s": float(profile_times_s[j]),
-                        "linewidth_um": lw,
-                        "overspray_um": ov,
-                        "area_um2": float(np.trapezoid(hj, r_um)),
-                        "h_um": np.round(hj[::stride], 6).tolist(),
-                    }
-                )
-            frames.append(
-                {
-                    "frame": k,
-                    "time_s": t,
-                    "profile": index,
-                    "linewidth_um": truth_profiles[index]["linewidth_um"],
-                    "overspray_um": truth_profiles[index]["overspray_um"],
-                }
-            )
+            truth.add_frame(k, t, index)
     finally:
         writer.release()
-    truth = {
+    document = {
         "video": out_path.name,
         "fps": fps,
         "n_frames": n_frames,
@@ -594,13 +571,50 @@ def render_video(
         "seed": seed,
         "settings": dataclasses.asdict(settings),
         "definitions": "linewidth/overspray of the true profile: ajtwin.vision.profile_features",
-        "r_um": np.round(r_um[::stride], 6).tolist(),
-        "profiles": truth_profiles,
-        "frames": frames,
+        "r_um": np.round(r_um[:: truth.stride], 6).tolist(),
+        "profiles": truth.profiles,
+        "frames": truth.frames,
         **(extra_truth or {}),
     }
-    truth_path.write_text(json.dumps(truth, allow_nan=True))
+    truth_path.write_text(json.dumps(document, allow_nan=True))
     return truth_path
+
+
+class _VideoTruth:
+    """The ground truth of a rendered video, grown frame by frame: each profile shown (its
+    reference linewidth and overspray, area, the profile on a coarser grid) and, per frame,
+    which profile it shows."""
+
+    def __init__(self, r_um, profiles, profile_times_s, stride: int):
+        self.r_um, self.source, self.times, self.stride = r_um, profiles, profile_times_s, stride
+        self.profiles: list[dict] = []
+        self.frames: list[dict] = []
+
+    def add_frame(self, k: int, t: float, index: int) -> None:
+        """Frame ``k`` at ``t`` [s] shows profile ``index`` (its truth added when new)."""
+        while len(self.profiles) <= index:
+            j = len(self.profiles)
+            hj = np.asarray(self.source[j], dtype=float)
+            lw, ov = profile_features(self.r_um, hj)
+            self.profiles.append(
+                {
+                    "index": j,
+                    "time_s": float(self.times[j]),
+                    "linewidth_um": lw,
+                    "overspray_um": ov,
+                    "area_um2": float(np.trapezoid(hj, self.r_um)),
+                    "h_um": np.round(hj[:: self.stride], 6).tolist(),
+                }
+            )
+        self.frames.append(
+            {
+                "frame": k,
+                "time_s": t,
+                "profile": index,
+                "linewidth_um": self.profiles[index]["linewidth_um"],
+                "overspray_um": self.profiles[index]["overspray_um"],
+            }
+        )
 
 
 def iter_profile_frames(

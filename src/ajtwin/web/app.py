@@ -41,9 +41,12 @@ from fastapi import FastAPI, Request, Response, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, PlainTextResponse
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.planning.advice import advise
+from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, parse_duration
 from ajtwin.store.registry import RegistryError
 from ajtwin.web import pages
-from ajtwin.web.data import NAMES, RegistryView
+from ajtwin.web.data import KEY_STATES, NAMES, STATE_UNITS, RegistryView, json_list
 from ajtwin.web.publisher import LivePublisher, event_text
 from ajtwin.web.watcher import RegistryWatcher
 
@@ -101,7 +104,6 @@ def _number(text, what: str) -> float:
 
 
 def _duration(text, what: str) -> float:
-    from ajtwin.apps.forecast import parse_duration
 
     try:
         return parse_duration(str(text))
@@ -122,7 +124,6 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
 
     Raises InputError with a sentence naming the field when a value cannot be used.
     """
-    from ajtwin.apps.forecast import Change, input_schedule
 
     if not isinstance(body, dict):
         raise InputError("the request must be a JSON object")
@@ -169,6 +170,8 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
 
 
 def parse_advise_request(body: dict) -> dict:
+    """The advice form's fields checked: target, overspray limit, settle time, θ choice (InputError
+    naming the field)."""
     if not isinstance(body, dict):
         raise InputError("the request must be a JSON object")
     target = _number(body.get("target"), "target linewidth")
@@ -221,13 +224,34 @@ def create_app(
         Accept only Host headers of the loopback interface (against DNS rebinding when
         served on 127.0.0.1 without a token).
     feeds : list, optional
-        Objects with ``start()``/``stop()`` (e.g. :class:`ajtwin.web.feed.VirtualPrintFeed`)
+        Objects with ``start()``/``stop()`` (e.g. :class:`ajtwin.engine.replay.VirtualPrintFeed`)
         started with the server and stopped with it.
     """
     view = RegistryView(store)
     publisher = publisher or LivePublisher()
     watcher = RegistryWatcher(view, publisher, poll_s=poll_s)
     feeds = list(feeds or [])
+    app = FastAPI(
+        title="ajtwin dashboard",
+        lifespan=_lifespan(view, watcher, feeds),
+        docs_url=None,
+        redoc_url=None,
+    )
+    app.state.view = view
+    app.state.publisher = publisher
+    app.state.watcher = watcher
+    app.state.feeds = feeds
+    _add_access_control(app, token, loopback_only)
+    _add_static_routes(app)
+    _add_fleet_routes(app, view, publisher)
+    _add_machine_routes(app, view, publisher)
+    _add_whatif_routes(app, view)
+    _add_websocket(app, token, publisher)
+    return app
+
+
+def _lifespan(view, watcher, feeds):
+    """The server's lifespan: the registry watcher and the feeds run while it serves."""
 
     @contextlib.asynccontextmanager
     async def lifespan(app):
@@ -244,11 +268,11 @@ def create_app(
                 await task
             view.close()
 
-    app = FastAPI(title="ajtwin dashboard", lifespan=lifespan, docs_url=None, redoc_url=None)
-    app.state.view = view
-    app.state.publisher = publisher
-    app.state.watcher = watcher
-    app.state.feeds = feeds
+    return lifespan
+
+
+def _add_access_control(app: FastAPI, token: str | None, loopback_only: bool) -> None:
+    """The token on every request, loopback Host headers without one, errors as JSON/HTML."""
     if loopback_only and not token:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=LOOPBACK_HOSTS)
 
@@ -276,7 +300,10 @@ def create_app(
             return JSONResponse({"error": str(exc)}, status_code=404)
         return HTMLResponse(pages.message_page("Not found", str(exc)), status_code=404)
 
-    # ------------------------------------------------------------------ static
+
+def _add_static_routes(app: FastAPI) -> None:
+    """plotly.js, the dashboard's script and style sheet, an empty favicon."""
+
     @app.get("/favicon.ico", include_in_schema=False)
     def favicon():
         return Response(status_code=204)
@@ -299,48 +326,55 @@ def create_app(
             STATIC / name, media_type=files[name], headers={"Cache-Control": "no-cache"}
         )
 
-    # ------------------------------------------------------------------ fleet
-    def fleet_summaries() -> list[dict]:
-        machines = view.fleet()
-        known = {m["name"] for m in machines}
-        for name in publisher.machines():
-            if name not in known:
-                machines.append(
-                    {
-                        "name": name,
-                        "status": "idle",
-                        "last_print": None,
-                        "last_alarm": None,
-                        "states": None,
-                        "n_prints": 0,
-                        "live_only": True,
-                    }  # fmt: skip
-                )
-        for m in machines:
-            _merge_live(m, publisher)
-        return sorted(machines, key=lambda m: m["name"])
+
+def fleet_summaries(view: RegistryView, publisher: LivePublisher) -> list[dict]:
+    """One summary per machine (registered, or only seen live), live samples merged in."""
+    machines = view.fleet()
+    known = {m["name"] for m in machines}
+    for name in publisher.machines():
+        if name not in known:
+            machines.append(
+                {
+                    "name": name,
+                    "status": "idle",
+                    "last_print": None,
+                    "last_alarm": None,
+                    "states": None,
+                    "n_prints": 0,
+                    "live_only": True,
+                }  # fmt: skip
+            )
+    for m in machines:
+        _merge_live(m, publisher)
+    return sorted(machines, key=lambda m: m["name"])
+
+
+def _add_fleet_routes(app: FastAPI, view: RegistryView, publisher: LivePublisher) -> None:
+    """The fleet page, its rows (refreshed by the page) and ``/api/fleet``."""
 
     @app.get("/", response_class=HTMLResponse)
     def fleet_page():
-        return pages.fleet_page(fleet_summaries(), str(view.path))
+        return pages.fleet_page(fleet_summaries(view, publisher), str(view.path))
 
     @app.get("/fragment/fleet-rows", response_class=HTMLResponse)
     def fleet_rows():
-        return pages.fleet_rows(fleet_summaries())
+        return pages.fleet_rows(fleet_summaries(view, publisher))
 
     @app.get("/api/fleet")
     def api_fleet():
-        return {"machines": fleet_summaries(), "names": NAMES}
+        return {"machines": fleet_summaries(view, publisher), "names": NAMES}
 
-    # ------------------------------------------------------------------ machine
-    def _known(name: str) -> bool:
-        return name in {m["name"] for m in view.registry.machines()} or (
-            name in publisher.machines()
-        )
+
+def _known(view: RegistryView, publisher: LivePublisher, name: str) -> bool:
+    return name in {m["name"] for m in view.registry.machines()} or (name in publisher.machines())
+
+
+def _add_machine_routes(app: FastAPI, view: RegistryView, publisher: LivePublisher) -> None:
+    """A machine's page, ``/api/machine/NAME`` (history, live samples, link) and a print."""
 
     @app.get("/machine/{name}", response_class=HTMLResponse)
     def machine_page(name: str):
-        if not _known(name):
+        if not _known(view, publisher, name):
             view.registry.machine(name)  # raises RegistryError with the known names
         return pages.machine_page(name)
 
@@ -367,7 +401,82 @@ def create_app(
     def api_print(name: str, seq: int):
         return view.print_series(name, seq)
 
-    # ------------------------------------------------------------------ what-if
+
+async def json_body(request: Request):
+    """A request's JSON body (InputError when it is not JSON or nested absurdly deep)."""
+    try:
+        return await request.json()
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise InputError("the form did not arrive as JSON; reload the page") from None
+    except RecursionError:  # JSON nested thousands deep: no form sends that
+        raise InputError("the request is nested too deeply to be a what-if form") from None
+
+
+def forecast_response(view: RegistryView, name: str, body) -> dict:
+    """The what-if form's forecast: outputs ± σ under the planned changes (≤ 900 points)."""
+    twin, mean, cov, u_now, limits, seq = view.forecast_start(name)
+    schedule, changes, horizon_s, options = parse_forecast_request(body, limits, u_now)
+    if options["nominal_theta"]:
+        twin.theta = np.zeros(5)
+    fc = forecast(twin, mean, cov, schedule, include_measurement_noise=options["with_sensor_noise"])
+    idx = np.unique(np.linspace(0, len(fc.time_s) - 1, min(len(fc.time_s), 900)).astype(int))
+    return {
+        "machine": name,
+        "from_print": seq,
+        "time_min": (fc.time_s[idx] / 60.0).tolist(),
+        "inputs": fc.inputs[idx].tolist(),
+        "outputs": fc.output_means[idx, :4].tolist(),
+        "output_stds": fc.output_stds[idx, :4].tolist(),
+        "output_names": list(NAMES["outputs"][:4]),
+        "output_units": list(NAMES["output_units"][:4]),
+        "changes": [
+            {"at_s": c.time_s, "input": NAMES["inputs"][c.input_index], "value": c.value}
+            for c in changes
+        ],
+        "theta": twin.theta.tolist(),
+        "warnings": fc.warnings,
+        "end": {
+            n: [float(fc.output_means[-1, i]), float(fc.output_stds[-1, i])]
+            for i, n in enumerate(NAMES["outputs"][:4])
+        },
+    }
+
+
+def advice_response(view: RegistryView, name: str, body) -> dict:
+    """The what-if form's advice: inputs that reach the target linewidth, and why (not)."""
+    req = parse_advise_request(body)
+    twin, mean, cov, u_now, limits, seq = view.forecast_start(name, req["nominal_theta"])
+    try:
+        advice = advise(
+            twin,
+            mean,
+            cov,
+            u_now,
+            req["target"],
+            max_overspray_um=req["max_overspray"],
+            limits=limits,
+            settle_s=req["settle_s"],
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    rows = [
+        {"name": n, "now": now, "advised": new, "std": std} for n, now, new, std in advice.rows()
+    ]
+    return {
+        "machine": name,
+        "from_print": seq,
+        "rows": rows,
+        "reachable": advice.reachable,
+        "overspray_ok": advice.overspray_ok,
+        "message": advice.message,
+        "bounds": advice.bounds,
+        "settle_s": advice.settle_s,
+    }
+
+
+def _add_whatif_routes(app: FastAPI, view: RegistryView) -> None:
+    """The what-if page and its forecast and advice requests (run in a worker thread)."""
+
     @app.get("/whatif/{name}", response_class=HTMLResponse)
     def whatif_page(name: str):
         machine = view.registry.machine(name)
@@ -377,90 +486,20 @@ def create_app(
             _, _, _, u_now, _, _ = view.forecast_start(name)
         return pages.whatif_page(name, machine["limits"], u_now, last and last["seq"])
 
-    async def json_body(request: Request):
-        try:
-            return await request.json()
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            raise InputError("the form did not arrive as JSON; reload the page") from None
-        except RecursionError:  # JSON nested thousands deep: no form sends that
-            raise InputError("the request is nested too deeply to be a what-if form") from None
-
     @app.post("/api/machine/{name}/forecast")
     async def api_forecast(name: str, request: Request):
         body = await json_body(request)
-        return await asyncio.to_thread(run_forecast, name, body)
-
-    def run_forecast(name: str, body):
-        from ajtwin.apps.forecast import forecast
-
-        twin, mean, cov, u_now, limits, seq = view.forecast_start(name)
-        schedule, changes, horizon_s, options = parse_forecast_request(body, limits, u_now)
-        if options["nominal_theta"]:
-            twin.theta = np.zeros(5)
-        fc = forecast(
-            twin, mean, cov, schedule, include_measurement_noise=options["with_sensor_noise"]
-        )
-        idx = np.unique(np.linspace(0, len(fc.time_s) - 1, min(len(fc.time_s), 900)).astype(int))
-        return {
-            "machine": name,
-            "from_print": seq,
-            "time_min": (fc.time_s[idx] / 60.0).tolist(),
-            "inputs": fc.inputs[idx].tolist(),
-            "outputs": fc.output_means[idx, :4].tolist(),
-            "output_stds": fc.output_stds[idx, :4].tolist(),
-            "output_names": list(NAMES["outputs"][:4]),
-            "output_units": list(NAMES["output_units"][:4]),
-            "changes": [
-                {"at_s": c.time_s, "input": NAMES["inputs"][c.input_index], "value": c.value}
-                for c in changes
-            ],
-            "theta": twin.theta.tolist(),
-            "warnings": fc.warnings,
-            "end": {
-                n: [float(fc.output_means[-1, i]), float(fc.output_stds[-1, i])]
-                for i, n in enumerate(NAMES["outputs"][:4])
-            },
-        }
+        return await asyncio.to_thread(forecast_response, view, name, body)
 
     @app.post("/api/machine/{name}/advise")
     async def api_advise(name: str, request: Request):
         body = await json_body(request)
-        return await asyncio.to_thread(run_advise, name, body)
+        return await asyncio.to_thread(advice_response, view, name, body)
 
-    def run_advise(name: str, body):
-        from ajtwin.apps.advise import advise
 
-        req = parse_advise_request(body)
-        twin, mean, cov, u_now, limits, seq = view.forecast_start(name, req["nominal_theta"])
-        try:
-            advice = advise(
-                twin,
-                mean,
-                cov,
-                u_now,
-                req["target"],
-                max_overspray_um=req["max_overspray"],
-                limits=limits,
-                settle_s=req["settle_s"],
-            )
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-        rows = [
-            {"name": n, "now": now, "advised": new, "std": std}
-            for n, now, new, std in advice.rows()
-        ]
-        return {
-            "machine": name,
-            "from_print": seq,
-            "rows": rows,
-            "reachable": advice.reachable,
-            "overspray_ok": advice.overspray_ok,
-            "message": advice.message,
-            "bounds": advice.bounds,
-            "settle_s": advice.settle_s,
-        }
-
-    # ------------------------------------------------------------------ websocket
+def _add_websocket(app: FastAPI, token: str | None, publisher: LivePublisher) -> None:
+    """``/ws``: live events pushed to the pages (authorised, same origin, at most
+    :data:`MAX_WEBSOCKETS` at once)."""
     open_sockets: set = set()
 
     @app.websocket("/ws")
@@ -486,8 +525,6 @@ def create_app(
                 await sender
             publisher.unsubscribe(sub)
             open_sockets.discard(sub)
-
-    return app
 
 
 #: open websockets at most (each holds a queue of up to 2,000 events); more are refused
@@ -554,8 +591,6 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
     if printing or entry.get("live_only"):
         entry["live"] = {"time_s": latest["time_s"], "printing": printing}
         if latest.get("states") is not None:
-            from ajtwin.web.data import KEY_STATES, STATE_UNITS, json_list
-
             samples = publisher.snapshot(name)
             step = max(1, len(samples) // 60)
             trend_t = [s["time_s"] for s in samples[::step] if s.get("states")]
@@ -588,8 +623,6 @@ def _status(entry: dict, publisher: LivePublisher) -> str:
     if entry.get("status") == "alarm":
         return "alarm"
     if entry.get("prints") is not None:  # machine detail: the fleet's rule (data.fleet)
-        from ajtwin.apps.mismatch import MISMATCH_CAUSE
-
         prints = entry["prints"]
         last_seq = prints[-1]["seq"] if prints else None
         if any(

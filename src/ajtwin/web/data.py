@@ -2,7 +2,7 @@
 
 Every page and the registry watcher get their data through :class:`RegistryView`, so a
 change of the registry's schema (migrations, new per-machine fields) touches this module
-only. Values are in SPEC §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
+only. Values are in model reference §3 display units (µm, mL, mA, sccm, Pa, mL/s); arrays leave as
 plain lists with NaN → ``None`` (JSON has no NaN).
 
 A machine's commissioning (active calibration ± standard errors), maintenance and the
@@ -28,17 +28,23 @@ Example
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
 
+import click
 import numpy as np
 import pandas as pd
 
-from ajtwin.apps.anomaly import cusum_thresholds
-from ajtwin.apps.mismatch import MISMATCH_CAUSE
-from ajtwin.model.system import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
-from ajtwin.store import arrays as _arrays
+from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
+from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
+from ajtwin.engine.start import machine_twin
+from ajtwin.io.records import read_record
+from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
+from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.store import queries
+from ajtwin.store.calibration import active_calibration, maintenance_history
 from ajtwin.store.registry import Registry, RegistryError
 
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
@@ -97,7 +103,7 @@ def care_fields(registry, name: str) -> dict:
     """Commissioning, maintenance and the model–machine guard of machine ``name``.
 
     Read through :mod:`ajtwin.store.calibration` and the newest print's summary (its
-    ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.mismatch.assess_run`).
+    ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.detection.mismatch.assess_run`).
     Keys present only when there is something to show:
 
     * ``commissioned_at`` — ISO time of the active (newest) calibration;
@@ -109,8 +115,6 @@ def care_fields(registry, name: str) -> dict:
       ``outputs`` and ``states`` it names, ``first_s``, ``fixes``;
       ``model_fit`` — ``{"seq", "ok"}`` whenever the newest print was checked.
     """
-    from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
-    from ajtwin.store.calibration import active_calibration, maintenance_history
 
     out: dict = {}
     active = active_calibration(registry, name)
@@ -181,70 +185,32 @@ class RegistryView:
         self._series_cache: dict[tuple, dict] = {}
 
     def close(self):
+        """Close the registry connection."""
         self.registry.close()
 
     # ------------------------------------------------------------------ changes
     def change_marker(self) -> tuple[int, int, int]:
         """(PRAGMA data_version, last print id, last machine id): changes on any commit."""
-        conn = self.registry._conn
         with self._lock:
-            version = conn.execute("PRAGMA data_version").fetchone()[0]
-            last_print = conn.execute("SELECT COALESCE(MAX(id), 0) FROM prints").fetchone()[0]
-            last_machine = conn.execute("SELECT COALESCE(MAX(id), 0) FROM machines").fetchone()[0]
-        return int(version), int(last_print), int(last_machine)
+            return queries.change_marker(self.registry)
 
     def prints_after(self, print_id: int) -> list[dict]:
         """Prints committed with an id above ``print_id``: machine, seq, id, anomalies."""
         with self._lock:
-            rows = self.registry._conn.execute(
-                "SELECT p.id, p.seq, m.name, p.duration_s, "
-                "(SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies "
-                "FROM prints p JOIN machines m ON p.machine_id = m.id WHERE p.id > ? "
-                "ORDER BY p.id",
-                (int(print_id),),
-            ).fetchall()
-        return [
-            {
-                "print_id": int(r["id"]),
-                "seq": int(r["seq"]),
-                "machine": r["name"],
-                "duration_s": float(r["duration_s"]),
-                "anomalies": int(r["n_anomalies"]),
-            }
-            for r in rows
-        ]
+            return queries.prints_after(self.registry, print_id)
 
     # ------------------------------------------------------------------ fleet
-    def _array(self, print_id: int, name: str) -> np.ndarray | None:
-        """One stored array of a print, decoded (without loading the others)."""
-        row = self.registry._conn.execute(
-            "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
-            (print_id, name),
-        ).fetchone()
-        return None if row is None else _arrays.decode(row[0], row[1])
-
     def fleet(self) -> list[dict]:
         """One summary per machine: status, last print, last alarm, key states with trend."""
-        conn = self.registry._conn
         with self._lock:
-            machines = conn.execute("SELECT * FROM machines ORDER BY name").fetchall()
             out = []
-            for m in machines:
-                row = dict(m)
+            for listed in self.registry.machines():
+                row = self.registry.machine(listed["name"])
                 # the twin's current state: the last print in the chain (registry rule)
                 last = self.registry.last_print(row["name"])
-                latest_seq = conn.execute(
-                    "SELECT MAX(seq) FROM prints WHERE machine_id = ?", (row["id"],)
-                ).fetchone()[0]
-                alarm = conn.execute(
-                    "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
-                    "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
-                    "WHERE p.machine_id = ? ORDER BY p.seq DESC, a.detected_s DESC LIMIT 1",
-                    (row["id"],),
-                ).fetchone()
-                n_prints = conn.execute(
-                    "SELECT COUNT(*) FROM prints WHERE machine_id = ?", (row["id"],)
-                ).fetchone()[0]
+                latest_seq = queries.latest_seq(self.registry, row["name"])
+                alarm = queries.latest_alarm(self.registry, row["name"])
+                n_prints = row["n_prints"]
                 entry = {
                     "name": row["name"],
                     "created_at": row["created_at"],
@@ -258,8 +224,8 @@ class RegistryView:
                 if last is not None:
                     mean = last["end_mean"]
                     std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
-                    means = self._array(last["id"], "means")
-                    time_s = self._array(last["id"], "time_s")
+                    means = queries.print_array(self.registry, last["id"], "means")
+                    time_s = queries.print_array(self.registry, last["id"], "time_s")
                     entry["last_print"] = {
                         "seq": int(last["seq"]),
                         "ingested_at": last["ingested_at"],
@@ -282,15 +248,10 @@ class RegistryView:
                             }
                         )
                 if alarm is not None:
-                    entry["last_alarm"] = dict(alarm)
+                    entry["last_alarm"] = alarm
                 # the latest print raised a fault alarm (the guard's own "mismatch, not a
                 # fault" events make the status mismatch below, as on the machine page)
-                n_faults = conn.execute(
-                    "SELECT COUNT(*) FROM anomalies a JOIN prints p ON a.print_id = p.id "
-                    "WHERE p.machine_id = ? AND p.seq = ? AND a.cause != ?",
-                    (row["id"], latest_seq, MISMATCH_CAUSE),
-                ).fetchone()[0]
-                if n_faults:
+                if queries.count_alarms(self.registry, row["name"], latest_seq, MISMATCH_CAUSE):
                     entry["status"] = "alarm"
                 entry.update(care_fields(self.registry, row["name"]))
                 if entry.get("mismatch") and entry["status"] != "alarm":
@@ -307,12 +268,8 @@ class RegistryView:
             anomalies = self.registry.anomalies(name)
             last = self.registry.last_print(name)
             prints = []
-            conn = self.registry._conn
             for rec in history.to_dict("records"):
-                summary = conn.execute(
-                    "SELECT summary_json FROM prints WHERE id = ?", (rec["print_id"],)
-                ).fetchone()[0]
-                mean_nis = json.loads(summary).get("mean_nis")
+                mean_nis = queries.print_summary(self.registry, rec["print_id"]).get("mean_nis")
                 prints.append(
                     {
                         "seq": int(rec["seq"]),
@@ -360,8 +317,6 @@ class RegistryView:
             path = _source_file(print_row["source"])
             if path is not None:
                 try:
-                    from ajtwin.io.records import read_record
-
                     record = read_record(path)
                     if record.has_truth and len(record) == int(print_row["n_samples"]):
                         truth = np.asarray(record.true_states, dtype=float)
@@ -377,7 +332,6 @@ class RegistryView:
         predicted outputs, inputs, θ per step, the detectors (CUSUM g per channel with
         thresholds, windowed-NIS −log₁₀ p with its threshold) and the print's alarms.
         """
-        from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings, detect_anomalies
 
         key = (name, int(seq), int(max_points))
         if key in self._series_cache:  # a stored print never changes: reuse its series
@@ -389,7 +343,7 @@ class RegistryView:
             needed = ("measurements", "predicted_outputs", "innovation_variances", "nis")
             if all(k in a for k in needed):
                 # P_k's diagonal where only key frames of P are kept (the registry's rule)
-                detector_inputs = self.registry.detector_inputs(p["id"])
+                detector_inputs = stored_detector_inputs(self.registry, p["id"])
         t = a["time_s"]
         idx = decimate(len(t), max_points)
         out = {
@@ -445,10 +399,7 @@ class RegistryView:
     def forecast_start(self, name: str, nominal_theta: bool = False):
         """(twin with the machine's θ, mean, cov, inputs now, limits, last seq): the start
         ``ajtwin forecast``/``advise`` use, from the same function
-        (:func:`ajtwin.apps.cli.machine_twin`)."""
-        import click
-
-        from ajtwin.apps.cli import machine_twin
+        (:func:`ajtwin.engine.start.machine_twin`)."""
 
         with self._lock:
             try:

@@ -189,6 +189,7 @@ def fleet_rows(machines: list[dict]) -> str:
 
 
 def fleet_page(machines: list[dict], store: str) -> str:
+    """The fleet page: one row per machine (filled and refreshed by the page's script)."""
     head = "".join(
         f"<th>{s}<br><span class='dim'>now ± 2σ, last print</span></th>"
         for s in ("d_a", "φ_A", "ΔR_N", "V_l")
@@ -212,12 +213,14 @@ beneath; commission the machine). States are the twin's estimate at the end of t
 
 
 def machine_page(name: str) -> str:
+    """A machine's page (its plots are drawn from ``/api/machine/NAME``)."""
     n = escape(name)
     body = _template("machine.html").substitute(name=n)
     return _page(name, body, "machine", name)
 
 
 def whatif_page(name: str, limits: dict, inputs_now, last_seq: int | None) -> str:
+    """The what-if form of a machine: inputs now, the machine's limits, the last print."""
     n = escape(name)
     lim = {k: v for k, v in (limits or {}).items()}
 
@@ -248,5 +251,6 @@ def whatif_page(name: str, limits: dict, inputs_now, last_seq: int | None) -> st
 
 
 def message_page(title: str, message: str) -> str:
+    """A page that says one thing (e.g. an unknown machine)."""
     body = f'<h1>{escape(title)}</h1><p class="error">{escape(message)}</p>'
     return _page(title, body, "message")

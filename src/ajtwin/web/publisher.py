@@ -1,7 +1,7 @@
 """In-process publish/subscribe between a live twin and the dashboard's open pages.
 
 A live engine (``ajtwin live … --dashboard``) or the virtual-print feed
-(:mod:`ajtwin.web.feed`) calls :meth:`LivePublisher.publish` once per sample, from any
+(:mod:`ajtwin.engine.replay`) calls :meth:`LivePublisher.publish` once per sample, from any
 thread; every open page's websocket holds a :class:`Subscription` (an asyncio queue) and
 receives the sample as JSON within one event-loop turn. The registry watcher announces
 committed prints through the same object, so a page has one stream to listen to.
@@ -26,7 +26,7 @@ through unchanged)::
                  alarms the twin raised at this sample
 
 A machine link's state (``ajtwin live``: connected, reconnecting since T, …; see
-:meth:`ajtwin.live.engine.LiveEngine.publish_link`) is kept per machine and pushed as
+:meth:`ajtwin.engine.fleet.LiveEngine.publish_link`) is kept per machine and pushed as
 ``{"type": "link", "machine", "link": {…, "text"}}``; ``text`` (:func:`link_text`) is
 what the pages show.
 
@@ -50,6 +50,10 @@ import math
 import threading
 import time
 from collections import deque
+
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
+from ajtwin.web.data import detector_thresholds
 
 
 def link_text(link: dict | None) -> str:
@@ -99,14 +103,11 @@ def _number(value) -> float | None:
 
 
 def sample_from_engine(message: dict) -> dict | None:
-    """A live-engine message (``ajtwin.live.engine``: states etc. as {name: value} dicts,
+    """A live-engine message (``ajtwin.engine.stream``: states etc. as {name: value} dicts,
     ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
     as a dashboard sample (module docstring). Provisional steps give None: the committed
     step for the same time follows and is the one drawn.
     """
-    from ajtwin.apps.anomaly import CUSUM_CHANNELS, DetectorSettings
-    from ajtwin.model.system import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
-    from ajtwin.web.data import detector_thresholds
 
     if not isinstance(message, dict):
         raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")
@@ -185,6 +186,7 @@ class Subscription:
         self.queue.put_nowait(event)
 
     async def get(self) -> dict:
+        """The next event (waits)."""
         return await self.queue.get()
 
 
@@ -275,7 +277,7 @@ class LivePublisher:
 
     def publish_link(self, machine: str, link: dict) -> None:
         """The state of the link feeding ``machine`` (``state``, ``since``, ``attempt``, …;
-        see :meth:`ajtwin.live.engine.LiveEngine.publish_link`); kept and pushed to pages."""
+        see :meth:`ajtwin.engine.fleet.LiveEngine.publish_link`); kept and pushed to pages."""
         if not isinstance(link, dict):
             raise ValueError(f"a link state is a dict, got {type(link).__name__}")
         link = _clean({**link, "text": link_text(link)})
@@ -332,17 +334,20 @@ class LivePublisher:
 
     # ------------------------------------------------------------------ listening
     def subscribe(self, loop: asyncio.AbstractEventLoop | None = None) -> Subscription:
+        """A new subscription whose queue receives every event from now on."""
         sub = Subscription(loop or asyncio.get_running_loop())
         with self._lock:
             self._subscribers.add(sub)
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
+        """Stop sending events to ``sub``."""
         with self._lock:
             self._subscribers.discard(sub)
 
     @property
     def n_subscribers(self) -> int:
+        """Open subscriptions (pages listening)."""
         with self._lock:
             return len(self._subscribers)
 
@@ -353,19 +358,23 @@ class LivePublisher:
             return list(self._samples.get(machine, ()))
 
     def alarms(self, machine: str) -> list[dict]:
+        """The alarms of the machine's live print so far."""
         with self._lock:
             return list(self._alarms.get(machine, ()))
 
     def machines(self) -> list[str]:
+        """Machines that published a sample, by name."""
         with self._lock:
             return sorted(self._samples)
 
     def is_printing(self, machine: str) -> bool:
+        """Whether the machine published within ``printing_timeout_s``."""
         with self._lock:
             seen = self._last_seen.get(machine)
         return seen is not None and time.monotonic() - seen < self.printing_timeout_s
 
     def latest(self, machine: str) -> dict | None:
+        """The machine's newest sample (None: none yet)."""
         with self._lock:
             buffer = self._samples.get(machine)
             return buffer[-1] if buffer else None

@@ -3,7 +3,7 @@
 :class:`DashboardProcess` starts ``ajtwin dashboard`` on 127.0.0.1 and a free port, waits
 (bounded) until it answers, and stops it by its own PID. :func:`launch_chromium` opens
 Debian's ``/usr/bin/chromium`` through Playwright (``playwright install`` cannot download
-a browser here) with a fresh profile and no background networking.
+a browser here) with a fresh user-data folder and no background networking.
 
 Example
 -------
@@ -25,6 +25,10 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+
+from ajtwin.web.access import check_access
+from ajtwin.web.app import create_app
+from ajtwin.web.websocket import SERVER_OPTIONS
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -78,6 +82,7 @@ class DashboardProcess:
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> DashboardProcess:
+        """Start ``ajtwin dashboard`` as a child process and wait (bounded) until it answers."""
         cmd = [sys.executable, "-m", "ajtwin.cli", "dashboard", "--store", self.store]
         cmd += ["--host", self.host, "--port", str(self.port), *self.extra_args]
         if self.token:
@@ -119,6 +124,7 @@ class DashboardProcess:
         return url
 
     def stop(self, timeout_s: float = 15.0) -> None:
+        """Stop the child by its PID (SIGTERM, then SIGKILL after ``timeout_s``)."""
         if self.proc is not None and self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGTERM)
             try:
@@ -156,14 +162,10 @@ class BackgroundServer:
                  startup_timeout_s: float = 30.0):  # fmt: skip
         import uvicorn
 
-        from ajtwin.web.app import create_app
-        from ajtwin.web.cli import check_access
-
         check_access(host, token)
         self.port = free_port() if not port else int(port)
         self.url = f"http://{host}:{self.port}/"
         app = create_app(store, token=token, publisher=publisher)
-        from ajtwin.web.websocket import SERVER_OPTIONS
 
         config = uvicorn.Config(
             app, host=host, port=self.port, log_level="warning", **SERVER_OPTIONS
@@ -194,15 +196,15 @@ class BackgroundServer:
 
 
 def launch_chromium(playwright, user_data_dir=None):
-    """A headless Debian chromium (persistent context in a fresh profile folder).
+    """A headless Debian chromium (persistent context in a fresh user-data folder).
 
     Returns the Playwright BrowserContext; close it when done.
     """
     if not Path(CHROMIUM).exists():
         raise FileNotFoundError(f"{CHROMIUM} not found: run `make chromium`")
-    profile = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
+    data_dir = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
     return playwright.chromium.launch_persistent_context(
-        str(profile),
+        str(data_dir),
         executable_path=CHROMIUM,
         args=CHROMIUM_ARGS,
         headless=True,

@@ -1,6 +1,6 @@
 """Notice what other processes commit to the registry and tell the open pages.
 
-``ajtwin ingest`` writes a print in one transaction (docs/registry.md). The watcher asks
+``ajtwin ingest`` writes a print in one transaction (docs/reference/registry.md). The watcher asks
 SQLite every ``poll_s`` seconds for ``PRAGMA data_version`` (it changes when another
 connection commits; one cheap query per tick, on a worker thread so the server never
 waits) and, when it changed, for the prints and machines added since the last look; it

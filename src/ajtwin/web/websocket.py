@@ -42,6 +42,7 @@ class DashboardWebSocketProtocol(WebSocketsSansIOProtocol):
     a traceback for that client error)."""
 
     def send_receive_event_to_app(self) -> None:
+        """Hand a received message to the app unless the connection is already closing."""
         if self.conn.state is not State.OPEN:
             # the same read also brought the client's close (websockets is already
             # closing): the message is moot, the close frame is answered next
@@ -61,6 +62,7 @@ class DashboardWebSocketProtocol(WebSocketsSansIOProtocol):
         super().send_receive_event_to_app()
 
     def data_received(self, data: bytes) -> None:
+        """Feed received bytes; a refused opening request gets websockets' answer and is closed."""
         super().data_received(data)
         if self.handshake_initiated or self.conn.handshake_exc is None:
             return

@@ -1,0 +1,142 @@
+"""The detectors over a whole print: the streaming detector run over arrays.
+
+:func:`detect_anomalies` runs :class:`~ajtwin.apps.detection.streaming.AnomalyDetector`
+over a finished run's arrays, so a live twin and a finished print give the same events;
+:func:`detect_run` does it for a :class:`~ajtwin.estimation.twin.TwinRun`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.streaming import AnomalyDetector
+
+
+@dataclass
+class DetectionResult:
+    """Everything the detectors computed over one print."""
+
+    time_s: np.ndarray
+    normalised_innovations: np.ndarray  # (T, 5)
+    nis_p: np.ndarray  # (T,) per-step χ² tail
+    window_nis_p: np.ndarray  # (T,)
+    cusum_pos: np.ndarray  # (T, 6): CUSUM_CHANNELS
+    cusum_neg: np.ndarray  # (T, 6)
+    events: list  # AnomalyEvent
+    settings: DetectorSettings
+    # the long-run statistics to carry to the machine's next print (AnomalyDetector)
+    long_run_history: dict | None = None
+
+    def events_frame(self):
+        """The events as a table: detected_s, onset_s [s], cause, description, detectors."""
+        rows = [
+            {
+                "detected_s": ev.detected_s,
+                "onset_s": ev.onset_s,
+                "cause": ev.cause,
+                "description": ev.description,
+                "detectors": ", ".join(ev.detectors),
+            }
+            for ev in self.events
+        ]
+        return pd.DataFrame(
+            rows, columns=["detected_s", "onset_s", "cause", "description", "detectors"]
+        )
+
+
+def detect_anomalies(
+    time_s,
+    measurements,
+    predicted_outputs,
+    innovation_variances,
+    nis,
+    n_measured,
+    means,
+    predicted_means,
+    covariances,
+    settings: DetectorSettings | None = None,
+    inputs=None,
+    long_run_history: dict | None = None,
+) -> DetectionResult:
+    """Run NIS, windowed-NIS and CUSUM tests and group alarms into labelled events.
+
+    :class:`AnomalyDetector` run over the arrays, step by step.
+
+    Parameters
+    ----------
+    time_s : (T,) seconds
+    measurements : (T, 5) measured outputs (NaN = missing)
+    predicted_outputs, innovation_variances, nis, n_measured :
+        from the EKF (:class:`ajtwin.estimation.filters.FilterResult`)
+    means, predicted_means, covariances : (T, 5), (T, 5), (T, 5, 5)
+        filtered states x̂_k, predictions x̂_{k|k−1} and P_k (display units)
+    settings : DetectorSettings, optional
+    inputs : (T, 3), optional
+        [mA, sccm, sccm]: runs the vial observer (see :meth:`AnomalyDetector.update`).
+    long_run_history : dict, optional
+        The machine's carried long-run statistics (see :class:`AnomalyDetector`).
+
+    Returns
+    -------
+    DetectionResult (its ``long_run_history``: what to carry to the next print)
+    """
+    detector = AnomalyDetector(settings, long_run_history)
+    t = np.asarray(time_s, dtype=float)
+    columns = (
+        measurements,
+        predicted_outputs,
+        innovation_variances,
+        nis,
+        n_measured,
+        means,
+        predicted_means,
+        covariances,
+    )
+    columns = [np.asarray(c, dtype=float) for c in columns]
+    u = None if inputs is None else np.asarray(inputs, dtype=float)
+    rows = [
+        detector.update(t[k], *(c[k] for c in columns), inputs=None if u is None else u[k])
+        for k in range(len(t))
+    ]
+    events = detector.finish()
+    n_channels = len(CUSUM_CHANNELS)
+
+    def stack(name, shape):
+        return np.array([getattr(r, name) for r in rows]).reshape(shape)
+
+    return DetectionResult(
+        t,
+        stack("normalised_innovation", (len(t), 5)),
+        stack("nis_p", (len(t),)),
+        stack("window_nis_p", (len(t),)),
+        stack("cusum_pos", (len(t), n_channels)),
+        stack("cusum_neg", (len(t), n_channels)),
+        events,
+        detector.settings,
+        detector.long_run_history(),
+    )
+
+
+def detect_run(
+    run, record, settings: DetectorSettings | None = None, long_run_history: dict | None = None
+) -> DetectionResult:
+    """:func:`detect_anomalies` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+    f = run.filtered
+    return detect_anomalies(
+        run.time_s,
+        record.outputs,
+        np.asarray(f.predicted_outputs),
+        np.asarray(f.innovation_variances),
+        np.asarray(f.nis),
+        np.asarray(f.n_measured),
+        np.asarray(f.means),
+        np.asarray(f.predicted_means),
+        np.asarray(f.covariances),
+        settings,
+        inputs=record.inputs,
+        long_run_history=long_run_history,
+    )

@@ -1,0 +1,493 @@
+"""The model–machine mismatch guard: the twin never turns a misfit into silent nonsense.
+
+When the packaged (or calibrated) model does not describe the machine, the EKF still
+returns numbers: a line model 30 µm off drives d_a to 0.2 µm, gauges reading 8 % high
+appear as a 0.15 µm nozzle deposit from the first minute. This guard reads one run of
+the twin and says, per second and for the print, whether the model fits:
+
+* **physical range** — any filtered state outside :class:`~ajtwin.model.limits.StateLimits`;
+* **persistent innovation bias** — the rolling mean of an output's normalised
+  innovations e = ν/√S over ``bias_window_s`` beyond ``bias_sigma`` (white, well-modelled
+  innovations average to ~0; the twin's process noise absorbs a fault only slowly, a
+  structural misfit never);
+* **windowed NIS far from 1** — the rolling mean of NIS per measured output outside
+  [``nis_low``, ``nis_high``];
+* **start surprise** — in the first ``start_window_s`` a state the start prior holds
+  (fill, deposits) moves more than ``start_sigma`` prior σ: a clean nozzle cannot clog
+  in a minute, so pressures that say so are a gauge or plumbing misfit.
+
+Each finding names the output(s)/state(s) and the likely fix. Thresholds:
+``data/mismatch.toml`` (with how they were set). A mismatch is not a fault of the
+print: :func:`relabel_events` marks anomaly events it explains.
+
+Examples
+--------
+>>> import numpy as np
+>>> e = np.zeros((400, 5)); e[:, 2] = 1.5      # P_c persistently 1.5 σ above the model
+>>> s = assess(np.arange(400.0), np.tile([3.5, 1, 0, 0.01, 4.6e-7], (400, 1)), e,
+...            np.full(400, 5.0), np.full(400, 5))
+>>> s.mismatch, s.outputs
+(True, ['carrier_pressure_Pa'])
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ajtwin import units
+from ajtwin.apps.detection.statistics import normalised_innovations
+from ajtwin.config import packaged_toml
+from ajtwin.estimation.filters import DEFAULT_SCALING
+from ajtwin.model import load_parameters
+from ajtwin.model.limits import StateLimits
+from ajtwin.model.names import OUTPUT_NAMES, STATE_NAMES
+
+#: Likely fix per output / state.
+FIXES = {
+    "linewidth_um": "commission the machine (line-model offset/gain) or recalibrate the camera "
+    "(µm per pixel)",
+    "overspray_um": "commission the machine (line-model offset/gain) or recalibrate the camera "
+    "(µm per pixel)",
+    "carrier_pressure_Pa": "check the carrier pressure gauge (zero and span) and the carrier "
+    "line, then commission the machine",
+    "sheath_pressure_Pa": "check the sheath pressure gauge (zero and span) and the sheath line, "
+    "then commission the machine",
+    "material_flow_mL_s": "recalibrate the height-profile CNN / platen speed (Q_m gain) or "
+    "commission the machine",
+    "droplet_diameter_um": "commission the machine: the line model does not fit (d_a absorbs it)",
+    "aerosol_fraction": "commission the machine: Q_m or the line model does not fit",
+    "vial_volume_mL": "check the vial fill entered for this print",
+    "tube_deposition_um": "check the pressure gauges or commission the machine",
+    "nozzle_deposition_um": "check the pressure gauges (zero and span) or commission the "
+    "machine; if the nozzle was not cleaned, record it (`ajtwin machine maintain`)",
+    "nis": "commission the machine (the noise and output model do not fit its data)",
+}
+
+
+def load_guard_settings() -> dict:
+    """The guard's thresholds with their provenance (``data/mismatch.toml`` ``[guard]``)."""
+    return packaged_toml("data/mismatch.toml")["guard"]
+
+
+@dataclass
+class MismatchStatus:
+    """The guard's verdict on one print (JSON-friendly via :meth:`to_dict`)."""
+
+    mismatch: bool
+    first_s: float | None  # time of the first finding
+    outputs: list = field(default_factory=list)  # outputs that do not fit
+    states: list = field(default_factory=list)  # states out of range / surprising
+    reasons: list = field(default_factory=list)  # one sentence per finding
+    fixes: list = field(default_factory=list)
+    message: str = "the model fits this machine"
+    flags: np.ndarray = None  # (T,) bool: a finding holds at this second
+    # states named only by the start surprise: they explain alarms of the start window,
+    # not a fault that begins later on the same outputs (a clog stays a clog)
+    start_states: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """The verdict as plain JSON-friendly values (without the per-second ``flags``)."""
+        out = asdict(self)
+        out.pop("flags")
+        return out
+
+
+def _rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over ``window`` rows ignoring NaN (NaN where nothing was measured)."""
+    values = np.asarray(values, dtype=float)
+    finite = np.isfinite(values)
+    filled = np.where(finite, values, 0.0)
+    csum = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(filled, axis=0)])
+    ccount = np.concatenate([np.zeros((1, *values.shape[1:])), np.cumsum(finite, axis=0)])
+    idx = np.arange(1, len(values) + 1)
+    lo = np.maximum(idx - int(window), 0)
+    total = csum[idx] - csum[lo]
+    count = ccount[idx] - ccount[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def assess(
+    time_s,
+    means,
+    normalised_innovations,
+    nis,
+    n_measured,
+    *,
+    start_mean=None,
+    start_cov=None,
+    limits=None,
+    settings: dict | None = None,
+    level_learned_s: float | None = None,
+    stds=None,
+) -> MismatchStatus:
+    """Run the guard's four tests (module docstring) over one print.
+
+    Parameters
+    ----------
+    time_s : (T,) ; means : (T, 5) filtered states (display units)
+    normalised_innovations : (T, 5) e = ν/√S (NaN where not measured)
+    nis, n_measured : (T,)
+    start_mean, start_cov : (5,), (5, 5), optional
+        The print's start prior (for the start-surprise test).
+    limits : StateLimits, optional
+        Default: ``data/state_limits.toml`` with the packaged parameters.
+    level_learned_s : float, optional
+        Time (same clock as ``time_s``) from which the twin has learned the print's level of
+        the ``level_learned_outputs`` (``data/mismatch.toml``: Q_m, whose level is the
+        print's atomizer efficiency, learned only by EM's θ_φA). Their bias test reads only
+        samples from then on. None: from the warm-up (the twin cannot learn the level, so a
+        level offset is a misfit).
+    stds : (T, 5), optional
+        The states' σ (display units): with them a deposit estimated below zero by more
+        than its noise (``negative_deposit_*`` in ``data/mismatch.toml``) is a finding.
+    """
+    g = settings or load_guard_settings()
+    t = np.asarray(time_s, dtype=float)
+    t = t - t[0]
+    means = np.asarray(means, dtype=float)
+    e = np.asarray(normalised_innovations, dtype=float)
+    found = _Findings(t, t >= float(g["warmup_s"]))
+    _state_range_findings(found, means, limits or StateLimits.load(load_parameters()))
+    if stds is not None:
+        _negative_deposit_findings(found, means, np.asarray(stds, dtype=float), g)
+    learned = None
+    if level_learned_s is not None:
+        learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
+    _output_bias_findings(found, _output_bias(t, e, g, learned), g)
+    _nis_findings(found, nis, n_measured, g)
+    start_only = set()
+    if start_mean is not None and start_cov is not None:
+        start_only = _start_surprise_findings(found, means, start_mean, start_cov, g)
+    return _verdict(found, start_only)
+
+
+class _Findings:
+    """The guard's findings over one print: (first index, kind, name, sentence) each, and
+    the seconds at which any holds (after the warm-up ``active``)."""
+
+    def __init__(self, t: np.ndarray, active: np.ndarray):
+        self.t = t
+        self.active = active
+        self.flags = np.zeros(len(t), dtype=bool)
+        self.items: list[tuple[int, str, str, str]] = []
+
+    def first(self, mask) -> int | None:
+        """The first active index where ``mask`` holds (None: nowhere)."""
+        hits = np.flatnonzero(mask & self.active)
+        return int(hits[0]) if hits.size else None
+
+    def add(self, mask, kind: str, name: str, sentence) -> int | None:
+        """Record a finding where ``mask`` holds; ``sentence(k)`` says it at its first index."""
+        k = self.first(mask)
+        if k is not None:
+            self.flags |= mask & self.active
+            self.items.append((k, kind, name, sentence(k)))
+        return k
+
+
+def _state_range_findings(found: _Findings, means: np.ndarray, limits) -> None:
+    """A state outside its physical range (``data/state_limits.toml``)."""
+    inside = limits.inside(means)
+    for i, name in enumerate(STATE_NAMES):
+        found.add(
+            ~inside[:, i],
+            "state",
+            name,
+            lambda k: f"{limits.violations(means[k])[0]} at {found.t[k]:.0f} s",
+        )
+
+
+def _negative_deposit_findings(found: _Findings, means, stds, g: dict) -> None:
+    """A deposit below zero by more than its own noise.
+
+    A deposit is never negative: an estimate below 0 by more than its own noise means the
+    pressures are read through a model that does not fit (a gauge's zero or span, a line's
+    resistance), the signature of an uncommissioned machine whose deviations mimic other
+    states (held-out alt machines 1029, 1135: ΔR_N −42 / −76 nm at σ 0.6 nm).
+    """
+    floor = float(g.get("negative_deposit_floor_um", np.inf))
+    k_sigma = float(g.get("negative_deposit_sigma", np.inf))
+    for name in ("tube_deposition_um", "nozzle_deposition_um"):
+        i = STATE_NAMES.index(name)
+        found.add(
+            means[:, i] < -(floor + k_sigma * stds[:, i]),
+            "state",
+            name,
+            lambda k, i=i, name=name: (
+                f"{name} = {units.um_to_nm(means[k, i]):.1f} nm is below zero by "
+                f"{-means[k, i] / max(stds[k, i], 1e-300):.0f} σ at {found.t[k]:.0f} s: a "
+                "deposit cannot be negative"
+            ),
+        )
+
+
+def _output_bias(t: np.ndarray, e: np.ndarray, g: dict, learned: float | None) -> np.ndarray:
+    """Rolling mean of the normalised innovations (T, 5) over ``bias_window_s``, NaN where it
+    is no evidence of a misfit.
+
+    Before EM's first θ (``learned`` [s from the start]) the twin has no parameter for
+    the print's own atomizer level (φ_A follows the generation model within seconds): a
+    Q_m level offset then is the print-to-print variation the start prior allows, not a
+    misfit; and a whole window after it neither (the θ update itself moves φ_A for tens
+    of seconds). Outputs that read φ_A beside others (L_o) are not judged while Q_m says
+    the level is off the same way.
+    """
+    window = int(g["bias_window_s"])
+    e_bias = e.copy()
+    if learned is None:
+        return _rolling_mean(e_bias, window)
+    level_columns = [OUTPUT_NAMES.index(name) for name in g.get("level_learned_outputs", [])]
+    e_bias[np.ix_(t < learned, level_columns)] = np.nan
+    bias = _rolling_mean(e_bias, window)
+    unlearned = t < learned + float(g["bias_window_s"])
+    bias[np.ix_(unlearned, level_columns)] = np.nan
+    level = _rolling_mean(e[:, OUTPUT_NAMES.index("material_flow_mL_s")], window)
+    level_evidence = float(g.get("level_evidence_fraction", 0.5)) * float(g["bias_sigma"])
+    for name in g.get("level_explained_outputs", []):
+        j = OUTPUT_NAMES.index(name)
+        same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
+        explained = unlearned & same_way & (np.abs(np.nan_to_num(level)) >= level_evidence)
+        bias[explained, j] = np.nan
+    return bias
+
+
+def _output_bias_findings(found: _Findings, bias: np.ndarray, g: dict) -> None:
+    """An output persistently above or below the model (a full window of evidence, or the
+    print so far after its own minimum)."""
+    evidence = found.t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    for j, name in enumerate(OUTPUT_NAMES):
+        found.add(
+            evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])),
+            "output",
+            name,
+            lambda k, j=j, name=name: (
+                f"{name} persistently {'above' if bias[k, j] > 0 else 'below'} the model "
+                f"({bias[k, j]:+.2f} σ mean over {int(g['bias_window_s'])} s) from "
+                f"{found.t[k]:.0f} s"
+            ),
+        )
+
+
+def _nis_findings(found: _Findings, nis, n_measured, g: dict) -> None:
+    """The mean NIS per output over ``nis_window_s`` outside [``nis_low``, ``nis_high``]."""
+    t = found.t
+    per_output = np.asarray(nis, dtype=float) / np.maximum(np.asarray(n_measured, float), 1)
+    rolling_nis = _rolling_mean(per_output[:, None], int(g["nis_window_s"]))[:, 0]
+    full = t >= min(float(g["nis_window_s"]), max(t[-1], 0.0))
+    mask = full & ((rolling_nis < float(g["nis_low"])) | (rolling_nis > float(g["nis_high"])))
+    found.add(
+        mask,
+        "nis",
+        "nis",
+        lambda k: (
+            f"mean NIS per output {rolling_nis[k]:.2f} over {int(g['nis_window_s'])} s "
+            f"(1 = consistent; allowed {g['nis_low']}–{g['nis_high']}) at {t[k]:.0f} s"
+        ),
+    )
+
+
+def _start_surprise_findings(found: _Findings, means, start_mean, start_cov, g: dict) -> set:
+    """A state that moves many prior σ within ``start_window_s`` of the start; the names.
+
+    A carried-over start has a tight prior (the previous print's end) and the filter
+    re-converges d_a and φ_A in the first minute, moving the deposits by ~1 nm through
+    their correlation: only a move beyond the floor is a misfit's signature.
+    """
+    floor = np.array([float(g.get("start_floor", {}).get(name, 0.0)) for name in STATE_NAMES])
+    var = np.maximum(np.diag(np.asarray(start_cov, float)), 1e-300) + floor**2
+    z = np.abs(means - np.asarray(start_mean, float)) / np.sqrt(var)
+    window = found.t <= float(g["start_window_s"])
+    start_only = set()
+    for name in g["start_states"]:
+        i = STATE_NAMES.index(name)
+        k = found.add(
+            window & (z[:, i] > float(g["start_sigma"])),
+            "state",
+            name,
+            lambda k, i=i, name=name: (
+                f"{name} moved {z[k, i]:.1f} prior σ within {found.t[k]:.0f} s of the start "
+                f"({start_mean[i]:.4g} → {means[k, i]:.4g}): faster than the machine "
+                "can change"
+            ),
+        )
+        if k is not None:
+            start_only.add(name)
+    return start_only
+
+
+def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
+    """The findings as the guard's status: first time, outputs, states, reasons, fixes."""
+    if not found.items:
+        return MismatchStatus(False, None, flags=found.flags)
+    findings = sorted(found.items, key=lambda f: f[0])
+    outputs = sorted({f[2] for f in findings if f[1] == "output"}, key=OUTPUT_NAMES.index)
+    states = sorted({f[2] for f in findings if f[1] == "state"}, key=STATE_NAMES.index)
+    fixes = list(dict.fromkeys(FIXES[f[2]] for f in findings))
+    reasons = [f[3] for f in findings]
+    message = (
+        "model–machine mismatch: "
+        + "; ".join(reasons[:3])
+        + (f" (+{len(reasons) - 3} more)" if len(reasons) > 3 else "")
+        + ". Likely fix: "
+        + "; ".join(fixes[:2])
+    )
+    # a state also out of range is a misfit for the whole print, not only at its start
+    out_of_range = {f[2] for f in findings if f[1] == "state" and "physical range" in f[3]}
+    start_states = sorted(start_only - out_of_range, key=STATE_NAMES.index)
+    return MismatchStatus(
+        True,
+        float(found.t[findings[0][0]]),
+        outputs,
+        states,
+        reasons,
+        fixes,
+        message,
+        found.flags,
+        start_states,
+    )
+
+
+def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
+    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+
+    f = run.filtered
+    e = normalised_innovations(
+        record.outputs, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
+    )
+    return assess(
+        run.time_s,
+        run.means,
+        e,
+        np.asarray(f.nis),
+        np.asarray(f.n_measured),
+        start_mean=run.start_mean,
+        start_cov=run.start_cov,
+        settings=settings,
+        level_learned_s=first_em_update_s(run),
+        stds=run.stds,
+    )
+
+
+def first_em_update_s(run) -> float | None:
+    """When the twin's first EM update took effect (None: EM did not run): from then on θ_φA
+    holds the print's atomizer level, so Q_m's level is the model's to explain."""
+    history = getattr(run, "theta_history", None)
+    if history is None or len(history) == 0 or "time_s" not in history:
+        return None
+    return float(history["time_s"].iloc[0])
+
+
+def data_share(filtered) -> np.ndarray:
+    """(T, 5) how much of each state's information came from this print's data.
+
+    share_k = 1 − P_{k|k} / Π_k per state, where Π_k is the variance the start prior
+    alone would have at k: the filter's own recursion without any measurement,
+    Π_0 = P_{0|−1}, Π_{k+1} = F_k Π_k F_kᵀ + Q_k, with F_k the filter's transition
+    Jacobians and Q_k = P_{k+1|k} − F_k P_{k|k} F_kᵀ its process noise (recovered exactly
+    from its own covariances, so the shares follow whatever tuning the twin used).
+    1: the data fixed the state (d_a, φ_A, ΔR_N on a print with camera and gauges);
+    0: the band is the prior's, carried by the model (ΔR_T: ≤ 1e-3 µm of deposit moves
+    P_c by < 1 Pa; V_l, a consider state that only follows the fill and the draw).
+    Computed in the filter's scaled coordinates (the states span 15 orders of magnitude).
+
+    >>> from types import SimpleNamespace
+    >>> one = np.eye(5)[None].repeat(2, 0)
+    >>> f = SimpleNamespace(covariances=one * 0.5, predicted_covariances=one * 1.0,
+    ...                     transition_jacobians=one)       # F = I, Q = 1 − 0.5 = 0.5
+    >>> data_share(f)[:, 0].tolist()                        # 1 − 0.5/1, 1 − 0.5/(1 + 0.5)
+    [0.5, 0.6666666666666667]
+    """
+
+    scale = np.asarray(DEFAULT_SCALING.state, dtype=float)
+    outer = np.outer(scale, scale)
+    post = np.asarray(filtered.covariances, dtype=float) / outer
+    pred = np.asarray(filtered.predicted_covariances, dtype=float) / outer
+    jac = np.asarray(filtered.transition_jacobians, dtype=float)
+    n = len(post)
+    share = np.zeros((n, post.shape[1]))
+    prior = pred[0].copy()
+    for k in range(n):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share[k] = 1.0 - np.diag(post[k]) / np.diag(prior)
+        if k + 1 < n:
+            f = jac[k]
+            q = pred[k + 1] - f @ post[k] @ f.T
+            prior = f @ prior @ f.T + q
+    return np.clip(np.nan_to_num(share, nan=0.0), 0.0, 1.0)
+
+
+def determined_states(share, settings: dict | None = None) -> dict:
+    """State → {"data_share": share at the print's end, "determined": share ≥
+    ``undetermined_share`` (data/mismatch.toml)}: which bands this print's data set."""
+    g = settings or load_guard_settings()
+    end = np.asarray(share, dtype=float)[-1]
+    threshold = float(g["undetermined_share"])
+    return {
+        name: {"data_share": round(float(end[i]), 4), "determined": bool(end[i] >= threshold)}
+        for i, name in enumerate(STATE_NAMES)
+    }
+
+
+MISMATCH_CAUSE = "model_machine_mismatch"
+
+_SHORT = dict(zip(OUTPUT_NAMES, ("L_w", "L_o", "P_c", "P_s", "Q_m"), strict=True))
+#: outputs whose misfit a state's misfit stands for
+_STATE_OUTPUTS = {
+    "droplet_diameter_um": {"L_w", "L_o"},
+    "aerosol_fraction": {"L_w", "L_o", "Q_m"},
+    "vial_volume_mL": {"Q_m"},
+    "tube_deposition_um": {"P_c", "P_s"},
+    "nozzle_deposition_um": {"P_c", "P_s"},
+}
+
+
+def _mismatch_channels(status: MismatchStatus) -> set:
+    """Outputs on which the misfit shows for the whole print (start-only findings excluded)."""
+    channels = {_SHORT[o] for o in status.outputs}
+    for state in status.states:
+        if state in (status.start_states or ()):
+            continue
+        channels |= _STATE_OUTPUTS.get(state, set())
+    return channels
+
+
+def _event_channels(event) -> set:
+    """Outputs an anomaly event's detectors fired on (``"cusum+ P_c"``, ``"P_c+P_s"``)."""
+    channels = set()
+    for detector in event.detectors:
+        for short in _SHORT.values():
+            if short in detector:
+                channels.add(short)
+    return channels
+
+
+def relabel_events(events: list, status: MismatchStatus) -> list:
+    """Anomaly events explained by a mismatch get the cause ``model_machine_mismatch``.
+
+    An event is explained when the guard's first finding came no later than the event's
+    onset and either the event begins in the guard's start window or its detectors fired
+    on an output the mismatch names: the detectors then see the misfit, not a new fault.
+    A fault that begins later on other outputs, or on a machine that fitted, keeps its
+    label (a clog stays a clog).
+    """
+    if not status.mismatch or status.first_s is None:
+        return events
+    g = load_guard_settings()
+    # a misfit found in the start window was there from the start
+    start = float(g["warmup_s"]) + float(g["start_window_s"])
+    misfit = _mismatch_channels(status)
+    out = []
+    for ev in events:
+        found_first = status.first_s <= max(float(ev.onset_s), start) + 1.0
+        # at the start every alarm is the misfit; later only alarms on the misfit outputs
+        same_outputs = bool(_event_channels(ev) & misfit)
+        explained = found_first and (float(ev.onset_s) <= start or same_outputs)
+        if explained and ev.cause != MISMATCH_CAUSE:
+            ev.evidence = {**ev.evidence, "relabelled_from": ev.cause}
+            ev.cause = MISMATCH_CAUSE
+            ev.description = f"model–machine mismatch, not a fault: {status.message}"
+        out.append(ev)
+    return out

@@ -1,0 +1,92 @@
+"""The ``ajtwin`` command line.
+
+One module per command group (``ajtwin/cli/<group>.py``), each imported only when its
+command runs, so ``ajtwin --help`` stays fast and one area's heavy imports (JAX, PyTorch,
+OpenCV) never slow down another's command. A command module parses options and calls
+library functions; it holds no physics and no workflow of its own.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import click
+
+from ajtwin import __version__
+
+#: the ajtwin package folder (the commands live in its cli/ subfolder)
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+# name -> "module:attribute" of a click command or group
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("ajtwin.cli.demo:demo_command", "Run the end-to-end demo on the embedded default."),
+    "openloop": ("ajtwin.cli.openloop:openloop", "Open-loop run of the digital model."),
+    "simulate": ("ajtwin.cli.simulate:simulate", "Virtual printer: simulate a print record."),
+    "plot": ("ajtwin.cli.simulate:plot", "Plot a print record (inputs, outputs, truth)."),
+    "estimate": ("ajtwin.cli.estimate:estimate", "Run the twin (EKF/RTS/EM) on a print record."),
+    "experiment": ("ajtwin.cli.experiment:experiment", "Reproduce the paper's experiments."),
+    "render": ("ajtwin.cli.vision:render", "Render alignment-camera video from a print."),
+    "extract": ("ajtwin.cli.vision:extract", "Linewidth/overspray from alignment-camera video."),
+    "cnn": ("ajtwin.cli.cnn:cnn", "Height-profile CNN: train and infer Q_m."),
+    "cfd": ("ajtwin.cli.cfd:cfd", "CFD macro-model with OpenFOAM: case, run, sweep, fit."),
+    "machine": (
+        "ajtwin.cli.machine:machine",
+        "Machine registry: add, show, history, drop, compact, backup.",
+    ),
+    "ingest": ("ajtwin.cli.ingest:ingest", "Ingest a print into a machine's twin."),
+    "forecast": ("ajtwin.cli.forecast:forecast", "Forecast outputs under planned input changes."),
+    "advise": ("ajtwin.cli.advise:advise", "Input settings that hold a target linewidth."),
+    "control": (
+        "ajtwin.cli.control:control",
+        "Closed-loop MPC of linewidth: a live machine over OPC UA, or simulate.",
+    ),
+    "printer": ("ajtwin.cli.printer:printer", "The virtual printer as a live OPC UA machine."),
+    "live": ("ajtwin.cli.live:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
+    "dashboard": ("ajtwin.cli.dashboard:dashboard", "Browser dashboard: fleet, machines, what-if."),
+    "job": ("ajtwin.cli.job:job", "The machine's program: summary, timeline, part plot."),
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use."""
+
+    def list_commands(self, ctx):
+        """The commands whose module is installed, sorted."""
+        return sorted(name for name in SUBCOMMANDS if self._available(name))
+
+    @staticmethod
+    def _available(name: str) -> bool:
+        # A file check, not importlib.util.find_spec: find_spec imports the parent
+        # packages (ajtwin.simulation pulls in JAX, pandas, scipy.signal: ~1.5 s).
+        parts = SUBCOMMANDS[name][0].split(":")[0].split(".")[1:]
+        base = _PACKAGE_DIR.joinpath(*parts)
+        return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+    def get_command(self, ctx, name):
+        """The command ``name``, its module imported now (None: unknown)."""
+        if name not in SUBCOMMANDS or not self._available(name):
+            return None
+        target, _ = SUBCOMMANDS[name]
+        module_name, attr = target.split(":")
+        module = importlib.import_module(module_name)
+        return getattr(module, attr, None)
+
+    def format_commands(self, ctx, formatter):
+        """The command list of ``--help`` from :data:`SUBCOMMANDS` (no module imported)."""
+        rows = [(name, SUBCOMMANDS[name][1]) for name in self.list_commands(ctx)]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="ajtwin")
+def main():
+    """ajtwin — a digital twin of Aerosol Jet printers.
+
+    Reads the machine's logs and alignment-camera video, infers the hidden
+    states that make lines drift (droplet size, aerosol density, ink level,
+    ink building up in tube and nozzle), warns early, and forecasts what an
+    input change will do. Units: µm, mL, mA, sccm, Pa (model reference §3).
+    """

@@ -1,0 +1,5 @@
+"""``python -m ajtwin.cli``: the ``ajtwin`` command."""
+
+from ajtwin.cli import main
+
+main()

@@ -1,0 +1,341 @@
+"""``ajtwin control``: closed-loop control of linewidth (docs/howto/closed-loop-control.md).
+
+``ajtwin control simulate`` runs the strategies in closed loop with the virtual printer.
+``ajtwin control --machine M --target-linewidth W --opcua URL`` controls a live machine
+over OPC UA (:mod:`ajtwin.live.control_link`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from pathlib import Path
+
+import click
+from tqdm import tqdm
+
+from ajtwin.cli.options import parse_seeds, store_option
+from ajtwin.store.registry import Registry, RegistryError
+
+
+def _parse_horizon(text) -> int | None:
+    """``120s``, ``2min`` or ``120`` → seconds."""
+    if text is None:
+        return None
+    raw = str(text).strip().lower()
+    scale = 1
+    for suffix, factor in (("min", 60), ("s", 1)):
+        if raw.endswith(suffix):
+            raw, scale = raw[: -len(suffix)].strip(), factor
+            break
+    try:
+        seconds = float(raw) * scale
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: give e.g. 120s or 2min") from None
+    if not seconds >= 1 or seconds != int(seconds):
+        raise click.BadParameter(f"{text!r}: a whole number of seconds ≥ 1")
+    return int(seconds)
+
+
+@click.group(invoke_without_command=True)
+@click.option(
+    "--machine",
+    default=None,
+    help="Machine name (live control; see docs/howto/closed-loop-control.md).",
+)
+@click.option("--target-linewidth", "target", type=float, default=None, help="Target L_w [µm].")
+@click.option("--max-overspray", type=float, default=None, help="Soft limit on L_o [µm].")
+@click.option("--horizon", default=None, help="MPC horizon, e.g. 120s (default: control.toml).")
+@click.option("--opcua", "url", default=None, help="Server endpoint, opc.tcp://host:port.")
+@click.option("--username", default=None)
+@click.option("--password", default=None, envvar="AJTWIN_OPCUA_PASSWORD")
+@click.option("--security", default=None, help="e.g. Basic256Sha256_SignAndEncrypt.")
+@click.option("--certificate", type=click.Path(path_type=Path), default=None)
+@click.option("--private-key", type=click.Path(path_type=Path), default=None)
+@click.option("--server-certificate", type=click.Path(path_type=Path), default=None)
+@click.option(
+    "--settings",
+    "settings_path",
+    type=click.Path(dir_okay=False, exists=True),
+    default=None,
+    help="A control.toml of your own (default: the packaged tuning).",
+)
+@click.option(
+    "--vial-fill-ml",
+    type=float,
+    default=None,
+    help="The vial's fill as weighed at the refill [mL] (ink balance; default 1 mL).",
+)
+@store_option
+@click.option("--verbose", is_flag=True)
+@click.pass_context
+def control(
+    ctx,
+    machine,
+    target,
+    max_overspray,
+    horizon,
+    url,
+    username,
+    password,
+    security,
+    certificate,
+    private_key,
+    server_certificate,
+    settings_path,
+    vial_fill_ml,
+    store,
+    verbose,
+):
+    """Closed-loop control of linewidth: MPC from the twin's state
+    (docs/howto/closed-loop-control.md).
+
+    With --machine/--target-linewidth/--opcua: control a live machine, writing its three
+    set-points over OPC UA every control period (within its limits and rate limits; held,
+    with the reason, on a model–machine mismatch or an alarm). Subcommands: simulate.
+    """
+    if ctx.invoked_subcommand is not None:
+        return
+    missing = [
+        flag
+        for flag, value in (
+            ("--machine", machine),
+            ("--target-linewidth", target),
+            ("--opcua", url),
+        )
+        if value is None
+    ]
+    if missing:
+        if machine is None and target is None and url is None:
+            click.echo(ctx.get_help())
+            return
+        raise click.UsageError(f"live control needs {', '.join(missing)}")
+    _control_live(
+        machine,
+        target,
+        max_overspray,
+        _parse_horizon(horizon),
+        url,
+        dict(
+            username=username,
+            password=password,
+            security=security,
+            certificate=certificate,
+            private_key=private_key,
+            server_certificate=server_certificate,
+        ),
+        settings_path,
+        store,
+        verbose,
+        vial_fill_ml,
+    )
+
+
+def _control_live(
+    machine,
+    target,
+    max_overspray,
+    horizon_s,
+    url,
+    login,
+    settings_path,
+    store,
+    verbose,
+    vial_fill_ml=None,
+):
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.planning.mpc import ControlSettings, TargetError
+    from ajtwin.live.control_link import ControlLink, LinkRefused
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
+    limits = None
+    try:
+        with Registry(store, create=False) as registry:
+            limits = registry.machine(machine)["limits"]
+    except (RegistryError, FileNotFoundError, KeyError):
+        click.echo(
+            f"{machine}: not in the registry; using the default limits (ajtwin machine add "
+            "sets a machine's own)",
+            err=True,
+        )
+    try:
+        overrides = {} if horizon_s is None else {"horizon_s": horizon_s}
+        settings = ControlSettings.load(settings_path, **overrides)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--horizon/--settings") from None
+
+    def show(d):
+        written = ", ".join(f"{k} → {v:.4g}" for k, v in d.written.items()) or "nothing written"
+        line = f"t = {d.time_s:6.0f} s  {d.status:7s}  {written}"
+        if d.status == "act" and d.predicted_linewidth_um == d.predicted_linewidth_um:
+            line += f"  (L_w → {d.predicted_linewidth_um:.1f} µm, solve {d.solve_ms:.0f} ms)"
+        if d.reason:
+            line += f"  [{d.reason}]"
+        click.echo(line)
+
+    try:
+        link = ControlLink(
+            url,
+            machine,
+            target,
+            limits=limits,
+            settings=settings,
+            max_overspray_um=max_overspray,
+            on_decision=show,
+            vial_fill_ml=vial_fill_ml,
+            **login,
+        )
+        asyncio.run(link.run())
+    except TargetError as exc:
+        raise click.ClickException(str(exc)) from None
+    except LinkRefused as exc:
+        raise click.ClickException(str(exc)) from None
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    except KeyboardInterrupt:
+        click.echo("stopped; the machine keeps its last set-points", err=True)
+        return
+    click.echo(f"{machine}: print finished; {len(link.decisions)} control periods")
+
+
+@control.command()
+@click.option(
+    "--scenario",
+    "scenarios",
+    multiple=True,
+    required=True,
+    help="Scenario name or .toml file (repeat for several); slow_clog ships with the controller.",
+)
+@click.option("--target-linewidth", "target", required=True, type=float, help="Target L_w [µm].")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder.")
+@click.option("--seeds", default="1", show_default=True, help="Seeds, e.g. 1-5 or 1,3.")
+@click.option(
+    "--strategies",
+    default="open_loop,pi,mpc_nominal,mpc_twin",
+    show_default=True,
+    help="Comma-separated subset of open_loop, pi, mpc_nominal, mpc_twin.",
+)
+@click.option("--duration-min", type=float, default=None, help="Shorten every print [min].")
+@click.option("--max-overspray", type=float, default=None, help="Soft limit on L_o [µm].")
+@click.option(
+    "--settings",
+    "settings_path",
+    type=click.Path(dir_okay=False, exists=True),
+    default=None,
+    help="A control.toml of your own (default: the packaged tuning).",
+)
+@click.option(
+    "--truth",
+    type=click.Choice(["model", "alt"]),
+    default="model",
+    show_default=True,
+    help="Virtual printer's truth generator: model (tuned the controller) or alt (evaluation).",
+)
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+def simulate(
+    scenarios,
+    target,
+    out_dir,
+    seeds,
+    strategies,
+    duration_min,
+    max_overspray,
+    settings_path,
+    truth,
+    no_progress,
+):
+    """Run the strategies in closed loop with the virtual printer and compare them.
+
+    Writes DIR/<scenario>/seed<N>/<strategy>.parquet (the closed-loop print, record format)
+    with <strategy>_commands.csv, DIR/metrics.json and one figure DIR/<scenario>.png.
+    """
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.planning.closed_loop import STRATEGIES, resolve_scenario
+    from ajtwin.apps.planning.mpc import ControlSettings, TargetError
+    from ajtwin.simulation.scenarios import load_scenario
+    from ajtwin.studies.control import compare
+
+    chosen = tuple(s.strip() for s in strategies.split(",") if s.strip())
+    unknown = [s for s in chosen if s not in STRATEGIES]
+    if unknown or not chosen:
+        raise click.BadParameter(
+            f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}",
+            param_hint="--strategies",
+        )
+    seed_list = parse_seeds(seeds)
+    if duration_min is not None and not duration_min > 0:
+        raise click.BadParameter("must be > 0", param_hint="--duration-min")
+    try:
+        settings = ControlSettings.load(settings_path)
+        total = 0
+        for name in scenarios:
+            sc = load_scenario(resolve_scenario(name))
+            total += (duration_min * 60 if duration_min else sc.duration_s) * len(seed_list)
+        total = int(total * len(chosen))
+        bar = tqdm(total=total, unit="s", desc="closed loop", disable=no_progress)
+        with bar:
+            results = compare(
+                scenarios,
+                seed_list,
+                target,
+                out_dir,
+                strategies=chosen,
+                duration_min=duration_min,
+                settings=settings,
+                max_overspray_um=max_overspray,
+                progress=bar.update,
+                log=lambda text: tqdm.write(text) if not no_progress else click.echo(text),
+                truth=truth,
+            )
+    except TargetError as exc:
+        raise click.ClickException(str(exc)) from None
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    for name, block in results["scenarios"].items():
+        click.echo(f"\n{name} (mean over seeds {seeds}):")
+        summary = block["summary"]
+        for strategy in chosen:
+            row = summary.get(strategy)
+            if row is None:
+                continue
+            solve = row["solve_ms_mean"]
+            click.echo(
+                f"  {strategy:12s} rms {row['rms_error_um_mean']:6.2f} µm  "
+                f"within ±2 µm {row['within_2um_fraction_mean']:5.0%}  "
+                f"L_o {row['mean_overspray_um']:5.2f} µm  holds {row['holds_mean']:6.1f}"
+                + (f"  solve {solve:5.1f} ms" if solve is not None else "")
+            )
+    click.echo(f"\nwrote {out_dir}/metrics.json and one figure per scenario")
+
+
+@control.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Folder.")
+def merge(runs, out_dir):
+    """Merge runs of ``control simulate`` (per seed, scenario or --truth) into one table.
+
+    RUNS are --out folders (or their metrics.json). Writes OUT/metrics.json (per seed and
+    recomputed summaries; a scenario of the second truth generator as NAME@alt) and
+    OUT/metrics.md (the comparison table), and prints the table.
+    """
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.studies.control import merge_results, metrics_table
+
+    try:
+        merged = merge_results(runs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(merged, indent=2))
+    table = metrics_table(merged)
+    (out / "metrics.md").write_text(table)
+    click.echo(table, nl=False)
+    click.echo(f"wrote {out / 'metrics.json'} and {out / 'metrics.md'} ({len(runs)} runs)")

@@ -1,0 +1,227 @@
+"""``ajtwin estimate`` and ``ajtwin experiment``: thin shells over the estimators."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from ajtwin.cli.options import BoundedFloat, check_vial_fill
+from ajtwin.io.records import read_record
+from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
+
+
+def parse_early_em(text: str) -> tuple:
+    """'120' / '120,300' / 'none' → the early EM steps [s] (each a whole number ≥ 2)."""
+    text = str(text).strip().lower()
+    if text in ("", "none", "off"):
+        return ()
+    steps = []
+    for part in text.split(","):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"{part!r} is not a number of seconds (e.g. 120 or 120,300)") from None
+        if not value.is_integer() or value < 2:
+            raise ValueError(f"{part!r}: an early EM step is a whole number of seconds >= 2")
+        steps.append(int(value))
+    return tuple(steps)
+
+
+@click.command("estimate")
+@click.argument("record_path", type=click.Path(exists=True, dir_okay=False))
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False),
+    required=True,
+    help="CSV of states (with _std), predicted outputs and NIS.",
+)
+@click.option(
+    "--em/--no-em", default=True, show_default=True, help="Learn θ by EM while filtering."
+)
+@click.option("--smooth", is_flag=True, help="Write RTS-smoothed states instead of filtered.")
+@click.option(
+    "--window", type=click.IntRange(min=2), default=600, show_default=True, help="EM window T [s]."
+)
+@click.option(
+    "--every",
+    type=click.IntRange(min=1),
+    default=300,
+    show_default=True,
+    help="EM update interval [s].",
+)
+@click.option(
+    "--early-em",
+    "early_em",
+    default="120",
+    show_default=True,
+    help="Extra EM updates before the first full window, each over the print so far "
+    "(seconds, comma-separated; 'none' = off): the print's atomizer level is learned "
+    "from the first of them.",
+)
+@click.option(
+    "--gate",
+    type=BoundedFloat(0.0, float("inf"), allow_inf=True),
+    default=float("inf"),
+    show_default=True,
+    help="Per-output innovation gate [σ], > 0; inf = off.",
+)
+@click.option(
+    "--noise",
+    "noise_tuning",
+    type=click.Choice(["calibrated", "paper"]),
+    default="calibrated",
+    show_default=True,
+    help="The filter's noise tuning (noise.toml).",
+)
+@click.option(
+    "--vial-ml",
+    type=BoundedFloat(0.0, None),
+    callback=check_vial_fill,
+    default=1.0,
+    show_default=True,
+    help="Vial fill level at the start [mL], in (0, V_v).",
+)
+@click.option(
+    "--calibration",
+    "calibration_path",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="The machine's calibration TOML (`ajtwin machine commission --out`); default: "
+    "the nominal model.",
+)
+@click.option(
+    "--theta-out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="θ history CSV (default: theta.csv beside --out).",
+)
+@click.option(
+    "--plot",
+    "plot_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Also write a PNG of states and outputs.",
+)
+def estimate(
+    record_path,
+    out_path,
+    em,
+    smooth,
+    window,
+    every,
+    early_em,
+    gate,
+    noise_tuning,
+    vial_ml,
+    calibration_path,
+    theta_out,
+    plot_path,
+):
+    """Run the twin over a print record: hidden states with uncertainty, θ history."""
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.twin import Twin
+
+    try:
+        record = read_record(record_path)
+    except (ValueError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    calibration = calibration_cov = noise_factors = None
+    if calibration_path is not None:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.model.calibration import read_calibration_file
+
+        try:
+            calibration, content = read_calibration_file(calibration_path)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
+        if "covariance" in content:
+            calibration_cov = np.asarray(content["covariance"]["matrix"], dtype=float)
+        if "noise_factor" in content:
+            factors = content["noise_factor"]
+            noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
+    try:
+        early = parse_early_em(early_em)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--early-em") from None
+    twin = Twin.default(
+        calibration=calibration,
+        calibration_cov=calibration_cov,
+        noise_factors=noise_factors,
+        noise_tuning=noise_tuning,
+        em=em,
+        window_s=window,
+        every_s=every,
+        early_em_s=early,
+        gate_sigma=gate,
+        vial_fill_ml=vial_ml,
+    )
+    n = len(record)
+    with tqdm(total=n, unit="s", desc="twin", disable=None) as bar:
+
+        def progress(done):
+            bar.update(done - bar.n)
+
+        try:
+            run = twin.run(record, smooth=smooth, progress=progress)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
+    frame = run.to_frame(smoothed=smooth)
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.mismatch import assess_run
+
+    # the guard: never return states from a model that does not fit without saying so
+    mismatch = assess_run(run, record)
+    frame["mismatch"] = mismatch.flags
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
+
+    # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
+    share = data_share(run.filtered)
+    threshold = float(load_guard_settings()["undetermined_share"])
+    for i, name in enumerate(STATE_NAMES):
+        frame["data_share_" + name] = share[:, i]
+        frame["determined_" + name] = share[:, i] >= threshold
+    undetermined = [n for n, v in determined_states(share).items() if not v["determined"]]
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out, index=False)
+    theta_path = Path(theta_out) if theta_out else out.with_name("theta.csv")
+    run.theta_history.to_csv(theta_path, index=False)
+    reinit = int(np.asarray(run.filtered.reinitialised).sum())
+    click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
+    end = ", ".join(f"{c} {v:.4g}" for c, v in zip(frame.columns[1:11:2], run.end_mean))
+    click.echo(f"end state: {end}")
+    mean_nis = float(np.nanmean(frame["nis"] / np.maximum(frame["n_measured"], 1)))
+    click.echo(f"mean NIS per measured output: {mean_nis:.2f} (1 = consistent)")
+    if mismatch.mismatch:
+        click.echo(f"WARNING {mismatch.message}", err=True)
+        click.echo(
+            "         the states above are not trustworthy for this machine "
+            "(column 'mismatch' marks the seconds)",
+            err=True,
+        )
+    else:
+        click.echo("model–machine fit: ok (no mismatch found)")
+    if reinit:
+        click.echo(
+            f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True
+        )
+    for note in run.visibility_notes():
+        click.echo(note, err=True)
+    if undetermined:
+        click.echo(
+            f"note: not determined by this print's data: {', '.join(undetermined)} — their "
+            "bands are the start prior's, carried by the model (columns determined_* = False)",
+            err=True,
+        )
+    if plot_path:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.estimation.plotting import estimate_figure
+
+        estimate_figure(record, run, plot_path)
+        click.echo(f"wrote {plot_path}")

@@ -1,0 +1,101 @@
+"""``ajtwin ingest``: run a machine's twin over a finished print and store it
+(docs/reference/registry.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from tqdm import tqdm
+
+from ajtwin.cli.options import STATE_LABELS, BoundedFloat, open_registry, store_option
+from ajtwin.io.records import RecordError
+from ajtwin.store.registry import RegistryError, printable
+
+
+@click.command()
+@click.option("--machine", "machine_name", required=True, help="Registered machine name.")
+@click.argument("record", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option(
+    "--video",
+    type=click.Path(exists=True, path_type=Path),
+    default=None,
+    help="Alignment-camera video: fills linewidth/overspray (ajtwin.vision).",
+)
+@click.option(
+    "--um-per-px",
+    type=BoundedFloat(0.0, None),
+    default=None,
+    help="Camera pixel size, µm (with --video).",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@store_option
+def ingest(machine_name, record, video, um_per_px, progress, store):
+    """Run the machine's twin over RECORD (from its last state and θ) and store it."""
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.ingest import ingest_file
+
+    if video is not None and um_per_px is None:
+        raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")
+    reg = open_registry(store)
+    bar = None
+    state = {"done": 0}
+
+    def step(done):
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(unit="s", desc="twin", disable=not progress)
+        bar.update(done - state["done"])
+        state["done"] = done
+
+    try:
+        reg.machine(machine_name)
+        result = ingest_file(
+            reg,
+            machine_name,
+            record,
+            video=video,
+            um_per_px=um_per_px,
+            progress=step,
+            video_progress=progress,
+        )
+    except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    if result.duplicate:
+        click.echo(
+            f"{record}: already ingested as print #{result.seq} of {machine_name!r} "
+            "(same content hash); nothing changed"
+        )
+        return
+    click.echo(
+        f"ingested {record} as print #{result.seq} of {printable(machine_name)!r} "
+        f"({result.n_samples} s, {result.seconds:.1f} s wall, "
+        f"started from {result.summary['started_from']})"
+    )
+    status = result.summary.get("mismatch", {})
+    if status.get("mismatch"):
+        click.echo(f"  WARNING {status['message']}", err=True)
+    if result.summary.get("status", "ok") != "ok":
+        click.echo(
+            f"  WARNING: stored but EXCLUDED from the machine's chain (the next print will not "
+            f"start from it): {result.summary['status_reason']}",
+            err=True,
+        )
+    end = result.summary["end_state"]
+    for key, short, unit in STATE_LABELS:
+        click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    for note in result.run.visibility_notes() if result.run is not None else ():
+        click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
+    if result.events:
+        click.echo(f"  {len(result.events)} anomaly event(s):")
+        for ev in result.events:
+            click.echo(
+                f"    detected {ev.detected_s:.0f} s (onset ≈ {ev.onset_s:.0f} s): "
+                f"{ev.description} [{', '.join(ev.detectors)}]"
+            )
+    else:
+        click.echo("  no anomalies")

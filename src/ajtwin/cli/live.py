@@ -1,0 +1,155 @@
+"""``ajtwin live``: the live twin beside a machine, over OPC UA or a growing CSV
+(docs/howto/run-the-live-twin.md)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import click
+
+from ajtwin.cli.options import configure_logging, open_registry, store_option
+
+
+@click.command()
+@click.option("--machine", "machines", multiple=True, required=True, help="Machine name(s).")
+@click.option("--opcua", "url", default=None, help="Server endpoint, opc.tcp://host:port.")
+@click.option("--follow", "follow", type=click.Path(path_type=Path), default=None)
+@click.option("--idle-timeout", type=float, default=None, help="--follow: close after S idle.")
+@click.option("--username", default=None)
+@click.option("--password", default=None, envvar="AJTWIN_OPCUA_PASSWORD")
+@click.option("--certificate", type=click.Path(path_type=Path), default=None)
+@click.option("--private-key", type=click.Path(path_type=Path), default=None)
+@click.option(
+    "--generate-certificate", is_flag=True, help="Create a self-signed client certificate."
+)
+@click.option("--server-certificate", type=click.Path(path_type=Path), default=None)
+@click.option(
+    "--security",
+    default=None,
+    type=click.Choice(["Basic256Sha256_SignAndEncrypt", "Basic256Sha256_Sign"]),
+)
+@click.option("--messages", type=click.Path(path_type=Path), default=None, help="JSON lines out.")
+@click.option("--max-backoff", type=float, default=10.0, show_default=True, help="Reconnect [s].")
+@click.option(
+    "--dashboard",
+    "dashboard_port",
+    type=click.IntRange(min=0, max=65535),
+    default=None,
+    metavar="PORT",
+    help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
+)
+@click.option(
+    "--transition",
+    default="paper",
+    show_default=True,
+    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml "
+    "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
+    "docs/explanation/forecast-droplet-dynamics.md).",
+)
+@click.option("--verbose", is_flag=True)
+@store_option
+def live(
+    machines,
+    url,
+    follow,
+    idle_timeout,
+    username,
+    password,
+    certificate,
+    private_key,
+    generate_certificate,
+    server_certificate,
+    security,
+    messages,
+    max_backoff,
+    dashboard_port,
+    transition,
+    verbose,
+    store,
+):
+    """Run the live twin beside a machine (OPC UA, or a growing CSV with --follow)."""
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.live.link import LinkRefused, OpcUaLink, follow_csv
+
+    configure_logging(verbose)
+    if (url is None) == (follow is None):
+        raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
+    if follow is not None and len(machines) != 1:
+        raise click.UsageError("--follow follows one --machine")
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.model.droplet_dynamics import transition_variants
+
+    if transition not in transition_variants():
+        raise click.BadParameter(
+            f"no variant {transition!r}; choose one of {', '.join(transition_variants())}",
+            param_hint="--transition",
+        )
+    registry = open_registry(store, create=True)  # the live twin writes
+    engine = LiveEngine(
+        registry, twin_overrides=None if transition == "paper" else {"transition": transition}
+    )
+    engine.warm_up(len(machines))
+    out = None
+    if messages is not None:
+        out = messages.open("a", encoding="utf-8")
+        engine.subscribe(lambda m: out.write(json.dumps(m, default=str) + "\n") or out.flush())
+    dashboard = None
+    if dashboard_port is not None:
+        # the dashboard in a thread of this process; every engine message is pushed to it
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.web.publisher import LivePublisher
+        from ajtwin.web.server import BackgroundServer
+
+        publisher = LivePublisher()
+        engine.subscribe(publisher.publish_engine)
+        for name in machines:
+            publisher.open_print(name)
+        dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
+        click.echo(f"dashboard: open {dashboard.url}", err=True)
+    if generate_certificate:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.live.printer_server import ensure_certificate
+
+        if certificate is None or private_key is None:
+            raise click.UsageError("--generate-certificate needs --certificate and --private-key")
+        asyncio.run(
+            ensure_certificate(certificate, private_key, "localhost", "urn:ajtwin:live-client")
+        )
+    try:
+        if follow is not None:
+            print_id = asyncio.run(
+                follow_csv(follow, machines[0], engine, idle_timeout_s=idle_timeout)
+            )
+            if print_id is not None:
+                click.echo(f"print stored as registry print id {print_id}")
+        else:
+            link = OpcUaLink(
+                url,
+                list(machines),
+                engine,
+                username=username,
+                password=password,
+                security=security,
+                certificate=certificate,
+                private_key=private_key,
+                server_certificate=server_certificate,
+                max_backoff_s=max_backoff,
+            )
+            asyncio.run(link.run())
+            click.echo(f"followed {', '.join(machines)} to the end of their prints")
+    except LinkRefused as exc:
+        raise click.ClickException(str(exc)) from None
+    except (ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+    except KeyboardInterrupt:
+        click.echo("stopped; the live session stays open and resumes on the next start", err=True)
+    finally:
+        engine.shutdown()
+        if out is not None:
+            out.close()
+        if dashboard is not None:
+            dashboard.stop()

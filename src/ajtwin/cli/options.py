@@ -1,0 +1,230 @@
+"""Click options and small functions shared by the commands: the registry option, bounded numbers,
+the video-join options, logging."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from ajtwin import units
+from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.model import load_parameters
+from ajtwin.store.registry import RegistryError
+
+
+def join_options(filled: str, suffix: str, must_exist: bool = False):
+    """``--join/--join-out/--start-offset/--camera-offset`` for a video reader.
+
+    Parameters
+    ----------
+    filled : str
+        The record columns the join fills (for the help text).
+    suffix : str
+        Default output name: ``RECORD_<suffix>.parquet``.
+    must_exist : bool
+        Let click reject a missing ``--join`` record before the command starts.
+    """
+    options = [
+        click.option(
+            "--join",
+            "join_record",
+            type=click.Path(exists=must_exist, dir_okay=False, path_type=Path),
+            default=None,
+            help=f"Print record whose {filled} to fill.",
+        ),
+        click.option(
+            "--join-out",
+            type=click.Path(dir_okay=False, path_type=Path),
+            default=None,
+            help=f"Where to write the joined record (default: RECORD_{suffix}.parquet).",
+        ),
+        click.option(
+            "--start-offset",
+            "start_offset_s",
+            type=BoundedFloat(),
+            default=0.0,
+            show_default=True,
+            help="Print time (s) of the first video frame.",
+        ),
+        click.option(
+            "--camera-offset",
+            "camera_offset_um",
+            type=BoundedFloat(),
+            default=0.0,
+            show_default=True,
+            help="Distance from nozzle to the camera's view centre along the print, µm.",
+        ),
+    ]
+
+    def decorate(command):
+        for option in reversed(options):
+            command = option(command)
+        return command
+
+    return decorate
+
+
+class BoundedFloat(click.ParamType):
+    """A float inside (low, high) (or [low, high] with ``closed``); NaN is always refused.
+
+    ``inf`` passes only when ``high`` is ``inf`` and ``allow_inf`` is set (e.g. ``--gate inf``
+    = off). Click's FloatRange lets NaN through (every comparison with NaN is false), which
+    made ``--gate nan`` silently drop every measurement.
+
+    Examples
+    --------
+    >>> BoundedFloat(0.0, float("inf"), allow_inf=True).convert("inf", None, None)
+    inf
+    """
+
+    name = "float"
+
+    def __init__(
+        self,
+        low: float | None = None,
+        high: float | None = None,
+        *,
+        closed: bool = False,
+        allow_inf: bool = False,
+    ):
+        self.low, self.high, self.closed, self.allow_inf = low, high, closed, allow_inf
+
+    def convert(self, value, param, ctx):
+        """The value as a float inside the bounds, else a click error naming the bound."""
+        if isinstance(value, float | int) and not isinstance(value, bool):
+            number = float(value)
+        else:
+            try:
+                number = float(str(value).strip())
+            except ValueError:
+                self.fail(f"{value!r} is not a number", param, ctx)
+        if math.isnan(number):
+            self.fail("NaN is not a value", param, ctx)
+        if math.isinf(number) and not (self.allow_inf and number > 0):
+            self.fail(f"{number} is not a finite number", param, ctx)
+        low_ok = self.low is None or (number >= self.low if self.closed else number > self.low)
+        high_ok = (
+            self.high is None
+            or (math.isinf(number) and self.allow_inf)
+            or (number <= self.high if self.closed else number < self.high)
+        )
+        if not (low_ok and high_ok):
+            left, right = ("[", "]") if self.closed else ("(", ")")
+            low = "-inf" if self.low is None else f"{self.low:g}"
+            high = "inf" if self.high is None else f"{self.high:g}"
+            self.fail(f"{number:g} is outside {left}{low}, {high}{right}", param, ctx)
+        return number
+
+
+def check_vial_fill(ctx, param, value):
+    """Click callback: the vial fill level must be in (0, V_v) mL (V_v from parameters.toml)."""
+    if value is None:
+        return value
+
+    capacity = units.m3_to_ml(load_parameters().vial_volume)
+    if not 0.0 < value < capacity:
+        raise click.BadParameter(
+            f"{value:g} mL is outside (0, {capacity:g}) mL (the vial's capacity V_v)"
+        )
+    return value
+
+
+def store_option(func):
+    """``--store PATH`` (or ``$AJTWIN_STORE``): the machine registry a command reads or writes."""
+    return click.option(
+        "--store",
+        "store",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        envvar="AJTWIN_STORE",
+        help="Registry file (default: $AJTWIN_STORE or ~/.local/share/ajtwin/registry.sqlite).",
+    )(func)
+
+
+def open_registry(store, create: bool = False):
+    """The registry at ``store``; read-only commands (the default) never create it.
+
+    A registry of an older schema is migrated on open (each migration said on stderr);
+    one from before the chain's range check gets its impossible prints excluded
+    (:func:`ajtwin.engine.chain.open_registry`).
+    """
+    try:
+        reg = open_checked_registry(store, create=create)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
+    for message in reg.migrated:
+        click.echo(message, err=True)
+    return reg
+
+
+def configure_logging(verbose: bool) -> None:
+    """Log to stderr (DEBUG with ``--verbose``, else INFO); asyncua only its errors."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    # asyncua logs every request at INFO
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds from ``1-5``, ``1,3,7`` or a mix; click errors for anything else."""
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part:
+                a, b = (int(v) for v in part.split("-", 1))
+                if b < a:
+                    raise ValueError
+                seeds += list(range(a, b + 1))
+            else:
+                seeds.append(int(part))
+        except ValueError:
+            raise click.BadParameter(
+                f"cannot read seeds {text!r} (use e.g. 1-5 or 1,3,7)"
+            ) from None
+    if not seeds or any(s < 0 for s in seeds):
+        raise click.BadParameter(f"seeds must be non-negative integers, got {text!r}")
+    return seeds
+
+
+#: (state name, symbol, display unit) of the five states, as the commands print them
+STATE_LABELS = (
+    ("droplet_diameter_um", "d_a", "µm"),
+    ("vial_volume_mL", "V_l", "mL"),
+    ("tube_deposition_um", "ΔR_T", "µm"),
+    ("nozzle_deposition_um", "ΔR_N", "µm"),
+    ("aerosol_fraction", "φ_A", "–"),
+)
+
+
+#: symbol and unit of each input and output, as the commands print them
+SHORT = {
+    "atomizer_current_mA": ("I_A", "mA"),
+    "carrier_flow_sccm": ("Q_c", "sccm"),
+    "sheath_flow_sccm": ("Q_s", "sccm"),
+    "linewidth_um": ("L_w", "µm"),
+    "overspray_um": ("L_o", "µm"),
+    "carrier_pressure_Pa": ("P_c", "Pa"),
+    "sheath_pressure_Pa": ("P_s", "Pa"),
+}
+
+
+def parse_inputs(text):
+    """``I_A,Q_c,Q_s`` [mA, sccm, sccm] → array (3,); None stays None."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise click.BadParameter(f"expected I_A,Q_c,Q_s (mA, sccm, sccm), got {text!r}")
+    return np.array(values)

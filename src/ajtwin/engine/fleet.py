@@ -1,0 +1,353 @@
+"""The live twins of many machines in one process: samples in, messages out.
+
+:class:`LiveEngine` keeps one :class:`~ajtwin.engine.stream.TwinStream` per machine,
+steps the machines whose samples arrive together as one vmapped EKF step, writes the
+live log as it goes, resumes open sessions after a restart and stores a finished print
+as an ordinary registry print.
+
+Publish/subscribe
+-----------------
+Each committed (and provisional) step becomes a plain dict (:meth:`TwinStream.feed`
+returns them; :class:`LiveEngine` hands them to subscribers): ``machine``, ``step``,
+``time_s``, ``provisional``, ``states`` {name: value}, ``stds``, ``predicted_outputs``,
+``measured_outputs``, ``inputs``, ``nis``, ``n_measured``, ``nis_p``, ``window_nis_p``,
+``cusum`` {channel: max(g⁺, g⁻)}, ``status`` ("ok" / "alarm" / "warming up" …),
+``cause``, ``alarms`` (detector labels fired at this step), ``events`` (raised/finalised
+events as dicts with ``state`` "raised"/"final"), ``theta``.
+
+A machine link also publishes its connection state on the same path
+(:meth:`LiveEngine.publish_link`): ``{"machine", "link": {"state", "url", "since",
+"attempt", "retry_in_s", "reason", "gap_s"}}`` — no ``step``; ``state`` is
+``connecting``, ``connected``, ``reconnecting`` (the server is gone since ``since``,
+Unix time; ``attempt`` reconnections tried), ``refused`` or ``ended``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from ajtwin.apps.detection.settings import DetectorSettings
+from ajtwin.engine.chain import chain_start, judge_run
+from ajtwin.engine.ingest import save_print
+from ajtwin.engine.samples import Sample
+from ajtwin.engine.start import carried_long_run_history, machine_start
+from ajtwin.engine.stream import TwinStream, step_together, warm_up_streams
+from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PrintRecord
+from ajtwin.store.live_log import LiveLog
+from ajtwin.store.registry import record_hash
+
+log = logging.getLogger("ajtwin.live")
+
+
+@dataclass
+class _Session:
+    stream: TwinStream
+    session_id: int | None
+    expected_last_seq: int | None
+    started_from: str
+    source: str
+    unsaved: list
+    unsaved_events: list
+    last_flush: float
+
+
+class LiveEngine:
+    """Live twins of many machines in one process: samples in, messages out.
+
+    Each machine has a :class:`TwinStream`; ordinary steps of several machines that
+    arrive together are run as one vmapped :func:`ekf_step` (:meth:`feed_many`). With a
+    registry, every committed step, its sample and the alarms are written to the live
+    log as they go (:class:`ajtwin.store.live_log.LiveLog`, a transaction every
+    ``commit_every_s`` seconds), a restarted process resumes each machine's open session
+    by replaying its stored samples, and :meth:`close` stores the finished print as an
+    ordinary registry print (the next print starts from its end state).
+
+    Subscribers (:meth:`subscribe`, :meth:`queue`) receive every message as a plain dict
+    (see the module docstring).
+
+    Parameters
+    ----------
+    registry : Registry, optional
+        Where machines, live sessions and finished prints are kept (None: memory only).
+    twin_overrides : dict, optional
+        TwinConfig fields for every machine's twin.
+    detector_settings : DetectorSettings, optional
+    asynchronous : bool
+        EM in worker threads (live) or inline (tests, replays).
+    em_workers : int
+        Threads for EM (shared by all machines).
+    commit_every_s : float
+        Longest time committed steps wait before they are written (0: every step).
+    keep_live_steps : bool
+        Keep a session's per-step rows (samples and published float64 states) after its
+        print is stored (an audit log, ≈ 9 MB per print-hour until ``machine compact``).
+        By default they are dropped in the transaction that stores the print, which holds
+        the samples exactly and the states by the storage policy (≈ 0.4 MB per
+        print-hour); they exist only while the session is open, to resume it.
+    """
+
+    def __init__(
+        self,
+        registry=None,
+        *,
+        twin_overrides: dict | None = None,
+        detector_settings: DetectorSettings | None = None,
+        asynchronous: bool = True,
+        em_workers: int = 1,
+        commit_every_s: float = 1.0,
+        keep_live_steps: bool = False,
+    ):
+        self.registry = registry
+        self.keep_live_steps = bool(keep_live_steps)
+        self.log = None
+        if registry is not None:
+            self.log = LiveLog(registry.path)
+        self.twin_overrides = dict(twin_overrides or {})
+        self.detector_settings = detector_settings
+        self.asynchronous = asynchronous
+        self.commit_every_s = float(commit_every_s)
+        self._executor = ThreadPoolExecutor(max(1, int(em_workers)), thread_name_prefix="em")
+        self.sessions: dict[str, _Session] = {}
+        self._subscribers: list = []
+
+    def warm_up(self, n_machines: int = 1) -> None:
+        """Compile the step functions (single and batched) before the first real sample."""
+        warm_up_streams(self.twin_overrides, self.detector_settings, n_machines)
+
+    # ------------------------------------------------------------------ #
+    def subscribe(self, callback) -> callable:
+        """Call ``callback(message)`` for every message; returns a function that unsubscribes."""
+        self._subscribers.append(callback)
+        return lambda: self._subscribers.remove(callback)
+
+    def queue(self, maxsize: int = 0, loop=None):
+        """An asyncio.Queue that receives every message (thread-safe put into ``loop``)."""
+        loop = loop or asyncio.get_event_loop()
+        q: asyncio.Queue = asyncio.Queue(maxsize)
+
+        def put(message):
+            def put_now():
+                if q.full():  # a slow subscriber loses the oldest, never blocks the twin
+                    q.get_nowait()
+                q.put_nowait(message)
+
+            loop.call_soon_threadsafe(put_now)
+
+        self.subscribe(put)
+        return q
+
+    def publish_link(self, machines, link: dict) -> None:
+        """Tell subscribers the state of the link that feeds ``machines`` (module docstring)."""
+        self._publish([{"machine": name, "link": dict(link)} for name in machines])
+
+    def _publish(self, messages: list[dict]) -> None:
+        for message in messages:
+            for callback in list(self._subscribers):
+                try:
+                    callback(message)
+                except Exception:  # a broken subscriber must not stop the twin
+                    log.exception("subscriber %r failed", callback)
+
+    # ------------------------------------------------------------------ #
+    def open(self, machine: str, source: str = "live") -> TwinStream:
+        """The machine's stream: its open live session resumed, or a new one."""
+        if machine in self.sessions:
+            return self.sessions[machine].stream
+        start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
+        resumed = None
+        twin_kwargs = self.twin_overrides
+        long_run = None
+        if self.registry is not None:
+            try:
+                self.registry.machine(machine)
+            except Exception:
+                self.registry.add_machine(machine, notes="added by ajtwin live")
+                log.info("machine %r added to the registry", machine)
+            resumed = self.log.open_session_of(machine)
+            # the machine's calibration, commissioning start and maintenance (model reference §11)
+            chain = chain_start(self.registry, machine)
+            begin = machine_start(self.registry, machine, chain, self.twin_overrides)
+            twin_kwargs = begin["twin_kwargs"]
+            long_run = carried_long_run_history(self.registry, machine, chain)
+            if resumed is not None:
+                start, theta = resumed["start"], resumed["theta_before"]
+                expected, session_id = resumed["expected_last_seq"], resumed["id"]
+                started_from = "initial fit" if expected is None else f"print {expected}"
+            else:
+                start, theta, expected = begin["start"], begin["theta"], chain.latest_seq
+                started_from = begin["started_from"]
+                session_id = self.log.open_session(
+                    machine,
+                    source=source,
+                    start=start,
+                    theta=np.zeros(5) if theta is None else theta,
+                    expected_last_seq=expected,
+                )
+        stream = TwinStream.new(
+            machine,
+            start=start,
+            theta=theta,
+            twin_overrides=twin_kwargs,
+            detector_settings=self.detector_settings,
+            asynchronous=False,
+            executor=self._executor,
+            long_run_history=long_run,
+        )
+        if resumed is not None:
+            t, u, y = self.log.samples(session_id)
+            for k in range(len(t)):
+                stream.feed(Sample(t[k], u[k], y[k]))
+            log.info(
+                "%s: resumed live session %d at step %d (t = %s s)",
+                machine,
+                session_id,
+                stream.n_received,
+                None if not len(t) else f"{t[-1]:g}",
+            )
+        stream.asynchronous = self.asynchronous
+        self.sessions[machine] = _Session(
+            stream, session_id, expected, started_from, source, [], [], time.monotonic()
+        )
+        return stream
+
+    def feed(self, machine: str, sample: Sample) -> list[dict]:
+        """One sample of one machine (opens the machine on first use)."""
+        return self.feed_many([(machine, sample)])
+
+    def feed_many(self, items) -> list[dict]:
+        """Samples of several machines [(machine, Sample)]; ordinary steps run batched."""
+        messages: list[dict] = []
+        plain = []
+        for machine, sample in items:
+            stream = self.open(machine)
+            taken = stream.take_plain(sample)
+            if taken is None:
+                messages += stream.feed(sample)
+            else:
+                plain.append((stream, taken))
+        messages += step_together(plain)
+        messages += self.poll()
+        self._record(messages)
+        self._publish(messages)
+        return messages
+
+    def poll(self) -> list[dict]:
+        """Messages from EM results that landed (replayed held samples), all machines."""
+        out = []
+        for session in self.sessions.values():
+            out += session.stream.poll()
+        return out
+
+    def poll_and_publish(self) -> list[dict]:
+        """Messages of EM results that landed, recorded in the live log and published."""
+        messages = self.poll()
+        self._record(messages)
+        self._publish(messages)
+        return messages
+
+    # ------------------------------------------------------------------ #
+    def _record(self, messages: list[dict]) -> None:
+        if self.log is None:
+            return
+        now = time.monotonic()
+        for m in messages:
+            session = self.sessions.get(m.get("machine"))
+            if session is None or m.get("provisional") or "step" not in m:
+                continue
+            u = np.array(list(m["inputs"].values()), dtype=float)
+            y = np.array(list(m["measured_outputs"].values()), dtype=float)
+            session.unsaved.append((m["step"], m["time_s"], u, y, m))
+            session.unsaved_events += m.get("events", [])
+        for session in self.sessions.values():
+            if session.unsaved and now - session.last_flush >= self.commit_every_s:
+                self._flush(session)
+
+    def _flush(self, session: _Session) -> None:
+        if self.log is None or session.session_id is None:
+            return
+        self.log.append(session.session_id, session.unsaved, session.unsaved_events)
+        session.unsaved, session.unsaved_events = [], []
+        session.last_flush = time.monotonic()
+
+    def flush(self) -> None:
+        """Write every committed step not yet stored."""
+        for session in self.sessions.values():
+            self._flush(session)
+
+    def close(self, machine: str) -> int | None:
+        """End of the machine's print: finish the twin, store the print; its registry id."""
+        session = self.sessions.pop(machine)
+        stream = session.stream
+        messages = stream.finish()
+        self._record_into(session, messages)
+        self._flush(session)
+        self._publish(messages)
+        if self.registry is None or session.session_id is None:
+            return None
+        print_id = None
+        arrays = stream.arrays()
+        if len(arrays["time_s"]) >= 2:
+            status, reason = judge_run(
+                SimpleNamespace(
+                    means=arrays["means"],
+                    time_s=arrays["time_s"],
+                    start_mean=stream.start_mean,
+                    end_mean=arrays["means"][-1],
+                    end_cov=arrays["covariances"][-1],
+                )
+            )
+            data = {"time_s": arrays["time_s"]}
+            data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
+            data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
+            record = PrintRecord(
+                pd.DataFrame(data),
+                {
+                    "machine_id": machine,
+                    "source": session.source,
+                    "live_session": session.session_id,
+                },
+            )
+            print_id, _ = save_print(
+                self.registry,
+                machine,
+                record,
+                digest=record_hash(record),
+                source=f"live session {session.session_id} ({session.source})",
+                arrays=arrays,
+                events=list(stream.detector.events),
+                start=(stream.start_mean, stream.start_cov),
+                end=(arrays["means"][-1], arrays["covariances"][-1]),
+                theta_before=stream.theta_before,
+                theta_after=stream.theta,
+                expected_last_seq=session.expected_last_seq,
+                started_from=session.started_from,
+                status=status,
+                status_reason=reason,
+                live_session=session.session_id,  # closed (and thinned) with the print
+                keep_live_steps=self.keep_live_steps,
+                long_run_history=stream.detector.long_run_history(),
+            )
+        else:  # nothing stored: the session's rows are all there is of it
+            self.log.close_session(session.session_id, print_id)
+        return print_id
+
+    def _record_into(self, session: _Session, messages: list[dict]) -> None:
+        for m in messages:
+            if "step" in m and not m.get("provisional"):
+                u = np.array(list(m["inputs"].values()), dtype=float)
+                y = np.array(list(m["measured_outputs"].values()), dtype=float)
+                session.unsaved.append((m["step"], m["time_s"], u, y, m))
+            session.unsaved_events += m.get("events", [])
+
+    def shutdown(self) -> None:
+        """Write what is committed and stop the EM workers (sessions stay open: resumable)."""
+        self.flush()
+        self._executor.shutdown(wait=False, cancel_futures=True)

@@ -1,0 +1,179 @@
+"""A virtual print replayed as a live feed, sample by sample, to a publisher
+(:class:`ajtwin.web.publisher.LivePublisher`: ``ajtwin dashboard --virtual-print``).
+
+The source of the dashboard's live tests and benchmark: the virtual printer simulates a
+print
+(:func:`ajtwin.simulation.simulate`), the twin runs over it (:class:`ajtwin.estimation.Twin`,
+EKF + EM, the same code ``ajtwin ingest`` runs) and the anomaly detectors over the twin's
+innovations (:func:`ajtwin.apps.detection.batch.detect_run`); the result is then replayed at
+``rate_hz`` samples per second of wall time: sample k carries x̂_k ± σ, the truth, the
+one-step prediction, the measurement, the detectors' statistics at k, and the alarms
+whose detection time is k. No physics is done here.
+
+Parameters (:class:`VirtualPrintFeed`)
+--------------------------------------
+publisher : LivePublisher or any object with ``open_print``, ``publish``, ``end_print``,
+    ``announce`` and ``n_subscribers``
+machine : str, the name the samples carry
+scenario : str, a virtual-printer scenario (``nozzle_clog``, ``exp1``, …)
+seed : int
+minutes : float, print length [min]
+onset_min : float, optional, fault onset [min] (scenarios with a fault)
+rate_hz : float, samples published per wall-clock second (1 = real time)
+wait_for_viewer_s : float, hold the replay until a page subscribes (at most this long)
+
+Example
+-------
+>>> from ajtwin.web.publisher import LivePublisher             # doctest: +SKIP
+>>> feed = VirtualPrintFeed(LivePublisher(), "vm1", "nozzle_clog", minutes=8,
+...                         onset_min=3, rate_hz=50)          # doctest: +SKIP
+>>> feed.start(); feed.join(timeout=120)                       # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.settings import cusum_thresholds
+from ajtwin.estimation import Twin
+from ajtwin.simulation import load_scenario, simulate
+
+
+class VirtualPrintFeed:
+    """Replays a virtual print through the twin as live samples (module docstring)."""
+
+    def __init__(
+        self,
+        publisher,
+        machine: str,
+        scenario: str = "nozzle_clog",
+        *,
+        seed: int = 1,
+        minutes: float = 8.0,
+        onset_min: float | None = 3.0,
+        rate_hz: float = 10.0,
+        wait_for_viewer_s: float = 0.0,
+    ):
+        if not rate_hz > 0:
+            raise ValueError(f"rate must be > 0 samples/s, got {rate_hz}")
+        self.publisher = publisher
+        self.machine = machine
+        self.scenario = scenario
+        self.seed = int(seed)
+        self.minutes = float(minutes)
+        self.onset_min = onset_min
+        self.rate_hz = float(rate_hz)
+        self.wait_for_viewer_s = float(wait_for_viewer_s)
+        self.samples: list[dict] | None = None
+        self.error: str | None = None
+        self.done = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ compute
+    def prepare(self) -> list[dict]:
+        """Simulate, run the twin and the detectors; returns the samples to publish."""
+        overrides = None
+        if self.onset_min is not None and load_scenario(self.scenario).fault_kind != "none":
+            overrides = {"fault": {"onset_min": float(self.onset_min)}}
+        record = simulate(
+            self.scenario, seed=self.seed, duration_min=self.minutes, overrides=overrides
+        )
+        run = Twin.default().run(record)
+        det = detect_run(run, record)
+        f = run.filtered
+        means, stds = run.means, run.stds
+        predicted = np.asarray(f.predicted_outputs)
+        nis = np.asarray(f.nis)
+        g = np.maximum(det.cusum_pos, det.cusum_neg)
+        log_p = -np.log10(np.maximum(det.window_nis_p, 1e-300))
+        thresholds = [float(h) for h in cusum_thresholds(det.settings)]
+        nis_threshold = float(-np.log10(det.settings.nis_alpha))
+        truth = record.true_states if record.has_truth else None
+        by_step: dict[int, list] = {}
+        for ev in det.events:
+            k = int(np.searchsorted(run.time_s, ev.detected_s))
+            by_step.setdefault(k, []).append(
+                {
+                    "detected_s": ev.detected_s,
+                    "onset_s": ev.onset_s,
+                    "cause": ev.cause,
+                    "description": ev.description,
+                    "detectors": ", ".join(ev.detectors),
+                }
+            )
+        samples = []
+        for k, t in enumerate(run.time_s):
+            sample = {
+                "machine": self.machine,
+                "time_s": float(t),
+                "states": means[k],
+                "state_stds": stds[k],
+                "predicted": predicted[k],
+                "measured": record.outputs[k],
+                "inputs": record.inputs[k],
+                "nis": float(nis[k]),
+                "theta": run.theta_per_step[k],
+                "detectors": {
+                    "cusum": g[k],
+                    "cusum_thresholds": thresholds,
+                    "window_nis_log10p": float(log_p[k]),
+                    "window_nis_threshold": nis_threshold,
+                },
+                "alarms": by_step.get(k, []),
+                "source": f"virtual printer: {self.scenario} seed {self.seed}",
+            }
+            if truth is not None:
+                sample["truth"] = truth[k]
+            samples.append(sample)
+        self.fault_onset_s = record.meta.get("fault_onset_s")
+        self.events = det.events
+        return samples
+
+    # ------------------------------------------------------------------ replay
+    def _run(self):
+        try:
+            if self.samples is None:
+                self.samples = self.prepare()
+            # optionally hold the print until a page listens (bounded), so nothing is missed
+            deadline = time.monotonic() + self.wait_for_viewer_s
+            while self.publisher.n_subscribers == 0 and time.monotonic() < deadline:
+                if self._stop.wait(0.05):
+                    break
+            period = 1.0 / self.rate_hz
+            t0 = time.monotonic()
+            for k, sample in enumerate(self.samples):
+                if self._stop.is_set():
+                    break
+                delay = t0 + k * period - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                self.publisher.publish(sample)
+            self.publisher.end_print(self.machine)
+        except Exception as exc:  # shown on the page and the server log, not swallowed
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.publisher.announce(
+                {"type": "feed_error", "machine": self.machine, "message": self.error}
+            )
+            raise
+        finally:
+            self.done.set()
+
+    def start(self) -> VirtualPrintFeed:
+        """Prepare and replay in a background thread; returns the feed."""
+        self.publisher.open_print(self.machine)
+        self._thread = threading.Thread(target=self._run, name="virtual-print-feed", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Ask the replay to stop after its current sample."""
+        self._stop.set()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait (at most ``timeout`` seconds) for the replay to end; whether it did."""
+        return self.done.wait(timeout)

@@ -1,0 +1,231 @@
+"""Figures and the self-contained HTML report of the demo (PNG figures embedded as base64)."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+
+import numpy as np
+
+from ajtwin.apps.detection.settings import cusum_thresholds
+
+OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
+STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [–]")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def figure_png(fig) -> bytes:
+    """A matplotlib figure as PNG bytes (the figure is closed)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def img_tag(png: bytes, alt: str) -> str:
+    """An ``<img>`` with the PNG embedded (base64)."""
+    data = base64.b64encode(png).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _marks(ax, onset_s, events, t0=0.0):
+    if onset_s is not None:
+        ax.axvline((onset_s + t0) / 60, color="k", ls="--", lw=1)
+    for ev in events:
+        ax.axvline((ev.detected_s + t0) / 60, color="tab:red", lw=1.2)
+
+
+def outputs_figure(prints, fault_onset_s=None) -> bytes:
+    """Measured vs one-step predicted outputs over consecutive prints.
+
+    ``prints``: list of dicts with time_s, measured (T,5), predicted (T,5), events, label.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True)
+    offset = 0.0
+    for p in prints:
+        t = (np.asarray(p["time_s"]) + offset) / 60
+        for i, ax in enumerate(axes):
+            y = np.asarray(p["measured"])[:, i]
+            ok = np.isfinite(y)
+            ax.plot(
+                t[ok], y[ok], ".", ms=2, color="0.55", label="measured" if offset == 0 else None
+            )
+            ax.plot(
+                t,
+                np.asarray(p["predicted"])[:, i],
+                lw=1.2,
+                color="tab:blue",
+                label="twin (one-step prediction)" if offset == 0 else None,
+            )
+            ax.set_ylabel(OUTPUT_LABELS[i])
+            _marks(ax, p.get("fault_onset_s"), p["events"], offset)
+        axes[0].axvline(offset / 60, color="tab:green", lw=0.8)
+        axes[0].text(offset / 60, axes[0].get_ylim()[1], " " + p["label"], va="top", fontsize=8)
+        offset += float(np.asarray(p["time_s"])[-1]) + 1.0
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[-1].set_xlabel("machine time [min] (prints back to back)")
+    fig.suptitle("Outputs: measured vs twin; dashed = true fault onset, red = alarm")
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def states_figure(prints) -> bytes:
+    """Estimated states ±2σ (and the virtual printer's truth) over consecutive prints."""
+    plt = _plt()
+    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True)
+    offset = 0.0
+    for p in prints:
+        t = (np.asarray(p["time_s"]) + offset) / 60
+        m, s = np.asarray(p["means"]), np.asarray(p["stds"])
+        for i, ax in enumerate(axes):
+            ax.fill_between(
+                t,
+                m[:, i] - 2 * s[:, i],
+                m[:, i] + 2 * s[:, i],
+                alpha=0.25,
+                color="tab:blue",
+                label="twin ±2σ" if offset == 0 else None,
+            )
+            ax.plot(t, m[:, i], lw=1.2, color="tab:blue")
+            if p.get("truth") is not None:
+                ax.plot(
+                    t,
+                    np.asarray(p["truth"])[:, i],
+                    lw=1,
+                    color="k",
+                    ls=":",
+                    label="truth (virtual printer)" if offset == 0 else None,
+                )
+            ax.set_ylabel(STATE_LABELS[i])
+            _marks(ax, p.get("fault_onset_s"), p["events"], offset)
+        offset += float(np.asarray(p["time_s"])[-1]) + 1.0
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[-1].set_xlabel("machine time [min]")
+    fig.suptitle("Hidden states: twin estimate vs truth")
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def detectors_figure(detection, fault_onset_s=None) -> bytes:
+    """Normalised innovations, CUSUM statistics and windowed-NIS over a print, with the onset and
+    alarms."""
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    t = detection.time_s / 60
+    e = detection.normalised_innovations
+    for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m")):
+        ok = np.isfinite(e[:, i])
+        axes[0].plot(t[ok], e[ok, i], lw=0.6, label=name)
+    axes[0].set_ylabel("normalised\ninnovation [σ]")
+    axes[0].set_ylim(-8, 8)
+    # each channel over its own decision interval h: an alarm where a line crosses ±1
+    h = cusum_thresholds(detection.settings)
+    for i, name in enumerate(("L_w", "L_o", "P_c", "P_s", "Q_m", "P_c+P_s")):
+        g = (detection.cusum_pos[:, i] - detection.cusum_neg[:, i]) / h[i]
+        axes[1].plot(t, g, lw=1, label=name)
+    axes[1].axhline(1.0, color="tab:red", ls=":")
+    axes[1].axhline(-1.0, color="tab:red", ls=":")
+    axes[1].set_ylabel("CUSUM (g⁺ − g⁻) / h")
+    axes[2].semilogy(t, np.maximum(detection.window_nis_p, 1e-300), lw=1)
+    axes[2].axhline(detection.settings.nis_alpha, color="tab:red", ls=":")
+    axes[2].set_ylabel(f"windowed NIS\np ({detection.settings.nis_window_s} s)")
+    axes[2].set_xlabel("print time [min]")
+    for ax in axes:
+        _marks(ax, fault_onset_s, detection.events)
+        ax.grid(alpha=0.3)
+    axes[0].legend(ncol=5, fontsize=8, loc="upper left")
+    axes[1].legend(ncol=6, fontsize=8, loc="upper left")
+    fig.suptitle("Anomaly detectors on the twin's innovations")
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def forecast_figure(fc, title) -> bytes:
+    """The four outputs' forecast ± 2σ."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
+    t = fc.time_s / 60
+    for i, ax in enumerate(axes.ravel()):
+        mu, sd = fc.output_means[:, i], fc.output_stds[:, i]
+        ax.fill_between(t, mu - 2 * sd, mu + 2 * sd, alpha=0.3, label="±2σ")
+        ax.plot(t, mu, lw=1.5, label="forecast")
+        ax.set_ylabel(OUTPUT_LABELS[i])
+        ax.grid(alpha=0.3)
+    axes[1, 0].set_xlabel("minutes from the end of the print")
+    axes[1, 1].set_xlabel("minutes from the end of the print")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def frame_png(bgr) -> bytes:
+    """A BGR video frame as PNG bytes."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise RuntimeError("could not encode a video frame as PNG")
+    return buf.tobytes()
+
+
+def table_html(header, rows) -> str:
+    """An HTML table (cells escaped)."""
+    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows
+    )
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+CSS = """
+body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222;line-height:1.4}
+img{max-width:100%;border:1px solid #ddd;margin:0.5em 0}
+table{border-collapse:collapse;margin:0.5em 0;font-size:0.9em}
+td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
+th{background:#f3f3f3} .note{color:#555;font-size:0.9em} h2{margin-top:1.6em}
+.alarm{color:#b00;font-weight:bold}
+"""
+
+
+def html_page(title: str, sections: list[tuple[str, str]]) -> str:
+    """One self-contained HTML page: a title and (heading, HTML) sections."""
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+    ]
+    parts.append(f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>")
+    for heading, body in sections:
+        if heading:
+            parts.append(f"<h2>{html.escape(heading)}</h2>")
+        parts.append(body)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def mismatch_html(statuses) -> str:
+    """The model–machine fit of each print: ``[(label, mismatch status dict), ...]``."""
+    rows = []
+    for label, status in statuses:
+        if not status:
+            rows.append([label, "not checked", "–"])
+        elif status.get("mismatch"):
+            rows.append(
+                [label, f"MISMATCH from {status['first_s']:.0f} s", "; ".join(status["fixes"])]
+            )
+        else:
+            rows.append([label, "fits", "–"])
+    return table_html(["print", "model–machine fit", "likely fix"], rows)

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import BoundedFloat, check_vial_fill
+from ajtwin.io.cli_options import BoundedFloat, check_vial_fill, record_options
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -118,6 +118,7 @@ def parse_early_em(text: str) -> tuple:
     default=None,
     help="Also write a PNG of states and outputs.",
 )
+@record_options
 def estimate(
     record_path,
     out_path,
@@ -132,6 +133,8 @@ def estimate(
     calibration_path,
     theta_out,
     plot_path,
+    csv_dialect,
+    aliases,
 ):
     """Run the twin over a print record: hidden states with uncertainty, θ history."""
     from tqdm import tqdm
@@ -140,7 +143,7 @@ def estimate(
     from ajtwin.io.records import read_record
 
     try:
-        record = read_record(record_path)
+        record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     calibration = calibration_cov = noise_factors = None

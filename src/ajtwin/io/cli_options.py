@@ -1,4 +1,4 @@
-"""Click options shared by every command that joins video-derived values onto a print record."""
+"""Click options shared by the commands that read print records or join values onto them."""
 
 from __future__ import annotations
 
@@ -9,11 +9,50 @@ import click
 
 from ajtwin.io.records import MAX_PLATEN_SPEED_MM_S  # one bound for options and metadata
 
-__all__ = ["MAX_PLATEN_SPEED_MM_S", "BoundedFloat", "check_vial_fill", "join_options"]
+__all__ = [
+    "MAX_PLATEN_SPEED_MM_S",
+    "BoundedFloat",
+    "aliases_option",
+    "check_vial_fill",
+    "csv_dialect_option",
+    "join_options",
+    "record_options",
+]
+
+
+def csv_dialect_option(command):
+    """``--csv-dialect``: how a record CSV writes its table (default: detected)."""
+    from ajtwin.io.dialect import DIALECT_CHOICES
+
+    return click.option(
+        "--csv-dialect",
+        "csv_dialect",
+        type=click.Choice(DIALECT_CHOICES, case_sensitive=False),
+        default="auto",
+        show_default=True,
+        help="Separator and decimal mark of a CSV/TSV record: 'auto' detects them "
+        "(and says so when the file is ambiguous); e.g. semicolon-decimal-comma for a "
+        "European spreadsheet export (5.741,6), tab for a .tsv.",
+    )(command)
+
+
+def aliases_option(command):
+    """``--aliases``: the user's column-alias TOML file."""
+    return click.option(
+        "--aliases",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help="Extra column-alias TOML file for a machine log (docs/record_format.md).",
+    )(command)
+
+
+def record_options(command):
+    """``--csv-dialect`` and ``--aliases`` for a command that reads a print record."""
+    return csv_dialect_option(aliases_option(command))
 
 
 def join_options(filled: str, suffix: str, must_exist: bool = False):
-    """``--join/--join-out/--start-offset/--camera-offset`` for a video reader.
+    """``--join/--join-out/--start-offset/--camera-offset/--csv-dialect`` for a video reader.
 
     Parameters
     ----------
@@ -59,7 +98,7 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
     def decorate(command):
         for option in reversed(options):
             command = option(command)
-        return command
+        return csv_dialect_option(command)
 
     return decorate
 

@@ -25,6 +25,7 @@ Examples
 >>> d = sniff_dialect(["time_s;linewidth_um", "0,0;43,25", "1,0;44,1"])
 >>> d.delimiter, d.decimal, d.describe()
 (';', ',', "';'-separated, decimal comma, '.' between thousands")
+>>> import pandas as pd
 >>> parse_numbers(pd.Series(["5.741,6", "2,5", "1.5"], dtype="string"), d).tolist()
 [5741.6, 2.5, nan]
 """
@@ -34,9 +35,10 @@ from __future__ import annotations
 import csv
 import re
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import numpy as np
-import pandas as pd
+if TYPE_CHECKING:  # pandas is imported where numbers are parsed: `ajtwin --help` stays light
+    import pandas as pd
 
 #: Separators tried, in order of preference when the evidence is equal.
 CANDIDATE_DELIMITERS = (",", ";", "\t", "|")
@@ -220,6 +222,9 @@ def parse_numbers(text: pd.Series, dialect: CsvDialect) -> pd.Series:
 
     The caller tells a blank cell (missing) from one that is not a number.
     """
+    import numpy as np
+    import pandas as pd
+
     if dialect.is_default:
         return pd.to_numeric(text, errors="coerce").astype(float)
     text = text.astype("string").str.strip()

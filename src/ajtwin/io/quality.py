@@ -10,7 +10,8 @@ the input limits of ``ajtwin/io/resolution.toml`` (the file explains the numbers
 
 * an output whose values are all the same (≥ ``min_values`` of them) — a dead sensor or a
   resolution far beyond its noise — or whose resolution exceeds
-  ``max_quantum_per_sigma`` σ while most values repeat, is **treated as missing**;
+  ``max_quantum_per_sigma`` σ while most values repeat, is **treated as missing** (the
+  pressures, which alone see the nozzle: the file is refused; ``refuse_when_unusable``);
 * an input with a resolution beyond its ``max_quantum`` is **refused** (inputs are never
   missing). A constant input is fine: set-points are held.
 

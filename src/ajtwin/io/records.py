@@ -625,9 +625,7 @@ def read_record(
     elif suffix in TEXT_SUFFIXES:
         data, meta, notes = _read_csv(path, aliases, chosen)
     else:
-        raise RecordError(
-            f"{path}: unknown record format {suffix!r}; use .parquet, .csv or .tsv"
-        )
+        raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet, .csv or .tsv")
     meta = validate_meta(dict(meta), str(path))
     _warn(notes)
     meta["source_file"] = str(path)

@@ -29,7 +29,7 @@ import pandas as pd
 
 from ajtwin.io.columns import ColumnError, convert_values, resolve_columns
 from ajtwin.io.dialect import CsvDialect, parse_numbers
-from ajtwin.io.quality import ColumnQuality, judge
+from ajtwin.io.quality import ColumnQuality, judge, settings
 from ajtwin.io.schema import (
     CAMERA_COLUMNS,
     INPUT_COLUMNS,
@@ -178,7 +178,7 @@ class TableBuilder:
         return values
 
     def _times(self, chunk: pd.DataFrame, first_row: int) -> np.ndarray:
-        column = chunk[TIME_COLUMN]
+        column = time_cells(chunk[TIME_COLUMN], self.dialect)
         unit = self.columns[TIME_COLUMN].unit
         try:
             if self.timebase is None:
@@ -368,9 +368,14 @@ class TableBuilder:
                 columns[name] = texts[:, j]  # an operator's note: kept as text
             else:
                 columns[name] = values[:, len(self.known) + j]
-        del values
         self._median_floors(columns)
         verdict = judge(self.quality, self.where)
+        for name in settings()["outputs"]["refuse_when_unusable"]:
+            if name in verdict.missing:
+                verdict.refused.append(
+                    f"{self.where}: column {name!r} is unusable: {verdict.missing[name]} (a "
+                    "record without its pressures is refused: they alone see the nozzle)"
+                )
         if verdict.refused:
             raise RecordError("\n".join(verdict.refused))
         for name, reason in verdict.missing.items():
@@ -389,11 +394,10 @@ class TableBuilder:
                 f"second(s) had none and are missing); column {SAMPLES_COLUMN!r} counts them"
             )
             columns[SAMPLES_COLUMN] = counts.astype(float)
-        frame = pd.DataFrame(columns)
-        frame = self._hold_inputs(frame)
-        ordered = [TIME_COLUMN, *self.known]
-        rest = [c for c in frame.columns if c not in ordered]
-        return frame[ordered + rest]
+        # one block, no copy: the table is the largest thing the reader holds
+        frame = pd.DataFrame(columns, copy=False)
+        del values, columns
+        return self._hold_inputs(frame)
 
     def _median_floors(self, columns: dict) -> None:
         for name, (floor, hint) in MEDIAN_FLOORS.items():
@@ -439,6 +443,24 @@ class TableBuilder:
             text += f"; the first {first} second(s), before any complete inputs, dropped"
         self.notes.append(text)
         return frame
+
+
+def time_cells(column: pd.Series, dialect: CsvDialect) -> pd.Series:
+    """A time column as numbers when every cell is a number in ``dialect`` (``1.234,5``
+    in a decimal-comma file), else as it is (date-times, or a bad cell to name)."""
+    if dialect.is_default or pd.api.types.is_numeric_dtype(column):
+        return column
+    if pd.api.types.is_datetime64_any_dtype(column):
+        return column
+    try:
+        text = column.astype("string").str.strip()
+    except (TypeError, ValueError):
+        return column
+    blank = text.isna() | text.str.lower().isin(BLANKS)
+    numbers = parse_numbers(text.where(~blank), dialect)
+    if (numbers.notna() | blank).all():
+        return numbers
+    return column
 
 
 def _longest_run(mask: np.ndarray) -> tuple[int, int]:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from ajtwin.io.cli_options import record_options
 from ajtwin.store.cli import open_registry, store_option
 
 
@@ -182,6 +183,7 @@ def serve(
     "docs/forecast.md).",
 )
 @click.option("--verbose", is_flag=True)
+@record_options
 @store_option
 def live(
     machines,
@@ -200,6 +202,8 @@ def live(
     dashboard_port,
     transition,
     verbose,
+    csv_dialect,
+    aliases,
     store,
 ):
     """Run the live twin beside a machine (OPC UA, or a growing CSV with --follow)."""
@@ -252,7 +256,14 @@ def live(
     try:
         if follow is not None:
             print_id = asyncio.run(
-                follow_csv(follow, machines[0], engine, idle_timeout_s=idle_timeout)
+                follow_csv(
+                    follow,
+                    machines[0],
+                    engine,
+                    idle_timeout_s=idle_timeout,
+                    aliases=aliases,
+                    dialect=csv_dialect,
+                )
             )
             if print_id is not None:
                 click.echo(f"print stored as registry print id {print_id}")

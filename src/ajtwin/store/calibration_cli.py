@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ajtwin.io.cli_options import record_options
 from ajtwin.store.cli import open_registry, store_option
 
 
@@ -34,8 +35,11 @@ from ajtwin.store.cli import open_registry, store_option
     is_flag=True,
     help="Only fit (and write --out); do not store it in the registry.",
 )
+@record_options
 @store_option
-def commission(name, record, known_items, vial_ml, out_path, no_registry, store):
+def commission(
+    name, record, known_items, vial_ml, out_path, no_registry, csv_dialect, aliases, store
+):
     """Fit machine NAME's calibration from a commissioning print RECORD.
 
     The print must start from a cleaned nozzle and a known fill and step Q_c, Q_s (and
@@ -61,7 +65,7 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
         except RegistryError as exc:
             raise click.ClickException(str(exc)) from None
     try:
-        rec = read_record(record)
+        rec = read_record(record, aliases=aliases, dialect=csv_dialect)
         result = commission(rec, known=known, vial_fill_ml=vial_ml, where=str(record))
     except (RecordError, CommissioningError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None

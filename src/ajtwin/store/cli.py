@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.io.cli_options import BoundedFloat
+from ajtwin.io.cli_options import BoundedFloat, record_options
 
 STATE_LABELS = (
     ("droplet_diameter_um", "d_a", "µm"),
@@ -339,8 +339,9 @@ def import_command(archive, as_name, store):
     help="Camera pixel size, µm (with --video).",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
+@record_options
 @store_option
-def ingest(machine_name, record, video, um_per_px, progress, store):
+def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliases, store):
     """Run the machine's twin over RECORD (from its last state and θ) and store it."""
     from tqdm import tqdm
 
@@ -371,6 +372,8 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
             um_per_px=um_per_px,
             progress=step,
             video_progress=progress,
+            aliases=aliases,
+            dialect=csv_dialect,
         )
     except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None

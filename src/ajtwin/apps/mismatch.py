@@ -217,8 +217,15 @@ def assess(
             same_way = np.sign(np.nan_to_num(bias[:, j])) == np.sign(np.nan_to_num(level))
             explained = unlearned & same_way & (np.abs(np.nan_to_num(level)) >= level_evidence)
             bias[explained, j] = np.nan
-    # a bias needs a full window of evidence (or the print so far, after its own minimum)
-    evidence = t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    # a bias needs a full window of evidence (or the print so far, after its own minimum);
+    # seconds where nothing was measured (a logger gap the twin predicts through) are none
+    min_evidence = float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    measured = (np.asarray(n_measured, dtype=float) > 0).astype(float)
+    evidence = (t >= min_evidence) & (
+        _rolling_mean(measured, int(g["bias_window_s"]))
+        * np.minimum(np.arange(1, n + 1), int(g["bias_window_s"]))
+        >= min_evidence
+    )
     for j, name in enumerate(OUTPUT_NAMES):
         mask = evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"]))
         k = first(mask)
@@ -235,9 +242,16 @@ def assess(
                 )
             )
 
-    per_output = np.asarray(nis, dtype=float) / np.maximum(np.asarray(n_measured, float), 1)
+    counts = np.asarray(n_measured, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_output = np.where(counts > 0, np.asarray(nis, dtype=float) / counts, np.nan)
     rolling_nis = _rolling_mean(per_output[:, None], int(g["nis_window_s"]))[:, 0]
     full = t >= min(float(g["nis_window_s"]), max(t[-1], 0.0))
+    full &= (
+        _rolling_mean(measured, int(g["nis_window_s"]))
+        * np.minimum(np.arange(1, n + 1), int(g["nis_window_s"]))
+        >= min_evidence
+    )
     mask = full & ((rolling_nis < float(g["nis_low"])) | (rolling_nis > float(g["nis_high"])))
     k = first(mask)
     if k is not None:

@@ -140,7 +140,8 @@ def judge(quality: dict[str, ColumnQuality], where: str) -> Verdict:
                 )
         elif column in table.get("inputs", {}):
             limit = table["inputs"][column]
-            if coarse_enough and q.quantum > limit["max_quantum"]:
+            # a constant input is a held set-point, not a coarse export
+            if coarse_enough and np.isfinite(q.quantum) and q.quantum > limit["max_quantum"]:
                 verdict.refused.append(
                     f"{where}: column {column!r}: values step by {q.quantum:.3g} {unit} "
                     f"(resolution); the twin needs at most {limit['max_quantum']:g} {unit} — "

@@ -386,16 +386,19 @@ def _read_csv(
 ) -> tuple[pd.DataFrame, dict, list[str]]:
     """A delimited text file → (record table, metadata, notes), read in chunks."""
     size = check_regular_file(path, "print record", MAX_RECORD_BYTES)
-    notes = []
     if dialect is None:
         with path.open("rb") as raw:
             _sniff_text(path, raw.read(4096))
         dialect, judged = _sniff_csv(path)
         if not dialect.is_default or dialect.assumed:
             assumed = "; ".join(dialect.assumed)
-            notes.append(
-                f"{path}: read as {dialect.describe()} (detected from the first {judged} "
-                f"lines{'; ' + assumed if assumed else ''}); --csv-dialect sets it"
+            # said at once: if the assumption was wrong, the error that follows is its effect
+            _warn(
+                [
+                    f"{path}: read as {dialect.describe()} (detected from the first {judged} "
+                    f"lines{'; ' + assumed if assumed else ''}); --csv-dialect sets it"
+                ],
+                stacklevel=4,
             )
     meta, header_lines, columns, rows, _ = _csv_structure(path, size, dialect)
     if rows > MAX_RECORD_ROWS:
@@ -431,7 +434,7 @@ def _read_csv(
     except pd.errors.ParserError as exc:
         raise RecordError(f"{path}: not a valid CSV table: {exc}") from None
     table = builder.finish()
-    return table, meta, notes + builder.notes
+    return table, meta, builder.notes
 
 
 def _parquet_meta(path: Path, schema) -> dict:

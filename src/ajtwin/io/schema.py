@@ -123,14 +123,14 @@ PLAUSIBLE_RANGES = {
 MEDIAN_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
 
 #: Largest record file read and most rows (samples) it may hold: a CSV is read in chunks
-#: of CHUNK_ROWS rows, so rows cost reading time (~2.5 s per million), not memory; 10 M
+#: of CHUNK_ROWS rows, so rows cost reading time (~1.5 s per million), not memory; 10 M
 #: rows is a week of a 10 Hz log, 116 days of a 1 Hz one.
 MAX_RECORD_BYTES = 4 << 30
 MAX_RECORD_ROWS = 10_000_000
 CHUNK_ROWS = 200_000
 #: Longest print a record may span on the 1 s grid [s]: 14 days. The record's table and what
-#: the twin keeps per second grow with it (the reader ~100 MB per 14 days; ``estimate`` and
-#: ``ingest`` far more, see docs/record_format.md "Limits"), so this bounds a run's memory.
+#: the twin keeps per second grow with it (the reader's table: 87 MB for 14 days; ``ajtwin
+#: estimate`` on them: 3.8 GB, docs/record_format.md "Limits"), so this bounds a run's memory.
 MAX_RECORD_SECONDS = 14 * 86400
 #: Fastest platen a record's metadata may state [mm/s]: AJ stages move ≤ ~200 mm/s.
 MAX_PLATEN_SPEED_MM_S = 1000.0

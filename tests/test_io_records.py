@@ -159,9 +159,7 @@ def test_irregular_time_is_averaged_per_second_with_warning(tmp_path):
     np.testing.assert_array_equal(record.time_s, np.arange(13.0))
     lw = record.data["linewidth_um"].to_numpy()
     # step k holds k − ½ ≤ t < k + ½: hand-computed means, NaN where no sample fell
-    np.testing.assert_array_equal(
-        lw, [40.0, 42.5, np.nan, 45.0, np.nan, 48.0, *[np.nan] * 6, 50.0]
-    )
+    np.testing.assert_array_equal(lw, [40.0, 42.5, np.nan, 45.0, np.nan, 48.0, *[np.nan] * 6, 50.0])
     counts = record.data["samples_per_s"].to_numpy()
     np.testing.assert_array_equal(counts, [1, 2, 0, 1, 0, 1, 0, 0, 0, 0, 0, 0, 1])
     q_c = df["carrier_flow_sccm"].to_numpy()

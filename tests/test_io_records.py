@@ -145,28 +145,28 @@ def test_nan_samples_are_kept(tmp_path):
     assert record.data.isna().sum().sum() == 2
 
 
-def test_irregular_time_is_resampled_with_warning(tmp_path):
+def test_irregular_time_is_averaged_per_second_with_warning(tmp_path):
     df = make_table(6)
-    df["time_s"] = [0.0, 0.9, 2.1, 3.0, 4.5, 12.0]
+    df["time_s"] = [0.0, 0.9, 1.3, 3.0, 4.5, 12.0]
     df["linewidth_um"] = [40.0, 41.0, 44.0, 45.0, 48.0, 50.0]
     path = tmp_path / "irregular.parquet"
     write_record(PrintRecord(df, {}), path)
     with pytest.warns(UserWarning) as caught:
         record = read_record(path)
     messages = " ".join(str(w.message) for w in caught)
-    assert "irregular time stamps" in messages and "resampled 6 samples to 13" in messages
-    assert "inputs missing (NaN)" in messages  # the 7 s gap is a gap in the inputs too
+    assert "resampled 6 samples to 13 seconds by averaging each second" in messages
+    assert "without complete inputs" in messages  # the 7.5 s gap is a gap in the inputs too
     np.testing.assert_array_equal(record.time_s, np.arange(13.0))
     lw = record.data["linewidth_um"].to_numpy()
-    # hand-computed linear interpolation between the bracketing samples
-    assert lw[0] == 40.0
-    assert lw[1] == pytest.approx(41.0 + (1.0 - 0.9) / 1.2 * 3.0)
-    assert lw[2] == pytest.approx(41.0 + (2.0 - 0.9) / 1.2 * 3.0)
-    assert lw[3] == 45.0
-    assert lw[4] == pytest.approx(45.0 + 1.0 / 1.5 * 3.0)
-    # 4.5 s → 12 s is a 7.5 s gap: no invented values in it
-    assert np.isnan(lw[5:12]).all()
-    assert lw[12] == 50.0
+    # step k holds k − ½ ≤ t < k + ½: hand-computed means, NaN where no sample fell
+    np.testing.assert_array_equal(lw, [40.0, 42.5, np.nan, 45.0, np.nan, 48.0, *[np.nan] * 6, 50.0])
+    counts = record.data["samples_per_s"].to_numpy()
+    np.testing.assert_array_equal(counts, [1, 2, 0, 1, 0, 1, 0, 0, 0, 0, 0, 0, 1])
+    q_c = df["carrier_flow_sccm"].to_numpy()
+    inputs = record.data["carrier_flow_sccm"].to_numpy()
+    assert inputs[1] == pytest.approx((q_c[1] + q_c[2]) / 2)
+    # seconds without a sample: inputs held at the last value (the live twin's rule)
+    assert inputs[2] == inputs[1] and inputs[4] == inputs[3] and (inputs[6:12] == q_c[4]).all()
 
 
 def test_missing_material_flow_is_added_as_nan_with_warning(tmp_path):
@@ -263,7 +263,7 @@ def test_extra_columns_are_kept_not_dropped(tmp_path):
 def test_unknown_suffix_and_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError):
         read_record(tmp_path / "nope.csv")
-    path = tmp_path / "x.txt"
+    path = tmp_path / "x.xlsx"
     path.write_text("a")
     with pytest.raises(RecordError, match="unknown record format"):
         read_record(path)
@@ -277,14 +277,18 @@ def test_window_and_views():
     assert list(TRUTH_COLUMNS) == [c for c in record.data.columns if c.startswith("true_")]
 
 
-def test_missing_inputs_are_kept_and_warned(tmp_path):
+def test_missing_inputs_are_held_and_warned(tmp_path):
     df = make_table(5)
     df.loc[2, "carrier_flow_sccm"] = np.nan
     path = tmp_path / "input_gap.csv"
     df.to_csv(path, index=False)
     with pytest.warns(UserWarning, match="carrier_flow_sccm: 1"):
         record = read_record(path)
-    assert np.isnan(record.inputs[2, 1])
+    np.testing.assert_array_equal(record.inputs[2], record.inputs[1])
+    assert np.isnan(record.outputs[2]).all()
+    outputs = ["linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa",
+               "material_flow_mL_s"]  # fmt: skip
+    np.testing.assert_array_equal(record.outputs[3], df.loc[3, outputs].to_numpy(float))
 
 
 def test_wall_clock_time_stamps_become_seconds(tmp_path):

@@ -437,11 +437,14 @@ def test_bad_print_does_not_poison_the_next_one(tmp_path):
     # what the model gives at its inputs, which the input check now refuses before the twin
     # runs (tests/test_bad_inputs.py); L_w/L_o alone still give d_a 534 µm, for the chain
     full = simulate("exp1", seed=1, duration_min=4.0)
+    # each with a sensor's scatter: a column of one repeated value is no measurement and is
+    # read as missing (tests/test_records_quality.py), which would hide what this pins
+    scatter = np.abs(np.random.default_rng(0).normal(0.0, 1.0, len(full.data)))
     for column, value in (
-        ("linewidth_um", 4999.0),
-        ("overspray_um", 0.6),
-        ("carrier_pressure_Pa", 9.9e5),
-        ("sheath_pressure_Pa", 101.0),
+        ("linewidth_um", 4999.0 - 2.0 * scatter),
+        ("overspray_um", 0.6 + 0.05 * scatter),
+        ("carrier_pressure_Pa", 9.9e5 + 6.0 * scatter),
+        ("sheath_pressure_Pa", 101.0 + 6.0 * scatter),
     ):
         full.data[column] = value  # fmt: skip
         if column in ("linewidth_um", "overspray_um"):

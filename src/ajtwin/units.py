@@ -62,6 +62,39 @@ _SI_FACTORS: dict[str, float] = {
     "um3/s": UM3_IN_ML * ML_IN_M3,
     "deg": 3.141592653589793 / 180.0,
     "m/s": 1.0,
+    # units instrument logs use for the record's columns (ajtwin.io reads them, convert())
+    "s": 1.0,
+    "ms": 1e-3,
+    "min": 60.0,
+    "h": 3600.0,
+    "mA": MA_IN_A,
+    "A": 1.0,
+    "uA": 1e-6,
+    "kPa": 1e3,
+    "hPa": 1e2,
+    "mbar": 1e2,
+    "bar": 1e5,
+    "psi": 6894.757293168,  # 1 lbf/in² (NIST SP 811)
+    "Torr": 101325.0 / 760.0,
+    "mL/min": ML_IN_M3 / 60.0,  # gas flows: standard mL/min = sccm (what MFCs report)
+    "L/min": 1e-3 / 60.0,  # slm: standard litres per minute
+    "uL/s": 1e-3 * ML_IN_M3,
+    "nL/s": 1e-6 * ML_IN_M3,
+    "pL/s": 1e-9 * ML_IN_M3,
+    "%": 1e-2,
+}
+
+# What each unit measures: convert() refuses to turn one quantity into another.
+_DIMENSIONS: dict[str, str] = {
+    **dict.fromkeys(("s", "ms", "min", "h"), "time"),
+    **dict.fromkeys(("mA", "A", "uA"), "current"),
+    **dict.fromkeys(("Pa", "kPa", "hPa", "mbar", "bar", "psi", "Torr"), "pressure"),
+    **dict.fromkeys(("m", "mm", "um", "µm", "nm"), "length"),
+    **dict.fromkeys(
+        ("sccm", "mL/s", "mL/min", "L/min", "uL/s", "nL/s", "pL/s", "m3/s"), "volume flow"
+    ),
+    **dict.fromkeys(("mL", "m3"), "volume"),
+    **dict.fromkeys(("1", "-", "%"), "fraction"),
 }
 
 
@@ -85,6 +118,40 @@ def to_si(value, unit: str):
     except KeyError:
         known = ", ".join(sorted(_SI_FACTORS))
         raise ValueError(f"unknown unit {unit!r}; known units: {known}") from None
+
+
+def dimension(unit: str) -> str | None:
+    """What ``unit`` measures ("time", "pressure", "volume flow", …), or None if unknown."""
+    return _DIMENSIONS.get(unit)
+
+
+def convert(value, from_unit: str, to_unit: str):
+    """``value`` in ``from_unit`` expressed in ``to_unit`` (both of the same quantity).
+
+    Raises
+    ------
+    ValueError
+        An unknown unit, or two units of different quantities (kPa → sccm).
+
+    Examples
+    --------
+    >>> convert(5.661, "kPa", "Pa")
+    5661.0
+    >>> round(convert(1.0, "L/min", "sccm"), 9)
+    1000.0
+    """
+    for unit in (from_unit, to_unit):
+        if unit not in _DIMENSIONS:
+            known = ", ".join(sorted(_DIMENSIONS))
+            raise ValueError(f"unknown unit {unit!r}; known units: {known}")
+    if _DIMENSIONS[from_unit] != _DIMENSIONS[to_unit]:
+        raise ValueError(
+            f"cannot convert {from_unit} ({_DIMENSIONS[from_unit]}) to {to_unit} "
+            f"({_DIMENSIONS[to_unit]})"
+        )
+    if from_unit == to_unit:
+        return value
+    return value * (_SI_FACTORS[from_unit] / _SI_FACTORS[to_unit])
 
 
 def sccm_to_ml_per_s(q):

@@ -569,6 +569,7 @@ def infer(
     camera_offset_um,
     threads,
     progress,
+    csv_dialect,
 ):
     """Material flow Q_m = ν ∫ h dr per frame of VIDEO (video, image folder or image).
 
@@ -608,16 +609,27 @@ def infer(
             platen_speed_mm_s,
             video,
             model_path,
+            csv_dialect,
         )
 
 
-def _join(record_path, join_out, table, start_offset_s, camera_offset_um, speed, video, model):
+def _join(
+    record_path,
+    join_out,
+    table,
+    start_offset_s,
+    camera_offset_um,
+    speed,
+    video,
+    model,
+    csv_dialect=None,
+):
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.profile_cnn.infer import join_material_flow
 
     record_path = Path(record_path)
     try:
-        rec = read_record(record_path)
+        rec = read_record(record_path, dialect=csv_dialect)
         joined, summary = join_material_flow(
             rec.data,
             table,

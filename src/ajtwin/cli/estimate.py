@@ -8,7 +8,7 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from ajtwin.cli.options import BoundedFloat, check_vial_fill
+from ajtwin.cli.options import BoundedFloat, check_vial_fill, record_options
 from ajtwin.io.records import read_record
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
@@ -28,6 +28,26 @@ def parse_early_em(text: str) -> tuple:
             raise ValueError(f"{part!r}: an early EM step is a whole number of seconds >= 2")
         steps.append(int(value))
     return tuple(steps)
+
+
+def _read_calibration(calibration_path):
+    """(calibration, its covariance, per-output noise factors) of ``--calibration``, or Nones."""
+    if calibration_path is None:
+        return None, None, None
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.model.calibration import read_calibration_file
+
+    try:
+        calibration, content = read_calibration_file(calibration_path)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    calibration_cov = noise_factors = None
+    if "covariance" in content:
+        calibration_cov = np.asarray(content["covariance"]["matrix"], dtype=float)
+    if "noise_factor" in content:
+        factors = content["noise_factor"]
+        noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
+    return calibration, calibration_cov, noise_factors
 
 
 @click.command("estimate")
@@ -106,6 +126,7 @@ def parse_early_em(text: str) -> tuple:
     default=None,
     help="Also write a PNG of states and outputs.",
 )
+@record_options
 def estimate(
     record_path,
     out_path,
@@ -120,6 +141,8 @@ def estimate(
     calibration_path,
     theta_out,
     plot_path,
+    csv_dialect,
+    aliases,
 ):
     """Run the twin over a print record: hidden states with uncertainty, θ history."""
 
@@ -127,23 +150,10 @@ def estimate(
     from ajtwin.estimation.twin import Twin
 
     try:
-        record = read_record(record_path)
+        record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
-    calibration = calibration_cov = noise_factors = None
-    if calibration_path is not None:
-        # lazy CLI loading: imported when the command runs, not for --help
-        from ajtwin.model.calibration import read_calibration_file
-
-        try:
-            calibration, content = read_calibration_file(calibration_path)
-        except ValueError as exc:
-            raise click.ClickException(str(exc)) from None
-        if "covariance" in content:
-            calibration_cov = np.asarray(content["covariance"]["matrix"], dtype=float)
-        if "noise_factor" in content:
-            factors = content["noise_factor"]
-            noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
+    calibration, calibration_cov, noise_factors = _read_calibration(calibration_path)
     try:
         early = parse_early_em(early_em)
     except ValueError as exc:

@@ -8,7 +8,13 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ajtwin.cli.options import STATE_LABELS, BoundedFloat, open_registry, store_option
+from ajtwin.cli.options import (
+    STATE_LABELS,
+    BoundedFloat,
+    open_registry,
+    record_options,
+    store_option,
+)
 from ajtwin.io.records import RecordError
 from ajtwin.store.registry import RegistryError, printable
 
@@ -29,8 +35,9 @@ from ajtwin.store.registry import RegistryError, printable
     help="Camera pixel size, µm (with --video).",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
+@record_options
 @store_option
-def ingest(machine_name, record, video, um_per_px, progress, store):
+def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliases, store):
     """Run the machine's twin over RECORD (from its last state and θ) and store it."""
 
     # lazy CLI loading: imported when the command runs, not for --help
@@ -59,6 +66,8 @@ def ingest(machine_name, record, video, um_per_px, progress, store):
             um_per_px=um_per_px,
             progress=step,
             video_progress=progress,
+            aliases=aliases,
+            dialect=csv_dialect,
         )
     except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import configure_logging, open_registry, store_option
+from ajtwin.cli.options import configure_logging, open_registry, record_options, store_option
 
 
 @click.command()
@@ -49,6 +49,7 @@ from ajtwin.cli.options import configure_logging, open_registry, store_option
     "docs/explanation/forecast-droplet-dynamics.md).",
 )
 @click.option("--verbose", is_flag=True)
+@record_options
 @store_option
 def live(
     machines,
@@ -67,6 +68,8 @@ def live(
     dashboard_port,
     transition,
     verbose,
+    csv_dialect,
+    aliases,
     store,
 ):
     """Run the live twin beside a machine (OPC UA, or a growing CSV with --follow)."""
@@ -122,7 +125,14 @@ def live(
     try:
         if follow is not None:
             print_id = asyncio.run(
-                follow_csv(follow, machines[0], engine, idle_timeout_s=idle_timeout)
+                follow_csv(
+                    follow,
+                    machines[0],
+                    engine,
+                    idle_timeout_s=idle_timeout,
+                    aliases=aliases,
+                    dialect=csv_dialect,
+                )
             )
             if print_id is not None:
                 click.echo(f"print stored as registry print id {print_id}")

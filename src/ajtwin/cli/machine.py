@@ -11,7 +11,7 @@ import click
 import numpy as np
 import pandas as pd
 
-from ajtwin.cli.options import STATE_LABELS, open_registry, store_option
+from ajtwin.cli.options import STATE_LABELS, open_registry, record_options, store_option
 from ajtwin.engine.chain import chain_start, state_violations
 from ajtwin.io.records import RecordError, read_record
 from ajtwin.store.archive import export_machine, import_machine
@@ -300,8 +300,11 @@ def import_command(archive, as_name, store):
     is_flag=True,
     help="Only fit (and write --out); do not store it in the registry.",
 )
+@record_options
 @store_option
-def commission(name, record, known_items, vial_ml, out_path, no_registry, store):
+def commission(
+    name, record, known_items, vial_ml, out_path, no_registry, csv_dialect, aliases, store
+):
     """Fit machine NAME's calibration from a commissioning print RECORD.
 
     The print must start from a cleaned nozzle and a known fill and step Q_c, Q_s (and
@@ -326,7 +329,7 @@ def commission(name, record, known_items, vial_ml, out_path, no_registry, store)
         except RegistryError as exc:
             raise click.ClickException(str(exc)) from None
     try:
-        rec = read_record(record)
+        rec = read_record(record, aliases=aliases, dialect=csv_dialect)
         done = commission_machine(
             rec,
             known=known,

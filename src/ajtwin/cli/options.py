@@ -1,5 +1,5 @@
 """Click options and small functions shared by the commands: the registry option, bounded numbers,
-the video-join options, logging."""
+the record-reading and video-join options, logging."""
 
 from __future__ import annotations
 
@@ -12,12 +12,42 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.io.dialect import DIALECT_CHOICES
 from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
 
 
+def csv_dialect_option(command):
+    """``--csv-dialect``: how a record CSV writes its table (default: detected)."""
+    return click.option(
+        "--csv-dialect",
+        "csv_dialect",
+        type=click.Choice(DIALECT_CHOICES, case_sensitive=False),
+        default="auto",
+        show_default=True,
+        help="Separator and decimal mark of a CSV/TSV record: 'auto' detects them "
+        "(and says so when the file is ambiguous); e.g. semicolon-decimal-comma for a "
+        "European spreadsheet export (5.741,6), tab for a .tsv.",
+    )(command)
+
+
+def aliases_option(command):
+    """``--aliases``: the user's column-alias TOML file."""
+    return click.option(
+        "--aliases",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help="Extra column-alias TOML file for a machine log (docs/reference/record-format.md).",
+    )(command)
+
+
+def record_options(command):
+    """``--csv-dialect`` and ``--aliases`` for a command that reads a print record."""
+    return csv_dialect_option(aliases_option(command))
+
+
 def join_options(filled: str, suffix: str, must_exist: bool = False):
-    """``--join/--join-out/--start-offset/--camera-offset`` for a video reader.
+    """``--join/--join-out/--start-offset/--camera-offset/--csv-dialect`` for a video reader.
 
     Parameters
     ----------
@@ -63,7 +93,7 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
     def decorate(command):
         for option in reversed(options):
             command = option(command)
-        return command
+        return csv_dialect_option(command)
 
     return decorate
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import BoundedFloat
+from ajtwin.cli.options import BoundedFloat, csv_dialect_option
 from ajtwin.io.records import RecordError, read_record, write_record
 
 
@@ -171,7 +171,8 @@ def simulate(
     show_default=True,
     help="Overlay the nominal model's open-loop prediction when truth is present.",
 )
-def plot(record_path, output, aliases, nominal):
+@csv_dialect_option
+def plot(record_path, output, aliases, nominal, csv_dialect):
     """Plot a print record: inputs, outputs and (when present) truth in one figure.
 
     Example: ajtwin plot print.parquet -o print.png
@@ -180,7 +181,7 @@ def plot(record_path, output, aliases, nominal):
     from ajtwin.simulation.plotting import plot_record
 
     try:
-        record = read_record(record_path, aliases=aliases)
+        record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except RecordError as exc:
         raise click.ClickException(str(exc)) from None
     plot_record(record, output, nominal=nominal)

@@ -258,6 +258,7 @@ def extract(
     camera_offset_um,
     platen_speed_mm_s,
     progress,
+    csv_dialect,
 ):
     """Linewidth and overspray from alignment-camera video (paper App. A, model reference §9).
 
@@ -308,6 +309,7 @@ def extract(
             platen_speed_mm_s,
             source,
             um_per_px,
+            csv_dialect,
         )
 
 
@@ -320,12 +322,13 @@ def _join(
     platen_speed_mm_s,
     source,
     um_per_px,
+    csv_dialect=None,
 ):
     # lazy CLI loading: the join loads OpenCV's vision package
     from ajtwin.vision.join import join_features
 
     try:
-        rec = read_record(record_path)
+        rec = read_record(record_path, dialect=csv_dialect)
     except (RecordError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     speed = platen_speed_mm_s or float(rec.meta.get("platen_speed_mm_s", 1.0))

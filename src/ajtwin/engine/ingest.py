@@ -306,10 +306,15 @@ def ingest_file(
     um_per_px=None,
     progress=None,
     video_progress: bool = True,
+    aliases=None,
+    dialect=None,
 ):
-    """Read a print file (and optionally its video) and :func:`ingest_record` it."""
+    """Read a print file (and optionally its video) and :func:`ingest_record` it.
+
+    ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`.
+    """
     path = Path(path)
-    record = read_record(path)
+    record = read_record(path, aliases=aliases, dialect=dialect)
     source = str(path)
     if video is not None:
         if um_per_px is None:

@@ -45,144 +45,37 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ajtwin.config import InputFileError, check_regular_file, packaged_toml, read_toml
-
-FORMAT_VERSION = 1
-PARQUET_META_KEY = b"ajtwin"
-CSV_META_PREFIX = "# meta: "
-
-TIME_COLUMN = "time_s"
-INPUT_COLUMNS = ("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")
-OUTPUT_COLUMNS = (
-    "linewidth_um",
-    "overspray_um",
-    "carrier_pressure_Pa",
-    "sheath_pressure_Pa",
-    "material_flow_mL_s",
-)
-#: Truth columns of a virtual print, in the model's state order (d_a, V_l, ΔR_T, ΔR_N, φ_A).
-TRUTH_COLUMNS = (
-    "true_droplet_diameter_um",
-    "true_vial_volume_mL",
-    "true_tube_deposition_um",
-    "true_nozzle_deposition_um",
-    "true_aerosol_fraction",
-)
-#: Column order of a record's table: time, the raw log's columns, then truth.
-RECORD_COLUMNS = (
+from ajtwin.config import InputFileError, check_regular_file
+from ajtwin.io.columns import name_tables
+from ajtwin.io.dialect import SNIFF_LINES, CsvDialect, dialect_from_name, sniff_dialect
+from ajtwin.io.schema import (  # noqa: F401 (re-exported: the format's names live in schema)
+    CAMERA_COLUMNS,
+    CHUNK_ROWS,
+    CSV_META_PREFIX,
+    DEFAULT_META,
+    FORMAT_VERSION,
+    INPUT_COLUMNS,
+    MAX_GAP_S,
+    MAX_PLATEN_SPEED_MM_S,
+    MAX_RECORD_BYTES,
+    MAX_RECORD_ROWS,
+    MAX_RECORD_SECONDS,
+    MEDIAN_FLOORS,
+    OUTPUT_COLUMNS,
+    PARQUET_META_KEY,
+    PLAUSIBLE_RANGES,
+    RECORD_COLUMNS,
+    REQUIRED_COLUMNS,
+    SAMPLES_COLUMN,
     TIME_COLUMN,
-    "atomizer_current_mA",
-    "carrier_flow_sccm",
-    "sheath_flow_sccm",
-    "carrier_pressure_Pa",
-    "sheath_pressure_Pa",
-    "linewidth_um",
-    "overspray_um",
-    "material_flow_mL_s",
+    TRUTH_COLUMNS,
+    UNITS,
+    RecordError,
 )
-#: Columns a record must have. material_flow_mL_s may be absent (no height-profile
-#: CNN on that machine): it is then added as all-NaN with a warning.
-REQUIRED_COLUMNS = tuple(c for c in RECORD_COLUMNS if c != "material_flow_mL_s")
-#: The alignment camera's columns: a log may lack both (a machine without a camera; they
-#: are added as all-NaN with a warning), but not one of them (a camera gives both).
-CAMERA_COLUMNS = ("linewidth_um", "overspray_um")
+from ajtwin.io.table import TableBuilder
 
-UNITS = {
-    "time_s": "s",
-    "atomizer_current_mA": "mA",
-    "carrier_flow_sccm": "sccm",
-    "sheath_flow_sccm": "sccm",
-    "carrier_pressure_Pa": "Pa",
-    "sheath_pressure_Pa": "Pa",
-    "linewidth_um": "um",
-    "overspray_um": "um",
-    "material_flow_mL_s": "mL/s",
-    "true_droplet_diameter_um": "um",
-    "true_vial_volume_mL": "mL",
-    "true_tube_deposition_um": "um",
-    "true_nozzle_deposition_um": "um",
-    "true_aerosol_fraction": "1",
-}
-
-#: Metadata a record gets when its file says nothing (e.g. a bare CSV).
-DEFAULT_META = {
-    "format_version": FORMAT_VERSION,
-    "machine_id": "unknown",
-    "scenario": "unknown",
-    "seed": None,
-    "platen_speed_mm_s": 1.0,
-    "units": dict(UNITS),
-    "fault_kind": "none",
-    "fault_onset_s": None,
-}
-
-# Plausible value ranges in display units, and what a value outside them most likely
-# means. Each entry: (low, high, {"too_small": hint, "too_large": hint}); a value is
-# rejected when it is finite and outside [low, high]. The ranges are wide enough for
-# any AJ 300-class print and narrow enough to catch a factor-of-60/1000 unit slip.
-PLAUSIBLE_RANGES = {
-    "atomizer_current_mA": (50.0, 1000.0, "A (expected mA; 375 mA = 0.375 A)", None),
-    "carrier_flow_sccm": (
-        1.0,
-        200.0,
-        "mL/s or L/min (expected sccm; 23 sccm = 0.383 mL/s)",
-        "a unit smaller than sccm",
-    ),
-    "sheath_flow_sccm": (
-        1.0,
-        500.0,
-        "mL/s or L/min (expected sccm; 50 sccm = 0.833 mL/s)",
-        "a unit smaller than sccm",
-    ),
-    "carrier_pressure_Pa": (
-        100.0,
-        1e6,
-        "kPa, bar or psi (expected Pa; 5661 Pa = 5.661 kPa)",
-        "a unit smaller than Pa",
-    ),
-    "sheath_pressure_Pa": (
-        100.0,
-        1e6,
-        "kPa, bar or psi (expected Pa; 5641 Pa = 5.641 kPa)",
-        "a unit smaller than Pa",
-    ),
-    "linewidth_um": (1.0, 5000.0, "mm or m (expected µm; 43 µm = 0.043 mm)", "nm (expected µm)"),
-    "overspray_um": (0.0, 5000.0, None, "nm (expected µm)"),
-    "material_flow_mL_s": (
-        0.0,
-        1e-4,
-        None,
-        "a unit larger than mL/s per s, e.g. µL/s or nL/s (expected mL/s; typical 1.5e-8 mL/s)",
-    ),
-    "true_droplet_diameter_um": (0.1, 50.0, "m or mm (expected µm)", "nm (expected µm)"),
-    "true_vial_volume_mL": (0.0, 10.0, None, "µL (expected mL)"),
-    "true_tube_deposition_um": (-1000.0, 1000.0, None, "nm (expected µm)"),
-    "true_nozzle_deposition_um": (-75.0, 75.0, None, "nm (expected µm)"),
-    "true_aerosol_fraction": (0.0, 1.0, None, "a percentage or ppm (expected a fraction)"),
-}
-# Columns with a lower bound of 0 can still reveal a unit slip through their median:
-# overspray of a real line is micrometres, not 0.03 (mm).
-MEDIAN_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
-
-#: Largest record file read (a week at 1 Hz is ~0.1 GB as CSV) and most rows a record may
-#: hold (~116 days at 1 Hz): bounds on memory, so a wrong file can never take the RAM.
-MAX_RECORD_BYTES = 4 << 30
-MAX_RECORD_ROWS = 10_000_000
-#: Fastest platen a record's metadata may state [mm/s]: AJ stages move ≤ ~200 mm/s.
-MAX_PLATEN_SPEED_MM_S = 1000.0
-#: Resampling may grow a table by at most this factor plus MAX_RESAMPLE_EXTRA_S grid
-#: seconds (real logs have gaps of minutes, not a time stamp in another clock or unit).
-MAX_RESAMPLE_GROWTH = 10
-MAX_RESAMPLE_EXTRA_S = 6 * 3600
-
-#: Time stamps closer than this to the 1 s grid count as regular.
-TIME_TOLERANCE_S = 1e-6
-#: When resampling, a grid point between two samples farther apart than this gets NaN.
-MAX_INTERPOLATION_GAP_S = 5.0
-
-
-class RecordError(ValueError):
-    """A print record that cannot be read as it is; the message names file, row, column."""
+#: The page that documents the format (named in every CSV a record is written to).
+RECORD_FORMAT_PAGE = "docs/reference/record-format.md"
 
 
 @dataclass
@@ -265,288 +158,24 @@ class PrintRecord:
 
 
 # --------------------------------------------------------------------------- #
-# Aliases
+# Aliases and tables
 # --------------------------------------------------------------------------- #
 
 
 def load_aliases(path: str | Path | None = None) -> dict[str, str]:
     """Alias → canonical column name, from the packaged file plus an optional user file.
 
-    Keys are lower-cased and stripped; the canonical names map to themselves.
+    Keys are normalised as column names are matched (:func:`ajtwin.io.columns.normalise_name`);
+    the canonical names map to themselves. Names that carry a unit (``Carrier Flow
+    [sccm]``) are resolved by :func:`ajtwin.io.columns.resolve_columns`.
     """
-    tables = [packaged_toml("io/aliases.toml")]
-    if path is not None:
-        tables.append(read_toml(path, what="alias"))
-    mapping: dict[str, str] = {c.lower(): c for c in UNITS}
-    for table in tables:
-        aliases = table.get("aliases", {})
-        if not isinstance(aliases, dict):
-            raise ValueError(f"alias file {path}: [aliases] must be a table")
-        for canonical, names in aliases.items():
-            if canonical not in UNITS:
-                raise ValueError(
-                    f"alias file names unknown column {canonical!r}; known: {', '.join(UNITS)}"
-                )
-            if not isinstance(names, list):
-                raise ValueError(f"alias file {path}: aliases.{canonical} must be a list of names")
-            for name in names:
-                mapping[str(name).strip().lower()] = canonical
-    return mapping
+    whole, _ = name_tables(path)
+    return whole
 
 
-def _apply_aliases(df: pd.DataFrame, mapping: dict[str, str], where: str) -> pd.DataFrame:
-    renamed: dict[str, str] = {}
-    seen: dict[str, str] = {}
-    for column in df.columns:
-        canonical = mapping.get(str(column).strip().lower())
-        if canonical is None:
-            continue
-        if canonical in seen:
-            raise RecordError(
-                f"{where}: columns {seen[canonical]!r} and {column!r} both mean {canonical!r}"
-            )
-        seen[canonical] = column
-        if canonical != column:
-            renamed[column] = canonical
-    if renamed:
-        pretty = ", ".join(f"{a!r} → {b!r}" for a, b in renamed.items())
-        warnings.warn(f"{where}: renamed columns by alias: {pretty}", stacklevel=3)
-    return df.rename(columns=renamed)
-
-
-# --------------------------------------------------------------------------- #
-# Validation
-# --------------------------------------------------------------------------- #
-
-
-def _row_label(df: pd.DataFrame, position: int, row_offset: int) -> str:
-    """Row for messages: data row (1 = first data row) and, for text files, the file line."""
-    label = f"row {position + 1}"
-    if row_offset:
-        label += f" (line {position + 1 + row_offset})"
-    return label
-
-
-def _as_text(series: pd.Series, where: str, column) -> pd.Series:
-    """A column as stripped text; bytes that are not UTF-8 (a binary column) are refused."""
-    try:
-        return series.astype("string").str.strip()
-    except (TypeError, ValueError, UnicodeDecodeError) as exc:
-        raise RecordError(
-            f"{where}: column {column!r} holds values that are not text or numbers "
-            f"({type(exc).__name__}: {str(exc)[:80]})"
-        ) from None
-
-
-def _to_numeric(df: pd.DataFrame, where: str, row_offset: int) -> pd.DataFrame:
-    out = {}
-    for column in df.columns:
-        series = df[column]
-        if pd.api.types.is_bool_dtype(series) or pd.api.types.is_complex_dtype(series):
-            # True/False or a+bj is no measurement, though NumPy would turn it into a number
-            raise RecordError(
-                f"{where}: column {column!r} has type {series.dtype}; expected real numbers"
-            )
-        if pd.api.types.is_numeric_dtype(series):
-            out[column] = series.astype(float)
-            continue
-        # empty strings / "nan" / "NA" are missing values; anything else must be a number
-        text = _as_text(series, where, column)
-        blank = text.isna() | text.str.lower().isin(["", "nan", "na", "n/a", "none", "null"])
-        numbers = pd.to_numeric(text.where(~blank), errors="coerce")
-        bad = numbers.isna() & ~blank
-        if bad.any():
-            position = int(np.flatnonzero(bad.to_numpy())[0])
-            raise RecordError(
-                f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
-                f"value {series.iloc[position]!r} is not a number"
-            )
-        out[column] = numbers.astype(float)
-    return pd.DataFrame(out, index=df.index)
-
-
-def _check_columns(df: pd.DataFrame, where: str) -> pd.DataFrame:
-    if not any(c in df.columns for c in CAMERA_COLUMNS):
-        # a machine without an alignment camera: both line columns absent is a valid log
-        warnings.warn(
-            f"{where}: no {' or '.join(map(repr, CAMERA_COLUMNS))} column (no camera); added "
-            "as all-NaN — the twin starts droplet size and aerosol fraction from priors",
-            stacklevel=3,
-        )
-        df = df.assign(**{c: np.nan for c in CAMERA_COLUMNS})
-    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
-    if missing:
-        raise RecordError(
-            f"{where}: missing required column(s) {', '.join(map(repr, missing))}; "
-            f"found {', '.join(map(repr, map(str, df.columns)))}. If your log names them "
-            "differently, add the names to an alias file (see docs/reference/record-format.md)."
-        )
-    if "material_flow_mL_s" not in df.columns:
-        warnings.warn(
-            f"{where}: no 'material_flow_mL_s' column; added as all-NaN (no measurement)",
-            stacklevel=3,
-        )
-        df = df.assign(material_flow_mL_s=np.nan)
-    present_truth = [c for c in TRUTH_COLUMNS if c in df.columns]
-    if present_truth and len(present_truth) != len(TRUTH_COLUMNS):
-        lacking = [c for c in TRUTH_COLUMNS if c not in df.columns]
-        warnings.warn(f"{where}: partial truth; lacking {', '.join(lacking)}", stacklevel=3)
-    return df
-
-
-def _check_ranges(df: pd.DataFrame, where: str, row_offset: int) -> None:
-    for column, (low, high, small_hint, large_hint) in PLAUSIBLE_RANGES.items():
-        if column not in df.columns:
-            continue
-        values = df[column].to_numpy(dtype=float)
-        if np.isinf(values).any():
-            position = int(np.flatnonzero(np.isinf(values))[0])
-            raise RecordError(
-                f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
-                f"value {values[position]!r} is infinite (use NaN for a missing measurement)"
-            )
-        finite = np.isfinite(values)
-        for mask, hint, side in (
-            (finite & (values < low), small_hint, "below"),
-            (finite & (values > high), large_hint, "above"),
-        ):
-            if mask.any():
-                position = int(np.flatnonzero(mask)[0])
-                unit = UNITS[column]
-                guess = f"; the values look like {hint}" if hint else ""
-                raise RecordError(
-                    f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
-                    f"value {values[position]:g} is {side} the plausible range "
-                    f"[{low:g}, {high:g}] {unit}{guess}"
-                )
-        if column in MEDIAN_FLOORS and finite.any():
-            floor, hint = MEDIAN_FLOORS[column]
-            if np.median(values[finite]) < floor:
-                position = int(np.flatnonzero(finite & (values < floor))[0])
-                raise RecordError(
-                    f"{where}: {_row_label(df, position, row_offset)}, column {column!r}: "
-                    f"median {np.median(values[finite]):g} {UNITS[column]} is below {floor:g}; "
-                    f"the values look like {hint}"
-                )
-
-
-def _check_time(df: pd.DataFrame, where: str, row_offset: int) -> np.ndarray:
-    t = df[TIME_COLUMN].to_numpy(dtype=float)
-    if len(t) == 0:
-        raise RecordError(f"{where}: the record has no rows")
-    missing = ~np.isfinite(t)
-    if missing.any():
-        position = int(np.flatnonzero(missing)[0])
-        raise RecordError(
-            f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': "
-            f"time stamp {float(t[position])} is missing; every row needs a time"
-        )
-    steps = np.diff(t)
-    bad = steps <= 0
-    if bad.any():
-        position = int(np.flatnonzero(bad)[0]) + 1
-        raise RecordError(
-            f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': time "
-            f"{t[position]:g} s does not increase (previous row {t[position - 1]:g} s); "
-            "time must be strictly increasing"
-        )
-    if len(steps) >= 3 and np.median(steps) >= 100.0:
-        raise RecordError(
-            f"{where}: column 'time_s': median step {np.median(steps):g} between rows; the "
-            "time looks like milliseconds (expected seconds, one row per ~1 s)"
-        )
-    return t
-
-
-def _datetimes_to_seconds(df: pd.DataFrame, where: str) -> pd.DataFrame:
-    """Wall-clock time stamps (ISO text or datetime dtype) → seconds since the first row."""
-    column = df[TIME_COLUMN]
-    if pd.api.types.is_numeric_dtype(column):
-        return df
-    if pd.api.types.is_datetime64_any_dtype(column):
-        stamps = column
-    else:
-        text = _as_text(column, where, TIME_COLUMN)
-        if pd.to_numeric(text, errors="coerce").notna().all():
-            return df  # numbers stored as text; _to_numeric handles them
-        # a zone (Z or ±hh:mm) on some stamps and not on others is ambiguous: refuse
-        zoned = text.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True).fillna(False)
-        if zoned.any() and not zoned.all():
-            with_zone = int(np.flatnonzero(zoned.to_numpy())[0])
-            without = int(np.flatnonzero(~zoned.to_numpy())[0])
-            raise RecordError(
-                f"{where}: column 'time_s': row {with_zone + 1} has a time zone and row "
-                f"{without + 1} has none; give every time stamp the same zone (or none)"
-            )
-        try:
-            stamps = pd.to_datetime(text, errors="coerce", format="ISO8601", utc=bool(zoned.any()))
-        except (ValueError, TypeError, OverflowError):
-            return df  # not dates pandas can read: let _to_numeric name the offending row
-        if stamps.isna().any():
-            return df  # not all dates: let _to_numeric name the offending row
-    seconds = (stamps - stamps.iloc[0]).dt.total_seconds()
-    warnings.warn(
-        f"{where}: 'time_s' holds wall-clock time stamps; converted to seconds since "
-        f"{stamps.iloc[0]}",
-        stacklevel=3,
-    )
-    return df.assign(**{TIME_COLUMN: seconds.to_numpy(dtype=float)})
-
-
-def _check_resample_size(t: np.ndarray, where: str, df: pd.DataFrame, row_offset: int) -> None:
-    """Refuse a time column whose 1 s grid would be far larger than the table.
-
-    One time stamp in another clock or unit (epoch seconds, 1e300) would otherwise make
-    the resampler allocate a grid of billions of seconds; name the row of the largest jump.
-    """
-    n_grid = math.floor(t[-1] + TIME_TOLERANCE_S) - math.ceil(t[0] - TIME_TOLERANCE_S) + 1
-    limit = MAX_RESAMPLE_GROWTH * len(t) + MAX_RESAMPLE_EXTRA_S
-    if n_grid <= limit:
-        return
-    steps = np.diff(t)
-    position = int(np.argmax(steps)) + 1
-    raise RecordError(
-        f"{where}: {_row_label(df, position, row_offset)}, column 'time_s': time stamp "
-        f"{t[position]:.6g} s jumps {steps[position - 1]:.6g} s after the previous row "
-        f"({t[position - 1]:.6g} s; median step {np.median(steps):.3g} s): a 1 s grid over "
-        f"{n_grid:.3g} s from {len(t)} rows is refused; is that row in another clock or unit?"
-    )
-
-
-def resample_to_seconds(
-    df: pd.DataFrame, max_gap_s: float = MAX_INTERPOLATION_GAP_S
-) -> tuple[pd.DataFrame, dict]:
-    """Resample a strictly increasing, irregular table onto a 1 s grid.
-
-    Each grid second gets the linear interpolation of its two neighbouring samples;
-    when either neighbour is NaN, or the two are more than ``max_gap_s`` apart, the
-    grid value is NaN (no measurement), never invented.
-
-    Returns
-    -------
-    (DataFrame, dict)
-        The resampled table and a summary (``n_in``, ``n_out``, ``n_gap_nan``).
-    """
-    t = df[TIME_COLUMN].to_numpy(dtype=float)
-    grid = np.arange(math.ceil(t[0] - TIME_TOLERANCE_S), math.floor(t[-1] + TIME_TOLERANCE_S) + 1)
-    grid = grid.astype(float)
-    right = np.clip(np.searchsorted(t, grid, side="left"), 0, len(t) - 1)
-    exact = np.abs(t[right] - grid) <= TIME_TOLERANCE_S
-    left = np.clip(right - 1, 0, len(t) - 1)
-    left = np.where(exact, right, left)
-    span = t[right] - t[left]
-    weight = np.where(span > 0, (grid - t[left]) / np.where(span > 0, span, 1.0), 0.0)
-    too_far = span > max_gap_s
-    out = {TIME_COLUMN: grid}
-    for column in df.columns:
-        if column == TIME_COLUMN:
-            continue
-        v = df[column].to_numpy(dtype=float)
-        value = v[left] + weight * (v[right] - v[left])
-        value[too_far] = np.nan
-        out[column] = value
-    summary = {"n_in": int(len(t)), "n_out": int(len(grid)), "n_gap_nan": int(too_far.sum())}
-    return pd.DataFrame(out), summary
+def _warn(notes: list[str], stacklevel: int = 3) -> None:
+    for note in notes:
+        warnings.warn(note, UserWarning, stacklevel=stacklevel)
 
 
 def validate_table(
@@ -554,44 +183,20 @@ def validate_table(
     where: str = "<table>",
     aliases: str | Path | None = None,
     row_offset: int = 0,
+    dialect: CsvDialect | None = None,
 ) -> pd.DataFrame:
     """Check, rename and regularise a raw table into record columns (see :func:`read_record`).
 
     Returns a DataFrame on a 1 s grid: ``time_s``, the record columns, truth columns
     when present, then any extra columns of the log (kept, never dropped).
     """
-    df = _apply_aliases(df, load_aliases(aliases), where)
-    df = _check_columns(df, where)
-    df = _datetimes_to_seconds(df, where)
-    df = _to_numeric(df, where, row_offset)
-    t = _check_time(df, where, row_offset)
-    _check_ranges(df, where, row_offset)
-    steps = np.diff(t)
-    on_grid = len(t) == 1 or (
-        np.all(np.abs(steps - 1.0) <= TIME_TOLERANCE_S)
-        and abs(t[0] - round(t[0])) <= TIME_TOLERANCE_S
+    builder = TableBuilder(
+        df.columns, where, aliases=aliases, dialect=dialect, line_offset=row_offset
     )
-    if not on_grid:
-        _check_resample_size(t, where, df, row_offset)
-        df, summary = resample_to_seconds(df.reset_index(drop=True))
-        warnings.warn(
-            f"{where}: irregular time stamps (steps {steps.min():g}–{steps.max():g} s); "
-            f"resampled {summary['n_in']} samples to {summary['n_out']} at 1 s "
-            f"(linear interpolation; {summary['n_gap_nan']} grid points in gaps > "
-            f"{MAX_INTERPOLATION_GAP_S:g} s set to NaN)",
-            stacklevel=2,
-        )
-    missing_inputs = {c: int(df[c].isna().sum()) for c in INPUT_COLUMNS if df[c].isna().any()}
-    if missing_inputs:
-        counts = ", ".join(f"{c}: {n}" for c, n in missing_inputs.items())
-        warnings.warn(
-            f"{where}: inputs missing (NaN) in some seconds ({counts}); the model needs inputs "
-            "every second — fill them (e.g. hold the last set-point) before estimating",
-            stacklevel=2,
-        )
-    known = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in df.columns]
-    extra = [c for c in df.columns if c not in known]
-    return df[known + extra].reset_index(drop=True)
+    builder.push(df, 0)
+    table = builder.finish()
+    _warn(builder.notes)
+    return table
 
 
 # --------------------------------------------------------------------------- #
@@ -637,7 +242,29 @@ def _sniff_text(path: Path, head: bytes) -> None:
         raise RecordError(f"{path}: line {line}: binary data (a NUL byte), not a CSV text file")
 
 
-def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bool]:
+def _sniff_csv(path: Path) -> tuple[CsvDialect, int]:
+    """The dialect of a delimited text file from its first lines (after ``#`` lines), and
+    the number of lines it was judged on (:func:`ajtwin.io.dialect.sniff_dialect`)."""
+    lines: list[str] = []
+    try:
+        with path.open("r", encoding="utf-8-sig", newline="") as fh:
+            for line in fh:
+                if not lines and line.startswith("#"):
+                    continue
+                lines.append(line)
+                if len(lines) > SNIFF_LINES:
+                    break
+    except UnicodeDecodeError:
+        return CsvDialect(), 0  # the structure pass names the byte
+    if lines and not lines[-1].endswith(("\n", "\r")):
+        lines = lines[:-1]  # may be cut mid-line
+    text = [line.rstrip("\r\n") for line in lines]
+    return sniff_dialect(text), max(len(text) - 1, 0)
+
+
+def _csv_structure(
+    path: Path, size: int, dialect: CsvDialect
+) -> tuple[dict, int, list[str], int, bool]:
     """Metadata, header lines, column names, data-row count and whether the last row is cut.
 
     One streaming pass with the ``csv`` module (never the whole file in memory). Every
@@ -679,9 +306,9 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
             else:
                 raise RecordError(f"{path}: no table after the header")
             header_line = header_lines + 1
-            columns = next(csv.reader([line]), [])
+            columns = next(csv.reader([line], delimiter=dialect.delimiter), [])
             n_fields = len(columns)
-            reader = csv.reader(fh)
+            reader = csv.reader(fh, delimiter=dialect.delimiter)
             rows = 0
             last_short = None
             for fields in reader:
@@ -731,7 +358,6 @@ def _csv_structure(path: Path, size: int) -> tuple[dict, int, list[str], int, bo
 
 def _first_non_utf8(path: Path) -> tuple[int, int]:
     """File line (from 1) and value of the first byte that is not valid UTF-8."""
-
     decoder = codecs.getincrementaldecoder("utf-8")()
     lines = 1
     with path.open("rb") as fh:
@@ -759,45 +385,64 @@ def _check_duplicate_names(columns, where: str) -> None:
         seen[key] = number
 
 
-def _read_csv(path: Path) -> tuple[pd.DataFrame, dict, int]:
+def _read_csv(
+    path: Path, aliases=None, dialect: CsvDialect | None = None
+) -> tuple[pd.DataFrame, dict, list[str]]:
+    """A delimited text file → (record table, metadata, notes), read in chunks."""
     size = check_regular_file(path, "print record", MAX_RECORD_BYTES)
-    meta, header_lines, columns, rows, _ = _csv_structure(path, size)
+    if dialect is None:
+        with path.open("rb") as raw:
+            _sniff_text(path, raw.read(4096))
+        dialect, judged = _sniff_csv(path)
+        if not dialect.is_default or dialect.assumed:
+            assumed = "; ".join(dialect.assumed)
+            # said at once: if the assumption was wrong, the error that follows is its effect
+            _warn(
+                [
+                    f"{path}: read as {dialect.describe()} (detected from the first {judged} "
+                    f"lines{'; ' + assumed if assumed else ''}); --csv-dialect sets it"
+                ],
+                stacklevel=4,
+            )
+    meta, header_lines, columns, rows, _ = _csv_structure(path, size, dialect)
     if rows > MAX_RECORD_ROWS:
         raise RecordError(f"{path}: {rows} rows is more than a record may hold ({MAX_RECORD_ROWS})")
+    # file line of data row 1 = comment lines + the column-name line + 1
+    names = [name if name != "" else f"Unnamed: {i}" for i, name in enumerate(columns)]
+    builder = TableBuilder(
+        names, str(path), aliases=aliases, dialect=dialect, line_offset=header_lines + 1
+    )
     try:
-        df = pd.read_csv(
+        chunks = pd.read_csv(
             path,
+            sep=dialect.delimiter,
+            decimal=dialect.decimal,
             skiprows=header_lines,
             nrows=rows,
             encoding="utf-8-sig",
             index_col=False,
+            chunksize=CHUNK_ROWS,
         )
+        done = 0
+        with chunks:
+            for chunk in chunks:
+                if chunk.shape[1] != len(names):
+                    raise RecordError(
+                        f"{path}: the table has {chunk.shape[1]} columns where the header "
+                        f"names {len(names)}"
+                    )
+                builder.push(chunk, done)
+                done += len(chunk)
     except pd.errors.EmptyDataError:
         raise RecordError(f"{path}: no table after the header") from None
-    except (pd.errors.ParserError, ValueError) as exc:
+    except pd.errors.ParserError as exc:
         raise RecordError(f"{path}: not a valid CSV table: {exc}") from None
-    # file line of data row 1 = comment lines + the column-name line + 1
-    return df, meta, header_lines + 1
+    table = builder.finish()
+    return table, meta, builder.notes
 
 
-def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
-    import pyarrow.parquet as pq
-
-    check_regular_file(path, "print record", MAX_RECORD_BYTES)
-    try:
-        parquet = pq.ParquetFile(path)
-        n_rows = parquet.metadata.num_rows
-        if n_rows > MAX_RECORD_ROWS:
-            raise RecordError(
-                f"{path}: {n_rows} rows is more than a record may hold ({MAX_RECORD_ROWS})"
-            )
-        _check_duplicate_names(parquet.schema_arrow.names, str(path))
-        table = parquet.read()
-    except RecordError:
-        raise
-    except Exception as exc:  # pyarrow raises several types for a corrupt file
-        raise RecordError(f"{path}: not a readable Parquet file: {exc}") from None
-    raw = (table.schema.metadata or {}).get(PARQUET_META_KEY)
+def _parquet_meta(path: Path, schema) -> dict:
+    raw = (schema.metadata or {}).get(PARQUET_META_KEY)
     meta = {}
     if raw:
         try:
@@ -811,21 +456,59 @@ def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
                 f"{path}: the 'ajtwin' metadata in the Parquet schema must be a JSON object, "
                 f"got {type(meta).__name__} {meta!r:.60}"
             )
+    return meta
+
+
+def _read_parquet(path: Path, aliases=None) -> tuple[pd.DataFrame, dict, list[str]]:
+    """A Parquet file → (record table, metadata, notes), read in row batches."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    check_regular_file(path, "print record", MAX_RECORD_BYTES)
     try:
-        df = table.to_pandas()
-    except Exception as exc:  # e.g. a column type pandas cannot hold
-        raise RecordError(f"{path}: columns cannot be read as a table: {exc}") from None
-    for column in df.columns:
-        if not (
-            pd.api.types.is_numeric_dtype(df[column])
-            or pd.api.types.is_datetime64_any_dtype(df[column])
-            or pd.api.types.is_string_dtype(df[column])
-            or df[column].dtype == object
-        ):
+        parquet = pq.ParquetFile(path)
+        n_rows = parquet.metadata.num_rows
+        if n_rows > MAX_RECORD_ROWS:
             raise RecordError(
-                f"{path}: column {column!r} has type {df[column].dtype}; expected numbers"
+                f"{path}: {n_rows} rows is more than a record may hold ({MAX_RECORD_ROWS})"
             )
-    return df, meta
+        names = parquet.schema_arrow.names
+        _check_duplicate_names(names, str(path))
+        schema = parquet.schema_arrow
+    except RecordError:
+        raise
+    except Exception as exc:  # pyarrow raises several types for a corrupt file
+        raise RecordError(f"{path}: not a readable Parquet file: {exc}") from None
+    meta = _parquet_meta(path, schema)
+    builder = TableBuilder(names, str(path), aliases=aliases)
+    done = 0
+    batches = parquet.iter_batches(batch_size=CHUNK_ROWS)
+    while True:
+        try:
+            batch = next(batches, None)
+            if batch is None:
+                break
+            df = pa.Table.from_batches([batch]).to_pandas()
+        except RecordError:
+            raise
+        except Exception as exc:  # a corrupt page, or a column type pandas cannot hold
+            raise RecordError(f"{path}: not a readable Parquet file: {exc}") from None
+        for column in df.columns:
+            if not (
+                pd.api.types.is_numeric_dtype(df[column])
+                or pd.api.types.is_datetime64_any_dtype(df[column])
+                or pd.api.types.is_string_dtype(df[column])
+                or df[column].dtype == object
+            ):
+                raise RecordError(
+                    f"{path}: column {column!r} has type {df[column].dtype}; expected numbers"
+                )
+        builder.push(df, done)
+        done += len(df)
+    if not done:
+        raise RecordError(f"{path}: the record has no rows")
+    table = builder.finish()
+    return table, meta, builder.notes
 
 
 def validate_meta(meta, where: str = "<record>") -> dict:
@@ -887,8 +570,17 @@ def validate_meta(meta, where: str = "<record>") -> dict:
     return meta
 
 
-def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRecord:
-    """Read a print record from Parquet (``.parquet``/``.pq``) or CSV (``.csv``).
+#: Suffixes read as delimited text (the dialect is detected, or given).
+TEXT_SUFFIXES = (".csv", ".tsv")
+
+
+def read_record(
+    path: str | Path,
+    aliases: str | Path | None = None,
+    dialect: str | CsvDialect | None = None,
+) -> PrintRecord:
+    """Read a print record from Parquet (``.parquet``/``.pq``) or delimited text
+    (``.csv``, ``.tsv``).
 
     Parameters
     ----------
@@ -896,6 +588,9 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
         The record file.
     aliases : str or Path, optional
         A TOML alias file (same form as ``ajtwin/io/aliases.toml``) adding column names.
+    dialect : str or CsvDialect, optional
+        The text file's dialect: a name of :data:`ajtwin.io.dialect.DIALECTS`
+        (``"semicolon-decimal-comma"``, ``"tab"``, …); None or ``"auto"``: detected.
 
     Returns
     -------
@@ -914,7 +609,8 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
     Warns
     -----
     UserWarning
-        Columns renamed by alias, irregular time stamps resampled, material flow absent.
+        The dialect detected, columns renamed or converted, time converted, samples
+        averaged per second, columns treated as missing, inputs held through a gap.
 
     Examples
     --------
@@ -925,18 +621,20 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
     path = Path(path)
     try:
         check_regular_file(path, "print record", MAX_RECORD_BYTES)
+        chosen = dialect_from_name(dialect)
     except InputFileError as exc:
         raise RecordError(str(exc)) from None
+    except ValueError as exc:
+        raise RecordError(f"{path}: {exc}") from None
     suffix = path.suffix.lower()
     if suffix in (".parquet", ".pq"):
-        df, meta = _read_parquet(path)
-        row_offset = 0
-    elif suffix == ".csv":
-        df, meta, row_offset = _read_csv(path)
+        data, meta, notes = _read_parquet(path, aliases)
+    elif suffix in TEXT_SUFFIXES:
+        data, meta, notes = _read_csv(path, aliases, chosen)
     else:
-        raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
+        raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet, .csv or .tsv")
     meta = validate_meta(dict(meta), str(path))
-    data = validate_table(df, str(path), aliases=aliases, row_offset=row_offset)
+    _warn(notes)
     meta["source_file"] = str(path)
     return PrintRecord(data, meta)
 
@@ -965,8 +663,7 @@ def write_record(record: PrintRecord, path: str | Path) -> Path:
         pq.write_table(table.replace_schema_metadata(schema_meta), path)
     elif suffix == ".csv":
         with path.open("w", encoding="utf-8", newline="") as fh:
-            page = "docs/reference/record-format.md"
-            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} ({page})\n")
+            fh.write(f"# ajtwin print record, format {FORMAT_VERSION} ({RECORD_FORMAT_PAGE})\n")
             fh.write(CSV_META_PREFIX + json.dumps(meta) + "\n")
             record.data.to_csv(fh, index=False)
     else:

@@ -25,14 +25,13 @@ import asyncio
 import json
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 from asyncua import Client, ua
 
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.engine.samples import Sample, clean_sample
-from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
+from ajtwin.io.follow import CsvFollower
 from ajtwin.live.opcua import (
     HEALTH_STATES,
     NAMESPACE_URI,
@@ -444,68 +443,41 @@ async def follow_csv(
     poll_s: float = 0.5,
     idle_timeout_s: float | None = None,
     stop: asyncio.Event | None = None,
+    aliases=None,
+    dialect=None,
 ) -> int | None:
-    """Tail a growing CSV in the record format; feed each complete line to the engine.
+    """Tail a growing record file; feed each 1 s sample to the engine.
+
+    The file is read by :class:`ajtwin.io.follow.CsvFollower`, with the record reader's
+    rules (BOM, dialect, names with units, time formats, per-second averaging); lines it
+    cannot read are logged and their seconds are missing for the twin.
 
     Returns the registry print id when the print was closed after ``idle_timeout_s``
     seconds without a new line (None: stopped, the session stays open and resumable).
     """
 
-    path = Path(path)
-    header = None
-    position = 0
-    line_no = 0
+    follower = CsvFollower(path, aliases=aliases, dialect=dialect)
     last_new = time.monotonic()
-    columns = None
     engine.open(machine, source=str(path))
+
+    def feed(samples, problems) -> bool:
+        for line in problems:
+            log.warning(line)
+        for t, u, y in samples:
+            sample, issues = clean_sample(t, u, y, where=f"{path}: t = {t:g} s")
+            for issue in issues:
+                log.warning(issue)
+            if sample is not None:
+                engine.feed(machine, sample)
+        return bool(samples)
+
     while stop is None or not stop.is_set():
-        new = False
-        if path.exists():
-            with path.open("r", encoding="utf-8", newline="") as fh:
-                fh.seek(position)
-                while True:
-                    line = fh.readline()
-                    if not line or not line.endswith("\n"):
-                        break  # a partly written line: read it next time
-                    position = fh.tell()
-                    line_no += 1
-                    text = line.strip()
-                    if not text or text.startswith("#"):
-                        continue
-                    cells = text.split(",")
-                    if header is None:
-                        header = [c.strip() for c in cells]
-                        missing = [
-                            c
-                            for c in (TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS)
-                            if c not in header
-                        ]
-                        if missing:
-                            raise ValueError(f"{path}: line {line_no}: no column(s) {missing}")
-                        columns = [
-                            header.index(c) for c in (TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS)
-                        ]
-                        continue
-                    try:
-                        values = [
-                            float(cells[i]) if i < len(cells) and cells[i].strip() else np.nan
-                            for i in columns
-                        ]
-                    except ValueError:
-                        log.warning("%s: line %d: not numbers; treated as missing", path, line_no)
-                        continue
-                    sample, problems = clean_sample(
-                        values[0], values[1:4], values[4:], where=f"{path}: line {line_no}"
-                    )
-                    for p in problems:
-                        log.warning(p)
-                    if sample is not None:
-                        engine.feed(machine, sample)
-                        new = True
+        new = feed(*follower.poll())
         engine.poll_and_publish()
         if new:
             last_new = time.monotonic()
         elif idle_timeout_s is not None and time.monotonic() - last_new > idle_timeout_s:
+            feed(*follower.flush())  # the second still open, and rows held back
             return engine.close(machine)
         try:
             await asyncio.wait_for(stop.wait() if stop else asyncio.sleep(poll_s), poll_s)

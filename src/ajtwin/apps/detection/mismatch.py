@@ -156,7 +156,7 @@ def assess(
     learned = None
     if level_learned_s is not None:
         learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
-    _output_bias_findings(found, _output_bias(t, e, g, learned), g)
+    _output_bias_findings(found, _output_bias(t, e, g, learned), n_measured, g)
     _nis_findings(found, nis, n_measured, g)
     start_only = set()
     if start_mean is not None and start_cov is not None:
@@ -254,10 +254,20 @@ def _output_bias(t: np.ndarray, e: np.ndarray, g: dict, learned: float | None) -
     return bias
 
 
-def _output_bias_findings(found: _Findings, bias: np.ndarray, g: dict) -> None:
+def _measured_seconds(n_measured, window: int) -> np.ndarray:
+    """(T,) seconds with at least one measured output in the trailing ``window`` [s]."""
+    measured = (np.asarray(n_measured, dtype=float) > 0).astype(float)
+    return _rolling_mean(measured, window) * np.minimum(np.arange(1, measured.size + 1), window)
+
+
+def _output_bias_findings(found: _Findings, bias: np.ndarray, n_measured, g: dict) -> None:
     """An output persistently above or below the model (a full window of evidence, or the
-    print so far after its own minimum)."""
-    evidence = found.t >= float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    print so far after its own minimum); seconds where nothing was measured (a logger gap
+    the twin predicts through) are no evidence."""
+    min_evidence = float(g.get("bias_min_evidence_s", g["warmup_s"]))
+    evidence = (found.t >= min_evidence) & (
+        _measured_seconds(n_measured, int(g["bias_window_s"])) >= min_evidence
+    )
     for j, name in enumerate(OUTPUT_NAMES):
         found.add(
             evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])),
@@ -274,9 +284,14 @@ def _output_bias_findings(found: _Findings, bias: np.ndarray, g: dict) -> None:
 def _nis_findings(found: _Findings, nis, n_measured, g: dict) -> None:
     """The mean NIS per output over ``nis_window_s`` outside [``nis_low``, ``nis_high``]."""
     t = found.t
-    per_output = np.asarray(nis, dtype=float) / np.maximum(np.asarray(n_measured, float), 1)
+    counts = np.asarray(n_measured, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_output = np.where(counts > 0, np.asarray(nis, dtype=float) / counts, np.nan)
     rolling_nis = _rolling_mean(per_output[:, None], int(g["nis_window_s"]))[:, 0]
     full = t >= min(float(g["nis_window_s"]), max(t[-1], 0.0))
+    full &= _measured_seconds(n_measured, int(g["nis_window_s"])) >= float(
+        g.get("bias_min_evidence_s", g["warmup_s"])
+    )
     mask = full & ((rolling_nis < float(g["nis_low"])) | (rolling_nis > float(g["nis_high"])))
     found.add(
         mask,

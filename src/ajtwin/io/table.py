@@ -1,0 +1,497 @@
+"""A log's table, chunk by chunk, into a record's 1 Hz table (the core of the readers).
+
+:class:`TableBuilder` takes the column names of a file, then its rows in chunks (as
+pandas reads them, in the file's dialect), and gives the record's table. Per chunk it
+
+1. names the columns (:mod:`ajtwin.io.columns`: aliases, units in the name) and converts
+   values to the record's units (:func:`ajtwin.units.convert`);
+2. turns cells into numbers in the file's dialect (:mod:`ajtwin.io.dialect`); a cell of a
+   record column that is not a number is an error naming row, line and column; other
+   columns are kept — as numbers, or as text (an operator's note);
+3. turns the time column into seconds (:mod:`ajtwin.io.timebase`) and checks it increases,
+   jumps no more than :data:`~ajtwin.io.schema.MAX_GAP_S` and spans no more than
+   :data:`~ajtwin.io.schema.MAX_RECORD_SECONDS`;
+4. checks plausible ranges (a unit slip) and gathers each column's resolution
+   (:mod:`ajtwin.io.quality`);
+5. averages the rows into 1 s steps (:class:`~ajtwin.io.timebase.SecondBinner`), keeping
+   only the second still open, so memory follows the print's length, not the file's.
+
+:meth:`TableBuilder.finish` then treats outputs printed too coarsely as missing (inputs:
+refused), applies the live twin's rule to seconds without inputs
+(:func:`~ajtwin.io.timebase.hold_missing_inputs`) and returns the table and the notes to
+report (warnings of the reader).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ajtwin.io.columns import ColumnError, convert_values, resolve_columns
+from ajtwin.io.dialect import CsvDialect, parse_numbers
+from ajtwin.io.quality import ColumnQuality, judge, settings
+from ajtwin.io.schema import (
+    CAMERA_COLUMNS,
+    INPUT_COLUMNS,
+    MAX_GAP_S,
+    MAX_RECORD_SECONDS,
+    MEDIAN_FLOORS,
+    OUTPUT_COLUMNS,
+    PLAUSIBLE_RANGES,
+    RECORD_COLUMNS,
+    REQUIRED_COLUMNS,
+    SAMPLES_COLUMN,
+    TIME_COLUMN,
+    TRUTH_COLUMNS,
+    UNITS,
+    RecordError,
+)
+from ajtwin.io.timebase import SecondBinner, TimeError, hold_missing_inputs, time_base
+
+#: Cells read as "no value" (after pandas' own NA spellings such as #N/A).
+BLANKS = ("", "nan", "na", "n/a", "none", "null")
+#: A median step [s] at or above this means milliseconds in a seconds column.
+MILLISECONDS_STEP_S = 100.0
+#: A median step [s] below this (over 1000 rows per second) is no time in seconds.
+FASTEST_STEP_S = 1e-3
+
+
+class TableBuilder:
+    """Build a record's table from a file's chunks (see the module doc).
+
+    Parameters
+    ----------
+    names : list of str
+        The file's column names, in order.
+    where : str
+        The file, for messages.
+    aliases : path, optional
+        The user's alias file.
+    dialect : CsvDialect, optional
+        How cells write numbers (None: plain, as pandas reads them).
+    line_offset : int
+        File line of data row 1, minus 1 (0: no lines, e.g. Parquet).
+    """
+
+    def __init__(
+        self,
+        names,
+        where: str,
+        *,
+        aliases=None,
+        dialect: CsvDialect | None = None,
+        line_offset: int = 0,
+    ):
+        self.where = where
+        self.dialect = dialect or CsvDialect()
+        self.line_offset = line_offset
+        self.notes: list[str] = []
+        try:
+            self.plan = resolve_columns(list(names), where, aliases)
+        except ColumnError as exc:
+            raise RecordError(str(exc)) from None
+        renamed = self.plan.describe_renames()
+        if renamed:
+            self.notes.append(f"{where}: renamed columns by alias: {renamed}")
+        present = {c.name for c in self.plan.columns if c.known}
+        has_camera = any(c in present for c in CAMERA_COLUMNS)
+        required = [c for c in REQUIRED_COLUMNS if has_camera or c not in CAMERA_COLUMNS]
+        missing = [c for c in required if c not in present]
+        if missing:
+            hint = self.plan.missing_hint(missing)
+            raise RecordError(
+                f"{where}: missing required column(s) {', '.join(map(repr, missing))}; "
+                f"found {', '.join(repr(str(c.source)) for c in self.plan.columns)}. If your "
+                "log names them differently, add the names to an alias file (see "
+                "docs/reference/record-format.md)." + (f"\n{hint}" if hint else "")
+            )
+        self.added: list[str] = []
+        if not has_camera:
+            self.notes.append(
+                f"{where}: no {' or '.join(map(repr, CAMERA_COLUMNS))} column (no camera); added "
+                "as all-NaN — the twin starts droplet size and aerosol fraction from priors"
+            )
+            self.added += list(CAMERA_COLUMNS)
+        if "material_flow_mL_s" not in present:
+            self.notes.append(
+                f"{where}: no 'material_flow_mL_s' column; added as all-NaN (no measurement)"
+            )
+            self.added.append("material_flow_mL_s")
+        truth = [c for c in TRUTH_COLUMNS if c in present]
+        if truth and len(truth) != len(TRUTH_COLUMNS):
+            lacking = [c for c in TRUTH_COLUMNS if c not in present]
+            self.notes.append(f"{where}: partial truth; lacking {', '.join(lacking)}")
+        order = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in present or c in self.added]
+        self.known = [c for c in order if c != TIME_COLUMN]
+        self.columns = {c.name: c for c in self.plan.columns}
+        self.extras = [c.name for c in self.plan.columns if not c.known]
+        self.extra_text: dict[str, bool] = {}
+        self.quality = {c: ColumnQuality() for c in self.known if c in present}
+        self.timebase = None
+        self.binner: SecondBinner | None = None
+        self.rows = 0
+        self.last_t: float | None = None
+        self.first_t: float | None = None
+        self.step_range = [np.inf, -np.inf]
+        self.pieces: list[tuple] = []  # (seconds, values, counts, texts) of emitted steps
+        self.next_step: int | None = None
+
+    # ------------------------------------------------------------------ #
+    def _label(self, row: int) -> str:
+        label = f"row {row + 1}"
+        if self.line_offset:
+            label += f" (line {row + 1 + self.line_offset})"
+        return label
+
+    def _numbers(self, series: pd.Series, name: str, first_row: int, strict: bool = True):
+        """A column's cells as float (NaN: no value). ``strict``: a cell that is not a
+        number is an error naming it; else such cells are NaN and ``(values, True)`` says
+        the column holds text."""
+        if pd.api.types.is_bool_dtype(series) or pd.api.types.is_complex_dtype(series):
+            if not strict:
+                return np.full(len(series), np.nan), True
+            # True/False or a+bj is no measurement, though NumPy would turn it into a number
+            raise RecordError(
+                f"{self.where}: column {name!r} has type {series.dtype}; expected real numbers"
+            )
+        if pd.api.types.is_numeric_dtype(series):
+            values = series.to_numpy(dtype=float, na_value=np.nan)
+            return values if strict else (values, False)
+        text = _as_text(series, self.where, name)
+        blank = text.isna() | text.str.lower().isin(BLANKS)
+        numbers = parse_numbers(text.where(~blank), self.dialect)
+        bad = (numbers.isna() & ~blank).to_numpy(dtype=bool)
+        values = numbers.to_numpy(dtype=float, na_value=np.nan)
+        if not strict:
+            return values, bool(bad.any())
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            dialect = (
+                ""
+                if self.dialect.is_default
+                else f" in this file's dialect ({self.dialect.describe()}; --csv-dialect sets it)"
+            )
+            raise RecordError(
+                f"{self.where}: {self._label(first_row + position)}, column {name!r}: "
+                f"value {series.iloc[position]!r} is not a number{dialect}"
+            )
+        return values
+
+    def _times(self, chunk: pd.DataFrame, first_row: int) -> np.ndarray:
+        column = time_cells(chunk[TIME_COLUMN], self.dialect)
+        unit = self.columns[TIME_COLUMN].unit
+        try:
+            if self.timebase is None:
+                self.timebase = time_base(column, self.where, None if unit == "s" else unit)
+                if self.timebase.note:
+                    self.notes.append(f"{self.where}: {self.timebase.note}")
+            t = self.timebase.seconds(column, self.where, first_row)
+        except TimeError as exc:
+            raise RecordError(str(exc)) from None
+        except (TypeError, ValueError, OverflowError) as exc:  # lists, bytes, … in the column
+            raise RecordError(
+                f"{self.where}: column 'time_s' holds values that are not text or numbers "
+                f"({type(exc).__name__}: {str(exc)[:80]})"
+            ) from None
+        bad = ~np.isfinite(t)
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            raw = column.iloc[position]
+            label = self._label(first_row + position)
+            if pd.api.types.is_scalar(raw) and (pd.isna(raw) or str(raw).strip().lower() in BLANKS):
+                raise RecordError(
+                    f"{self.where}: {label}, column 'time_s': time stamp {raw} is missing; "
+                    "every row needs a time"
+                )
+            if isinstance(raw, int | float | np.number):
+                raise RecordError(
+                    f"{self.where}: {label}, column 'time_s': time stamp {raw!r} is not finite"
+                )
+            raise RecordError(
+                f"{self.where}: {label}, column 'time_s': value {raw!r} is not a number "
+                "(nor a time stamp like the first rows')"
+            )
+        return t
+
+    def _check_times(self, t: np.ndarray, first_row: int) -> None:
+        previous = self.last_t
+        joined = t if previous is None else np.concatenate([[previous], t])
+        steps = np.diff(joined)
+        shift = 0 if previous is None else 1  # steps[i] ends at chunk row i + 1 - shift
+        bad = steps <= 0
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            row = first_row + i + 1 - shift
+            raise RecordError(
+                f"{self.where}: {self._label(row)}, column 'time_s': time {joined[i + 1]:g} s "
+                f"does not increase (previous row {joined[i]:g} s); time must be strictly "
+                "increasing"
+            )
+        if previous is None and len(steps) >= 3:
+            median = float(np.median(steps))
+            if median >= MILLISECONDS_STEP_S:
+                raise RecordError(
+                    f"{self.where}: column 'time_s': median step {median:g} between rows; the "
+                    "time looks like milliseconds (expected seconds, one row per ~1 s; name "
+                    "the column 'time_ms' or 'Time [ms]' if it is)"
+                )
+            if median < FASTEST_STEP_S:
+                raise RecordError(
+                    f"{self.where}: column 'time_s': median step {median:.3g} between rows is "
+                    "more than 1000 rows per second; the time is in another unit (days? "
+                    "hours?). ajtwin reads seconds (or a unit in the column name: "
+                    "'Time [min]'), ISO date-times, Excel serial days and Unix epoch "
+                    "seconds or milliseconds"
+                )
+        jumps = steps > MAX_GAP_S
+        if jumps.any():
+            i = int(np.flatnonzero(jumps)[0])
+            row = first_row + i + 1 - shift
+            median = float(np.median(steps)) if len(steps) else float("nan")
+            raise RecordError(
+                f"{self.where}: {self._label(row)}, column 'time_s': time stamp "
+                f"{joined[i + 1]:.6g} s jumps {steps[i]:.6g} s after the previous row "
+                f"({joined[i]:.6g} s; median step {median:.3g} s): a gap of more than "
+                f"{MAX_GAP_S / 3600:g} h is refused (the live twin drops such a sample too); "
+                "is that row in another clock or unit?"
+            )
+        if self.first_t is None:
+            self.first_t = float(t[0])
+        beyond = t - self.first_t > MAX_RECORD_SECONDS
+        if beyond.any():
+            i = int(np.flatnonzero(beyond)[0])
+            raise RecordError(
+                f"{self.where}: {self._label(first_row + i)}, column 'time_s': the print "
+                f"reaches {t[i] - self.first_t:.0f} s ({(t[i] - self.first_t) / 86400:.1f} "
+                f"days) here, more than a record may span ({MAX_RECORD_SECONDS} s = "
+                f"{MAX_RECORD_SECONDS / 86400:g} days; docs/reference/record-format.md, Limits); "
+                "split the log into prints"
+            )
+        if len(steps):
+            self.step_range = [
+                min(self.step_range[0], float(steps.min())),
+                max(self.step_range[1], float(steps.max())),
+            ]
+        self.last_t = float(t[-1])
+
+    def _check_ranges(self, name: str, values: np.ndarray, first_row: int) -> None:
+        if name not in PLAUSIBLE_RANGES:
+            return
+        low, high, small_hint, large_hint = PLAUSIBLE_RANGES[name]
+        if np.isinf(values).any():
+            position = int(np.flatnonzero(np.isinf(values))[0])
+            raise RecordError(
+                f"{self.where}: {self._label(first_row + position)}, column {name!r}: "
+                f"value {values[position]!r} is infinite (use NaN for a missing measurement)"
+            )
+        finite = np.isfinite(values)
+        for mask, hint, side in (
+            (finite & (values < low), small_hint, "below"),
+            (finite & (values > high), large_hint, "above"),
+        ):
+            if mask.any():
+                position = int(np.flatnonzero(mask)[0])
+                guess = f"; the values look like {hint}" if hint else ""
+                raise RecordError(
+                    f"{self.where}: {self._label(first_row + position)}, column {name!r}: "
+                    f"value {values[position]:g} is {side} the plausible range "
+                    f"[{low:g}, {high:g}] {UNITS[name]}{guess}"
+                )
+
+    # ------------------------------------------------------------------ #
+    def push(self, chunk: pd.DataFrame, first_row: int) -> None:
+        """Take the next rows of the file (``first_row``: the 0-based data row of the first)."""
+        if not len(chunk):
+            return
+        chunk = chunk.set_axis([c.name for c in self.plan.columns], axis=1)
+        chunk = chunk.reset_index(drop=True)
+        t = self._times(chunk, first_row)
+        numeric = np.full((len(chunk), len(self.known)), np.nan)
+        for j, name in enumerate(self.known):
+            if name in self.added:
+                continue
+            values = self._numbers(chunk[name], name, first_row)
+            values = convert_values(values, self.columns[name])
+            self._check_ranges(name, values, first_row)
+            self.quality[name].add(values)
+            numeric[:, j] = values
+        # other columns are kept: as numbers (averaged per second) unless some cell is text
+        extra_numbers, extra_texts = [], []
+        for name in self.extras:
+            values, has_text = self._numbers(chunk[name], name, first_row, strict=False)
+            self.extra_text[name] = self.extra_text.get(name, False) or has_text
+            extra_numbers.append(convert_values(values, self.columns[name]))
+            extra_texts.append(_text_cells(chunk[name]))
+        self._check_times(t, first_row)
+        if self.binner is None:
+            self.binner = SecondBinner(len(self.known) + len(self.extras), len(self.extras))
+        matrix = np.column_stack([numeric, *extra_numbers]) if extra_numbers else numeric
+        texts = np.column_stack(extra_texts) if extra_texts else None
+        self.rows += len(chunk)
+        self._emit(self.binner.push(t, matrix, texts))
+
+    def _emit(self, bins) -> None:
+        if not len(bins):
+            return
+        if self.next_step is None:
+            self.next_step = int(bins.seconds[0])
+        span = int(bins.seconds[-1]) - self.next_step + 1
+        position = bins.seconds - self.next_step
+        values = np.full((span, bins.means.shape[1]), np.nan)
+        values[position] = bins.means
+        counts = np.zeros(span, np.int64)
+        counts[position] = bins.counts
+        texts = np.full((span, bins.texts.shape[1]), "", dtype=object)
+        texts[position] = bins.texts
+        self.pieces.append((self.next_step, values, counts, texts))
+        self.next_step += span
+
+    # ------------------------------------------------------------------ #
+    def finish(self) -> pd.DataFrame:
+        """The record's table (see the module doc); the notes to report are in ``notes``."""
+        if self.binner is not None:
+            self._emit(self.binner.finish())
+        if not self.pieces:
+            raise RecordError(f"{self.where}: the record has no rows")
+        first = self.pieces[0][0]
+        values = np.concatenate([p[1] for p in self.pieces])
+        counts = np.concatenate([p[2] for p in self.pieces])
+        texts = np.concatenate([p[3] for p in self.pieces])
+        self.pieces = []
+        n = len(values)
+        resampled = n != self.rows or bool((counts != 1).any())
+        columns = {TIME_COLUMN: first + np.arange(n, dtype=float)}
+        for j, name in enumerate(self.known):
+            columns[name] = values[:, j]
+        for j, name in enumerate(self.extras):
+            if self.extra_text[name]:
+                columns[name] = texts[:, j]  # an operator's note: kept as text
+            else:
+                columns[name] = values[:, len(self.known) + j]
+        self._median_floors(columns)
+        verdict = judge(self.quality, self.where)
+        for name in settings()["outputs"]["refuse_when_unusable"]:
+            if name in verdict.missing:
+                verdict.refused.append(
+                    f"{self.where}: column {name!r} is unusable: {verdict.missing[name]} (a "
+                    "record without its pressures is refused: they alone see the nozzle)"
+                )
+        if verdict.refused:
+            raise RecordError("\n".join(verdict.refused))
+        for name, reason in verdict.missing.items():
+            columns[name] = np.full(n, np.nan)
+            self.notes.append(
+                f"{self.where}: column {name!r} treated as missing (no measurement): {reason}"
+            )
+        if resampled:
+            empty = int((counts == 0).sum())
+            low, high = self.step_range
+            steps = f"steps {low:g}–{high:g} s" if np.isfinite(low) else "one row"
+            self.notes.append(
+                f"{self.where}: time stamps not one per second ({steps}); resampled "
+                f"{self.rows} samples to {n} seconds by averaging each second (the mean of the "
+                f"samples within ±0.5 s; {self.binner.merged} samples shared a second, {empty} "
+                f"second(s) had none and are missing); column {SAMPLES_COLUMN!r} counts them"
+            )
+            columns[SAMPLES_COLUMN] = counts.astype(float)
+        # one block, no copy: the table is the largest thing the reader holds
+        frame = pd.DataFrame(columns, copy=False)
+        del values, columns
+        return self._hold_inputs(frame)
+
+    def _median_floors(self, columns: dict) -> None:
+        for name, (floor, hint) in MEDIAN_FLOORS.items():
+            if name not in columns or name in self.added:
+                continue
+            values = columns[name]
+            finite = np.isfinite(values)
+            if finite.any() and np.median(values[finite]) < floor:
+                position = int(np.flatnonzero(finite & (values < floor))[0])
+                raise RecordError(
+                    f"{self.where}: {self._label(position)}, column {name!r}: median "
+                    f"{np.median(values[finite]):g} {UNITS[name]} is below {floor:g}; the "
+                    f"values look like {hint}"
+                )
+
+    def _hold_inputs(self, frame: pd.DataFrame) -> pd.DataFrame:
+        inputs = frame[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+        outputs = frame[list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
+        missing = ~np.isfinite(inputs)
+        if not missing.any():
+            return frame
+        counts = {c: int(missing[:, i].sum()) for i, c in enumerate(INPUT_COLUMNS)}
+        held_u, held_y, first, held = hold_missing_inputs(inputs, outputs)
+        if first >= len(frame):
+            raise RecordError(
+                f"{self.where}: no second has all three inputs "
+                f"({', '.join(INPUT_COLUMNS)}); the model needs them every second"
+            )
+        frame = frame.iloc[first:].reset_index(drop=True)
+        frame[list(INPUT_COLUMNS)] = held_u
+        frame[list(OUTPUT_COLUMNS)] = held_y
+        rows = ~np.isfinite(inputs).all(axis=1)[first:]
+        longest, start = _longest_run(rows)
+        per_column = ", ".join(f"{c}: {k}" for c, k in counts.items() if k)
+        text = (
+            f"{self.where}: {held} second(s) without complete inputs ({per_column}; the longest "
+            f"run {longest} s from t = {frame[TIME_COLUMN].iloc[start]:g} s): inputs held at "
+            "their last value and the outputs missing there, as the live twin does"
+            if held
+            else f"{self.where}: inputs missing ({per_column})"
+        )
+        if first:
+            text += f"; the first {first} second(s), before any complete inputs, dropped"
+        self.notes.append(text)
+        return frame
+
+
+def time_cells(column: pd.Series, dialect: CsvDialect) -> pd.Series:
+    """A time column as numbers when every cell is a number in ``dialect`` (``1.234,5``
+    in a decimal-comma file), else as it is (date-times, or a bad cell to name)."""
+    if dialect.is_default or pd.api.types.is_numeric_dtype(column):
+        return column
+    if pd.api.types.is_datetime64_any_dtype(column):
+        return column
+    try:
+        text = column.astype("string").str.strip()
+    except (TypeError, ValueError):
+        return column
+    blank = text.isna() | text.str.lower().isin(BLANKS)
+    numbers = parse_numbers(text.where(~blank), dialect)
+    if (numbers.notna() | blank).all():
+        return numbers
+    return column
+
+
+def _longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """Length and start of the longest run of True."""
+    if not mask.any():
+        return 0, 0
+    padded = np.r_[False, mask, False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    starts, ends = edges[0::2], edges[1::2]
+    k = int(np.argmax(ends - starts))
+    return int(ends[k] - starts[k]), int(starts[k])
+
+
+def _as_text(series: pd.Series, where: str, column) -> pd.Series:
+    """A column as stripped text; bytes that are not UTF-8 (a binary column) are refused."""
+    try:
+        return series.astype("string").str.strip()
+    except (TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise RecordError(
+            f"{where}: column {column!r} holds values that are not text or numbers "
+            f"({type(exc).__name__}: {str(exc)[:80]})"
+        ) from None
+
+
+def _text_cells(series: pd.Series) -> np.ndarray:
+    """A text column's cells as Python strings ('' for no value)."""
+    if pd.api.types.is_bool_dtype(series):
+        return series.map(lambda v: "" if pd.isna(v) else str(v)).to_numpy(dtype=object)
+    try:
+        text = series.astype("string")
+    except (TypeError, ValueError, UnicodeDecodeError):
+        text = series.map(lambda v: v.decode("utf-8", "replace") if isinstance(v, bytes)
+                          else str(v))  # fmt: skip
+    return text.fillna("").to_numpy(dtype=object)

@@ -21,10 +21,12 @@ nozzle-tip resistance R_3^N            :func:`fluidics.nozzle_tip_resistance`
 carrier / sheath pressure P_c, P_s     :func:`fluidics.carrier_pressure`, ``sheath_pressure``
 linewidth / overspray L_w, L_o         :func:`line_output.linewidth`, :func:`line_output.overspray`
 material flow Q_m                      :func:`line_output.material_flow`
+line vs platen speed ν (§12)           :func:`line_speed.apply_line_speed`
 transition f, output g                 :func:`system.transition_rates`, ``output_function``
 =====================================  ==============================================
 """
 
+from ajtwin.model.line_speed import LineSpeedLaw, apply_line_speed, load_line_speed_law
 from ajtwin.model.parameters import (
     OutputCoefficients,
     PhysicalParameters,
@@ -65,6 +67,9 @@ __all__ = [
     "steady_aerosol_fraction",
     "ink_flows",
     "coefficient_matrix",
+    "LineSpeedLaw",
+    "load_line_speed_law",
+    "apply_line_speed",
     "STATE_NAMES",
     "INPUT_NAMES",
     "OUTPUT_NAMES",

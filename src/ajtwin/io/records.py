@@ -48,7 +48,9 @@ import pandas as pd
 
 from ajtwin.io.files import InputFileError, check_regular_file, read_toml_file
 
-FORMAT_VERSION = 1
+#: Version 2 adds the job columns (:data:`JOB_COLUMNS`, :data:`LINE_TRUTH_COLUMNS`) and the
+#: ``job``/``camera`` metadata; version-1 records still read (:func:`read_record`).
+FORMAT_VERSION = 2
 PARQUET_META_KEY = b"ajtwin"
 CSV_META_PREFIX = "# meta: "
 
@@ -69,6 +71,13 @@ TRUTH_COLUMNS = (
     "true_nozzle_deposition_um",
     "true_aerosol_fraction",
 )
+#: A job print (format version 2): the shutter and the platen speed at t_k, and for the
+#: camera measurement in the row, the time its trace was printed (model reference §12).
+JOB_COLUMNS = ("shutter_open", "platen_speed_mm_s", "printed_at_s")
+#: The truth of the line printed at t_k (at the nozzle) of a virtual job print.
+LINE_TRUTH_COLUMNS = ("true_linewidth_um", "true_overspray_um")
+#: Camera modes of a job print's ``camera`` metadata.
+CAMERA_MODES = ("trailing", "inspection", "at_nozzle")
 #: Column order of a record's table: time, the raw log's columns, then truth.
 RECORD_COLUMNS = (
     TIME_COLUMN,
@@ -103,6 +112,11 @@ UNITS = {
     "true_tube_deposition_um": "um",
     "true_nozzle_deposition_um": "um",
     "true_aerosol_fraction": "1",
+    "shutter_open": "1",
+    "platen_speed_mm_s": "mm/s",
+    "printed_at_s": "s",
+    "true_linewidth_um": "um",
+    "true_overspray_um": "um",
 }
 
 #: Metadata a record gets when its file says nothing (e.g. a bare CSV).
@@ -160,6 +174,8 @@ PLAUSIBLE_RANGES = {
     "true_tube_deposition_um": (-1000.0, 1000.0, None, "nm (expected µm)"),
     "true_nozzle_deposition_um": (-75.0, 75.0, None, "nm (expected µm)"),
     "true_aerosol_fraction": (0.0, 1.0, None, "a percentage or ppm (expected a fraction)"),
+    "true_linewidth_um": (1.0, 5000.0, "mm or m (expected µm)", "nm (expected µm)"),
+    "true_overspray_um": (0.0, 5000.0, None, "nm (expected µm)"),
 }
 # Columns with a lower bound of 0 can still reveal a unit slip through their median:
 # overspray of a real line is micrometres, not 0.03 (mm).
@@ -243,6 +259,33 @@ class PrintRecord:
         if not self.has_truth:
             return None
         return self.data[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+
+    @property
+    def has_job(self) -> bool:
+        """The record carries the job columns (a format-2 job print)."""
+        return all(c in self.data.columns for c in JOB_COLUMNS)
+
+    @property
+    def shutter_open(self) -> np.ndarray:
+        """Shutter state at each t_k (T,) as 0/1; all 1 (always printing) without a job."""
+        if "shutter_open" in self.data.columns:
+            return self.data["shutter_open"].to_numpy(dtype=float)
+        return np.ones(len(self.data))
+
+    @property
+    def platen_speed(self) -> np.ndarray:
+        """Platen speed ν [mm/s] at each t_k (T,); the metadata's speed without a job."""
+        if "platen_speed_mm_s" in self.data.columns:
+            return self.data["platen_speed_mm_s"].to_numpy(dtype=float)
+        return np.full(len(self.data), float(self.meta["platen_speed_mm_s"]))
+
+    @property
+    def printed_at(self) -> np.ndarray:
+        """Print time τ [s] of the trace measured in each row (T,), NaN where no camera
+        measurement; without a job, the row's own time (the camera sees the line as printed)."""
+        if "printed_at_s" in self.data.columns:
+            return self.data["printed_at_s"].to_numpy(dtype=float)
+        return _measured_at_row_time(self.data)
 
     @property
     def duration_s(self) -> float:
@@ -590,7 +633,8 @@ def validate_table(
             "every second — fill them (e.g. hold the last set-point) before estimating",
             stacklevel=2,
         )
-    known = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in df.columns]
+    order = (*RECORD_COLUMNS, *JOB_COLUMNS, *TRUTH_COLUMNS, *LINE_TRUTH_COLUMNS)
+    known = [c for c in order if c in df.columns]
     extra = [c for c in df.columns if c not in known]
     return df[known + extra].reset_index(drop=True)
 
@@ -871,6 +915,7 @@ def validate_meta(meta, where: str = "<record>") -> dict:
         and 1 <= meta["format_version"] <= FORMAT_VERSION
     ):
         raise bad("format_version", f"an integer 1..{FORMAT_VERSION} (this ajtwin's format)")
+    _check_job_meta(meta, where)
     if "units" in meta:
         units = meta["units"]
         if not isinstance(units, dict) or not all(
@@ -939,6 +984,7 @@ def read_record(path: str | Path, aliases: str | Path | None = None) -> PrintRec
         raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
     meta = validate_meta(dict(meta), str(path))
     data = validate_table(df, str(path), aliases=aliases, row_offset=row_offset)
+    data = job_columns(data, meta, str(path), row_offset)
     meta["source_file"] = str(path)
     return PrintRecord(data, meta)
 
@@ -973,3 +1019,135 @@ def write_record(record: PrintRecord, path: str | Path) -> Path:
     else:
         raise ValueError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
     return path
+
+
+# --------------------------------------------------------------------------- #
+# Job columns (format version 2)
+# --------------------------------------------------------------------------- #
+
+
+def _measured_at_row_time(data: pd.DataFrame) -> np.ndarray:
+    """printed_at_s of a record without a job: the row's time where the camera measured."""
+    measured = np.zeros(len(data), dtype=bool)
+    for column in CAMERA_COLUMNS:
+        if column in data.columns:
+            measured |= np.isfinite(data[column].to_numpy(dtype=float))
+    return np.where(measured, data[TIME_COLUMN].to_numpy(dtype=float), np.nan)
+
+
+def job_columns(data: pd.DataFrame, meta: dict, where: str, row_offset: int = 0) -> pd.DataFrame:
+    """Check a table's job columns, or add them to a version-1 record.
+
+    A version-1 record (``meta["format_version"]`` < 2) has no job: it gets
+    ``shutter_open`` = 1, ``platen_speed_mm_s`` = the metadata's platen speed and
+    ``printed_at_s`` = ``time_s`` where the camera measured (NaN elsewhere). A job column
+    present is checked: the shutter 0/1 (values between, from resampling an irregular log,
+    are rounded with a warning), the speed in [0, MAX_PLATEN_SPEED_MM_S] mm/s, a print
+    time no later than its row, and every camera measurement with its print time.
+    """
+    if int(meta.get("format_version", FORMAT_VERSION)) < 2:
+        defaults = {
+            "shutter_open": np.ones(len(data)),
+            "platen_speed_mm_s": np.full(
+                len(data), float(meta.get("platen_speed_mm_s", DEFAULT_META["platen_speed_mm_s"]))
+            ),
+            "printed_at_s": _measured_at_row_time(data),
+        }
+        data = data.assign(**{c: v for c, v in defaults.items() if c not in data.columns})
+        order = (*RECORD_COLUMNS, *JOB_COLUMNS, *TRUTH_COLUMNS, *LINE_TRUTH_COLUMNS)
+        known = [c for c in order if c in data.columns]
+        return data[known + [c for c in data.columns if c not in known]]
+
+    def fail(position, column, text):
+        raise RecordError(
+            f"{where}: {_row_label(data, position, row_offset)}, column {column!r}: {text}"
+        )
+
+    if "shutter_open" in data.columns:
+        shutter = data["shutter_open"].to_numpy(dtype=float)
+        bad = ~np.isfinite(shutter) | (shutter < 0) | (shutter > 1)
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            fail(
+                position,
+                "shutter_open",
+                f"value {shutter[position]!r} is not 0 (closed) or 1 (open)",
+            )
+        between = (shutter != 0) & (shutter != 1)
+        if between.any():
+            warnings.warn(
+                f"{where}: 'shutter_open' holds {int(between.sum())} values between 0 and 1 "
+                "(a resampled log); rounded (0.5 and above: open)",
+                stacklevel=3,
+            )
+            data = data.assign(shutter_open=np.floor(shutter + 0.5))
+    if "platen_speed_mm_s" in data.columns:
+        speed = data["platen_speed_mm_s"].to_numpy(dtype=float)
+        bad = ~np.isfinite(speed) | (speed < 0) | (speed > MAX_PLATEN_SPEED_MM_S)
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            fail(
+                position,
+                "platen_speed_mm_s",
+                f"value {speed[position]!r} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
+            )
+    if "printed_at_s" in data.columns:
+        printed = data["printed_at_s"].to_numpy(dtype=float)
+        t = data[TIME_COLUMN].to_numpy(dtype=float)
+        if np.isinf(printed).any():
+            position = int(np.flatnonzero(np.isinf(printed))[0])
+            fail(position, "printed_at_s", "value is infinite (use NaN for no measurement)")
+        later = np.isfinite(printed) & (printed > t + TIME_TOLERANCE_S)
+        if later.any():
+            position = int(np.flatnonzero(later)[0])
+            fail(
+                position,
+                "printed_at_s",
+                f"print time {printed[position]:g} s is after the row's time {t[position]:g} s "
+                "(a camera sees only what is already printed)",
+            )
+        unattributed = np.isfinite(_measured_at_row_time(data)) & ~np.isfinite(printed)
+        if unattributed.any():
+            position = int(np.flatnonzero(unattributed)[0])
+            fail(
+                position,
+                "printed_at_s",
+                "a camera measurement (linewidth_um/overspray_um) without the print time of "
+                "its trace",
+            )
+    return data
+
+
+def _check_job_meta(meta: dict, where: str) -> None:
+    """The ``job`` and ``camera`` metadata of a job print (format version 2)."""
+
+    def bad(key, expected):
+        return RecordError(f"{where}: metadata {key!r} = {meta[key]!r:.80}: expected {expected}")
+
+    if "camera" in meta:
+        camera = meta["camera"]
+        if not isinstance(camera, dict) or camera.get("mode") not in CAMERA_MODES:
+            raise bad("camera", f'an object with "mode" one of {", ".join(CAMERA_MODES)}')
+        offset = camera.get("offset_mm", [0.0, 0.0])
+        if not (
+            isinstance(offset, list)
+            and len(offset) == 2
+            and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in offset
+            )
+        ):
+            raise bad("camera", '"offset_mm" as [dx, dy] in mm')
+    if "job" in meta:
+        job = meta["job"]
+        if not isinstance(job, dict):
+            raise bad("job", "an object (program, sha256, speeds, speed_source, repeat_to_s)")
+        for key in ("process_speed_mm_s", "rapid_speed_mm_s", "repeat_to_s"):
+            value = job.get(key)
+            if value is not None and not (
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and value >= 0
+            ):
+                raise bad("job", f'"{key}" a number >= 0 or null')

@@ -1071,7 +1071,7 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str, row_offset: int = 0)
             fail(
                 position,
                 "shutter_open",
-                f"value {shutter[position]!r} is not 0 (closed) or 1 (open)",
+                f"value {shutter[position]:g} is not 0 (closed) or 1 (open)",
             )
         between = (shutter != 0) & (shutter != 1)
         if between.any():
@@ -1089,7 +1089,7 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str, row_offset: int = 0)
             fail(
                 position,
                 "platen_speed_mm_s",
-                f"value {speed[position]!r} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
+                f"value {speed[position]:g} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
             )
     if "printed_at_s" in data.columns:
         printed = data["printed_at_s"].to_numpy(dtype=float)

@@ -1058,21 +1058,22 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str, row_offset: int = 0)
         known = [c for c in order if c in data.columns]
         return data[known + [c for c in data.columns if c not in known]]
 
-    def fail(position, column, text):
-        raise RecordError(
-            f"{where}: {_row_label(data, position, row_offset)}, column {column!r}: {text}"
-        )
+    def refuse(bad, column, text):
+        """Refuse the first row where ``bad``; ``text(position)`` says why."""
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            raise RecordError(
+                f"{where}: {_row_label(data, position, row_offset)}, column {column!r}: "
+                f"{text(position)}"
+            )
 
     if "shutter_open" in data.columns:
         shutter = data["shutter_open"].to_numpy(dtype=float)
-        bad = ~np.isfinite(shutter) | (shutter < 0) | (shutter > 1)
-        if bad.any():
-            position = int(np.flatnonzero(bad)[0])
-            fail(
-                position,
-                "shutter_open",
-                f"value {shutter[position]:g} is not 0 (closed) or 1 (open)",
-            )
+        refuse(
+            ~np.isfinite(shutter) | (shutter < 0) | (shutter > 1),
+            "shutter_open",
+            lambda i: f"value {shutter[i]:g} is not 0 (closed) or 1 (open)",
+        )
         between = (shutter != 0) & (shutter != 1)
         if between.any():
             warnings.warn(
@@ -1083,38 +1084,35 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str, row_offset: int = 0)
             data = data.assign(shutter_open=np.floor(shutter + 0.5))
     if "platen_speed_mm_s" in data.columns:
         speed = data["platen_speed_mm_s"].to_numpy(dtype=float)
-        bad = ~np.isfinite(speed) | (speed < 0) | (speed > MAX_PLATEN_SPEED_MM_S)
-        if bad.any():
-            position = int(np.flatnonzero(bad)[0])
-            fail(
-                position,
-                "platen_speed_mm_s",
-                f"value {speed[position]:g} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
-            )
+        refuse(
+            ~np.isfinite(speed) | (speed < 0) | (speed > MAX_PLATEN_SPEED_MM_S),
+            "platen_speed_mm_s",
+            lambda i: f"value {speed[i]:g} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
+        )
     if "printed_at_s" in data.columns:
         printed = data["printed_at_s"].to_numpy(dtype=float)
         t = data[TIME_COLUMN].to_numpy(dtype=float)
-        if np.isinf(printed).any():
-            position = int(np.flatnonzero(np.isinf(printed))[0])
-            fail(position, "printed_at_s", "value is infinite (use NaN for no measurement)")
-        later = np.isfinite(printed) & (printed > t + TIME_TOLERANCE_S)
-        if later.any():
-            position = int(np.flatnonzero(later)[0])
-            fail(
-                position,
-                "printed_at_s",
-                f"print time {printed[position]:g} s is after the row's time {t[position]:g} s "
-                "(a camera sees only what is already printed)",
-            )
-        unattributed = np.isfinite(_measured_at_row_time(data)) & ~np.isfinite(printed)
-        if unattributed.any():
-            position = int(np.flatnonzero(unattributed)[0])
-            fail(
-                position,
-                "printed_at_s",
-                "a camera measurement (linewidth_um/overspray_um) without the print time of "
-                "its trace",
-            )
+        refuse(
+            np.isinf(printed),
+            "printed_at_s",
+            lambda i: "value is infinite (use NaN for no measurement)",
+        )
+        refuse(
+            np.isfinite(printed) & (printed > t + TIME_TOLERANCE_S),
+            "printed_at_s",
+            lambda i: (
+                f"print time {printed[i]:g} s is after the row's time {t[i]:g} s "
+                "(a camera sees only what is already printed)"
+            ),
+        )
+        refuse(
+            np.isfinite(_measured_at_row_time(data)) & ~np.isfinite(printed),
+            "printed_at_s",
+            lambda i: (
+                "a camera measurement (linewidth_um/overspray_um) without the print "
+                "time of its trace"
+            ),
+        )
     return data
 
 

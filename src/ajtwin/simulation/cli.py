@@ -301,7 +301,7 @@ def _job_line(record) -> str:
         f"{job['repeat_to_s']:g} s; shutter open {100 * record.shutter_open.mean():.1f} % of "
         f"the seconds; camera {camera['mode']}"
     )
-    if camera["mode"] != "at_nozzle":
+    if camera["mode"] == "trailing":
         text += f" at ({camera['offset_mm'][0]:g}, {camera['offset_mm'][1]:g}) mm"
     text += f": a measurement in {100 * seen.mean():.1f} % of the rows"
     if seen.any():

@@ -35,7 +35,9 @@ LAYERS = [
     ("apps",),
     ("store", "estimation"),
     ("profile_cnn",),
-    ("simulation", "vision", "cfd", "job"),
+    ("simulation", "vision", "cfd"),
+    # the machine's program: what the virtual printer prints and the camera looks at
+    ("job",),
     ("model",),
     ("io",),
     ("units", "config", "_aot"),

@@ -59,6 +59,7 @@ _SI_FACTORS: dict[str, float] = {
     "mL/s": ML_IN_M3,
     "J/K": 1.0,
     "mm/s": 1e-3,
+    "um/s": UM_IN_M,
     "um3/s": UM3_IN_ML * ML_IN_M3,
     "deg": 3.141592653589793 / 180.0,
     "m/s": 1.0,
@@ -94,6 +95,7 @@ _DIMENSIONS: dict[str, str] = {
         ("sccm", "mL/s", "mL/min", "L/min", "uL/s", "nL/s", "pL/s", "m3/s"), "volume flow"
     ),
     **dict.fromkeys(("mL", "m3"), "volume"),
+    **dict.fromkeys(("mm/s", "um/s", "m/s"), "speed"),
     **dict.fromkeys(("1", "-", "%"), "fraction"),
 }
 

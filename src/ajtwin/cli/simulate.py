@@ -3,12 +3,36 @@
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 
 import click
+import numpy as np
 
 from ajtwin.cli.options import BoundedFloat, csv_dialect_option
 from ajtwin.io.records import RecordError, read_record, write_record
+
+_SPEED = BoundedFloat(0.0, 10_000.0)
+
+
+class OffsetMM(click.ParamType):
+    """``DX[,DY]`` in mm (DY = 0 when left out); finite numbers only."""
+
+    name = "DX[,DY]"
+
+    def convert(self, value, param, ctx):
+        """``"DX"`` or ``"DX,DY"`` [mm] → (dx, dy); click's error names the option."""
+        if isinstance(value, tuple):
+            return value
+        parts = [p.strip() for p in str(value).split(",")]
+        if not 1 <= len(parts) <= 2:
+            self.fail(f"{value!r}: give DX or DX,DY in mm", param, ctx)
+        numbers = [BoundedFloat().convert(p, param, ctx) for p in parts]
+        if len(numbers) == 1:
+            numbers.append(0.0)
+        if any(abs(v) > 1000.0 for v in numbers):
+            self.fail(f"{value!r}: an offset beyond 1 m is not a camera on the head", param, ctx)
+        return tuple(numbers)
 
 
 @click.command()
@@ -76,6 +100,43 @@ from ajtwin.io.records import RecordError, read_record, write_record
     help="Truth generator: 'alt' is the second, structurally different one (evaluation only; "
     "ajtwin.simulation.truth_alt).",
 )
+@click.option(
+    "--job",
+    "job_program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Print this machine program (.prg): shutter, speeds and a camera on the part; the "
+    "job loops to the print's duration (format-2 record, docs/reference/record-format.md).",
+)
+@click.option(
+    "--process-speed",
+    type=_SPEED,
+    default=None,
+    help="With --job: the GUI's process speed [mm/s] where the program sets none "
+    "(default: stage.toml, 2 mm/s).",
+)
+@click.option(
+    "--rapid-speed",
+    type=_SPEED,
+    default=None,
+    help="With --job: the GUI's rapid speed [mm/s] where the program sets none "
+    "(default: stage.toml, 10 mm/s).",
+)
+@click.option(
+    "--camera",
+    "camera_mode",
+    type=click.Choice(["trailing", "inspection", "at_nozzle"]),
+    default=None,
+    help="With --job: the alignment camera trails the nozzle at an offset, inspects the strokes "
+    "after the print, or sees the line as printed (default: data/virtual_camera.toml, trailing).",
+)
+@click.option(
+    "--camera-offset-mm",
+    type=OffsetMM(),
+    default=None,
+    help="With --job: the camera's view centre relative to the nozzle, DX[,DY] in mm "
+    "(default: data/virtual_camera.toml, -5,0).",
+)
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
 def simulate(
     scenario,
@@ -87,11 +148,21 @@ def simulate(
     machine_seed,
     machine_name,
     truth_generator,
+    job_program,
+    process_speed,
+    rapid_speed,
+    camera_mode,
+    camera_offset_mm,
     list_only,
 ):
     """Virtual printer: simulate one print with known truth into a record file.
 
     Example: ajtwin simulate --scenario exp3 --seed 1 --out print.parquet
+
+    With --job PROGRAM.prg the printer runs the program (looped to the duration): the
+    machine evolves as on a straight line, the substrate gets material only while the
+    shutter is open, the line follows the platen speed, and the camera measures what it
+    sees (--camera, --camera-offset-mm).
     """
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.scenarios import list_scenarios, load_scenario
@@ -105,6 +176,15 @@ def simulate(
         raise click.UsageError("--out is required (a .parquet or .csv path)")
     if out.suffix.lower() not in (".parquet", ".pq", ".csv"):
         raise click.BadParameter(f"{out}: use a .parquet or .csv suffix", param_hint="--out")
+    job_options = {
+        "--process-speed": process_speed,
+        "--rapid-speed": rapid_speed,
+        "--camera": camera_mode,
+        "--camera-offset-mm": camera_offset_mm,
+    }
+    if job_program is None and any(v is not None for v in job_options.values()):
+        given = ", ".join(k for k, v in job_options.items() if v is not None)
+        raise click.UsageError(f"{given} describe a job print: give --job PROGRAM.prg")
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.printer import simulate as run
 
@@ -115,18 +195,34 @@ def simulate(
         except RecordError as exc:
             raise click.ClickException(str(exc)) from None
     t0 = time.perf_counter()
-    try:
-        record = run(
+    if job_program is not None:
+        record = _simulate_job(
+            job_program,
             scenario,
             seed,
             duration_min,
-            continue_from=previous,
-            machine=machine_name,
-            machine_seed=machine_seed,
-            truth_generator=truth_generator,
+            previous,
+            machine_name,
+            machine_seed,
+            truth_generator,
+            camera_mode,
+            camera_offset_mm,
+            process_speed,
+            rapid_speed,
         )
-    except (ValueError, FileNotFoundError) as exc:
-        raise click.ClickException(str(exc)) from None
+    else:
+        try:
+            record = run(
+                scenario,
+                seed,
+                duration_min,
+                continue_from=previous,
+                machine=machine_name,
+                machine_seed=machine_seed,
+                truth_generator=truth_generator,
+            )
+        except (ValueError, FileNotFoundError) as exc:
+            raise click.ClickException(str(exc)) from None
     elapsed = time.perf_counter() - t0
     write_record(record, out)
     meta = record.meta
@@ -136,6 +232,8 @@ def simulate(
         f"{out}: {meta['scenario']} seed {seed}, {len(record)} s, fault {fault} "
         f"(simulated in {elapsed:.2f} s)"
     )
+    if "job" in meta:
+        click.echo(_job_line(record))
     if "machine" in meta:
         cal = meta["machine"]["equivalent_calibration"]
         click.echo(
@@ -148,6 +246,68 @@ def simulate(
 
         plot_record(record, plot_path)
         click.echo(f"{plot_path}: plot")
+
+
+def _simulate_job(
+    program,
+    scenario,
+    seed,
+    duration_min,
+    previous,
+    machine_name,
+    machine_seed,
+    truth_generator,
+    camera_mode,
+    camera_offset_mm,
+    process_speed,
+    rapid_speed,
+):
+    """Run the job print for ``simulate --job``; program errors and warnings for the user."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.job import ProgramError
+    from ajtwin.simulation.job_print import CameraSettings, simulate_job
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            camera = CameraSettings(mode=camera_mode, offset_mm=camera_offset_mm)
+            record = simulate_job(
+                program,
+                scenario,
+                seed,
+                duration_min=duration_min,
+                continue_from=previous,
+                machine=machine_name,
+                machine_seed=machine_seed,
+                truth_generator=truth_generator,
+                camera=camera,
+                process_speed_mm_s=process_speed,
+                rapid_speed_mm_s=rapid_speed,
+            )
+        except (ProgramError, ValueError, FileNotFoundError) as exc:
+            raise click.ClickException(str(exc)) from None
+    for warning in caught:
+        click.echo(f"warning: {warning.message}", err=True)
+    return record
+
+
+def _job_line(record) -> str:
+    """One line on a job print: program, speed, camera and what the camera saw."""
+    job, camera = record.meta["job"], record.meta["camera"]
+    printed_at = record.printed_at
+    seen = np.isfinite(printed_at)
+    delay = record.time_s[seen] - printed_at[seen]
+    text = (
+        f"job {job['program']} at {job['process_speed_mm_s']:g} mm/s looped to "
+        f"{job['repeat_to_s']:g} s; shutter open {100 * record.shutter_open.mean():.1f} % of "
+        f"the seconds; camera {camera['mode']}"
+    )
+    if camera["mode"] == "trailing":
+        text += f" at ({camera['offset_mm'][0]:g}, {camera['offset_mm'][1]:g}) mm"
+    text += f": a measurement in {100 * seen.mean():.1f} % of the rows"
+    if seen.any():
+        text += f", of traces printed {np.median(delay):.1f} s earlier (median)"
+    return text
 
 
 @click.command()

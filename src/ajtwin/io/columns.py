@@ -38,7 +38,7 @@ from ajtwin.io.schema import UNITS as COLUMN_UNITS
 
 #: How each record column's name ends in its unit (stripped to get the column's base name).
 _NAME_SUFFIX = {"s": "_s", "mA": "_mA", "sccm": "_sccm", "Pa": "_Pa", "um": "_um",
-                "mL/s": "_mL_s", "mL": "_mL", "1": ""}  # fmt: skip
+                "mL/s": "_mL_s", "mL": "_mL", "mm/s": "_mm_s", "1": ""}  # fmt: skip
 
 _BRACKETED = re.compile(
     r"^(?P<base>.*?\S)\s*(?:\[(?P<a>[^\]]*)\]|\((?P<b>[^)]*)\)|\{(?P<c>[^}]*)\})$"

@@ -50,11 +50,14 @@ from ajtwin.io.columns import name_tables
 from ajtwin.io.dialect import SNIFF_LINES, CsvDialect, dialect_from_name, sniff_dialect
 from ajtwin.io.schema import (  # noqa: F401 (re-exported: the format's names live in schema)
     CAMERA_COLUMNS,
+    CAMERA_MODES,
     CHUNK_ROWS,
     CSV_META_PREFIX,
     DEFAULT_META,
     FORMAT_VERSION,
     INPUT_COLUMNS,
+    JOB_COLUMNS,
+    LINE_TRUTH_COLUMNS,
     MAX_GAP_S,
     MAX_PLATEN_SPEED_MM_S,
     MAX_RECORD_BYTES,
@@ -68,6 +71,7 @@ from ajtwin.io.schema import (  # noqa: F401 (re-exported: the format's names li
     REQUIRED_COLUMNS,
     SAMPLES_COLUMN,
     TIME_COLUMN,
+    TIME_TOLERANCE_S,
     TRUTH_COLUMNS,
     UNITS,
     RecordError,
@@ -136,6 +140,33 @@ class PrintRecord:
         if not self.has_truth:
             return None
         return self.data[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+
+    @property
+    def has_job(self) -> bool:
+        """The record carries the job columns (a format-2 job print)."""
+        return all(c in self.data.columns for c in JOB_COLUMNS)
+
+    @property
+    def shutter_open(self) -> np.ndarray:
+        """Shutter state at each t_k (T,) as 0/1; all 1 (always printing) without a job."""
+        if "shutter_open" in self.data.columns:
+            return self.data["shutter_open"].to_numpy(dtype=float)
+        return np.ones(len(self.data))
+
+    @property
+    def platen_speed(self) -> np.ndarray:
+        """Platen speed ν [mm/s] at each t_k (T,); the metadata's speed without a job."""
+        if "platen_speed_mm_s" in self.data.columns:
+            return self.data["platen_speed_mm_s"].to_numpy(dtype=float)
+        return np.full(len(self.data), float(self.meta["platen_speed_mm_s"]))
+
+    @property
+    def printed_at(self) -> np.ndarray:
+        """Print time τ [s] of the trace measured in each row (T,), NaN where no camera
+        measurement; without a job, the row's own time (the camera sees the line as printed)."""
+        if "printed_at_s" in self.data.columns:
+            return self.data["printed_at_s"].to_numpy(dtype=float)
+        return _measured_at_row_time(self.data)
 
     @property
     def duration_s(self) -> float:
@@ -552,6 +583,7 @@ def validate_meta(meta, where: str = "<record>") -> dict:
         and 1 <= meta["format_version"] <= FORMAT_VERSION
     ):
         raise bad("format_version", f"an integer 1..{FORMAT_VERSION} (this ajtwin's format)")
+    _check_job_meta(meta, where)
     if "units" in meta:
         units = meta["units"]
         if not isinstance(units, dict) or not all(
@@ -635,6 +667,7 @@ def read_record(
         raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet, .csv or .tsv")
     meta = validate_meta(dict(meta), str(path))
     _warn(notes)
+    data = job_columns(data, meta, str(path))
     meta["source_file"] = str(path)
     return PrintRecord(data, meta)
 
@@ -669,3 +702,134 @@ def write_record(record: PrintRecord, path: str | Path) -> Path:
     else:
         raise ValueError(f"{path}: unknown record format {suffix!r}; use .parquet or .csv")
     return path
+
+
+# --------------------------------------------------------------------------- #
+# Job columns (format version 2)
+# --------------------------------------------------------------------------- #
+
+
+def _measured_at_row_time(data: pd.DataFrame) -> np.ndarray:
+    """printed_at_s of a record without a job: the row's time where the camera measured."""
+    measured = np.zeros(len(data), dtype=bool)
+    for column in CAMERA_COLUMNS:
+        if column in data.columns:
+            measured |= np.isfinite(data[column].to_numpy(dtype=float))
+    return np.where(measured, data[TIME_COLUMN].to_numpy(dtype=float), np.nan)
+
+
+def job_columns(data: pd.DataFrame, meta: dict, where: str) -> pd.DataFrame:
+    """Check a table's job columns, or add them to a version-1 record.
+
+    A version-1 record (``meta["format_version"]`` < 2) has no job: it gets
+    ``shutter_open`` = 1, ``platen_speed_mm_s`` = the metadata's platen speed and
+    ``printed_at_s`` = ``time_s`` where the camera measured (NaN elsewhere). A job column
+    present is checked: the shutter 0/1 (values between, from resampling an irregular log,
+    are rounded with a warning), the speed in [0, MAX_PLATEN_SPEED_MM_S] mm/s, a print
+    time no later than its row, and every camera measurement with its print time.
+    """
+    if int(meta.get("format_version", FORMAT_VERSION)) < 2:
+        defaults = {
+            "shutter_open": np.ones(len(data)),
+            "platen_speed_mm_s": np.full(
+                len(data), float(meta.get("platen_speed_mm_s", DEFAULT_META["platen_speed_mm_s"]))
+            ),
+            "printed_at_s": _measured_at_row_time(data),
+        }
+        data = data.assign(**{c: v for c, v in defaults.items() if c not in data.columns})
+        order = (*RECORD_COLUMNS, *JOB_COLUMNS, *TRUTH_COLUMNS, *LINE_TRUTH_COLUMNS)
+        known = [c for c in order if c in data.columns]
+        return data[known + [c for c in data.columns if c not in known]]
+
+    def refuse(bad, column, text):
+        """Refuse the first row where ``bad``; ``text(position)`` says why."""
+        if bad.any():
+            position = int(np.flatnonzero(bad)[0])
+            raise RecordError(
+                f"{where}: row {position + 1} (t = {data[TIME_COLUMN].iloc[position]:g} s), "
+                f"column {column!r}: "
+                f"{text(position)}"
+            )
+
+    if "shutter_open" in data.columns:
+        shutter = data["shutter_open"].to_numpy(dtype=float)
+        refuse(
+            ~np.isfinite(shutter) | (shutter < 0) | (shutter > 1),
+            "shutter_open",
+            lambda i: f"value {shutter[i]:g} is not 0 (closed) or 1 (open)",
+        )
+        between = (shutter != 0) & (shutter != 1)
+        if between.any():
+            warnings.warn(
+                f"{where}: 'shutter_open' holds {int(between.sum())} values between 0 and 1 "
+                "(a resampled log); rounded (0.5 and above: open)",
+                stacklevel=3,
+            )
+            data = data.assign(shutter_open=np.floor(shutter + 0.5))
+    if "platen_speed_mm_s" in data.columns:
+        speed = data["platen_speed_mm_s"].to_numpy(dtype=float)
+        refuse(
+            ~np.isfinite(speed) | (speed < 0) | (speed > MAX_PLATEN_SPEED_MM_S),
+            "platen_speed_mm_s",
+            lambda i: f"value {speed[i]:g} is not a speed in [0, {MAX_PLATEN_SPEED_MM_S:g}] mm/s",
+        )
+    if "printed_at_s" in data.columns:
+        printed = data["printed_at_s"].to_numpy(dtype=float)
+        t = data[TIME_COLUMN].to_numpy(dtype=float)
+        refuse(
+            np.isinf(printed),
+            "printed_at_s",
+            lambda i: "value is infinite (use NaN for no measurement)",
+        )
+        refuse(
+            np.isfinite(printed) & (printed > t + TIME_TOLERANCE_S),
+            "printed_at_s",
+            lambda i: (
+                f"print time {printed[i]:g} s is after the row's time {t[i]:g} s "
+                "(a camera sees only what is already printed)"
+            ),
+        )
+        refuse(
+            np.isfinite(_measured_at_row_time(data)) & ~np.isfinite(printed),
+            "printed_at_s",
+            lambda i: (
+                "a camera measurement (linewidth_um/overspray_um) without the print "
+                "time of its trace"
+            ),
+        )
+    return data
+
+
+def _check_job_meta(meta: dict, where: str) -> None:
+    """The ``job`` and ``camera`` metadata of a job print (format version 2)."""
+
+    def bad(key, expected):
+        return RecordError(f"{where}: metadata {key!r} = {meta[key]!r:.80}: expected {expected}")
+
+    if "camera" in meta:
+        camera = meta["camera"]
+        if not isinstance(camera, dict) or camera.get("mode") not in CAMERA_MODES:
+            raise bad("camera", f'an object with "mode" one of {", ".join(CAMERA_MODES)}')
+        offset = camera.get("offset_mm", [0.0, 0.0])
+        if not (
+            isinstance(offset, list)
+            and len(offset) == 2
+            and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in offset
+            )
+        ):
+            raise bad("camera", '"offset_mm" as [dx, dy] in mm')
+    if "job" in meta:
+        job = meta["job"]
+        if not isinstance(job, dict):
+            raise bad("job", "an object (program, sha256, speeds, speed_source, repeat_to_s)")
+        for key in ("process_speed_mm_s", "rapid_speed_mm_s", "repeat_to_s"):
+            value = job.get(key)
+            if value is not None and not (
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and value >= 0
+            ):
+                raise bad("job", f'"{key}" a number >= 0 or null')

@@ -5,7 +5,9 @@ See docs/reference/record-format.md; :mod:`ajtwin.io.records` re-exports these n
 
 from __future__ import annotations
 
-FORMAT_VERSION = 1
+#: Version 2 adds the job columns (:data:`JOB_COLUMNS`, :data:`LINE_TRUTH_COLUMNS`) and the
+#: ``job``/``camera`` metadata; version-1 records still read (:func:`ajtwin.io.read_record`).
+FORMAT_VERSION = 2
 PARQUET_META_KEY = b"ajtwin"
 CSV_META_PREFIX = "# meta: "
 
@@ -26,6 +28,15 @@ TRUTH_COLUMNS = (
     "true_nozzle_deposition_um",
     "true_aerosol_fraction",
 )
+#: A job print (format version 2): the shutter and the platen speed at t_k, and for the
+#: camera measurement in the row, the time its trace was printed (model reference §12).
+JOB_COLUMNS = ("shutter_open", "platen_speed_mm_s", "printed_at_s")
+#: The truth of the line printed at t_k (at the nozzle) of a virtual job print.
+LINE_TRUTH_COLUMNS = ("true_linewidth_um", "true_overspray_um")
+#: Camera modes of a job print's ``camera`` metadata.
+CAMERA_MODES = ("trailing", "inspection", "at_nozzle")
+#: Time stamps closer than this count as equal (a print time against its row's time) [s].
+TIME_TOLERANCE_S = 1e-6
 #: Column order of a record's table: time, the raw log's columns, then truth.
 RECORD_COLUMNS = (
     TIME_COLUMN,
@@ -60,6 +71,11 @@ UNITS = {
     "true_tube_deposition_um": "um",
     "true_nozzle_deposition_um": "um",
     "true_aerosol_fraction": "1",
+    "shutter_open": "1",
+    "platen_speed_mm_s": "mm/s",
+    "printed_at_s": "s",
+    "true_linewidth_um": "um",
+    "true_overspray_um": "um",
 }
 
 #: Metadata a record gets when its file says nothing (e.g. a bare CSV).
@@ -117,6 +133,8 @@ PLAUSIBLE_RANGES = {
     "true_tube_deposition_um": (-1000.0, 1000.0, None, "nm (expected µm)"),
     "true_nozzle_deposition_um": (-75.0, 75.0, None, "nm (expected µm)"),
     "true_aerosol_fraction": (0.0, 1.0, None, "a percentage or ppm (expected a fraction)"),
+    "true_linewidth_um": (1.0, 5000.0, "mm or m (expected µm)", "nm (expected µm)"),
+    "true_overspray_um": (0.0, 5000.0, None, "nm (expected µm)"),
 }
 # Columns with a lower bound of 0 can still reveal a unit slip through their median:
 # overspray of a real line is micrometres, not 0.03 (mm).

@@ -33,6 +33,8 @@ from ajtwin.io.quality import ColumnQuality, judge, settings
 from ajtwin.io.schema import (
     CAMERA_COLUMNS,
     INPUT_COLUMNS,
+    JOB_COLUMNS,
+    LINE_TRUTH_COLUMNS,
     MAX_GAP_S,
     MAX_RECORD_SECONDS,
     MEDIAN_FLOORS,
@@ -121,7 +123,11 @@ class TableBuilder:
         if truth and len(truth) != len(TRUTH_COLUMNS):
             lacking = [c for c in TRUTH_COLUMNS if c not in present]
             self.notes.append(f"{where}: partial truth; lacking {', '.join(lacking)}")
-        order = [c for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS) if c in present or c in self.added]
+        order = [
+            c
+            for c in (*RECORD_COLUMNS, *JOB_COLUMNS, *TRUTH_COLUMNS, *LINE_TRUTH_COLUMNS)
+            if c in present or c in self.added
+        ]
         self.known = [c for c in order if c != TIME_COLUMN]
         self.columns = {c.name: c for c in self.plan.columns}
         self.extras = [c.name for c in self.plan.columns if not c.known]

@@ -21,6 +21,7 @@ nozzle-tip resistance R_3^N            :func:`fluidics.nozzle_tip_resistance`
 carrier / sheath pressure P_c, P_s     :func:`fluidics.carrier_pressure`, ``sheath_pressure``
 linewidth / overspray L_w, L_o         :func:`line_output.linewidth`, :func:`line_output.overspray`
 material flow Q_m                      :func:`line_output.material_flow`
+line vs platen speed ν (§12)           :func:`line_speed.apply_line_speed`
 transition f, output g                 :func:`system.transition_rates`, ``output_function``
 =====================================  ==============================================
 
@@ -60,11 +61,15 @@ _SYSTEM = (
     "steady_aerosol_fraction",
     "transition_rates",
 )
+#: the line's speed law, from :mod:`ajtwin.model.line_speed` on first use (it loads JAX)
+_LINE_SPEED = ("LineSpeedLaw", "apply_line_speed", "load_line_speed_law")
 
 
 def __getattr__(name):
     if name in _SYSTEM:
         return getattr(importlib.import_module("ajtwin.model.system"), name)
+    if name in _LINE_SPEED:
+        return getattr(importlib.import_module("ajtwin.model.line_speed"), name)
     raise AttributeError(f"module 'ajtwin.model' has no attribute {name!r}")
 
 
@@ -83,6 +88,9 @@ __all__ = [
     "steady_aerosol_fraction",
     "ink_flows",
     "coefficient_matrix",
+    "LineSpeedLaw",
+    "load_line_speed_law",
+    "apply_line_speed",
     "STATE_NAMES",
     "INPUT_NAMES",
     "OUTPUT_NAMES",

@@ -6,6 +6,9 @@
 * :func:`linewidth`, :func:`overspray` — that polynomial with each set.
 * :func:`material_flow` — Q_m = φ_m φ_A Q_c (silver volume flow, mL/s).
 
+These are the line at the reference platen speed (2 mm/s); how L_w and L_o change with
+the speed is :mod:`ajtwin.model.line_speed` (Q_m does not depend on it).
+
 Display units: d_a, ΔR_N, L in µm, Q in sccm (coefficients are per those units).
 """
 

@@ -30,6 +30,7 @@ from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
 from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
 from ajtwin.model.line_output import line_feature, material_flow
+from ajtwin.model.line_speed import apply_line_speed, load_line_speed_law
 from ajtwin.model.names import (
     INPUT_NAMES,
     N_INPUTS,
@@ -133,8 +134,10 @@ def transition_rates(
     return jnp.stack([d_droplet, d_vial, d_tube, d_nozzle, d_aerosol], axis=-1)
 
 
-def output_function(x, u, params: PhysicalParameters, coefficients):
-    """Output model g(x, u): [L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s].
+def output_function(
+    x, u, params: PhysicalParameters, coefficients, platen_speed_mm_s=None, speed_law=None
+):
+    """Output model g(x, u[, ν]): [L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s].
 
     Parameters
     ----------
@@ -145,7 +148,17 @@ def output_function(x, u, params: PhysicalParameters, coefficients):
         :func:`coefficient_matrix` of the output coefficients, or that matrix with a
         machine's :class:`~ajtwin.model.calibration.Calibration` (model reference §11), which is
         then applied to the nominal outputs.
+    platen_speed_mm_s : array (...) or float, optional
+        Platen speed ν [mm/s], a known input (model reference §12): L_w and L_o of the
+        calibrated line are scaled by the speed law (:mod:`ajtwin.model.line_speed`);
+        P_c, P_s, Q_m do not depend on ν. ``None`` (or ν = ν_ref): the line at ν_ref,
+        exactly the output model without ν.
+    speed_law : LineSpeedLaw, optional
+        The law's constants; default: ``data/line_speed.toml``.
     """
+    if platen_speed_mm_s is not None:
+        law = load_line_speed_law() if speed_law is None else speed_law
+        return apply_line_speed(output_function(x, u, params, coefficients), platen_speed_mm_s, law)
     if isinstance(coefficients, CalibratedCoefficients):
         nominal = output_function(x, u, params, coefficients.line)
         return apply_calibration(nominal, x, u, params, coefficients.calibration)
@@ -374,11 +387,22 @@ class DigitalModel:
         u = check_input(u)
         return np.asarray(_jit_rates(x, u, check_theta(theta), self.params))
 
-    def outputs(self, x, u) -> np.ndarray:
-        """Outputs g(x, u) = [L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s]."""
+    def outputs(self, x, u, platen_speed_mm_s=None) -> np.ndarray:
+        """Outputs g(x, u[, ν]) = [L_w µm, L_o µm, P_c Pa, P_s Pa, Q_m mL/s].
+
+        ``platen_speed_mm_s`` (ν, mm/s): the line at that speed (model reference §12);
+        without it, the line at the law's reference speed (2 mm/s).
+        """
         x = check_state(x, self.params)
         u = check_input(u)
-        return np.asarray(_jit_outputs(x, u, self.params, self.coefficient_matrix))
+        if platen_speed_mm_s is None:
+            return np.asarray(_jit_outputs(x, u, self.params, self.coefficient_matrix))
+        speed = np.asarray(platen_speed_mm_s, dtype=float)
+        if not np.isfinite(speed).all() or (speed < 0).any():
+            raise ValueError(f"platen_speed_mm_s must be finite and >= 0 mm/s, got {speed}")
+        return np.asarray(
+            _jit_outputs(x, u, self.params, self.coefficient_matrix, speed, load_line_speed_law())
+        )
 
     def step(self, x, u, theta=None, dt: float = 1.0, method: str = "euler") -> np.ndarray:
         """One discrete step x_{k+1} = f_d(x_k, u_k; θ) (Euler, or ``method="rk4"``)."""

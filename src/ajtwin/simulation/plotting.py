@@ -4,7 +4,8 @@ Measured outputs are drawn as thin raw traces with a 60 s rolling median on top
 (NaN samples are simply absent); a fault onset in the metadata is a dashed line.
 With ``nominal=True`` and truth present, the twin's nominal open-loop prediction
 (the digital model from the true initial state, driven by the measured inputs) is
-overlaid on the truth and on the outputs — the gap is what the twin must infer.
+overlaid on the truth and on the outputs — the gap is what the twin must infer. A job
+print (format 2) also shows its shutter and platen speed, and the overlay follows them.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import textwrap
 import warnings
 from pathlib import Path
+
+import numpy as np
 
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TRUTH_COLUMNS, PrintRecord
 from ajtwin.model import DigitalModel
@@ -47,7 +50,32 @@ def nominal_open_loop(record: PrintRecord):
     x0[2:4] = 0.0
     inputs = record.inputs
     states = model.simulate(x0, inputs[:-1]) if len(inputs) > 1 else x0[None]
-    return states, model.outputs(states, inputs)
+    if not record.has_job:
+        return states, model.outputs(states, inputs)
+    # a job print: the line at each second's platen speed, nothing printed with the shutter shut
+    outputs = np.array(model.outputs(states, inputs, record.platen_speed))
+    outputs[np.ix_(record.shutter_open <= 0, [0, 1, 4])] = np.nan
+    return states, outputs
+
+
+def plot_job_panel(ax, record: PrintRecord) -> None:
+    """Shutter (shaded where open) and platen speed of a job print on one axis."""
+    minutes = record.time_s / 60.0
+    speed = record.platen_speed
+    ax.fill_between(
+        minutes,
+        0.0,
+        max(float(speed.max()), 1e-9),
+        where=record.shutter_open > 0,
+        step="post",
+        color="tab:green",
+        alpha=0.2,
+        lw=0,
+        label="shutter open",
+    )
+    ax.step(minutes, speed, where="post", lw=0.6, color="tab:purple", label="platen speed")
+    ax.set_ylabel("ν [mm/s]")
+    ax.legend(loc="upper right", fontsize=7, frameon=False)
 
 
 def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bool = True):
@@ -95,7 +123,11 @@ def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bo
         mark(ax)
     meta_ax = axes[3, 0]
     meta_ax.axis("off")
-    axes[4, 0].axis("off")
+    if record.has_job:
+        plot_job_panel(axes[4, 0], record)
+        mark(axes[4, 0])
+    else:
+        axes[4, 0].axis("off")
     meta = record.meta
     lines = [
         f"scenario: {meta.get('scenario')}",
@@ -106,6 +138,10 @@ def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bo
         + (f" at {onset / 60:.1f} min" if onset is not None else ""),
         f"samples: {len(record)} ({record.duration_s / 60:.1f} min)",
     ]
+    if isinstance(meta.get("job"), dict) and isinstance(meta.get("camera"), dict):
+        offset = meta["camera"].get("offset_mm", [0.0, 0.0])
+        lines.append(f"job: {meta['job'].get('program')}")
+        lines.append(f"camera: {meta['camera'].get('mode')} at ({offset[0]:g}, {offset[1]:g}) mm")
     if meta.get("description"):
         lines.extend(textwrap.wrap(str(meta["description"]), 48))
     meta_ax.text(0.0, 1.0, "\n".join(lines), va="top", fontsize=9, wrap=True)

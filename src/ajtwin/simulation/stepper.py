@@ -28,6 +28,14 @@ truth : {"model", "alt"}
     The truth generator: the first (:mod:`ajtwin.simulation.truth`, which tuned the twin)
     or the second, structurally different one (:mod:`ajtwin.simulation.truth_alt`, for
     evaluation only), as ``simulate --truth``.
+job : str, Path or ajtwin.job.Job, optional
+    Print this machine program, looped to the duration, as ``simulate --job`` does
+    (:mod:`ajtwin.simulation.job_print`): the chunks and the record then carry the shutter,
+    the platen speed and the camera's print times, and stepping a job print through gives
+    :func:`~ajtwin.simulation.job_print.run_job_print`'s record (nominal machine). An
+    inspection pass (``camera`` mode ``"inspection"``) adds its rows after the print.
+camera : CameraSettings, optional
+    The job print's camera (default ``data/virtual_camera.toml``).
 
 Examples
 --------
@@ -59,6 +67,18 @@ from ajtwin.io.records import (
 )
 from ajtwin.model import coefficient_matrix, load_output_coefficients, load_parameters
 from ajtwin.model.system import check_input
+from ajtwin.simulation.job_print import (
+    job_meta,
+    job_table,
+    line_at_print_times,
+    measure_job_outputs,
+    nozzle_line,
+    plan_job_print,
+    program_meta,
+    read_job,
+    truth_line_speed,
+)
+from ajtwin.simulation.machine import nominal_machine
 from ajtwin.simulation.printer import (
     draw_line_coefficients,
     draw_processes,
@@ -86,13 +106,26 @@ class Chunk:
     true_states: np.ndarray  # (n, 5)
     true_outputs: np.ndarray  # (n, 5) noise-free
     setpoints: np.ndarray  # (n, 3) the commands in force
+    # a job print: shutter (0/1) and platen speed at t_k, the print time of the trace measured
+    # in the row (NaN: none) and the true line printed at t_k (NaN with the shutter closed)
+    shutter_open: np.ndarray | None = None  # (n,)
+    platen_speed_mm_s: np.ndarray | None = None  # (n,)
+    printed_at_s: np.ndarray | None = None  # (n,)
+    true_line: np.ndarray | None = None  # (n, 2) L_w, L_o µm
 
 
 class SteppedPrinter:
     """The virtual printer, advanced chunk by chunk under changing set-points."""
 
     def __init__(
-        self, scenario="exp1", seed: int = 0, duration_min=None, overrides=None, truth="model"
+        self,
+        scenario="exp1",
+        seed: int = 0,
+        duration_min=None,
+        overrides=None,
+        truth="model",
+        job=None,
+        camera=None,
     ):
         if truth not in ("model", "alt"):
             raise ValueError(f"truth generator {truth!r}: choose 'model' or 'alt'")
@@ -102,6 +135,9 @@ class SteppedPrinter:
             scenario = scenario.with_duration(duration_min)
         if not isinstance(seed, int | np.integer) or seed < 0:
             raise ValueError(f"seed = {seed!r} must be a non-negative integer")
+        self.plan = None
+        if job is not None:
+            scenario = self._plan_job(job, scenario, camera, int(seed))
         self.scenario = scenario
         self.seed = int(seed)
         self.params = load_parameters()
@@ -130,6 +166,18 @@ class SteppedPrinter:
                 float(dep["nozzle_size_exponent"]),
             )
             self._substeps = int(self._alt["measurement"]["substeps"])
+
+    def _plan_job(self, job, scenario, camera, seed: int):
+        """Plan the job print (the scenario's duration = the print) and extend the scenario
+        over an inspection pass; returns the scenario to run."""
+
+        the_job, path = read_job(job)
+        self.plan = plan_job_print(the_job, scenario.duration_s, camera)
+        self.plan.program_meta = program_meta(the_job, path)
+        scenario = scenario.with_duration(self.plan.n_rows / 60.0)
+        self.line_speed_law = truth_line_speed(scenario, seed, self.truth)
+        self._camera_line = np.full((self.plan.n_rows, 2), np.nan)
+        return scenario
 
     def _draw(self, streams, setpoints=None):
         """The exogenous processes for a schedule (the alt truth replaces d_a and η)."""
@@ -218,6 +266,8 @@ class SteppedPrinter:
         states, outputs = (np.asarray(emitted[i])[:n_new] for i in (0, 2))
         self._true_states[k0:k1] = states
         self._true_outputs[k0:k1] = outputs
+        if self.plan is not None:
+            return self._advance_job(p, k0, k1, states, outputs)
         # the measurement layer on the print so far (rows are independent)
         filled = np.nan_to_num(self._true_outputs, nan=1.0)
         inputs, measured = self._measure(p, filled)
@@ -231,12 +281,51 @@ class SteppedPrinter:
             setpoints=p.setpoints[k0:k1].copy(),
         )
 
+    def _job_measurement(self, p):
+        """Measured inputs, outputs and print times of the job print so far (all rows)."""
+
+        return measure_job_outputs(
+            lambda truth: self._measure(p, truth), self._true_outputs, self._camera_line, self.plan
+        )
+
+    def _advance_job(self, p, k0, k1, states, outputs) -> Chunk:
+        """The job print's rows k0..k1: the camera's line at the print times, the measurement."""
+
+        rows = slice(k0, k1)
+        self._camera_line[rows] = line_at_print_times(
+            self.plan.camera_printed_at_s[rows],
+            self.plan.camera_speed_mm_s[rows],
+            self._true_states,
+            p.head_inputs,
+            self._true_outputs,
+            self.params,
+            self.line_coefficients,
+            nominal_machine(),
+            self.line_speed_law,
+        )
+        inputs, measured, printed_at = self._job_measurement(p)
+        self.k = k1
+        return Chunk(
+            time_s=np.arange(k0, k1, dtype=float),
+            inputs=inputs[rows],
+            outputs=measured[rows],
+            true_states=states,
+            true_outputs=outputs,
+            setpoints=p.setpoints[rows].copy(),
+            shutter_open=self.plan.shutter_open[rows].copy(),
+            platen_speed_mm_s=self.plan.platen_speed_mm_s[rows].copy(),
+            printed_at_s=printed_at[rows],
+            true_line=nozzle_line(self.plan, self._true_outputs, self.line_speed_law, rows),
+        )
+
     def record(self, extra_meta: dict | None = None) -> PrintRecord:
         """The print so far as a record (measured columns and truth), like ``simulate``."""
         k = self.k
         if k < 2:
             raise ValueError("a record needs at least 2 printed seconds")
         p = self.processes
+        if self.plan is not None:
+            return self._job_record(p, k, extra_meta)
         filled = np.nan_to_num(self._true_outputs, nan=1.0)
         inputs, outputs = self._measure(p, filled)
         columns = {TIME_COLUMN: np.arange(k, dtype=float)}
@@ -244,6 +333,10 @@ class SteppedPrinter:
         columns.update({c: outputs[:k, i] for i, c in enumerate(OUTPUT_COLUMNS)})
         columns.update({c: self._true_states[:k, i] for i, c in enumerate(TRUTH_COLUMNS)})
         data = pd.DataFrame({c: columns[c] for c in (*RECORD_COLUMNS, *TRUTH_COLUMNS)})
+        meta = {**self._base_meta(p, k), **(extra_meta or {})}
+        return PrintRecord(data, meta)
+
+    def _base_meta(self, p, k: int) -> dict:
         cfg = self.scenario.config
         meta = {
             "machine_id": cfg["scenario"]["machine_id"],
@@ -262,10 +355,26 @@ class SteppedPrinter:
                 "line_coefficient_factors": self.line_factors.tolist(),
                 "true_line_coefficients": self.line_coefficients.tolist(),
             },
-            **(extra_meta or {}),
         }
         if self.truth != "model":
             meta["truth_generator"] = self.truth
+        return meta
+
+    def _job_record(self, p, k: int, extra_meta: dict | None) -> PrintRecord:
+        """The job print so far as a format-2 record (as :func:`run_job_print` writes)."""
+
+        inputs, outputs, printed_at = self._job_measurement(p)
+        rows = slice(0, k)
+        line_truth = nozzle_line(self.plan, self._true_outputs, self.line_speed_law, rows)
+        data = job_table(
+            self.plan, inputs[rows], outputs[rows], printed_at[rows], self._true_states, line_truth
+        )
+        meta = self._base_meta(p, k)
+        extra = job_meta(self.plan, self.line_speed_law, k)
+        meta["truth_draws"]["line_speed"] = extra.pop("line_speed_law")
+        meta.update(extra)
+        meta["source"] = meta["source"].replace("virtual printer", "virtual printer, job print", 1)
+        meta.update(extra_meta or {})
         return PrintRecord(data, meta)
 
     @property

@@ -37,6 +37,7 @@ from scipy.signal import lfilter
 from ajtwin import units
 from ajtwin._jax import jax, jnp
 from ajtwin.config import packaged_toml
+from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.system import output_function
 from ajtwin.simulation.truth import truth_rates
 
@@ -224,3 +225,38 @@ def alt_measure(scenario, processes, outputs_true, seed: int, settings=None):
     y[missing[:, 2] < meas["pressure_missing_fraction"], 3] = np.nan
     y[missing[:, 3] < meas["material_flow_missing_fraction"], 4] = np.nan
     return inputs, y
+
+
+def draw_alt_line_speed(rng: np.random.Generator, settings: dict | None = None) -> dict:
+    """The alternative truth's speed law, drawn: a beam footprint plus a √A-spreading bead.
+
+    Returns a JSON-ready dict (``form``, ``beam_fraction``, ``spreading_exponent``, and the
+    reference speed and validity range of ``data/line_speed.toml``), for
+    :func:`alt_line_speed_factors` and the record's ``truth_draws``.
+    """
+
+    cfg = (settings or load_alt_settings())["line_speed"]
+    low, high = (float(v) for v in cfg["beam_fraction_range"])
+    law = load_line_speed_law()
+    return {
+        "form": "beam_plus_spreading",
+        "beam_fraction": float(rng.uniform(low, high)),
+        "spreading_exponent": float(cfg["spreading_exponent"]),
+        "reference_speed_mm_s": float(law.reference_speed_mm_s),
+        "min_speed_mm_s": float(law.min_speed_mm_s),
+        "max_speed_mm_s": float(law.max_speed_mm_s),
+    }
+
+
+def alt_line_speed_factors(platen_speed_mm_s, law: dict):
+    """(f_w, f_o) of the alternative truth at speeds ν [mm/s] (NumPy arrays).
+
+    f_w = φ + (1 − φ)(ν_ref/ν)^p with ν clipped to the validity range; f_o = 1 (overspray
+    does not depend on the speed). Both are 1 at ν_ref.
+    """
+    nu = np.clip(
+        np.asarray(platen_speed_mm_s, dtype=float), law["min_speed_mm_s"], law["max_speed_mm_s"]
+    )
+    phi = law["beam_fraction"]
+    spreading = np.power(law["reference_speed_mm_s"] / nu, law["spreading_exponent"])
+    return phi + (1.0 - phi) * spreading, np.ones_like(nu)

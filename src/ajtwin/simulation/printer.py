@@ -44,7 +44,12 @@ from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
-from ajtwin.simulation.truth_alt import alt_measure, alt_processes, integrate_alt_truth
+from ajtwin.simulation.truth_alt import (
+    alt_measure,
+    alt_processes,
+    apply_machine_atomizer,
+    integrate_alt_truth,
+)
 
 # Named random streams, in a fixed order (append only: never reorder).
 STREAMS = (
@@ -441,6 +446,13 @@ def run_virtual_print(
         raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
     if truth_generator == "alt":
         processes = alt_processes(scenario, processes, int(seed))
+    if deviation.has_off_model_atomizer:
+        if truth_generator != "alt":
+            raise ValueError(
+                f"machine {deviation.name!r} has an off-model atomizer, an evaluation variant "
+                "of the second truth generator: use truth_generator='alt'"
+            )
+        processes = apply_machine_atomizer(processes, deviation, int(seed))
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
     x0 = true_initial_state(scenario, processes, params, streams)

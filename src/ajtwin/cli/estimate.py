@@ -31,9 +31,10 @@ def parse_early_em(text: str) -> tuple:
 
 
 def _read_calibration(calibration_path):
-    """(calibration, its covariance, per-output noise factors) of ``--calibration``, or Nones."""
+    """(calibration, its covariance, per-output noise factors, φ_A's level) of
+    ``--calibration``, or Nones."""
     if calibration_path is None:
-        return None, None, None
+        return None, None, None, None
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.model.calibration import read_calibration_file
 
@@ -47,7 +48,11 @@ def _read_calibration(calibration_path):
     if "noise_factor" in content:
         factors = content["noise_factor"]
         noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
-    return calibration, calibration_cov, noise_factors
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.commission import unpinned_aerosol_level
+
+    level = content.get("aerosol_level") or unpinned_aerosol_level()
+    return calibration, calibration_cov, noise_factors, level
 
 
 @click.command("estimate")
@@ -153,7 +158,7 @@ def estimate(
         record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
-    calibration, calibration_cov, noise_factors = _read_calibration(calibration_path)
+    calibration, calibration_cov, noise_factors, level = _read_calibration(calibration_path)
     try:
         early = parse_early_em(early_em)
     except ValueError as exc:
@@ -169,6 +174,7 @@ def estimate(
         early_em_s=early,
         gate_sigma=gate,
         vial_fill_ml=vial_ml,
+        aerosol_level_std=float((level or {}).get("relative_std", 0.0)),
     )
     n = len(record)
     with tqdm(total=n, unit="s", desc="twin", disable=None) as bar:
@@ -223,6 +229,10 @@ def estimate(
         )
     for note in run.visibility_notes():
         click.echo(note, err=True)
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.commission import aerosol_level_note
+
+    click.echo(f"note: {aerosol_level_note(level)}", err=True)
     if undetermined:
         click.echo(
             f"note: not determined by this print's data: {', '.join(undetermined)} — their "

@@ -283,11 +283,19 @@ def import_command(archive, as_name, store):
     "--known",
     "known_items",
     multiple=True,
-    help="A state known at the start, NAME=VALUE±STD (e.g. droplet_diameter_um=3.5±0.2); "
-    "repeatable. Pins what the print confounds (d_a with the line offsets, φ_A with the "
-    "Q_m gain).",
+    help="A state known at the start or a calibration parameter known from elsewhere, "
+    "NAME=VALUE±STD (e.g. droplet_diameter_um=3.5±0.2 from a droplet sizer, "
+    "material_flow_gain=1.00±0.03 from a profilometer-calibrated CNN); repeatable. Pins "
+    "what the print confounds (d_a with the line offsets, φ_A with the Q_m gain).",
 )
 @click.option("--vial-ml", default=1.0, show_default=True, help="The weighed fill [mL].")
+@click.option(
+    "--vial-used-ml",
+    "vial_used",
+    default=None,
+    help="The ink the print drew, VALUE±STD [mL]: the vial weighed before and after it "
+    "(an evaporation blank subtracted). Pins φ_A's level through dV_l/dt = −φ_A Q_c.",
+)
 @click.option(
     "--out",
     "out_path",
@@ -303,7 +311,16 @@ def import_command(archive, as_name, store):
 @record_options
 @store_option
 def commission(
-    name, record, known_items, vial_ml, out_path, no_registry, csv_dialect, aliases, store
+    name,
+    record,
+    known_items,
+    vial_ml,
+    vial_used,
+    out_path,
+    no_registry,
+    csv_dialect,
+    aliases,
+    store,
 ):
     """Fit machine NAME's calibration from a commissioning print RECORD.
 
@@ -315,12 +332,22 @@ def commission(
     # lazy CLI loading: the fit loads JAX, `machine --help` must not
     from ajtwin.engine.commissioning import commission_machine, save_commissioning
     from ajtwin.engine.commissioning import write_calibration as write_calibration_toml
-    from ajtwin.estimation.commission import CommissioningError, parse_known
+    from ajtwin.estimation.commission import CommissioningError, parse_amount, parse_known
 
     try:
         known = parse_known(known_items)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--known") from None
+    vial_used_ml = None
+    if vial_used is not None:
+        try:
+            vial_used_ml = parse_amount(vial_used, "--vial-used-ml")
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--vial-used-ml") from None
+        if not vial_used_ml[0] > 0:
+            raise click.BadParameter(
+                f"{vial_used!r}: the ink used must be positive [mL]", param_hint="--vial-used-ml"
+            )
     reg = None
     if not no_registry:
         reg = open_registry(store)
@@ -334,6 +361,7 @@ def commission(
             rec,
             known=known,
             vial_fill_ml=vial_ml,
+            vial_used_ml=vial_used_ml,
             where=str(record),
             learn_noise_scale=reg is not None,
         )
@@ -348,7 +376,10 @@ def commission(
             "samples": result.n_samples,
             "vial_fill_mL": vial_ml,
             "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
+            "known": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in known.items()},
         }
+        if vial_used_ml is not None:
+            provenance["vial_used_mL"] = f"{vial_used_ml[0]:.6g}±{vial_used_ml[1]:.3g}"
         write_calibration_toml(out_path, result, provenance)
         click.echo(f"wrote {out_path}")
     if reg is not None:
@@ -361,8 +392,11 @@ def _echo_commissioning(name, record, result) -> None:
     """The fitted calibration, one parameter a line, with its standard error and prior."""
     click.echo(f"commissioning of {name} from {record} ({result.n_samples} s):")
     click.echo(f"  {'parameter':26s} {'value':>11s} {'std error':>10s} {'prior σ':>9s}  print")
+    unpinned = not result.aerosol_level.get("pinned_by")
     for row in result.table():
         status = "determined" if row["determined"] else "NOT determined (prior)"
+        if row["parameter"] == "material_flow_gain" and unpinned:
+            status = "rests on φ_A's prior (see note)"
         click.echo(
             f"  {row['parameter']:26s} {row['value']:11.5g} {row['std_error']:10.3g} "
             f"{row['prior_std']:9.3g}  {status}"

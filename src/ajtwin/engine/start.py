@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ajtwin.engine.chain import carry_over, chain_start
-from ajtwin.engine.commissioning import calibration_twin_kwargs
+from ajtwin.engine.commissioning import aerosol_level, calibration_twin_kwargs
 from ajtwin.estimation.commission import load_commissioning_settings
 from ajtwin.estimation.twin import Twin
 from ajtwin.model.droplet_dynamics import next_response
@@ -75,14 +75,15 @@ def machine_start(registry, machine: str, chain, twin_overrides: dict | None = N
     :meth:`Twin.default`), ``started_from``, ``calibration_id``, ``maintenance``.
     """
     start = chain.start
-    theta = np.zeros(5) if chain.theta is None else np.asarray(chain.theta, dtype=float)
+    theta = np.zeros(5) if chain.theta is None else np.array(chain.theta, dtype=float)
     started_from = chain.description
     active = active_calibration(registry, machine)
     overrides = dict(twin_overrides or {})
     since = 0.0
     if commissioned_since_last_print(active, chain):
-        # start where commissioning left the machine
+        # start where commissioning left the machine, θ_φA holding its pinned atomizer level
         start = carry_over(active["end_mean"], active["end_cov"])
+        theta[4] = aerosol_level(active).get("theta_per_s", 0.0)
         since = active["created_unix"]
         started_from = f"commissioning {active['id']}"
     events = pending_maintenance(registry, machine, since)

@@ -21,7 +21,10 @@ import numpy as np
 import pandas as pd
 
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
+from ajtwin.estimation.calibration_uncertainty import (
+    aerosol_level_covariance,
+    calibration_state_covariance,
+)
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.em_calibration import output_m_step
 from ajtwin.estimation.filters import (
@@ -86,6 +89,10 @@ class TwinConfig:
     transition: str = "paper"
 
     noise_tuning: str = "calibrated"
+    # relative σ of φ_A's level that no output sees (commissioning's aerosol_level: the
+    # generation model's error unless pinned); added to the reported covariance. 0: none
+    # (an uncommissioned twin takes the nominal Q_m scale as exact)
+    aerosol_level_std: float = 0.0
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
     learn_line_offsets: bool = False
     learn_output_noise: bool = False
@@ -738,17 +745,24 @@ class Twin:
         return em, learned
 
     def _calibration_covariances(self, filtered, model_inputs):
-        """The states' covariance from the calibration's uncertainty (None: none given)."""
-        if self.calibration is None or self.calibration_cov is None:
-            return None
-        return calibration_state_covariance(
-            self.spec,
-            filtered,
-            model_inputs,
-            self.measurement_var,
-            self.calibration_cov,
-            self.functions,
-        )
+        """The states' covariance from the calibration's uncertainty and φ_A's unknown level
+        (None: neither given)."""
+        out = None
+        if self.calibration is not None and self.calibration_cov is not None:
+            out = calibration_state_covariance(
+                self.spec,
+                filtered,
+                model_inputs,
+                self.measurement_var,
+                self.calibration_cov,
+                self.functions,
+            )
+        if self.config.aerosol_level_std > 0:
+            level = aerosol_level_covariance(
+                filtered.means, model_inputs, self.config.aerosol_level_std, self.spec.dt
+            )
+            out = level if out is None else out + level
+        return out
 
     def _observe_vial(self, inputs, measurements, start_mean, start_cov):
         """The vial observer over the print's Q_m (None when Q_m was never measured)."""

@@ -313,4 +313,4 @@ def test_live_cli_refuses_an_unknown_transition_variant(tmp_path):
         + ["--store", str(tmp_path / "s.sqlite")],
     )
     assert result.exit_code == 2
-    assert "no variant 'nope'" in result.output and "input_following" in result.output
+    assert "no transition variant 'nope'" in result.output and "input_following" in result.output

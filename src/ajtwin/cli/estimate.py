@@ -8,7 +8,13 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from ajtwin.cli.options import BoundedFloat, check_vial_fill, record_options
+from ajtwin.cli.options import (
+    BoundedFloat,
+    check_vial_fill,
+    record_options,
+    transition_option,
+    transition_overrides,
+)
 from ajtwin.io.records import read_record
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
@@ -118,6 +124,7 @@ def _read_calibration(calibration_path):
     help="The machine's calibration TOML (`ajtwin machine commission --out`); default: "
     "the nominal model.",
 )
+@transition_option
 @click.option(
     "--theta-out",
     type=click.Path(dir_okay=False),
@@ -144,6 +151,7 @@ def estimate(
     noise_tuning,
     vial_ml,
     calibration_path,
+    transition,
     theta_out,
     plot_path,
     csv_dialect,
@@ -175,6 +183,7 @@ def estimate(
         gate_sigma=gate,
         vial_fill_ml=vial_ml,
         aerosol_level_std=float((level or {}).get("relative_std", 0.0)),
+        **transition_overrides(transition),
     )
     n = len(record)
     with tqdm(total=n, unit="s", desc="twin", disable=None) as bar:

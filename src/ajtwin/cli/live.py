@@ -9,7 +9,14 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import configure_logging, open_registry, record_options, store_option
+from ajtwin.cli.options import (
+    configure_logging,
+    open_registry,
+    record_options,
+    store_option,
+    transition_option,
+    transition_overrides,
+)
 
 
 @click.command()
@@ -40,14 +47,7 @@ from ajtwin.cli.options import configure_logging, open_registry, record_options,
     metavar="PORT",
     help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
 )
-@click.option(
-    "--transition",
-    default="paper",
-    show_default=True,
-    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml "
-    "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
-    "docs/explanation/forecast-droplet-dynamics.md).",
-)
+@transition_option
 @click.option("--verbose", is_flag=True)
 @record_options
 @store_option
@@ -83,18 +83,9 @@ def live(
         raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
-    # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.model.droplet_dynamics import transition_variants
-
-    if transition not in transition_variants():
-        raise click.BadParameter(
-            f"no variant {transition!r}; choose one of {', '.join(transition_variants())}",
-            param_hint="--transition",
-        )
+    overrides = transition_overrides(transition)
     registry = open_registry(store, create=True)  # the live twin writes
-    engine = LiveEngine(
-        registry, twin_overrides=None if transition == "paper" else {"transition": transition}
-    )
+    engine = LiveEngine(registry, twin_overrides=overrides or None)
     engine.warm_up(len(machines))
     out = None
     if messages is not None:

@@ -260,12 +260,13 @@ def extract(
     progress,
     csv_dialect,
 ):
-    """Linewidth and overspray from alignment-camera video (paper App. A, model reference §9).
+    """Linewidth and overspray from alignment-camera video (paper App. A).
 
     SOURCE is a video (mp4/avi/...), a folder of images or one PNG/TIFF.  Frames are
     streamed one at a time.  The CSV has one row per frame: frame, time_s, linewidth_um,
     overspray_um, linewidth_std_um, overspray_std_um (spread over the batches), n_batches
-    (batches measured) and status (ok, or why the frame gave no value).
+    (batches measured) and status (ok, or why the frame gave no value).  The method:
+    docs/reference/model.md §9.
     """
     # lazy CLI loading: OpenCV is imported when the command runs, not for --help
     from ajtwin.vision.extract import VisionInputError

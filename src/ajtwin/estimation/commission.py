@@ -677,7 +677,7 @@ def _confounding_notes(priors: dict, known: dict, aerosol_level: dict) -> list[s
         mean, std = priors["droplet_diameter_um"]
         notes.append(
             f"linewidth_offset_um rests on the droplet-size prior ({mean}±{std} µm): "
-            "d_a and the line offsets are confounded (model reference §11)"
+            "d_a and the line offsets are confounded (docs/reference/model.md §11)"
         )
-    notes.append(aerosol_level_note(aerosol_level) + " (model reference §11)")
+    notes.append(aerosol_level_note(aerosol_level) + " (docs/reference/model.md §11)")
     return notes

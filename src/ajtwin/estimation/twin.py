@@ -46,7 +46,12 @@ from ajtwin.estimation.record_checks import (
 from ajtwin.estimation.vial import load_vial_settings, observe_vial
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
-from ajtwin.model.droplet_dynamics import DropletStep, augment_inputs, load_droplet_dynamics
+from ajtwin.model.droplet_dynamics import (
+    DropletStep,
+    augment_inputs,
+    default_transition,
+    load_droplet_dynamics,
+)
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.system import check_input
 
@@ -85,8 +90,8 @@ class TwinConfig:
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
     # droplet-size dynamics: a variant of data/transition.toml ("paper" = model reference §4
-    # unchanged)
-    transition: str = "paper"
+    # unchanged); default: that file's ``default``
+    transition: str = field(default_factory=default_transition)
 
     noise_tuning: str = "calibrated"
     # relative σ of φ_A's level that no output sees (commissioning's aerosol_level: the

@@ -445,11 +445,10 @@ def _markdown(results: dict, command: str, computer: str) -> str:
         + ", ".join(f"{k} {v}" for k, v in s["machines_below_85_after"].items())
         + ".",
         "",
-        "Calibration recovery (z = (fitted − true)/std error, determined parameters):",
-        "",
     ]
     if results.get("atomizer_variant"):
         lines += _atomizer_lines(results), ""
+    lines += ["Calibration recovery (z = (fitted − true)/std error, determined parameters):", ""]
     for m in results["machines"] + ([results["paper"]] if "paper" in results else []):
         zs = {k: v["z"] for k, v in m["calibration_recovery"].items() if v["determined"]}
         worst = max(zs, key=lambda k: abs(zs[k]))

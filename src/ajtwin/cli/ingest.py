@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from ajtwin.cli.options import (
+    STATE_DISPLAY_SCALE,
     STATE_LABELS,
     BoundedFloat,
     open_registry,
@@ -95,8 +96,8 @@ def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliase
             err=True,
         )
     end = result.summary["end_state"]
-    for key, short, unit in STATE_LABELS:
-        click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
+        click.echo(f"  end {short:5s} = {end[key] * scale:.4g} {unit}")
     for note in result.run.visibility_notes() if result.run is not None else ():
         click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
     if result.events:

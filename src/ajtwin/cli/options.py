@@ -263,8 +263,10 @@ STATE_LABELS = (
     ("vial_volume_mL", "V_l", "mL"),
     ("tube_deposition_um", "ΔR_T", "µm"),
     ("nozzle_deposition_um", "ΔR_N", "µm"),
-    ("aerosol_fraction", "φ_A", "–"),
+    ("aerosol_fraction", "φ_A", "ppm by volume"),
 )
+#: the factor from a state's model unit to the unit of :data:`STATE_LABELS` (φ_A → ppm)
+STATE_DISPLAY_SCALE = (1.0, 1.0, 1.0, 1.0, float(units.fraction_to_ppm(1.0)))
 
 
 #: symbol and unit of each input and output, as the commands print them

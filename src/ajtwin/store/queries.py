@@ -64,17 +64,19 @@ def latest_seq(registry, name: str) -> int | None:
     return row[0]
 
 
-def latest_alarm(registry, name: str) -> dict | None:
-    """The machine's newest anomaly: ``seq``, ``ingested_at``, ``detected_s``, ``onset_s``
-    [s], ``cause``, ``description`` (None: never an alarm)."""
+def newest_print_alarms(registry, name: str) -> list[dict]:
+    """The anomalies of the machine's newest print that raised any, in detection order:
+    ``seq``, ``ingested_at``, ``detected_s``, ``onset_s`` [s], ``cause``, ``description``
+    ([] when no print ever raised one)."""
     machine = registry.machine(name)
-    row = registry._conn.execute(
-        "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
-        "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
-        "WHERE p.machine_id = ? ORDER BY p.seq DESC, a.detected_s DESC LIMIT 1",
-        (machine["id"],),
-    ).fetchone()
-    return None if row is None else dict(row)
+    rows = registry._conn.execute(
+        "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, a.description "
+        "FROM anomalies a JOIN prints p ON a.print_id = p.id WHERE p.machine_id = ? AND "
+        "p.seq = (SELECT MAX(p2.seq) FROM anomalies a2 JOIN prints p2 ON a2.print_id = p2.id "
+        "WHERE p2.machine_id = ?) ORDER BY a.detected_s",
+        (machine["id"], machine["id"]),
+    ).fetchall()
+    return [dict(r) for r in rows]
 
 
 def count_alarms(registry, name: str, seq: int, except_cause: str = "") -> int:

@@ -82,7 +82,9 @@ function fleetPage() {
   }
   connect(null, (ev) => {
     if (ev.type === "sample") schedule(ev.alarms && ev.alarms.length > 0);
-    else if (ev.type !== "hello") schedule(true);
+    // hello: the socket (re)opened — what was pushed between the page's rows and now
+    // (a print that ended meanwhile) never reaches it, so the rows are read again
+    else schedule(true);
   });
 }
 

@@ -25,6 +25,7 @@ from ajtwin.io.records import RecordError, read_record
 from ajtwin.store.archive import export_machine, import_machine
 from ajtwin.store.compaction import compact
 from ajtwin.store.live_log import live_session_now
+from ajtwin.store.queries import reported_end_std
 from ajtwin.store.registry import STATUS_DROPPED, STATUS_OK, RegistryError, printable
 
 
@@ -121,7 +122,7 @@ def show(name, store):
         f"  last stored print: #{last['seq']} from {printable(last['source'])} "
         f"({last['ingested_at']}), the twin's state at its end:"
     )
-    std = np.sqrt(np.diag(last["end_cov"]))
+    std = reported_end_std(reg, last)  # the band as reported (calibration, φ_A's level)
     # which bands that print's data set (apps.mismatch.data_share; prints before it: none)
     shares = (last.get("summary") or {}).get("data_share") or {}
     for i, (name_i, short, unit) in enumerate(STATE_LABELS):

@@ -55,6 +55,17 @@ def print_array(registry, print_id: int, name: str) -> np.ndarray | None:
     return None if row is None else _arrays.decode(row[0], row[1])
 
 
+def reported_end_std(registry, stored_print: dict) -> np.ndarray:
+    """σ (5,) of a stored print's end state as the twin reported it: the last row of its
+    ``stds`` array (the filter's σ with what the calibration's and φ_A's level uncertainty
+    add), else from its end covariance (the filter's alone, which the next print starts
+    from)."""
+    stds = print_array(registry, stored_print["id"], "stds")
+    if stds is not None and len(stds) and np.all(np.isfinite(stds[-1])):
+        return np.asarray(stds[-1], dtype=float)
+    return np.sqrt(np.maximum(np.diag(np.asarray(stored_print["end_cov"], float)), 0.0))
+
+
 def latest_seq(registry, name: str) -> int | None:
     """The seq of the machine's newest print, in the chain or not (None: no print)."""
     machine = registry.machine(name)

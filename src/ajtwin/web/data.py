@@ -279,7 +279,7 @@ class RegistryView:
                 }
                 if last is not None:
                     mean = last["end_mean"]
-                    std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
+                    std = queries.reported_end_std(self.registry, last)
                     means = queries.print_array(self.registry, last["id"], "means")
                     time_s = queries.print_array(self.registry, last["id"], "time_s")
                     entry["last_print"] = {
@@ -363,7 +363,7 @@ class RegistryView:
             out["last"] = {
                 "seq": int(last["seq"]),
                 "mean": json_list(last["end_mean"]),
-                "std": json_list(np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))),
+                "std": json_list(queries.reported_end_std(self.registry, last)),
                 "theta": json_list(last["theta_after"]),
             }
         return out

@@ -389,3 +389,38 @@ def test_bad_level_pins_are_refused_clearly():
     with pytest.raises(ValueError, match="positive uncertainty"):
         parse_amount("1e-4", "--vial-used-ml")
     assert parse_known(["material_flow_gain=1.00±0.03"]) == {"material_flow_gain": (1.0, 0.03)}
+
+
+def test_estimate_says_phi_is_relative_to_the_generation_model(tmp_path, pinned_commissionings):
+    import pandas as pd
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main
+    from ajtwin.engine.commissioning import write_calibration
+    from ajtwin.io.records import write_record
+
+    comm, results = pinned_commissionings
+    record = tmp_path / "next.parquet"
+    nxt = simulate("exp1", seed=4003, duration_min=4.0, continue_from=comm.record,
+                   truth_generator="alt")  # fmt: skip
+    write_record(nxt, record)
+    runner = CliRunner()
+    for pin, says in (
+        ("none", "known only relative to the generation model (±35%)"),
+        ("vial", "φ_A pinned by vial weighing"),
+    ):
+        cal = write_calibration(tmp_path / f"{pin}.toml", results[pin], {"print": "c"})
+        out = tmp_path / f"{pin}.csv"
+        res = runner.invoke(
+            main, ["estimate", str(record), "--calibration", str(cal), "--out", str(out)]
+        )
+        assert res.exit_code == 0, res.output
+        assert says in res.output
+        frame = pd.read_csv(out)
+        relative = frame["aerosol_fraction_std"] / frame["aerosol_fraction"]
+        if pin == "none":
+            assert relative.min() >= 0.35 * 0.999  # the band is the prior's, at least
+        else:
+            assert relative.median() < 0.1
+    res = runner.invoke(main, ["estimate", str(record), "--out", str(tmp_path / "n.csv")])
+    assert "takes the nominal Q_m scale as exact" in res.output

@@ -368,38 +368,48 @@ def commission(
         data_std, correlation = _calibration_errors(result, measurements)
     reported_std = data_std.copy()
     reported_std[GAIN] = abs(cal_mean[GAIN]) * float(np.sqrt(cov[0, 0]))
-    end = np.asarray(result.means[-1])
-    end_cov = np.asarray(result.covariances[-1])[:N_STATES, :N_STATES].copy()
-    end_cov[4, 4] += (level_std * end[4]) ** 2  # φ_A's level is as uncertain as λ
-    ratio = float(checks["determined_ratio"])
-    nis = np.asarray(result.nis)
-    n_meas = np.maximum(np.asarray(result.n_measured), 1)
     aerosol_level = {
         "relative": level,
         "relative_std": level_std,
-        "pinned_by": [name for name, v in pins.items() if v is not None],
+        "pinned_by": [PIN_NAMES[name] for name, v in pins.items() if v is not None],
         "theta_per_s": 0.0 if thetas is None else float(thetas[-1, 4]),
         "generation_prior_std": generation_std,
     }
-    aerosol_level["pinned_by"] = [PIN_NAMES[p] for p in aerosol_level["pinned_by"]]
+    return _result(
+        result, measurements, cal_mean, reported_std, cal_prior_std,
+        correlation * np.outer(data_std, data_std), priors, known, aerosol_level,
+        float(checks["determined_ratio"]),
+    )  # fmt: skip
+
+
+def _result(
+    result, measurements, cal_mean, std, prior_std, cal_cov, priors, known, level, ratio
+) -> CommissioningResult:
+    """The :class:`CommissioningResult` of the last filter pass: its end state (φ_A's band
+    widened by the level's uncertainty), the calibration with its standard errors, the
+    fit's NIS and noise factors, and the notes."""
+    end = np.asarray(result.means[-1])
+    end_cov = np.asarray(result.covariances[-1])[:N_STATES, :N_STATES].copy()
+    end_cov[4, 4] += (level["relative_std"] * end[4]) ** 2  # φ_A's level is as uncertain as λ
+    nis = np.asarray(result.nis)
+    n_meas = np.maximum(np.asarray(result.n_measured), 1)
     return CommissioningResult(
         calibration=Calibration(*(float(v) for v in cal_mean)),
-        std=dict(zip(CALIBRATION_NAMES, reported_std.tolist(), strict=True)),
-        prior_std=dict(zip(CALIBRATION_NAMES, cal_prior_std.tolist(), strict=True)),
+        std=dict(zip(CALIBRATION_NAMES, std.tolist(), strict=True)),
+        prior_std=dict(zip(CALIBRATION_NAMES, prior_std.tolist(), strict=True)),
         determined={
-            n: bool(reported_std[i] < ratio * cal_prior_std[i])
-            for i, n in enumerate(CALIBRATION_NAMES)
+            name: bool(std[i] < ratio * prior_std[i]) for i, name in enumerate(CALIBRATION_NAMES)
         },
         priors={k: list(v) for k, v in priors.items()},
-        n_samples=len(inputs),
+        n_samples=len(measurements),
         mean_nis=float(np.mean(nis / n_meas)),
         end_state=end[:N_STATES],
         end_state_std=np.sqrt(np.maximum(np.diag(end_cov), 0.0)),
         end_state_cov=end_cov,
-        calibration_cov=correlation * np.outer(data_std, data_std),
+        calibration_cov=cal_cov,
         noise_factors=noise_factors(result, measurements),
-        notes=_confounding_notes(priors, known, aerosol_level),
-        aerosol_level=aerosol_level,
+        notes=_confounding_notes(priors, known, level),
+        aerosol_level=level,
     )
 
 

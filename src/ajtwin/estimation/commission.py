@@ -544,7 +544,8 @@ def state_priors(settings: dict, u0, vial_fill_ml: float, model, known: dict) ->
         for name in ("droplet_diameter_um", "tube_deposition_um", "nozzle_deposition_um")
     }
     priors["vial_volume_mL"] = (vial_fill_ml, prior["vial_volume_std_mL"]["value"])
-    relative = prior["aerosol_fraction_relative_std"]["value"]
+    # the start's transient only: φ_A's level is the generation prior's, split off after the fit
+    relative = prior["aerosol_fraction_start_relative_std"]["value"]
     priors["aerosol_fraction"] = (aerosol, relative * aerosol)
     priors.update({k: (float(m), float(s)) for k, (m, s) in known.items()})
     return {name: priors[name] for name in STATE_NAMES}

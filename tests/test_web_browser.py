@@ -229,17 +229,42 @@ def _wait_for_print_end(dash, machine: str, bound_s: float) -> None:
     raise TimeoutError(f"{machine}'s live print did not end within {bound_s:.0f} s")
 
 
-def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
+LIVE_PRINT = {"scenario": "nozzle_clog", "seed": 1, "minutes": 5, "onset_min": 3}
+
+
+@pytest.fixture(scope="module")
+def live_print_work_s():
+    """The live print's twin and detectors run once here first, so the server finds their
+    compiled programs in the persistent cache (the same AJTWIN_CACHE_DIR) instead of
+    compiling them against the page's clock; returns the wall time of a warm run [s], the
+    work the server does before its first sample."""
+    from ajtwin.engine.replay import VirtualPrintFeed
+
+    feed = VirtualPrintFeed(None, "vm-live", LIVE_PRINT["scenario"], seed=LIVE_PRINT["seed"],
+                            minutes=LIVE_PRINT["minutes"], onset_min=LIVE_PRINT["onset_min"])  # fmt: skip
+    feed.prepare()  # compiles (on an empty cache, however long that takes) and fills the cache
+    t0 = time.monotonic()
+    feed.prepare()
+    return time.monotonic() - t0
+
+
+def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots, live_print_work_s):
     """A live virtual print (twin + detectors) with a nozzle clog from 3 min: the alarm is
     on the page within seconds of the twin raising it, labelled as a clog, after the onset.
     A fleet page drawn while the print runs, whose socket opens only after the print ended,
     still says so: the rows are read again when the socket opens (on a slow first run the
     end used to fall between the page's rows and its socket, and the row said 'live'
     forever)."""
-    minutes, rate = 5, 25  # the virtual print and its replay rate [samples/s]
-    args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-live",
-            "--virtual-minutes", str(minutes), "--virtual-onset", "3",
-            "--virtual-rate", str(rate), "--virtual-wait", "120"]  # fmt: skip
+    minutes, rate = LIVE_PRINT["minutes"], 25  # the virtual print, its replay rate [samples/s]
+    # every wait is bounded by the work it waits on: the server's run of the twin (its
+    # programs warmed above, so loading them is all that is left of compiling) and the
+    # replay of `minutes` of samples at `rate`
+    start_ms = 1000 * (10 * live_print_work_s + 30)
+    replay_ms = 1000 * (10 * minutes * 60 / rate + 30)
+    args = ["--virtual-print", LIVE_PRINT["scenario"], "--virtual-machine", "vm-live",
+            "--virtual-seed", str(LIVE_PRINT["seed"]), "--virtual-minutes", str(minutes),
+            "--virtual-onset", str(LIVE_PRINT["onset_min"]), "--virtual-rate", str(rate),
+            "--virtual-wait", str(start_ms / 1000)]  # fmt: skip
     with DashboardProcess(registry["store"], extra_args=args, log_path=tmp_path / "s.log") as dash:
         page, fleet = browser.new_page(), browser.new_page()
         held = []
@@ -250,11 +275,11 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
         fleet.route_web_socket("**/ws", hold)
         try:
             page.goto(dash.page_url("/machine/vm-live"))  # a viewer: the print starts
-            page.wait_for_function("window.__ajtwin.events > 5", timeout=TIMEOUT_MS)
+            page.wait_for_function("window.__ajtwin.events > 5", timeout=start_ms)
             fleet.goto(dash.page_url("/"))  # drawn while the print runs ...
             row = fleet.locator('tr[data-machine="vm-live"]')
             assert "live print ended" not in row.inner_text()
-            page.locator("#alarm-banner").wait_for(state="visible", timeout=TIMEOUT_MS)
+            page.locator("#alarm-banner").wait_for(state="visible", timeout=replay_ms)
             shown = page.evaluate("window.__ajtwin.alarmsShown")
             assert shown and shown[0]["cause"] == "nozzle_clog"
             assert 180.0 < shown[0]["detected_s"] < 180.0 + 90.0  # after the true onset

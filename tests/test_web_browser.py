@@ -240,8 +240,8 @@ def live_print_work_s():
     work the server does before its first sample."""
     from ajtwin.engine.replay import VirtualPrintFeed
 
-    feed = VirtualPrintFeed(None, "vm-live", LIVE_PRINT["scenario"], seed=LIVE_PRINT["seed"],
-                            minutes=LIVE_PRINT["minutes"], onset_min=LIVE_PRINT["onset_min"])  # fmt: skip
+    print_ = dict(LIVE_PRINT)
+    feed = VirtualPrintFeed(None, "vm-live", print_.pop("scenario"), **print_)
     feed.prepare()  # compiles (on an empty cache, however long that takes) and fills the cache
     t0 = time.monotonic()
     feed.prepare()

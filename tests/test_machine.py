@@ -424,3 +424,40 @@ def test_estimate_says_phi_is_relative_to_the_generation_model(tmp_path, pinned_
             assert relative.median() < 0.1
     res = runner.invoke(main, ["estimate", str(record), "--out", str(tmp_path / "n.csv")])
     assert "takes the nominal Q_m scale as exact" in res.output
+
+
+def test_machine_show_and_the_dashboard_say_how_well_phi_is_known(tmp_path, pinned_commissionings):
+    """Never commissioned, commissioned without a pin, and with the vial weighed: `machine
+    show` and the machine page's care fields each say which, in words a user reads."""
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main
+    from ajtwin.engine.commissioning import Commissioning, save_commissioning
+    from ajtwin.store.registry import Registry
+    from ajtwin.web.data import care_fields
+
+    _, results = pinned_commissionings
+    store = tmp_path / "r.sqlite"
+    with Registry(store) as reg:
+        for name in ("bare", "free", "weighed"):
+            reg.add_machine(name)
+        save_commissioning(reg, "free", Commissioning(results["none"], None), "c.parquet")
+        save_commissioning(reg, "weighed", Commissioning(results["vial"], None), "c.parquet")
+        care = {
+            name: care_fields(reg, name)["aerosol_level"] for name in ("bare", "free", "weighed")
+        }
+    level = results["vial"].aerosol_level
+    says = {
+        "bare": "not commissioned",
+        "free": "known only relative to the generation model (±35%)",
+        "weighed": f"φ_A pinned by vial weighing: the atomizer delivers {level['relative']:.2f}",
+    }
+    runner = CliRunner()
+    for name, text in says.items():
+        res = runner.invoke(main, ["machine", "show", name, "--store", str(store)])
+        assert res.exit_code == 0, res.output
+        assert text in res.output, name
+        assert text in care[name]["note"], name
+    assert care["free"]["pinned_by"] == [] and care["free"]["relative_std"] == pytest.approx(0.35)
+    assert care["weighed"]["pinned_by"] == ["vial weighing"]
+    assert care["weighed"]["relative_std"] < 0.1

@@ -461,3 +461,20 @@ def test_machine_show_and_the_dashboard_say_how_well_phi_is_known(tmp_path, pinn
     assert care["free"]["pinned_by"] == [] and care["free"]["relative_std"] == pytest.approx(0.35)
     assert care["weighed"]["pinned_by"] == ["vial weighing"]
     assert care["weighed"]["relative_std"] < 0.1
+
+
+def test_the_off_model_atomizer_study_runs_a_small_real_instance():
+    """`python -m ajtwin.studies.machine --atomizer-variant --pin gain` on one machine and a
+    10-min print: the study's own path (commission with the pin, the next print, the table)."""
+    from ajtwin.studies.machine import _atomizer_lines, evaluate_machine
+
+    m = evaluate_machine(machine_seed=1203, print_seed=4001, minutes=10.0, clog=False,
+                         atomizer_variant=True, pin="gain")  # fmt: skip
+    assert m["machine"] == "seed-1203-atomizer" and m["atomizer_output"] < 0.8
+    assert m["aerosol_level"]["pinned_by"] == ["material_flow_gain"]
+    assert m["aerosol_level"]["relative"] == pytest.approx(m["atomizer_output"], rel=0.1)
+    gain = m["calibration_recovery"]["material_flow_gain"]
+    assert abs(gain["z"]) < 3 and gain["determined"]
+    assert m["after"]["coverage"]["φ_A"] >= 0.85
+    table = _atomizer_lines({"pin": "gain", "machines": [m]})
+    assert f"| seed-1203-atomizer | {m['atomizer_output']:.3f} |" in table

@@ -465,10 +465,11 @@ def test_machine_show_and_the_dashboard_say_how_well_phi_is_known(tmp_path, pinn
 
 def test_the_off_model_atomizer_study_runs_a_small_real_instance():
     """`python -m ajtwin.studies.machine --atomizer-variant --pin gain` on one machine and a
-    10-min print: the study's own path (commission with the pin, the next print, the table)."""
+    30-min print (its first check): the study's own path (commission with the pin, the next
+    print, the table)."""
     from ajtwin.studies.machine import _atomizer_lines, evaluate_machine
 
-    m = evaluate_machine(machine_seed=1203, print_seed=4001, minutes=10.0, clog=False,
+    m = evaluate_machine(machine_seed=1203, print_seed=4001, minutes=30.0, clog=False,
                          atomizer_variant=True, pin="gain")  # fmt: skip
     assert m["machine"] == "seed-1203-atomizer" and m["atomizer_output"] < 0.8
     assert m["aerosol_level"]["pinned_by"] == ["material_flow_gain"]
@@ -476,5 +477,6 @@ def test_the_off_model_atomizer_study_runs_a_small_real_instance():
     gain = m["calibration_recovery"]["material_flow_gain"]
     assert abs(gain["z"]) < 3 and gain["determined"]
     assert m["after"]["coverage"]["φ_A"] >= 0.85
+    assert m["after"]["errors"]["30min"]["phi_A_rel"] < 0.10
     table = _atomizer_lines({"pin": "gain", "machines": [m]})
     assert f"| seed-1203-atomizer | {m['atomizer_output']:.3f} |" in table

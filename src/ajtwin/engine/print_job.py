@@ -13,6 +13,7 @@ calibration (the same run the ingest made, now smoothed), the stored alarms plac
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -192,25 +193,25 @@ def stored_print(registry, machine: str, seq: int | None = None) -> dict:
     return row
 
 
-def stored_part_map(
-    registry,
-    machine: str,
-    seq: int | None = None,
-    *,
-    program=None,
-    tolerance: Tolerance | None = None,
-    portion_mm: float = PORTION_MM,
-    step_mm: float = STEP_MM,
-    flag_probability: float = FLAG_PROBABILITY,
-    twin_progress=None,
-    line_progress=None,
-) -> PartMap:
-    """The part map of a stored print (module docstring).
+@dataclass
+class StoredPrint:
+    """What mapping a stored print's part needs, read from the registry in one go
+    (:func:`load_stored_print`); the mapping itself reads nothing more."""
 
-    ``program``: a program file to use instead of (or, for a print stored without one, as)
-    the stored job; ``tolerance``: instead of the one stored with the job. RegistryError
-    when the print has no job and none is given.
-    """
+    machine: str
+    row: dict
+    record: PrintRecord
+    job: object
+    entry: dict | None
+    events: list
+    twin: Twin
+    start: tuple
+
+
+def load_stored_print(registry, machine: str, seq: int | None = None, program=None):
+    """Read a stored print, its job (``program``: a program file instead of, or for a
+    print stored without, its stored job), alarms, twin and start. RegistryError when the
+    print has no job and none is given."""
     row = stored_print(registry, machine, seq)
     record = stored_record(registry, row)
     entry = registry.print_job(row["id"])
@@ -223,26 +224,43 @@ def stored_part_map(
             f"print {row['seq']} of {machine!r} was stored without its job: give the program "
             f"(--job PROGRAM.prg), or ingest prints with `ajtwin ingest --job`"
         )
+    alarms = registry.anomalies(machine)
+    events = alarms[alarms["seq"] == row["seq"]].to_dict("records")
+    twin, start = stored_print_twin(registry, row)
+    return StoredPrint(machine, row, record, job, entry, events, twin, start)
+
+
+def map_stored_print(
+    stored: StoredPrint,
+    tolerance: Tolerance | None = None,
+    *,
+    portion_mm: float = PORTION_MM,
+    step_mm: float = STEP_MM,
+    flag_probability: float = FLAG_PROBABILITY,
+    twin_progress=None,
+    line_progress=None,
+) -> PartMap:
+    """The part map of a stored print: the twin re-run (smoothed) from its stored start,
+    θ and calibration; ``tolerance`` instead of the one stored with the job."""
+    entry = stored.entry
     if tolerance is None and entry is not None and entry["settings"].get("tolerance_um"):
         tolerance = Tolerance(*entry["settings"]["tolerance_um"])
-    alarms = registry.anomalies(machine)
-    twin, start = stored_print_twin(registry, row)
     part = part_map_of_record(
-        record,
-        job,
+        stored.record,
+        stored.job,
         tolerance,
-        twin=twin,
-        start=start,
-        source=f"{machine} print {row['seq']}",
+        twin=stored.twin,
+        start=stored.start,
+        source=f"{stored.machine} print {stored.row['seq']}",
         portion_mm=portion_mm,
         step_mm=step_mm,
         flag_probability=flag_probability,
-        events=alarms[alarms["seq"] == row["seq"]].to_dict("records"),
+        events=stored.events,
         twin_progress=twin_progress,
         line_progress=line_progress,
     )
     end = np.asarray(part.run.run.end_mean, dtype=float)
-    stored_end = np.asarray(row["end_mean"], dtype=float)
+    stored_end = np.asarray(stored.row["end_mean"], dtype=float)
     scale = np.maximum(np.abs(stored_end), 1e-30)
     if np.any(np.abs(end - stored_end) / scale > RERUN_TOLERANCE):
         part.notes.append(
@@ -250,6 +268,15 @@ def stored_part_map(
             "(the twin changed since this print was stored): the map is the current twin's"
         )
     return part
+
+
+def stored_part_map(
+    registry, machine: str, seq: int | None = None, *, program=None, tolerance=None, **options
+) -> PartMap:
+    """The part map of a stored print (module docstring): :func:`load_stored_print` then
+    :func:`map_stored_print` (``options``: its keywords)."""
+    stored = load_stored_print(registry, machine, seq, program)
+    return map_stored_print(stored, tolerance, **options)
 
 
 def next_print_twin(registry, machine: str) -> tuple[Twin, tuple | None]:

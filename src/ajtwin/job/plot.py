@@ -182,7 +182,6 @@ def plot_part_values(
 
     if path is not None:
         matplotlib.use("Agg", force=False)
-    import matplotlib.patheffects as effects
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
     from matplotlib.colors import Normalize
@@ -220,50 +219,7 @@ def plot_part_values(
     if limit:
         for level in (-limit, limit):
             bar.ax.axhline(level, color="k", lw=1.2)
-    for marker in markers or ():
-        r = min(max(int(marker.get("repetition", 0)), 0), len(layout) - 1)
-        mx, my = marker["x_mm"] + layout[r, 0], marker["y_mm"] + layout[r, 1]
-        style = ("x", 11, 2.5) if marker.get("kind") == "raised" else ("o", 9, 1.8)
-        ax.plot(
-            mx, my, style[0], ms=style[1], mew=style[2], color="#d00000",
-            mfc="none", zorder=5,
-        )  # fmt: skip
-        ax.annotate(
-            marker.get("label", ""),
-            (mx, my),
-            xytext=(6, 6),
-            textcoords="offset points",
-            fontsize=8,
-            color="#900000",
-            zorder=6,
-            path_effects=[effects.withStroke(linewidth=2.5, foreground="w")],
-        )
-    if markers:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                marker="x",
-                ls="",
-                ms=9,
-                mew=2.5,
-                color="#d00000",
-                label="alarm raised (nozzle there)",
-            )  # fmt: skip
-        )
-        handles.append(
-            Line2D(
-                [],
-                [],
-                marker="o",
-                ls="",
-                ms=8,
-                mew=1.8,
-                mfc="none",
-                color="#d00000",
-                label="alarm onset (nozzle there)",
-            )  # fmt: skip
-        )
+    handles += _draw_markers(ax, markers or (), layout)
     if len(layout) > 1:
         box = job.summary()["bbox_mm"]
         offsets = job.repetition_offsets_s
@@ -283,3 +239,37 @@ def plot_part_values(
         fig.savefig(path, dpi=150)
         plt.close(fig)
     return fig
+
+
+def _draw_markers(ax, markers, layout) -> list:
+    """Alarm markers (raised: red cross, onset: red ring) with their labels; the legend
+    handles (none without markers)."""
+    import matplotlib.patheffects as effects
+    from matplotlib.lines import Line2D
+
+    for marker in markers:
+        r = min(max(int(marker.get("repetition", 0)), 0), len(layout) - 1)
+        mx, my = marker["x_mm"] + layout[r, 0], marker["y_mm"] + layout[r, 1]
+        style = ("x", 11, 2.5) if marker.get("kind") == "raised" else ("o", 9, 1.8)
+        ax.plot(mx, my, style[0], ms=style[1], mew=style[2], color="#d00000", mfc="none", zorder=5)
+        ax.annotate(
+            marker.get("label", ""),
+            (mx, my),
+            xytext=(6, 6),
+            textcoords="offset points",
+            fontsize=8,
+            color="#900000",
+            zorder=6,
+            path_effects=[effects.withStroke(linewidth=2.5, foreground="w")],
+        )
+    if not markers:
+        return []
+    raised = {"marker": "x", "ms": 9, "mew": 2.5, "label": "alarm raised (nozzle there)"}
+    onset = {
+        "marker": "o",
+        "ms": 8,
+        "mew": 1.8,
+        "mfc": "none",
+        "label": "alarm onset (nozzle there)",
+    }
+    return [Line2D([], [], ls="", color="#d00000", **style) for style in (raised, onset)]

@@ -171,3 +171,16 @@ def test_the_live_twin_maps_the_part_as_the_batch_filter_does_and_stores_the_job
     np.testing.assert_allclose(live["lw_mean_um"], batch["lw_mean_um"], rtol=0, atol=5.01e-4)
     np.testing.assert_allclose(live["p_out"], batch["p_out"], rtol=0, atol=5.01e-5)
     assert batch["flagged"].any() and not batch["flagged"].all()
+
+
+def test_a_served_virtual_printer_runs_the_job():
+    """``ajtwin printer serve --job``: the served rows have no line while the camera sees no
+    trace, and the same record as the batch job print."""
+    from ajtwin.live.printer_server import VirtualMachine
+
+    vm = VirtualMachine("vm", "exp1", seed=4, duration_min=2.0, job=PROGRAM)
+    rows = vm.rows(120, 120)
+    batch = run_job_print(PROGRAM, "exp1", 4, duration_min=2.0).record
+    linewidth = rows[:, 4]  # time, 3 inputs, then L_w, L_o, P_c, P_s, Q_m
+    assert np.isnan(linewidth).any() and np.isfinite(linewidth).any()
+    np.testing.assert_array_equal(np.isnan(linewidth), np.isnan(batch.outputs[:120, 0]))

@@ -296,7 +296,8 @@ def _echo_part_report(part, paths) -> None:
     "repeat_to",
     type=BoundedFloat(0.0, math.inf),
     default=None,
-    help="The print looped the program to this many seconds (default: the record's).",
+    help="The print looped the program to this many seconds (default: the record's; else "
+    "looped to the record's length when the print outlasts the program).",
 )
 @click.option(
     "--portion-mm",
@@ -342,7 +343,12 @@ def report(
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_map import part_map_of_record
     from ajtwin.engine.part_report import write_report
-    from ajtwin.engine.print_job import job_of_print, next_print_twin, stored_part_map
+    from ajtwin.engine.print_job import (
+        job_of_print,
+        next_print_twin,
+        record_duration_s,
+        stored_part_map,
+    )
     from ajtwin.io.records import RecordError, read_record
     from ajtwin.job import ProgramError
     from ajtwin.store.registry import RegistryError
@@ -370,6 +376,7 @@ def report(
                 process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
                 repeat_to_s=repeat_to,
+                print_duration_s=record_duration_s(rec),
             )
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start

@@ -53,6 +53,7 @@ def job_of_print(
     process_speed_mm_s: float | None = None,
     rapid_speed_mm_s: float | None = None,
     repeat_to_s: float | None = None,
+    print_duration_s: float | None = None,
 ):
     """The job as a print ran it: the program read with the print's speeds and looped as
     the print looped it.
@@ -60,8 +61,10 @@ def job_of_print(
     The record's ``job`` metadata (format 2) names the program's SHA-256 (a different
     program is refused with a ValueError), the speeds used and ``repeat_to_s``;
     ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s`` override them. Without
-    either the program runs once at the GUI's default speeds (``stage.toml``). A program
-    that cannot be read raises :class:`ajtwin.job.ProgramError` naming its line.
+    either the program runs at the GUI's default speeds (``stage.toml``), once, or looped
+    to ``print_duration_s`` when the print outlasts it (the machine ran it again, as the
+    live twin assumes). A program that cannot be read raises
+    :class:`ajtwin.job.ProgramError` naming its line.
     """
     from_record = dict((record_meta or {}).get("job") or {})
     expected = from_record.get("sha256")
@@ -84,9 +87,17 @@ def job_of_print(
         path=program_name,
     )
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
+    if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
+        loop = print_duration_s
     if loop is not None and float(loop) > 0:
         job = job.repeat(float(loop))
     return job
+
+
+def record_duration_s(record) -> float:
+    """How long a record's print ran [s]: one second per row (the last row's second
+    included)."""
+    return float(record.duration_s + 1.0)
 
 
 def job_entry(
@@ -138,9 +149,10 @@ def job_entry(
     }
 
 
-def job_from_entry(entry: dict, repeat_to_s: float | None = None):
+def job_from_entry(entry: dict, repeat_to_s: float | None = None, print_duration_s=None):
     """The job of a stored entry (:meth:`ajtwin.store.registry.Registry.print_job`), read
-    with the speeds it was stored with and looped as stored (or to ``repeat_to_s``)."""
+    with the speeds it was stored with and looped as stored (or to ``repeat_to_s``; or, with
+    no looping stored, to ``print_duration_s`` when the print outlasted the program)."""
     settings = entry.get("settings") or {}
     return job_of_print(
         entry["program_bytes"],
@@ -149,6 +161,7 @@ def job_from_entry(entry: dict, repeat_to_s: float | None = None):
         process_speed_mm_s=settings.get("process_speed_mm_s"),
         rapid_speed_mm_s=settings.get("rapid_speed_mm_s"),
         repeat_to_s=repeat_to_s if repeat_to_s is not None else settings.get("repeat_to_s"),
+        print_duration_s=print_duration_s,
     )
 
 
@@ -215,10 +228,13 @@ def load_stored_print(registry, machine: str, seq: int | None = None, program=No
     row = stored_print(registry, machine, seq)
     record = stored_record(registry, row)
     entry = registry.print_job(row["id"])
+    duration = record_duration_s(record)
     if program is not None:
-        job = job_of_print(Path(program).read_bytes(), Path(program).name, record.meta)
+        job = job_of_print(
+            Path(program).read_bytes(), Path(program).name, record.meta, print_duration_s=duration
+        )
     elif entry is not None:
-        job = job_from_entry(entry)
+        job = job_from_entry(entry, print_duration_s=duration)
     else:
         raise RegistryError(
             f"print {row['seq']} of {machine!r} was stored without its job: give the program "

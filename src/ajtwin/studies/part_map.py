@@ -27,8 +27,9 @@ the packaged clog would not leave on any machine).
     python -m ajtwin.studies.part_map [--seeds 1-4] [--truth model,alt] \\
         [--out docs/results/part_map] [--figures docs/figures/part_map]
 
-Writes ``results.json`` (per print and pooled) and ``table.md`` into ``--out`` and the
-example figures into ``--figures``.
+Writes ``NAME.json`` (per print and pooled) and ``NAME.md`` (``--name``, default
+``results``) into ``--out`` and the example figures into ``--figures``;
+``--linewidth-noise-um`` runs the twin with another camera noise σ of L_w.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ import pandas as pd
 
 from ajtwin.engine.part_map import Tolerance, part_map_of_record
 from ajtwin.engine.part_report import plot_part_map
+from ajtwin.estimation import Twin
 from ajtwin.model import load_parameters
 from ajtwin.simulation import run_job_print
 from ajtwin.simulation.job_print import line_at_print_times
@@ -133,7 +135,27 @@ def judge(part, truth: np.ndarray, onset_s: float | None) -> dict:
     }
 
 
-def measure_print(program, name: str, seed: int, truth: str, half_width: float, figure=None):
+def study_twin(linewidth_noise_um: float | None) -> Twin:
+    """The twin the study runs: the default one, or one whose camera noise σ of L_w is
+    ``linewidth_noise_um`` (L_o's scaled alike) — to show what the band's width owes to it."""
+    twin = Twin.default()
+    if linewidth_noise_um is None:
+        return twin
+    std = list(twin.config.measurement_std)
+    std[1] *= linewidth_noise_um / std[0]
+    std[0] = linewidth_noise_um
+    return Twin.default(measurement_std=tuple(std))
+
+
+def measure_print(
+    program,
+    name: str,
+    seed: int,
+    truth: str,
+    half_width: float,
+    figure=None,
+    linewidth_noise_um: float | None = None,
+):
     """One virtual job print (:data:`PRINTS` ``name``) mapped and judged (a dict; the figure
     drawn when asked)."""
     t0 = time.perf_counter()
@@ -142,7 +164,11 @@ def measure_print(program, name: str, seed: int, truth: str, half_width: float, 
     record = job_print.record
     tolerance = print_tolerance(record, half_width)
     part = part_map_of_record(
-        record, job_print.plan.job, tolerance, source=f"{scenario} seed {seed} ({truth})"
+        record,
+        job_print.plan.job,
+        tolerance,
+        twin=study_twin(linewidth_noise_um),
+        source=f"{scenario} seed {seed} ({truth})",
     )
     onset = record.meta.get("fault_onset_s") if scenario != "exp1" else None
     result = judge(part, true_line(job_print, part.points), onset)
@@ -235,21 +261,30 @@ def _seeds(text: str) -> list[int]:
 @click.option("--half-width", type=float, default=2.0, show_default=True, help="±µm")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("docs/results/part_map"))
 @click.option("--figures", type=click.Path(path_type=Path), default=Path("docs/figures/part_map"))
-def main(program, seeds, truths, half_width, out, figures):
-    """Run the study and write results.json, table.md and the example figures."""
+@click.option(
+    "--linewidth-noise-um",
+    type=float,
+    default=None,
+    help="Run the twin with this camera noise σ of L_w (default: the twin's, noise.toml).",
+)
+@click.option("--name", default="results", show_default=True, help="Output file stem.")
+def main(program, seeds, truths, half_width, out, figures, linewidth_noise_um, name):
+    """Run the study and write NAME.json, NAME.md and the example figures."""
     out.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
     rows = []
     for truth in truths.split(","):
         for seed in _seeds(seeds):
-            for name in PRINTS:
+            for kind in PRINTS:
                 figure = None
-                if seed == _seeds(seeds)[0] and truth == "model" and name != "clean":
-                    figure = figures / f"{name.replace(' ×', '_x')}_seed{seed}.png"
-                row = measure_print(program, name, seed, truth, half_width, figure)
+                if seed == _seeds(seeds)[0] and truth == "model" and kind != "clean":
+                    figure = figures / f"{kind.replace(' ×', '_x')}_seed{seed}.png"
+                row = measure_print(
+                    program, kind, seed, truth, half_width, figure, linewidth_noise_um
+                )
                 rows.append(row)
                 click.echo(
-                    f"{name} {truth} seed {seed}: flagged {row['flagged']}, truly out "
+                    f"{kind} {truth} seed {seed}: flagged {row['flagged']}, truly out "
                     f"{row['truly_out']}, both {row['both']}, coverage {row['coverage']:.3f} "
                     f"({row['wall_s']:.0f} s)",
                     err=True,
@@ -261,11 +296,12 @@ def main(program, seeds, truths, half_width, out, figures):
         "program": program.name,
         "measured": _dt.date.today().isoformat(),
         "half_width_um": half_width,
+        "linewidth_noise_um": linewidth_noise_um,
         "pooled": {key: pooled(group) for key, group in groups.items()},
         "prints": rows,
     }
-    (out / "results.json").write_text(json.dumps(result, indent=1, default=float))
-    (out / "table.md").write_text(markdown_table(result))
+    (out / f"{name}.json").write_text(json.dumps(result, indent=1, default=float))
+    (out / f"{name}.md").write_text(markdown_table(result))
     click.echo(markdown_table(result))
 
 

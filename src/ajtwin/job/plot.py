@@ -252,10 +252,12 @@ def _draw_markers(ax, markers, layout) -> list:
         mx, my = marker["x_mm"] + layout[r, 0], marker["y_mm"] + layout[r, 1]
         style = ("x", 11, 2.5) if marker.get("kind") == "raised" else ("o", 9, 1.8)
         ax.plot(mx, my, style[0], ms=style[1], mew=style[2], color="#d00000", mfc="none", zorder=5)
+        raised = marker.get("kind") == "raised"
         ax.annotate(
             marker.get("label", ""),
             (mx, my),
-            xytext=(6, 6),
+            xytext=(6, 6) if raised else (-6, 6),  # the onset's label to the left: no overlap
+            ha="left" if raised else "right",
             textcoords="offset points",
             fontsize=8,
             color="#900000",

@@ -143,7 +143,7 @@ def test_stored_print_part_map_is_drawn_from_the_api(job_registry, browser, tmp_
 @browser_only
 def test_live_job_print_part_map_appears_and_fills_in(job_registry, browser, tmp_path, shots):
     args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-job",
-            "--virtual-minutes", "5", "--virtual-onset", "2", "--virtual-rate", "10",
+            "--virtual-minutes", "4", "--virtual-onset", "2", "--virtual-rate", "25",
             "--virtual-wait", "120", "--job", str(PROGRAM), "--tolerance", "74+-1.5"]  # fmt: skip
     with DashboardProcess(job_registry["store"], extra_args=args, log_path=tmp_path / "s.log") as dash:
         page, errors = _page(browser)

@@ -126,9 +126,7 @@ def test_line_from_states_is_the_output_model_and_its_linearised_band():
     p1 = 1.3 * p0
     u = np.array([[375.0, 23.0, 50.0], [380.0, 24.0, 50.0]])
     tau, nu = np.array([0.25, 0.5]), np.array([3.0, 2.0])
-    mean, sd = line_from_states(
-        spec, [0.0, 1.0], [x0, x1], [p0, p1], u, tau, nu
-    )
+    mean, sd = line_from_states(spec, [0.0, 1.0], [x0, x1], [p0, p1], u, tau, nu)
     for i in range(2):
         w = tau[i]
         x = x0 + w * (x1 - x0)

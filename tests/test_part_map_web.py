@@ -145,7 +145,8 @@ def test_live_job_print_part_map_appears_and_fills_in(job_registry, browser, tmp
     args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-job",
             "--virtual-minutes", "4", "--virtual-onset", "2", "--virtual-rate", "25",
             "--virtual-wait", "120", "--job", str(PROGRAM), "--tolerance", "74+-1.5"]  # fmt: skip
-    with DashboardProcess(job_registry["store"], extra_args=args, log_path=tmp_path / "s.log") as dash:
+    log = tmp_path / "s.log"
+    with DashboardProcess(job_registry["store"], extra_args=args, log_path=log) as dash:
         page, errors = _page(browser)
         try:
             page.goto(dash.page_url("/machine/vm-job"))

@@ -117,6 +117,9 @@ class LiveEngine:
         self._executor = ThreadPoolExecutor(max(1, int(em_workers)), thread_name_prefix="em")
         self.sessions: dict[str, _Session] = {}
         self._subscribers: list = []
+        #: machine → the job its print runs (:func:`ajtwin.engine.print_job.job_entry`),
+        #: stored with the print when it ends
+        self.jobs: dict[str, dict] = {}
 
     def warm_up(self, n_machines: int = 1) -> None:
         """Compile the step functions (single and batched) before the first real sample."""
@@ -217,6 +220,11 @@ class LiveEngine:
             stream, session_id, expected, started_from, source, [], [], time.monotonic()
         )
         return stream
+
+    def stream(self, machine: str) -> TwinStream | None:
+        """The machine's stream while its print is open (None otherwise)."""
+        entry = self.sessions.get(machine)
+        return None if entry is None else entry.stream
 
     def feed(self, machine: str, sample: Sample) -> list[dict]:
         """One sample of one machine (opens the machine on first use)."""
@@ -334,6 +342,7 @@ class LiveEngine:
                 live_session=session.session_id,  # closed (and thinned) with the print
                 keep_live_steps=self.keep_live_steps,
                 long_run_history=stream.detector.long_run_history(),
+                job=self.jobs.get(machine),
             )
         else:  # nothing stored: the session's rows are all there is of it
             self.log.close_session(session.session_id, print_id)

@@ -55,6 +55,7 @@ from ajtwin.job.settings import ReaderSettings, Stage, load_reader_settings, loa
 
 __all__ = [
     "read_program",
+    "decode_program",
     "read_program_text",
     "Job",
     "JobState",
@@ -137,13 +138,8 @@ def read_program(
         joins, motion beyond the stage travel, unclosed blocks.
     """
     path = Path(path)
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = raw.decode("latin-1")
     return read_program_text(
-        text,
+        decode_program(path.read_bytes()),
         process_speed_mm_s,
         rapid_speed_mm_s,
         path=str(path),
@@ -154,6 +150,15 @@ def read_program(
         shutter_output=shutter_output,
         start_mm=start_mm,
     )
+
+
+def decode_program(raw: bytes) -> str:
+    """A program file's bytes as text: UTF-8 (with or without a byte-order mark), else
+    Latin-1 (controllers' editors write either)."""
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def read_program_text(

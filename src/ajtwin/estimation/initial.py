@@ -84,6 +84,7 @@ def fit_initial_state(
     droplet_prior_um: float | None = None,
     droplet_prior_std_um: float | None = None,
     aerosol_prior_relative_std: float | None = None,
+    line_factors=None,
 ) -> InitialFit:
     """Weighted least-squares fit of x₀ over the first ``n_samples`` samples.
 
@@ -104,6 +105,10 @@ def fit_initial_state(
     droplet_prior_um, droplet_prior_std_um, aerosol_prior_relative_std
         Priors for a print with no line output in the first samples (module
         docstring); without them such a print is refused.
+    line_factors : array (T, 4), optional
+        A job print's (F_w, F_o, v_w, v_o) per sample: y_w = F_w L_w + w with
+        Var w = v_w σ², fitted as y_w / F_w against L_w with σ √v_w / F_w (the same
+        residual; :mod:`ajtwin.estimation.print_time`).
 
     Returns
     -------
@@ -114,6 +119,13 @@ def fit_initial_state(
     u = np.asarray(inputs, dtype=float)[:n_samples]
     y = np.asarray(measurements, dtype=float)[:n_samples]
     sigma = np.asarray(measurement_std, dtype=float)
+    if line_factors is not None:
+        # the line at ν_ref: y/F with σ√v/F per sample (per-sample σ broadcasts in the fit)
+        line = np.asarray(line_factors, dtype=float)[:n_samples]
+        y = y.copy()
+        y[:, :2] = y[:, :2] / line[:, :2]
+        sigma = np.tile(sigma, (len(y), 1))
+        sigma[:, :2] = sigma[:, :2] * np.sqrt(line[:, 2:4]) / line[:, :2]
     measured = np.isfinite(y)
     if not measured[:, [0, 1, 4]].any() and droplet_prior_um is not None:
         return _prior_start(

@@ -192,6 +192,7 @@ class PrintTimeBins:
         self.dropped = {reason: 0 for reason in DROP_REASONS}
         self.filed = 0  # camera frames filed
         self.closed_material_flow = 0  # Q_m values of shutter-closed rows not used
+        self._changed_from: int | None = None  # oldest step changed since take_changed()
 
     # ------------------------------------------------------------------ #
     def add(self, time_s, inputs, outputs, shutter_open, platen_speed_mm_s, printed_at_s):
@@ -245,6 +246,7 @@ class PrintTimeBins:
             np.zeros(2),
             np.full((2, 2), np.nan),
         )
+        self._mark_changed(k)
         camera = np.isfinite(y[:2])
         if camera.any():
             tau = float(printed_at_s)
@@ -302,6 +304,16 @@ class PrintTimeBins:
             b.sum_ff[i] += f[i] * f[i]
             b.sum_fy[i] += f[i] * values[i]
         self.filed += 1
+        self._mark_changed(j)
+
+    def _mark_changed(self, j: int) -> None:
+        self._changed_from = j if self._changed_from is None else min(self._changed_from, j)
+
+    def take_changed(self) -> int | None:
+        """The oldest step added or filed into since the last call (None: none), then reset:
+        a provisional re-run need not go back further."""
+        changed, self._changed_from = self._changed_from, None
+        return changed
 
     def _speed_at(self, tau: float) -> float | None:
         """ν(τ): the program's (None: its shutter was closed then), else the rows' interpolated."""

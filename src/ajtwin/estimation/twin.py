@@ -313,6 +313,13 @@ class TwinRun:
         frame["n_measured"] = np.asarray(self.filtered.n_measured)
         frame["log_likelihood"] = np.asarray(self.filtered.log_likelihood)
         frame["reinitialised"] = np.asarray(self.filtered.reinitialised)
+        if self.line_factors is not None:
+            # a job print: each second's camera measurements filed at their print time, the
+            # frames behind them and the speed law's factor of the line printed then
+            for i, name in enumerate(("linewidth", "overspray")):
+                frame[f"filed_{name}_um"] = np.asarray(self.measurements)[:, i]
+                frame[f"camera_frames_{name}"] = np.asarray(self.n_camera)[:, i]
+                frame[f"line_factor_{name}"] = self.line_factors[:, i]
         if self.seen is not None:
             for i, name in enumerate(STATE_NAMES):
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]

@@ -366,11 +366,15 @@ def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
 
 
 def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
-    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record (the
+    measurements the filter used: on a job print, filed at their print times)."""
 
     f = run.filtered
+    measured = getattr(run, "measurements", None)
     e = normalised_innovations(
-        record.outputs, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
+        record.outputs if measured is None else measured,
+        np.asarray(f.predicted_outputs),
+        np.asarray(f.innovation_variances),
     )
     return assess(
         run.time_s,

@@ -354,7 +354,9 @@ class TwinStream:
             np.nan if sample.platen_speed_mm_s is None else sample.platen_speed_mm_s,
             np.nan if sample.printed_at_s is None else sample.printed_at_s,
         ):
-            out += self._accept_final(Sample(step.time_s, step.inputs, step.outputs, line=step.line))
+            out += self._accept_final(
+                Sample(step.time_s, step.inputs, step.outputs, line=step.line)
+            )
         return out
 
     def _accept_final(self, sample: Sample) -> list[dict]:

@@ -26,7 +26,8 @@ A job print (model reference §12) adds a known input per step, ``line`` =
 measured trace was printed at, and the variance factors of a camera measurement that
 combines several frames of that second (:mod:`ajtwin.estimation.print_time`):
 
-    g_k(x) = diag(F_w, F_o, 1, 1, 1) g(x, u_k),   Σ_w,k = diag(v_w σ²_Lw, v_o σ²_Lo, σ²_Pc, σ²_Ps, σ²_Qm)
+    g_k(x) = diag(F_w, F_o, 1, 1, 1) g(x, u_k)
+    Σ_w,k  = diag(v_w σ²_Lw, v_o σ²_Lo, σ²_Pc, σ²_Ps, σ²_Qm)
 
 Without it (``line=None``, every record without a job) the step is exactly the one above.
 

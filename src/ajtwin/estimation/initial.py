@@ -106,9 +106,7 @@ def fit_initial_state(
         Priors for a print with no line output in the first samples (module
         docstring); without them such a print is refused.
     line_factors : array (T, 4), optional
-        A job print's (F_w, F_o, v_w, v_o) per sample: y_w = F_w L_w + w with
-        Var w = v_w σ², fitted as y_w / F_w against L_w with σ √v_w / F_w (the same
-        residual; :mod:`ajtwin.estimation.print_time`).
+        A job print's (F_w, F_o, v_w, v_o) per sample (:func:`_at_reference_speed`).
 
     Returns
     -------
@@ -117,15 +115,9 @@ def fit_initial_state(
         rest), cost and the optimiser's status.
     """
     u = np.asarray(inputs, dtype=float)[:n_samples]
+    line = None if line_factors is None else np.asarray(line_factors, dtype=float)[:n_samples]
     y = np.asarray(measurements, dtype=float)[:n_samples]
-    sigma = np.asarray(measurement_std, dtype=float)
-    if line_factors is not None:
-        # the line at ν_ref: y/F with σ√v/F per sample (per-sample σ broadcasts in the fit)
-        line = np.asarray(line_factors, dtype=float)[:n_samples]
-        y = y.copy()
-        y[:, :2] = y[:, :2] / line[:, :2]
-        sigma = np.tile(sigma, (len(y), 1))
-        sigma[:, :2] = sigma[:, :2] * np.sqrt(line[:, 2:4]) / line[:, :2]
+    y, sigma = _at_reference_speed(y, np.asarray(measurement_std, dtype=float), line)
     measured = np.isfinite(y)
     if not measured[:, [0, 1, 4]].any() and droplet_prior_um is not None:
         return _prior_start(
@@ -197,6 +189,19 @@ def fit_initial_state(
         success=bool(result.success),
         message=str(result.message),
     )
+
+
+def _at_reference_speed(y, sigma, line):
+    """(y, σ) of the samples as the line at ν_ref: y_w = F_w L_w + w with Var w = v_w σ² is
+    fitted as y_w/F_w against L_w with σ√v_w/F_w (the same residual); F, v of ``line``
+    (n, 4) of a job print (:mod:`ajtwin.estimation.print_time`); unchanged without one."""
+    if line is None:
+        return y, sigma
+    y = y.copy()
+    y[:, :2] = y[:, :2] / line[:, :2]
+    sigma = np.tile(sigma, (len(y), 1))
+    sigma[:, :2] = sigma[:, :2] * np.sqrt(line[:, 2:4]) / line[:, :2]
+    return y, sigma
 
 
 def _prior_start(

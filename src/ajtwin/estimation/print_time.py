@@ -181,9 +181,7 @@ class PrintTimeBins:
         self.horizon_s = horizon
         self.speed_law = speed_law or load_line_speed_law()
         self.job = job
-        self.fallback_speed_mm_s = float(
-            fallback_speed_mm_s or self.speed_law.reference_speed_mm_s
-        )
+        self.fallback_speed_mm_s = float(fallback_speed_mm_s or self.speed_law.reference_speed_mm_s)
         self.start_time_s: float | None = None
         self.n_rows = 0
         self.first_open = 0  # oldest step not yet final

@@ -91,6 +91,11 @@ def _batched(spec, carry, u, y, theta, process_cov, measurement_cov, gate, funct
 
 _step_many = jax.jit(_batched, static_argnames=("functions",))
 
+#: the batch filter for the provisional re-run of a job print's steps not final yet, as a
+#: plain jit: one call a row, where the disk-cached wrapper's per-call bookkeeping would
+#: cost more than the steps themselves
+_rerun = jax.jit(ekf.__wrapped__, static_argnames=("functions",))
+
 
 class _History:
     """Per-step committed results, grown as the print goes on (display units)."""
@@ -520,7 +525,7 @@ class TwinStream:
         line = np.ones((size, 4))
         line[:n] = [step.line for step in block]
         twin = self.twin
-        result = ekf(
+        result = _rerun(
             twin.spec,
             prior_mean,
             prior_cov,

@@ -213,8 +213,14 @@ class TwinRun:
             )
         if sometimes:
             parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
+            why = (
+                "no camera frame of a trace printed then: shutter closed, no trace in view or "
+                "a frame dropped"
+                if self.line_factors is not None
+                else "e.g. camera dropout"
+            )
             notes.append(
-                f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the "
+                f"note: unmeasured ({why}) — {parts}: those seconds run on the "
                 "model alone and the bands widen (columns seen_* = 0)"
             )
         return notes

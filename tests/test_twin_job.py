@@ -444,3 +444,23 @@ def test_the_line_on_a_job_print_is_as_good_as_on_the_straight_line(job_prints):
     assert inside >= plain_inside - 0.05
     assert abs(np.mean(error) - np.mean(plain_error)) < 0.3
     assert np.sqrt(np.mean(error**2)) < np.sqrt(np.mean(plain_error**2)) + 0.3
+
+
+def test_a_print_whose_first_traces_were_never_seen_starts_the_droplet_size_from_its_prior(
+    straight,
+):
+    """An inspection pass over a multilayer part sees only the top layer: the first seconds
+    have Q_m and the pressures, no line. The fit then has no information on d_a; it must
+    start from the prior, not from a pseudo-inverse's zero variance."""
+    y = straight.outputs.copy()
+    y[:20, :2] = np.nan
+    twin = Twin.default()
+    fit = twin.initial_state(straight.inputs, y)
+    prior_std = twin.config.droplet_prior_std_um
+    assert fit.states_from_prior == ("droplet_diameter_um",)
+    assert fit.mean[0] == twin.config.droplet_prior_um
+    assert fit.covariance[0, 0] == pytest.approx(prior_std**2)
+    assert fit.covariance[4, 4] > 0  # φ_A still fitted to Q_m
+    run = Twin.default(em=False).run(inputs=straight.inputs, measurements=y)
+    z = (run.means[:, 0] - straight.true_states[:, 0]) / run.stds[:, 0]
+    assert np.all(np.abs(z[:20]) < 3) and run.stds[0, 0] > 0.1

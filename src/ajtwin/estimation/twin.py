@@ -159,7 +159,20 @@ class TwinConfig:
 
 @dataclass
 class TwinRun:
-    """Everything a run of the twin over one print produced."""
+    """Everything a run of the twin over one print produced.
+
+    Per second t_k (``time_s``): the filtered states and covariances (``filtered.means``,
+    ``filtered.covariances``; ``stds`` adds the calibration's share), the smoothed ones
+    (``smoothed``, with ``Twin.run(..., smooth=True)``), θ in force (``theta_per_step``),
+    the inputs and the measurements the filter used. On a job print the measurements are
+    the camera's filed at their print times (``n_camera`` frames per second,
+    ``line_factors`` the speed law's factors, ``camera_counts`` what was filed and dropped)
+    and :meth:`line_at` evaluates the printed line at any print time and speed — what a part
+    map needs for every stroke portion::
+
+        run = Twin.default().run(record, job=program_for_record(record, "part.prg"), smooth=True)
+        line = run.line_at(t_mid, job.state_at(t_mid).speed_mm_s)   # mean, σ of L_w, L_o
+    """
 
     time_s: np.ndarray
     filtered: FilterResult

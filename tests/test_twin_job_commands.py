@@ -141,3 +141,23 @@ def test_the_live_engine_runs_a_job_print_with_its_context(job_print_file):
     now = [m for m in messages if m["machine"] == "aj-1" and m["provisional"]]
     assert now[-1]["step"] == 119
     engine.shutdown()
+
+
+def test_the_job_study_runs_a_small_real_instance(tmp_path):
+    """`python -m ajtwin.studies.job_twin` on 2-min prints of one program, one seed: every
+    configuration in the table, finite figures, the frames filed."""
+    from ajtwin.studies.job_twin import STATES, markdown, run_all
+
+    results = run_all([1], 2.0, [NAFBOT], progress=lambda _: None)
+    for group in ("model", "alt"):
+        table = results["groups"][group]["table"]
+        assert set(table) == {"straight", "1-nafbot.prg trailing", "1-nafbot.prg inspection"}
+        for estimators in table.values():
+            for metrics in estimators.values():
+                for state in STATES:
+                    m = metrics[state]
+                    assert np.isfinite([m["rms_error"], m["rms_z"]]).all()
+                    assert 0.0 <= m["coverage"] <= 1.0
+        assert results["groups"][group]["camera"]["1-nafbot.prg trailing"]["filed"] > 50
+    text = markdown(results, "python -m ajtwin.studies.job_twin --minutes 2")
+    assert "| 1-nafbot.prg inspection | smoothed |" in text

@@ -160,8 +160,16 @@ class LiveEngine:
                     log.exception("subscriber %r failed", callback)
 
     # ------------------------------------------------------------------ #
-    def open(self, machine: str, source: str = "live") -> TwinStream:
-        """The machine's stream: its open live session resumed, or a new one."""
+    def open(self, machine: str, source: str = "live", print_context=None) -> TwinStream:
+        """The machine's stream: its open live session resumed, or a new one.
+
+        ``print_context`` (:class:`~ajtwin.estimation.print_time.PrintContext`): the machine
+        prints a job; its samples carry the job columns and the camera's measurements are
+        filed at their print times (:class:`TwinStream`). Such a stream steps on its own,
+        not in the batched step of the other machines. Resuming a job session after a
+        restart replays its stored samples, which hold the filed steps without their speed
+        factors: refused (start a new session).
+        """
         if machine in self.sessions:
             return self.sessions[machine].stream
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
@@ -175,6 +183,12 @@ class LiveEngine:
                 self.registry.add_machine(machine, notes="added by ajtwin live")
                 log.info("machine %r added to the registry", machine)
             resumed = self.log.open_session_of(machine)
+            if resumed is not None and print_context is not None:
+                raise ValueError(
+                    f"{machine}: live session {resumed['id']} is open; a job print cannot "
+                    "resume it (its stored samples are filed steps without their speed "
+                    "factors): close it first"
+                )
             # the machine's calibration, commissioning start and maintenance (model reference §11)
             chain = chain_start(self.registry, machine)
             begin = machine_start(self.registry, machine, chain, self.twin_overrides)
@@ -203,6 +217,7 @@ class LiveEngine:
             asynchronous=False,
             executor=self._executor,
             long_run_history=long_run,
+            print_context=print_context,
         )
         if resumed is not None:
             t, u, y = self.log.samples(session_id)

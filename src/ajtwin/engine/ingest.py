@@ -284,9 +284,11 @@ def ingest_record(
 
 def run_arrays(run, record) -> dict:
     """The per-second arrays the registry keeps of a twin run over a print (names as
-    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them)."""
+    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them). ``measurements`` are
+    those the filter used: on a job print, the camera's filed at their print times."""
     f = run.filtered
     hist = run.theta_history
+    measured = getattr(run, "measurements", None)
     return {
         "time_s": run.time_s,
         "means": run.means,
@@ -295,7 +297,7 @@ def run_arrays(run, record) -> dict:
         "predicted_means": np.asarray(f.predicted_means),
         "predicted_outputs": np.asarray(f.predicted_outputs),
         "innovation_variances": np.asarray(f.innovation_variances),
-        "measurements": record.outputs,
+        "measurements": record.outputs if measured is None else measured,
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),

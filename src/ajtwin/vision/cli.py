@@ -13,11 +13,16 @@ import click
 import numpy as np
 
 from ajtwin.io.cli_options import MAX_PLATEN_SPEED_MM_S, BoundedFloat, join_options
+from ajtwin.vision.part_cli import part_extract_options, part_render_options
 
 STATUS_HINTS = {
     "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",
     "blank_frame": "frames are featureless — nothing in focus?",
     "no_line": "no straight line found (Canny/Hough); lines must lie within 45° of horizontal",
+    "steep_line": (
+        "the line is steeper than 45° from the image's horizontal, beyond what the paper's "
+        "algorithm reads: rotate the video, or give --job and --camera (lines at any angle)"
+    ),
     "line_fills_frame": (
         "the line leaves no substrate background in the frame — the line is wider than the "
         "frame can show; check --um-per-px and the field of view"
@@ -135,6 +140,7 @@ def _parse_size(text: str) -> tuple[int, int]:
     help="Platen speed, mm/s (default: the record's, else 1).",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
+@part_render_options
 def render(
     record,
     out,
@@ -153,13 +159,42 @@ def render(
     start_s,
     platen_speed_mm_s,
     seed,
+    **part,
 ):
     """Render an alignment-camera video (plus ground-truth JSON) of a print.
 
     With RECORD (a print record, .parquet/.csv) each second's linewidth_um, overspray_um
     and material_flow_mL_s become a line cross-section (cross-section = Q_m / platen
     speed); without it a constant line of --linewidth/--overspray/--area is rendered.
+    With --job and --camera: the part under the camera, every trace drawn with the line
+    printed at that moment (a job print's true_linewidth_um/true_overspray_um).
     """
+    if part["job_path"] is not None or part["camera_path"] is not None:
+        from ajtwin.vision.part_cli import run_part_render
+
+        given = click.get_current_context().get_parameter_source("size").name == "COMMANDLINE"
+        return run_part_render(
+            record,
+            out,
+            truth_path=truth,
+            fps=fps,
+            start_s=start_s,
+            duration_s=duration_s,
+            noise_gray=noise_gray,
+            blur_px=blur_px,
+            raggedness_um=raggedness_um,
+            linewidth_um=linewidth_um,
+            overspray_um=overspray_um,
+            area_um2=area_um2,
+            seed=seed,
+            refused={
+                "--size": given,
+                "--um-per-px": um_per_px is not None,
+                "--tilt": tilt_deg != 0.0,
+                "--platen-speed": platen_speed_mm_s is not None,
+            },
+            **part,
+        )
     from ajtwin.units import cross_section_um2
     from ajtwin.vision.profile import line_profile, minimum_area_um2
     from ajtwin.vision.render import RenderSettings, render_video
@@ -266,8 +301,8 @@ def render(
     "--um-per-px",
     "um_per_px",
     type=BoundedFloat(0.0, None),
-    required=True,
-    help="Pixel size on the substrate, µm.",
+    default=None,
+    help="Pixel size on the substrate, µm (required without --job).",
 )
 @click.option(
     "--out",
@@ -304,6 +339,7 @@ def render(
     help="Platen speed, mm/s (default: the record's).",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
+@part_extract_options
 def extract(
     source,
     um_per_px,
@@ -318,14 +354,44 @@ def extract(
     camera_offset_um,
     platen_speed_mm_s,
     progress,
+    **part,
 ):
     """Linewidth and overspray from alignment-camera video (paper App. A, SPEC §9).
 
     SOURCE is a video (mp4/avi/...), a folder of images or one PNG/TIFF.  Frames are
     streamed one at a time.  The CSV has one row per frame: frame, time_s, linewidth_um,
     overspray_um, linewidth_std_um, overspray_std_um (spread over the batches), n_batches
-    (batches measured) and status (ok, or why the frame gave no value).
+    (batches measured) and status (ok, or why the frame gave no value).  Lines must lie
+    within 45° of the image's horizontal.
+
+    With --job PROGRAM.prg --camera camera.toml: every trace of the part in view, at any
+    angle and on arcs, measured across the stroke; OUT has one row per reading (frame,
+    time_s, stroke, s_mm, print_time_s, linewidth_um, overspray_um, quality figures) and
+    OUT_frames.csv one row per frame with the windows skipped or failed, per reason.
     """
+    if part["job_path"] is not None or part["camera_path"] is not None:
+        from ajtwin.vision.part_cli import run_part_extract
+
+        return run_part_extract(
+            source,
+            out,
+            annotate=annotate,
+            fps=fps,
+            batch=batch,
+            join_record=join_record,
+            join_out=join_out,
+            start_offset_s=start_offset_s,
+            progress=progress,
+            refused={
+                "--um-per-px": um_per_px is not None,
+                "--per-batch": per_batch,
+                "--camera-offset": camera_offset_um != 0.0,
+                "--platen-speed": platen_speed_mm_s is not None,
+            },
+            **part,
+        )
+    if um_per_px is None:
+        raise click.UsageError("--um-per-px is required (or --job and --camera for a part)")
     import pandas as pd
     from tqdm import tqdm
 

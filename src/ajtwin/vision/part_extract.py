@@ -712,10 +712,10 @@ class PartExtractor:
         result.readings = readings
         result.geometry = {
             "ids": ids,
-            "col": col,
-            "row": row,
-            "ncol": ncol,
-            "nrow": nrow,
+            "col": col.ravel(),
+            "row": row.ravel(),
+            "ncol": ncol.ravel(),
+            "nrow": nrow.ravel(),
             "shoulders": found.shoulders[whole] - c,
             "edges": edges - c,
         }
@@ -759,3 +759,73 @@ def empty_readings() -> dict:
 
 def settings_with(settings: PartSettings, **changes) -> PartSettings:
     return replace(settings, **changes)
+
+
+# -- annotation ---------------------------------------------------------------------------
+#: Colour (BGR) of each window outcome in annotated frames.
+OUTCOME_COLOURS = {
+    "ok": (0, 200, 0),
+    "border": (255, 200, 120),
+    "fiducial": (255, 255, 255),
+    "stroke_end": (0, 220, 255),
+    "corner": (0, 140, 255),
+    "crossing": (255, 0, 255),
+    "overprint": (200, 0, 130),
+    "fill": (255, 255, 0),
+    "neighbour": (180, 120, 255),
+}
+FAIL_COLOUR = (0, 0, 255)
+SHOULDER_COLOUR, OVERSPRAY_COLOUR = (0, 0, 255), (255, 80, 0)
+
+
+def annotate_part(frame: np.ndarray, result: PartFrame, extractor: PartExtractor) -> np.ndarray:
+    """The frame with the program's strokes, the cross-sections and the skips drawn.
+
+    Each window in view is drawn along the stroke in the colour of its outcome
+    (:data:`OUTCOME_COLOURS`: green measured, red measured without a reading, other colours
+    one per skip reason). For every reading, the middle cross-section is drawn across the
+    stroke with the linewidth edges (iii) in red and the overspray edges in blue.
+    """
+    from ajtwin.vision.extract import to_gray
+
+    gray = to_gray(frame)
+    canvas = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    cam, w = extractor.camera, extractor.windows
+    state = extractor.job.state_at(result.time_s)
+    nozzle = (float(state.x_mm), float(state.y_mm))
+    for window, outcome in result.drawn:
+        colour = OUTCOME_COLOURS.get(outcome, FAIL_COLOUR)
+        (c0, c1), (r0, r1) = cam.part_to_pixel(
+            np.array([w.x_from[window], w.x_to[window]]),
+            np.array([w.y_from[window], w.y_to[window]]),
+            nozzle,
+        )
+        cv2.line(canvas, _pt(c0, r0), _pt(c1, r1), colour, 2, cv2.LINE_AA)
+    geometry = result.geometry
+    if geometry is not None:
+        n = extractor.settings.batch
+        middle = n // 2
+        for k in range(len(geometry["ids"])):
+            j = k * n + middle
+            col, row = geometry["col"][j], geometry["row"][j]
+            ncol, nrow = geometry["ncol"][j], geometry["nrow"][j]
+            for points, colour in (
+                (geometry["edges"][k], OVERSPRAY_COLOUR),
+                (geometry["shoulders"][k], SHOULDER_COLOUR),
+            ):
+                if np.all(np.isfinite(points)):
+                    a = _pt(col + ncol * points[0], row + nrow * points[0])
+                    b = _pt(col + ncol * points[1], row + nrow * points[1])
+                    cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
+    text = f"t={result.time_s:.2f}s  readings {result.n_readings}"
+    skipped = ", ".join(f"{k} {v}" for k, v in result.skipped.most_common(3))
+    if skipped:
+        text += f"  skipped: {skipped}"
+    if result.n_readings == 0:
+        text += f"  [{result.status}]"
+    cv2.putText(canvas, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 255, 255), 1)
+    return canvas
+
+
+def _pt(col, row) -> tuple[int, int]:
+    return int(round(float(col))), int(round(float(row)))

@@ -148,9 +148,14 @@ class PrintTruth:
 
     @classmethod
     def constant(cls, duration_s: float, linewidth_um: float, overspray_um: float, area_um2=None):
-        """A print whose line never changes (tests, demonstrations)."""
+        """A print whose line never changes (tests, demonstrations).
+
+        The cross-section defaults to the nominal 15 µm² (raised to the least area for which
+        the overspray is visible).
+        """
         n = max(1, int(math.ceil(duration_s)) + 1)
-        area = 1.05 * minimum_area_um2(linewidth_um, overspray_um) if area_um2 is None else area_um2
+        least = 1.05 * minimum_area_um2(linewidth_um, overspray_um)
+        area = max(DEFAULT_AREA_UM2 if area_um2 is None else float(area_um2), least)
         return cls(
             np.arange(n, dtype=float),
             np.full(n, float(linewidth_um)),

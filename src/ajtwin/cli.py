@@ -43,6 +43,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "live": ("ajtwin.live.cli:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
     "dashboard": ("ajtwin.web.cli:dashboard", "Browser dashboard: fleet, machines, what-if."),
     "job": ("ajtwin.job.cli:job", "The machine's program: summary, timeline, part plot."),
+    "camera": ("ajtwin.vision.part_cli:camera", "The alignment camera's geometry: calibrate."),
 }
 
 

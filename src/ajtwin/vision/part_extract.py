@@ -445,6 +445,19 @@ class Windows:
         self.order = np.argsort(cell, kind="stable")
         self.cell_start = np.searchsorted(cell[self.order], np.arange(nx * ny + 1))
 
+    def usable(self, stroke, s_mm, time_s) -> np.ndarray:
+        """Whether points of traces (stroke, arclength) lie in a window with nothing that
+        spoils it at ``time_s`` (no end, corner, crossing, fill, neighbour...)."""
+        stroke = np.asarray(stroke, dtype=np.int64)
+        s_mm = np.asarray(s_mm, dtype=float)
+        if self.n == 0:
+            return np.zeros(stroke.shape, dtype=bool)
+        key = self.stroke * 1e6 + self.s_from  # windows are in stroke, then arclength order
+        i = np.clip(np.searchsorted(key, stroke * 1e6 + s_mm, side="right") - 1, 0, self.n - 1)
+        inside = (self.stroke[i] == stroke) & (s_mm >= self.s_from[i]) & (s_mm <= self.s_to[i])
+        times = np.broadcast_to(np.asarray(time_s, dtype=float), stroke.shape)
+        return inside & np.all(self.conflict_t[i] >= times[..., None], axis=-1)
+
     def near(self, x_mm: float, y_mm: float, radius_mm: float) -> np.ndarray:
         """Windows whose middle may lie within ``radius_mm`` of a point (a superset)."""
         nx, ny = self.shape

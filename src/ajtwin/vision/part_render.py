@@ -68,7 +68,7 @@ TRUTH_COLUMNS = ("true_linewidth_um", "true_overspray_um")
 #: optics.toml's provenance: L_w 43 µm, L_o 29 µm, 15 µm²).
 DEFAULT_AREA_UM2 = 15.0
 PROFILE_STEP_UM = 0.05  # grid of the per-second profiles
-CHUNK_MM = 0.03  # trace pieces drawn at a time (bounding boxes stay tight on arcs)
+CHUNK_MM = 0.12  # trace pieces drawn at a time (their boxes: about twice the band drawn)
 RAGGED_PERIOD = 4096  # samples (one per pixel of arclength) of each stroke's raggedness
 TEXTURE_PERIOD = 1024  # pixels of the part-fixed texture tile
 
@@ -475,15 +475,23 @@ class PartRenderer:
             end = fields[2 + side, along_px]
             sign = np.where(left, 1.0, -1.0)
             centre = table.centre[row]
-            mapped, stretch = warp_side(u_um, w, e, shoulder, end)
+            mapped, _ = warp_side(u_um, w, e, shoulder, end)
             h = table.lookup(table.height, row, centre + sign * mapped)
             block_top = top[rows, cols].reshape(-1)
             block_out = out[rows, cols].reshape(-1)
             higher = h > block_top[idx]
             if not higher.any():
                 continue
-            # brightness averaged over the pixel's width across the trace
-            bright = np.zeros(h.shape, dtype=np.float32)
+            # brightness averaged over the pixel's width across the trace, where this
+            # trace is the top one
+            u_um, w, e, row = u_um[higher], w[higher], e[higher], row[higher]
+            shoulder, end, sign, centre = (
+                shoulder[higher],
+                end[higher],
+                sign[higher],
+                centre[higher],
+            )
+            bright = np.zeros(u_um.shape, dtype=np.float32)
             for offset in sub:
                 m, st = warp_side(np.abs(u_um + offset), w, e, shoulder, end)
                 slope = table.lookup(table.slope, row, centre + sign * m) * st
@@ -491,7 +499,7 @@ class PartRenderer:
             bright /= SUBSAMPLES_PER_PX
             hit = idx[higher]
             block_top[hit] = h[higher]
-            block_out[hit] = bright[higher]
+            block_out[hit] = bright
             top[rows, cols] = block_top.reshape(r_hi[j] - r_lo[j], c_hi[j] - c_lo[j])
             out[rows, cols] = block_out.reshape(r_hi[j] - r_lo[j], c_hi[j] - c_lo[j])
         return out

@@ -239,8 +239,7 @@ def run_part_extract(
             out.open("w", newline="") as fh,
             frames_path.open("w", newline="") as ffh,
         ):
-            table = csv.writer(fh)
-            table.writerow(READING_COLUMNS)
+            table = _ReadingsWriter(fh, READING_COLUMNS)
             frame_table = csv.DictWriter(ffh, fieldnames=FRAME_COLUMNS)
             frame_table.writeheader()
             bar = tqdm(
@@ -250,29 +249,31 @@ def run_part_extract(
                 desc=f"extract {source.name}",
                 disable=not progress,
             )
-            for index, video_time, gray in bar:
-                t = start_offset_s + video_time
-                if t > limit:
-                    raise click.ClickException(
-                        f"{source}: frame {index} is at job time {t:.3f} s, after the end of "
-                        f"{Path(job_path).name} ({job.duration_s:.3f} s): the video does not "
-                        "belong to this program, --start-offset is wrong, or the program was "
-                        "looped (--repeat-to)"
-                    )
-                result = extractor.process(gray, index=index, time_s=t)
-                statuses[result.status] += 1
-                skipped.update(result.skipped)
-                failed.update(result.failed)
-                frame_table.writerow(_formatted(result.row()))
-                readings = result.readings
-                if result.n_readings:
-                    n_readings += result.n_readings
-                    widths.append(readings["linewidth_um"])
-                    for k in range(result.n_readings):
-                        table.writerow([_format(readings[name][k]) for name in READING_COLUMNS])
-                if annotate is not None:
-                    canvas = annotate_part(gray, result, extractor)
-                    writer = _write_annotated(annotate, writer, index, canvas, frames.fps)
+            try:
+                for index, video_time, gray in bar:
+                    t = start_offset_s + video_time
+                    if t > limit:
+                        raise click.ClickException(
+                            f"{source}: frame {index} is at job time {t:.3f} s, after the end of "
+                            f"{Path(job_path).name} ({job.duration_s:.3f} s): the video does not "
+                            "belong to this program, --start-offset is wrong, or the program was "
+                            "looped (--repeat-to)"
+                        )
+                    result = extractor.process(gray, index=index, time_s=t)
+                    statuses[result.status] += 1
+                    skipped.update(result.skipped)
+                    failed.update(result.failed)
+                    frame_table.writerow(_formatted(result.row()))
+                    readings = result.readings
+                    if result.n_readings:
+                        n_readings += result.n_readings
+                        widths.append(readings["linewidth_um"])
+                        table.add(readings)
+                    if annotate is not None:
+                        canvas = annotate_part(gray, result, extractor)
+                        writer = _write_annotated(annotate, writer, index, canvas, frames.fps)
+            finally:  # what waits is written, also when a frame is refused
+                table.flush()
     except VisionInputError as exc:
         raise click.ClickException(str(exc)) from None
     finally:
@@ -304,6 +305,54 @@ def run_part_extract(
         raise click.ClickException(str(exc)) from None
     if record is not None:
         _join_part(record, join_record, join_out, out, camera, camera_path, job_path, source)
+
+
+class _ReadingsWriter:
+    """Readings to CSV in blocks of frames (pandas' writer: ~10x faster than row by row).
+
+    At most ``FRAMES_PER_BLOCK`` frames' readings wait in memory; an error or a stop
+    (Ctrl-C) writes what waits before leaving (the caller's ``finally``).
+    """
+
+    FRAMES_PER_BLOCK = 32
+    #: written to 1 µs, 1 nm (positions in mm), 1e-4 µm and 0.01 (SNR): far below what
+    #: the figures can resolve, and short lines that pandas writes fast
+    DECIMALS = {
+        "time_s": 6,
+        "print_time_s": 6,
+        "s_mm": 6,
+        "x_mm": 6,
+        "y_mm": 6,
+        "linewidth_um": 4,
+        "overspray_um": 4,
+        "linewidth_se_um": 4,
+        "offset_um": 4,
+        "snr": 2,
+    }
+
+    def __init__(self, handle, columns):
+        self.handle, self.columns = handle, list(columns)
+        self.pending: list[dict] = []
+        handle.write(",".join(self.columns) + "\n")
+
+    def add(self, readings: dict) -> None:
+        self.pending.append(readings)
+        if len(self.pending) >= self.FRAMES_PER_BLOCK:
+            self.flush()
+
+    def flush(self) -> None:
+        import pandas as pd
+
+        if not self.pending:
+            return
+        block = {c: np.concatenate([r[c] for r in self.pending]) for c in self.columns}
+        self.pending = []
+        for column, decimals in self.DECIMALS.items():
+            block[column] = np.round(block[column], decimals)
+        pd.DataFrame(block, columns=self.columns).to_csv(
+            self.handle, header=False, index=False, lineterminator="\n"
+        )
+        self.handle.flush()
 
 
 def _check_duration(frames, start_offset_s, job, source, job_path) -> None:

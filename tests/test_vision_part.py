@@ -229,6 +229,19 @@ def test_each_skip_reason_is_produced_by_a_frame_that_shows_it(reason):
     _assert_no_reading_sees_another_trace(job, extractor, readings, t)
 
 
+def test_a_dot_shorter_than_a_window_beside_a_trace_spoils_it():
+    # a 20 µm dash (no window of its own) 90 µm from a line: the line's cross-sections
+    # there would see it
+    job = _job(stroke(-1, 0, 1, 0) + stroke(0.0, 0.09, 0.02, 0.09) + park(0, 0))
+    cam = Camera(um_per_px=0.75, width_px=480, height_px=480)
+    t = job.duration_s - 0.5
+    truth = PrintTruth.constant(job.duration_s, 43.0, 29.0)
+    readings, skipped, _, _, extractor = _run(job, cam, truth, [t])
+    assert skipped.get("neighbour", 0) >= 2
+    assert not np.any(np.abs(readings["x_mm"] - 0.01) < 0.1)
+    _assert_no_reading_sees_another_trace(job, extractor, readings, t)
+
+
 def test_border_skips_cross_sections_leaving_the_frame():
     job = _job(stroke(-1, 0.1, 1, 0.1) + park(0, 0))  # 100 µm above the centre of 270
     cam = Camera(um_per_px=0.75, **SMALL)
@@ -249,7 +262,7 @@ def _assert_no_reading_sees_another_trace(job, extractor, readings, t):
     for stroke_id, s in zip(readings["stroke"], readings["s_mm"], strict=True):
         along = s + np.linspace(-0.5, 0.5, 5) * window
         points = job.point_at(np.full(5, stroke_id), along)
-        d = np.linspace(-half - reach, half + reach, 41)
+        d = np.linspace(-half, half, 41)
         x = points.x_mm[:, None] - points.uy[:, None] * d
         y = points.y_mm[:, None] + points.ux[:, None] * d
         hits = job.locate(x, y, radius_mm=reach, before_s=t)

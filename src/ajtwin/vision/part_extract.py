@@ -308,6 +308,40 @@ class Windows:
         self.t_from, self.t_to, self.t_mid = a.time_s, b.time_s, mid.time_s
         self.base_stroke = table["base_stroke"].to_numpy(np.int64)[stroke]
         self.repetition = table["repetition"].to_numpy(np.int64)[stroke]
+        self._pieces(job, lengths, count, start)
+
+    def _pieces(self, job, lengths, count, start) -> None:
+        """The printed traces as pieces that may spoil a window: the windows, and the ends
+        of strokes no window covers (a stroke shorter than a window is one piece: a dot
+        beside a line spoils it as much as a long trace)."""
+        strokes = np.arange(lengths.size)
+        has = count > 0
+        first_end = np.where(has, start, lengths)  # [0, first_end) before the first window
+        last_start = np.where(has, start + count * self.length_mm, lengths)
+        lo = np.concatenate([np.zeros(lengths.size), last_start[has]])
+        hi = np.concatenate([first_end, lengths[has]])
+        st = np.concatenate([strokes, strokes[has]])
+        keep = hi - lo > 1e-9
+        lo, hi, st = lo[keep], hi[keep], st[keep]
+        a, b = job.point_at(st, lo), job.point_at(st, hi)
+        mid = job.point_at(st, 0.5 * (lo + hi))
+
+        def both(window_values, stub_values):
+            return np.concatenate([window_values, stub_values])
+
+        self.piece = {
+            "stroke": both(self.stroke, st),
+            "s_mid": both(self.s_mid, 0.5 * (lo + hi)),
+            "x": both(self.x, mid.x_mm),
+            "y": both(self.y, mid.y_mm),
+            "ux": both(self.ux, mid.ux),
+            "uy": both(self.uy, mid.uy),
+            "x_from": both(self.x_from, a.x_mm),
+            "y_from": both(self.y_from, a.y_mm),
+            "x_to": both(self.x_to, b.x_mm),
+            "y_to": both(self.y_to, b.y_mm),
+            "t_from": both(self.t_from, a.time_s),
+        }
 
     def _static_reasons(self, job) -> None:
         """Stroke ends, corners and tight bends, from the job's segments."""
@@ -390,10 +424,12 @@ class Windows:
         reach = cfg.reach_um * 1e-3
         half_n = cfg.half_length_um * 1e-3
         half_a = 0.5 * self.length_mm
-        tree = cKDTree(np.column_stack([self.x, self.y]))
+        pieces = self.piece
+        tree = cKDTree(np.column_stack([pieces["x"], pieces["y"]]))
         close = tree.query_pairs(2 * half_a, output_type="ndarray")
         if close.size:
-            self._classify(np.concatenate([close, close[:, ::-1]]))
+            close = np.concatenate([close, close[:, ::-1]])
+            self._classify(close[close[:, 0] < self.n])  # (window, piece)
         # windows that something may still spoil later (or never)
         open_ = np.flatnonzero(self.conflict_t.min(axis=1) > self.t_from)
         if open_.size == 0:
@@ -409,6 +445,7 @@ class Windows:
 
     def _classify(self, pairs: np.ndarray) -> None:
         """For pairs (w, v): does trace piece v spoil window w, how, and from when."""
+        P = self.piece
         cfg = self.settings
         reach = cfg.reach_um * 1e-3
         half_n = cfg.half_length_um * 1e-3
@@ -418,17 +455,17 @@ class Windows:
         step = 1_000_000
         for lo in range(0, pairs.shape[0], step):
             w, v = pairs[lo : lo + step, 0], pairs[lo : lo + step, 1]
-            same = self.stroke[w] == self.stroke[v]
-            ds = np.abs(self.s_mid[w] - self.s_mid[v])
-            gap = np.hypot(self.x[w] - self.x[v], self.y[w] - self.y[v])
+            same = self.stroke[w] == P["stroke"][v]
+            ds = np.abs(self.s_mid[w] - P["s_mid"][v])
+            gap = np.hypot(self.x[w] - P["x"][v], self.y[w] - P["y"][v])
             # the stroke's own continuation: the path between them has not turned back
             own = same & (gap >= 0.9 * ds - 1e-9)
             keep = ~own
             w, v, same, ds = w[keep], v[keep], same[keep], ds[keep]
             # v's chord sampled at 5 points, in w's frame (along, across)
             t = np.linspace(0.0, 1.0, 5)[:, None]
-            px = self.x_from[v] + t * (self.x_to[v] - self.x_from[v])
-            py = self.y_from[v] + t * (self.y_to[v] - self.y_from[v])
+            px = P["x_from"][v] + t * (P["x_to"][v] - P["x_from"][v])
+            py = P["y_from"][v] + t * (P["y_to"][v] - P["y_from"][v])
             dx, dy = px - self.x[w], py - self.y[w]
             along = dx * self.ux[w] + dy * self.uy[w]
             across = -dx * self.uy[w] + dy * self.ux[w]
@@ -440,7 +477,7 @@ class Windows:
                 continue
             w, v, same, ds = w[spoils], v[spoils], same[spoils], ds[spoils]
             along, across, outside_a = along[:, spoils], across[:, spoils], outside_a[:, spoils]
-            parallel = np.abs(self.ux[w] * self.ux[v] + self.uy[w] * self.uy[v]) >= cos_parallel
+            parallel = np.abs(self.ux[w] * P["ux"][v] + self.uy[w] * P["uy"][v]) >= cos_parallel
             lateral = np.abs(across).min(0)
             # distance to w's centre line: a crossing trace passes through it
             to_centre = np.hypot(outside_a, across).min(0)
@@ -451,7 +488,7 @@ class Windows:
             )
             kind[~parallel & (to_centre < reach + slack)] = _STATIC.index("crossing")
             kind[same & (ds < turn_zone)] = _STATIC.index("corner")
-            np.minimum.at(self.conflict_t, (w, kind), self.t_from[v])
+            np.minimum.at(self.conflict_t, (w, kind), P["t_from"][v])
 
     def _grid(self) -> None:
         """Windows filed by their middle in square cells, for the frames' look-ups."""

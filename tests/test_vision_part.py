@@ -379,3 +379,35 @@ def test_settings_refuse_impossible_values():
     with pytest.raises(TypeError, match="unknown"):
         PartSettings.from_defaults(zoom=2)
     assert SKIP_REASONS[0] == "border"
+
+
+# -- columns across the stroke for the height-profile CNN -----------------------------------
+def test_columns_across_an_arc_match_those_across_a_straight_line():
+    # the same line printed straight and on an arc of 3 linewidths: the CNN's input columns
+    # (window means across the stroke, centred on the line) must show the same profile;
+    # columns cut along image columns across a curve would be smeared
+    cam = Camera(um_per_px=0.75, **SMALL)
+    truth = PrintTruth.constant(10.0, 43.0, 29.0)
+    means = []
+    for text in (angled_line(0.0, 1.2), arc_and_pass(0.13)):
+        job = _job(text)
+        renderer = PartRenderer(job, cam, truth, seed=8)
+        extractor = PartExtractor(job, cam)
+        columns = []
+        for t in _pass_times(job, 4):
+            result = extractor.process(renderer.frame(t), time_s=t)
+            columns.append(extractor.columns(result, n_pixels=200))
+        columns = np.concatenate(columns)
+        assert columns.shape[1] == 200 and columns.shape[0] >= 10
+        means.append(columns.mean(axis=0))
+    # relative to the substrate at the columns' ends (the CNN's input is exposure-free)
+    straight, arc = (m / np.mean(np.r_[m[:10], m[-10:]]) for m in means)
+    # (a line ~25 % darker than the substrate; two straight lines at 0° and 45° differ by
+    # 0.008 on average and 0.03 at most; a column shifted by 2 samples, by 0.1 at the flanks)
+    assert np.mean(np.abs(arc - straight)) < 0.01
+    assert np.max(np.abs(arc - straight)) < 0.05
+    # centred: the two darkest points (the flanks) sit symmetrically about the middle
+    left, right = np.argmin(straight[:100]), 100 + np.argmin(straight[100:])
+    assert abs((left + right) / 2 - 99.5) <= 1.5
+    with pytest.raises(ValueError, match="raise reach_um"):
+        extractor.columns(result, n_pixels=400)

@@ -19,6 +19,12 @@ definitions on the noiseless profile of the line printed at the reading's print 
   trailing 0.3 mm: the share of the traces in view that is measurable and why the rest is
   not, and the readings' error.
 
+* ``cnn`` (with ``--cnn MODEL.pt``, a model from ``ajtwin cnn train``): the height-profile
+  CNN on the columns across the stroke of every reading
+  (:meth:`~ajtwin.vision.part_extract.PartExtractor.columns`): the cross-section ∫h dr it
+  predicts (Q_m = ν ∫h dr) against the true 15 µm², on straight traces and arcs, and on
+  the paper's columns of a horizontal line (:func:`ajtwin.profile_cnn.frames.frame_columns`).
+
 Coverage = readings / windows that are measurable (in view, not skipped): the share of
 what the program says can be measured that the image analysis did measure.
 """
@@ -227,6 +233,61 @@ def public() -> dict:
     }
 
 
+def cnn(model_path: Path) -> dict:
+    """Cross-section from the CNN on columns across straight traces and arcs."""
+    from ajtwin.profile_cnn.frames import frame_columns
+    from ajtwin.profile_cnn.model import ProfileModel
+    from ajtwin.vision.extract import LineExtractor
+
+    model = ProfileModel.load(model_path)
+    camera = Camera(um_per_px=0.75, **SIZE)
+    rows = {}
+    cases = [(f"straight {a}°", straight_program(a)) for a in (0, 45, 90)]
+    cases += [(f"arc radius {f} linewidths", arc_program(f * 0.043)) for f in (3, 5, 10)]
+    for name, text in cases:
+        job = read_program_text(text, process_speed_mm_s=2.0)
+        truth = PrintTruth.constant(job.duration_s, 43.0, 29.0)
+        areas = []
+        for seed in SEEDS:
+            renderer = PartRenderer(job, camera, truth, seed=seed)
+            extractor = PartExtractor(job, camera)
+            for t in _pass_times(job):
+                result = extractor.process(renderer.frame(t), time_s=t)
+                columns = extractor.columns(result, model.n_pixels, model.um_per_px)
+                if len(columns):
+                    areas.append(model.predict_um(columns).sum(axis=1) * model.um_per_px)
+        rows[name] = _area_summary(np.concatenate(areas), truth.area_um2[0])
+    # the paper's path: a horizontal line, columns cut by the straight-line extractor
+    job = read_program_text(straight_program(0), process_speed_mm_s=2.0)
+    truth = PrintTruth.constant(job.duration_s, 43.0, 29.0)
+    areas = []
+    for seed in SEEDS:
+        renderer = PartRenderer(job, camera, truth, seed=seed)
+        for t in _pass_times(job):
+            fc = frame_columns(
+                renderer.frame(t),
+                LineExtractor(0.75),
+                n_pixels=model.n_pixels,
+                model_um_per_px=model.um_per_px,
+            )
+            if len(fc.columns):
+                areas.append(model.predict_um(fc.columns).sum(axis=1) * model.um_per_px)
+    rows["paper's columns, horizontal line"] = _area_summary(
+        np.concatenate(areas), truth.area_um2[0]
+    )
+    return rows
+
+
+def _area_summary(areas, true_area) -> dict:
+    error = areas / true_area - 1.0
+    return {
+        "columns": int(areas.size),
+        "true_area_um2": float(true_area),
+        "mean_error_percent": round(100 * float(np.mean(error)), 2),
+        "mae_percent": round(100 * float(np.mean(np.abs(error))), 2),
+    }
+
+
 def _merge(parts):
     lw = np.concatenate([p[0] for p in parts])
     ov = np.concatenate([p[1] for p in parts])
@@ -262,8 +323,20 @@ def table(results: dict) -> str:
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/results/vision_part/accuracy.json"))
+    parser.add_argument("--cnn", type=Path, default=None, help="a model from ajtwin cnn train")
+    parser.add_argument("--only", choices=["cnn"], default=None, help="run only this part")
     args = parser.parse_args(argv)
     start = time.perf_counter()
+    if args.only == "cnn":
+        if args.cnn is None:
+            parser.error("--only cnn needs --cnn MODEL.pt")
+        results = json.loads(args.out.read_text()) if args.out.exists() else {}
+        results["cnn"] = cnn(args.cnn)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=2))
+        for name, r in results["cnn"].items():
+            print(f"{name}: {r}")
+        return results
     results = {
         "straight": straight(),
         "arc": arcs(),
@@ -271,6 +344,8 @@ def main(argv=None) -> dict:
         "part": part(),
         "public": public(),
     }
+    if args.cnn is not None:
+        results["cnn"] = cnn(args.cnn)
     results["seconds"] = round(time.perf_counter() - start, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2))

@@ -618,6 +618,45 @@ class PartExtractor:
         pts = self.job.point_at(np.repeat(w.stroke[idx, None], n, axis=1), s)
         return np.stack([pts.x_mm, pts.y_mm, -pts.uy, pts.ux], axis=-1)
 
+    # -- columns across the strokes (the height-profile CNN's input) ----------------------
+    def columns(
+        self, result: PartFrame, n_pixels: int = 200, um_per_sample: float | None = None
+    ) -> np.ndarray:
+        """Window-mean columns across the stroke of each reading of a processed frame.
+
+        The height-profile CNN's input on a part: each reading's 50 cross-sections (taken
+        perpendicular to the stroke, on arcs too) averaged, ``n_pixels`` samples
+        ``um_per_sample`` apart (default: the camera's pixel) centred on the line's dark
+        band, by linear interpolation — as :func:`ajtwin.profile_cnn.frames.frame_columns`
+        cuts them across a straight line.
+
+        Returns
+        -------
+        (n_readings, n_pixels) array, rows in the order of ``result.readings``.
+
+        Raises
+        ------
+        ValueError
+            A column longer than the cross-sections (raise the reach).
+        """
+        if result.geometry is None or result.n_readings == 0:
+            return np.zeros((0, n_pixels))
+        step = (um_per_sample or self.camera.um_per_px) / self.camera.um_per_px
+        half = 0.5 * (n_pixels - 1) * step
+        if half > self.half_samples:
+            raise ValueError(
+                f"a {n_pixels}-sample column {half * self.camera.um_per_px:.0f} µm either side "
+                f"of the line is longer than the cross-sections "
+                f"(±{self.settings.half_length_um:g} µm): raise reach_um"
+            )
+        profiles = result.geometry["profiles"]
+        centres = result.geometry["centres"]
+        grid = np.arange(profiles.shape[1], dtype=float)
+        offsets = (np.arange(n_pixels) - 0.5 * (n_pixels - 1)) * step
+        return np.stack(
+            [np.interp(c + offsets, grid, p) for p, c in zip(profiles, centres, strict=True)]
+        )
+
     # -- one frame ----------------------------------------------------------------------
     def process(self, frame: np.ndarray, index: int = 0, time_s: float = 0.0) -> PartFrame:
         """Measure the traces the program puts in this frame (taken at job time ``time_s``)."""
@@ -819,6 +858,10 @@ class PartExtractor:
             "nrow": nrow.ravel(),
             "shoulders": shoulders - c,
             "edges": edges - c,
+            # the readings' window-mean profiles and line centres (sample index), for
+            # columns across the stroke (the height-profile CNN)
+            "profiles": mean[good],
+            "centres": centre_index[good],
         }
         clock.lap("6 bookkeeping")
 

@@ -11,10 +11,12 @@ known. This module measures them there.
 line of samples perpendicular to the stroke's local direction — on a curve too — from
 ``−(reach + background)`` to ``+(reach + background)`` µm, one pixel apart. The frame is
 resampled along all the cross-sections of the windows in view at once (:func:`cv2.remap`,
-bilinear), each window's cross-sections are averaged into one profile with its per-sample
-standard deviation, and the paper's definitions are applied to every window at once
-(:func:`ajtwin.vision.features.find_edges_batches`): the two minima (ii), the first peak
-outward of each (iii) (the standard-deviation profile where none exists), linewidth between
+bilinear), each window's cross-sections are averaged into one profile, and the paper's
+definitions are applied to every window at once
+(:func:`ajtwin.vision.features.find_edges_batches`, the line's centre (i) being the centroid
+of what is darker than 70 % of its depth): the two minima (ii), the first peak outward of
+each (iii) (the first peak of the per-sample standard deviation over the window's
+cross-sections where there is none), linewidth between
 the (iii) points, overspray from each (iii) out to where brightness is back within 95 % of
 the substrate, one-sided = mean of both sides. The substrate is measured on the
 ``background`` µm beyond the reach on each side and taken linear across the trace.
@@ -58,7 +60,7 @@ import math
 import time
 import tomllib
 from collections import Counter
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from importlib import resources
 
 import cv2
@@ -943,14 +945,6 @@ def _arclength_now(job, state, time_s: float) -> float:
     t0, t1 = s["t0_s"][seg], s["t1_s"][seg]
     f = min(max((time_s - t0) / (t1 - t0), 0.0), 1.0) if t1 > t0 else 1.0
     return float(np.nan_to_num(s["s0_mm"][seg]) + f * s["length_mm"][seg])
-
-
-def empty_readings() -> dict:
-    return {name: np.zeros(0) for name in READING_COLUMNS}
-
-
-def settings_with(settings: PartSettings, **changes) -> PartSettings:
-    return replace(settings, **changes)
 
 
 # -- annotation ---------------------------------------------------------------------------

@@ -109,6 +109,7 @@ def job_print_table(job, linewidth_um, overspray_um, *, duration_s=None):
             "sheath_pressure_Pa": 5641.0,
             "linewidth_um": np.nan,
             "overspray_um": np.nan,
+            "material_flow_mL_s": np.nan,
             "shutter_open": open_.astype(int),
             "platen_speed_mm_s": state.speed_mm_s,
             "true_linewidth_um": np.where(open_, lw, np.nan),

@@ -273,3 +273,47 @@ def test_camera_turned_by_90_degrees_exits_with_the_reason(part, tmp_path):
     assert result.exit_code == 1
     assert "not where the program and the camera file put them" in result.output
     assert pd.read_csv(tmp_path / "f.csv").empty
+
+
+def test_a_job_print_of_the_virtual_printer_is_rendered_measured_and_joined(tmp_path):
+    """The whole path on a print of ``ajtwin simulate --job`` (not a hand-made table): the
+    render stops where the print cut the program, and the readings joined into the record
+    match the record's own truth of the line printed in each second."""
+    program = tmp_path / "part.prg"
+    program.write_text(PART + park(0.5, 0.3, 3000))  # 5.5 s: the 4-s print cuts it
+    camera = tmp_path / "camera.toml"
+    camera.write_text(CAMERA.format(rotation=0.0))
+    record = tmp_path / "print.parquet"
+    result = _invoke(
+        "simulate", "--job", program, "--camera", "at_nozzle", "--machine", "paper",
+        "--duration-min", 4 / 60, "--seed", 2, "--out", record,
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    printed = read_record(record)
+    assert printed.meta["job"]["repeat_to_s"] == 4.0
+    video = tmp_path / "cam.avi"
+    result = _invoke("render", record, "--job", program, "--camera", camera, "--fps", 5,
+                     "--out", video)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    capture = cv2.VideoCapture(str(video))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 4 * 5  # the print, not the program
+    capture.release()
+    out, joined = tmp_path / "readings.csv", tmp_path / "joined.parquet"
+    result = _invoke(
+        "extract", video, "--job", program, "--camera", camera, "--out", out,
+        "--join", record, "--join-out", joined, "--no-progress",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    readings = pd.read_csv(out)
+    assert len(readings) > 20
+    truth = printed.data.set_index("time_s")["true_linewidth_um"]
+    second = np.floor(readings["print_time_s"]).to_numpy()
+    error = readings["linewidth_um"].to_numpy() - truth.loc[second].to_numpy()
+    assert np.nanmean(np.abs(error)) < 1.5  # the render's +0.5 µm bias and the noise
+    data = read_record(joined).data
+    filled = data["printed_at_s"].notna()
+    assert filled.sum() >= 2
+    assert (data.loc[filled, "printed_at_s"] <= data.loc[filled, "time_s"]).all()
+    rows = np.floor(data.loc[filled, "printed_at_s"]).to_numpy()
+    joined_error = data.loc[filled, "linewidth_um"].to_numpy() - truth.loc[rows].to_numpy()
+    assert np.max(np.abs(joined_error)) < 2.0

@@ -178,7 +178,8 @@ def read_printed_program(
     process_speed_mm_s, rapid_speed_mm_s : float, optional
         The GUI's speeds (default: the record's, else ``stage.toml``).
     repeat_to_s : float, optional
-        The program was looped to this many seconds (default: the record's).
+        The program was looped to this many seconds, or cut there when the print was
+        shorter than the program (default: the record's).
 
     Raises
     ------
@@ -208,7 +209,8 @@ def read_printed_program(
     rapid_speed_mm_s = rapid_speed_mm_s or job_meta.get("rapid_speed_mm_s")
     repeat_to_s = repeat_to_s or job_meta.get("repeat_to_s")
     job = read_program(path, process_speed_mm_s, rapid_speed_mm_s)
-    if repeat_to_s and repeat_to_s > job.duration_s:
+    # looped to a longer print, or cut at a shorter one (as the virtual printer prints it)
+    if repeat_to_s and abs(float(repeat_to_s) - job.duration_s) > 1e-9:
         job = job.repeat(float(repeat_to_s))
     return job
 

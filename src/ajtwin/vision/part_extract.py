@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import functools
 import math
-import time
 from collections import Counter
 from dataclasses import dataclass, field, fields
 
@@ -70,7 +69,13 @@ from ajtwin.job.geometry import tangent_at
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 from ajtwin.vision import features as F
 from ajtwin.vision.camera import Camera
-from ajtwin.vision.extract import DARK_MEAN_GRAY, MIN_LINE_CONTRAST, VisionInputError, to_gray
+from ajtwin.vision.extract import (
+    DARK_MEAN_GRAY,
+    MIN_LINE_CONTRAST,
+    VisionInputError,
+    _StageClock,
+    to_gray,
+)
 
 __all__ = [
     "PartSettings",
@@ -865,19 +870,6 @@ class PartExtractor:
             "centres": centre_index[good],
         }
         clock.lap("6 bookkeeping")
-
-
-class _StageClock:
-    """Accumulates wall time per named stage into a dict (negligible overhead)."""
-
-    def __init__(self, store: dict[str, float]):
-        self.store = store
-        self.last = time.perf_counter()
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.store[name] = self.store.get(name, 0.0) + now - self.last
-        self.last = now
 
 
 SHOULDER_SEARCH = 3  # samples either side of a window's (iii) point searched in its halves

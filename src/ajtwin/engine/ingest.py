@@ -19,10 +19,11 @@ import numpy as np
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.mismatch import assess_run, data_share, determined_states, relabel_events
 from ajtwin.engine.chain import chain_start, judge_run
+from ajtwin.engine.print_job import job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
 from ajtwin.estimation.twin import Twin
-from ajtwin.io.records import read_record
+from ajtwin.io.records import JOB_COLUMNS, read_record
 from ajtwin.model import STATE_NAMES
 from ajtwin.store.registry import RegistryError, record_hash
 
@@ -108,6 +109,7 @@ def save_print(
     live_session: int | None = None,
     keep_live_steps: bool = False,
     long_run_history: dict | None = None,
+    job: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
@@ -115,7 +117,8 @@ def save_print(
     ``extra_summary``: more summary keys (calibration, maintenance, mismatch status);
     ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
     same transaction (:meth:`ajtwin.store.registry.Registry.save_print`);
-    ``long_run_history``: the detectors' long-run statistics for the machine's next print.
+    ``long_run_history``: the detectors' long-run statistics for the machine's next print;
+    ``job``: the machine program the print ran (:meth:`ajtwin.store.registry.Registry.save_print`).
     """
     summary = print_summary(
         end[0],
@@ -152,6 +155,7 @@ def save_print(
         live_session=live_session,
         keep_live_steps=keep_live_steps,
         long_run_history=long_run_history,
+        job=job,
     )
     return print_id, summary
 
@@ -165,6 +169,7 @@ def ingest_record(
     progress=None,
     twin_overrides: dict | None = None,
     detector_settings=None,
+    job: dict | None = None,
 ):
     """Run the machine's twin over one finished print and store the result.
 
@@ -188,6 +193,9 @@ def ingest_record(
         Steps done, for a progress bar.
     twin_overrides : dict, optional
         :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
+    job : dict, optional
+        The machine program the print ran, stored with it
+        (:func:`ajtwin.engine.print_job.job_entry`).
 
     Returns
     -------
@@ -248,6 +256,7 @@ def ingest_record(
                 "data_share": determined_states(data_share(run.filtered)),
             },
             long_run_history=detection.long_run_history,
+            job=job,
         )
     except RegistryError:
         # a concurrent ingest of the same print may have won the race
@@ -275,9 +284,11 @@ def ingest_record(
 
 def run_arrays(run, record) -> dict:
     """The per-second arrays the registry keeps of a twin run over a print (names as
-    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them)."""
+    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them). ``measurements`` are
+    those the filter used: on a job print, the camera's filed at their print times."""
     f = run.filtered
     hist = run.theta_history
+    measured = getattr(run, "measurements", None)
     return {
         "time_s": run.time_s,
         "means": run.means,
@@ -286,7 +297,7 @@ def run_arrays(run, record) -> dict:
         "predicted_means": np.asarray(f.predicted_means),
         "predicted_outputs": np.asarray(f.predicted_outputs),
         "innovation_variances": np.asarray(f.innovation_variances),
-        "measurements": record.outputs,
+        "measurements": record.outputs if measured is None else measured,
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
@@ -294,6 +305,10 @@ def run_arrays(run, record) -> dict:
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
+        # a job print's shutter, speed and print times, kept exactly to rebuild the record
+        **(
+            {c: record.data[c].to_numpy(dtype=float) for c in JOB_COLUMNS} if record.has_job else {}
+        ),
     }
 
 
@@ -308,20 +323,26 @@ def ingest_file(
     video_progress: bool = True,
     aliases=None,
     dialect=None,
+    program=None,
+    job_options: dict | None = None,
 ):
     """Read a print file (and optionally its video) and :func:`ingest_record` it.
 
-    ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`.
+    ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`. ``program``: the
+    machine program the print ran, kept with it; ``job_options``: keywords of
+    :func:`ajtwin.engine.print_job.job_entry` (speeds, looping, tolerance). The program is
+    read and checked against the record before the twin runs.
     """
     path = Path(path)
     record = read_record(path, aliases=aliases, dialect=dialect)
+    job = None if program is None else job_entry(program, record, **(job_options or {}))
     source = str(path)
     if video is not None:
         if um_per_px is None:
             raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
         record, *_ = join_video(record, video, um_per_px, progress=video_progress)
         source += f" + {video}"
-    return ingest_record(registry, machine, record, source=source, progress=progress)
+    return ingest_record(registry, machine, record, source=source, progress=progress, job=job)
 
 
 def detector_inputs(registry, print_id: int) -> dict:

@@ -244,14 +244,26 @@ def estimate(
     frame.to_csv(out, index=False)
     theta_path = Path(theta_out) if theta_out else out.with_name("theta.csv")
     run.theta_history.to_csv(theta_path, index=False)
-    reinit = int(np.asarray(run.filtered.reinitialised).sum())
     click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
+    _echo_summary(run, frame, mismatch, level, undetermined, has_job=job is not None)
+    if plot_path:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.estimation.plotting import estimate_figure
+
+        estimate_figure(record, run, plot_path)
+        click.echo(f"wrote {plot_path}")
+
+
+def _echo_summary(run, frame, mismatch, level, undetermined, has_job: bool) -> None:
+    """What ``estimate`` says after writing its files: the end state, the fit, the guard,
+    φ_A's level and the states the print's data did not determine."""
+    reinit = int(np.asarray(run.filtered.reinitialised).sum())
     end = ", ".join(f"{c} {v:.4g}" for c, v in zip(frame.columns[1:11:2], run.end_mean))
     click.echo(f"end state: {end}")
     mean_nis = float(np.nanmean(frame["nis"] / np.maximum(frame["n_measured"], 1)))
     click.echo(f"mean NIS per measured output: {mean_nis:.2f} (1 = consistent)")
     if run.camera_counts:
-        click.echo(_camera_line(run.camera_counts, job is not None))
+        click.echo(_camera_line(run.camera_counts, has_job))
     if mismatch.mismatch:
         click.echo(f"WARNING {mismatch.message}", err=True)
         click.echo(
@@ -277,12 +289,6 @@ def estimate(
             "bands are the start prior's, carried by the model (columns determined_* = False)",
             err=True,
         )
-    if plot_path:
-        # lazy CLI loading: imported when the command runs, not for --help
-        from ajtwin.estimation.plotting import estimate_figure
-
-        estimate_figure(record, run, plot_path)
-        click.echo(f"wrote {plot_path}")
 
 
 def _read_job(record, job_program, camera_horizon):

@@ -343,12 +343,8 @@ def report(
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_map import part_map_of_record
     from ajtwin.engine.part_report import write_report
-    from ajtwin.engine.print_job import (
-        job_of_print,
-        next_print_twin,
-        record_duration_s,
-        stored_part_map,
-    )
+    from ajtwin.engine.print_job import next_print_twin, stored_part_map
+    from ajtwin.estimation.print_time import program_for_record
     from ajtwin.io.records import RecordError, read_record
     from ajtwin.job import ProgramError
     from ajtwin.store.registry import RegistryError
@@ -369,14 +365,12 @@ def report(
             )
         else:
             rec = read_record(record, aliases=aliases, dialect=csv_dialect)
-            the_job = job_of_print(
-                program.read_bytes(),
-                program.name,
-                rec.meta,
+            the_job = program_for_record(
+                rec,
+                program,
                 process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
                 repeat_to_s=repeat_to,
-                print_duration_s=record_duration_s(rec),
             )
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start

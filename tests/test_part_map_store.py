@@ -109,6 +109,28 @@ def test_a_job_looped_side_by_side_is_kept_and_read_back_as_the_print_ran_it(tmp
     reg.close()
 
 
+def test_job_report_of_a_log_that_names_no_job_takes_the_looping_from_the_options(tmp_path):
+    """A machine log that does not say how the job was looped, given --repeat-to and
+    --repeat-pitch-mm, is mapped as the same print whose record says so."""
+    from ajtwin.io.records import PrintRecord
+
+    record = run_job_print(PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(12.0, 9.0)).record
+    named = tmp_path / "named.parquet"
+    write_record(record, named)
+    meta = {k: v for k, v in record.meta.items() if k != "job"}
+    bare = tmp_path / "bare.parquet"
+    write_record(PrintRecord(record.data, meta), bare)
+    common = ["--job", PROGRAM, "--tolerance", "74+-2", "--no-progress"]
+    a = run(job_group, "report", named, "--out", tmp_path / "a", *common)
+    looping = ["--repeat-to", record.meta["job"]["repeat_to_s"], "--repeat-pitch-mm", "12,9"]
+    b = run(job_group, "report", bare, "--out", tmp_path / "b", *common, *looping)
+    assert a.exit_code == 0 and b.exit_code == 0, (a.output, b.output)
+    first = pd.read_csv(tmp_path / "a" / "strokes.csv")
+    second = pd.read_csv(tmp_path / "b" / "strokes.csv")
+    assert first["repetition"].max() >= 1
+    pd.testing.assert_frame_equal(first, second)
+
+
 def test_an_older_registry_opens_after_the_migration_and_keeps_its_prints(
     tmp_path, monkeypatch, job_print_file
 ):

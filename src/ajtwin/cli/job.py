@@ -11,6 +11,7 @@ import click
 
 from ajtwin.cli.options import (
     BoundedFloat,
+    PitchMM,
     ToleranceType,
     open_registry,
     record_options,
@@ -300,6 +301,14 @@ def _echo_part_report(part, paths) -> None:
     "looped to the record's length when the print outlasts the program).",
 )
 @click.option(
+    "--repeat-pitch-mm",
+    "repeat_pitch",
+    type=PitchMM(),
+    default=None,
+    help="The loops were placed side by side, DX[,DY] mm apart (default: the record's; else "
+    "each run printed over the last).",
+)
+@click.option(
     "--portion-mm",
     type=BoundedFloat(0.0, 1000.0),
     default=1.0,
@@ -326,6 +335,7 @@ def report(
     process_speed,
     rapid_speed,
     repeat_to,
+    repeat_pitch,
     portion_mm,
     flag_probability,
     progress,
@@ -371,6 +381,7 @@ def report(
                 process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
                 repeat_to_s=repeat_to,
+                repeat_pitch_mm=repeat_pitch,
             )
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start

@@ -12,8 +12,9 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.io.dialect import DIALECT_CHOICES
-from ajtwin.job import ProgramError, read_printed_program
+from ajtwin.job import ProgramError
 from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
 from ajtwin.vision.camera import CameraFileError, load_camera
@@ -130,14 +131,19 @@ def load_camera_option(camera_path):
 
 
 def load_job_option(job_path, *, meta=None, process_speed=None, rapid_speed=None, repeat_to=None):
-    """The program of ``--job`` as the print ran it (:func:`ajtwin.job.read_printed_program`:
-    speeds and looping from the record's metadata ``meta`` where not given, and refused when
-    the record names another program)."""
+    """The program of ``--job`` as the print ran it
+    (:func:`ajtwin.estimation.print_time.job_as_printed`: speeds and looping from the record's
+    metadata ``meta`` where not given, and refused when the record names another program)."""
     if job_path is None:
         raise click.UsageError("--camera needs --job PROGRAM.prg")
+    info = (meta or {}).get("job")
     try:
-        return read_printed_program(
-            job_path, (meta or {}).get("job"), process_speed, rapid_speed, repeat_to
+        return job_as_printed(
+            job_path,
+            info if isinstance(info, dict) else None,
+            process_speed_mm_s=process_speed,
+            rapid_speed_mm_s=rapid_speed,
+            repeat_to_s=repeat_to,
         )
     except (ProgramError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -75,7 +75,7 @@ import numpy as np
 
 from ajtwin.config import packaged_toml
 from ajtwin.io.records import PrintRecord
-from ajtwin.job import Job, decode_program, read_program_text
+from ajtwin.job import Job, ProgramError, decode_program, read_program_text
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
 #: Row times within this of the 1 s grid count as on it [s].
@@ -413,7 +413,15 @@ def job_as_printed(
     unknown = set(overrides) - set(PRINTED_AS)
     if unknown:
         raise TypeError(f"job_as_printed: unknown settings {sorted(unknown)}")
-    raw = program if isinstance(program, bytes) else Path(program).read_bytes()
+    if isinstance(program, bytes):
+        raw = program
+    else:
+        try:
+            raw = Path(program).read_bytes()
+        except OSError as exc:
+            raise ProgramError(
+                str(program), None, "", f"cannot read the program: {exc.strerror}"
+            ) from None
     name = name if name is not None else str(program)
     given = dict(settings or {})
     expected = given.get("sha256")

@@ -32,7 +32,7 @@ from ajtwin.engine.part_map import (
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import INPUT_COLUMNS, JOB_COLUMNS, OUTPUT_COLUMNS, PrintRecord
-from ajtwin.job import decode_program, read_program_text
+from ajtwin.job import SpeedSchedule, decode_program, read_program_text
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
@@ -59,7 +59,8 @@ def job_of_print(
     the print looped it.
 
     The record's ``job`` metadata (format 2) names the program's SHA-256 (a different
-    program is refused with a ValueError), the speeds used and ``repeat_to_s``;
+    program is refused with a ValueError), the speeds used (with the speeds per layer,
+    stroke or feature, ``process_speed_schedule``) and ``repeat_to_s``;
     ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s`` override them. Without
     either the program runs at the GUI's default speeds (``stage.toml``), once, or looped
     to ``print_duration_s`` when the print outlasts it (the machine ran it again, as the
@@ -85,6 +86,7 @@ def job_of_print(
         None if process is None else float(process),
         None if rapid is None else float(rapid),
         path=program_name,
+        speed_schedule=SpeedSchedule.from_meta(from_record.get("process_speed_schedule")),
     )
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
     if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:

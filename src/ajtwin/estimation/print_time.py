@@ -75,7 +75,7 @@ import numpy as np
 
 from ajtwin.config import packaged_toml
 from ajtwin.io.records import PrintRecord
-from ajtwin.job import Job, read_program
+from ajtwin.job import Job, SpeedSchedule, read_program
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
 #: Row times within this of the 1 s grid count as on it [s].
@@ -371,8 +371,9 @@ def program_for_record(record: PrintRecord, program) -> Job:
     """The program a job record was printed from, read and looped as the print ran it.
 
     ``program`` is the ``.prg`` path. Its bytes must hash to the record's
-    ``job.sha256``; the record's process and rapid speeds, ``repeat_to_s`` and
-    ``repeat_pitch_mm`` are applied.
+    ``job.sha256``; the record's process and rapid speeds, its speeds per layer, stroke or
+    feature (``process_speed_schedule``), ``repeat_to_s`` and ``repeat_pitch_mm`` are
+    applied.
 
     Raises
     ------
@@ -393,7 +394,12 @@ def program_for_record(record: PrintRecord, program) -> Job:
             f"{path}: sha256 {digest[:12]}… is not the program this print ran "
             f"({info.get('program', '?')}, sha256 {str(expected)[:12]}…); give the same file"
         )
-    job = read_program(path, info.get("process_speed_mm_s"), info.get("rapid_speed_mm_s"))
+    job = read_program(
+        path,
+        info.get("process_speed_mm_s"),
+        info.get("rapid_speed_mm_s"),
+        speed_schedule=SpeedSchedule.from_meta(info.get("process_speed_schedule")),
+    )
     repeat_to = info.get("repeat_to_s")
     if repeat_to:
         pitch = info.get("repeat_pitch_mm")

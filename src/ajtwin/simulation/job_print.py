@@ -522,9 +522,7 @@ def read_job(program, process_speed_mm_s=None, rapid_speed_mm_s=None, speed_sche
 
     if isinstance(program, Job):
         return program, None
-    job = read_program(
-        program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule=speed_schedule
-    )
+    job = read_program(program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule=speed_schedule)
     return job, Path(program)
 
 

@@ -54,6 +54,7 @@ def job_of_print(
     rapid_speed_mm_s: float | None = None,
     repeat_to_s: float | None = None,
     print_duration_s: float | None = None,
+    speed_schedule: SpeedSchedule | None = None,
 ):
     """The job as a print ran it: the program read with the print's speeds and looped as
     the print looped it.
@@ -86,7 +87,8 @@ def job_of_print(
         None if process is None else float(process),
         None if rapid is None else float(rapid),
         path=program_name,
-        speed_schedule=SpeedSchedule.from_meta(from_record.get("process_speed_schedule")),
+        speed_schedule=speed_schedule
+        or SpeedSchedule.from_meta(from_record.get("process_speed_schedule")),
     )
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
     if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
@@ -110,6 +112,7 @@ def job_entry(
     rapid_speed_mm_s: float | None = None,
     repeat_to_s: float | None = None,
     tolerance: Tolerance | None = None,
+    speed_schedule: SpeedSchedule | None = None,
 ) -> dict:
     """What the registry keeps of the job a print ran (``ajtwin ingest --job``).
 
@@ -122,7 +125,8 @@ def job_entry(
     dict
         ``program`` (file name), ``program_bytes``, ``settings``: ``process_speed_mm_s``,
         ``rapid_speed_mm_s``, ``speed_source``, ``repeat_to_s``, ``tolerance_um``
-        ([low, high] or None).
+        ([low, high] or None), ``process_speed_schedule`` (speeds per layer, stroke or
+        feature, :meth:`ajtwin.job.SpeedSchedule.to_meta`, or None).
     """
     path = Path(program)
     raw = path.read_bytes()
@@ -134,6 +138,7 @@ def job_entry(
         process_speed_mm_s=process_speed_mm_s,
         rapid_speed_mm_s=rapid_speed_mm_s,
         repeat_to_s=repeat_to_s,
+        speed_schedule=speed_schedule,
     )
     summary = job.summary()
     from_record = dict((meta or {}).get("job") or {})
@@ -147,6 +152,7 @@ def job_entry(
             "speed_source": summary["process_speed_source"],
             "repeat_to_s": None if loop is None else float(loop),
             "tolerance_um": None if tolerance is None else [float(v) for v in tolerance],
+            "process_speed_schedule": summary["speed_schedule"],
         },
     }
 
@@ -164,6 +170,7 @@ def job_from_entry(entry: dict, repeat_to_s: float | None = None, print_duration
         rapid_speed_mm_s=settings.get("rapid_speed_mm_s"),
         repeat_to_s=repeat_to_s if repeat_to_s is not None else settings.get("repeat_to_s"),
         print_duration_s=print_duration_s,
+        speed_schedule=SpeedSchedule.from_meta(settings.get("process_speed_schedule")),
     )
 
 

@@ -8,10 +8,13 @@ Run through its commands, ``ajtwin control simulate`` and ``ajtwin control merge
 from __future__ import annotations
 
 import argparse
+import functools
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -122,38 +125,24 @@ def compare(
         "scenarios": {},
     }
     metrics_path = out / "metrics.json"
+    options = {
+        "duration_min": duration_min,
+        "settings": settings,
+        "limits": limits,
+        "max_overspray_um": max_overspray_um,
+        "u0": u0,
+        "progress": progress,
+        "truth": truth,
+        **({} if job is None else job.kwargs()),
+    }
     for scenario in scenarios:
         runs = {}
         per_seed = {}
         for seed in seeds:
-            for strategy in strategies:
-                t0 = time.process_time()
-                run = simulate_strategy(
-                    scenario,
-                    int(seed),
-                    strategy,
-                    target_um,
-                    duration_min=duration_min,
-                    settings=settings,
-                    limits=limits,
-                    max_overspray_um=max_overspray_um,
-                    u0=u0,
-                    progress=progress,
-                    truth=truth,
-                    **({} if job is None else job.kwargs()),
-                )
-                name = run.scenario
-                stem = out / name / f"seed{seed}"
-                write_record(run.record, stem / f"{strategy}.parquet")
-                run.commands.to_csv(stem / f"{strategy}_commands.csv", index=False)
-                per_seed.setdefault(str(seed), {})[strategy] = run.metrics
-                runs.setdefault(int(seed), {})[strategy] = run
-                m = run.metrics
-                log(
-                    f"{name} seed {seed} {strategy}: rms {m['rms_error_um']:.2f} µm, "
-                    f"within ±2 µm {m['within_2um_fraction']:.0%}, holds {m['n_holds']}, "
-                    f"{time.process_time() - t0:.0f} s CPU"
-                )
+            name, runs[int(seed)] = run_seed(
+                scenario, seed, strategies, target_um, out, options, log=log
+            )
+            per_seed[str(seed)] = {k: r.metrics for k, r in runs[int(seed)].items()}
         summary = summarise(per_seed, strategies)
         results["scenarios"][name] = {"per_seed": per_seed, "summary": summary}
         first = min(runs)
@@ -161,6 +150,31 @@ def compare(
         # written after each scenario: nothing lost if a later one fails or is killed
         metrics_path.write_text(json.dumps(results, indent=2))
     return results
+
+
+def run_seed(scenario, seed, strategies, target_um, records_dir, options, log=print):
+    """Every strategy on one print (scenario, seed): each run's record and commands written
+    to ``records_dir/<scenario>/seed<N>/``. Returns (the scenario's name, {strategy: run}).
+
+    ``options``: keywords of :func:`ajtwin.engine.control.simulate_strategy`.
+    """
+    runs = {}
+    name = str(scenario)
+    for strategy in strategies:
+        t0, wall0 = time.process_time(), time.perf_counter()
+        run = simulate_strategy(scenario, int(seed), strategy, target_um, **options)
+        name = run.scenario
+        stem = Path(records_dir) / name / f"seed{seed}"
+        write_record(run.record, stem / f"{strategy}.parquet")
+        run.commands.to_csv(stem / f"{strategy}_commands.csv", index=False)
+        runs[strategy] = run
+        m = run.metrics
+        log(
+            f"{name} seed {seed} {strategy}: rms {m['rms_error_um']:.2f} µm, "
+            f"within ±2 µm {m['within_2um_fraction']:.0%}, holds {m['n_holds']}, "
+            f"{time.process_time() - t0:.0f} s CPU, {time.perf_counter() - wall0:.0f} s wall"
+        )
+    return name, runs
 
 
 def summarise(per_seed: dict, strategies) -> dict:
@@ -183,6 +197,7 @@ def summarise(per_seed: dict, strategies) -> dict:
             },
             "solve_ms_mean": float(np.mean(solve)) if solve else None,
             "solve_ms_max": float(np.max(solve_max)) if solve_max else None,
+            **_wall_solve(rows),
             "holds_mean": float(np.mean([r["n_holds"] for r in rows])),
             "ink_stop_s_per_seed": [r.get("ink_stop_s") for r in rows],
             "all_inside_limits": bool(all(r["inside_limits"] for r in rows)),
@@ -194,6 +209,18 @@ def summarise(per_seed: dict, strategies) -> dict:
             if other in out and twin_rms > 0:
                 out[f"ratio_rms_{other}_over_mpc_twin"] = out[other]["rms_error_um_mean"] / twin_rms
     return out
+
+
+def _wall_solve(rows) -> dict:
+    """Wall-clock solve times over the seeds' runs (those that recorded them)."""
+    mean = [r["solve_wall_ms_mean"] for r in rows if r.get("solve_wall_ms_mean") is not None]
+    p95 = [r["solve_wall_ms_p95"] for r in rows if r.get("solve_wall_ms_p95") is not None]
+    top = [r["solve_wall_ms_max"] for r in rows if r.get("solve_wall_ms_max") is not None]
+    return {
+        "solve_wall_ms_mean": float(np.mean(mean)) if mean else None,
+        "solve_wall_ms_p95_max": float(np.max(p95)) if p95 else None,
+        "solve_wall_ms_max": float(np.max(top)) if top else None,
+    }
 
 
 #: what every merged run must share (else the rows are not comparable)
@@ -486,6 +513,35 @@ def cameras_from_offsets(text: str, program, process_speed=None, pitch_mm=None) 
     return cameras
 
 
+def comparison_tasks(cells, seeds, core) -> list:
+    """The order the job-print comparison runs its prints in: the ``core`` cells (those
+    the aims are judged on) get every seed first, seed by seed; then the others, one seed
+    of every cell before the next seed. A comparison cut short by its stop time has thus
+    the most seeds where the aims are judged and at least as many seeds on an earlier cell
+    as on a later one elsewhere.
+
+    Parameters
+    ----------
+    cells : list of (truth, camera, scenario)
+        In the order of preference.
+    seeds : list of int
+    core : callable
+        ``core(cell)``: whether the cell is one of the core.
+
+    Returns
+    -------
+    list of (truth, camera, scenario, seed)
+    """
+    first = [c for c in cells if core(c)]
+    rest = [c for c in cells if not core(c)]
+    return [(*c, s) for group in (first, rest) for s in seeds for c in group]
+
+
+def _in_core(cell, scenarios=None, cameras=None) -> bool:
+    """Whether a (truth, camera, scenario) cell is one of the core (None: all)."""
+    return (scenarios is None or cell[2] in scenarios) and (cameras is None or cell[1] in cameras)
+
+
 def job_comparison(
     cameras: dict,
     scenarios,
@@ -496,32 +552,75 @@ def job_comparison(
     truths=("model", "alt"),
     minutes: float | None = None,
     strategies=STRATEGIES,
+    core_scenarios=None,
+    core_cameras=None,
+    stop_at: float | None = None,
+    records_dir=None,
     log=print,
 ) -> dict:
-    """Every strategy on every scenario, camera, truth generator and seed (:func:`compare`
-    per camera and generator into ``out_dir/<truth>/<camera>/``), merged into one table:
-    ``out_dir/metrics.json`` and ``metrics.md``."""
+    """Every strategy on every scenario, camera, truth generator and seed, merged into one
+    table: ``out_dir/metrics.json`` and ``metrics.md`` (rewritten after every print), a
+    figure per core cell in ``out_dir``; the records under
+    ``records_dir/<truth>/<camera>/<scenario>/seed<N>/`` (default ``out_dir``).
+
+    The prints run in the order of :func:`comparison_tasks`: the core cells
+    (``core_scenarios`` × ``core_cameras``, default all) every seed first. ``stop_at``
+    (a :func:`time.time`): no print starts that would not end by then at the pace of the
+    slowest so far; the table says which seeds ran in each cell.
+    """
     out = Path(out_dir)
-    merged = {"cameras": {}, "truths": list(truths), "seeds": [int(s) for s in seeds]}
-    for truth in truths:
-        for name, setup in cameras.items():
-            folder = out / truth / name.replace(" ", "_")
-            log(f"--- {name}, truth {truth} ---")
-            result = compare(
-                scenarios,
-                seeds,
-                target_um,
-                folder,
-                strategies=strategies,
-                duration_min=minutes,
-                log=log,
-                truth=truth,
-                job=setup,
-            )
-            merged["cameras"].setdefault(name, {})[truth] = result
-            merged.update({k: result[k] for k in ("target_linewidth_um", "start_inputs")})
-            (out / "metrics.json").write_text(json.dumps(merged, indent=2))
-            (out / "metrics.md").write_text(job_metrics_table(merged))
+    out.mkdir(parents=True, exist_ok=True)
+    records = Path(records_dir) if records_dir is not None else out
+    settings = ControlSettings.load()
+    u0, reach = start_inputs(Twin.default(), target_um)
+    merged = {
+        "target_linewidth_um": float(target_um),
+        "reachable_nominal_um": list(reach),
+        "start_inputs": u0.tolist(),
+        "settings": settings.source,
+        "strategies": list(strategies),
+        "truths": list(truths),
+        "seeds_asked": [int(s) for s in seeds],
+        "minutes": minutes,
+        "core": {"scenarios": core_scenarios, "cameras": core_cameras},
+        "jobs": {name: setup.meta() for name, setup in cameras.items()},
+        "load_average_start": list(os.getloadavg()),
+        "cameras": {},
+    }
+    cells = [(t, c, sc) for c in cameras for sc in scenarios for t in truths]
+    core = functools.partial(_in_core, scenarios=core_scenarios, cameras=core_cameras)
+    tasks = comparison_tasks(cells, [int(s) for s in seeds], core)
+    slowest, done = 0.0, 0
+    for truth, camera, scenario, seed in tasks:
+        if stop_at is not None and time.time() + slowest > stop_at:
+            log(f"stop time reached: {done} of {len(tasks)} prints ran")
+            break
+        wall0 = time.time()
+        options = {"duration_min": minutes, "settings": settings, "u0": u0, "truth": truth}
+        folder = records / truth / camera.replace(" ", "_")
+        log(f"--- {camera}, truth {truth}, {scenario}, seed {seed} ---")
+        name, runs = run_seed(
+            scenario,
+            seed,
+            strategies,
+            target_um,
+            folder,
+            {**options, **cameras[camera].kwargs()},
+            log=log,
+        )
+        slowest, done = max(slowest, time.time() - wall0), done + 1
+        block = merged["cameras"].setdefault(camera, {}).setdefault(truth, {"scenarios": {}})
+        cell = block["scenarios"].setdefault(name, {"per_seed": {}})
+        cell["per_seed"][str(seed)] = {k: r.metrics for k, r in runs.items()}
+        cell["summary"] = summarise(cell["per_seed"], strategies)
+        if core((truth, camera, scenario)) and len(cell["per_seed"]) == 1:
+            title = f"{name}, {camera}, {'first' if truth == 'model' else 'second'} generator"
+            stem = f"{name}_{camera.replace(' ', '_')}_{truth}_seed{seed}.png"
+            plot_scenario(runs, target_um, out / stem, f"{title}, seed {seed}")
+        merged.update(prints_done=done, prints_planned=len(tasks))
+        merged["load_average_end"] = list(os.getloadavg())
+        (out / "metrics.json").write_text(json.dumps(merged, indent=2))
+        (out / "metrics.md").write_text(job_metrics_table(merged))
     return merged
 
 
@@ -536,9 +635,9 @@ def job_metrics_table(merged: dict) -> str:
     width error per printed length of each strategy (and the share within ±2 µm), the
     ratios to the MPC on the twin, overspray, input travel, holds and solve times."""
     head = (
-        "| scenario | camera | generator | open loop | PI | MPC nominal | MPC twin | "
+        "| scenario | camera | generator | seeds | open loop | PI | MPC nominal | MPC twin | "
         "open/twin | PI/twin | L_o twin / PI [µm] | travel twin: I_A, Q_c, Q_s | "
-        "holds twin | solve twin mean/max [ms] |"
+        "holds twin | limits twin | solve twin CPU mean/max, wall mean/max [ms] |"
     )
     lines = [head, "|---" * (head.count("|") - 1) + "|"]
     for camera, by_truth in merged["cameras"].items():
@@ -559,8 +658,17 @@ def job_metrics_table(merged: dict) -> str:
                 overspray = "{} / {}".format(
                     _cell(twin, "mean_overspray_um", ".2f"), _cell(pi, "mean_overspray_um", ".2f")
                 )
-                solve = "{} / {}".format(
-                    _cell(twin, "solve_ms_mean", ".1f"), _cell(twin, "solve_ms_max", ".1f")
+                solve = "{} / {}, {} / {}".format(
+                    _cell(twin, "solve_ms_mean", ".1f"),
+                    _cell(twin, "solve_ms_max", ".1f"),
+                    _cell(twin, "solve_wall_ms_mean", ".1f"),
+                    _cell(twin, "solve_wall_ms_max", ".1f"),
+                )
+                inside = twin is not None and twin["all_inside_limits"]
+                limits = (
+                    "–"
+                    if twin is None
+                    else ("inside" if inside and twin["all_rate_limits_respected"] else "VIOLATED")
                 )
                 generator = "first" if truth == "model" else "second"
                 cells += [
@@ -569,9 +677,13 @@ def job_metrics_table(merged: dict) -> str:
                     overspray,
                     ", ".join(f"{v:.0f}" for v in travel.values()) or "–",
                     _cell(twin, "holds_mean", ".1f"),
+                    limits,
                     solve,
                 ]
-                lines.append(f"| {scenario} | {camera} | {generator} | " + " | ".join(cells) + " |")
+                seeds = ",".join(block["per_seed"])
+                lines.append(
+                    f"| {scenario} | {camera} | {generator} | {seeds} | " + " | ".join(cells) + " |"
+                )
     return "\n".join(lines) + "\n"
 
 
@@ -589,6 +701,13 @@ def parse_seed_list(text: str) -> list[int]:
     if not seeds or min(seeds) < 0:
         raise ValueError(f"seeds {text!r}: non-negative integers, e.g. 1-5 or 0,6")
     return seeds
+
+
+def _utc_today(text: str) -> float:
+    """``HH:MM`` UTC today as a :func:`time.time`."""
+    hours, minutes = (int(v) for v in text.split(":"))
+    now = datetime.now(UTC)
+    return now.replace(hour=hours, minute=minutes, second=0, microsecond=0).timestamp()
 
 
 def main(argv=None) -> None:
@@ -612,6 +731,10 @@ def main(argv=None) -> None:
     comp.add_argument("--minutes", type=float, default=90.0)
     comp.add_argument("--truth", default="model,alt")
     comp.add_argument("--scenarios", default=",".join(JOB_SCENARIOS))
+    comp.add_argument("--core-scenarios", help="scenarios whose cells run every seed first")
+    comp.add_argument("--core-offsets", help="camera offsets whose cells run every seed first")
+    comp.add_argument("--stop-at", help="UTC HH:MM: no print starts that would end later")
+    comp.add_argument("--records", help="folder of the records (default: --out)")
     args = parser.parse_args(argv)
     text = args.process_speed
     speed = SpeedSchedule.parse(text) if ("," in text or ":" in text) else float(text)
@@ -633,7 +756,17 @@ def main(argv=None) -> None:
             args.out,
             truths=tuple(args.truth.split(",")),
             minutes=args.minutes,
+            core_scenarios=None if args.core_scenarios is None else args.core_scenarios.split(","),
+            core_cameras=(
+                None
+                if args.core_offsets is None
+                else list(cameras_from_offsets(args.core_offsets, args.job, speed, pitch))
+            ),
+            stop_at=None if args.stop_at is None else _utc_today(args.stop_at),
+            records_dir=args.records,
         )
+        result["command"] = "python -m ajtwin.studies.control " + " ".join(argv or sys.argv[1:])
+        (Path(args.out) / "metrics.json").write_text(json.dumps(result, indent=2))
     print(f"done in {time.time() - t0:.0f} s; wrote {args.out}")
 
 

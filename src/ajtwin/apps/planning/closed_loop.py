@@ -195,6 +195,7 @@ def _command_row(t: float, command, decision: Decision) -> dict:
         "status": decision.status,
         "reason": decision.reason,
         "solve_ms": decision.solve_s * 1e3,
+        "solve_wall_ms": decision.solve_wall_s * 1e3,
         "predicted_linewidth_um": decision.predicted_linewidth_um,
         "predicted_linewidth_std_um": decision.predicted_linewidth_std_um,
         "step_scale": decision.step_scale,
@@ -226,6 +227,8 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
     c = run.commands
     solve = c["solve_ms"].to_numpy(float) if len(c) else np.array([])
     solve = solve[np.isfinite(solve)]
+    wall = c["solve_wall_ms"].to_numpy(float) if "solve_wall_ms" in c else np.array([])
+    wall = wall[np.isfinite(wall)]
     holds = c[c["status"] == "hold"] if len(c) else c
     reasons = {}
     if len(holds) and run.strategy != "open_loop":
@@ -248,6 +251,9 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
         "solve_ms_mean": float(np.mean(solve)) if solve.size else None,
         "solve_ms_p95": float(np.percentile(solve, 95)) if solve.size else None,
         "solve_ms_max": float(np.max(solve)) if solve.size else None,
+        "solve_wall_ms_mean": float(np.mean(wall)) if wall.size else None,
+        "solve_wall_ms_p95": float(np.percentile(wall, 95)) if wall.size else None,
+        "solve_wall_ms_max": float(np.max(wall)) if wall.size else None,
         "n_commands": int(len(c)),
         "n_holds": int(len(holds)) if run.strategy != "open_loop" else 0,
         "first_hold_s": (

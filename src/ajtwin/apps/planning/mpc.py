@@ -458,7 +458,10 @@ class MPCSolution:
         L̂_w ± σ and L̂_o over the horizon under the plan [µm].
     cost : float
     solve_s : float
-        CPU seconds of the solve (process time).
+        CPU seconds of the solve (process time, every thread of the process).
+    solve_wall_s : float
+        Wall-clock seconds of the solve (what a real-time loop waits; longer on a loaded
+        machine).
     """
 
     command: np.ndarray  # (3,) the input to apply now [mA, sccm, sccm]
@@ -473,6 +476,7 @@ class MPCSolution:
     message: str = ""
     step_scale: float = 1.0  # < 1 when the step was bounded for uncertainty
     notes: list = field(default_factory=list)
+    solve_wall_s: float = float("nan")  # wall-clock seconds of the solve
 
 
 class _PlanArrays(NamedTuple):
@@ -684,7 +688,7 @@ class MPC:
         relative to ν_ref, f_w, f_o; :meth:`ajtwin.apps.planning.job_preview.JobPreview.line`);
         default a straight line printed at ν_ref every second.
         """
-        t0 = time.process_time()
+        t0, wall0 = time.process_time(), time.perf_counter()
         s = self.settings
         u_prev = np.asarray(u_prev, dtype=float)
         model_args = self._model_args(mean, cov, theta)
@@ -764,6 +768,7 @@ class MPC:
                 )
             ),
             solve_s=time.process_time() - t0,
+            solve_wall_s=time.perf_counter() - wall0,
             iterations=iterations,
             success=bool(result.success),
             message=str(result.message),

@@ -96,6 +96,8 @@ class Decision:
         The MPC's prediction at the horizon's end.
     step_scale : float
         Fraction of the rate limit allowed (< 1 when L_w is uncertain).
+    solve_wall_s : float
+        Wall-clock seconds of the MPC solve (NaN: none).
     """
 
     command: np.ndarray
@@ -105,6 +107,7 @@ class Decision:
     predicted_linewidth_um: float = float("nan")
     predicted_linewidth_std_um: float = float("nan")
     step_scale: float = 1.0
+    solve_wall_s: float = float("nan")
 
 
 class OpenLoop:
@@ -270,6 +273,7 @@ class MPCStrategy:
             float(sol.predicted_linewidth[-1]),
             float(sol.predicted_linewidth_std[-1]),
             scale,
+            sol.solve_wall_s,
         )
 
 

@@ -537,6 +537,29 @@ def comparison_tasks(cells, seeds, core) -> list:
     return [(*c, s) for group in (first, rest) for s in seeds for c in group]
 
 
+#: what a resumed comparison must share with the one in its folder
+_RESUME_KEYS = ("target_linewidth_um", "start_inputs", "settings", "strategies", "minutes", "jobs")
+
+
+def _resumed(path: Path, merged: dict, log=print) -> dict:
+    """The cells of an earlier comparison at ``path`` (empty when there is none); an error
+    when it is not the same comparison."""
+    if not path.is_file():
+        return {}
+    earlier = json.loads(path.read_text())
+    for key in _RESUME_KEYS:
+        if json.loads(json.dumps(merged[key])) != earlier.get(key):
+            raise ValueError(f"{path}: {key} differs; resume only the same comparison")
+    n = sum(
+        len(cell["per_seed"])
+        for truths in earlier["cameras"].values()
+        for block in truths.values()
+        for cell in block["scenarios"].values()
+    )
+    log(f"resuming {path}: {n} prints kept")
+    return earlier["cameras"]
+
+
 def _in_core(cell, scenarios=None, cameras=None) -> bool:
     """Whether a (truth, camera, scenario) cell is one of the core (None: all)."""
     return (scenarios is None or cell[2] in scenarios) and (cameras is None or cell[1] in cameras)
@@ -556,6 +579,7 @@ def job_comparison(
     core_cameras=None,
     stop_at: float | None = None,
     records_dir=None,
+    resume: bool = False,
     log=print,
 ) -> dict:
     """Every strategy on every scenario, camera, truth generator and seed, merged into one
@@ -566,7 +590,8 @@ def job_comparison(
     The prints run in the order of :func:`comparison_tasks`: the core cells
     (``core_scenarios`` × ``core_cameras``, default all) every seed first. ``stop_at``
     (a :func:`time.time`): no print starts that would not end by then at the pace of the
-    slowest so far; the table says which seeds ran in each cell.
+    slowest so far; the table says which seeds ran in each cell. ``resume``: the prints of
+    an earlier ``out_dir/metrics.json`` of the same comparison are kept, not run again.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -584,14 +609,19 @@ def job_comparison(
         "minutes": minutes,
         "core": {"scenarios": core_scenarios, "cameras": core_cameras},
         "jobs": {name: setup.meta() for name, setup in cameras.items()},
-        "load_average_start": list(os.getloadavg()),
+        "runnable_processes_1min_start": list(os.getloadavg()),
         "cameras": {},
     }
     cells = [(t, c, sc) for c in cameras for sc in scenarios for t in truths]
     core = functools.partial(_in_core, scenarios=core_scenarios, cameras=core_cameras)
     tasks = comparison_tasks(cells, [int(s) for s in seeds], core)
+    merged["cameras"] = _resumed(out / "metrics.json", merged, log) if resume else {}
     slowest, done = 0.0, 0
     for truth, camera, scenario, seed in tasks:
+        cell = merged["cameras"].get(camera, {}).get(truth, {}).get("scenarios", {})
+        if str(seed) in cell.get(scenario, {}).get("per_seed", {}):
+            done += 1  # in the table already (resumed)
+            continue
         if stop_at is not None and time.time() + slowest > stop_at:
             log(f"stop time reached: {done} of {len(tasks)} prints ran")
             break
@@ -618,7 +648,7 @@ def job_comparison(
             stem = f"{name}_{camera.replace(' ', '_')}_{truth}_seed{seed}.png"
             plot_scenario(runs, target_um, out / stem, f"{title}, seed {seed}")
         merged.update(prints_done=done, prints_planned=len(tasks))
-        merged["load_average_end"] = list(os.getloadavg())
+        merged["runnable_processes_1min_end"] = list(os.getloadavg())
         (out / "metrics.json").write_text(json.dumps(merged, indent=2))
         (out / "metrics.md").write_text(job_metrics_table(merged))
     return merged
@@ -735,6 +765,7 @@ def main(argv=None) -> None:
     comp.add_argument("--core-offsets", help="camera offsets whose cells run every seed first")
     comp.add_argument("--stop-at", help="UTC HH:MM: no print starts that would end later")
     comp.add_argument("--records", help="folder of the records (default: --out)")
+    comp.add_argument("--resume", action="store_true", help="keep the prints of --out's table")
     args = parser.parse_args(argv)
     text = args.process_speed
     speed = SpeedSchedule.parse(text) if ("," in text or ":" in text) else float(text)
@@ -764,6 +795,7 @@ def main(argv=None) -> None:
             ),
             stop_at=None if args.stop_at is None else _utc_today(args.stop_at),
             records_dir=args.records,
+            resume=args.resume,
         )
         result["command"] = "python -m ajtwin.studies.control " + " ".join(argv or sys.argv[1:])
         (Path(args.out) / "metrics.json").write_text(json.dumps(result, indent=2))

@@ -299,3 +299,16 @@ def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_p
     with Registry(store, create=False) as registry:
         stored = registry.print_job(link.print_id)
     assert stored is not None and stored["program"] == "serpentine.prg"
+
+
+def test_printer_serve_process_speeds_go_with_a_job():
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main as cli
+
+    result = CliRunner().invoke(cli, ["printer", "serve", "--process-speed", "2,4,3"])
+    assert result.exit_code == 2 and "--process-speed goes with --job" in result.output
+    result = CliRunner().invoke(
+        cli, ["printer", "serve", "--job", __file__, "--process-speed", "2,,4"]
+    )
+    assert result.exit_code != 0 and "give speeds" in result.output

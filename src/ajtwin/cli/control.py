@@ -15,8 +15,14 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ajtwin.cli.options import ProcessSpeed, ToleranceType, parse_seeds, store_option
-from ajtwin.cli.simulate import OffsetMM, PitchMM
+from ajtwin.cli.options import (
+    OffsetMM,
+    PitchMM,
+    ProcessSpeed,
+    ToleranceType,
+    parse_seeds,
+    store_option,
+)
 from ajtwin.store.registry import Registry, RegistryError
 
 
@@ -303,7 +309,7 @@ def _job_engine(machine, job: dict, store):
     from ajtwin.cli.live import _follow_parts
     from ajtwin.cli.options import job_speeds, open_registry
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.print_job import job_entry, job_from_entry
+    from ajtwin.engine.print_job import entry_job, job_entry
 
     speeds = job_speeds(job["process_speed"])
     entry = job_entry(
@@ -327,7 +333,7 @@ def _job_engine(machine, job: dict, store):
         _follow_parts(engine, publisher, [machine], entry, job["tolerance"])
         dashboard = BackgroundServer(engine.registry.path, publisher, port=job["dashboard_port"])
         click.echo(f"dashboard: open {dashboard.url}", err=True)
-    options = {"job": job_from_entry(entry), "camera_mode": job["camera_mode"]}
+    options = {"job": entry_job(entry), "camera_mode": job["camera_mode"]}
     if job["offset_mm"] is not None:
         options["camera_offset_mm"] = job["offset_mm"]
     return engine, dashboard, options

@@ -19,9 +19,10 @@ import numpy as np
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.mismatch import assess_run, data_share, determined_states, relabel_events
 from ajtwin.engine.chain import chain_start, judge_run
-from ajtwin.engine.print_job import job_entry
+from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
+from ajtwin.estimation.print_time import is_job_record, record_duration_s
 from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import JOB_COLUMNS, read_record
 from ajtwin.model import STATE_NAMES
@@ -194,8 +195,8 @@ def ingest_record(
     twin_overrides : dict, optional
         :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
     job : dict, optional
-        The machine program the print ran, stored with it
-        (:func:`ajtwin.engine.print_job.job_entry`).
+        The program the print ran (:func:`ajtwin.engine.print_job.job_entry`), stored with
+        it; on a job print the twin files the camera's frames with it.
 
     Returns
     -------
@@ -222,7 +223,7 @@ def ingest_record(
     start, expected = begin["start"], chain.latest_seq
     twin.theta = begin["theta"]
     theta_before = twin.theta.copy()
-    run = twin.run(record, start=start, progress=progress)
+    run = twin.run(record, start=start, progress=progress, job=_printed_job(job, record))
     status, status_reason = judge_run(run)
     detection = detect_run(
         run, record, detector_settings, carried_long_run_history(registry, machine, chain)
@@ -282,13 +283,23 @@ def ingest_record(
     )
 
 
+def _printed_job(entry: dict | None, record):
+    """The job a job record's print ran (from the entry kept with it), for the twin to file
+    the camera's frames with; None without an entry or for a record without job columns."""
+    if entry is None or not is_job_record(record):
+        return None
+    return entry_job(entry, print_duration_s=record_duration_s(record))
+
+
 def run_arrays(run, record) -> dict:
     """The per-second arrays the registry keeps of a twin run over a print (names as
     :meth:`ajtwin.store.registry.Registry.print_arrays` returns them). ``measurements`` are
-    those the filter used: on a job print, the camera's filed at their print times."""
+    those the filter used: on a job print, the camera's filed at their print times, with
+    their speed-law factors (``line_factors``) so that the run can be made again."""
     f = run.filtered
     hist = run.theta_history
     measured = getattr(run, "measurements", None)
+    line = getattr(run, "line_factors", None)
     return {
         "time_s": run.time_s,
         "means": run.means,
@@ -305,10 +316,11 @@ def run_arrays(run, record) -> dict:
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
-        # a job print's shutter, speed and print times, kept exactly to rebuild the record
+        # a job print's shutter, speed and print times as the machine logged them
         **(
             {c: record.data[c].to_numpy(dtype=float) for c in JOB_COLUMNS} if record.has_job else {}
         ),
+        **({} if line is None else {"line_factors": np.asarray(line, dtype=float)}),
     }
 
 

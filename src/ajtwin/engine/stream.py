@@ -813,7 +813,8 @@ class TwinStream:
         ]
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The committed per-step results, named as the registry stores a print."""
+        """The committed per-step results, named as the registry stores a print (a job
+        print's with ``line_factors``, the (F_w, F_o, v_w, v_o) of each filed step)."""
         h = self.history
         means = h.array("means")
         covs = h.array("covariances").reshape(-1, 5, 5)
@@ -838,6 +839,12 @@ class TwinStream:
             "theta_history": np.array(
                 [[r[f"theta_{n}"] for n in STATE_NAMES] for r in hist], dtype=float
             ).reshape(-1, 5),
+            # a job print's filed steps carry their speed-law factors: the run can be re-made
+            **(
+                {}
+                if self._bins is None
+                else {"line_factors": h.array("line_factors").reshape(-1, 4)}
+            ),
         }
 
 

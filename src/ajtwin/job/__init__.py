@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.job.errors import ProgramError, ProgramWarning
-from ajtwin.job.geometry import segment_bbox
+from ajtwin.job.geometry import GEOMETRY_FIELDS, segment_bbox
 from ajtwin.job.job import (
     SEGMENT_FIELDS,
     TIMELINE_COLUMNS,
@@ -219,19 +219,7 @@ def _check_travel(job: Job, stage: Stage, origin, text: str) -> None:
 
     s = job.segments
     moving = np.flatnonzero(s["kind"] != KIND_DWELL)
-    fields = (
-        "kind",
-        "x0_mm",
-        "y0_mm",
-        "x1_mm",
-        "y1_mm",
-        "cx_mm",
-        "cy_mm",
-        "radius_mm",
-        "a0_rad",
-        "sweep_rad",
-    )
-    xmin, ymin, xmax, ymax = segment_bbox(*(s[k][moving] for k in fields))
+    xmin, ymin, xmax, ymax = segment_bbox(*(s[k][moving] for k in GEOMETRY_FIELDS))
     for axis, lo, hi, travel, offset in (
         ("X", xmin, xmax, stage.travel_x_mm, None if origin is None else origin[0]),
         ("Y", ymin, ymax, stage.travel_y_mm, None if origin is None else origin[1]),

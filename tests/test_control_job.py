@@ -121,10 +121,10 @@ def test_a_planned_speed_step_is_met_before_the_line_moves_while_pi_sees_it(step
 
 def test_moves_fall_in_a_closed_span_when_it_is_free(mpc, twin):
     """A layer at 4 mm/s starts in 40 s; the line must be 23 % wider at ν_ref by then, a
-    change the rate limits take ~35 s to make. Printing at 2 mm/s until then, the MPC waits
-    (moving now would spoil the line printed now) and starts the layer short; with the
-    shutter closed until then (ℓ = 0: free) it moves at the rate limit now and starts the
-    layer on target."""
+    change the rate limits take ~35 s to make. Printing at 2 mm/s until then, the MPC does not
+    move toward it now (that would spoil the line printed now) and starts the layer short; with the
+    shutter closed until then (ℓ = 0: free) it moves at (or near) the rate limit now and starts
+    the layer on target."""
     u0, _ = start_inputs(twin, TARGET)
     mean, _ = nominal_state(twin, u0)
     cov = np.diag([1e-4, 1e-6, 1e-10, 1e-6, (0.005 * mean[4]) ** 2])
@@ -140,8 +140,8 @@ def test_moves_fall_in_a_closed_span_when_it_is_free(mpc, twin):
         results[closed] = (sol.command - u0, np.abs(printed[42:] - TARGET).mean())
     (open_move, open_error), (closed_move, closed_error) = results[False], results[True]
     q_c_rate = mpc.rates[1] * mpc.settings.period_s
-    assert closed_move[1] == pytest.approx(q_c_rate, rel=1e-6)  # Q_c at its rate limit now
-    assert abs(open_move[1]) < 0.3 * q_c_rate
+    assert 0.9 * q_c_rate <= closed_move[1] <= q_c_rate * (1 + 1e-9)  # Q_c near its rate limit now
+    assert open_move[1] < 0.3 * q_c_rate  # no move toward the layer's inputs yet
     assert closed_error < 0.5 < 2.0 < open_error
 
 

@@ -217,3 +217,98 @@ def test_live_control_bad_targets_name_the_reachable_range():
     assert low < 74.2 < high < 500  # the nominal line at 375 mA, 23/50 sccm lies inside
     link.target_um = 65.0
     assert link.check_reachable(mean, cov) == pytest.approx((low, high), abs=0.05)
+
+
+def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_path):
+    """`ajtwin control --machine m1 --job PROGRAM --dashboard 0` against the served virtual
+    printer running that program (×10, 5 min): set-points written within the limits, the
+    dashboard's live part map filled with evaluated portions, the print stored with its job."""
+    import asyncio
+    import json
+    import urllib.request
+
+    pytest.importorskip("asyncua")
+    from ajtwin.apps.planning.mpc import ControlSettings
+    from ajtwin.cli.control import _job_engine
+    from ajtwin.engine.part_map import parse_tolerance
+    from ajtwin.job import SpeedSchedule
+    from ajtwin.live.control_link import ControlLink
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine
+    from ajtwin.store.registry import DEFAULT_LIMITS, Registry
+
+    program = tmp_path / "serpentine.prg"
+    lines = []
+    for k in range(16):  # strokes of 20 mm back and forth, 0.2 mm apart
+        x0, x1 = (0.0, 20.0) if k % 2 == 0 else (20.0, 0.0)
+        lines += [f"ptp/e (X,Y),{x0},{k * 0.2}", "OUT0.0=1", f"ptp/e (X,Y),{x1},{k * 0.2}"]
+        lines.append("OUT0.0=0")
+    program.write_text("\n".join(lines))
+    store = tmp_path / "store.sqlite"
+    job = {"program": str(program), "process_speed": SpeedSchedule.parse("stroke:2,4"),
+           "camera_mode": "trailing", "offset_mm": None, "tolerance": parse_tolerance("55±3"),
+           "dashboard_port": 0}  # fmt: skip
+    engine, dashboard, options = _job_engine("m1", job, str(store))
+    url = f"opc.tcp://127.0.0.1:{_free_port()}"
+    settings = ControlSettings.load()
+    limits = {k: list(v) for k, v in DEFAULT_LIMITS.items()}
+
+    async def main():
+        link = ControlLink(
+            url, "m1", 55.0, limits=limits, username="operator", password="pw", timeout_s=4,
+            engine=engine, **options,
+        )  # fmt: skip
+        link.prepare()  # compile before the served print's clock starts
+        machine = VirtualMachine(
+            "m1", "exp1", seed=2, speed=10, duration_min=5, limits=limits, job=options["job"]
+        )
+        server = PrinterServer(url, [machine], users={"operator": "pw"})
+        stop, ready = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(server.serve(stop, ready.set))
+        try:
+            await asyncio.wait_for(ready.wait(), 60)
+            await asyncio.wait_for(link.run(), 180)  # ends when the print is finished
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 30)
+        return link, machine
+
+    try:
+        link, machine = asyncio.run(main())
+        with urllib.request.urlopen(dashboard.url + "api/machine/m1/part/live", timeout=30) as r:
+            part = json.loads(r.read())
+    finally:
+        engine.shutdown()
+        dashboard.stop()
+    written = [d for d in link.decisions if d.written]
+    assert len(written) >= 5, [(d.time_s, d.status, d.reason) for d in link.decisions]
+    schedule = machine.printer.schedule[: machine.printer.k]
+    for i, column in enumerate(("atomizer_current_mA", "carrier_flow_sccm", "sheath_flow_sccm")):
+        low, high = limits[column]
+        assert np.all((schedule[:, i] >= low) & (schedule[:, i] <= high)), column
+    commands = np.array([d.command for d in link.decisions])
+    steps = np.abs(np.diff(commands, axis=0))
+    assert np.all(steps <= np.asarray(settings.rate_limits) * settings.period_s + 1e-9)
+    # the part map on the dashboard filled in: portions of the part evaluated from the twin
+    portions = part["portions"]
+    assert portions is not None, part.keys()
+    print(f"{len(written)} writes; part map to {max(portions['printed_to_s']):.0f} s of print")
+    assert max(portions["printed_to_s"]) > 0.5 * machine.n_samples
+    assert np.all(np.isfinite(portions["lw_mean_um"]))
+    # the print stored with its job
+    assert link.print_id is not None
+    with Registry(store, create=False) as registry:
+        stored = registry.print_job(link.print_id)
+    assert stored is not None and stored["program"] == "serpentine.prg"
+
+
+def test_printer_serve_process_speeds_go_with_a_job():
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main as cli
+
+    result = CliRunner().invoke(cli, ["printer", "serve", "--process-speed", "2,4,3"])
+    assert result.exit_code == 2 and "--process-speed goes with --job" in result.output
+    result = CliRunner().invoke(
+        cli, ["printer", "serve", "--job", __file__, "--process-speed", "2,,4"]
+    )
+    assert result.exit_code != 0 and "give speeds" in result.output

@@ -15,7 +15,14 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ajtwin.cli.options import parse_seeds, store_option
+from ajtwin.cli.options import (
+    OffsetMM,
+    PitchMM,
+    ProcessSpeed,
+    ToleranceType,
+    parse_seeds,
+    store_option,
+)
 from ajtwin.store.registry import Registry, RegistryError
 
 
@@ -67,6 +74,50 @@ def _parse_horizon(text) -> int | None:
     default=None,
     help="The vial's fill as weighed at the refill [mL] (ink balance; default 1 mL).",
 )
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The program the machine prints (.prg; time 0 = its start, run again when it ends): "
+    "the MPC reads the speeds ahead, the twin files the camera at print times, the print is "
+    "stored with its job and --dashboard shows the part map filling in.",
+)
+@click.option(
+    "--process-speed",
+    type=ProcessSpeed(),
+    default=None,
+    help="With --job: the process speed [mm/s] or speeds per layer (2,4,3, stroke:…, a file).",
+)
+@click.option(
+    "--camera",
+    "camera_mode",
+    type=click.Choice(["trailing", "at_nozzle"]),
+    default="trailing",
+    show_default=True,
+    help="With --job: where the machine's camera looks.",
+)
+@click.option(
+    "--camera-offset-mm",
+    type=OffsetMM(),
+    default=None,
+    help="With --job: a trailing camera's view centre relative to the nozzle, DX[,DY] mm "
+    "(default data/virtual_camera.toml, -5,0).",
+)
+@click.option(
+    "--tolerance",
+    type=ToleranceType(),
+    default=None,
+    help="With --job: the part's linewidth tolerance in µm for the part map (55±2, 53:57).",
+)
+@click.option(
+    "--dashboard",
+    "dashboard_port",
+    type=click.IntRange(min=0, max=65535),
+    default=None,
+    metavar="PORT",
+    help="With --job: serve the dashboard (with the part map) on 127.0.0.1:PORT (0: free).",
+)
 @store_option
 @click.option("--verbose", is_flag=True)
 @click.pass_context
@@ -85,6 +136,12 @@ def control(
     server_certificate,
     settings_path,
     vial_fill_ml,
+    program,
+    process_speed,
+    camera_mode,
+    camera_offset_mm,
+    tolerance,
+    dashboard_port,
     store,
     verbose,
 ):
@@ -129,7 +186,33 @@ def control(
         store,
         verbose,
         vial_fill_ml,
+        _live_job(program, process_speed, camera_mode, camera_offset_mm, tolerance, dashboard_port),
     )
+
+
+def _live_job(program, process_speed, camera_mode, offset_mm, tolerance, dashboard_port):
+    """The job options of live control, checked (None without --job)."""
+    given = {
+        "--process-speed": process_speed,
+        "--camera-offset-mm": offset_mm,
+        "--tolerance": tolerance,
+        "--dashboard": dashboard_port,
+    }
+    if program is None:
+        named = [k for k, v in given.items() if v is not None]
+        if named:
+            raise click.UsageError(f"{', '.join(named)} go with --job")
+        return None
+    if camera_mode == "at_nozzle" and offset_mm is not None and any(offset_mm):
+        raise click.BadParameter("a camera at the nozzle has no offset", param_hint="--camera")
+    return {
+        "program": program,
+        "process_speed": process_speed,
+        "camera_mode": camera_mode,
+        "offset_mm": offset_mm,
+        "tolerance": tolerance,
+        "dashboard_port": dashboard_port,
+    }
 
 
 def _control_live(
@@ -143,6 +226,7 @@ def _control_live(
     store,
     verbose,
     vial_fill_ml=None,
+    job=None,
 ):
 
     # lazy CLI loading: imported when the command runs, not for --help
@@ -178,7 +262,11 @@ def _control_live(
             line += f"  [{d.reason}]"
         click.echo(line)
 
+    engine = dashboard = None
     try:
+        job_options = {}
+        if job is not None:
+            engine, dashboard, job_options = _job_engine(machine, job, store)
         link = ControlLink(
             url,
             machine,
@@ -188,6 +276,8 @@ def _control_live(
             max_overspray_um=max_overspray,
             on_decision=show,
             vial_fill_ml=vial_fill_ml,
+            engine=engine,
+            **job_options,
             **login,
         )
         asyncio.run(link.run())
@@ -200,7 +290,53 @@ def _control_live(
     except KeyboardInterrupt:
         click.echo("stopped; the machine keeps its last set-points", err=True)
         return
+    finally:
+        if engine is not None:
+            engine.shutdown()
+        if dashboard is not None:
+            dashboard.stop()
     click.echo(f"{machine}: print finished; {len(link.decisions)} control periods")
+    if link.print_id is not None:
+        click.echo(f"print stored as registry print id {link.print_id} (with its job)")
+
+
+def _job_engine(machine, job: dict, store):
+    """A job print under live control: the live engine (the machine's twin, its print stored
+    with the job in the registry), the dashboard with the part map when asked, and the
+    link's job options."""
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.cli.live import _follow_parts
+    from ajtwin.cli.options import job_speeds, open_registry
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.engine.print_job import entry_job, job_entry
+
+    speeds = job_speeds(job["process_speed"])
+    entry = job_entry(
+        job["program"],
+        process_speed_mm_s=speeds["process_speed_mm_s"],
+        speed_schedule=speeds["speed_schedule"],
+        tolerance=job["tolerance"],
+    )
+    engine = LiveEngine(open_registry(store, create=True), asynchronous=False)
+    engine.warm_up(1)
+    engine.jobs[machine] = entry  # stored with the print
+    dashboard = None
+    if job["dashboard_port"] is not None:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.web.publisher import LivePublisher
+        from ajtwin.web.server import BackgroundServer
+
+        publisher = LivePublisher()
+        engine.subscribe(publisher.publish_engine)
+        publisher.open_print(machine)
+        _follow_parts(engine, publisher, [machine], entry, job["tolerance"])
+        dashboard = BackgroundServer(engine.registry.path, publisher, port=job["dashboard_port"])
+        click.echo(f"dashboard: open {dashboard.url}", err=True)
+    options = {"job": entry_job(entry), "camera_mode": job["camera_mode"]}
+    if job["offset_mm"] is not None:
+        options["camera_offset_mm"] = job["offset_mm"]
+    return engine, dashboard, options
 
 
 @control.command()
@@ -236,6 +372,42 @@ def _control_live(
     show_default=True,
     help="Virtual printer's truth generator: model (tuned the controller) or alt (evaluation).",
 )
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Print this machine program (.prg), looped to each print's length: the shutter, the "
+    "speeds and a camera on the part (docs/howto/closed-loop-control.md).",
+)
+@click.option(
+    "--process-speed",
+    type=ProcessSpeed(),
+    default=None,
+    help="With --job: the process speed [mm/s], or speeds per layer, e.g. 2,4,3 (successive "
+    "layers, repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
+)
+@click.option(
+    "--camera",
+    "camera_mode",
+    type=click.Choice(["trailing", "inspection", "at_nozzle"]),
+    default=None,
+    help="With --job: the camera trails the nozzle, inspects the part after the print only, "
+    "or sees the line as printed (default: trailing; at_nozzle when the offset is 0).",
+)
+@click.option(
+    "--camera-offset-mm",
+    type=OffsetMM(),
+    default=None,
+    help="With --job: the trailing camera's view centre relative to the nozzle, DX[,DY] mm "
+    "(default data/virtual_camera.toml, -5,0: 5 mm behind the public programs' fills).",
+)
+@click.option(
+    "--repeat-pitch-mm",
+    type=PitchMM(),
+    default=None,
+    help="With --job: loop the job as parts side by side, DX[,DY] mm apart.",
+)
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 def simulate(
     scenarios,
@@ -247,19 +419,27 @@ def simulate(
     max_overspray,
     settings_path,
     truth,
+    program,
+    process_speed,
+    camera_mode,
+    camera_offset_mm,
+    repeat_pitch_mm,
     no_progress,
 ):
     """Run the strategies in closed loop with the virtual printer and compare them.
 
-    Writes DIR/<scenario>/seed<N>/<strategy>.parquet (the closed-loop print, record format)
-    with <strategy>_commands.csv, DIR/metrics.json and one figure DIR/<scenario>.png.
+    Writes DIR/<scenario>/seed<N>/<strategy>.parquet (the closed-loop print, record format;
+    a job print's with the job columns) with <strategy>_commands.csv, DIR/metrics.json and
+    one figure DIR/<scenario>.png. With --job every strategy prints the program and sees
+    what its camera sees; the figures are per printed length.
     """
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.planning.closed_loop import STRATEGIES, resolve_scenario
     from ajtwin.apps.planning.mpc import ControlSettings, TargetError
+    from ajtwin.job import ProgramError
     from ajtwin.simulation.scenarios import load_scenario
-    from ajtwin.studies.control import compare
+    from ajtwin.studies.control import JobSetup, compare
 
     chosen = tuple(s.strip() for s in strategies.split(",") if s.strip())
     unknown = [s for s in chosen if s not in STRATEGIES]
@@ -271,7 +451,21 @@ def simulate(
     seed_list = parse_seeds(seeds)
     if duration_min is not None and not duration_min > 0:
         raise click.BadParameter("must be > 0", param_hint="--duration-min")
+    job_options = {
+        "--process-speed": process_speed,
+        "--camera": camera_mode,
+        "--camera-offset-mm": camera_offset_mm,
+        "--repeat-pitch-mm": repeat_pitch_mm,
+    }
+    if program is None and any(v is not None for v in job_options.values()):
+        given = ", ".join(k for k, v in job_options.items() if v is not None)
+        raise click.UsageError(f"{given} describe a job print: give --job PROGRAM.prg")
     try:
+        job = None
+        if program is not None:
+            job = JobSetup.read(
+                program, process_speed, camera_mode, camera_offset_mm, repeat_pitch_mm
+            )
         settings = ControlSettings.load(settings_path)
         total = 0
         for name in scenarios:
@@ -292,10 +486,11 @@ def simulate(
                 progress=bar.update,
                 log=lambda text: tqdm.write(text) if not no_progress else click.echo(text),
                 truth=truth,
+                job=job,
             )
     except TargetError as exc:
         raise click.ClickException(str(exc)) from None
-    except (ValueError, FileNotFoundError) as exc:
+    except (ProgramError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     for name, block in results["scenarios"].items():
         click.echo(f"\n{name} (mean over seeds {seeds}):")

@@ -16,6 +16,7 @@ from ajtwin.engine.chain import open_registry as open_checked_registry
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.io.dialect import DIALECT_CHOICES
 from ajtwin.job import ProgramError
+from ajtwin.job.speeds import SpeedSchedule
 from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
 from ajtwin.vision.camera import CameraFileError, load_camera
@@ -200,6 +201,43 @@ class BoundedFloat(click.ParamType):
             high = "inf" if self.high is None else f"{self.high:g}"
             self.fail(f"{number:g} is outside {left}{low}, {high}{right}", param, ctx)
         return number
+
+
+class ProcessSpeed(click.ParamType):
+    """``--process-speed``: one speed [mm/s] (the GUI's process speed where the program sets
+    none), or speeds per layer, stroke or feature: ``2,4,3`` (successive layers, repeating),
+    ``stroke:2,4,3``, ``feature:…`` or a schedule file ``speeds.toml``
+    (:class:`ajtwin.job.SpeedSchedule`).
+
+    Examples
+    --------
+    >>> ProcessSpeed().convert("3", None, None)
+    3.0
+    >>> ProcessSpeed().convert("2,4,3", None, None).describe()
+    'per layer: 2, 4, 3 mm/s, repeating'
+    """
+
+    name = "MM_S|[UNIT:]V1,V2,…|FILE.toml"
+
+    def convert(self, value, param, ctx):
+        """A float for one speed, a :class:`~ajtwin.job.SpeedSchedule` otherwise."""
+        if isinstance(value, float | SpeedSchedule):
+            return value
+        text = str(value).strip()
+        if "," not in text and ":" not in text and not text.lower().endswith(".toml"):
+            return BoundedFloat(0.0, 10_000.0).convert(text, param, ctx)
+        try:
+            return SpeedSchedule.parse(text)
+        except (ValueError, OSError) as exc:
+            self.fail(str(exc), param, ctx)
+
+
+def job_speeds(process_speed) -> dict:
+    """``--process-speed``'s value as keywords of the job readers: ``process_speed_mm_s``
+    (one speed) or ``speed_schedule`` (speeds per layer, stroke or feature)."""
+    if isinstance(process_speed, SpeedSchedule):
+        return {"process_speed_mm_s": None, "speed_schedule": process_speed}
+    return {"process_speed_mm_s": process_speed, "speed_schedule": None}
 
 
 class OffsetMM(click.ParamType):

@@ -9,7 +9,7 @@ from urllib.parse import urlparse
 
 import click
 
-from ajtwin.cli.options import configure_logging
+from ajtwin.cli.options import ProcessSpeed, configure_logging, job_speeds
 
 
 def _users(username, password, user_list) -> dict:
@@ -66,6 +66,13 @@ def printer():
     help="A machine program (.prg) every printer runs, looped to the print's length "
     "(the camera trails the nozzle: no line while nothing is printed or seen).",
 )
+@click.option(
+    "--process-speed",
+    type=ProcessSpeed(),
+    default=None,
+    help="With --job: the process speed [mm/s], or speeds per layer, e.g. 2,4,3 (successive "
+    "layers, repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
+)
 @click.option("--verbose", is_flag=True)
 def serve(
     scenario,
@@ -86,12 +93,14 @@ def serve(
     generate_certificate,
     trust,
     program,
+    process_speed,
     verbose,
 ):
     """Serve N virtual printers over OPC UA in real (--speed 1) or accelerated time."""
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine, ensure_certificate
+    from ajtwin.simulation.job_print import read_job
 
     configure_logging(verbose)
     if speed <= 0:
@@ -106,10 +115,16 @@ def serve(
         asyncio.run(
             ensure_certificate(certificate, private_key, host, "urn:ajtwin:virtual-printer")
         )
+    if process_speed is not None and program is None:
+        raise click.UsageError("--process-speed goes with --job")
     overrides = None
     if fault_onset_min is not None:
         overrides = {"fault": {"onset_min": float(fault_onset_min)}}
     try:
+        if program is not None:
+            speeds = job_speeds(process_speed)
+            program, _ = read_job(program, speeds["process_speed_mm_s"], None,
+                                  speeds["speed_schedule"])  # fmt: skip
         machines = [
             VirtualMachine(
                 f"{name_prefix}{i + 1:02d}",

@@ -9,8 +9,16 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.cli.options import BoundedFloat, OffsetMM, PitchMM, csv_dialect_option
+from ajtwin.cli.options import (
+    BoundedFloat,
+    OffsetMM,
+    PitchMM,
+    ProcessSpeed,
+    csv_dialect_option,
+    job_speeds,
+)
 from ajtwin.io.records import RecordError, read_record, write_record
+from ajtwin.job.speeds import SpeedSchedule
 
 _SPEED = BoundedFloat(0.0, 10_000.0)
 
@@ -90,10 +98,11 @@ _SPEED = BoundedFloat(0.0, 10_000.0)
 )
 @click.option(
     "--process-speed",
-    type=_SPEED,
+    type=ProcessSpeed(),
     default=None,
     help="With --job: the GUI's process speed [mm/s] where the program sets none "
-    "(default: stage.toml, 2 mm/s).",
+    "(default: stage.toml, 2 mm/s); or speeds per layer, e.g. 2,4,3 (successive layers, "
+    "repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
 )
 @click.option(
     "--rapid-speed",
@@ -272,9 +281,9 @@ def _simulate_job(
                 machine_seed=machine_seed,
                 truth_generator=truth_generator,
                 camera=camera,
-                process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
                 repeat_pitch_mm=repeat_pitch_mm,
+                **job_speeds(process_speed),
             )
         except (ProgramError, ValueError, FileNotFoundError) as exc:
             raise click.ClickException(str(exc)) from None
@@ -289,8 +298,11 @@ def _job_line(record) -> str:
     printed_at = record.printed_at
     seen = np.isfinite(printed_at)
     delay = record.time_s[seen] - printed_at[seen]
+    speeds = f"{job['process_speed_mm_s']:g} mm/s"
+    if job.get("process_speed_schedule"):
+        speeds = SpeedSchedule.from_meta(job["process_speed_schedule"]).describe()
     text = (
-        f"job {job['program']} at {job['process_speed_mm_s']:g} mm/s looped to "
+        f"job {job['program']} at {speeds} looped to "
         f"{job['repeat_to_s']:g} s; shutter open {100 * record.shutter_open.mean():.1f} % of "
         f"the seconds; camera {camera['mode']}"
     )

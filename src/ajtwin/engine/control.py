@@ -44,12 +44,18 @@ from ajtwin.apps.planning.strategies import (
 )
 from ajtwin.engine.samples import Sample
 from ajtwin.engine.stream import TwinStream
+from ajtwin.estimation import print_time
+from ajtwin.estimation.print_time import PrintContext
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.stepper import SteppedPrinter
 
 
 class MPCTwin(MPCStrategy):
     """MPC on the twin: the streaming twin fed every sample, safety rules applied.
+
+    ``print_context`` (a job print): the twin files the camera's frames at their print times
+    and the MPC plans from its provisional state now; ``stream``/``feed``: a live engine's
+    stream of the machine and the engine's feed (default: the controller's own stream).
 
     Besides the safety rules of :mod:`ajtwin.apps.planning.mpc` it watches the ink supply
     (:func:`ajtwin.apps.planning.mpc.ink_supply_status`: its own ink balance from the measured
@@ -60,9 +66,23 @@ class MPCTwin(MPCStrategy):
 
     name = "mpc_twin"
 
-    def __init__(self, *args, **kwargs):
+    def __init__(
+        self,
+        *args,
+        print_context: PrintContext | None = None,
+        stream: TwinStream | None = None,
+        feed=None,
+        **kwargs,
+    ):
         super().__init__(*args, **kwargs)
-        self.stream = TwinStream("virtual", self.twin, asynchronous=False)
+        # a job print: the camera's frames filed at their print times through the engine's
+        # delay line; the state now is the stream's provisional one. A live engine's stream
+        # (``stream``, fed through ``feed``: the engine stores and publishes each step) or
+        # the controller's own.
+        self.stream = stream or TwinStream(
+            "virtual", self.twin, asynchronous=False, print_context=print_context
+        )
+        self._feed = feed or self.stream.feed
         self.holding = False
         # the ink balance starts from the fill the twin was told (weighed at the refill)
         self.vial_fill_ml = float(self.twin.config.vial_fill_ml)
@@ -75,10 +95,31 @@ class MPCTwin(MPCStrategy):
         self.ink_stop: str | None = None  # the latched reason, once stopped
 
     def observe(self, chunk):
-        """Feed every sample of the period to the streaming twin."""
-        for t, u, y in zip(chunk.time_s, chunk.inputs, chunk.outputs):
-            self.stream.feed(Sample(float(t), u, y))
+        """Feed every sample of the period to the streaming twin (with a job print's shutter,
+        platen speed and the camera's print times when the chunk has them)."""
+        job = getattr(chunk, "printed_at_s", None) is not None
+        for k, (t, u, y) in enumerate(zip(chunk.time_s, chunk.inputs, chunk.outputs)):
+            extra = {}
+            if job:
+                extra = dict(
+                    shutter_open=float(chunk.shutter_open[k]),
+                    platen_speed_mm_s=float(chunk.platen_speed_mm_s[k]),
+                    printed_at_s=float(chunk.printed_at_s[k]),
+                )
+            self._feed(Sample(float(t), u, y, **extra))
         self.material_flow.append(np.asarray(chunk.outputs, dtype=float)[:, 4])
+
+    def state_now(self):
+        """(mean, cov) the MPC plans from: the committed step's, or on a job print the
+        provisional state of the newest row (the steps after the last final one re-run with
+        what the camera has filed so far); None before the twin has a state."""
+        h = self.stream.history
+        provisional = self.stream.provisional
+        if provisional is not None and (not len(h) or provisional[0] > h.time_s[-1]):
+            return provisional[1], provisional[2]
+        if not len(h):
+            return None
+        return np.asarray(h.means[-1]), np.asarray(h.covariances[-1])
 
     def ink_supply(self):
         """The ink supply now (:func:`ajtwin.apps.planning.mpc.ink_supply_status`)."""
@@ -90,12 +131,16 @@ class MPCTwin(MPCStrategy):
         self.ink = ink_supply_status(balance, observer, self.settings)
         return self.ink
 
-    def safety(self):
-        """Reasons not to act now (empty: act)."""
+    def safety(self, mean=None):
+        """Reasons not to act now (empty: act). ``mean``: the state the MPC plans from
+        (default the committed one); before the first final step of a job print only its
+        physical range can be checked (the detectors see steps H s after they are printed)."""
         h = self.stream.history
         if not len(h):
-            return ["the twin has not started (initial fit pending)"]
-        mean = np.asarray(h.means[-1])
+            if mean is None:
+                return ["the twin has not started (initial fit pending)"]
+            return self.state_limits.violations(np.asarray(mean))
+        mean = np.asarray(h.means[-1]) if mean is None else np.asarray(mean)
         reasons = mismatch_reasons(
             mean,
             h.nis[-self.settings.nis_window_s :],
@@ -117,24 +162,23 @@ class MPCTwin(MPCStrategy):
         if self.ink_stop:
             # latched: nothing the controller does brings the ink back
             return Decision(u.copy(), "stop", self.ink_stop)
-        h = self.stream.history
-        if not len(h):
+        state = self.state_now()
+        if state is None:
             return Decision(u.copy(), "warm-up", "waiting for the twin's initial fit")
+        mean, cov = state
         ink = self.ink_supply()
         if ink.status == "stop":
             self.ink_stop = f"{ink.reason}; inputs held for the rest of the print (refill)"
             self.mpc.reset()
             return Decision(u.copy(), "stop", self.ink_stop)
-        reasons = self.safety()
+        reasons = self.safety(mean)
         if reasons:
             self.mpc.reset()
             return Decision(u.copy(), "hold", "; ".join(reasons))
-        mean = np.asarray(h.means[-1])
-        cov = np.asarray(h.covariances[-1])
         sigma = float(
             np.sqrt(max(linewidth_variance(self.twin.model.coefficient_matrix[0], mean, cov), 0.0))
         )
-        decision = self._act(mean, cov, self.stream.theta, u, sigma)
+        decision = self._act(mean, cov, self.stream.theta, u, sigma, t=t)
         if ink.status == "low":
             decision.reason = "; ".join(r for r in (decision.reason, ink.reason) if r)
         return decision
@@ -163,6 +207,11 @@ def simulate_strategy(
     progress=None,
     truth: str = "model",
     vial_fill_ml: float | None = None,
+    job=None,
+    camera=None,
+    repeat_pitch_mm=None,
+    camera_horizon_s: float | None = None,
+    controller_options: dict | None = None,
 ) -> ClosedLoopRun:
     """Run one strategy in closed loop with the virtual printer
     (:func:`ajtwin.apps.planning.closed_loop.run_closed_loop`).
@@ -198,6 +247,19 @@ def simulate_strategy(
         The vial fill the twin is told (weighed at the refill, as ``ajtwin machine
         maintain --vial-refilled``); default the scenario's initial fill — the operator
         knows what was put in, not what evaporates later.
+    job : ajtwin.job.Job, optional
+        A job print: the printer runs this program (read with its speeds, e.g. per layer),
+        looped to the print's length (:class:`~ajtwin.simulation.stepper.SteppedPrinter`);
+        every strategy sees what its camera sees, the MPCs read the job's seconds ahead.
+    camera : ajtwin.simulation.job_print.CameraSettings, optional
+        The job print's camera (default ``data/virtual_camera.toml``).
+    repeat_pitch_mm : (float, float), optional
+        Loop the job as parts side by side at this pitch [mm].
+    camera_horizon_s : float, optional
+        The twin's camera horizon H (default: the rule of
+        :func:`~ajtwin.estimation.print_time.camera_horizon_s` for the program and camera).
+    controller_options : dict, optional
+        More keywords of the strategy's class (e.g. PI's ``closed_loop_time_s``).
     """
     if strategy not in STRATEGY_CLASSES:
         raise ValueError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
@@ -207,7 +269,16 @@ def simulate_strategy(
     if u0 is None:
         u0, _ = start_inputs(Twin.default(), target_um, limits, max_overspray_um)
     u0 = np.asarray(u0, dtype=float)
-    printer = SteppedPrinter(resolve_scenario(scenario), seed, duration_min, overrides, truth)
+    printer = SteppedPrinter(
+        resolve_scenario(scenario),
+        seed,
+        duration_min,
+        overrides,
+        truth,
+        job=job,
+        camera=camera,
+        repeat_pitch_mm=repeat_pitch_mm,
+    )
     if vial_fill_ml is None:
         vial_fill_ml = float(printer.scenario.config["initial"]["vial_volume_mL"])
     twin = Twin.default(vial_fill_ml=float(vial_fill_ml))
@@ -219,6 +290,8 @@ def simulate_strategy(
         target=target_um,
         limits=limits,
         max_overspray_um=max_overspray_um,
+        **job_print_setup(printer, camera_horizon_s),
+        **(controller_options or {}),
     )
     return run_closed_loop(
         printer,
@@ -233,3 +306,34 @@ def simulate_strategy(
         vial_fill_ml=vial_fill_ml,
         progress=progress,
     )
+
+
+def job_print_setup(printer, camera_horizon_s: float | None = None) -> dict:
+    """What the strategies know of a virtual job print before it starts (empty without a
+    job): the job as printed (``job``), the twin's :class:`PrintContext` (``print_context``:
+    the camera's horizon H for this program and camera, its mode, the job) and the camera's
+    median delay t − τ over the program (``camera_delay_s``: PI's dead time; the print's
+    length for an inspection pass, 0 at the nozzle)."""
+    plan = getattr(printer, "plan", None)
+    if plan is None:
+        return {}
+    camera = plan.camera.meta()
+    horizon = camera_horizon_s
+    if horizon is None:
+        horizon = print_time.camera_horizon_s(camera, plan.job, plan.n_print)
+    delay = 0.0
+    if camera["mode"] == "trailing":
+        delays = print_time.trailing_delays(plan.job, camera["offset_mm"], plan.n_print)
+        delay = float(np.median(delays)) if delays.size else float(plan.n_print)
+    elif camera["mode"] == "inspection":
+        delay = float(plan.n_print)
+    process = plan.program_meta.get("process_speed_mm_s")
+    context = PrintContext(
+        float(horizon), camera["mode"], plan.job, None if process is None else float(process)
+    )
+    return {
+        "job": plan.job,
+        "print_context": context,
+        "camera_delay_s": delay,
+        "camera_mode": camera["mode"],
+    }

@@ -48,6 +48,7 @@ def job_entry(
     repeat_to_s: float | None = None,
     repeat_pitch_mm=None,
     tolerance: Tolerance | None = None,
+    speed_schedule=None,
 ) -> dict:
     """What the registry keeps of the job a print ran (``ajtwin ingest --job``).
 
@@ -61,14 +62,17 @@ def job_entry(
     dict
         ``program`` (file name), ``program_bytes``, ``settings``: ``process_speed_mm_s``,
         ``rapid_speed_mm_s``, ``speed_source``, ``repeat_to_s``, ``repeat_pitch_mm``
-        ([dx, dy] or None), ``tolerance_um`` ([low, high] or None) — the settings
+        ([dx, dy] or None), ``tolerance_um`` ([low, high] or None),
+        ``process_speed_schedule`` (speeds per layer, stroke or feature,
+        :meth:`ajtwin.job.SpeedSchedule.to_meta`, or None) — the settings
         :func:`~ajtwin.estimation.print_time.job_as_printed` reads back.
     """
     path = Path(program)
     raw = path.read_bytes()
     from_record = dict(((None if record is None else record.meta) or {}).get("job") or {})
     given = {"process_speed_mm_s": process_speed_mm_s, "rapid_speed_mm_s": rapid_speed_mm_s,
-             "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm}  # fmt: skip
+             "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm,
+             "process_speed_schedule": speed_schedule}  # fmt: skip
     job = job_as_printed(raw, from_record, name=path.name, **given)
     summary = job.summary()
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
@@ -83,6 +87,7 @@ def job_entry(
             "repeat_to_s": None if loop is None else float(loop),
             "repeat_pitch_mm": None if pitch is None else [float(v) for v in pitch],
             "tolerance_um": None if tolerance is None else [float(v) for v in tolerance],
+            "process_speed_schedule": summary["speed_schedule"],
         },
     }
 

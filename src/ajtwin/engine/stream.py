@@ -214,6 +214,9 @@ class TwinStream:
         self._tail_key = None
         self._restarts = 0  # chunk restarts so far: a kept provisional re-run is stale after one
         self._tail_start: EKFCarry | None = None  # provisional start before the filter's own
+        #: a job print's state now: (time [s], mean (5,), covariance (5, 5)) of the newest
+        #: provisional message, display units (None: none yet); what a controller plans from
+        self.provisional: tuple | None = None
 
     def model_input(self, inputs, response: float | None = None):
         """(the transition's input for a committed step with ``inputs``, r after it);
@@ -491,6 +494,11 @@ class TwinStream:
         step = EKFStepOutput(*(np.asarray(field)[len(block) - 1] for field in result))
         newest = pending[-1]
         sample = Sample(newest.time_s, newest.inputs, newest.outputs, line=newest.line)
+        self.provisional = (
+            float(newest.time_s),
+            np.asarray(step.mean),
+            np.asarray(step.covariance),
+        )
         return [self._message(last, sample, step, None, True)]
 
     def _provisional_start(self, changed: int | None) -> EKFCarry | None:

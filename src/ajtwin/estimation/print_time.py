@@ -75,7 +75,7 @@ import numpy as np
 
 from ajtwin.config import packaged_toml
 from ajtwin.io.records import PrintRecord
-from ajtwin.job import Job, ProgramError, decode_program, read_program_text
+from ajtwin.job import Job, ProgramError, SpeedSchedule, decode_program, read_program_text
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
 #: Row times within this of the 1 s grid count as on it [s].
@@ -369,7 +369,13 @@ def is_job_record(record: PrintRecord) -> bool:
 
 #: What a print's job settings say about how it ran the program (a record's ``job``
 #: metadata and the settings the registry keeps with a print share these keys).
-PRINTED_AS = ("process_speed_mm_s", "rapid_speed_mm_s", "repeat_to_s", "repeat_pitch_mm")
+PRINTED_AS = (
+    "process_speed_mm_s",
+    "rapid_speed_mm_s",
+    "repeat_to_s",
+    "repeat_pitch_mm",
+    "process_speed_schedule",
+)
 
 
 def job_as_printed(
@@ -394,7 +400,9 @@ def job_as_printed(
         print: ``sha256`` (checked: another program is refused), and
         :data:`PRINTED_AS` — ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s``
         (the print looped the program to this many seconds) and ``repeat_pitch_mm``
-        ([dx, dy]: the runs placed side by side, :meth:`ajtwin.job.Job.repeat`).
+        ([dx, dy]: the runs placed side by side, :meth:`ajtwin.job.Job.repeat`) and
+        ``process_speed_schedule`` (speeds per layer, stroke or feature: a
+        :class:`ajtwin.job.SpeedSchedule` or its :meth:`~ajtwin.job.SpeedSchedule.to_meta`).
     print_duration_s : float, optional
         How long the print ran [s]: when nothing says how it looped and it outlasted the
         program, the program ran again over the same part (as the live map assumes).
@@ -433,11 +441,15 @@ def job_as_printed(
         )
     value = {key: overrides.get(key) if overrides.get(key) is not None else given.get(key)
              for key in PRINTED_AS}  # fmt: skip
+    schedule = value["process_speed_schedule"]
+    if not isinstance(schedule, SpeedSchedule):
+        schedule = SpeedSchedule.from_meta(schedule)
     job = read_program_text(
         decode_program(raw),
         None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
         None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
         path=name,
+        speed_schedule=schedule,
     )
     loop, pitch = value["repeat_to_s"], value["repeat_pitch_mm"]
     if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:

@@ -52,6 +52,7 @@ from ajtwin.job.program import (
     parse_program,
 )
 from ajtwin.job.settings import ReaderSettings, Stage, load_reader_settings, load_stage
+from ajtwin.job.speeds import SpeedSchedule, apply_speed_schedule, stroke_layers
 
 __all__ = [
     "read_program",
@@ -63,6 +64,9 @@ __all__ = [
     "TraceIndex",
     "TraceHits",
     "SpeedSource",
+    "SpeedSchedule",
+    "apply_speed_schedule",
+    "stroke_layers",
     "Stage",
     "ReaderSettings",
     "ProgramError",
@@ -90,6 +94,7 @@ def read_program(
     axes: tuple = ("X", "Y"),
     shutter_output: tuple[int, int] = (0, 0),
     start_mm: tuple[float, float] | None = None,
+    speed_schedule: SpeedSchedule | None = None,
 ) -> Job:
     """Read an Optomec AJ ACSPL+ program into a :class:`Job`.
 
@@ -118,6 +123,9 @@ def read_program(
     start_mm : (float, float), optional
         Where the stage stands when the program starts; default: at its first commanded
         position (the first move has length 0).
+    speed_schedule : SpeedSchedule, optional
+        Process speeds per layer, stroke or feature (:mod:`ajtwin.job.speeds`): the printed
+        moves of each scheduled part at its speed, the job re-timed.
 
     Returns
     -------
@@ -149,6 +157,7 @@ def read_program(
         axes=axes,
         shutter_output=shutter_output,
         start_mm=start_mm,
+        speed_schedule=speed_schedule,
     )
 
 
@@ -173,6 +182,7 @@ def read_program_text(
     axes: tuple = ("X", "Y"),
     shutter_output: tuple[int, int] = (0, 0),
     start_mm: tuple[float, float] | None = None,
+    speed_schedule: SpeedSchedule | None = None,
 ) -> Job:
     """:func:`read_program` on a program given as text (``path`` names it in errors)."""
     stage = load_stage(machine)
@@ -194,6 +204,8 @@ def read_program_text(
     _note_unused_speeds(job, process_speed_mm_s, rapid_speed_mm_s)
     for text_of_warning in job.warnings:
         warnings.warn(f"{path}: {text_of_warning}", ProgramWarning, stacklevel=2)
+    if speed_schedule is not None:
+        job = apply_speed_schedule(job, speed_schedule)
     return job
 
 

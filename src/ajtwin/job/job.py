@@ -300,6 +300,9 @@ class Job:
         One row per stroke (see :meth:`stroke_table`).
     notes, warnings : list of str
         What was skipped or assumed (blocks, ignored assignments) and what may be wrong.
+    speed_schedule : ajtwin.job.speeds.SpeedSchedule or None
+        The process speeds per layer, stroke or feature the job was re-timed to
+        (:func:`ajtwin.job.speeds.apply_speed_schedule`); kept when the job is looped.
     """
 
     def __init__(
@@ -319,6 +322,7 @@ class Job:
         repetition_offsets_s: np.ndarray | None = None,
         program_duration_s: float | None = None,
         repetition_offsets_mm: np.ndarray | None = None,
+        speed_schedule=None,
     ):
         segments = _number_strokes(dict(segments))
         if repetition_offsets_s is None:  # a job read from a program: strokes are its own
@@ -343,6 +347,9 @@ class Job:
             if repetition_offsets_mm is None
             else np.asarray(repetition_offsets_mm, dtype=float).reshape(-1, 2)
         )
+        #: the process speeds per layer, stroke or feature applied to the program
+        #: (:class:`ajtwin.job.speeds.SpeedSchedule`; None: the program's own speeds)
+        self.speed_schedule = speed_schedule
         self._index = {}
         self._build_strokes()
         self.program_duration_s = (
@@ -579,6 +586,9 @@ class Job:
             },
             "segments": self.n_segments,
             "repetitions": self.repetitions,
+            "speed_schedule": (
+                None if self.speed_schedule is None else self.speed_schedule.to_meta()
+            ),
             "notes": list(self.notes),
             "warnings": list(self.warnings),
         }
@@ -1005,6 +1015,7 @@ class Job:
             repetition_offsets_s=offsets,
             program_duration_s=D,
             repetition_offsets_mm=places,
+            speed_schedule=self.speed_schedule,
         )
 
     def _array_schedule(self, duration_s: float, gap_s: float, pitch_mm):

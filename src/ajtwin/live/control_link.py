@@ -29,6 +29,7 @@ the machine's ``PrintState`` says ``finished`` (or ``stop`` is set).
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -46,9 +47,12 @@ from ajtwin.apps.planning.mpc import (
 )
 from ajtwin.apps.planning.strategies import Decision
 from ajtwin.engine.control import MPCTwin
+from ajtwin.engine.job_samples import JobColumns, live_loop
 from ajtwin.estimation import Twin
+from ajtwin.estimation.print_time import PrintContext, camera_horizon_s
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+from ajtwin.simulation.job_print import load_camera_defaults
 from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.control")
@@ -61,11 +65,14 @@ WRITE_REFUSED = (
 
 @dataclass
 class _Chunk:
-    """New samples in the form :meth:`MPCTwin.observe` takes."""
+    """New samples in the form :meth:`MPCTwin.observe` takes (a job print's columns too)."""
 
     time_s: np.ndarray
     inputs: np.ndarray
     outputs: np.ndarray
+    shutter_open: np.ndarray | None = None
+    platen_speed_mm_s: np.ndarray | None = None
+    printed_at_s: np.ndarray | None = None
 
 
 @dataclass
@@ -100,6 +107,20 @@ class ControlLink:
         As for :class:`~ajtwin.live.link.OpcUaLink`.
     on_decision : callable, optional
         Called with each :class:`ControlDecision` (the CLI prints them).
+    job : ajtwin.job.Job, optional
+        The program the machine prints (read with its speeds; run again over the same part
+        when it ends): its shutter, speeds and camera geometry fill each sample's job columns
+        (:class:`ajtwin.engine.job_samples.JobColumns`), the twin files the camera's frames
+        at their print times and the MPC reads the seconds ahead.
+    camera_mode : {"trailing", "at_nozzle"}
+        The machine's camera on a job print.
+    camera_offset_mm : (float, float), optional
+        A trailing camera's view centre relative to the nozzle [mm] (default
+        ``data/virtual_camera.toml``).
+    engine : ajtwin.engine.fleet.LiveEngine, optional
+        The machine's twin is the engine's (its print stored in the engine's registry with
+        the job, every step published to its subscribers: the dashboard and the part map);
+        default the controller's own.
     """
 
     def __init__(
@@ -122,6 +143,10 @@ class ControlLink:
         publish_ms: int = 100,
         on_decision=None,
         vial_fill_ml: float | None = None,
+        job=None,
+        camera_mode: str = "trailing",
+        camera_offset_mm=None,
+        engine=None,
     ):
 
         # the vial's fill as weighed at the refill: the start of the controller's ink
@@ -159,6 +184,20 @@ class ControlLink:
         self._next_decision_s = None
         self._last_write_s = None
         self._reach_checked = False
+        if camera_mode not in ("trailing", "at_nozzle"):
+            raise ValueError(
+                f"camera {camera_mode!r}: live control follows a trailing camera or one at the "
+                "nozzle (an inspection pass comes after the print)"
+            )
+        self.job, self.engine = job, engine
+        self.camera = {
+            "mode": camera_mode,
+            "offset_mm": [0.0, 0.0]
+            if camera_mode == "at_nozzle"
+            else [float(v) for v in (camera_offset_mm or load_camera_defaults()["offset_mm"])],
+        }
+        self.columns = None  # JobColumns, made by prepare()
+        self.print_id = None  # the engine's stored print, once finished
 
     # ------------------------------------------------------------------ setup
     def prepare(self):
@@ -170,15 +209,36 @@ class ControlLink:
         self.bounds = effective_bounds(self.limits)
         u_ref = np.array([np.mean(b) for b in self.bounds])
         fill = {} if self.vial_fill_ml is None else {"vial_fill_ml": float(self.vial_fill_ml)}
+        twin, extra = Twin.default(**fill), {}
+        if self.job is not None:
+            extra = self._job_setup()
+        if self.engine is not None:
+            stream = self.engine.open(
+                self.machine, source="control", print_context=extra.get("print_context")
+            )
+            twin = stream.twin
+            extra.update(stream=stream, feed=functools.partial(self.engine.feed, self.machine))
         self.controller = MPCTwin(
-            twin=Twin.default(**fill),
+            twin=twin,
             settings=self.settings,
             bounds=self.bounds,
             u0=u_ref,
             target=self.target_um,
             limits=self.limits,
             max_overspray_um=self.max_overspray_um,
+            **extra,
         )
+
+    def _job_setup(self) -> dict:
+        """The looped job, the twin's print context and the sample columns of a job print."""
+        looped = live_loop(self.job)
+        # the horizon from two runs of the program (its delays repeat run after run)
+        horizon = camera_horizon_s(self.camera, live_loop(self.job, 2 * self.job.duration_s))
+        process = self.job.summary()["process_speed_mm_s"]
+        context = PrintContext(horizon, self.camera["mode"], looped, process)
+        self.columns = JobColumns(looped, self.camera["mode"], self.camera["offset_mm"])
+        log.info("%s: job print, camera %s, horizon %g s", self.machine, self.camera, horizon)
+        return {"job": looped, "print_context": context}
 
     def check_reachable(self, mean, cov) -> tuple[float, float]:
         """Once the twin has a state: is the target reachable within the limits from it?
@@ -217,6 +277,15 @@ class ControlLink:
     # ------------------------------------------------------------------ running
     async def run(self, stop: asyncio.Event | None = None) -> list[ControlDecision]:
         """Control until the print is finished (or ``stop`` is set); the decisions."""
+        try:
+            await self._run(stop)
+        finally:
+            if self.finished and self.engine is not None and self.controller is not None:
+                # the print with its job, stored as an ordinary registry print
+                self.print_id = self.engine.close(self.machine)
+        return self.decisions
+
+    async def _run(self, stop):
         backoff = 0.5
         while (stop is None or not stop.is_set()) and not self.finished:
             try:
@@ -245,7 +314,6 @@ class ControlLink:
                 except TimeoutError:
                     pass
                 backoff = min(2 * backoff, self.max_backoff_s)
-        return self.decisions
 
     async def _session(self, stop):
 
@@ -336,13 +404,16 @@ class ControlLink:
             return 0
         if self._next_decision_s is None:
             self._next_decision_s = samples[0].time_s + self.settings.period_s
-        self.controller.observe(
-            _Chunk(
-                np.array([x.time_s for x in samples]),
-                np.array([x.inputs for x in samples]),
-                np.array([x.outputs for x in samples]),
-            )
+        chunk = _Chunk(
+            np.array([x.time_s for x in samples]),
+            np.array([x.inputs for x in samples]),
+            np.array([x.outputs for x in samples]),
         )
+        if self.columns is not None:
+            columns = self.columns.fill(chunk.time_s, chunk.outputs)
+            chunk.outputs = columns.pop("outputs")
+            chunk = _Chunk(chunk.time_s, chunk.inputs, chunk.outputs, **columns)
+        self.controller.observe(chunk)
         return len(samples)
 
     async def _read_setpoints(self, setpoints) -> np.ndarray:

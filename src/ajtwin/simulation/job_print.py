@@ -438,7 +438,7 @@ def program_meta(job, path=None) -> dict:
     summary = job.summary()
     source = Path(path if path is not None else job.path)
     sha = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
-    return {
+    meta = {
         "program": source.name,
         "sha256": sha,
         "process_speed_mm_s": summary["process_speed_mm_s"],
@@ -446,6 +446,9 @@ def program_meta(job, path=None) -> dict:
         "speed_source": summary["process_speed_source"],
         "repeat_to_s": None,
     }
+    if summary.get("speed_schedule"):  # speeds per layer/stroke/feature (ajtwin.job.speeds)
+        meta["process_speed_schedule"] = summary["speed_schedule"]
+    return meta
 
 
 def job_table(
@@ -512,13 +515,15 @@ class JobPrint:
     camera_line: np.ndarray
 
 
-def read_job(program, process_speed_mm_s=None, rapid_speed_mm_s=None):
+def read_job(program, process_speed_mm_s=None, rapid_speed_mm_s=None, speed_schedule=None):
     """A :class:`~ajtwin.job.Job` from a program path (or a Job, returned as it is) and the
-    path its ``job`` metadata names."""
+    path its ``job`` metadata names; ``speed_schedule``: process speeds per layer, stroke or
+    feature (:class:`ajtwin.job.SpeedSchedule`)."""
 
     if isinstance(program, Job):
         return program, None
-    return read_program(program, process_speed_mm_s, rapid_speed_mm_s), Path(program)
+    job = read_program(program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule=speed_schedule)
+    return job, Path(program)
 
 
 def run_job_print(
@@ -535,10 +540,11 @@ def run_job_print(
     process_speed_mm_s: float | None = None,
     rapid_speed_mm_s: float | None = None,
     repeat_pitch_mm=None,
+    speed_schedule=None,
 ) -> JobPrint:
     """Print a job on the virtual printer; see :func:`simulate_job` for the parameters."""
 
-    job, path = read_job(program, process_speed_mm_s, rapid_speed_mm_s)
+    job, path = read_job(program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule)
     camera = camera or CameraSettings()
     base = load_scenario(scenario, overrides)
     print_s = base.duration_s if duration_min is None else int(round(duration_min * 60.0))
@@ -614,6 +620,9 @@ def simulate_job(program, scenario="exp1", seed: int = 0, **kwargs) -> PrintReco
         Loop the job as an array of parts side by side at this pitch [mm] (a lab's practice;
         an inspection pass then sees every run), recorded as ``job.repeat_pitch_mm``;
         default: each run prints over the last.
+    speed_schedule : ajtwin.job.SpeedSchedule, optional
+        Process speeds per layer, stroke or feature (each run of the loop follows it from
+        its start), recorded as ``job.process_speed_schedule``.
 
     Returns
     -------

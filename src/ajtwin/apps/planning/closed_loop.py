@@ -8,9 +8,11 @@ of that period and issues the next command. Every command passes
 :func:`ajtwin.apps.planning.mpc.clip_command` (limits and rate limits), and the whole run
 is checked against them afterwards (:func:`run_closed_loop`).
 
-Metrics (on the *true*, noise-free L_w and L_o from the printer, after the warm-up):
-RMS error of L_w to the target, fraction of time within ±2 µm, mean and max overspray,
-input travel Σ|Δ set-point| per input, CPU time per MPC solve, holds and their reasons
+Metrics (on the *true*, noise-free line printed at the nozzle, after the warm-up), per
+printed length: each second weighs the length it printed, ν(t_k) at its speed, 0 with the
+shutter closed (a straight line without a job: every second alike): RMS error of L_w to the
+target, the fraction of the printed length within ±2 µm, mean and max overspray, input
+travel Σ|Δ set-point| per input, CPU time per MPC solve, holds and their reasons
 (:func:`closed_loop_metrics`).
 """
 
@@ -25,6 +27,7 @@ import pandas as pd
 
 from ajtwin.apps.planning.mpc import ControlSettings, clip_command
 from ajtwin.apps.planning.strategies import Decision
+from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.names import INPUT_NAMES
 
 STRATEGIES = ("open_loop", "pi", "mpc_nominal", "mpc_twin")
@@ -55,11 +58,16 @@ class ClosedLoopRun:
     commands : DataFrame
         One row per control period: the command, status, reason, solve time.
     true_outputs : array (T, 5)
-        The printer's noise-free outputs.
+        The printer's noise-free outputs (the line at ν_ref, the shutter ignored).
     setpoints : array (T, 3)
         The set-points in force each second [mA, sccm, sccm].
     metrics : dict
         :func:`closed_loop_metrics`.
+    true_line : array (T, 2)
+        The true L_w, L_o printed at the nozzle each second (NaN: nothing printed).
+    printed_length : array (T,)
+        Each second's weight in the metrics: the length printed relative to a second at
+        ν_ref (ones without a job).
     """
 
     strategy: str
@@ -71,6 +79,22 @@ class ClosedLoopRun:
     true_outputs: np.ndarray  # (T, 5)
     setpoints: np.ndarray  # (T, 3)
     metrics: dict = field(default_factory=dict)
+    true_line: np.ndarray | None = None  # (T, 2) the line at the nozzle
+    printed_length: np.ndarray | None = None  # (T,) per-second weight
+
+
+def printed_line(record, true_outputs) -> tuple[np.ndarray, np.ndarray]:
+    """The true line printed each second (T, 2) and its printed length relative to a second
+    at ν_ref (T,): a job print's ``true_linewidth_um``/``true_overspray_um`` and ν(t_k) · shutter
+    / ν_ref; a straight line's true outputs, every second weighing 1."""
+    if not getattr(record, "has_job", False):
+        return np.asarray(true_outputs, dtype=float)[:, :2], np.ones(len(true_outputs))
+    data = record.data
+    line = data[["true_linewidth_um", "true_overspray_um"]].to_numpy(dtype=float)
+    nu_ref = load_line_speed_law().reference_speed_mm_s
+    length = np.asarray(record.shutter_open, dtype=float) * np.asarray(record.platen_speed)
+    length = np.where(np.isfinite(line[:, 0]), np.nan_to_num(length), 0.0) / nu_ref
+    return line, length
 
 
 def run_closed_loop(
@@ -145,15 +169,19 @@ def run_closed_loop(
             "vial_fill_told_ml": float(vial_fill_ml),
         }
     }
+    record = printer.record(extra_meta=meta)
+    true_line, length = printed_line(record, printer.true_outputs)
     run = ClosedLoopRun(
         strategy,
         printer.scenario.name,
         int(seed),
         target_um,
-        printer.record(extra_meta=meta),
+        record,
         pd.DataFrame(rows),
         printer.true_outputs.copy(),
         printer.processes.setpoints[: printer.k].copy(),
+        true_line=true_line,
+        printed_length=length,
     )
     run.metrics = closed_loop_metrics(run, settings, bounds)
     return run
@@ -167,6 +195,7 @@ def _command_row(t: float, command, decision: Decision) -> dict:
         "status": decision.status,
         "reason": decision.reason,
         "solve_ms": decision.solve_s * 1e3,
+        "solve_wall_ms": decision.solve_wall_s * 1e3,
         "predicted_linewidth_um": decision.predicted_linewidth_um,
         "predicted_linewidth_std_um": decision.predicted_linewidth_std_um,
         "step_scale": decision.step_scale,
@@ -174,11 +203,19 @@ def _command_row(t: float, command, decision: Decision) -> dict:
 
 
 def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -> dict:
-    """The comparison's figures of one run (true outputs, after the warm-up)."""
+    """The comparison's figures of one run (the true line, after the warm-up, per printed
+    length: module docstring)."""
     k0 = int(settings.warmup_s)
-    lw = run.true_outputs[k0:, 0]
-    lo_ = run.true_outputs[k0:, 1]
-    err = lw - run.target_um
+    line, length = run.true_line, run.printed_length
+    if line is None:
+        line, length = run.true_outputs[:, :2], np.ones(len(run.true_outputs))
+    weight = np.asarray(length, dtype=float)[k0:]
+    lw, lo_ = line[k0:, 0], line[k0:, 1]
+    printed = (weight > 0) & np.isfinite(lw)
+    weight = np.where(printed, weight, 0.0)
+    weight = weight / max(weight.sum(), 1e-300)
+    err = np.where(printed, lw - run.target_um, 0.0)
+    lo_ = np.where(printed, lo_, 0.0)
     sp = run.setpoints
     travel = np.abs(np.diff(sp, axis=0)).sum(axis=0)
     lo = np.array([b[0] for b in bounds])
@@ -190,6 +227,8 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
     c = run.commands
     solve = c["solve_ms"].to_numpy(float) if len(c) else np.array([])
     solve = solve[np.isfinite(solve)]
+    wall = c["solve_wall_ms"].to_numpy(float) if "solve_wall_ms" in c else np.array([])
+    wall = wall[np.isfinite(wall)]
     holds = c[c["status"] == "hold"] if len(c) else c
     reasons = {}
     if len(holds) and run.strategy != "open_loop":
@@ -199,15 +238,22 @@ def closed_loop_metrics(run: ClosedLoopRun, settings: ControlSettings, bounds) -
     reasons_text = c["reason"].fillna("").astype(str) if len(c) else pd.Series([], dtype=str)
     low = c[reasons_text.str.contains("ink running low")] if len(c) else c
     return {
-        "rms_error_um": float(np.sqrt(np.mean(err**2))),
-        "mean_error_um": float(np.mean(err)),
-        "within_2um_fraction": float(np.mean(np.abs(err) <= 2.0)),
-        "mean_overspray_um": float(np.mean(lo_)),
-        "max_overspray_um": float(np.max(lo_)),
+        "rms_error_um": float(np.sqrt(np.sum(weight * err**2))),
+        "mean_error_um": float(np.sum(weight * err)),
+        "within_2um_fraction": float(np.sum(weight * (np.abs(err) <= 2.0))),
+        "mean_overspray_um": float(np.sum(weight * lo_)),
+        "max_overspray_um": float(np.max(lo_[printed])) if printed.any() else None,
+        "printed_length_mm": float(
+            np.sum(np.asarray(length, dtype=float)[k0:][printed])
+            * load_line_speed_law().reference_speed_mm_s
+        ),
         "input_travel": {n: float(v) for n, v in zip(INPUT_NAMES, travel)},
         "solve_ms_mean": float(np.mean(solve)) if solve.size else None,
         "solve_ms_p95": float(np.percentile(solve, 95)) if solve.size else None,
         "solve_ms_max": float(np.max(solve)) if solve.size else None,
+        "solve_wall_ms_mean": float(np.mean(wall)) if wall.size else None,
+        "solve_wall_ms_p95": float(np.percentile(wall, 95)) if wall.size else None,
+        "solve_wall_ms_max": float(np.max(wall)) if wall.size else None,
         "n_commands": int(len(c)),
         "n_holds": int(len(holds)) if run.strategy != "open_loop" else 0,
         "first_hold_s": (

@@ -90,6 +90,10 @@ class ControlSettings:
     warmup_s: int = 60
     actionable_causes: tuple = ("nozzle_clog",)
     pi_closed_loop_time_s: float = 120.0
+    # PI on a job print, per camera mode: closed-loop time and the share of the camera's
+    # median delay taken as SIMC's dead time (tuned by `python -m ajtwin.studies.control tune-pi`)
+    pi_job_closed_loop_time_s: tuple = ()  # ((mode, seconds), …)
+    pi_job_delay_fraction: tuple = ()  # ((mode, fraction), …)
     ink_stop_vial_ml: float = 0.5
     ink_stop_lead_min: float = 10.0
     source: str = "defaults"
@@ -123,6 +127,14 @@ class ControlSettings:
                 warmup_s=int(safety["warmup_s"]),
                 actionable_causes=tuple(safety["actionable_causes"]),
                 pi_closed_loop_time_s=float(pi["closed_loop_time_s"]),
+                pi_job_closed_loop_time_s=tuple(
+                    (str(k), float(v))
+                    for k, v in pi.get("job_print", {}).get("closed_loop_time_s", {}).items()
+                ),
+                pi_job_delay_fraction=tuple(
+                    (str(k), float(v))
+                    for k, v in pi.get("job_print", {}).get("delay_fraction", {}).items()
+                ),
                 ink_stop_vial_ml=float(ink["stop_vial_ml"]),
                 ink_stop_lead_min=float(ink["stop_lead_min"]),
             )
@@ -133,6 +145,15 @@ class ControlSettings:
         settings = replace(settings, **overrides)
         settings.validate()
         return settings
+
+    def pi_tuning(self, camera_mode: str | None) -> tuple[float, float]:
+        """PI's (closed-loop time [s], share of the camera's delay taken as dead time) for a
+        print under a camera of ``camera_mode`` (None: a straight line, the camera at the
+        nozzle: ``closed_loop_time_s``, no delay)."""
+        if camera_mode is None:
+            return self.pi_closed_loop_time_s, 1.0
+        closed = dict(self.pi_job_closed_loop_time_s).get(camera_mode, self.pi_closed_loop_time_s)
+        return float(closed), float(dict(self.pi_job_delay_fraction).get(camera_mode, 1.0))
 
     def validate(self) -> None:
         """Raise ValueError for inconsistent settings (move starts, horizon, limits)."""
@@ -155,6 +176,9 @@ class ControlSettings:
             raise ValueError(f"solver_tolerance must be > 0; got {self.solver_tolerance}")
         if not (np.isfinite(self.ink_stop_vial_ml) and self.ink_stop_vial_ml >= 0):
             raise ValueError(f"[ink] stop_vial_ml must be ≥ 0 mL; got {self.ink_stop_vial_ml}")
+        for mode, value in (*self.pi_job_closed_loop_time_s, *self.pi_job_delay_fraction):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"[pi.job_print] {mode} = {value!r} must be a number >= 0")
         if not self.ink_stop_lead_min >= 0:
             raise ValueError(f"[ink] stop_lead_min must be ≥ 0; got {self.ink_stop_lead_min}")
 
@@ -434,7 +458,10 @@ class MPCSolution:
         L̂_w ± σ and L̂_o over the horizon under the plan [µm].
     cost : float
     solve_s : float
-        CPU seconds of the solve (process time).
+        CPU seconds of the solve (process time, every thread of the process).
+    solve_wall_s : float
+        Wall-clock seconds of the solve (what a real-time loop waits; longer on a loaded
+        machine).
     """
 
     command: np.ndarray  # (3,) the input to apply now [mA, sccm, sccm]
@@ -449,6 +476,7 @@ class MPCSolution:
     message: str = ""
     step_scale: float = 1.0  # < 1 when the step was bounded for uncertainty
     notes: list = field(default_factory=list)
+    solve_wall_s: float = float("nan")  # wall-clock seconds of the solve
 
 
 class _PlanArrays(NamedTuple):
@@ -498,14 +526,22 @@ def plan_outputs(z, plan, spec, mean, cov, theta, process_cov, functions=None):
     return jnp.concatenate([y[:, 0], y[:, 1], var[:, 0]])
 
 
-def plan_cost(z, outputs, plan, u_prev, target, max_overspray):
-    """The cost J (module docstring) of moves z given the model's outputs over H."""
+def plan_cost(z, outputs, plan, u_prev, target, max_overspray, line):
+    """The cost J (module docstring) of moves z given the model's outputs over H.
+
+    ``line`` (H, 3): per second of the horizon the printed length relative to a second at
+    ν_ref (ℓ_k; 0 with the shutter closed: the width there costs nothing) and the speed
+    law's factors f_w, f_o of the line printed then (:class:`ajtwin.apps.planning.job_preview.
+    JobPreview`); ones without a job.
+    """
     w_t, w_b, w_o, lo_ref, w_m, w_l, tol = (plan.weights[i] for i in range(7))
     h = plan.block_index.shape[0]
     n_moves = plan.gaps.shape[0]
     moves = plan.lo + z.reshape(n_moves, 3) * plan.span
-    lw, lo_, var = outputs[:h], outputs[h : 2 * h], outputs[2 * h :]
-    sd = jnp.sqrt(jnp.maximum(var, 0.0) + 1e-12)
+    length, f_w, f_o = line[:, 0], line[:, 1], line[:, 2]
+    # the line printed at each second: the model's line at ν_ref scaled by the speed law
+    lw, lo_ = outputs[:h] * f_w, outputs[h : 2 * h] * f_o
+    sd = f_w * jnp.sqrt(jnp.maximum(outputs[2 * h :], 0.0) + 1e-12)
     err = (lw - target) / tol
     # |e| smoothed (1e-3 µm) so the gradient exists on target
     band = jnp.maximum(0.0, (jnp.sqrt((lw - target) ** 2 + 1e-6) + 2.0 * sd - tol) / tol)
@@ -513,7 +549,7 @@ def plan_cost(z, outputs, plan, u_prev, target, max_overspray):
     stage = w_t * err**2 + w_b * band**2 + w_o * (lo_ / lo_ref) ** 2 + w_l * over**2
     previous = jnp.concatenate([u_prev[None], moves[:-1]], axis=0)
     step = (moves - previous) / (plan.rates * plan.gaps[:, None])
-    return jnp.mean(stage) + w_m * jnp.sum(step**2)
+    return jnp.mean(length * stage) + w_m * jnp.sum(step**2)
 
 
 def _linearise(z, plan, spec, mean, cov, theta, process_cov, functions=None):
@@ -521,16 +557,27 @@ def _linearise(z, plan, spec, mean, cov, theta, process_cov, functions=None):
     return plan_outputs(z, *args), jax.jacfwd(plan_outputs)(z, *args)
 
 
-def _linear_cost(z, z0, out0, jac, plan, u_prev, target, max_overspray):
+def _linear_cost(z, z0, out0, jac, plan, u_prev, target, max_overspray, line):
     """The cost on the model linearised at z0 (outputs ≈ out0 + J (z − z0))."""
-    return plan_cost(z, out0 + jac @ (z - z0), plan, u_prev, target, max_overspray)
+    return plan_cost(z, out0 + jac @ (z - z0), plan, u_prev, target, max_overspray, line)
 
 
 def _exact_cost(
-    z, plan, spec, mean, cov, theta, process_cov, u_prev, target, max_overspray, functions=None
+    z,
+    plan,
+    spec,
+    mean,
+    cov,
+    theta,
+    process_cov,
+    u_prev,
+    target,
+    max_overspray,
+    line,
+    functions=None,
 ):
     outputs = plan_outputs(z, plan, spec, mean, cov, theta, process_cov, functions)
-    return plan_cost(z, outputs, plan, u_prev, target, max_overspray)
+    return plan_cost(z, outputs, plan, u_prev, target, max_overspray, line)
 
 
 _STATIC = ("functions",)
@@ -633,12 +680,21 @@ class MPC:
         *,
         step_scale: float = 1.0,
         warm_start: bool = True,
+        line=None,
     ) -> MPCSolution:
-        """Optimise the moves from (mean, cov, θ) with the command in force ``u_prev``."""
-        t0 = time.process_time()
+        """Optimise the moves from (mean, cov, θ) with the command in force ``u_prev``.
+
+        ``line`` (H, 3): the job's seconds ahead as the cost weighs them (printed length
+        relative to ν_ref, f_w, f_o; :meth:`ajtwin.apps.planning.job_preview.JobPreview.line`);
+        default a straight line printed at ν_ref every second.
+        """
+        t0, wall0 = time.process_time(), time.perf_counter()
         s = self.settings
         u_prev = np.asarray(u_prev, dtype=float)
         model_args = self._model_args(mean, cov, theta)
+        line = jnp.ones((s.horizon_s, 3)) if line is None else jnp.asarray(line, dtype=float)
+        if line.shape != (s.horizon_s, 3):
+            raise ValueError(f"line must be ({s.horizon_s}, 3), got {line.shape}")
         u_prev_j = jnp.asarray(u_prev)
         max_over = np.inf if self.max_overspray_um is None else float(self.max_overspray_um)
         plan = self.plan_arrays
@@ -657,7 +713,16 @@ class MPC:
         # later, re-linearises anyway)
         for _ in range(self.max_linearisations):
             out0, jac = _linearise_jit(jnp.asarray(z0), *model_args, functions=self.functions)
-            lin_args = (jnp.asarray(z0), out0, jac, plan, u_prev_j, float(target_um), max_over)
+            lin_args = (
+                jnp.asarray(z0),
+                out0,
+                jac,
+                plan,
+                u_prev_j,
+                float(target_um),
+                max_over,
+                line,
+            )
 
             def fun(z, lin_args=lin_args):
                 value, grad = _linear_objective(jnp.asarray(z), *lin_args)
@@ -698,10 +763,12 @@ class MPC:
                     u_prev_j,
                     float(target_um),
                     max_over,
+                    line,
                     functions=self.functions,
                 )
             ),
             solve_s=time.process_time() - t0,
+            solve_wall_s=time.perf_counter() - wall0,
             iterations=iterations,
             success=bool(result.success),
             message=str(result.message),

@@ -23,6 +23,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.apps.planning.advice import advise, effective_bounds
+from ajtwin.apps.planning.job_preview import JobPreview
 from ajtwin.apps.planning.mpc import (
     MPC,
     TargetError,
@@ -95,6 +96,8 @@ class Decision:
         The MPC's prediction at the horizon's end.
     step_scale : float
         Fraction of the rate limit allowed (< 1 when L_w is uncertain).
+    solve_wall_s : float
+        Wall-clock seconds of the MPC solve (NaN: none).
     """
 
     command: np.ndarray
@@ -104,6 +107,7 @@ class Decision:
     predicted_linewidth_um: float = float("nan")
     predicted_linewidth_std_um: float = float("nan")
     step_scale: float = 1.0
+    solve_wall_s: float = float("nan")
 
 
 class OpenLoop:
@@ -124,11 +128,39 @@ class OpenLoop:
 
 
 class PIController:
-    """PI on the period-mean of measured L_w, acting on Q_c (SIMC tuning)."""
+    """PI on the period-mean of measured L_w, acting on Q_c (SIMC tuning).
+
+    SIMC (Skogestad 2003) for K e^{−θs}/(τ₁ s + 1): K the nominal model's static gain
+    dL_w/dQ_c at the start inputs, τ₁ φ_A's head-space time constant, θ half a period plus
+    a share of the camera's delay; K_p = τ₁ / (K (τ_c + θ)), T_i = min(τ₁, 4 (τ_c + θ)).
+
+    Parameters
+    ----------
+    camera_delay_s : float
+        How late the camera sees a trace after it was printed (a job print's camera: the
+        program's median delay; 0 at the nozzle).
+    camera_mode : str, optional
+        A job print's camera mode: τ_c and the share of the delay from ``[pi.job_print]``
+        of ``control.toml`` (:meth:`ControlSettings.pi_tuning`); None: a straight line.
+    closed_loop_time_s, delay_fraction : float, optional
+        Override the settings' (the tuning study's grid).
+    """
 
     name = "pi"
 
-    def __init__(self, twin, settings, bounds, u0, target, **_):
+    def __init__(
+        self,
+        twin,
+        settings,
+        bounds,
+        u0,
+        target,
+        camera_delay_s: float = 0.0,
+        camera_mode: str | None = None,
+        closed_loop_time_s: float | None = None,
+        delay_fraction: float | None = None,
+        **_,
+    ):
         self.settings = settings
         self.bounds = bounds
         self.target = target
@@ -146,8 +178,11 @@ class PIController:
         vial_ml = 1.0
         head_ml = float(units.m3_to_ml(twin.model.params.vial_volume)) - vial_ml
         tau1 = head_ml / float(units.sccm_to_ml_per_s(self.u0[1]))
-        theta = settings.period_s / 2.0
-        tau_c = settings.pi_closed_loop_time_s
+        tau_c, fraction = settings.pi_tuning(camera_mode)
+        tau_c = tau_c if closed_loop_time_s is None else float(closed_loop_time_s)
+        fraction = fraction if delay_fraction is None else float(delay_fraction)
+        theta = settings.period_s / 2.0 + fraction * float(camera_delay_s)
+        self.tuning = {"closed_loop_time_s": tau_c, "dead_time_s": theta}
         self.kp = tau1 / (self.gain * (tau_c + theta))
         self.ti = min(tau1, 4.0 * (tau_c + theta))
         self.integral = 0.0
@@ -179,22 +214,51 @@ class PIController:
 
 class MPCStrategy:
     """The MPC's part of a strategy: the solver, the uncertainty rule on the step, the
-    physical state range; subclasses say where the state comes from."""
+    physical state range, the job's seconds ahead; subclasses say where the state comes
+    from.
 
-    def __init__(self, twin, settings, bounds, u0, target, limits=None, max_overspray_um=None):
+    ``job`` (the job the machine prints, looped as it runs): the MPC's cost weighs each
+    second ahead by the length printed then and reads the line at its planned speed
+    (:class:`~ajtwin.apps.planning.job_preview.JobPreview`); None: a straight line at ν_ref.
+    """
+
+    def __init__(
+        self,
+        twin,
+        settings,
+        bounds,
+        u0,
+        target,
+        limits=None,
+        max_overspray_um=None,
+        job=None,
+        **_,
+    ):
         self.twin = twin
         self.settings = settings
         self.target = target
         self.mpc = MPC(twin, settings, limits, max_overspray_um)
         self.mpc.warm_up()
         self.state_limits = StateLimits.load(twin.model.params)
+        self.job = job
+        self.preview = (
+            None
+            if job is None
+            else JobPreview(job, settings.horizon_s, getattr(twin, "speed_law", None))
+        )
 
-    def _act(self, mean, cov, theta, u, sigma_lw, notes=""):
+    def line_ahead(self, t) -> np.ndarray | None:
+        """The job's seconds t … t + H − 1 as the cost weighs them (None without a job)."""
+        return None if self.preview is None else self.preview.line(t)
+
+    def _act(self, mean, cov, theta, u, sigma_lw, notes="", t=0.0):
         s = self.settings
         scale = 1.0
         if sigma_lw > s.uncertainty_sigma_um:
             scale = s.uncertainty_sigma_um / sigma_lw
-        sol = self.mpc.solve(mean, cov, theta, u, self.target, step_scale=scale)
+        sol = self.mpc.solve(
+            mean, cov, theta, u, self.target, step_scale=scale, line=self.line_ahead(t)
+        )
         reason = notes
         if scale < 1:
             reason = (
@@ -209,6 +273,7 @@ class MPCStrategy:
             float(sol.predicted_linewidth[-1]),
             float(sol.predicted_linewidth_std[-1]),
             scale,
+            sol.solve_wall_s,
         )
 
 
@@ -259,7 +324,7 @@ class MPCNominal(MPCStrategy):
             return Decision(u.copy(), "warm-up", "waiting for the initial fit")
         g = self.twin.model.coefficient_matrix[0]
         sigma = float(np.sqrt(max(linewidth_variance(g, self.mean, self.cov), 0.0)))
-        return self._act(self.mean, self.cov, self.theta, u, sigma)
+        return self._act(self.mean, self.cov, self.theta, u, sigma, t=t)
 
 
 def linewidth_variance(coefficients, mean, cov):

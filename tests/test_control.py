@@ -489,7 +489,7 @@ def test_mpc_plans_with_the_twins_transition_variant(variant, control_settings):
     expected = forecast(tw, mean, cov, inputs, np.zeros(5))
     np.testing.assert_allclose(sol.predicted_linewidth, expected.output_means[:, 0], rtol=1e-9)
     # and it differs from the paper's step (d_a relaxes / follows the inputs here)
-    paper = forecast(Twin.default(), mean, cov, inputs, np.zeros(5))
+    paper = forecast(Twin.default(transition="paper"), mean, cov, inputs, np.zeros(5))
     assert np.max(np.abs(paper.output_means[:, 0] - expected.output_means[:, 0])) > 1e-3
 
 

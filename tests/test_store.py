@@ -254,7 +254,7 @@ def test_ingest_chain_and_cli(tmp_path):
     np.testing.assert_allclose(a["means"][-1], p2["end_mean"], rtol=1.2e-7, atol=0)
 
     res = runner.invoke(machine, ["show", "lab", "--store", store])
-    assert res.exit_code == 0 and "last print: #2" in res.output
+    assert res.exit_code == 0 and "last stored print: #2" in res.output
     res = runner.invoke(machine, ["history", "lab", "--store", store])
     assert res.exit_code == 0 and res.output.count("\n") >= 3
     res = runner.invoke(machine, ["show", "ghost", "--store", store])

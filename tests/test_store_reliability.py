@@ -334,7 +334,7 @@ def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     assert res.exit_code == 0, res.output
     assert "migrated registry schema 1 → 2" in res.output
     assert "newest print #3 is excluded" in res.output
-    assert "last print: #2" in res.output
+    assert "last stored print: #2" in res.output
     reg = Registry(store)
     assert reg.migrated == []  # once only
     assert reg._info("schema_version") == str(R.SCHEMA_VERSION)

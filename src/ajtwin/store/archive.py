@@ -46,7 +46,7 @@ from ajtwin.store.registry import (
     SCHEMA_VERSION,
     Registry,
     RegistryError,
-    clean_name,
+    check_new_name,
     printable,
 )
 
@@ -308,7 +308,7 @@ def import_machine(
         source_name = manifest.get("machine")
         if not isinstance(source_name, str):
             raise _bad(archive, "manifest has no machine name")
-        new_name = clean_name(as_name if as_name is not None else source_name)
+        new_name = check_new_name(as_name if as_name is not None else source_name)
         try:
             part = Registry(db_path, create=False, end_state_check=end_state_check)
         except RegistryError as exc:

@@ -364,6 +364,35 @@ def clean_name(name: str) -> str:
     return name
 
 
+#: characters a new machine name may not hold: it is one segment of its pages' addresses
+#: (/machine/NAME; a web server splits paths at '/', and browsers read '\\' as '/') and of
+#: file names derived from it
+NAME_FORBIDDEN = "/\\"
+
+
+def check_new_name(name: str) -> str:
+    """A name for a new machine (:func:`clean_name`), one that can name its pages.
+
+    Refused with the rule named: ``/`` or ``\\`` anywhere (the dashboard's page of
+    ``a/b`` would be ``/machine/a/b``, which no route can serve), or the names ``.`` and
+    ``..`` (browsers resolve them away in a path). Other characters are fine: the pages
+    percent-encode names in their links.
+
+    >>> check_new_name("aj300 lab-1")
+    'aj300 lab-1'
+    """
+    name = clean_name(name)
+    bad = sorted({c for c in name if c in NAME_FORBIDDEN})
+    if bad or name in (".", ".."):
+        what = f"contains {' and '.join(repr(c) for c in bad)}" if bad else "is a path step"
+        raise RegistryError(
+            f"machine name {printable(name)!r} {what}: a machine's name is one part of its "
+            "pages' addresses (/machine/NAME), so it may not contain '/' or '\\' nor be "
+            "'.' or '..'; use e.g. letters, digits, '-', '_', '.' and spaces"
+        )
+    return name
+
+
 def printable(text) -> str:
     """``text`` with control/format characters escaped (``\\x1b``), safe for a terminal."""
     out = []
@@ -578,8 +607,10 @@ class Registry:
 
     # ------------------------------------------------------------------ machines
     def add_machine(self, name: str, limits: dict | None = None, notes: str = "") -> dict:
-        """Register a machine; ``limits`` maps input names to [low, high] (display units)."""
-        name = clean_name(name)
+        """Register a machine; ``limits`` maps input names to [low, high] (display units).
+
+        The name follows :func:`check_new_name` (no ``/`` or ``\\``)."""
+        name = check_new_name(name)
         merged = {k: list(v) for k, v in DEFAULT_LIMITS.items()}
         for key, value in (limits or {}).items():
             if key not in DEFAULT_LIMITS:

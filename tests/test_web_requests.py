@@ -64,9 +64,7 @@ def test_a_yes_no_field_must_be_a_json_boolean(text):
 def test_a_text_boolean_is_a_422_with_a_sentence_over_http(client):
     r = client.post("/api/machine/alpha/forecast", json={"nominal_theta": "false"})
     assert r.status_code == 422
-    assert r.json()["error"] == (
-        "nominal θ: expected true or false (a JSON boolean), got 'false'"
-    )
+    assert r.json()["error"] == ("nominal θ: expected true or false (a JSON boolean), got 'false'")
 
 
 # ------------------------------------------------------------------ cross-site requests
@@ -185,4 +183,3 @@ def test_pages_link_to_machines_by_encoded_names(client):
     whatif = client.get("/whatif/lab%202%20%233%3F%2050%25").text
     assert 'href="/machine/lab%202%20%233%3F%2050%25"' in whatif
     assert client.get("/api/machine/lab%202%20%233%3F%2050%25").json()["name"] == ODD_NAME
-

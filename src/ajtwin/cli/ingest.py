@@ -45,7 +45,7 @@ def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliase
 
     if video is not None and um_per_px is None:
         raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     bar = None
     state = {"done": 0}
 

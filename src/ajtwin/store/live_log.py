@@ -30,12 +30,12 @@ Examples
 from __future__ import annotations
 
 import json
-import sqlite3
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ajtwin.store.connection import connect, rollback_if_open
 from ajtwin.store.registry import Registry, from_npy, to_npy
 
 
@@ -53,10 +53,7 @@ class LiveLog:
         # the tables are the registry's (migration 3): opening it creates or migrates them,
         # and a file that is not an ajtwin registry is refused, never taken over
         Registry(self.path, timeout_s).close()
-        self._conn = sqlite3.connect(
-            str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
-        )
-        self._conn.row_factory = sqlite3.Row
+        self._conn = connect(self.path, timeout_s)
         self._conn.execute("PRAGMA synchronous=NORMAL")
 
     def close(self):
@@ -139,7 +136,7 @@ class LiveLog:
             )
             conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            rollback_if_open(conn)
             raise
 
     def n_steps(self, session_id: int) -> int:

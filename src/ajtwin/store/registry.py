@@ -74,6 +74,14 @@ import pandas as pd
 
 from ajtwin.model.names import STATE_NAMES
 from ajtwin.store import arrays as _arrays
+from ajtwin.store.connection import (
+    RegistryError,
+    check_integrity,
+    check_writable,
+    connect,
+    repair_journal_modes,
+    rollback_if_open,
+)
 
 #: environment variable: seconds to sleep inside the ingest transaction (crash tests only)
 TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
@@ -300,10 +308,6 @@ PRINT_TABLES = ["print_arrays", "anomalies"]
 LIVE_SESSION_TABLES = ["live_samples", "live_states", "live_events"]
 
 
-class RegistryError(RuntimeError):
-    """A registry operation that cannot be done (unknown machine, duplicate, ...)."""
-
-
 def default_store_path() -> Path:
     """``$AJTWIN_STORE``, else ``$XDG_DATA_HOME/ajtwin/registry.sqlite``, else
     ``~/.local/share/ajtwin/registry.sqlite``."""
@@ -423,6 +427,10 @@ class Registry:
         False and get a :class:`RegistryError` instead.
     policy : arrays.StoragePolicy, optional
         How per-second arrays are stored (default :class:`ajtwin.store.arrays.StoragePolicy`).
+    write : bool
+        The caller will write: refuse at once (:class:`~ajtwin.store.connection.StoreError`)
+        when this process cannot write the file, its journal or its folder
+        (:func:`~ajtwin.store.connection.check_writable`), before any work is done.
     end_state_check : callable, optional
         ``end_state_check(end_mean (5,)) -> list of problems``: when a version-1 registry is
         migrated, its prints whose end state this rejects are excluded from the chain
@@ -444,6 +452,7 @@ class Registry:
         create: bool = True,
         policy=None,
         end_state_check=None,
+        write: bool = False,
     ):
         self.path = Path(path) if path is not None else default_store_path()
         self.policy = policy or _arrays.StoragePolicy()
@@ -467,23 +476,28 @@ class Registry:
                 f"no registry at {self.path}; create one with `ajtwin machine add NAME "
                 f"--store {self.path}` (read-only commands never create it)"
             )
-        else:
+        if write or (create and not exists):
+            check_writable(self.path)
+        if not exists:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise RegistryError(f"{self.path}: cannot create its folder ({exc})") from None
         try:
-            self._conn = sqlite3.connect(
-                str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
-            )
-            self._conn.row_factory = sqlite3.Row
+            self._conn = connect(self.path, timeout_s)
+            check_integrity(self._conn, self.path)
             self._open(create)
-        except sqlite3.Error as exc:
-            self.close()
-            raise RegistryError(f"{self.path}: not a usable ajtwin registry ({exc})") from None
+            if write:  # the lock a write takes (a read-only mount, another writer's hold)
+                self._conn.execute("BEGIN IMMEDIATE")
+                self._conn.execute("ROLLBACK")
         except RegistryError:
             self.close()
             raise
+        except sqlite3.Error as exc:
+            self.close()
+            raise RegistryError(f"{self.path}: not a usable ajtwin registry ({exc})") from None
+        finally:
+            repair_journal_modes(self.path)
 
     # ------------------------------------------------------------------ opening
     def _tables(self) -> set[str]:
@@ -589,7 +603,7 @@ class Registry:
                     )
             self._conn.execute("COMMIT")
         except BaseException:
-            self._conn.execute("ROLLBACK")
+            rollback_if_open(self._conn)
             self.migrated = []
             raise
 
@@ -598,6 +612,7 @@ class Registry:
         if self._conn is not None:
             self._conn.close()
             self._conn = None
+            repair_journal_modes(self.path)
 
     def __enter__(self):
         return self
@@ -954,7 +969,7 @@ class Registry:
                 time.sleep(delay)
             conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            rollback_if_open(conn)
             raise
         if dropped:
             self.release_free_pages()

@@ -247,8 +247,8 @@ def check_writable(path) -> None:
         fd, probe = tempfile.mkstemp(dir=folder, prefix=".ajtwin-write-check-")
     except OSError as exc:
         raise StoreError(
-            f"{os.path.abspath(folder)}: the registry's folder cannot be written ({exc.strerror}); SQLite "
-            f"keeps the registry's journal beside it; {todo}"
+            f"{os.path.abspath(folder)}: the registry's folder cannot be written "
+            f"({exc.strerror}); SQLite keeps the registry's journal beside it; {todo}"
         ) from None
     os.close(fd)
     os.unlink(probe)

@@ -50,6 +50,7 @@ import numpy as np
 
 from ajtwin._jax import jax, jnp
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.steplog import StepLog
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.samples import MAX_GAP_S, Sample
 from ajtwin.estimation.em import run_em
@@ -77,8 +78,14 @@ def _batched(spec, carry, u, y, theta, process_cov, measurement_cov, gate, funct
 _step_many = jax.jit(_batched, static_argnames=("functions",))
 
 
+#: committed steps a stream keeps beyond its EM window and period: the part of the print a
+#: live engine has not yet written to the registry (:data:`ajtwin.engine.parts.PART_STEPS`)
+UNWRITTEN_STEPS = 3600
+
+
 class _History:
-    """Per-step committed results, grown as the print goes on (display units)."""
+    """Per-step committed results of the last ``keep`` steps (display units), addressed by
+    step number (:class:`~ajtwin.apps.detection.steplog.StepLog`)."""
 
     FIELDS = (
         "time_s",
@@ -99,15 +106,18 @@ class _History:
         "prior_floor",
     )
 
-    def __init__(self):
+    def __init__(self, keep: int | None = None):
         for name in self.FIELDS:
-            setattr(self, name, [])
+            setattr(self, name, StepLog(keep))
 
     def __len__(self):
         return len(self.time_s)
 
-    def array(self, name) -> np.ndarray:
-        return np.asarray(getattr(self, name), dtype=float)
+    def array(self, name, start: int | None = None, stop: int | None = None) -> np.ndarray:
+        """Steps [start, stop) of a field as an array (default: every step kept)."""
+        log = getattr(self, name)
+        start = log.first if start is None else start
+        return np.asarray(log[start:stop], dtype=float)
 
 
 class TwinStream:
@@ -156,7 +166,9 @@ class TwinStream:
         self.initial = None
         self.start_mean = self.start_cov = None
         self.detector = AnomalyDetector(detector_settings, long_run_history)
-        self.history = _History()
+        # the EM window (and the restart step before it) and what a live engine still writes
+        keep = int(self.config.window_s) + int(self.config.every_s) + UNWRITTEN_STEPS
+        self.history = _History(keep)
         self.theta_history: list[dict] = []
         self.carry: EKFCarry | None = None  # committed carry for the next step
         self.n_received = 0  # samples on the grid so far (committed + pending + waiting)
@@ -402,8 +414,8 @@ class TwinStream:
             self.twin.spec,
             np.asarray(h.predicted_means[w0]),
             np.asarray(h.predicted_covariances[w0]),
-            h.array("model_inputs")[w0:pos],
-            h.array("measurements")[w0:pos],
+            h.array("model_inputs", w0, pos),
+            h.array("measurements", w0, pos),
             self.theta.copy(),
             self.twin.process_cov,
             self.twin.measurement_var,
@@ -615,28 +627,34 @@ class TwinStream:
             }
         ]
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The committed per-step results, named as the registry stores a print."""
+    def arrays(self, since: int | None = None) -> dict[str, np.ndarray]:
+        """The committed per-step results from step ``since`` on (default: the oldest step
+        kept), named as the registry stores a print. A stream keeps its last steps only (a
+        long live print is written in parts as it goes, :class:`~ajtwin.engine.parts.
+        PrintWriter`); a short print's are all kept."""
         h = self.history
-        means = h.array("means")
-        covs = h.array("covariances").reshape(-1, 5, 5)
+        since = h.time_s.first if since is None else since
+
+        def steps(name, *shape):
+            return h.array(name, since).reshape(-1, *shape)
+
+        means = steps("means", 5)
+        covs = steps("covariances", 5, 5)
         hist = self.theta_history
         return {
-            "time_s": h.array("time_s"),
-            "means": means.reshape(-1, 5),
-            "stds": np.sqrt(
-                np.maximum(np.diagonal(covs, 0, 1, 2), h.array("prior_floor").reshape(-1, 5))
-            ),
+            "time_s": h.array("time_s", since),
+            "means": means,
+            "stds": np.sqrt(np.maximum(np.diagonal(covs, 0, 1, 2), steps("prior_floor", 5))),
             "covariances": covs,
-            "predicted_means": h.array("predicted_means").reshape(-1, 5),
-            "predicted_outputs": h.array("predicted_outputs").reshape(-1, 5),
-            "innovation_variances": h.array("innovation_variances").reshape(-1, 5),
-            "measurements": h.array("measurements").reshape(-1, 5),
-            "inputs": h.array("inputs").reshape(-1, 3),
-            "nis": h.array("nis"),
-            "n_measured": h.array("n_measured"),
-            "reinitialised": np.asarray(h.reinitialised, dtype=bool),
-            "theta_per_step": h.array("theta_per_step").reshape(-1, 5),
+            "predicted_means": steps("predicted_means", 5),
+            "predicted_outputs": steps("predicted_outputs", 5),
+            "innovation_variances": steps("innovation_variances", 5),
+            "measurements": steps("measurements", 5),
+            "inputs": steps("inputs", 3),
+            "nis": h.array("nis", since),
+            "n_measured": h.array("n_measured", since),
+            "reinitialised": np.asarray(h.reinitialised[since:], dtype=bool),
+            "theta_per_step": steps("theta_per_step", 5),
             "theta_history_time_s": np.array([r["time_s"] for r in hist], dtype=float),
             "theta_history": np.array(
                 [[r[f"theta_{n}"] for n in STATE_NAMES] for r in hist], dtype=float

@@ -35,7 +35,7 @@ RCOND = 1e-4
 
 
 def calibration_state_covariance(
-    spec, filtered, inputs, measurement_var, calibration_cov, functions
+    spec, filtered, inputs, measurement_var, calibration_cov, functions, carry=None
 ) -> np.ndarray:
     """C_k (T, 5, 5), display units: the state covariance the calibration error adds.
 
@@ -50,6 +50,9 @@ def calibration_state_covariance(
     calibration_cov : (11, 11)
         Σ_c from commissioning (display units).
     functions : ModelFunctions
+    carry : dict, optional
+        A run taken in chunks (``filtered`` one chunk of it): the vial's drain so far
+        (``carry["drain"]``, none at the first chunk) is added, and updated for the next.
     """
     coefficients = spec.coefficients
     if not isinstance(coefficients, CalibratedCoefficients):
@@ -85,6 +88,10 @@ def calibration_state_covariance(
     dt = float(spec.dt)
     drain = np.cumsum(sensitivity[:, 4, :] * (s[4] * carrier_ml_s * dt)[:, None], axis=0)
     drain = np.concatenate([np.zeros_like(drain[:1]), drain[:-1]])
+    if carry is not None:
+        before = carry.get("drain", 0.0)
+        carry["drain"] = before + drain[-1] + sensitivity[-1, 4, :] * (s[4] * carrier_ml_s[-1] * dt)
+        drain = drain + before
     sensitivity[:, 1, :] -= drain / s[1]
     out = np.einsum("tic,cd,tjd->tij", sensitivity, cal_cov, sensitivity)
     return out * np.outer(s, s)[None]

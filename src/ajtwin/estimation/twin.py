@@ -349,6 +349,14 @@ def _slice(result: FilterResult, stop: int) -> FilterResult:
     return FilterResult(*[np.asarray(part)[:stop] for part in result])
 
 
+def _keep_from(pieces: list, starts: list, step: int) -> None:
+    """Drop the filter chunks that end before ``step`` (an EM window starts there at the
+    earliest); the chunk that holds it stays."""
+    while len(starts) > 1 and starts[1] <= step:
+        pieces.pop(0)
+        starts.pop(0)
+
+
 def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
     if len(array) == length:
         return array
@@ -564,6 +572,7 @@ class Twin:
         start=None,
         smooth: bool = False,
         progress=None,
+        sink=None,
     ) -> TwinRun:
         """Estimate the states over a print (and learn θ if ``config.em``).
 
@@ -577,7 +586,15 @@ class Twin:
             Also run the RTS smoother over the whole print.
         progress : callable(int), optional
             Called with the number of steps done (for a progress bar).
+        sink : callable(first_step, TwinRun), optional
+            Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
+            steps: the filter's results, θ, the calibration's share, the prior floor, what
+            was seen), so that nothing keeps the whole print's results: the run returned
+            then has the print's start, end, θ history, initial fit, vial observer and
+            ``seen``, and ``filtered`` holds only the last chunks. Not with ``smooth``.
         """
+        if sink is not None and smooth:
+            raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
         inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
         n = len(inputs)
         initial = None
@@ -598,15 +615,20 @@ class Twin:
         )
         # the transition variant's extra input column (input response), if it has one
         model_inputs = self.model_inputs(inputs)
+        emit = None
+        if sink is not None:
+            emit = self._chunk_emitter(sink, time_s, initial, seen, model_inputs)
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
             filtered = self._filter(mean, cov, model_inputs, measurements, self.theta)
             theta, history = self.theta.copy(), []
+            if emit is not None:
+                emit(0, filtered, thetas)
             if progress:
                 progress(n)
         else:
             filtered, theta, thetas, history = self._filter_with_em(
-                mean, cov, model_inputs, measurements, time_s, progress
+                mean, cov, model_inputs, measurements, time_s, progress, emit
             )
         smoothed = None
         if smooth:
@@ -624,9 +646,11 @@ class Twin:
             start_cov=start_cov,
             end_mean=np.asarray(filtered.means[-1]),
             end_cov=np.asarray(filtered.covariances[-1]),
-            calibration_covariances=self._calibration_covariances(filtered, model_inputs),
+            calibration_covariances=None
+            if sink
+            else self._calibration_covariances(filtered, model_inputs),
             seen=seen,
-            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
+            prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
             vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
         )
 
@@ -655,10 +679,12 @@ class Twin:
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
         return inputs, measurements, time_s
 
-    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress):
+    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress, emit=None):
         """The filter in chunks between EM boundaries; EM over the trailing window at each
         boundary, its θ and re-filtered end state taking effect from there (the module's
-        chunking). Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
+        chunking). ``emit(first_step, chunk, θ per step)`` takes each chunk as it is done,
+        and only the chunks EM still needs are kept. Returns (filter result, θ at the end,
+        θ per step (T, 5), EM history)."""
         c = self.config
         n = len(model_inputs)
         every, window = int(c.every_s), int(c.window_s)
@@ -682,6 +708,9 @@ class Twin:
             pieces.append(seg)
             starts.append(pos)
             thetas[pos:end] = theta
+            if emit is not None:
+                emit(pos, seg, thetas[pos:end])
+                _keep_from(pieces, starts, end - window)
             last_mean = np.asarray(seg.means[-1])
             last_cov = np.asarray(seg.covariances[-1])
             pos = end
@@ -737,8 +766,9 @@ class Twin:
             learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
         return em, learned
 
-    def _calibration_covariances(self, filtered, model_inputs):
-        """The states' covariance from the calibration's uncertainty (None: none given)."""
+    def _calibration_covariances(self, filtered, model_inputs, carry=None):
+        """The states' covariance from the calibration's uncertainty (None: none given);
+        ``carry``: a chunk of a run (:func:`calibration_state_covariance`)."""
         if self.calibration is None or self.calibration_cov is None:
             return None
         return calibration_state_covariance(
@@ -748,7 +778,42 @@ class Twin:
             self.measurement_var,
             self.calibration_cov,
             self.functions,
+            carry=carry,
         )
+
+    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs):
+        """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each
+        chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
+        calibration's share, with the vial's drain carried over; the prior floor, with
+        what was seen before the chunk)."""
+        carry: dict = {}
+        seen_before = np.zeros(seen.shape[1], dtype=bool)
+
+        def emit(first: int, chunk, thetas) -> None:
+            nonlocal seen_before
+            stop = first + len(chunk.means)
+            seen_chunk = np.asarray(seen[first:stop]) | seen_before
+            seen_before = seen_before | seen_chunk.any(axis=0)
+            sink(
+                first,
+                TwinRun(
+                    time_s=time_s[first:stop],
+                    filtered=chunk,
+                    smoothed=None,
+                    theta_per_step=np.asarray(thetas),
+                    theta_history=_theta_history_frame([]),
+                    initial=None,
+                    start_mean=None,
+                    start_cov=None,
+                    calibration_covariances=self._calibration_covariances(
+                        chunk, model_inputs[first:stop], carry
+                    ),
+                    seen=seen[first:stop],
+                    prior_floor=never_seen_variance_floor(initial, seen_chunk, chunk.means),
+                ),
+            )
+
+        return emit
 
     def _observe_vial(self, inputs, measurements, start_mean, start_cov):
         """The vial observer over the print's Q_m (None when Q_m was never measured)."""

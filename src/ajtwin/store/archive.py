@@ -39,6 +39,7 @@ import tempfile
 from pathlib import Path
 
 from ajtwin import __version__
+from ajtwin.store.connection import rollback_if_open
 from ajtwin.store.registry import (
     LIVE_SESSION_TABLES,
     MACHINE_TABLES,
@@ -177,7 +178,7 @@ def _copy_machine(src, dst, name, new_name) -> dict:
                         _insert(dst, table, s_row, table_columns)
         dst.execute("COMMIT")
     except BaseException:
-        dst.execute("ROLLBACK")
+        rollback_if_open(dst)
         raise
     return {"prints": len(print_ids), "live_sessions": n_sessions, "open_live_sessions": n_open}
 

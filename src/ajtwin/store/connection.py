@@ -70,8 +70,10 @@ _ADVICE = {
         "`sqlite3 FILE .recover`",
     ),
     "SQLITE_NOTADB": (
-        "registry damaged (not an SQLite database any more)",
-        "restore it from a backup (`ajtwin machine import`)",
+        "not a usable ajtwin registry: not an SQLite database (another kind of file, or a "
+        "registry damaged beyond repair)",
+        "give the registry's path with --store, or restore it from a backup "
+        "(`ajtwin machine import`)",
     ),
     "SQLITE_IOERR": (
         "an input/output error reading or writing it (a failing disk, a network share gone?)",

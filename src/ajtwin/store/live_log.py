@@ -161,6 +161,28 @@ class LiveLog:
         y = np.array([from_npy(r["outputs"]) for r in rows], dtype=float).reshape(-1, 5)
         return t, u, y
 
+    def iter_samples(self, session_id: int, batch: int = 3600):
+        """(time_s, inputs, outputs) of a session ``batch`` steps at a time, in step order:
+        a replay that holds one batch, not the whole print (:meth:`samples`)."""
+        first = 0
+        while True:
+            rows = self._conn.execute(
+                "SELECT step, time_s, inputs, outputs FROM live_samples WHERE session_id = ? "
+                "AND step >= ? ORDER BY step LIMIT ?",
+                (session_id, first, int(batch)),
+            ).fetchall()
+            if not rows:
+                return
+            steps = [r["step"] for r in rows]
+            if steps != list(range(first, first + len(steps))):
+                raise RuntimeError(f"live session {session_id}: stored steps are not contiguous")
+            yield (
+                np.array([r["time_s"] for r in rows], dtype=float),
+                np.array([from_npy(r["inputs"]) for r in rows], dtype=float).reshape(-1, 3),
+                np.array([from_npy(r["outputs"]) for r in rows], dtype=float).reshape(-1, 5),
+            )
+            first += len(rows)
+
     def states(self, session_id: int) -> list[dict]:
         """The published messages of a session's committed steps, in step order."""
         rows = self._conn.execute(

@@ -63,6 +63,7 @@ import hashlib
 import io
 import json
 import os
+import socket
 import sqlite3
 import stat
 import time
@@ -289,19 +290,51 @@ def _migrate_to_5(conn):
             )
 
 
+#: A print's per-second arrays written while the print runs (a long ingest, a live print):
+#: parts of consecutive steps, each encoded as ``print_arrays`` are (ajtwin.store.arrays).
+#: Until the print is stored they belong to a draft (``print_id`` = −draft id: no foreign
+#: key), and the transaction that stores the print moves them to it. A draft whose process
+#: died is removed by the next ingest, live start or ``machine compact``. Never edit: add
+#: a migration.
+_PARTS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS array_drafts (
+    id INTEGER PRIMARY KEY,
+    machine TEXT NOT NULL,
+    label TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    pid INTEGER NOT NULL,
+    host TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS print_array_parts (
+    print_id INTEGER NOT NULL,
+    name TEXT NOT NULL,
+    part INTEGER NOT NULL,
+    codec TEXT NOT NULL,
+    blob BLOB NOT NULL,
+    PRIMARY KEY (print_id, name, part)
+)
+"""
+
+
+def _migrate_to_6(conn):
+    """Print arrays written in parts while a print runs (array_drafts, print_array_parts)."""
+    _execute_all(conn, _PARTS_SCHEMA)
+
+
 #: (version, what it adds, function(conn)); append only (see the module docstring).
 MIGRATIONS: list[tuple[int, str, object]] = [
     (2, "print chain status, compressed arrays, anomaly index", _migrate_to_2),
     (3, "live twin sessions: live_sessions, live_samples, live_states, live_events", _migrate_to_3),
     (4, "per-machine calibrations and maintenance events", _migrate_to_4),
     (5, "the detectors' long-run noise statistics per print and calibration", _migrate_to_5),
+    (6, "print arrays written in parts while a print runs", _migrate_to_6),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
 #: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
 #: Copied in this order, each in its ``id`` order (the newest calibration stays active).
 MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
-PRINT_TABLES = ["print_arrays", "anomalies"]
+PRINT_TABLES = ["print_arrays", "print_array_parts", "anomalies"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
 #: ``print_id`` renumbered, by :func:`ajtwin.store.archive.copy_machine`.
@@ -411,6 +444,17 @@ def printable(text) -> str:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _process_alive(pid) -> bool:
+    """Whether process ``pid`` of this computer runs (a draft's writer)."""
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True  # another user's process, or no way to tell: keep its draft
+    return True
 
 
 class Registry:
@@ -775,19 +819,105 @@ class Registry:
         rows = self._conn.execute(
             "SELECT name, npy, codec FROM print_arrays WHERE print_id = ?", (print_id,)
         ).fetchall()
-        out = {}
-        for r in rows:
-            try:
-                out[r["name"]] = _arrays.decode(r["npy"], r["codec"])
-            except ValueError as exc:
-                seq = self._conn.execute(
-                    "SELECT seq FROM prints WHERE id = ?", (print_id,)
-                ).fetchone()
-                raise RegistryError(
-                    f"{self.path}: registry damaged at print {seq[0] if seq else '?'} "
-                    f"(id {print_id}), array {printable(r['name'])}: {exc}"
-                ) from None
+        out = {r["name"]: self._decoded(print_id, r["name"], r["npy"], r["codec"]) for r in rows}
+        parts: dict[str, list] = {}
+        for r in self._conn.execute(
+            "SELECT name, codec, blob FROM print_array_parts WHERE print_id = ? "
+            "ORDER BY name, part",
+            (print_id,),
+        ).fetchall():
+            decoded = self._decoded(print_id, r["name"], r["blob"], r["codec"])
+            parts.setdefault(r["name"], []).append(decoded)
+        out.update(_arrays.join_parts(parts))
         return _arrays.expand(out)
+
+    def _decoded(self, print_id: int, name: str, blob, codec: str) -> np.ndarray:
+        """A stored array decoded (RegistryError naming the print and array if damaged)."""
+        try:
+            return _arrays.decode(blob, codec)
+        except ValueError as exc:
+            seq = self._conn.execute("SELECT seq FROM prints WHERE id = ?", (print_id,)).fetchone()
+            raise RegistryError(
+                f"{self.path}: registry damaged at print {seq[0] if seq else '?'} "
+                f"(id {print_id}), array {printable(name)}: {exc}"
+            ) from None
+
+    # ------------------------------------------------------------------ drafts
+    def open_draft(self, machine: str, label: str) -> int:
+        """A draft for the arrays of a print of ``machine`` still running (``label`` says
+        which: "ingest of FILE", "live session 12"); its id for :meth:`append_draft` and
+        :meth:`save_print`. Drafts of processes that died are removed first."""
+        self.discard_stale_drafts()
+        cur = self._conn.execute(
+            "INSERT INTO array_drafts (machine, label, created_unix, pid, host) "
+            "VALUES (?, ?, ?, ?, ?)",
+            (str(machine), str(label), time.time(), os.getpid(), socket.gethostname()),
+        )
+        return int(cur.lastrowid)
+
+    def append_draft(self, draft: int, arrays: dict, part: dict, alarm_times=()) -> int:
+        """Write one part of a running print's arrays (consecutive steps) to ``draft``, in
+        its own short transaction; the bytes written.
+
+        ``part``: ``first_step``, ``origin_s``, ``after_s``, ``last`` as
+        :func:`ajtwin.store.arrays.encode_all` takes them; the arrays are stored by
+        :attr:`policy` (key frames of the covariances as the whole print would have them).
+        """
+        encoded = _arrays.encode_all(arrays, self.policy, alarm_times, part=part)
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            if conn.execute("SELECT 1 FROM array_drafts WHERE id = ?", (draft,)).fetchone() is None:
+                raise RegistryError(f"draft {draft} is not open (stored or discarded)")
+            row = conn.execute(
+                "SELECT COALESCE(MAX(part), -1) + 1 FROM print_array_parts WHERE print_id = ?",
+                (-int(draft),),
+            ).fetchone()
+            conn.executemany(
+                "INSERT INTO print_array_parts (print_id, name, part, codec, blob) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [(-int(draft), key, row[0], c, b) for key, (c, b) in encoded.items()],
+            )
+            conn.execute("COMMIT")
+        except BaseException:
+            rollback_if_open(conn)
+            raise
+        return sum(len(b) for _, b in encoded.values())
+
+    def discard_draft(self, draft: int) -> None:
+        """Remove a draft and its parts (a print that failed or was refused)."""
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn.execute("DELETE FROM print_array_parts WHERE print_id = ?", (-int(draft),))
+            conn.execute("DELETE FROM array_drafts WHERE id = ?", (int(draft),))
+            conn.execute("COMMIT")
+        except BaseException:
+            rollback_if_open(conn)
+            raise
+
+    def discard_drafts(self, machine: str, label: str) -> int:
+        """Remove the drafts of ``machine`` with ``label`` (a live session replayed from its
+        samples writes its parts again); how many."""
+        rows = self._conn.execute(
+            "SELECT id FROM array_drafts WHERE machine = ? AND label = ?", (machine, label)
+        ).fetchall()
+        for (draft,) in rows:
+            self.discard_draft(draft)
+        return len(rows)
+
+    def discard_stale_drafts(self) -> int:
+        """Remove the drafts of processes of this computer that no longer run (a killed
+        ingest: its print was never stored); how many."""
+        host = socket.gethostname()
+        stale = [
+            r["id"]
+            for r in self._conn.execute("SELECT id, pid, host FROM array_drafts").fetchall()
+            if r["host"] == host and not _process_alive(r["pid"])
+        ]
+        for draft in stale:
+            self.discard_draft(draft)
+        return len(stale)
 
     def long_run_history(self, name: str) -> tuple[int, dict] | None:
         """(seq, statistics) of the detectors' long-run statistics stored with the newest
@@ -890,8 +1020,13 @@ class Registry:
         live_session: int | None = None,
         keep_live_steps: bool = False,
         long_run_history: dict | None = None,
+        draft: int | None = None,
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
+
+        ``draft``: the print's per-step arrays were written in parts as it ran
+        (:meth:`open_draft`, :meth:`append_draft`); they become this print's in the same
+        transaction (``arrays`` then holds the rest: the θ history).
 
         ``long_run_history``: the detectors' long-run statistics at the print's end
         (:meth:`ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`), read back by
@@ -961,6 +1096,8 @@ class Registry:
                 "long_run_json": json.dumps(long_run_history),
             }
             print_id = self._insert_print(row, encoded, anomalies)
+            if draft is not None:
+                self._adopt_draft(draft, print_id)
             dropped = 0
             if live_session is not None:
                 dropped = self._end_live_session(live_session, print_id, keep_live_steps)
@@ -971,7 +1108,7 @@ class Registry:
         except BaseException:
             rollback_if_open(conn)
             raise
-        if dropped:
+        if dropped or draft is not None:  # the draft's parts were moved: their old pages
             self.release_free_pages()
         return int(print_id)
 
@@ -1005,6 +1142,15 @@ class Registry:
             ],
         )
         return int(print_id)
+
+    def _adopt_draft(self, draft: int, print_id: int) -> None:
+        """Inside save_print's transaction: the draft's parts become the print's."""
+        gone = self._conn.execute("DELETE FROM array_drafts WHERE id = ?", (int(draft),))
+        if gone.rowcount != 1:
+            raise RegistryError(f"draft {draft} is not open (stored or discarded); nothing stored")
+        self._conn.execute(
+            "UPDATE print_array_parts SET print_id = ? WHERE print_id = ?", (print_id, -int(draft))
+        )
 
     def _end_live_session(self, session_id: int, print_id: int, keep_steps: bool) -> int:
         """Inside save_print's transaction: close the open live session with its print;

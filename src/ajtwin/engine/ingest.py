@@ -333,6 +333,8 @@ class IngestSink:
     def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
         self.writer = writer
         self.record = record
+        # once: a record makes a new (T, n) array at each access of these
+        self._outputs, self._inputs = record.outputs, record.inputs
         self.settings, self.long_run_history = settings, long_run_history
         self.detector = AnomalyDetector(settings, long_run_history)
         self.keep = keep
@@ -345,9 +347,7 @@ class IngestSink:
     def __call__(self, first: int, chunk) -> None:
         """Take the chunk of steps [first, first + n) (a TwinRun of them)."""
         stop = first + len(chunk.time_s)
-        part = SimpleNamespace(
-            outputs=self.record.outputs[first:stop], inputs=self.record.inputs[first:stop]
-        )
+        part = SimpleNamespace(outputs=self._outputs[first:stop], inputs=self._inputs[first:stop])
         arrays = run_arrays(chunk, part)
         for step in _detector_steps(self.detector, arrays):
             for event in step.raised:

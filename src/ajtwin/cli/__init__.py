@@ -45,6 +45,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "live": ("ajtwin.cli.live:live", "The live twin beside a machine (OPC UA or a growing CSV)."),
     "dashboard": ("ajtwin.cli.dashboard:dashboard", "Browser dashboard: fleet, machines, what-if."),
     "job": ("ajtwin.cli.job:job", "The machine's program: summary, timeline, part plot."),
+    "camera": ("ajtwin.cli.camera:camera", "The alignment camera's geometry: calibrate."),
 }
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import store_option
+from ajtwin.cli.options import ToleranceType, store_option
 from ajtwin.store.registry import RegistryError, default_store_path
 from ajtwin.web.access import TOKEN_ENV, check_access, dashboard_token
 
@@ -59,6 +59,20 @@ from ajtwin.web.access import TOKEN_ENV, check_access, dashboard_token
     help="Virtual-print samples per second (1 = real time).",
 )
 @click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="With --virtual-print: the virtual printer runs this machine program (.prg, looped "
+    "to the print's length) and the machine page shows its part map filling in.",
+)
+@click.option(
+    "--tolerance",
+    type=ToleranceType(),
+    default=None,
+    help="With --job: the part's linewidth tolerance in µm (45±3, 45+-3, 42:48).",
+)
+@click.option(
     "--virtual-wait",
     type=float,
     default=0.0,
@@ -78,6 +92,8 @@ def dashboard(
     virtual_minutes,
     virtual_onset,
     virtual_rate,
+    program,
+    tolerance,
     virtual_wait,
 ):
     """Serve the browser dashboard: the fleet, each machine (live), what-if and advice.
@@ -89,6 +105,10 @@ def dashboard(
     source = click.get_current_context().get_parameter_source("token")
     token = dashboard_token(token, token_file, source == click.core.ParameterSource.COMMANDLINE)
     check_access(host, token)
+    if (program is not None or tolerance is not None) and not virtual_scenario:
+        raise click.UsageError("--job and --tolerance go with --virtual-print SCENARIO")
+    if tolerance is not None and program is None:
+        raise click.UsageError("--tolerance goes with --job")
     path = Path(store) if store else default_store_path()
     # lazy CLI loading: imported when the command runs, not for --help
     import uvicorn
@@ -125,6 +145,8 @@ def dashboard(
                 onset_min=virtual_onset,
                 rate_hz=virtual_rate,
                 wait_for_viewer_s=virtual_wait,
+                job=program,
+                tolerance=tolerance,
             )
         )
     try:

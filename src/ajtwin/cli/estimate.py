@@ -114,6 +114,24 @@ def _read_calibration(calibration_path):
     "the nominal model.",
 )
 @click.option(
+    "--job",
+    "job_program",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="The program (.prg) a job print ran: the speeds at print times come from it "
+    "(it must be the file the record names, by sha256). Optional: without it the record's "
+    "own job columns are used.",
+)
+@click.option(
+    "--camera-horizon",
+    "camera_horizon",
+    type=BoundedFloat(0.0, float("inf"), allow_inf=True),
+    default=None,
+    help="Job prints: a step is final this many seconds after it was printed; camera "
+    "measurements of a trace printed longer ago are dropped (inf: keep all). Default: from "
+    "the camera (data/print_time.toml).",
+)
+@click.option(
     "--theta-out",
     type=click.Path(dir_okay=False),
     default=None,
@@ -139,12 +157,19 @@ def estimate(
     noise_tuning,
     vial_ml,
     calibration_path,
+    job_program,
+    camera_horizon,
     theta_out,
     plot_path,
     csv_dialect,
     aliases,
 ):
-    """Run the twin over a print record: hidden states with uncertainty, θ history."""
+    """Run the twin over a print record: hidden states with uncertainty, θ history.
+
+    On a job print (a format-2 record with the job columns) the camera's measurements are
+    filed at the time their trace was printed and the line is read at the speed it was
+    printed (--job gives the program; --camera-horizon the horizon).
+    """
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.estimate import estimate_to_csv
@@ -159,6 +184,7 @@ def estimate(
         early = parse_early_em(early_em)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--early-em") from None
+    job = _read_job(record, job_program, camera_horizon)
     twin = Twin.default(
         calibration=calibration,
         calibration_cov=calibration_cov,
@@ -170,6 +196,7 @@ def estimate(
         early_em_s=early,
         gate_sigma=gate,
         vial_fill_ml=vial_ml,
+        camera_horizon_s=camera_horizon,
     )
     n = len(record)
     with tqdm(total=n, unit="s", desc="twin", disable=None) as bar:
@@ -179,7 +206,13 @@ def estimate(
 
         try:
             done = estimate_to_csv(
-                twin, record, out_path, smooth=smooth, whole=bool(plot_path), progress=progress
+                twin,
+                record,
+                out_path,
+                smooth=smooth,
+                whole=bool(plot_path),
+                progress=progress,
+                job=job,
             )
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
@@ -191,6 +224,8 @@ def estimate(
     end = ", ".join(f"{c} {v:.4g}" for c, v in zip(STATE_NAMES, run.end_mean))
     click.echo(f"end state: {end}")
     click.echo(f"mean NIS per measured output: {done.mean_nis_per_output:.2f} (1 = consistent)")
+    if run.camera_counts:
+        click.echo(_camera_line(run.camera_counts, job is not None))
     if mismatch.mismatch:
         click.echo(f"WARNING {mismatch.message}", err=True)
         click.echo(
@@ -220,3 +255,47 @@ def estimate(
 
         estimate_figure(record, run, plot_path)
         click.echo(f"wrote {plot_path}")
+
+
+def _read_job(record, job_program, camera_horizon):
+    """The program of a job record (``--job``), checked against it; None without one."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.print_time import is_job_record, program_for_record
+    from ajtwin.job import ProgramError
+
+    if job_program is None and camera_horizon is not None and not is_job_record(record):
+        raise click.UsageError("--camera-horizon is for a job print (a record with job columns)")
+    if job_program is None:
+        return None
+    if not is_job_record(record):
+        raise click.ClickException(
+            f"--job {job_program}: the record has no job columns (shutter_open, "
+            "platen_speed_mm_s, printed_at_s) — it is not a job print"
+        )
+    try:
+        return program_for_record(record, job_program)
+    except (ProgramError, ValueError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _camera_line(counts: dict, with_program: bool) -> str:
+    """One line on a job print's camera: frames filed at print times, dropped, horizon."""
+    dropped = {
+        key.removeprefix("dropped_").replace("_", " "): value
+        for key, value in counts.items()
+        if key.startswith("dropped_") and value
+    }
+    horizon = counts["horizon_s"]
+    text = (
+        f"job print: {counts['filed']} camera frames filed at their print times "
+        f"(horizon {'none: all kept' if horizon == float('inf') else f'{horizon:g} s'}; "
+        f"speeds from the {'program' if with_program else 'record'})"
+    )
+    if dropped:
+        text += "; dropped: " + ", ".join(f"{n} {why}" for why, n in dropped.items())
+    if counts.get("material_flow_shutter_closed"):
+        text += (
+            f"; {counts['material_flow_shutter_closed']} Q_m values with the shutter closed "
+            "not used"
+        )
+    return text

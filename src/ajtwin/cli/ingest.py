@@ -11,6 +11,7 @@ from tqdm import tqdm
 from ajtwin.cli.options import (
     STATE_LABELS,
     BoundedFloat,
+    ToleranceType,
     open_registry,
     record_options,
     store_option,
@@ -34,17 +35,59 @@ from ajtwin.store.registry import RegistryError, printable
     default=None,
     help="Camera pixel size, µm (with --video).",
 )
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The machine program the print ran (.prg): kept with the print (its text, SHA-256 "
+    "and the speeds used) for `ajtwin job report --machine` and the dashboard's part map.",
+)
+@click.option("--process-speed", "process_speed", type=BoundedFloat(0.0, 10_000.0),
+              default=None, help="With --job: the GUI's process speed [mm/s] (default: the "
+              "record's, else stage.toml).")  # fmt: skip
+@click.option("--rapid-speed", "rapid_speed", type=BoundedFloat(0.0, 10_000.0), default=None,
+              help="With --job: the GUI's rapid speed [mm/s] (default: the record's, else "
+              "stage.toml).")  # fmt: skip
+@click.option(
+    "--tolerance",
+    type=ToleranceType(),
+    default=None,
+    help="With --job: the part's linewidth tolerance in µm (45±3, 45+-3, 42:48), kept with "
+    "the job for reports and the dashboard.",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @record_options
 @store_option
-def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliases, store):
-    """Run the machine's twin over RECORD (from its last state and θ) and store it."""
+def ingest(
+    machine_name,
+    record,
+    video,
+    um_per_px,
+    program,
+    process_speed,
+    rapid_speed,
+    tolerance,
+    progress,
+    csv_dialect,
+    aliases,
+    store,
+):
+    """Run the machine's twin over RECORD (from its last state and θ) and store it
+    (with the program it ran: --job)."""
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.ingest import ingest_file
 
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.job import ProgramError
+
     if video is not None and um_per_px is None:
         raise click.BadParameter("--video needs --um-per-px", param_hint="--um-per-px")
+    job_options = {"process_speed_mm_s": process_speed, "rapid_speed_mm_s": rapid_speed,
+                   "tolerance": tolerance}  # fmt: skip
+    if program is None and any(v is not None for v in job_options.values()):
+        raise click.UsageError("--process-speed, --rapid-speed and --tolerance go with --job")
     reg = open_registry(store, write=True)
     bar = None
     state = {"done": 0}
@@ -68,8 +111,10 @@ def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliase
             video_progress=progress,
             aliases=aliases,
             dialect=csv_dialect,
+            program=program,
+            job_options=job_options,
         )
-    except (RegistryError, RecordError, ValueError, FileNotFoundError) as exc:
+    except (RegistryError, RecordError, ProgramError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     finally:
         if bar is not None:
@@ -94,6 +139,8 @@ def ingest(machine_name, record, video, um_per_px, progress, csv_dialect, aliase
             f"start from it): {result.summary['status_reason']}",
             err=True,
         )
+    if program is not None:
+        click.echo(f"  job {program.name} kept with the print")
     end = result.summary["end_state"]
     for key, short, unit in STATE_LABELS:
         click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")

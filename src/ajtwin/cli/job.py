@@ -9,7 +9,13 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import BoundedFloat
+from ajtwin.cli.options import (
+    BoundedFloat,
+    ToleranceType,
+    open_registry,
+    record_options,
+    store_option,
+)
 
 __all__ = ["job"]
 
@@ -18,7 +24,8 @@ _SPEED = BoundedFloat(0.0, 10_000.0)
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def job():
-    """The machine's program (Optomec AJ ACSPL+ .prg): summary, timeline, part plot."""
+    """The machine's program (Optomec AJ ACSPL+ .prg): summary, timeline, part plot, and the
+    part quality map of a print (report)."""
 
 
 def _duration(seconds: float) -> str:
@@ -180,3 +187,206 @@ def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, 
         click.echo(f"timeline     {out} ({the_job.n_segments} segments)")
     if plot is not None:
         click.echo(f"part plot    {plot}")
+
+
+def _bars(progress: bool):
+    """(twin progress, line progress, close): tqdm bars created on first use."""
+    # lazy CLI loading: tqdm only when the command runs
+    from tqdm import tqdm
+
+    bars = {}
+
+    def twin_step(done):
+        if "twin" not in bars:
+            bars["twin"] = tqdm(unit="s", desc="twin", disable=not progress)
+        bars["twin"].update(done - bars["twin"].n)
+
+    def line_step(done, total):
+        if "line" not in bars:
+            bars["line"] = tqdm(
+                total=total, unit="pt", desc="line along strokes", disable=not progress
+            )
+        bars["line"].update(done - bars["line"].n)
+
+    def close():
+        for bar in bars.values():
+            bar.close()
+
+    return twin_step, line_step, close
+
+
+def _echo_part_report(part, paths) -> None:
+    """What `job report` prints: the headline, the worst flagged portions, the files."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.part_report import summary_facts
+
+    facts = summary_facts(part)
+    tolerance = part.tolerance.text if part.tolerance else "none (nothing flagged)"
+    click.echo(f"print       {part.source}")
+    click.echo(f"program     {facts['program']}")
+    click.echo(
+        f"printed     {facts['strokes']} strokes, {facts['portions']} portions, "
+        f"{facts['printed_mm']:.1f} mm; mean L_w {facts['lw_mean_um']:.2f} µm"
+    )
+    click.echo(f"tolerance   {tolerance}; flagged when P(out) ≥ {part.flag_probability:g}")
+    click.echo(
+        f"flagged     {facts['flagged_portions']} portions ({facts['flagged_mm']:.1f} mm) on "
+        f"{facts['flagged_strokes']} strokes"
+    )
+    for row in part.flagged().head(5).itertuples(index=False):
+        click.echo(
+            f"  stroke {row.stroke} portion {row.portion} (feature {row.feature}): "
+            f"({row.from_x_mm:.3f}, {row.from_y_mm:.3f}) → ({row.to_x_mm:.3f}, "
+            f"{row.to_y_mm:.3f}) mm, printed {row.printed_from_s:.1f} s, L_w "
+            f"{row.lw_mean_um:.2f} µm [{row.lw_lo_um:.2f}, {row.lw_hi_um:.2f}], "
+            f"P(out) {row.p_out:.3f}"
+        )
+    for row in part.alarms.itertuples(index=False):
+        click.echo(
+            f"alarm A{row.alarm} {row.cause}: raised {row.detected_s:.0f} s at "
+            f"({row.detected_x_mm:.3f}, {row.detected_y_mm:.3f}) mm, onset {row.onset_s:.0f} s "
+            f"at ({row.onset_x_mm:.3f}, {row.onset_y_mm:.3f}) mm"
+        )
+    for note in part.notes:
+        click.echo(f"note: {note}", err=True)
+    for path in paths.values():
+        click.echo(f"wrote       {path}")
+
+
+@job.command("report")
+@click.argument(
+    "record", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path)
+)
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The program the print ran (.prg). Optional for a stored print ingested with --job.",
+)
+@click.option(
+    "--tolerance",
+    type=ToleranceType(),
+    default=None,
+    help="The linewidth's tolerance in µm: 45±3, 45+-3 or 42:48 (default for a stored print: "
+    "the one stored with its job).",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for strokes.csv, part.png and report.html (created).",
+)
+@click.option(
+    "--machine",
+    default=None,
+    help="A registered machine: without RECORD, map its stored print (--print, default the "
+    "newest); with RECORD, run the machine's twin from where its next print starts.",
+)
+@click.option(
+    "--print", "seq", type=click.IntRange(min=1), default=None, help="Stored print number."
+)
+@click.option("--process-speed", "process_speed", type=_SPEED, default=None,
+              help="Process speed [mm/s] (default: the record's, else stage.toml).")  # fmt: skip
+@click.option("--rapid-speed", "rapid_speed", type=_SPEED, default=None,
+              help="Rapid speed [mm/s] (default: the record's, else stage.toml).")  # fmt: skip
+@click.option(
+    "--repeat-to",
+    "repeat_to",
+    type=BoundedFloat(0.0, math.inf),
+    default=None,
+    help="The print looped the program to this many seconds (default: the record's; else "
+    "looped to the record's length when the print outlasts the program).",
+)
+@click.option(
+    "--portion-mm",
+    type=BoundedFloat(0.0, 1000.0),
+    default=1.0,
+    show_default=True,
+    help="Longest stroke portion [mm] (each stroke is cut into equal portions).",
+)
+@click.option(
+    "--flag-probability",
+    type=BoundedFloat(0.0, 1.0, closed=True),
+    default=0.5,
+    show_default=True,
+    help="Flag a portion when its probability of being out of tolerance is at least this.",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@record_options
+@store_option
+def report(
+    record,
+    program,
+    tolerance,
+    out_dir,
+    machine,
+    seq,
+    process_speed,
+    rapid_speed,
+    repeat_to,
+    portion_mm,
+    flag_probability,
+    progress,
+    csv_dialect,
+    aliases,
+    store,
+):
+    """Which traces of the part are out of tolerance: every stroke's linewidth along its
+    length from the twin's smoothed states (±2σ) and overspray, portions flagged with the
+    probability that they are out, the alarms placed on the part.
+
+    Give a print RECORD and its --job PROGRAM, or --machine NAME [--print SEQ] for a stored
+    print. Writes OUT/strokes.csv, OUT/part.png and OUT/report.html.
+    """
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.part_map import part_map_of_record
+    from ajtwin.engine.part_report import write_report
+    from ajtwin.engine.print_job import (
+        job_of_print,
+        next_print_twin,
+        record_duration_s,
+        stored_part_map,
+    )
+    from ajtwin.io.records import RecordError, read_record
+    from ajtwin.job import ProgramError
+    from ajtwin.store.registry import RegistryError
+
+    if record is None and machine is None:
+        raise click.UsageError("give a print RECORD (with --job PROGRAM) or --machine NAME")
+    if record is not None and seq is not None:
+        raise click.UsageError("--print SEQ reads a stored print: give it without RECORD")
+    if record is not None and program is None:
+        raise click.UsageError("a print RECORD needs the program it ran: --job PROGRAM.prg")
+    twin_step, line_step, close = _bars(progress)
+    options = {"portion_mm": portion_mm, "flag_probability": flag_probability,
+               "twin_progress": twin_step, "line_progress": line_step}  # fmt: skip
+    try:
+        if record is None:
+            part = stored_part_map(
+                open_registry(store), machine, seq, program=program, tolerance=tolerance, **options
+            )
+        else:
+            rec = read_record(record, aliases=aliases, dialect=csv_dialect)
+            the_job = job_of_print(
+                program.read_bytes(),
+                program.name,
+                rec.meta,
+                process_speed_mm_s=process_speed,
+                rapid_speed_mm_s=rapid_speed,
+                repeat_to_s=repeat_to,
+                print_duration_s=record_duration_s(rec),
+            )
+            twin, start = None, None
+            if machine is not None:  # the machine's twin, where its next print would start
+                twin, start = next_print_twin(open_registry(store), machine)
+            part = part_map_of_record(
+                rec, the_job, tolerance, twin=twin, start=start, source=str(record), **options
+            )
+        paths = write_report(part, out_dir)
+    except (ProgramError, RecordError, RegistryError, ValueError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    finally:
+        close()
+    _echo_part_report(part, paths)

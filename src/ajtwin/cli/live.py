@@ -9,7 +9,14 @@ from pathlib import Path
 
 import click
 
-from ajtwin.cli.options import configure_logging, open_registry, record_options, store_option
+from ajtwin.cli.options import (
+    BoundedFloat,
+    ToleranceType,
+    configure_logging,
+    open_registry,
+    record_options,
+    store_option,
+)
 
 
 @click.command()
@@ -48,6 +55,24 @@ from ajtwin.cli.options import configure_logging, open_registry, record_options,
     "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
     "docs/explanation/forecast-droplet-dynamics.md).",
 )
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The machine program the machines run (.prg): kept with each stored print, and with "
+    "--dashboard the machine page shows the part map filling in (time 0 = program start).",
+)
+@click.option("--process-speed", "process_speed", type=BoundedFloat(0.0, 10_000.0),
+              default=None, help="With --job: the GUI's process speed [mm/s].")  # fmt: skip
+@click.option("--rapid-speed", "rapid_speed", type=BoundedFloat(0.0, 10_000.0),
+              default=None, help="With --job: the GUI's rapid speed [mm/s].")  # fmt: skip
+@click.option(
+    "--tolerance",
+    type=ToleranceType(),
+    default=None,
+    help="With --job: the part's linewidth tolerance in µm (45±3, 45+-3, 42:48).",
+)
 @click.option("--verbose", is_flag=True)
 @record_options
 @store_option
@@ -67,6 +92,10 @@ def live(
     max_backoff,
     dashboard_port,
     transition,
+    program,
+    process_speed,
+    rapid_speed,
+    tolerance,
     verbose,
     csv_dialect,
     aliases,
@@ -91,11 +120,13 @@ def live(
             f"no variant {transition!r}; choose one of {', '.join(transition_variants())}",
             param_hint="--transition",
         )
+    entry = _job(program, process_speed, rapid_speed, tolerance)
     registry = open_registry(store, create=True)  # the live twin writes
     engine = LiveEngine(
         registry, twin_overrides=None if transition == "paper" else {"transition": transition}
     )
     engine.warm_up(len(machines))
+    engine.jobs.update(dict.fromkeys(machines, entry) if entry else {})  # stored with prints
     out = None
     if messages is not None:
         out = messages.open("a", encoding="utf-8")
@@ -111,6 +142,8 @@ def live(
         engine.subscribe(publisher.publish_engine)
         for name in machines:
             publisher.open_print(name)
+        if entry is not None:
+            _follow_parts(engine, publisher, machines, entry, tolerance)
         dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
         click.echo(f"dashboard: open {dashboard.url}", err=True)
     if generate_certificate:
@@ -163,3 +196,34 @@ def live(
             out.close()
         if dashboard is not None:
             dashboard.stop()
+
+
+def _follow_parts(engine, publisher, machines, entry: dict, tolerance) -> None:
+    """Each machine's live part map, fed by the engine and published to the dashboard."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.part_live import LivePartMap, follow_engine
+    from ajtwin.engine.print_job import job_from_entry
+
+    the_job = job_from_entry(entry)
+    for name in machines:
+        part = LivePartMap(the_job, tolerance=tolerance)
+        publisher.open_part(name, part.header())
+        follow_engine(engine, name, part, publisher.publish_part)
+
+
+def _job(program, process_speed, rapid_speed, tolerance) -> dict | None:
+    """The job the machines run (:func:`ajtwin.engine.print_job.job_entry`), read before
+    anything connects; None without --job."""
+    options = {"process_speed_mm_s": process_speed, "rapid_speed_mm_s": rapid_speed,
+               "tolerance": tolerance}  # fmt: skip
+    if program is None:
+        if any(v is not None for v in options.values()):
+            raise click.UsageError("--process-speed, --rapid-speed and --tolerance go with --job")
+        return None
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.print_job import job_entry
+
+    try:
+        return job_entry(program, **options)
+    except ValueError as exc:  # a program that cannot be read
+        raise click.ClickException(str(exc)) from None

@@ -142,7 +142,7 @@ def show(name, store):
 )
 @store_option
 def history(name, csv_path, store):
-    """One row per print: end states, θ and anomaly count."""
+    """One row per print: the program it ran, end states, θ and anomaly count."""
 
     reg = open_registry(store)
     try:
@@ -152,7 +152,7 @@ def history(name, csv_path, store):
     if table.empty:
         click.echo(f"machine {printable(name)!r} has no prints yet")
         return
-    show_cols = ["seq", "ingested_at", "duration_min", "anomalies", "status"] + [
+    show_cols = ["seq", "ingested_at", "duration_min", "program", "anomalies", "status"] + [
         "end_" + key for key, _, _ in STATE_LABELS
     ]
     with pd.option_context("display.width", 200, "display.max_columns", 20):

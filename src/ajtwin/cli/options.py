@@ -13,8 +13,10 @@ import numpy as np
 from ajtwin import units
 from ajtwin.engine.chain import open_registry as open_checked_registry
 from ajtwin.io.dialect import DIALECT_CHOICES
+from ajtwin.job import ProgramError, read_printed_program
 from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
+from ajtwin.vision.camera import CameraFileError, load_camera
 
 
 def csv_dialect_option(command):
@@ -96,6 +98,49 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
         return csv_dialect_option(command)
 
     return decorate
+
+
+class ToleranceType(click.ParamType):
+    """A linewidth tolerance: ``45±3``, ``45+-3`` or ``42:48`` [µm]
+    (:func:`ajtwin.engine.part_map.parse_tolerance`)."""
+
+    name = "tolerance"
+
+    def convert(self, value, param, ctx):
+        """The value as a :class:`~ajtwin.engine.part_map.Tolerance`, else a click error."""
+        # lazy CLI loading: the part map's module loads JAX; --help must not
+        from ajtwin.engine.part_map import Tolerance, parse_tolerance
+
+        if isinstance(value, Tolerance):
+            return value
+        try:
+            return parse_tolerance(value)
+        except ValueError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+def load_camera_option(camera_path):
+    """The camera file of ``--camera`` (beside ``--job``); a usage error without one."""
+    if camera_path is None:
+        raise click.UsageError("--job needs --camera camera.toml (the camera's geometry)")
+    try:
+        return load_camera(camera_path)
+    except (CameraFileError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def load_job_option(job_path, *, meta=None, process_speed=None, rapid_speed=None, repeat_to=None):
+    """The program of ``--job`` as the print ran it (:func:`ajtwin.job.read_printed_program`:
+    speeds and looping from the record's metadata ``meta`` where not given, and refused when
+    the record names another program)."""
+    if job_path is None:
+        raise click.UsageError("--camera needs --job PROGRAM.prg")
+    try:
+        return read_printed_program(
+            job_path, (meta or {}).get("job"), process_speed, rapid_speed, repeat_to
+        )
+    except (ProgramError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
 
 
 class BoundedFloat(click.ParamType):

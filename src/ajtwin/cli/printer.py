@@ -58,6 +58,14 @@ def printer():
     default=None,
     help="Folder of trusted client certificates (others refused).",
 )
+@click.option(
+    "--job",
+    "program",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="A machine program (.prg) every printer runs, looped to the print's length "
+    "(the camera trails the nozzle: no line while nothing is printed or seen).",
+)
 @click.option("--verbose", is_flag=True)
 def serve(
     scenario,
@@ -77,6 +85,7 @@ def serve(
     private_key,
     generate_certificate,
     trust,
+    program,
     verbose,
 ):
     """Serve N virtual printers over OPC UA in real (--speed 1) or accelerated time."""
@@ -110,6 +119,7 @@ def serve(
                 duration_min=duration_min,
                 overrides=overrides,
                 start_s=start_s,
+                job=program,
             )
             for i in range(n_machines)
         ]

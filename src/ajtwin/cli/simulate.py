@@ -19,6 +19,8 @@ class OffsetMM(click.ParamType):
     """``DX[,DY]`` in mm (DY = 0 when left out); finite numbers only."""
 
     name = "DX[,DY]"
+    #: what a value beyond 1 m would be (the error says so)
+    beyond_1_m = "an offset beyond 1 m is not a camera on the head"
 
     def convert(self, value, param, ctx):
         """``"DX"`` or ``"DX,DY"`` [mm] → (dx, dy); click's error names the option."""
@@ -31,8 +33,14 @@ class OffsetMM(click.ParamType):
         if len(numbers) == 1:
             numbers.append(0.0)
         if any(abs(v) > 1000.0 for v in numbers):
-            self.fail(f"{value!r}: an offset beyond 1 m is not a camera on the head", param, ctx)
+            self.fail(f"{value!r}: {self.beyond_1_m}", param, ctx)
         return tuple(numbers)
+
+
+class PitchMM(OffsetMM):
+    """``DX[,DY]`` in mm between parts of a looped job, within the stage (1 m)."""
+
+    beyond_1_m = "a pitch beyond 1 m does not fit on a printer's stage"
 
 
 @click.command()
@@ -137,6 +145,13 @@ class OffsetMM(click.ParamType):
     help="With --job: the camera's view centre relative to the nozzle, DX[,DY] in mm "
     "(default: data/virtual_camera.toml, -5,0).",
 )
+@click.option(
+    "--repeat-pitch-mm",
+    type=PitchMM(),
+    default=None,
+    help="With --job: loop the job as an array of parts side by side, DX[,DY] mm apart "
+    "(columns across the stage's X travel, then rows); default: each run prints over the last.",
+)
 @click.option("--list", "list_only", is_flag=True, help="List the packaged scenarios and exit.")
 def simulate(
     scenario,
@@ -153,6 +168,7 @@ def simulate(
     rapid_speed,
     camera_mode,
     camera_offset_mm,
+    repeat_pitch_mm,
     list_only,
 ):
     """Virtual printer: simulate one print with known truth into a record file.
@@ -162,7 +178,7 @@ def simulate(
     With --job PROGRAM.prg the printer runs the program (looped to the duration): the
     machine evolves as on a straight line, the substrate gets material only while the
     shutter is open, the line follows the platen speed, and the camera measures what it
-    sees (--camera, --camera-offset-mm).
+    sees (--camera, --camera-offset-mm); --repeat-pitch-mm lays the loops side by side.
     """
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.simulation.scenarios import list_scenarios, load_scenario
@@ -181,6 +197,7 @@ def simulate(
         "--rapid-speed": rapid_speed,
         "--camera": camera_mode,
         "--camera-offset-mm": camera_offset_mm,
+        "--repeat-pitch-mm": repeat_pitch_mm,
     }
     if job_program is None and any(v is not None for v in job_options.values()):
         given = ", ".join(k for k, v in job_options.items() if v is not None)
@@ -209,6 +226,7 @@ def simulate(
             camera_offset_mm,
             process_speed,
             rapid_speed,
+            repeat_pitch_mm,
         )
     else:
         try:
@@ -261,6 +279,7 @@ def _simulate_job(
     camera_offset_mm,
     process_speed,
     rapid_speed,
+    repeat_pitch_mm=None,
 ):
     """Run the job print for ``simulate --job``; program errors and warnings for the user."""
     # lazy CLI loading: imported when the command runs, not for --help
@@ -283,6 +302,7 @@ def _simulate_job(
                 camera=camera,
                 process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
+                repeat_pitch_mm=repeat_pitch_mm,
             )
         except (ProgramError, ValueError, FileNotFoundError) as exc:
             raise click.ClickException(str(exc)) from None

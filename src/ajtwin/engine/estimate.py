@@ -72,18 +72,19 @@ class EstimateResult:
 
 
 def estimate_to_csv(
-    twin, record, out, *, smooth: bool = False, whole: bool = False, progress=None
+    twin, record, out, *, smooth: bool = False, whole: bool = False, progress=None, job=None
 ) -> EstimateResult:
     """Run ``twin`` over ``record`` and write the states table to ``out`` (module docstring).
 
-    ``whole``: keep the whole run (a plot of it follows); implied by ``smooth``.
+    ``whole``: keep the whole run (a plot of it follows); implied by ``smooth``. ``job``: a
+    job print's program (:meth:`~ajtwin.estimation.Twin.run`).
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if smooth or whole:
-        return _whole(twin, record, out, smooth, progress)
+        return _whole(twin, record, out, smooth, progress, job)
     rows = _Rows(record)
-    run = twin.run(record, progress=progress, sink=rows)
+    run = twin.run(record, progress=progress, sink=rows, job=job)
     mismatch = rows.guard_verdict(run)
     rows.write(out, run, mismatch.flags)
     return EstimateResult(
@@ -109,9 +110,9 @@ def _with_share(frame: pd.DataFrame, share: np.ndarray) -> pd.DataFrame:
     return frame
 
 
-def _whole(twin, record, out, smooth, progress) -> EstimateResult:
+def _whole(twin, record, out, smooth, progress, job) -> EstimateResult:
     """The run held whole (the smoother needs it, and so does a plot)."""
-    run = twin.run(record, smooth=smooth, progress=progress)
+    run = twin.run(record, smooth=smooth, progress=progress, job=job)
     frame = run.to_frame(smoothed=smooth)
     # the guard: never return states from a model that does not fit without saying so
     mismatch = assess_run(run, record)
@@ -153,7 +154,10 @@ class _Rows:
         self.share_end = share[-1:]
         self.frames.append(frame)
         f = chunk.filtered
-        y = self.outputs[first : first + len(frame)]
+        # the measurements the filter used (on a job print: the camera's filed at print times)
+        y = chunk.measurements
+        if y is None:
+            y = self.outputs[first : first + len(frame)]
         e = normalised_innovations(
             y, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
         )

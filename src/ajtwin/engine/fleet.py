@@ -117,6 +117,9 @@ class LiveEngine:
         self._executor = ThreadPoolExecutor(max(1, int(em_workers)), thread_name_prefix="em")
         self.sessions: dict[str, _Session] = {}
         self._subscribers: list = []
+        #: machine → the job its print runs (:func:`ajtwin.engine.print_job.job_entry`),
+        #: stored with the print when it ends
+        self.jobs: dict[str, dict] = {}
 
     def warm_up(self, n_machines: int = 1) -> None:
         """Compile the step functions (single and batched) before the first real sample."""
@@ -157,8 +160,16 @@ class LiveEngine:
                     log.exception("subscriber %r failed", callback)
 
     # ------------------------------------------------------------------ #
-    def open(self, machine: str, source: str = "live") -> TwinStream:
-        """The machine's stream: its open live session resumed, or a new one."""
+    def open(self, machine: str, source: str = "live", print_context=None) -> TwinStream:
+        """The machine's stream: its open live session resumed, or a new one.
+
+        ``print_context`` (:class:`~ajtwin.estimation.print_time.PrintContext`): the machine
+        prints a job; its samples carry the job columns and the camera's measurements are
+        filed at their print times (:class:`TwinStream`). Such a stream steps on its own,
+        not in the batched step of the other machines. Resuming a job session after a
+        restart replays its stored samples, which hold the filed steps without their speed
+        factors: refused (start a new session).
+        """
         if machine in self.sessions:
             return self.sessions[machine].stream
         start, theta, expected, started_from, session_id = None, None, None, "initial fit", None
@@ -172,6 +183,12 @@ class LiveEngine:
                 self.registry.add_machine(machine, notes="added by ajtwin live")
                 log.info("machine %r added to the registry", machine)
             resumed = self.log.open_session_of(machine)
+            if resumed is not None and print_context is not None:
+                raise ValueError(
+                    f"{machine}: live session {resumed['id']} is open; a job print cannot "
+                    "resume it (its stored samples are filed steps without their speed "
+                    "factors): close it first"
+                )
             # the machine's calibration, commissioning start and maintenance (model reference §11)
             chain = chain_start(self.registry, machine)
             begin = machine_start(self.registry, machine, chain, self.twin_overrides)
@@ -200,6 +217,7 @@ class LiveEngine:
             asynchronous=False,
             executor=self._executor,
             long_run_history=long_run,
+            print_context=print_context,
         )
         session = _Session(
             stream, session_id, expected, started_from, source, [], [], time.monotonic()
@@ -213,6 +231,11 @@ class LiveEngine:
         stream.asynchronous = self.asynchronous
         self.sessions[machine] = session
         return stream
+
+    def stream(self, machine: str) -> TwinStream | None:
+        """The machine's stream while its print is open (None otherwise)."""
+        entry = self.sessions.get(machine)
+        return None if entry is None else entry.stream
 
     def _replay(self, session: _Session, machine: str) -> None:
         """A resumed session: its stored samples through the twin again, a batch at a time,
@@ -356,6 +379,7 @@ class LiveEngine:
             long_run_history=stream.detector.long_run_history(),
             writer=writer,
             n_samples=writer.n_steps,
+            job=self.jobs.get(machine),
         )
         return print_id
 

@@ -31,10 +31,11 @@ from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.chain import chain_start
 from ajtwin.engine.parts import PrintWriter
+from ajtwin.engine.print_job import job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
 from ajtwin.estimation.twin import Twin
-from ajtwin.io.records import read_record
+from ajtwin.io.records import JOB_COLUMNS, read_record
 from ajtwin.model import STATE_NAMES
 from ajtwin.store.registry import RegistryError, record_hash
 
@@ -125,6 +126,7 @@ def save_print(
     long_run_history: dict | None = None,
     writer=None,
     n_samples: int | None = None,
+    job: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
@@ -135,7 +137,8 @@ def save_print(
     ``long_run_history``: the detectors' long-run statistics for the machine's next print;
     ``writer``: a :class:`~ajtwin.engine.parts.PrintWriter` that wrote the per-step arrays
     as they came (closed here; ``arrays`` then holds the θ history, ``record`` may be None
-    with ``n_samples`` given).
+    with ``n_samples`` given);
+    ``job``: the machine program the print ran (:meth:`ajtwin.store.registry.Registry.save_print`).
     """
     if writer is not None:
         writer.close()
@@ -180,6 +183,7 @@ def save_print(
         keep_live_steps=keep_live_steps,
         long_run_history=long_run_history,
         draft=None if writer is None else writer.draft,
+        job=job,
     )
     return print_id, summary
 
@@ -194,6 +198,7 @@ def ingest_record(
     twin_overrides: dict | None = None,
     detector_settings=None,
     keep_run: bool = False,
+    job: dict | None = None,
 ):
     """Run the machine's twin over one finished print and store the result.
 
@@ -225,6 +230,9 @@ def ingest_record(
     keep_run : bool
         Also return the whole run and the detectors' results (``run``, ``detection``: a
         report's plots); memory then grows with the print.
+    job : dict, optional
+        The machine program the print ran, stored with it
+        (:func:`ajtwin.engine.print_job.job_entry`).
 
     Returns
     -------
@@ -282,6 +290,7 @@ def ingest_record(
             },
             long_run_history=sink.detector.long_run_history(),
             writer=writer,
+            job=job,
         )
     except RegistryError:
         writer.discard()
@@ -335,6 +344,8 @@ class IngestSink:
         self.record = record
         # once: a record makes a new (T, n) array at each access of these
         self._outputs, self._inputs = record.outputs, record.inputs
+        # a job print's shutter, speed and print times (stored with the arrays)
+        self._job = record.data[list(JOB_COLUMNS)] if record.has_job else None
         self.settings, self.long_run_history = settings, long_run_history
         self.detector = AnomalyDetector(settings, long_run_history)
         self.keep = keep
@@ -347,7 +358,12 @@ class IngestSink:
     def __call__(self, first: int, chunk) -> None:
         """Take the chunk of steps [first, first + n) (a TwinRun of them)."""
         stop = first + len(chunk.time_s)
-        part = SimpleNamespace(outputs=self._outputs[first:stop], inputs=self._inputs[first:stop])
+        part = SimpleNamespace(
+            outputs=self._outputs[first:stop],
+            inputs=self._inputs[first:stop],
+            has_job=self._job is not None,
+            data=None if self._job is None else self._job.iloc[first:stop],
+        )
         arrays = run_arrays(chunk, part)
         for step in _detector_steps(self.detector, arrays):
             for event in step.raised:
@@ -444,9 +460,11 @@ def theta_history_arrays(run) -> dict:
 
 def run_arrays(run, record) -> dict:
     """The per-second arrays the registry keeps of a twin run over a print (names as
-    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them)."""
+    :meth:`ajtwin.store.registry.Registry.print_arrays` returns them). ``measurements`` are
+    those the filter used: on a job print, the camera's filed at their print times."""
     f = run.filtered
     hist = run.theta_history
+    measured = getattr(run, "measurements", None)
     return {
         "time_s": run.time_s,
         "means": run.means,
@@ -455,7 +473,7 @@ def run_arrays(run, record) -> dict:
         "predicted_means": np.asarray(f.predicted_means),
         "predicted_outputs": np.asarray(f.predicted_outputs),
         "innovation_variances": np.asarray(f.innovation_variances),
-        "measurements": record.outputs,
+        "measurements": record.outputs if measured is None else measured,
         "inputs": record.inputs,
         "nis": np.asarray(f.nis),
         "n_measured": np.asarray(f.n_measured),
@@ -463,6 +481,10 @@ def run_arrays(run, record) -> dict:
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
+        # a job print's shutter, speed and print times, kept exactly to rebuild the record
+        **(
+            {c: record.data[c].to_numpy(dtype=float) for c in JOB_COLUMNS} if record.has_job else {}
+        ),
     }
 
 
@@ -477,20 +499,26 @@ def ingest_file(
     video_progress: bool = True,
     aliases=None,
     dialect=None,
+    program=None,
+    job_options: dict | None = None,
 ):
     """Read a print file (and optionally its video) and :func:`ingest_record` it.
 
-    ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`.
+    ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`. ``program``: the
+    machine program the print ran, kept with it; ``job_options``: keywords of
+    :func:`ajtwin.engine.print_job.job_entry` (speeds, looping, tolerance). The program is
+    read and checked against the record before the twin runs.
     """
     path = Path(path)
     record = read_record(path, aliases=aliases, dialect=dialect)
+    job = None if program is None else job_entry(program, record, **(job_options or {}))
     source = str(path)
     if video is not None:
         if um_per_px is None:
             raise ValueError("--video needs --um-per-px (the camera's pixel size on the substrate)")
         record, *_ = join_video(record, video, um_per_px, progress=video_progress)
         source += f" + {video}"
-    return ingest_record(registry, machine, record, source=source, progress=progress)
+    return ingest_record(registry, machine, record, source=source, progress=progress, job=job)
 
 
 def detector_inputs(registry, print_id: int) -> dict:

@@ -21,6 +21,11 @@ minutes : float, print length [min]
 onset_min : float, optional, fault onset [min] (scenarios with a fault)
 rate_hz : float, samples published per wall-clock second (1 = real time)
 wait_for_viewer_s : float, hold the replay until a page subscribes (at most this long)
+job : str or Path, optional, a machine program: the virtual printer prints it (looped to
+    the print's length, the default trailing camera) and the part map fills in as the print
+    goes (:class:`ajtwin.engine.part_live.LivePartMap`; the publisher then also needs
+    ``open_part`` and ``publish_part``)
+tolerance : Tolerance, optional, the part's linewidth tolerance (with ``job``)
 
 Example
 -------
@@ -39,8 +44,9 @@ import numpy as np
 
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.settings import cusum_thresholds
+from ajtwin.engine.part_live import LivePartMap
 from ajtwin.estimation import Twin
-from ajtwin.simulation import load_scenario, simulate
+from ajtwin.simulation import load_scenario, run_job_print, simulate
 
 
 class VirtualPrintFeed:
@@ -57,6 +63,8 @@ class VirtualPrintFeed:
         onset_min: float | None = 3.0,
         rate_hz: float = 10.0,
         wait_for_viewer_s: float = 0.0,
+        job=None,
+        tolerance=None,
     ):
         if not rate_hz > 0:
             raise ValueError(f"rate must be > 0 samples/s, got {rate_hz}")
@@ -68,6 +76,10 @@ class VirtualPrintFeed:
         self.onset_min = onset_min
         self.rate_hz = float(rate_hz)
         self.wait_for_viewer_s = float(wait_for_viewer_s)
+        self.job = job
+        self.tolerance = tolerance
+        self.part_header: dict | None = None
+        self.part_chunks: dict[int, dict] = {}
         self.samples: list[dict] | None = None
         self.error: str | None = None
         self.done = threading.Event()
@@ -80,10 +92,18 @@ class VirtualPrintFeed:
         overrides = None
         if self.onset_min is not None and load_scenario(self.scenario).fault_kind != "none":
             overrides = {"fault": {"onset_min": float(self.onset_min)}}
-        record = simulate(
-            self.scenario, seed=self.seed, duration_min=self.minutes, overrides=overrides
-        )
-        run = Twin.default().run(record)
+        twin = Twin.default()
+        if self.job is None:
+            record = simulate(
+                self.scenario, seed=self.seed, duration_min=self.minutes, overrides=overrides
+            )
+            printed_job = None
+        else:
+            job_print = run_job_print(
+                self.job, self.scenario, self.seed, duration_min=self.minutes, overrides=overrides
+            )
+            record, printed_job = job_print.record, job_print.plan.job
+        run = twin.run(record)
         det = detect_run(run, record)
         f = run.filtered
         means, stds = run.means, run.stds
@@ -132,7 +152,22 @@ class VirtualPrintFeed:
             samples.append(sample)
         self.fault_onset_s = record.meta.get("fault_onset_s")
         self.events = det.events
+        if printed_job is not None:
+            self._prepare_part(printed_job, twin.spec, run, record, by_step)
         return samples
+
+    def _prepare_part(self, job, spec, run, record, alarms_by_step: dict) -> None:
+        """The part map's chunks, step by step, from the filtered states (as a live twin)."""
+        part = LivePartMap(job, spec, self.tolerance)
+        self.part_header = part.header()
+        covariances = np.asarray(run.filtered.covariances)
+        for k, t in enumerate(run.time_s):
+            chunk = part.step(float(t), run.means[k], covariances[k], record.inputs[k])
+            if alarms_by_step.get(k):
+                chunk = dict(chunk or {})
+                chunk["alarms"] = part.alarms(alarms_by_step[k])
+            if chunk:
+                self.part_chunks[k] = chunk
 
     # ------------------------------------------------------------------ replay
     def _run(self):
@@ -146,6 +181,8 @@ class VirtualPrintFeed:
                     break
             period = 1.0 / self.rate_hz
             t0 = time.monotonic()
+            if self.part_header is not None:
+                self.publisher.open_part(self.machine, self.part_header)
             for k, sample in enumerate(self.samples):
                 if self._stop.is_set():
                     break
@@ -153,6 +190,8 @@ class VirtualPrintFeed:
                 if delay > 0:
                     self._stop.wait(delay)
                 self.publisher.publish(sample)
+                if k in self.part_chunks:
+                    self.publisher.publish_part(self.machine, self.part_chunks[k])
             self.publisher.end_print(self.machine)
         except Exception as exc:  # shown on the page and the server log, not swallowed
             self.error = f"{type(exc).__name__}: {exc}"

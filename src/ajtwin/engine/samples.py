@@ -18,11 +18,22 @@ from ajtwin.model.system import INPUT_LIMITS
 
 @dataclass
 class Sample:
-    """One 1 Hz sample: time [s], inputs (3,) [mA, sccm, sccm], outputs (5,) (NaN = missing)."""
+    """One 1 Hz sample: time [s], inputs (3,) [mA, sccm, sccm], outputs (5,) (NaN = missing).
+
+    A job print's row also carries the record's job columns (model reference §12; None for
+    a print without a job): ``shutter_open`` (0/1 at t), ``platen_speed_mm_s`` (at t) and
+    ``printed_at_s`` (τ of the trace the camera measured in this row). ``line`` is what the
+    twin makes of a filed step (:class:`ajtwin.estimation.print_time.FiledStep`): its
+    (F_w, F_o, v_w, v_o).
+    """
 
     time_s: float
     inputs: np.ndarray
     outputs: np.ndarray
+    shutter_open: float | None = None
+    platen_speed_mm_s: float | None = None
+    printed_at_s: float | None = None
+    line: np.ndarray | None = None
 
 
 #: |time| beyond this [s] (≈ 31,700 years) is no clock reading: the sample is dropped (far

@@ -29,6 +29,19 @@ A sample's time is rounded to the grid. A jump of n > 1 s inserts n − 1 missin
 one is logged and dropped. Non-finite or implausible values are logged and treated as
 missing (an output → NaN; an input → the whole sample missing, inputs held).
 
+A job print: measurements at their print time
+----------------------------------------------
+Opened with a :class:`~ajtwin.estimation.print_time.PrintContext`, the stream puts every
+row (its ``shutter_open``, ``platen_speed_mm_s``, ``printed_at_s``) through the batch
+twin's delay line (:class:`~ajtwin.estimation.print_time.PrintTimeBins`): a camera
+measurement is filed at the step of its print time, and a step is *final* H rows after
+its own (H the horizon). Only final steps go on as above — committed, stored, given to
+the detectors and to EM — so they are the batch twin's steps, and the detectors see a
+step H s after it was printed (the alarm delay grows by H). The state *now* is published
+as a provisional message: the filter rolled back to the last committed step and re-run
+over the steps not yet final with what has been filed so far
+(docs/explanation/out-of-sequence-camera.md).
+
 Each committed (and provisional) step becomes a plain dict, a *message*
 (:mod:`ajtwin.engine.fleet` lists its keys).
 
@@ -43,6 +56,7 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -54,7 +68,8 @@ from ajtwin.apps.detection.steplog import StepLog
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.samples import MAX_GAP_S, Sample
 from ajtwin.estimation.em import run_em
-from ajtwin.estimation.filters import EKFCarry, ekf_init, ekf_step
+from ajtwin.estimation.filters import EKFCarry, EKFStepOutput, ekf, ekf_init, ekf_step
+from ajtwin.estimation.print_time import PrintContext
 from ajtwin.estimation.record_checks import observed_states
 from ajtwin.estimation.twin import Twin, em_due, em_early_steps, predict
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
@@ -76,6 +91,11 @@ def _batched(spec, carry, u, y, theta, process_cov, measurement_cov, gate, funct
 
 
 _step_many = jax.jit(_batched, static_argnames=("functions",))
+
+#: the batch filter for the provisional re-run of a job print's steps not final yet, as a
+#: plain jit: one call a row, where the disk-cached wrapper's per-call bookkeeping would
+#: cost more than the steps themselves
+_rerun = jax.jit(ekf.__wrapped__, static_argnames=("functions",))
 
 
 #: committed steps a stream keeps beyond its EM window and period: the part of the print a
@@ -104,6 +124,7 @@ class _History:
         "reinitialised",
         "theta_per_step",
         "prior_floor",
+        "line_factors",  # a job step's (F_w, F_o, v_w, v_o); None without a job
     )
 
     def __init__(self, keep: int | None = None):
@@ -137,6 +158,9 @@ class TwinStream:
         Shared EM workers (:class:`LiveEngine` passes one for all machines).
     long_run_history : dict, optional
         The detectors' carried long-run statistics (:func:`carried_long_run_history`).
+    print_context : PrintContext, optional
+        A job print: its horizon, camera and program (module docstring); None: rows are
+        final as they come.
     """
 
     def __init__(
@@ -149,6 +173,7 @@ class TwinStream:
         asynchronous: bool = True,
         executor: ThreadPoolExecutor | None = None,
         long_run_history: dict | None = None,
+        print_context: PrintContext | None = None,
     ):
         self.machine = machine
         self.twin = twin
@@ -193,6 +218,14 @@ class TwinStream:
         # at a time)
         self._dynamics = twin.droplet_dynamics if twin.config.transition != "paper" else None
         self._response: float | None = None
+        # a job print: the delay line in front of the committed steps, and the provisional
+        # re-run over the steps not yet final (predicted mean and covariance before each)
+        self.print_context = print_context
+        self._bins = None if print_context is None else print_context.bins(twin.speed_law)
+        self._tail_priors: dict[int, tuple] = {}
+        self._tail_key = None
+        self._restarts = 0  # chunk restarts so far: a kept provisional re-run is stale after one
+        self._tail_start: EKFCarry | None = None  # provisional start before the filter's own
 
     def model_input(self, inputs, response: float | None = None):
         """(the transition's input for a committed step with ``inputs``, r after it);
@@ -201,6 +234,18 @@ class TwinStream:
         if self._dynamics is None:
             return np.asarray(inputs, dtype=float), None
         return model_input(inputs, r, self._dynamics, self.twin.spec.dt)
+
+    @property
+    def camera_counts(self) -> dict:
+        """A job print's filing so far: frames filed, dropped by reason, the horizon ({})."""
+        if self._bins is None:
+            return {}
+        return {**self._bins.counts, "horizon_s": self._bins.horizon_s}
+
+    @property
+    def n_pending(self) -> int:
+        """Rows received whose step is not final yet (0 without a job)."""
+        return 0 if self._bins is None else self._bins.n_pending
 
     @classmethod
     def new(cls, machine: str, start=None, theta=None, twin_overrides=None, **kwargs):
@@ -264,9 +309,11 @@ class TwinStream:
                 self.missing_inserted += n - 1
                 for j in range(1, n):
                     grid.append(Sample(self.last_time + j, None, np.full(5, np.nan)))
-            grid.append(Sample(self.last_time + n, sample.inputs, sample.outputs))
+            grid.append(dataclasses.replace(sample, time_s=self.last_time + n))
         for s in grid:
             out += self._accept(s)
+        if self._bins is not None and grid:
+            out += self._provisional_now()
         return out
 
     def take_plain(self, sample: Sample) -> Sample | None:
@@ -276,6 +323,7 @@ class TwinStream:
         k = self.n_committed
         if (
             self.carry is None
+            or self._bins is not None
             or self._em_future is not None
             or self._waiting
             or self.last_time is None
@@ -308,10 +356,28 @@ class TwinStream:
                 self.dropped["bad"] += 1
                 return []
             u, y = self.last_inputs.copy(), np.full(5, np.nan)
-        sample = Sample(float(sample.time_s), u, y)
+        sample = dataclasses.replace(sample, time_s=float(sample.time_s), inputs=u, outputs=y)
         self.last_time = sample.time_s
         self.last_inputs = u
         self.n_received += 1
+        if self._bins is None:
+            return self._accept_final(sample)
+        out = []
+        for step in self._bins.add(
+            sample.time_s,
+            u,
+            y,
+            np.nan if sample.shutter_open is None else sample.shutter_open,
+            np.nan if sample.platen_speed_mm_s is None else sample.platen_speed_mm_s,
+            np.nan if sample.printed_at_s is None else sample.printed_at_s,
+        ):
+            out += self._accept_final(
+                Sample(step.time_s, step.inputs, step.outputs, line=step.line)
+            )
+        return out
+
+    def _accept_final(self, sample: Sample) -> list[dict]:
+        """A final step (every row without a job): the initial fit, then the filter."""
         if self.carry is None and self.n_committed == 0 and self._em_future is None:
             self._waiting.append(sample)
             if self.start is None and len(self._waiting) < self.config.initial_samples:
@@ -324,7 +390,8 @@ class TwinStream:
         if self.start is None:
             inputs = np.array([s.inputs for s in waiting])
             outputs = np.array([s.outputs for s in waiting])
-            self.initial = self.twin.initial_state(inputs, outputs)
+            line = None if self._bins is None else np.array([s.line for s in waiting])
+            self.initial = self.twin.initial_state(inputs, outputs, line)
             mean, cov = self.initial.mean, self.initial.covariance
             if self.initial.states_from_prior:
                 self._start_prior_floor(inputs)
@@ -390,6 +457,118 @@ class TwinStream:
             self._never_seen &= ~(measured[:, None] & self._responds).any(axis=0)
         return np.where(self._never_seen, (self._floor_relative * np.asarray(mean)) ** 2, 0.0)
 
+    # ------------------------------------------------------------------ #
+    #: steps per call of the provisional re-run (one compiled shape of the batch filter)
+    TAIL_BLOCK = 64
+
+    def _provisional_now(self) -> list[dict]:
+        """A job print's state now: the filter re-run from the last committed step over the
+        steps not final yet, with what has been filed into them so far (module docstring).
+
+        The re-run starts at the oldest step that changed since the last one (a measurement
+        filed there, or a new row); the predictions before the steps after it are kept from
+        the last re-run while θ and the committed head are those it ran from. Published as a
+        provisional message of the newest row: not stored, not given to the detectors.
+        """
+        bins = self._bins
+        changed = bins.take_changed()
+        if bins.n_pending == 0:
+            return []
+        first, last = bins.first_open, bins.n_rows - 1
+        head = self._spec_carry if self._em_future is not None else self.carry
+        if head is None and self.n_committed == 0 and not self._pending:
+            head = self._provisional_start(changed)
+        if head is None:
+            return []
+        key = (self.theta.tobytes(), len(self.theta_history), self._restarts)
+        if key != self._tail_key:
+            self._tail_priors, self._tail_key = {}, key
+        start = first if changed is None else max(first, changed)
+        if start not in self._tail_priors or start == first:
+            s = self.twin.spec.scaling.state
+            start = first
+            self._tail_priors[first] = (
+                np.asarray(head.predicted_mean) * s,
+                np.asarray(head.predicted_cov) * np.outer(s, s),
+            )
+        for j in [j for j in self._tail_priors if j < first]:
+            del self._tail_priors[j]
+        pending = bins.pending()[start - first :]
+        inputs = self._tail_model_inputs(pending, start - first)
+        result = None
+        for b in range(0, len(pending), self.TAIL_BLOCK):
+            block = pending[b : b + self.TAIL_BLOCK]
+            result = self._tail_block(start + b, block, inputs[b : b + len(block)])
+        # the newest step's row of the last block (FilterResult's fields are a step's, stacked)
+        step = EKFStepOutput(*(np.asarray(field)[len(block) - 1] for field in result))
+        newest = pending[-1]
+        sample = Sample(newest.time_s, newest.inputs, newest.outputs, line=newest.line)
+        return [self._message(last, sample, step, None, True)]
+
+    def _provisional_start(self, changed: int | None) -> EKFCarry | None:
+        """Before the filter starts (its first steps are not final yet: an inspection pass
+        comes after the print), the start it would have now: the carried-over state, or the
+        initial fit over the first steps as filed so far (kept until they change)."""
+        if self.start is not None:
+            return ekf_init(self.twin.spec, *self.start)
+        n = int(self.config.initial_samples)
+        if self._tail_start is None or (changed is not None and changed < n):
+            steps = self._bins.pending()[:n]
+            inputs = np.array([s.inputs for s in steps])
+            outputs = np.array([s.outputs for s in steps])
+            line = np.array([s.line for s in steps])
+            try:
+                fit = self.twin.initial_state(inputs, outputs, line)
+            except ValueError:  # nothing to start from yet (no line output, no priors)
+                return None
+            self._tail_start = ekf_init(self.twin.spec, fit.mean, fit.covariance)
+            self._tail_key = None
+        return self._tail_start
+
+    def _tail_block(self, j0: int, block: list, model_inputs: np.ndarray):
+        """The batch filter over steps j0 … of ``block`` from the kept prediction of step j0,
+        padded to one compiled length; keeps the predictions of the steps after them."""
+        n, size = len(block), self.TAIL_BLOCK + 1
+        prior_mean, prior_cov = self._tail_priors[j0]
+        u = np.repeat(model_inputs[-1:], size, axis=0)
+        u[:n] = model_inputs
+        y = np.full((size, 5), np.nan)
+        y[:n] = [step.outputs for step in block]
+        line = np.ones((size, 4))
+        line[:n] = [step.line for step in block]
+        twin = self.twin
+        result = _rerun(
+            twin.spec,
+            prior_mean,
+            prior_cov,
+            u,
+            y,
+            self.theta,
+            twin.process_cov,
+            twin.measurement_var,
+            twin.config.gate_sigma,
+            functions=twin.functions,
+            line_factors=line,
+        )
+        means, covs = np.asarray(result.predicted_means), np.asarray(result.predicted_covariances)
+        for i in range(1, n + 1):
+            self._tail_priors[j0 + i] = (means[i], covs[i])
+        return result
+
+    def _tail_model_inputs(self, pending: list, skipped: int) -> np.ndarray:
+        """The transition's inputs of the steps not final yet (the input response r carried
+        on from the committed steps and those held while EM runs)."""
+        if self._dynamics is None:
+            return np.array([step.inputs for step in pending], dtype=float)
+        response = self._response
+        held = [s.inputs for s in self._pending] + [s.inputs for s in self._bins.pending()]
+        rows = []
+        for i, inputs in enumerate(held):
+            u, response = self.model_input(inputs, response)
+            if i >= len(self._pending) + skipped:
+                rows.append(u)
+        return np.array(rows, dtype=float)
+
     def _restart_chunk(self, pos: int, theta, last=None):
         """Filter restart at a chunk boundary: prior = prediction from step pos − 1."""
         h = self.history
@@ -405,6 +584,7 @@ class TwinStream:
             self.twin.functions,
         )
         self.carry = ekf_init(self.twin.spec, np.asarray(mean), np.asarray(cov))
+        self._restarts += 1
 
     def _launch_em(self, pos: int):
         h = self.history
@@ -426,6 +606,7 @@ class TwinStream:
             tolerance=c.em_tolerance,
             gate=c.gate_sigma,
             functions=self.twin.functions,
+            line_factors=None if self._bins is None else h.array("line_factors", w0, pos),
         )
         self._em_pos = pos
         self._spec_carry = None
@@ -515,6 +696,7 @@ class TwinStream:
             self.theta,
             *self._constants(),
             functions=self.twin.functions,
+            line=None if sample.line is None else np.asarray(sample.line, dtype=float),
         )
         return carry, jax.device_get(step)
 
@@ -543,6 +725,7 @@ class TwinStream:
         h.reinitialised.append(bool(step.reinitialised))
         h.theta_per_step.append(self.theta.copy())
         h.prior_floor.append(self._prior_floor(step.mean, sample.outputs))
+        h.line_factors.append(sample.line)
         status = self.detector.update(
             sample.time_s,
             sample.outputs,
@@ -614,6 +797,12 @@ class TwinStream:
         the filter with what there is.
         """
         out = self.poll(wait=True)
+        if self._bins is not None:  # the end of the print: every step left is final
+            for step in self._bins.finish():
+                final = Sample(step.time_s, step.inputs, step.outputs, line=step.line)
+                out += self._accept_final(final)
+        while self._em_future is not None:
+            out += self.poll(wait=True)
         if self._waiting:
             out += self._start_filter()
         events = self.detector.finish()

@@ -35,7 +35,14 @@ RCOND = 1e-4
 
 
 def calibration_state_covariance(
-    spec, filtered, inputs, measurement_var, calibration_cov, functions, carry=None
+    spec,
+    filtered,
+    inputs,
+    measurement_var,
+    calibration_cov,
+    functions,
+    line_factors=None,
+    carry=None,
 ) -> np.ndarray:
     """C_k (T, 5, 5), display units: the state covariance the calibration error adds.
 
@@ -50,6 +57,9 @@ def calibration_state_covariance(
     calibration_cov : (11, 11)
         Σ_c from commissioning (display units).
     functions : ModelFunctions
+    line_factors : (T, 4), optional
+        A job print's (F_w, F_o, v_w, v_o) per step: the filter's g_k and Σ_w,k
+        (:func:`ajtwin.estimation.filters.ekf_step`).
     carry : dict, optional
         A run taken in chunks (``filtered`` one chunk of it): the vial's drain so far
         (``carry["drain"]``, none at the first chunk) is added, and updated for the next.
@@ -75,12 +85,17 @@ def calibration_state_covariance(
     h_s = h * s[None, None, :] / r[None, :, None]
     g_s = gc / r[None, :, None]
     p_pred = np.asarray(filtered.predicted_covariances) / np.outer(s, s)[None]
-    r_s = np.diag(np.asarray(measurement_var, float) / r**2)
+    r_diag = np.tile(np.asarray(measurement_var, float) / r**2, (len(p_pred), 1))
+    if line_factors is not None:  # a job print: L_w, L_o at their speed, combined frames
+        line = np.asarray(line_factors, dtype=float)
+        factor = np.concatenate([line[:, :2], np.ones((len(line), len(r) - 2))], axis=1)
+        h_s, g_s = h_s * factor[:, :, None], g_s * factor[:, :, None]
+        r_diag[:, :2] *= line[:, 2:4]
     cal_cov = np.asarray(calibration_cov, dtype=float)
     sensitivity = np.zeros((len(p_pred), len(s), cal_cov.shape[0]))  # A_k, scaled states
     for k in range(len(p_pred)):
         hk, pk = h_s[k], p_pred[k]
-        gain = np.linalg.solve(hk @ pk @ hk.T + r_s, hk @ pk).T  # K = P Hᵀ S⁻¹
+        gain = np.linalg.solve(hk @ pk @ hk.T + np.diag(r_diag[k]), hk @ pk).T  # K = P Hᵀ S⁻¹
         sensitivity[k] = np.linalg.pinv(gain @ hk, rcond=RCOND) @ gain @ g_s[k]
     # the vial is seen by no output, but it integrates the aerosol: dV_l/dt = −φ_A Q_c, so
     # a calibration error that biases φ_A drains the estimated vial by Σ δφ_A Q_c Δt

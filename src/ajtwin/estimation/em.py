@@ -146,6 +146,7 @@ def run_em(
     tolerance: float = 1e-3,
     gate: float = np.inf,
     functions: ModelFunctions = AJ_EULER,
+    line_factors=None,
 ) -> EMStep:
     """EM over one window (paper Algorithm 2).
 
@@ -154,7 +155,8 @@ def run_em(
     or ``max_iterations`` is reached. A non-finite θ or log-likelihood ends the
     iterations and keeps the last good θ. The whole loop is one compiled
     function (:func:`em_loop`), so a new process loads one executable from the
-    compilation cache instead of tracing every iteration's pieces.
+    compilation cache instead of tracing every iteration's pieces. ``line_factors``
+    (T, 4): a job print's per-step line factors (:func:`ajtwin.estimation.filters.ekf`).
 
     Returns
     -------
@@ -177,6 +179,7 @@ def run_em(
         jnp.asarray(max_iterations, dtype=int),
         jnp.asarray(tolerance, dtype=float),
         jnp.asarray(gate, dtype=float),
+        None if line_factors is None else jnp.asarray(line_factors, dtype=float),
         functions=functions,
     )
     return EMStep(
@@ -197,6 +200,7 @@ def em_loop(
     max_iterations,
     tolerance,
     gate,
+    line_factors=None,
     functions=AJ_EULER,
 ):
     """The EM iterations of :func:`run_em` as a ``lax.while_loop`` (pure, jit-able).
@@ -230,7 +234,7 @@ def em_loop(
             lambda: m_step(spec, smoothed, inputs, process_cov, theta_prior_precision, functions),
         )
         filtered_new, smoothed_new, log_lik_new = e_step(
-            spec, *data, theta_new, *noise, functions=functions
+            spec, *data, theta_new, *noise, line_factors, functions=functions
         )
         finite = jnp.isfinite(log_lik_new) & jnp.all(jnp.isfinite(theta_new))
         accept = first | finite
@@ -304,6 +308,7 @@ def e_step(
     process_cov,
     measurement_cov,
     gate,
+    line_factors=None,
     functions=AJ_EULER,
 ):
     """E-step: EKF then RTS under θ; returns (filtered, smoothed, log-likelihood)."""
@@ -318,6 +323,7 @@ def e_step(
         measurement_cov,
         gate,
         functions=functions,
+        line_factors=line_factors,
     )
     return filtered, rts_smoother(spec, filtered), jnp.sum(filtered.log_likelihood)
 

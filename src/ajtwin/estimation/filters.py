@@ -21,6 +21,16 @@ prediction to k):
 A *consider* state (``ModelSpec.update_mask`` 0: V_l in the twin) gets a zero gain row
 (Schmidt–Kalman): its mean follows the model, its covariance stays exact.
 
+A job print (model reference §12) adds a known input per step, ``line`` =
+(F_w, F_o, v_w, v_o): the speed law's factors on L_w, L_o at the platen speed the
+measured trace was printed at, and the variance factors of a camera measurement that
+combines several frames of that second (:mod:`ajtwin.estimation.print_time`):
+
+    g_k(x) = diag(F_w, F_o, 1, 1, 1) g(x, u_k)
+    Σ_w,k  = diag(v_w σ²_Lw, v_o σ²_Lo, σ²_Pc, σ²_Ps, σ²_Qm)
+
+Without it (``line=None``, every record without a job) the step is exactly the one above.
+
 Missing measurements (NaN) drop their rows (H row 0, innovation 0, unit
 variance), so the update uses only what was measured; optional per-output
 innovation gating drops outliers the same way. A divergence guard replaces a
@@ -48,6 +58,7 @@ import numpy as np
 
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
+from ajtwin.model.line_speed import apply_line_factors
 from ajtwin.model.system import euler_step, output_function, rk4_step
 
 #: Typical magnitudes of the states [µm, mL, µm, µm, –] and outputs
@@ -144,16 +155,25 @@ class SmootherResult(NamedTuple):
     lag_one_covariances: jnp.ndarray  # (T-1, 5, 5) Cov(x_{k+1}, x_k | all)
 
 
-def _scaled_functions(spec: ModelSpec, functions: ModelFunctions):
+def _scaled_functions(spec: ModelSpec, functions: ModelFunctions, line=None):
     s, r = spec.scaling.state, spec.scaling.output
 
     def f_scaled(z, u, theta):
         return functions.step(z * s, u, theta, spec.params, spec.dt) / s
 
     def g_scaled(z, u):
-        return functions.output(z * s, u, spec.params, spec.coefficients) / r
+        y = functions.output(z * s, u, spec.params, spec.coefficients)
+        if line is not None:  # the line at the speed it was printed (a job print)
+            y = apply_line_factors(y, line[0], line[1])
+        return y / r
 
     return f_scaled, g_scaled
+
+
+def line_variance_factors(line, n_outputs: int):
+    """(n_outputs,) factors on Σ_w's diagonal of a job step ``line`` = (F_w, F_o, v_w, v_o):
+    v_w, v_o on L_w, L_o (a combined camera measurement), 1 on the other outputs."""
+    return jnp.concatenate([jnp.asarray(line[2:4], dtype=float), jnp.ones(n_outputs - 2)])
 
 
 def _is_valid_covariance(p):
@@ -251,6 +271,7 @@ def ekf_step_in_loop(
     theta,
     constants: StepConstants,
     functions: ModelFunctions = AJ_EULER,
+    line=None,
 ) -> tuple[EKFCarry, EKFStepOutput]:
     """One EKF step in scaled coordinates: the body of :func:`ekf`'s ``lax.scan``.
 
@@ -258,7 +279,8 @@ def ekf_step_in_loop(
     is the same at every step taken out: the noise is scaled once
     (:func:`step_constants`), the measurement comes in scaled (η = y / r), and the
     step's results go out scaled — :func:`to_display_units` converts them, once per
-    run on the stacked arrays in :func:`ekf`, per sample in :func:`ekf_step`.
+    run on the stacked arrays in :func:`ekf`, per sample in :func:`ekf_step`. ``line``
+    (4,): a job step's speed and variance factors (module docstring); None: none.
 
     Returns
     -------
@@ -267,8 +289,10 @@ def ekf_step_in_loop(
         (``mean`` z_k, ``covariance`` P_k / (s sᵀ), ``predicted_output`` ĝ / r,
         ``innovation_variance`` diag S_k / r²; the other fields as in display units).
     """
-    f_s, g_s = _scaled_functions(spec, functions)
+    f_s, g_s = _scaled_functions(spec, functions, line)
     q, r_diag = constants.process_cov, constants.measurement_var
+    if line is not None:
+        r_diag = r_diag * line_variance_factors(line, r_diag.shape[0])
     z_pred, p_pred, z0, p0 = carry
 
     # --- update with y_k: one scalar update per output (Σ_w is diagonal) --------------
@@ -361,6 +385,7 @@ def ekf_step(
     measurement_var,
     gate=jnp.inf,
     functions: ModelFunctions = AJ_EULER,
+    line=None,
 ) -> tuple[EKFCarry, EKFStepOutput]:
     """One EKF step: update with y_k at x̂_{k|k-1}, then predict to k+1 (pure, jit-able).
 
@@ -401,6 +426,10 @@ def ekf_step(
     gate : float
         Innovation gate in σ (inf: off).
     functions : ModelFunctions (static)
+    line : array (4,), optional
+        A job step's (F_w, F_o, v_w, v_o): L_w, L_o at the speed they were printed and the
+        variance factors of a combined camera measurement (model reference §12); None for a
+        record without a job.
 
     Returns
     -------
@@ -409,7 +438,7 @@ def ekf_step(
     """
     constants = step_constants(spec, process_cov, measurement_var, gate)
     eta = jnp.asarray(y, dtype=float) / spec.scaling.output
-    carry, out = ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions)
+    carry, out = ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions, line)
     return carry, to_display_units(spec, out)
 
 
@@ -424,6 +453,7 @@ def ekf(
     measurement_cov,
     gate: float = jnp.inf,
     functions: ModelFunctions = AJ_EULER,
+    line_factors=None,
 ) -> FilterResult:
     """Run the EKF over a print: ``lax.scan`` of :func:`ekf_step_in_loop`.
 
@@ -448,6 +478,8 @@ def ekf(
         Per-output innovation gate in standard deviations (inf: off).
     functions : ModelFunctions
         The model (default: the AJ model, Euler steps).
+    line_factors : array (T, 4), optional
+        A job print's per-step (F_w, F_o, v_w, v_o) (:func:`ekf_step`); None: no job.
 
     Returns
     -------
@@ -461,12 +493,13 @@ def ekf(
     constants = step_constants(spec, process_cov, measurement_cov, gate)
 
     def body(carry, inp):
-        u, eta, theta = inp
-        return ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions)
+        u, eta, theta, line = inp
+        return ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions, line)
 
     carry = ekf_init(spec, prior_mean, prior_cov)
     eta = measurements / spec.scaling.output
-    _, out = jax.lax.scan(body, carry, (inputs, eta, thetas))
+    lines = None if line_factors is None else jnp.asarray(line_factors, dtype=float)
+    _, out = jax.lax.scan(body, carry, (inputs, eta, thetas, lines))
     return FilterResult(*to_display_units(spec, out))
 
 

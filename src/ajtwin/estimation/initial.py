@@ -84,6 +84,7 @@ def fit_initial_state(
     droplet_prior_um: float | None = None,
     droplet_prior_std_um: float | None = None,
     aerosol_prior_relative_std: float | None = None,
+    line_factors=None,
 ) -> InitialFit:
     """Weighted least-squares fit of x₀ over the first ``n_samples`` samples.
 
@@ -104,6 +105,8 @@ def fit_initial_state(
     droplet_prior_um, droplet_prior_std_um, aerosol_prior_relative_std
         Priors for a print with no line output in the first samples (module
         docstring); without them such a print is refused.
+    line_factors : array (T, 4), optional
+        A job print's (F_w, F_o, v_w, v_o) per sample (:func:`_at_reference_speed`).
 
     Returns
     -------
@@ -112,8 +115,9 @@ def fit_initial_state(
         rest), cost and the optimiser's status.
     """
     u = np.asarray(inputs, dtype=float)[:n_samples]
+    line = None if line_factors is None else np.asarray(line_factors, dtype=float)[:n_samples]
     y = np.asarray(measurements, dtype=float)[:n_samples]
-    sigma = np.asarray(measurement_std, dtype=float)
+    y, sigma = _at_reference_speed(y, np.asarray(measurement_std, dtype=float), line)
     measured = np.isfinite(y)
     if not measured[:, [0, 1, 4]].any() and droplet_prior_um is not None:
         return _prior_start(
@@ -164,20 +168,10 @@ def fit_initial_state(
         method="trf",
         x_scale="jac",
     )
-    j = result.jac
-    info = j.T @ j
-    try:
-        cov_fit = np.linalg.inv(info)
-    except np.linalg.LinAlgError:
-        cov_fit = np.linalg.pinv(info)
-    mean = np.array([result.x[0], vial_fill_ml, 0.0, 0.0, result.x[1] * phi_scale])
-    cov = np.zeros((5, 5))
-    scale = np.array([1.0, phi_scale])
-    cov[np.ix_([0, 4], [0, 4])] = cov_fit * np.outer(scale, scale)
-    cov[1, 1] = vial_fill_std_ml**2
-    cov[2, 2] = tube_prior_std_um**2
-    cov[3, 3] = nozzle_prior_std_um**2
-    return InitialFit(
+    mean, cov = _fitted_start(
+        result, vial_fill_ml, (vial_fill_std_ml, tube_prior_std_um, nozzle_prior_std_um)
+    )
+    fit = InitialFit(
         mean=mean,
         covariance=cov,
         cost=float(result.cost),
@@ -185,6 +179,63 @@ def fit_initial_state(
         success=bool(result.success),
         message=str(result.message),
     )
+    if not measured[:, :2].any():  # Q_m alone: it sees φ_A, not the droplet size
+        return _droplet_from_prior(fit, droplet_prior_um, droplet_prior_std_um)
+    return fit
+
+
+def _fitted_start(result, vial_fill_ml: float, prior_stds) -> tuple[np.ndarray, np.ndarray]:
+    """x₀ and its covariance from the least-squares fit of (d_a, φ_A/scale): the Gauss–Newton
+    inverse for those two, the priors (``prior_stds``: V_l, ΔR_T, ΔR_N) for the rest."""
+    j = result.jac
+    info = j.T @ j
+    try:
+        cov_fit = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        cov_fit = np.linalg.pinv(info)
+    mean = np.array([result.x[0], vial_fill_ml, 0.0, 0.0, result.x[1] * _PHI_SCALE])
+    cov = np.zeros((5, 5))
+    scale = np.array([1.0, _PHI_SCALE])
+    cov[np.ix_([0, 4], [0, 4])] = cov_fit * np.outer(scale, scale)
+    for i, std in zip((1, 2, 3), prior_stds):
+        cov[i, i] = std**2
+    return mean, cov
+
+
+def _droplet_from_prior(fit: InitialFit, prior_um, prior_std_um) -> InitialFit:
+    """The fit with d_a from its prior: the first samples measured Q_m (φ_A) but no line,
+    so nothing constrained d_a (the fit's information on it is zero; a pseudo-inverse would
+    call it exact). A job print whose first seconds' traces the camera never saw (printed
+    over, or seen only by a later inspection pass) starts so."""
+    if prior_um is None or not (prior_std_um and prior_std_um > 0):
+        raise ValueError(
+            f"no linewidth or overspray measurement in the first {fit.n_samples} samples: "
+            "the initial droplet size cannot be fitted (give a droplet prior)"
+        )
+    mean, cov = fit.mean.copy(), fit.covariance.copy()
+    mean[0] = float(prior_um)
+    cov[0, :] = cov[:, 0] = 0.0
+    cov[0, 0] = float(prior_std_um) ** 2
+    message = (
+        f"no linewidth or overspray measurement in the first {fit.n_samples} samples: the "
+        "droplet diameter starts from its prior (the aerosol fraction is fitted to Q_m)"
+    )
+    return fit._replace(
+        mean=mean, covariance=cov, message=message, states_from_prior=("droplet_diameter_um",)
+    )
+
+
+def _at_reference_speed(y, sigma, line):
+    """(y, σ) of the samples as the line at ν_ref: y_w = F_w L_w + w with Var w = v_w σ² is
+    fitted as y_w/F_w against L_w with σ√v_w/F_w (the same residual); F, v of ``line``
+    (n, 4) of a job print (:mod:`ajtwin.estimation.print_time`); unchanged without one."""
+    if line is None:
+        return y, sigma
+    y = y.copy()
+    y[:, :2] = y[:, :2] / line[:, :2]
+    sigma = np.tile(sigma, (len(y), 1))
+    sigma[:, :2] = sigma[:, :2] * np.sqrt(line[:, 2:4]) / line[:, :2]
+    return y, sigma
 
 
 def _prior_start(

@@ -65,14 +65,16 @@ def save_figure(fig, path):
 
 
 def estimate_figure(record, run, path):
-    """States (±2σ, truth when present) and measured vs predicted outputs of one run."""
+    """States (±2σ, truth when present) and measured vs predicted outputs of one run (on a
+    job print the camera's measurements at their print times, as the filter used them)."""
     minutes = minutes_of(record)
+    measured = record.outputs if run.measurements is None else run.measurements
     fig, axes = plt.subplots(2, 5, figsize=(20, 7.5))
     truth = record.true_states if record.has_truth else None
     plot_states(axes[0], minutes, {"twin ±2σ": (run.means, run.stds, {"color": "k"})}, truth)
     pred = np.asarray(run.filtered.predicted_outputs)
     for i, ax in enumerate(axes[1]):
-        ax.plot(minutes, record.outputs[:, i], lw=0.4, color="tab:gray", label="measured")
+        ax.plot(minutes, measured[:, i], lw=0.4, color="tab:gray", label="measured")
         ax.plot(minutes, pred[:, i], lw=1, color="k", label="twin")
         ax.set_title(OUTPUT_LABELS[i], fontsize=9)
         ax.set_xlabel("time [min]")

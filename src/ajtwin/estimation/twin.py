@@ -3,7 +3,10 @@
 :class:`Twin` ties the pure functions together the way the paper runs them:
 initial-state fit (or the previous print's end state), the EKF over the print,
 EM over a moving window (default T = 600 s every 300 s) that updates θ while
-printing, and optionally an RTS pass over the whole print.
+printing, and optionally an RTS pass over the whole print. On a job print (a format-2
+record with the job columns) the camera's measurements are first filed at their print
+times (:mod:`ajtwin.estimation.print_time`) and the line is read at the speed it was
+printed; :meth:`TwinRun.line_at` gives the line at any print time and speed.
 
 Examples
 --------
@@ -35,6 +38,13 @@ from ajtwin.estimation.filters import (
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.estimation.part_line import LineEstimate, line_at, line_model
+from ajtwin.estimation.print_time import (
+    FiledPrint,
+    file_record,
+    is_job_record,
+    print_context,
+)
 from ajtwin.estimation.record_checks import (
     check_model_inputs,
     check_output_scales,
@@ -45,6 +55,7 @@ from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 from ajtwin.model.droplet_dynamics import DropletStep, augment_inputs, load_droplet_dynamics
 from ajtwin.model.limits import StateLimits
+from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.system import check_input
 
 
@@ -89,6 +100,9 @@ class TwinConfig:
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
     learn_line_offsets: bool = False
     learn_output_noise: bool = False
+    # job prints: the horizon [s] after which a step is final and later camera measurements
+    # of it are dropped (ajtwin.estimation.print_time); None: from the camera (data/print_time.toml)
+    camera_horizon_s: float | None = None
 
     @classmethod
     def default(
@@ -145,7 +159,20 @@ class TwinConfig:
 
 @dataclass
 class TwinRun:
-    """Everything a run of the twin over one print produced."""
+    """Everything a run of the twin over one print produced.
+
+    Per second t_k (``time_s``): the filtered states and covariances (``filtered.means``,
+    ``filtered.covariances``; ``stds`` adds the calibration's share), the smoothed ones
+    (``smoothed``, with ``Twin.run(..., smooth=True)``), θ in force (``theta_per_step``),
+    the inputs and the measurements the filter used. On a job print the measurements are
+    the camera's filed at their print times (``n_camera`` frames per second,
+    ``line_factors`` the speed law's factors, ``camera_counts`` what was filed and dropped)
+    and :meth:`line_at` evaluates the printed line at any print time and speed — what a part
+    map needs for every stroke portion::
+
+        run = Twin.default().run(record, job=program_for_record(record, "part.prg"), smooth=True)
+        line = run.line_at(t_mid, job.state_at(t_mid).speed_mm_s)   # mean, σ of L_w, L_o
+    """
 
     time_s: np.ndarray
     filtered: FilterResult
@@ -168,6 +195,19 @@ class TwinRun:
     #: the vial observer over the print (ajtwin.estimation.vial; None: no Q_m measured):
     #: V_l from the data, apart from the atomizer's efficiency, and the 'running low' flag
     vial: object | None = None
+    #: (T, 5) the measurements the filter used: the record's outputs, or on a job print the
+    #: camera's filed at their print times (what the detectors compare with the predictions)
+    measurements: np.ndarray | None = None
+    #: (T, 3) the inputs u_k [mA, sccm, sccm]
+    inputs: np.ndarray | None = None
+    #: (T, 4) a job print's (F_w, F_o, v_w, v_o) per step (None: no job)
+    line_factors: np.ndarray | None = None
+    #: (T, 2) camera frames filed per step for L_w, L_o (None: no job)
+    n_camera: np.ndarray | None = None
+    #: a job print's filing: frames filed, dropped by reason, the horizon [s] ({} without)
+    camera_counts: dict = field(default_factory=dict)
+    #: the twin's output model and speed law (for :meth:`line_at`)
+    line_model: object | None = None
 
     def visibility_notes(self) -> list[str]:
         """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
@@ -186,8 +226,14 @@ class TwinRun:
             )
         if sometimes:
             parts = ", ".join(f"{name} in {count} of {n} s" for name, count in sometimes.items())
+            why = (
+                "no camera frame of a trace printed then: shutter closed, no trace in view or "
+                "a frame dropped"
+                if self.line_factors is not None
+                else "e.g. camera dropout"
+            )
             notes.append(
-                f"note: unmeasured (e.g. camera dropout) — {parts}: those seconds run on the "
+                f"note: unmeasured ({why}) — {parts}: those seconds run on the "
                 "model alone and the bands widen (columns seen_* = 0)"
             )
         return notes
@@ -219,6 +265,48 @@ class TwinRun:
             np.maximum(diagonal, self.prior_floor, out=diagonal)
         return covariances
 
+    def line_at(self, times, speeds, smoothed: bool | None = None) -> LineEstimate:
+        """The line printed at print times ``times`` [s] at platen speeds ``speeds`` [mm/s].
+
+        What a part map calls for every stroke portion: mean and σ of L_w and L_o from the
+        states interpolated to τ (smoothed when this run has them, unless ``smoothed`` says
+        otherwise) with their total covariance (the calibration's share and the prior floor
+        included), through the output model and the twin's speed law with its uncertainty
+        (:func:`ajtwin.estimation.part_line.line_at`).
+
+        Parameters
+        ----------
+        times : array_like (n,)
+            Print times τ [s] on the record's clock (clipped to the print).
+        speeds : array_like (n,) or float
+            Platen speed ν at τ [mm/s] (the program's, e.g. ``Job.state_at(τ).speed_mm_s``).
+        smoothed : bool, optional
+
+        Returns
+        -------
+        LineEstimate
+            ``linewidth_um``, ``overspray_um``, ``linewidth_std_um``, ``overspray_std_um`` (n,).
+
+        Examples
+        --------
+        >>> run.line_at([120.4, 121.9], 2.0).linewidth_um          # doctest: +SKIP
+        """
+        if self.line_model is None or self.inputs is None:
+            raise ValueError("this run has no output model attached (made by Twin.run)")
+        use_smoothed = self.smoothed is not None if smoothed is None else smoothed
+        if use_smoothed and self.smoothed is None:
+            raise ValueError("this run has no smoothed estimates (run with smooth=True)")
+        src = self.smoothed if use_smoothed else self.filtered
+        return line_at(
+            self.line_model,
+            self.time_s,
+            np.asarray(src.means),
+            self._total_cov(src.covariances),
+            self.inputs,
+            times,
+            speeds,
+        )
+
     @property
     def stds(self) -> np.ndarray:
         """State σ (T, 5): the filter's, plus the calibration's share when known."""
@@ -244,6 +332,13 @@ class TwinRun:
         frame["n_measured"] = np.asarray(self.filtered.n_measured)
         frame["log_likelihood"] = np.asarray(self.filtered.log_likelihood)
         frame["reinitialised"] = np.asarray(self.filtered.reinitialised)
+        if self.line_factors is not None:
+            # a job print: each second's camera measurements filed at their print time, the
+            # frames behind them and the speed law's factor of the line printed then
+            for i, name in enumerate(("linewidth", "overspray")):
+                frame[f"filed_{name}_um"] = np.asarray(self.measurements)[:, i]
+                frame[f"camera_frames_{name}"] = np.asarray(self.n_camera)[:, i]
+                frame[f"line_factor_{name}"] = self.line_factors[:, i]
         if self.seen is not None:
             for i, name in enumerate(STATE_NAMES):
                 frame["seen_" + name] = np.asarray(self.seen)[:, i]
@@ -411,6 +506,7 @@ class Twin:
         self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING, 1.0, update_mask)
         self.functions = twin_functions(config.method, config.transition)
         self.limits = StateLimits.load(model.params)
+        self.speed_law = load_line_speed_law()
 
     @classmethod
     def default(
@@ -516,7 +612,7 @@ class Twin:
             precision[1] = 1e40
         return precision
 
-    def initial_state(self, inputs, measurements) -> InitialFit:
+    def initial_state(self, inputs, measurements, line_factors=None) -> InitialFit:
         """The initial-state fit over the first ``initial_samples`` samples.
 
         Parameters
@@ -525,6 +621,8 @@ class Twin:
             [mA, sccm, sccm].
         measurements : array (T, 5)
             Display units, NaN = not measured.
+        line_factors : array (T, 4), optional
+            A job print's (F_w, F_o, v_w, v_o) per step (:mod:`ajtwin.estimation.print_time`).
         """
         c = self.config
         return fit_initial_state(
@@ -541,13 +639,14 @@ class Twin:
             droplet_prior_um=c.droplet_prior_um,
             droplet_prior_std_um=c.droplet_prior_std_um,
             aerosol_prior_relative_std=c.aerosol_prior_relative_std,
+            line_factors=line_factors,
         )
 
     def _predict(self, mean, cov, u, theta):
         m, p = predict(self.spec, mean, cov, u, theta, self.process_cov, self.functions)
         return np.asarray(m), np.asarray(p)
 
-    def _filter(self, mean, cov, inputs, measurements, thetas):
+    def _filter(self, mean, cov, inputs, measurements, thetas, line=None):
         return ekf(
             self.spec,
             mean,
@@ -559,6 +658,7 @@ class Twin:
             self.measurement_var,
             self.config.gate_sigma,
             functions=self.functions,
+            line_factors=line,
         )
 
     # ------------------------------------------------------------------ #
@@ -572,6 +672,8 @@ class Twin:
         start=None,
         smooth: bool = False,
         progress=None,
+        job=None,
+        line_factors=None,
         sink=None,
     ) -> TwinRun:
         """Estimate the states over a print (and learn θ if ``config.em``).
@@ -579,13 +681,21 @@ class Twin:
         Parameters
         ----------
         record : PrintRecord, optional
-            The print; or give ``inputs`` (T, 3) and ``measurements`` (T, 5).
+            The print; or give ``inputs`` (T, 3) and ``measurements`` (T, 5). A job print
+            (format 2 with the job columns) has its camera measurements filed at their print
+            times, with the horizon ``config.camera_horizon_s`` or the camera's rule
+            (:mod:`ajtwin.estimation.print_time`).
         start : (mean (5,), cov (5, 5)), optional
             Start state (the previous print's end); default: the initial fit.
         smooth : bool
             Also run the RTS smoother over the whole print.
         progress : callable(int), optional
             Called with the number of steps done (for a progress bar).
+        job : ajtwin.job.Job, optional
+            The program of a job record, as printed (:func:`~ajtwin.estimation.print_time.
+            program_for_record`): speeds at print times come from it, not the record's rows.
+        line_factors : array (T, 4), optional
+            With ``inputs``/``measurements`` already filed: each step's (F_w, F_o, v_w, v_o).
         sink : callable(first_step, TwinRun), optional
             Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
             steps: the filter's results, θ, the calibration's share, the prior floor, what
@@ -596,10 +706,14 @@ class Twin:
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
         inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
+        filed = self._filed(record, job)
+        if filed is not None:
+            measurements, line_factors = filed.measurements, filed.line_factors
+        line = None if line_factors is None else np.asarray(line_factors, dtype=float)
         n = len(inputs)
         initial = None
         if start is None:
-            initial = self.initial_state(inputs, measurements)
+            initial = self.initial_state(inputs, measurements, line)
             mean, cov = initial.mean, initial.covariance
         else:
             mean, cov = (np.asarray(a, dtype=float) for a in start)
@@ -617,10 +731,12 @@ class Twin:
         model_inputs = self.model_inputs(inputs)
         emit = None
         if sink is not None:
-            emit = self._chunk_emitter(sink, time_s, initial, seen, model_inputs)
+            emit = self._chunk_emitter(
+                sink, time_s, initial, seen, model_inputs, (inputs, measurements, line, filed)
+            )
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
-            filtered = self._filter(mean, cov, model_inputs, measurements, self.theta)
+            filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
             theta, history = self.theta.copy(), []
             if emit is not None:
                 emit(0, filtered, thetas)
@@ -628,11 +744,13 @@ class Twin:
                 progress(n)
         else:
             filtered, theta, thetas, history = self._filter_with_em(
-                mean, cov, model_inputs, measurements, time_s, progress, emit
+                mean, cov, model_inputs, measurements, time_s, progress, line, emit
             )
         smoothed = None
         if smooth:
-            consistent = self._filter(start_mean, start_cov, model_inputs, measurements, thetas)
+            consistent = self._filter(
+                start_mean, start_cov, model_inputs, measurements, thetas, line
+            )
             smoothed = rts_smoother(self.spec, consistent)
         self.theta = theta
         return TwinRun(
@@ -648,11 +766,31 @@ class Twin:
             end_cov=np.asarray(filtered.covariances[-1]),
             calibration_covariances=None
             if sink
-            else self._calibration_covariances(filtered, model_inputs),
+            else self._calibration_covariances(filtered, model_inputs, line),
             seen=seen,
             prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
             vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
+            measurements=measurements,
+            inputs=inputs,
+            line_factors=line,
+            n_camera=None if filed is None else filed.n_camera,
+            camera_counts={} if filed is None else dict(filed.counts),
+            line_model=line_model(
+                self.model.params, self.spec.coefficients, self.functions.output, self.speed_law
+            ),
         )
+
+    def _filed(self, record, job) -> FiledPrint | None:
+        """A job record's rows filed at their print times (None: not a job print)."""
+        if record is None or not is_job_record(record):
+            if job is not None:
+                raise ValueError(
+                    "a program was given but the record has no job columns (shutter_open, "
+                    "platen_speed_mm_s, printed_at_s): it is not a job print"
+                )
+            return None
+        context = print_context(record, job, self.config.camera_horizon_s)
+        return file_record(record, context, self.speed_law)
 
     def _checked_arrays(self, record, inputs, measurements, time_s):
         """Inputs (T, 3), measurements (T, 5) and times (T,) of a print, checked against the
@@ -679,12 +817,14 @@ class Twin:
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
         return inputs, measurements, time_s
 
-    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress, emit=None):
+    def _filter_with_em(
+        self, mean, cov, model_inputs, measurements, time_s, progress, line=None, emit=None
+    ):
         """The filter in chunks between EM boundaries; EM over the trailing window at each
         boundary, its θ and re-filtered end state taking effect from there (the module's
-        chunking). ``emit(first_step, chunk, θ per step)`` takes each chunk as it is done,
-        and only the chunks EM still needs are kept. Returns (filter result, θ at the end,
-        θ per step (T, 5), EM history)."""
+        chunking). ``line``: a job print's (T, 4) line factors. ``emit(first_step, chunk,
+        θ per step)`` takes each chunk as it is done, and only the chunks EM still needs are
+        kept. Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
         c = self.config
         n = len(model_inputs)
         every, window = int(c.every_s), int(c.window_s)
@@ -703,6 +843,7 @@ class Twin:
                 _pad(model_inputs[pos:end], every, None),
                 _pad(measurements[pos:end], every, np.nan),
                 theta,
+                None if line is None else _pad(line[pos:end], every, None),
             )
             seg = _slice(seg, end - pos)
             pieces.append(seg)
@@ -717,7 +858,7 @@ class Twin:
             if em_due(pos, every, window, early) and pos < n:
                 w0 = max(pos - window, 0)
                 em, learned = self._em_over_window(
-                    pieces, starts, w0, pos, model_inputs, measurements, theta
+                    pieces, starts, w0, pos, model_inputs, measurements, theta, line
                 )
                 theta = em.theta
                 last_mean = np.asarray(em.filtered.means)[-1]
@@ -739,7 +880,9 @@ class Twin:
                 progress(pos)
         return _concat(pieces), theta, thetas, history
 
-    def _em_over_window(self, pieces, starts, w0, pos, model_inputs, measurements, theta):
+    def _em_over_window(
+        self, pieces, starts, w0, pos, model_inputs, measurements, theta, line=None
+    ):
         """EM over steps [w0, pos) from the filter's prediction of step w0 (in the chunk that
         holds it); with ``learn_line_offsets``/``learn_output_noise`` also the output EM.
         Returns (EM result, the learned output parameters as a dict)."""
@@ -760,15 +903,22 @@ class Twin:
             tolerance=c.em_tolerance,
             gate=c.gate_sigma,
             functions=self.functions,
+            line_factors=None if line is None else line[w0:pos],
         )
         learned = {}
         if c.learn_line_offsets or c.learn_output_noise:
+            if line is not None:
+                raise ValueError(
+                    "learning line offsets or output noise online is not available on a job "
+                    "print (the line's speed factors are not in that M-step)"
+                )
             learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
         return em, learned
 
-    def _calibration_covariances(self, filtered, model_inputs, carry=None):
+    def _calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
         """The states' covariance from the calibration's uncertainty (None: none given);
-        ``carry``: a chunk of a run (:func:`calibration_state_covariance`)."""
+        ``line``: a job print's line factors; ``carry``: a chunk of a run
+        (:func:`calibration_state_covariance`)."""
         if self.calibration is None or self.calibration_cov is None:
             return None
         return calibration_state_covariance(
@@ -778,14 +928,18 @@ class Twin:
             self.measurement_var,
             self.calibration_cov,
             self.functions,
+            line_factors=line,
             carry=carry,
         )
 
-    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs):
+    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data):
         """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each
         chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
         calibration's share, with the vial's drain carried over; the prior floor, with
-        what was seen before the chunk)."""
+        what was seen before the chunk; the inputs, the measurements the filter used and a
+        job print's line factors and camera frames). ``data``: (inputs, measurements, line
+        factors or None, the filed print or None)."""
+        inputs, measurements, line, filed = data
         carry: dict = {}
         seen_before = np.zeros(seen.shape[1], dtype=bool)
 
@@ -806,10 +960,17 @@ class Twin:
                     start_mean=None,
                     start_cov=None,
                     calibration_covariances=self._calibration_covariances(
-                        chunk, model_inputs[first:stop], carry
+                        chunk,
+                        model_inputs[first:stop],
+                        None if line is None else line[first:stop],
+                        carry,
                     ),
                     seen=seen[first:stop],
                     prior_floor=never_seen_variance_floor(initial, seen_chunk, chunk.means),
+                    measurements=measurements[first:stop],
+                    inputs=inputs[first:stop],
+                    line_factors=None if line is None else line[first:stop],
+                    n_camera=None if filed is None else filed.n_camera[first:stop],
                 ),
             )
 

@@ -27,6 +27,7 @@ Examples
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from pathlib import Path
 
@@ -55,6 +56,8 @@ from ajtwin.job.settings import ReaderSettings, Stage, load_reader_settings, loa
 
 __all__ = [
     "read_program",
+    "decode_program",
+    "read_printed_program",
     "read_program_text",
     "Job",
     "JobState",
@@ -137,13 +140,8 @@ def read_program(
         joins, motion beyond the stage travel, unclosed blocks.
     """
     path = Path(path)
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = raw.decode("latin-1")
     return read_program_text(
-        text,
+        decode_program(path.read_bytes()),
         process_speed_mm_s,
         rapid_speed_mm_s,
         path=str(path),
@@ -154,6 +152,72 @@ def read_program(
         shutter_output=shutter_output,
         start_mm=start_mm,
     )
+
+
+def decode_program(raw: bytes) -> str:
+    """A program file's bytes as text: UTF-8 (with or without a byte-order mark), else
+    Latin-1 (controllers' editors write either)."""
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+def read_printed_program(
+    path: str | Path,
+    job_meta: dict | None = None,
+    process_speed_mm_s: float | None = None,
+    rapid_speed_mm_s: float | None = None,
+    repeat_to_s: float | None = None,
+) -> Job:
+    """The program as a print ran it: the speeds and the looping its record states.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.prg`` file.
+    job_meta : dict, optional
+        The print record's ``job`` metadata (record format version 2: ``program``,
+        ``sha256``, ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s``); its
+        values fill what is not given.
+    process_speed_mm_s, rapid_speed_mm_s : float, optional
+        The GUI's speeds (default: the record's, else ``stage.toml``).
+    repeat_to_s : float, optional
+        The program was looped to this many seconds, or cut there when the print was
+        shorter than the program (default: the record's).
+
+    Raises
+    ------
+    ProgramError
+        A file that cannot be read, a program the reader refuses, or one whose sha256 is
+        not the one the record names (another program than the print's).
+    ValueError
+        A looping the job cannot do.
+    """
+    job_meta = job_meta if isinstance(job_meta, dict) else {}
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ProgramError(
+            str(path), None, "", f"cannot read the program: {exc.strerror}"
+        ) from None
+    sha = job_meta.get("sha256")
+    if sha and sha != hashlib.sha256(data).hexdigest():
+        raise ProgramError(
+            str(path),
+            None,
+            "",
+            f"is not the program this record was printed with (the record names "
+            f"{job_meta.get('program', '?')!r}, sha256 {sha[:12]}…; this file's differs)",
+        )
+    process_speed_mm_s = process_speed_mm_s or job_meta.get("process_speed_mm_s")
+    rapid_speed_mm_s = rapid_speed_mm_s or job_meta.get("rapid_speed_mm_s")
+    repeat_to_s = repeat_to_s or job_meta.get("repeat_to_s")
+    job = read_program(path, process_speed_mm_s, rapid_speed_mm_s)
+    # looped to a longer print, or cut at a shorter one (as the virtual printer prints it)
+    if repeat_to_s and abs(float(repeat_to_s) - job.duration_s) > 1e-9:
+        job = job.repeat(float(repeat_to_s))
+    return job
 
 
 def read_program_text(

@@ -332,6 +332,7 @@ class Job:
         end_shutter_open: bool,
         repetition_offsets_s: np.ndarray | None = None,
         program_duration_s: float | None = None,
+        repetition_offsets_mm: np.ndarray | None = None,
     ):
         segments = _number_strokes(dict(segments))
         if repetition_offsets_s is None:  # a job read from a program: strokes are its own
@@ -349,6 +350,12 @@ class Job:
         self.end_shutter_open = bool(end_shutter_open)
         self.repetition_offsets_s = np.array(
             [0.0] if repetition_offsets_s is None else repetition_offsets_s
+        )
+        #: (runs, 2) where each run sits on the substrate [mm] (all 0: printed over each other)
+        self.repetition_offsets_mm = (
+            np.zeros((self.repetition_offsets_s.size, 2))
+            if repetition_offsets_mm is None
+            else np.asarray(repetition_offsets_mm, dtype=float).reshape(-1, 2)
         )
         self._index = {}
         self._build_strokes()
@@ -967,20 +974,34 @@ class Job:
 
     # -- looping ---------------------------------------------------------------------------
 
-    def repeat(self, duration_s: float, gap_s: float = 0.0) -> Job:
+    def repeat(self, duration_s: float, gap_s: float = 0.0, pitch_mm=None) -> Job:
         """The job run again and again until ``duration_s`` (the last run cut there).
 
         Between runs the stage waits ``gap_s`` at the program's end position (shutter as the
-        program left it), then returns to the program's start at the speed of the program's
+        program left it), then moves to the next run's start at the speed of the program's
         first move (in the public programs, the rapid speed), as the controller does when the
         program is started again from where it ended. Run k's program times are shifted by
         ``repetition_offsets_s[k]``.
+
+        Parameters
+        ----------
+        duration_s : float
+            Length of the looped job [s].
+        gap_s : float
+            Wait between runs [s].
+        pitch_mm : (float, float), optional
+            Place the runs side by side, an array of parts as a lab loops a job on one
+            substrate: run k is the program moved by (column · dx, row · dy) [mm], the
+            columns filling the stage's X travel first, then the next row. Default: every
+            run prints over the first (the same part again). Refused when the array does not
+            fit in the stage's travel (``stage.toml``).
 
         Returns
         -------
         Job
             With ``repetition`` and ``base_stroke`` (the stroke's number in the program) on
-            every segment and stroke; strokes are numbered anew across runs.
+            every segment and stroke, ``repetition_offsets_mm`` (runs, 2) where each run sits;
+            strokes are numbered anew across runs.
         """
         if self.repetitions > 1:
             raise ValueError("this job is already repeated: repeat the job read from the program")
@@ -995,67 +1016,38 @@ class Job:
         D = self.duration_s
         end = (s["x1_mm"][-1], s["y1_mm"][-1])
         start = (s["x0_mm"][0], s["y0_mm"][0])
-        distance = math.hypot(start[0] - end[0], start[1] - end[1])
         source = self.speed_sources[self.return_source]
-        back = distance / source.value_mm_s
-        period = D + gap_s + back
-        runs = 1 if duration_s <= D else 1 + math.ceil((duration_s - D) / period - 1e-12)
-        between = _empty_like_fields(0)
-        parts_between = []
-        if gap_s > 0:
-            wait = _empty_like_fields(1)
-            wait.update(
-                kind=np.array([KIND_DWELL]),
-                t0_s=np.array([D]),
-                t1_s=np.array([D + gap_s]),
-                x0_mm=np.array([end[0]]),
-                y0_mm=np.array([end[1]]),
-                x1_mm=np.array([end[0]]),
-                y1_mm=np.array([end[1]]),
-                cx_mm=np.array([np.nan]),
-                cy_mm=np.array([np.nan]),
-                radius_mm=np.array([np.nan]),
-                a0_rad=np.array([np.nan]),
-                speed_source=np.array([-1.0]),
-                feature=np.array([-1.0]),
-                base_stroke=np.array([-1.0]),
+        if pitch_mm is None:
+            distance = math.hypot(start[0] - end[0], start[1] - end[1])
+            back = distance / source.value_mm_s
+            period = D + gap_s + back
+            runs = 1 if duration_s <= D else 1 + math.ceil((duration_s - D) / period - 1e-12)
+            offsets = np.arange(runs) * period
+            places = np.zeros((runs, 2))
+            note = (
+                f"{gap_s:g} s wait and {back:.3f} s return ({distance:.3f} mm at "
+                f"{source.value_mm_s:g} mm/s) between runs"
             )
-            wait["shutter_open"] = np.array([self.end_shutter_open])
-            parts_between.append(wait)
-        if distance > 0:
-            move = _empty_like_fields(1)
-            move.update(
-                kind=np.array([KIND_LINE]),
-                t0_s=np.array([D + gap_s]),
-                t1_s=np.array([period]),
-                x0_mm=np.array([end[0]]),
-                y0_mm=np.array([end[1]]),
-                x1_mm=np.array([start[0]]),
-                y1_mm=np.array([start[1]]),
-                cx_mm=np.array([np.nan]),
-                cy_mm=np.array([np.nan]),
-                radius_mm=np.array([np.nan]),
-                a0_rad=np.array([np.nan]),
-                length_mm=np.array([distance]),
-                speed_mm_s=np.array([source.value_mm_s]),
-                speed_source=np.array([float(self.return_source)]),
-                feature=np.array([-1.0]),
-                base_stroke=np.array([-1.0]),
+        else:
+            offsets, places = self._array_schedule(duration_s, gap_s, pitch_mm)
+            runs = offsets.size
+            note = (
+                f"side by side at a pitch of ({float(pitch_mm[0]):g}, {float(pitch_mm[1]):g}) "
+                f"mm, {gap_s:g} s wait and a move at {source.value_mm_s:g} mm/s to the next "
+                "part between runs"
             )
-            move["shutter_open"] = np.array([self.end_shutter_open])
-            parts_between.append(move)
-        if parts_between:
-            between = _concat(parts_between)
-        offsets = np.arange(runs) * period
         parts = []
         for k, offset in enumerate(offsets):
-            if k > 0 and between["t0_s"].size:
-                b = {name: between[name].copy() for name in SEGMENT_FIELDS}
-                b["t0_s"] = b["t0_s"] + offsets[k - 1]
-                b["t1_s"] = b["t1_s"] + offsets[k - 1]
-                b["repetition"] = np.full(b["t0_s"].size, float(k))
-                parts.append(b)
-            run = {name: s[name].copy() for name in SEGMENT_FIELDS}
+            if k > 0:
+                previous = offsets[k - 1]
+                moved_end = (end[0] + places[k - 1, 0], end[1] + places[k - 1, 1])
+                moved_start = (start[0] + places[k, 0], start[1] + places[k, 1])
+                if pitch_mm is None:  # the times as the unpitched loop has always made them
+                    times = (D + previous, (D + gap_s) + previous, period + previous)
+                else:
+                    times = (previous + D, previous + D + gap_s, offset)
+                parts += _between_runs(moved_end, moved_start, times, self, k)
+            run = _translated({name: s[name].copy() for name in SEGMENT_FIELDS}, *places[k])
             run["t0_s"] = run["t0_s"] + offset
             run["t1_s"] = run["t1_s"] + offset
             run["repetition"] = np.full(run["t0_s"].size, float(k))
@@ -1065,11 +1057,7 @@ class Job:
         seg = _cut_at_times(seg, np.array([duration_s]))
         seg = _take(seg, seg["t0_s"] < duration_s)
         truncated = seg["t1_s"][-1] < offsets[-1] + D - 1e-9
-        notes = list(self.notes) + [
-            f"repeated {runs} time(s) to {duration_s:g} s: {gap_s:g} s wait and {back:.3f} s "
-            "return "
-            f"({distance:.3f} mm at {source.value_mm_s:g} mm/s) between runs"
-        ]
+        notes = list(self.notes) + [f"repeated {runs} time(s) to {duration_s:g} s: {note}"]
         return Job(
             seg,
             path=self.path,
@@ -1084,7 +1072,108 @@ class Job:
             end_shutter_open=bool(seg["shutter_open"][-1]) if truncated else self.end_shutter_open,
             repetition_offsets_s=offsets,
             program_duration_s=D,
+            repetition_offsets_mm=places,
         )
+
+    def _array_schedule(self, duration_s: float, gap_s: float, pitch_mm):
+        """Start times (runs,) and places (runs, 2) [mm] of runs side by side (:meth:`repeat`).
+
+        A run k > 0 is made when run k − 1 ends before ``duration_s`` (as without a pitch);
+        the move to it takes the distance between the parts at the return speed.
+        """
+        try:
+            dx, dy = (float(v) for v in pitch_mm)
+        except (TypeError, ValueError):
+            raise ValueError(f"pitch_mm = {pitch_mm!r}: give (dx, dy) in mm") from None
+        if not (math.isfinite(dx) and math.isfinite(dy)) or (dx == 0 and dy == 0):
+            raise ValueError(f"pitch_mm = {pitch_mm!r}: a finite, non-zero (dx, dy) in mm")
+        x0, y0, x1, y1 = self._bbox(np.ones(self.n_segments, dtype=bool))
+        width, height = x1 - x0, y1 - y0
+        travel_x, travel_y = self.stage.travel_x_mm, self.stage.travel_y_mm
+        columns = 1 if dx == 0 else 1 + int(math.floor((travel_x - width) / abs(dx) + 1e-9))
+        rows = 1 if dy == 0 else 1 + int(math.floor((travel_y - height) / abs(dy) + 1e-9))
+        D = self.duration_s
+        speed = self.speed_sources[self.return_source].value_mm_s
+        s = self._seg
+        end = np.array([s["x1_mm"][-1], s["y1_mm"][-1]])
+        start = np.array([s["x0_mm"][0], s["y0_mm"][0]])
+        offsets, places = [0.0], [(0.0, 0.0)]
+        while offsets[-1] + D < duration_s - 1e-12 * max(D, 1.0):
+            k = len(offsets)
+            if k >= columns * rows or columns < 1 or rows < 1:
+                raise ValueError(
+                    f"{self.path}: {k + 1} parts of {width:.2f} x {height:.2f} mm at a pitch of "
+                    f"({dx:g}, {dy:g}) mm do not fit in the {travel_x:g} x {travel_y:g} mm "
+                    f"travel of the {self.stage.name} ({columns} x {rows} do): a smaller "
+                    "pitch, a shorter run or a pitch in both X and Y"
+                )
+            place = (dx * (k % columns), dy * (k // columns))
+            distance = float(np.hypot(*(start + place - end - places[-1])))
+            offsets.append(offsets[-1] + D + gap_s + distance / speed)
+            places.append(place)
+        return np.array(offsets), np.array(places, dtype=float).reshape(-1, 2)
+
+
+def _translated(seg: dict, dx: float, dy: float) -> dict:
+    """Segments moved by (dx, dy) mm (positions and arc centres; angles unchanged)."""
+    if dx == 0 and dy == 0:
+        return seg
+    for name in ("x0_mm", "x1_mm", "cx_mm"):
+        seg[name] = seg[name] + dx
+    for name in ("y0_mm", "y1_mm", "cy_mm"):
+        seg[name] = seg[name] + dy
+    return seg
+
+
+def _between_runs(end, start, times, job: Job, k: int) -> list:
+    """The segments before run ``k``: a wait at ``end`` over [t0, t1] (when t1 > t0), then the
+    move to ``start`` over [t1, t2] (when they differ); ``times`` = (t0, t1, t2). Shutter as
+    the program left it; the speed of the program's first move."""
+    source = job.speed_sources[job.return_source]
+    distance = math.hypot(start[0] - end[0], start[1] - end[1])
+    t_end, t_wait, move_t1 = times
+    pieces = []
+
+    def piece(kind, t0, t1, a, b, length, speed, speed_source):
+        p = _empty_like_fields(1)
+        p.update(
+            kind=np.array([kind]),
+            t0_s=np.array([t0]),
+            t1_s=np.array([t1]),
+            x0_mm=np.array([a[0]]),
+            y0_mm=np.array([a[1]]),
+            x1_mm=np.array([b[0]]),
+            y1_mm=np.array([b[1]]),
+            cx_mm=np.array([np.nan]),
+            cy_mm=np.array([np.nan]),
+            radius_mm=np.array([np.nan]),
+            a0_rad=np.array([np.nan]),
+            length_mm=np.array([length]),
+            speed_mm_s=np.array([speed]),
+            speed_source=np.array([speed_source]),
+            feature=np.array([-1.0]),
+            base_stroke=np.array([-1.0]),
+            repetition=np.array([float(k)]),
+        )
+        p["shutter_open"] = np.array([job.end_shutter_open])
+        return p
+
+    if t_wait > t_end:
+        pieces.append(piece(KIND_DWELL, t_end, t_wait, end, end, 0.0, 0.0, -1.0))
+    if distance > 0:
+        pieces.append(
+            piece(
+                KIND_LINE,
+                t_wait,
+                move_t1,
+                end,
+                start,
+                distance,
+                source.value_mm_s,
+                float(job.return_source),
+            )
+        )
+    return pieces
 
 
 def read_timeline(path: str | Path) -> tuple[pd.DataFrame, dict]:

@@ -92,6 +92,10 @@ class VirtualMachine:
     limits : dict, optional
         Input limits {column: [low, high]} the set-points must respect
         (default: the registry's DEFAULT_LIMITS).
+    job : str, Path or ajtwin.job.Job, optional
+        A machine program the printer runs (looped to the print's length; the default
+        camera trails the nozzle): served samples have no line while nothing is printed
+        or seen (:class:`~ajtwin.simulation.stepper.SteppedPrinter`).
     """
 
     name: str
@@ -103,6 +107,7 @@ class VirtualMachine:
     start_s: float = 0.0
     limits: dict | None = None
     schedule: dict = field(default_factory=dict, repr=False)
+    job: object = None
 
     #: largest block of seconds simulated in one call (powers of two up to this: few
     #: compilations of the stepper's scan whatever the publishing rhythm)
@@ -112,7 +117,9 @@ class VirtualMachine:
 
         if self.limits is None:
             self.limits = copy.deepcopy(DEFAULT_LIMITS)
-        self.printer = SteppedPrinter(self.scenario, self.seed, self.duration_min, self.overrides)
+        self.printer = SteppedPrinter(
+            self.scenario, self.seed, self.duration_min, self.overrides, job=self.job
+        )
         # the served samples (rows of SAMPLE_COLUMNS), filled as the print advances
         self._samples = np.full((self.printer.n, SAMPLE_WIDTH), np.nan)
         self._lock = threading.Lock()  # set-point writes run in an executor thread

@@ -109,10 +109,20 @@ def apply_line_speed(outputs, platen_speed_mm_s, law: LineSpeedLaw):
         ν [mm/s] (broadcast against the outputs' leading shape).
     law : LineSpeedLaw
     """
-    y = jnp.asarray(outputs)
     f_w, f_o = line_speed_factors(platen_speed_mm_s, law)
-    f_w = jnp.broadcast_to(f_w, y.shape[:-1])
-    f_o = jnp.broadcast_to(f_o, y.shape[:-1])
+    return apply_line_factors(outputs, f_w, f_o)
+
+
+def apply_line_factors(outputs, linewidth_factor, overspray_factor):
+    """Outputs (..., 5) with L_w and L_o multiplied by the given factors (array-wise).
+
+    The speed law's factors of :func:`line_speed_factors` at one speed, or what stands in for
+    them when several camera measurements of one second printed at different speeds are
+    combined (:mod:`ajtwin.estimation.print_time`): P_c, P_s and Q_m are unchanged.
+    """
+    y = jnp.asarray(outputs)
+    f_w = jnp.broadcast_to(linewidth_factor, y.shape[:-1])
+    f_o = jnp.broadcast_to(overspray_factor, y.shape[:-1])
     return jnp.concatenate(
         [(y[..., 0] * f_w)[..., None], (y[..., 1] * f_o)[..., None], y[..., 2:]], axis=-1
     )

@@ -178,6 +178,9 @@ class JobPlan:
         τ of the trace the frame at t_k sees; NaN: no trace in the field.
     camera_speed_mm_s : ndarray (n_rows,)
         The platen speed when that trace was printed (NaN: none).
+    pitch_mm : (float, float) or None
+        Runs of the looped job side by side at this pitch (:meth:`ajtwin.job.Job.repeat`);
+        None: printed over each other.
     """
 
     job: object
@@ -188,6 +191,7 @@ class JobPlan:
     camera_printed_at_s: np.ndarray
     camera_speed_mm_s: np.ndarray
     program_meta: dict = field(default_factory=dict)
+    pitch_mm: tuple | None = None
 
     @property
     def n_rows(self) -> int:
@@ -231,11 +235,14 @@ def inspection_pass(job, camera: CameraSettings, end_s: float):
     return printed_at, _segment_speed(job, hits.segment[own][order])
 
 
-def plan_job_print(job, print_duration_s: int, camera: CameraSettings | None = None) -> JobPlan:
+def plan_job_print(
+    job, print_duration_s: int, camera: CameraSettings | None = None, pitch_mm=None
+) -> JobPlan:
     """The rows of a job print of ``print_duration_s`` seconds under ``camera``.
 
     The job is looped to the print's length (:meth:`ajtwin.job.Job.repeat`; a longer program
-    is cut there). Inspection mode appends the pass (:func:`inspection_pass`).
+    is cut there), its runs side by side at ``pitch_mm`` (dx, dy) when given, else over each
+    other. Inspection mode appends the pass (:func:`inspection_pass`).
     """
     camera = camera or CameraSettings()
     n_print = int(print_duration_s)
@@ -249,7 +256,7 @@ def plan_job_print(job, print_duration_s: int, camera: CameraSettings | None = N
             )
         run = job
     else:
-        run = job.repeat(float(n_print))
+        run = job.repeat(float(n_print), pitch_mm=pitch_mm)
     t = np.arange(n_print, dtype=float)
     state = run.state_at(t)
     shutter = state.shutter_open.astype(float)
@@ -271,7 +278,13 @@ def plan_job_print(job, print_duration_s: int, camera: CameraSettings | None = N
         speed = np.concatenate([speed, np.full(n_pass, camera.inspection_speed_mm_s)])
         printed_at = np.concatenate([printed_at, pass_at])
         at_speed = np.concatenate([at_speed, pass_speed])
-    return JobPlan(run, camera, n_print, shutter, speed, printed_at, at_speed)
+    return JobPlan(
+        run, camera, n_print, shutter, speed, printed_at, at_speed, pitch_mm=_pitch(pitch_mm)
+    )
+
+
+def _pitch(pitch_mm) -> tuple | None:
+    return None if pitch_mm is None else tuple(float(v) for v in pitch_mm)
 
 
 # --------------------------------------------------------------------------- #
@@ -465,6 +478,8 @@ def job_meta(plan: JobPlan, law: dict, n_rows: int) -> dict:
     """The metadata a job print adds to (or replaces in) a virtual print's."""
     job_info = dict(plan.program_meta)
     job_info["repeat_to_s"] = float(plan.n_print)
+    if plan.pitch_mm is not None:  # runs side by side: where each sits follows from the pitch
+        job_info["repeat_pitch_mm"] = list(plan.pitch_mm)
     process = job_info.get("process_speed_mm_s")
     return {
         "job": job_info,
@@ -519,6 +534,7 @@ def run_job_print(
     camera: CameraSettings | None = None,
     process_speed_mm_s: float | None = None,
     rapid_speed_mm_s: float | None = None,
+    repeat_pitch_mm=None,
 ) -> JobPrint:
     """Print a job on the virtual printer; see :func:`simulate_job` for the parameters."""
 
@@ -526,7 +542,7 @@ def run_job_print(
     camera = camera or CameraSettings()
     base = load_scenario(scenario, overrides)
     print_s = base.duration_s if duration_min is None else int(round(duration_min * 60.0))
-    plan = plan_job_print(job, print_s, camera)
+    plan = plan_job_print(job, print_s, camera, repeat_pitch_mm)
     plan.program_meta = program_meta(job, path)
     # the machine runs on through the inspection pass, inputs held at their last set-points
     virtual = run_virtual_print(
@@ -594,6 +610,10 @@ def simulate_job(program, scenario="exp1", seed: int = 0, **kwargs) -> PrintReco
         Mode and offset of the alignment camera (default ``data/virtual_camera.toml``).
     process_speed_mm_s, rapid_speed_mm_s : float, optional
         The GUI's speeds for a program that does not set its own.
+    repeat_pitch_mm : (float, float), optional
+        Loop the job as an array of parts side by side at this pitch [mm] (a lab's practice;
+        an inspection pass then sees every run), recorded as ``job.repeat_pitch_mm``;
+        default: each run prints over the last.
 
     Returns
     -------

@@ -126,6 +126,7 @@ class SteppedPrinter:
         truth="model",
         job=None,
         camera=None,
+        repeat_pitch_mm=None,
     ):
         if truth not in ("model", "alt"):
             raise ValueError(f"truth generator {truth!r}: choose 'model' or 'alt'")
@@ -137,7 +138,7 @@ class SteppedPrinter:
             raise ValueError(f"seed = {seed!r} must be a non-negative integer")
         self.plan = None
         if job is not None:
-            scenario = self._plan_job(job, scenario, camera, int(seed))
+            scenario = self._plan_job(job, scenario, camera, int(seed), repeat_pitch_mm)
         self.scenario = scenario
         self.seed = int(seed)
         self.params = load_parameters()
@@ -167,12 +168,13 @@ class SteppedPrinter:
             )
             self._substeps = int(self._alt["measurement"]["substeps"])
 
-    def _plan_job(self, job, scenario, camera, seed: int):
-        """Plan the job print (the scenario's duration = the print) and extend the scenario
-        over an inspection pass; returns the scenario to run."""
+    def _plan_job(self, job, scenario, camera, seed: int, pitch_mm=None):
+        """Plan the job print (the scenario's duration = the print; runs side by side at
+        ``pitch_mm`` when given) and extend the scenario over an inspection pass; returns the
+        scenario to run."""
 
         the_job, path = read_job(job)
-        self.plan = plan_job_print(the_job, scenario.duration_s, camera)
+        self.plan = plan_job_print(the_job, scenario.duration_s, camera, pitch_mm)
         self.plan.program_meta = program_meta(the_job, path)
         scenario = scenario.with_duration(self.plan.n_rows / 60.0)
         self.line_speed_law = truth_line_speed(scenario, seed, self.truth)

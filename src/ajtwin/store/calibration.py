@@ -154,6 +154,17 @@ def active_calibration(registry, machine: str) -> dict | None:
     return None if row is None else _calibration_row(row)
 
 
+def calibration_by_id(registry, calibration_id: int) -> dict | None:
+    """The calibration row ``calibration_id`` (as :func:`active_calibration` gives it), or
+    None when there is none (a print names the calibration it ran with)."""
+    if not _has_tables(registry):
+        return None
+    row = registry._conn.execute(
+        "SELECT * FROM calibrations WHERE id = ?", (int(calibration_id),)
+    ).fetchone()
+    return None if row is None else _calibration_row(row)
+
+
 def calibration_history(registry, machine: str) -> pd.DataFrame:
     """One row per commissioning (oldest first): date, source, parameters, std errors."""
     machine_id = registry.machine(machine)["id"]

@@ -68,6 +68,7 @@ import sqlite3
 import stat
 import time
 import unicodedata
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -290,6 +291,20 @@ def _migrate_to_5(conn):
             )
 
 
+#: The job a print ran (``ajtwin ingest --job``): the machine program's bytes (zlib), its
+#: file name and SHA-256, and how the print ran it (speeds, looping, the part's tolerance) as
+#: JSON. One row per print at most. Never edit: add a migration.
+_PRINT_JOB_SCHEMA = """
+CREATE TABLE IF NOT EXISTS print_jobs (
+    print_id INTEGER PRIMARY KEY REFERENCES prints(id),
+    program TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    program_blob BLOB NOT NULL,
+    settings_json TEXT NOT NULL
+)
+"""
+
+
 #: A print's per-second arrays written while the print runs (a long ingest, a live print):
 #: parts of consecutive steps, each encoded as ``print_arrays`` are (ajtwin.store.arrays).
 #: Until the print is stored they belong to a draft (``print_id`` = −draft id: no foreign
@@ -317,6 +332,11 @@ CREATE TABLE IF NOT EXISTS print_array_parts (
 
 
 def _migrate_to_6(conn):
+    """The job a print ran (``print_jobs``); older prints have none (no row)."""
+    _execute_all(conn, _PRINT_JOB_SCHEMA)
+
+
+def _migrate_to_7(conn):
     """Print arrays written in parts while a print runs (array_drafts, print_array_parts)."""
     _execute_all(conn, _PARTS_SCHEMA)
 
@@ -327,14 +347,15 @@ MIGRATIONS: list[tuple[int, str, object]] = [
     (3, "live twin sessions: live_sessions, live_samples, live_states, live_events", _migrate_to_3),
     (4, "per-machine calibrations and maintenance events", _migrate_to_4),
     (5, "the detectors' long-run noise statistics per print and calibration", _migrate_to_5),
-    (6, "print arrays written in parts while a print runs", _migrate_to_6),
+    (6, "the job (machine program) each print ran: print_jobs", _migrate_to_6),
+    (7, "print arrays written in parts while a print runs", _migrate_to_7),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
 #: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
 #: Copied in this order, each in its ``id`` order (the newest calibration stays active).
 MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
-PRINT_TABLES = ["print_arrays", "print_array_parts", "anomalies"]
+PRINT_TABLES = ["print_arrays", "print_array_parts", "anomalies", "print_jobs"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
 #: ``print_id`` renumbered, by :func:`ajtwin.store.archive.copy_machine`.
@@ -936,14 +957,15 @@ class Registry:
             raise self._damaged(row, "long_run_json", exc) from None
 
     def history(self, name: str) -> pd.DataFrame:
-        """One row per print: seq, id, time, duration, source, status, end states, θ,
-        anomaly count."""
+        """One row per print: seq, id, time, duration, source, the program it ran ("" when
+        stored without a job), status, end states, θ, anomaly count."""
         machine = self.machine(name)
         rows = self._conn.execute(
             "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json, p.status,"
-            " p.status_reason, p.end_mean, p.theta_after,"
+            " p.status_reason, p.end_mean, p.theta_after, j.program,"
             " (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
-            " FROM prints p WHERE machine_id = ? ORDER BY seq",
+            " FROM prints p LEFT JOIN print_jobs j ON j.print_id = p.id"
+            " WHERE machine_id = ? ORDER BY seq",
             (machine["id"],),
         ).fetchall()
         records = []
@@ -956,6 +978,7 @@ class Registry:
                 "source": p["source"],
                 "duration_min": p["duration_s"] / 60.0,
                 "scenario": p["meta"].get("scenario") if isinstance(p["meta"], dict) else None,
+                "program": row["program"] or "",
                 "anomalies": int(row["n_anomalies"]),
                 "status": p["status"],
                 "status_reason": p["status_reason"],
@@ -1021,12 +1044,17 @@ class Registry:
         keep_live_steps: bool = False,
         long_run_history: dict | None = None,
         draft: int | None = None,
+        job: dict | None = None,
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
         ``draft``: the print's per-step arrays were written in parts as it ran
         (:meth:`open_draft`, :meth:`append_draft`); they become this print's in the same
         transaction (``arrays`` then holds the rest: the θ history).
+
+        ``job``: the machine program the print ran, kept with it (``print_jobs``):
+        ``program`` (file name), ``program_bytes`` (the file's bytes) and ``settings`` (a
+        JSON-ready dict: speeds used, looping, tolerance); read back by :meth:`print_job`.
 
         ``long_run_history``: the detectors' long-run statistics at the print's end
         (:meth:`ajtwin.apps.detection.streaming.AnomalyDetector.long_run_history`), read back by
@@ -1098,6 +1126,8 @@ class Registry:
             print_id = self._insert_print(row, encoded, anomalies)
             if draft is not None:
                 self._adopt_draft(draft, print_id)
+            if job is not None:
+                self._insert_job(print_id, job)
             dropped = 0
             if live_session is not None:
                 dropped = self._end_live_session(live_session, print_id, keep_live_steps)
@@ -1151,6 +1181,49 @@ class Registry:
         self._conn.execute(
             "UPDATE print_array_parts SET print_id = ? WHERE print_id = ?", (print_id, -int(draft))
         )
+
+    def _insert_job(self, print_id: int, job: dict) -> None:
+        """Inside save_print's transaction: the job the print ran (compressed program)."""
+        raw = bytes(job["program_bytes"])
+        self._conn.execute(
+            "INSERT INTO print_jobs (print_id, program, sha256, program_blob, settings_json) "
+            "VALUES (?, ?, ?, ?, ?)",
+            (
+                print_id,
+                str(job["program"]),
+                hashlib.sha256(raw).hexdigest(),
+                zlib.compress(raw, 9),
+                json.dumps(job.get("settings") or {}, default=str),
+            ),
+        )
+
+    def print_job(self, print_id: int) -> dict | None:
+        """The job print ``print_id`` ran (None: it was stored without one): ``program``
+        (file name), ``sha256``, ``program_bytes`` (checked against the SHA-256) and
+        ``settings``. A damaged row is a RegistryError naming the print."""
+        row = self._conn.execute(
+            "SELECT p.seq, j.* FROM print_jobs j JOIN prints p ON p.id = j.print_id "
+            "WHERE j.print_id = ?",
+            (int(print_id),),
+        ).fetchone()
+        if row is None:
+            return None
+        try:
+            raw = zlib.decompress(row["program_blob"])
+            if hashlib.sha256(raw).hexdigest() != row["sha256"]:
+                raise ValueError("the program's SHA-256 does not match the stored one")
+            settings = json.loads(row["settings_json"])
+        except (zlib.error, ValueError, TypeError) as exc:
+            raise RegistryError(
+                f"{self.path}: registry damaged at print {row['seq']} (id {print_id}), "
+                f"its job: {exc}"
+            ) from None
+        return {
+            "program": row["program"],
+            "sha256": row["sha256"],
+            "program_bytes": raw,
+            "settings": settings,
+        }
 
     def _end_live_session(self, session_id: int, print_id: int, keep_steps: bool) -> int:
         """Inside save_print's transaction: close the open live session with its print;

@@ -6,6 +6,11 @@
 * :mod:`ajtwin.vision.render` — realistic frames, videos (+ ground truth) and CNN columns.
 * :mod:`ajtwin.vision.extract` — the paper's Canny -> Hough -> rotate -> batch algorithm.
 * :mod:`ajtwin.vision.join` — frame times -> print time, filling a print record.
+* :mod:`ajtwin.vision.camera` — the camera's geometry over a part (camera.toml).
+* :mod:`ajtwin.vision.part_render` — a part under the camera, rendered from a job print.
+* :mod:`ajtwin.vision.part_extract` — program-guided readings across every trace of a part;
+  :mod:`ajtwin.vision.part_video` runs it over a video.
+* :mod:`ajtwin.vision.calibrate` — the camera's geometry fitted to frames of known strokes.
 
 Submodules are imported lazily so ``import ajtwin.vision`` stays cheap (no OpenCV).
 """

@@ -51,6 +51,8 @@ HOUGH_THETA_RAD = np.pi / 720  # 0.25°
 PARALLEL_TOLERANCE_DEG = 2.0
 DOWNSCALE_ABOVE_PX = 800
 LINE_FILLS_FRAME = "line_fills_frame"
+STEEP_LINE = "steep_line"  # the strongest line is beyond ±45° of the image's horizontal
+MAX_LINE_ANGLE_DEG = 45.0  # the documented range of the paper's algorithm here
 TRACK_WINDOW_DEG = 3.0
 MIN_LINE_CONTRAST = 0.08  # a line's dark streak is at least this much below the substrate
 
@@ -171,10 +173,12 @@ class LineExtractor:
     def line_angle(self, small: np.ndarray, contrast: float | None = None) -> float | None:
         """Angle (degrees, counter-clockwise on screen) of the strongest straight line.
 
-        Canny on the (coarse) frame, then the standard Hough transform over normals within
-        45° of vertical, i.e. lines within 45° of horizontal.  In a video the search is first
-        limited to ±3° around the previous frame's angle (30x fewer Hough bins; the full
-        range is searched when that finds nothing).  Returns ``None`` without a line.
+        Canny on the (coarse) frame, then the standard Hough transform over all directions
+        (the caller refuses lines beyond ±45° of horizontal: searching only within ±45°
+        would take the edge of a steeper line at the range's end for a line at 45°).  In a
+        video the search is first limited to ±3° around the previous frame's angle (30x
+        fewer Hough bins; the full range is searched when that finds nothing).  Returns
+        ``None`` without a line; the angle is in (-90°, 90°].
         """
         blurred = cv2.GaussianBlur(small, (5, 5), 1.0)
         if contrast is None:
@@ -185,10 +189,11 @@ class LineExtractor:
         votes = max(15, int(0.3 * small.shape[1]))
         # (theta range, lowest vote count tried): the tracked window must find the line at
         # full strength, or a weaker spurious line inside it would be taken
-        ranges = [(np.pi / 4, 3 * np.pi / 4, 15)]
+        ranges = [(0.0, np.pi, 15)]
         if self.track and self._last_theta is not None:
             window = np.deg2rad(TRACK_WINDOW_DEG)
-            ranges.insert(0, (self._last_theta - window, self._last_theta + window, votes))
+            low, high = max(0.0, self._last_theta - window), min(np.pi, self._last_theta + window)
+            ranges.insert(0, (low, high, votes))
         lines = None
         for theta_min, theta_max, lowest in ranges:
             level = votes
@@ -204,10 +209,14 @@ class LineExtractor:
             return None
         self._last_theta = float(lines[0, 0, 1])
         theta = lines[:10, 0, 1]
+        # a near-vertical line's normal wraps from 180° to 0°: bring its parallels along
+        theta = np.where(theta - theta[0] > np.pi / 2, theta - np.pi, theta)
+        theta = np.where(theta[0] - theta > np.pi / 2, theta + np.pi, theta)
         near = np.abs(theta - theta[0]) <= np.deg2rad(PARALLEL_TOLERANCE_DEG)
         # HoughLines' theta is the angle of the normal (x axis -> y axis, y pointing down);
         # a horizontal line has theta = 90°, and a line rising to the right has theta < 90°
-        return float(90.0 - np.rad2deg(theta[near].mean()))
+        angle = float(90.0 - np.rad2deg(theta[near].mean()))
+        return angle - 180.0 if angle > 90.0 else angle + 180.0 if angle <= -90.0 else angle
 
     @staticmethod
     def rotation_matrix(shape, angle_deg: float) -> np.ndarray:
@@ -261,6 +270,9 @@ class LineExtractor:
             result.status = F.NO_LINE
             return result
         result.angle_deg = angle
+        if abs(angle) > MAX_LINE_ANGLE_DEG:
+            result.status = STEEP_LINE
+            return result
         n_batches = width // self.batch
 
         # coarse pass: line position, extent and background on the rotated small copy

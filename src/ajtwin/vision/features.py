@@ -364,6 +364,7 @@ def find_edges_batches(
     noise: np.ndarray | float = 0.0,
     lookahead: int = LOOKAHEAD_SAMPLES,
     hold: int = HOLD_SAMPLES,
+    center: np.ndarray | None = None,
 ) -> BatchEdges:
     """:func:`find_edges` for every column of ``mean`` at once (NumPy-vectorised).
 
@@ -380,6 +381,8 @@ def find_edges_batches(
     threshold : float
     noise : float or (B,) array
         Noise sigma of each column of ``mean``.
+    center : (B,) array, optional
+        Row index of each column's line centre (i); by default the dark-band centroid.
     """
     mean = np.asarray(mean, dtype=float)
     n_rows, n_cols = mean.shape
@@ -388,9 +391,11 @@ def find_edges_batches(
     rows = np.arange(n_rows, dtype=float)[:, None]
     contrast = background - mean
     peak = contrast.max(axis=0)
-    weight = np.where(contrast > 0.5 * peak, contrast, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        center = (rows * weight).sum(axis=0) / weight.sum(axis=0)
+    if center is None:
+        weight = np.where(contrast > 0.5 * peak, contrast, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            center = (rows * weight).sum(axis=0) / weight.sum(axis=0)
+    center = np.asarray(center, dtype=float)
     valid = (peak > 0) & np.isfinite(center) & (center >= 1) & (center <= n_rows - 2)
     ci = np.where(valid, np.rint(np.nan_to_num(center)), 1).astype(np.int64)
     left_min = np.argmin(np.where(rows <= ci, mean, np.inf), axis=0)

@@ -231,19 +231,42 @@ def _warp_positions(d_um: np.ndarray, half, ends, shifts_um: np.ndarray) -> np.n
     """
     out = np.empty((shifts_um.shape[1], d_um.size))
     for side, sign in ((0, -1.0), (1, 1.0)):
-        w, e = half[side], ends[side]
-        a = shifts_um[side][:, None]
-        b = shifts_um[2 + side][:, None]
-        u = sign * d_um[None, :]
-        w_new = np.maximum(w + a, 0.25 * w)
-        e_new = np.maximum(e + b, w_new + 0.25 * (e - w))
-        inner = u * (w / w_new)
-        outer = w + (u - w_new) * ((e - w) / (e_new - w_new))
-        beyond = e + (u - e_new)
-        mapped = np.where(u <= w_new, inner, np.where(u <= e_new, outer, beyond))
+        mapped, _ = warp_side(
+            sign * d_um[None, :],
+            half[side],
+            ends[side],
+            shifts_um[side][:, None],
+            shifts_um[2 + side][:, None],
+        )
         mask = (d_um >= 0) if side == 1 else (d_um < 0)
         out[:, mask] = sign * mapped[:, mask]
     return out
+
+
+def warp_side(u, w, e, a, b):
+    """One side of the raggedness warp, elementwise (arrays broadcast).
+
+    A displayed distance ``u >= 0`` from the line centre maps to the profile distance that
+    is drawn there when the shoulder at ``w`` moves by ``a`` and the outer end at ``e`` by
+    ``b`` (piecewise linear: centre fixed, shoulder ``w -> w + a``, end ``e -> e + b``).
+
+    Returns
+    -------
+    mapped : array
+        Profile distance, µm.
+    stretch : array
+        d(mapped)/du: the factor the profile's slope is multiplied by where it is drawn.
+    """
+    w_new = np.maximum(w + a, 0.25 * w)
+    e_new = np.maximum(e + b, w_new + 0.25 * (e - w))
+    inner_gain = w / w_new
+    outer_gain = (e - w) / (e_new - w_new)
+    inner = u * inner_gain
+    outer = w + (u - w_new) * outer_gain
+    beyond = e + (u - e_new)
+    mapped = np.where(u <= w_new, inner, np.where(u <= e_new, outer, beyond))
+    stretch = np.where(u <= w_new, inner_gain, np.where(u <= e_new, outer_gain, 1.0))
+    return mapped, stretch
 
 
 def render_frame(
@@ -343,7 +366,15 @@ def render_frame(
         borderMode=cv2.BORDER_WRAP,
     )
 
-    # --- optics and sensor ---
+    return sensor_image(line, texture, illumination, settings, rng)
+
+
+def sensor_image(line, texture, illumination, settings: RenderSettings, rng) -> np.ndarray:
+    """Optics and sensor: relative brightness -> 8-bit frame.
+
+    ``background_gray x illumination x (1 + texture) x line``, then the Gaussian blur of the
+    optics, read and shot noise, and 8-bit quantisation.
+    """
     image = settings.background_gray * illumination * (1.0 + texture) * line
     if settings.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), settings.blur_sigma_px)

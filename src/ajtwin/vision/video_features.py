@@ -53,6 +53,10 @@ STATUS_HINTS = {
     "dark_frame": "frames are (nearly) black — lens cap, lighting or exposure?",
     "blank_frame": "frames are featureless — nothing in focus?",
     "no_line": "no straight line found (Canny/Hough); lines must lie within 45° of horizontal",
+    "steep_line": (
+        "the line is steeper than 45° from the image's horizontal, beyond what the paper's "
+        "algorithm reads: rotate the video, or give --job and --camera (lines at any angle)"
+    ),
     "line_fills_frame": (
         "the line leaves no substrate background in the frame — the line is wider than the "
         "frame can show; check --um-per-px and the field of view"

@@ -8,6 +8,9 @@ Routes
 ``GET /api/fleet``                   fleet summaries (JSON)
 ``GET /api/machine/{name}``          machine, print history, alarms, live buffer
 ``GET /api/machine/{name}/print/{seq}``   one print's series for the plots
+``GET /api/machine/{name}/print/{seq}/part``   the part map of a stored print with a job
+                                     (``?tolerance=45±3`` instead of the stored one)
+``GET /api/machine/{name}/part/live``     the part map of the live print so far
 ``POST /api/machine/{name}/forecast``     what-if (same function as ``ajtwin forecast``)
 ``POST /api/machine/{name}/advise``       advice (same function as ``ajtwin advise``)
 ``WS  /ws``                          pushed events: live samples, committed prints
@@ -49,6 +52,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.planning.advice import advise
 from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, parse_duration
+from ajtwin.engine.part_map import parse_tolerance
 from ajtwin.store.registry import RegistryError
 from ajtwin.web import pages
 from ajtwin.web.data import KEY_STATES, NAMES, STATE_UNITS, RegistryView, json_list
@@ -467,11 +471,29 @@ def _add_machine_routes(app: FastAPI, view: RegistryView, publisher: LivePublish
         }
         out["link"] = publisher.link(name)
         out["status"] = _status(out, publisher)
+        out["live_part"] = publisher.part_snapshot(name) is not None
         return out
 
     @app.get("/api/machine/{name}/print/{seq}")
     def api_print(name: str, seq: int):
         return view.print_series(name, seq)
+
+    @app.get("/api/machine/{name}/print/{seq}/part")
+    async def api_print_part(name: str, seq: int, tolerance: str | None = None):
+        tol = None
+        if tolerance not in (None, ""):
+            try:
+                tol = parse_tolerance(tolerance)
+            except ValueError as exc:
+                raise InputError(str(exc)) from None
+        return await asyncio.to_thread(view.part_map, name, seq, tol)
+
+    @app.get("/api/machine/{name}/part/live")
+    def api_live_part(name: str):
+        part = publisher.part_snapshot(name)
+        if part is None:
+            return JSONResponse({"error": f"no live part map of {name!r}"}, status_code=404)
+        return part
 
 
 async def json_body(request: Request):

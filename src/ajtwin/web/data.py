@@ -39,6 +39,8 @@ from ajtwin.apps.detection.batch import detect_anomalies
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
 from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
+from ajtwin.engine.part_live import part_payload
+from ajtwin.engine.print_job import load_stored_print, map_stored_print
 from ajtwin.engine.start import machine_twin
 from ajtwin.io.records import read_record
 from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
@@ -58,6 +60,8 @@ MAX_POINTS = 1500
 SPARK_POINTS = 60
 #: prints whose plot series are kept in memory (a page per viewer asks for the same print)
 SERIES_CACHE = 16
+#: part maps of stored prints kept in memory (each took a re-run of the twin)
+PART_CACHE = 4
 
 NAMES = {
     "states": list(STATE_SYMBOLS),
@@ -183,6 +187,7 @@ class RegistryView:
         self._lock = threading.Lock()
         self._truth_cache: dict[int, np.ndarray | None] = {}
         self._series_cache: dict[tuple, dict] = {}
+        self._part_cache: dict[tuple, dict] = {}
 
     def close(self):
         """Close the registry connection."""
@@ -283,6 +288,8 @@ class RegistryView:
                         # in the chain ("ok") or kept for history only (excluded/dropped)
                         "status": rec.get("status", "ok"),
                         "status_reason": rec.get("status_reason", ""),
+                        # the program the print ran ("" when stored without its job)
+                        "program": rec.get("program", ""),
                     }
                 )
             optional = care_fields(self.registry, machine["name"])
@@ -395,6 +402,22 @@ class RegistryView:
             self._series_cache.pop(next(iter(self._series_cache)))
         self._series_cache[key] = out
         return out
+
+    def part_map(self, name: str, seq: int, tolerance=None) -> dict:
+        """The part map of a stored print as the page draws it
+        (:func:`ajtwin.engine.part_live.part_payload`): read under the lock, mapped (the
+        twin re-run, seconds to a minute) outside it; kept for the next viewer.
+        ``tolerance``: instead of the one stored with the print's job."""
+        key = (name, int(seq), None if tolerance is None else tuple(tolerance))
+        if key in self._part_cache:
+            return self._part_cache[key]
+        with self._lock:
+            stored = load_stored_print(self.registry, name, int(seq))
+        payload = part_payload(map_stored_print(stored, tolerance))
+        if len(self._part_cache) >= PART_CACHE:
+            self._part_cache.pop(next(iter(self._part_cache)))
+        self._part_cache[key] = payload
+        return payload
 
     def forecast_start(self, name: str, nominal_theta: bool = False):
         """(twin with the machine's θ, mean, cov, inputs now, limits, last seq): the start

@@ -30,6 +30,12 @@ A machine link's state (``ajtwin live``: connected, reconnecting since T, …; s
 ``{"type": "link", "machine", "link": {…, "text"}}``; ``text`` (:func:`link_text`) is
 what the pages show.
 
+A live print of a job also has a part map (:mod:`ajtwin.engine.part_live`): its outline
+first (:meth:`LivePublisher.open_part`, event ``{"type": "part_outline", "machine", "part"}``),
+then a chunk per step that finished portions (:meth:`LivePublisher.publish_part`, event
+``{"type": "part", "machine", "chunk"}``); the publisher keeps them so a page opened
+mid-print gets the map so far (:meth:`LivePublisher.part_snapshot`).
+
 The publisher stamps ``published_at`` (Unix time, s) on each event so a page (same
 machine clock) can measure how long delivery took.
 
@@ -243,6 +249,7 @@ class LivePublisher:
         self._last_seen: dict[str, float] = {}
         self._ended: set[str] = set()
         self._links: dict[str, dict] = {}
+        self._parts: dict[str, dict] = {}
 
     # ------------------------------------------------------------------ publishing
     def publish(self, sample: dict) -> None:
@@ -287,6 +294,52 @@ class LivePublisher:
         self._broadcast(
             {"type": "link", "machine": machine, "link": link, "published_at": time.time()}
         )
+
+    def open_part(self, machine: str, part: dict) -> None:
+        """The part map of the machine's live print starts: its outline and tolerance
+        (:meth:`ajtwin.engine.part_live.LivePartMap.header`); the previous map is dropped."""
+        if not isinstance(part, dict):
+            raise ValueError(f"a part map is a dict, got {type(part).__name__}")
+        part = _clean({**part, "portions": None, "points": None, "alarms": []})
+        with self._lock:
+            self._parts[machine] = part
+        self._broadcast(
+            {"type": "part_outline", "machine": machine, "part": part, "published_at": time.time()}
+        )
+
+    def publish_part(self, machine: str, chunk: dict) -> None:
+        """Portions of the live part map that just finished (and alarms placed on the part,
+        or a new outline when the job was looped further); kept and pushed to pages."""
+        if not isinstance(chunk, dict):
+            raise ValueError(f"a part chunk is a dict, got {type(chunk).__name__}")
+        chunk = _clean(chunk)
+        with self._lock:
+            part = self._parts.setdefault(machine, {"portions": None, "points": None, "alarms": []})
+            if isinstance(chunk.get("outline"), dict):
+                part.update({k: v for k, v in chunk["outline"].items()})
+            for key in ("portions", "points"):
+                if isinstance(chunk.get(key), dict):
+                    if part.get(key) is None:
+                        part[key] = {k: list(v) for k, v in chunk[key].items()}
+                    else:
+                        for k, v in chunk[key].items():
+                            part[key].setdefault(k, []).extend(v)
+            if isinstance(chunk.get("alarms"), list):
+                part.setdefault("alarms", []).extend(chunk["alarms"])
+        self._broadcast(
+            {"type": "part", "machine": machine, "chunk": chunk, "published_at": time.time()}
+        )
+
+    def part_snapshot(self, machine: str) -> dict | None:
+        """The live part map of the machine so far (None: its live print has no job)."""
+        with self._lock:
+            part = self._parts.get(machine)
+            if part is None:
+                return None
+            return {
+                k: ({kk: list(vv) for kk, vv in v.items()} if isinstance(v, dict) else v)
+                for k, v in part.items()
+            }
 
     def link(self, machine: str) -> dict | None:
         """The last link state of ``machine`` (None: no live link reported)."""

@@ -124,11 +124,16 @@ def detect_anomalies(
 def detect_run(
     run, record, settings: DetectorSettings | None = None, long_run_history: dict | None = None
 ) -> DetectionResult:
-    """:func:`detect_anomalies` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+    """:func:`detect_anomalies` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record.
+
+    The measurements are those the filter used (``run.measurements``: on a job print the
+    camera's filed at their print times), else the record's outputs.
+    """
     f = run.filtered
+    measured = getattr(run, "measurements", None)
     return detect_anomalies(
         run.time_s,
-        record.outputs,
+        record.outputs if measured is None else measured,
         np.asarray(f.predicted_outputs),
         np.asarray(f.innovation_variances),
         np.asarray(f.nis),

@@ -156,7 +156,7 @@ def assess(
     learned = None
     if level_learned_s is not None:
         learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
-    _output_bias_findings(found, _output_bias(t, e, g, learned), n_measured, g)
+    _output_bias_findings(found, _output_bias(t, e, g, learned), np.isfinite(e), g)
     _nis_findings(found, nis, n_measured, g)
     start_only = set()
     if start_mean is not None and start_cov is not None:
@@ -260,15 +260,17 @@ def _measured_seconds(n_measured, window: int) -> np.ndarray:
     return _rolling_mean(measured, window) * np.minimum(np.arange(1, measured.size + 1), window)
 
 
-def _output_bias_findings(found: _Findings, bias: np.ndarray, n_measured, g: dict) -> None:
+def _output_bias_findings(found: _Findings, bias: np.ndarray, measured, g: dict) -> None:
     """An output persistently above or below the model (a full window of evidence, or the
-    print so far after its own minimum); seconds where nothing was measured (a logger gap
-    the twin predicts through) are no evidence."""
+    print so far after its own minimum); seconds where the output was not measured (a logger
+    gap the twin predicts through, a job print's seconds with no trace under the camera or
+    its inspection pass) are no evidence for it."""
     min_evidence = float(g.get("bias_min_evidence_s", g["warmup_s"]))
-    evidence = (found.t >= min_evidence) & (
-        _measured_seconds(n_measured, int(g["bias_window_s"])) >= min_evidence
-    )
+    window = int(g["bias_window_s"])
     for j, name in enumerate(OUTPUT_NAMES):
+        evidence = (found.t >= min_evidence) & (
+            _measured_seconds(measured[:, j], window) >= min_evidence
+        )
         found.add(
             evidence & (np.abs(np.nan_to_num(bias[:, j])) > float(g["bias_sigma"])),
             "output",
@@ -366,11 +368,15 @@ def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
 
 
 def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
-    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record."""
+    """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record (the
+    measurements the filter used: on a job print, filed at their print times)."""
 
     f = run.filtered
+    measured = getattr(run, "measurements", None)
     e = normalised_innovations(
-        record.outputs, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
+        record.outputs if measured is None else measured,
+        np.asarray(f.predicted_outputs),
+        np.asarray(f.innovation_variances),
     )
     return assess(
         run.time_s,

@@ -169,11 +169,18 @@ def range_warnings(fc) -> list[str]:
 WANDER_KEY = "forecast_aerosol_wander_per_sqrt_h"
 
 
-def _output_moments(spec, m, p, u):
-    """The outputs at state m and their variances diag(G P Gᵀ), G = ∂g/∂x (first order)."""
+def output_moments(spec, m, p, u, platen_speed_mm_s=None):
+    """The outputs at state m and their variances diag(G P Gᵀ), G = ∂g/∂x (first order).
+
+    The forecast's bands; the part map's line along a stroke uses the same function with
+    the platen speed ν [mm/s] of the stroke (``None``: the line at ν_ref, model reference
+    §12).
+    """
 
     def g(x):
-        return output_function(x, u, spec.params, spec.coefficients)
+        return output_function(
+            x, u, spec.params, spec.coefficients, platen_speed_mm_s=platen_speed_mm_s
+        )
 
     jac = jax.jacfwd(g)(m)
     return g(m), jnp.einsum("ij,jk,ik->i", jac, p, jac)
@@ -184,7 +191,7 @@ def _forecast_scan(spec, mean, cov, inputs, theta, process_cov, functions=None):
     def body(carry, u):
         m, p = carry
         m, p = predict(spec, m, p, u, theta, process_cov, functions)
-        y, var = _output_moments(spec, m, p, u)
+        y, var = output_moments(spec, m, p, u)
         return (m, p), (m, jnp.diagonal(p), y, var)
 
     _, out = jax.lax.scan(body, (mean, cov), inputs)
@@ -226,7 +233,7 @@ def _forecast_scan_level_walk(spec, mean, cov, inputs, theta, process_cov, level
         p = a @ p @ a.T + q
         m = f_scaled(z, 0.0, u) * s
         px = p[:5, :5] * jnp.outer(s, s)
-        y, var = _output_moments(spec, m, px, u)
+        y, var = output_moments(spec, m, px, u)
         return (m, p), (m, jnp.diagonal(px), y, var)
 
     p0 = jnp.zeros((6, 6)).at[:5, :5].set(cov / jnp.outer(s, s))

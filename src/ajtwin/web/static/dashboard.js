@@ -201,10 +201,163 @@ function alarmShapes(alarms, existing) {
   return shapes;
 }
 
+
+// ---------------------------------------------------------------- part map (machine page)
+// The part drawn from the machine's program: printed portions coloured by L_w − target
+// (diverging scale, µm), flagged portions outlined in black, alarms marked where the
+// nozzle was. A live print's map fills in from "part" events; a stored print's is asked
+// for once (the server re-runs the twin over it).
+function partMap(name) {
+  const div = document.getElementById("plot-part");
+  const status = document.getElementById("part-status");
+  let data = null, current = null, timer = null;
+  A.part = { portions: 0, flagged: 0, draws: 0, kind: null };
+
+  function say(text) { status.textContent = text || ""; }
+  function target() {
+    if (data.target_um != null) return data.target_um;
+    const lw = (data.portions ? data.portions.lw_mean_um : []).filter((v) => v !== null).sort((a, b) => a - b);
+    return lw.length ? lw[Math.floor(lw.length / 2)] : 0;
+  }
+  function traces() {
+    const out = [{
+      type: "scattergl", mode: "lines", x: data.outline.x, y: data.outline.y, name: "part (program)",
+      line: { color: "#c8c8c8", width: 1 }, hoverinfo: "skip",
+    }];
+    const P = data.portions, Q = data.points;
+    if (P && Q && Q.portion.length) {
+      const t = target(), first = P.index[0];
+      const at = (i) => i - first;  // portions are numbered on from the first one held
+      const dev = Q.portion.map((i) => (P.lw_mean_um[at(i)] === null ? null : P.lw_mean_um[at(i)] - t));
+      const half = data.tolerance_um ? (data.tolerance_um[1] - data.tolerance_um[0]) / 2 : 1;
+      const big = dev.filter((v) => v !== null).map(Math.abs).sort((a, b) => a - b);
+      const lim = Math.max(1.5 * half, big.length ? big[Math.floor(0.99 * (big.length - 1))] : 1);
+      const fx = [], fy = [];
+      let last = null;
+      Q.portion.forEach((i, k) => {
+        if (!P.flagged[at(i)]) return;
+        if (last !== null && last !== i) { fx.push(null); fy.push(null); }
+        fx.push(Q.x[k]); fy.push(Q.y[k]); last = i;
+      });
+      out.push({
+        type: "scattergl", mode: "lines", x: fx, y: fy, name: "flagged (P(out) ≥ " + fmt(data.flag_probability, 2) + ")",
+        line: { color: "#000", width: 5 }, hoverinfo: "skip",
+      });
+      out.push({
+        type: "scattergl", mode: "markers", x: Q.x, y: Q.y, name: "printed: L_w − target",
+        // plotly's RdBu runs from blue (low) to red (high); flagged points get a black rim
+        marker: { size: 5, color: dev, colorscale: "RdBu", cmin: -lim, cmax: lim,
+                  line: { color: "#000", width: Q.portion.map((i) => (P.flagged[at(i)] ? 1.2 : 0)) },
+                  colorbar: { title: { text: "L_w − target [µm]" }, thickness: 14 } },
+        text: Q.portion.map((i) => "stroke " + P.stroke[at(i)] + " portion " + P.portion[at(i)] +
+          "<br>printed " + fmt(P.printed_from_s[at(i)] / 60, 4) + " min<br>L_w " + fmt(P.lw_mean_um[at(i)], 4) +
+          " µm [" + fmt(P.lw_lo_um[at(i)], 4) + ", " + fmt(P.lw_hi_um[at(i)], 4) + "]<br>P(out) " + fmt(P.p_out[at(i)], 3)),
+        hoverinfo: "text",
+      });
+    }
+    const al = data.alarms || [];
+    if (al.length) {
+      out.push({
+        type: "scatter", mode: "markers+text", x: al.map((a) => a.x), y: al.map((a) => a.y),
+        text: al.map((a) => "A" + a.alarm + " " + a.cause.replace(/_/g, " ")), textposition: "top right",
+        name: "alarm raised (nozzle there)", marker: { symbol: "x", size: 13, color: "#d00000" },
+        textfont: { color: "#900000" },
+      });
+      out.push({
+        type: "scatter", mode: "markers", x: al.map((a) => a.onset_x), y: al.map((a) => a.onset_y),
+        name: "alarm onset", marker: { symbol: "circle-open", size: 12, color: "#d00000", line: { width: 2 } },
+      });
+    }
+    return out;
+  }
+  function renderFlagged() {
+    const tb = document.querySelector("#part-flagged tbody");
+    tb.innerHTML = "";
+    const P = data.portions;
+    if (!P) return;
+    const rows = P.index.map((_, j) => j).filter((j) => P.flagged[j])
+      .sort((a, b) => P.p_out[b] - P.p_out[a]).slice(0, 20);
+    for (const j of rows) {
+      const tr = el("tr");
+      tr.append(el("td", {}, String(P.stroke[j]))); tr.append(el("td", {}, String(P.portion[j])));
+      tr.append(el("td", {}, "run " + (P.repetition[j] + 1)));
+      tr.append(el("td", {}, fmt(P.printed_from_s[j] / 60, 4) + " min"));
+      tr.append(el("td", {}, fmt(P.lw_mean_um[j], 4) + " [" + fmt(P.lw_lo_um[j], 4) + ", " + fmt(P.lw_hi_um[j], 4) + "]"));
+      tr.append(el("td", { class: "cause" }, fmt(P.p_out[j], 3)));
+      tb.append(tr);
+    }
+  }
+  function draw() {
+    timer = null;
+    if (!data) return;
+    const P = data.portions;
+    const n = P ? P.index.length : 0, m = P ? P.flagged.filter(Boolean).length : 0;
+    const tol = data.tolerance_um ? fmt((data.tolerance_um[0] + data.tolerance_um[1]) / 2, 4) + "±" +
+      fmt((data.tolerance_um[1] - data.tolerance_um[0]) / 2, 3) + " µm" : "no tolerance given";
+    document.getElementById("part-title").textContent = "(" + data.program + (current && current.kind === "live" ?
+      ", live" : ", print #" + (current ? current.seq : "")) + "; tolerance " + tol + ")";
+    say(n + " portions printed, " + m + " flagged" + (data.repetitions > 1 ? " · runs of the looped job side by side" : ""));
+    const layout = {
+      margin: { t: 10, r: 10, b: 40, l: 50 }, showlegend: true,
+      legend: { orientation: "h", y: -0.12 }, xaxis: { title: { text: "x [mm]" }, zeroline: false },
+      yaxis: { title: { text: "y [mm]" }, scaleanchor: "x", scaleratio: 1, zeroline: false },
+      uirevision: current ? current.kind + (current.seq || "") : "part",
+    };
+    Plotly.react(div, traces(), layout, PLOT_CONFIG);
+    renderFlagged();
+    A.part = { portions: n, flagged: m, draws: A.part.draws + 1, kind: current && current.kind };
+  }
+  function later() { if (!timer) timer = setTimeout(draw, 400); }
+  function merge(chunk) {
+    if (!data) return;
+    if (chunk.outline) Object.assign(data, chunk.outline);
+    for (const key of ["portions", "points"]) {
+      if (!chunk[key]) continue;
+      if (!data[key]) { data[key] = {}; for (const k of Object.keys(chunk[key])) data[key][k] = []; }
+      for (const [k, v] of Object.entries(chunk[key])) (data[key][k] = data[key][k] || []).push(...v);
+    }
+    if (chunk.alarms) data.alarms = (data.alarms || []).concat(chunk.alarms);
+  }
+  async function showLive() {
+    current = { kind: "live" };
+    try {
+      data = await getJSON("/api/machine/" + encodeURIComponent(name) + "/part/live");
+      draw();
+    } catch (e) { say("no live part map: " + e.message); }
+  }
+  async function showPrint(p) {
+    if (!p.program) {
+      if (!current || current.kind !== "live") {
+        data = null; Plotly.purge(div);
+        say("print #" + p.seq + " was stored without its program (ajtwin ingest --job PROGRAM.prg keeps it)");
+      }
+      return;
+    }
+    current = { kind: "print", seq: p.seq };
+    const tol = document.getElementById("part-tolerance").value.trim();
+    say("mapping print #" + p.seq + " (the twin runs over it once; up to a minute for a long print)…");
+    try {
+      const url = "/api/machine/" + encodeURIComponent(name) + "/print/" + p.seq + "/part" +
+        (tol ? "?tolerance=" + encodeURIComponent(tol) : "");
+      const got = await getJSON(url);
+      if (current.kind === "print" && current.seq === p.seq) { data = got; draw(); }
+    } catch (e) { say("part map of print #" + p.seq + ": " + e.message); }
+  }
+  document.getElementById("part-apply").onclick = () => {
+    if (current && current.kind === "print") showPrint({ seq: current.seq, program: true });
+  };
+  return {
+    showLive, showPrint,
+    onOutline(ev) { current = { kind: "live" }; data = ev.part; draw(); },
+    onChunk(ev) { if (current && current.kind === "live") { merge(ev.chunk); later(); } },
+  };
+}
+
 // ---------------------------------------------------------------- machine page
 function machinePage() {
   const name = document.body.dataset.machine;
   const figs = {};
+  const part = partMap(name);
   let view = null, info = null, queue = [], frame = null;
 
   function showError(msg) {
@@ -302,7 +455,7 @@ function machinePage() {
       tr.append(el("td", {}, fmt(m.live.samples[m.live.samples.length - 1].time_s / 60, 3) + " min"));
       tr.append(el("td", {}, m.live.samples[0].source || "live twin"));
       tr.append(el("td")); tr.append(el("td", {}, String(m.live.alarms.length)));
-      const b = el("button", {}, "show"); b.onclick = () => showLive();
+      const b = el("button", {}, "show"); b.onclick = () => { showLive(); if (info.live_part) part.showLive(); };
       const td = el("td"); td.append(b); tr.append(td); tb.append(tr);
     }
     for (const p of m.prints.slice().reverse()) {
@@ -314,7 +467,7 @@ function machinePage() {
       tr.append(el("td", { class: "dim" }, (p.scenario ? p.scenario + " · " : "") + p.source + kept));
       tr.append(el("td", {}, fmt(p.mean_nis, 3)));
       tr.append(el("td", p.anomalies ? { class: "cause" } : {}, String(p.anomalies)));
-      const b = el("button", {}, "show"); b.onclick = () => loadPrint(p.seq);
+      const b = el("button", {}, "show"); b.onclick = () => { loadPrint(p.seq); part.showPrint(p); };
       const td = el("td"); td.append(b); tr.append(td); tb.append(tr);
     }
   }
@@ -461,6 +614,8 @@ function machinePage() {
     if (live.length && (info.live.printing || !info.prints.length)) showLive();
     else if (info.prints.length) await loadPrint(info.prints[info.prints.length - 1].seq);
     renderHistory(info);
+    if (info.live_part) part.showLive();
+    else if (info.prints.length) part.showPrint(info.prints[info.prints.length - 1]);
   }
 
   connect(name, async (ev) => {
@@ -485,6 +640,10 @@ function machinePage() {
       info = fresh; setStatus(info.status); renderAlarms(info); renderHistory(info);
       A.lastPrintEvent = ev.seq;
       if (!keep || keep.kind !== "live" || !info.live.printing) await loadPrint(ev.seq);
+    } else if (ev.type === "part_outline" && ev.machine === name) {
+      part.onOutline(ev);
+    } else if (ev.type === "part" && ev.machine === name) {
+      part.onChunk(ev);
     } else if (ev.type === "feed_error") {
       showError("live feed stopped: " + ev.message);
     }

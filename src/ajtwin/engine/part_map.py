@@ -1,0 +1,666 @@
+"""The part quality map: which traces of a part are out of tolerance, and how likely.
+
+The twin's smoothed states over a print give the line printed at any time τ and platen
+speed ν (:func:`line_at`, model reference §5, §12):
+
+    L(τ) = g(x̂(τ), u(τ), ν),      σ²(τ) = diag(H P(τ) Hᵀ),   H = ∂g/∂x at x̂(τ),
+
+with x̂(τ), P(τ) the smoothed mean and covariance interpolated linearly between the 1 Hz
+samples around τ (P with the calibration's share and the floor of never-seen states, as
+the twin reports its states), u(τ) the inputs held over that second and g the output
+model with the speed law — the forecast's bands
+(:func:`ajtwin.apps.planning.forecast.output_moments`), evaluated along the strokes.
+
+The job (:mod:`ajtwin.job`) says what was printed when: each stroke is cut into portions of
+at most ``portion_mm`` (:meth:`ajtwin.job.Job.portions`) and each portion sampled along its
+length, points at most ``step_mm`` apart, at the time the nozzle passed there and the
+speed of the segment it was on. Dwells with the shutter open (the public programs wait
+2 ms before each stroke moves) have no length and are not sampled. Rapid moves are not
+strokes.
+
+A portion's **probability of being out of tolerance** is that of its worst point,
+
+    P_out = max_i P(L_w,i ∉ [lo, hi]),   L_w,i ~ N(μ_i, σ_i²),
+
+i.e. Φ((lo − μ_i)/σ_i) + 1 − Φ((hi − μ_i)/σ_i) at the point where it is largest. Why the
+worst point and not the portion's mean: a portion that crosses a limit part-way is out of
+tolerance there, and its mean would hide it. Why that is the probability that the portion
+leaves the tolerance: within a portion (1 mm is 0.5 s at 2 mm/s) the smoothed states move
+far less than their σ, so the points' errors are almost fully correlated, and for fully
+correlated points P(some point out) is exactly the largest single-point probability (in
+general it is a lower bound). A portion is **flagged** when P_out ≥ ``flag_probability``
+(default 0.5: more likely out than in).
+
+:func:`line_at` is the one place the line is evaluated from a batch run; everything else
+(portions, probability, alarms, the report) is geometry and bookkeeping around it.
+
+Examples
+--------
+>>> parse_tolerance("45±3")
+Tolerance(low_um=42.0, high_um=48.0)
+>>> parse_tolerance("42:48").target_um
+45.0
+>>> round(float(out_of_tolerance_probability(48.0, 1.0, Tolerance(42.0, 48.0))), 3)
+0.5
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+from scipy.special import ndtr
+
+from ajtwin._jax import jax
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.planning.forecast import output_moments
+from ajtwin.estimation.twin import Twin
+
+#: The strokes.csv columns, in order (one row a stroke portion).
+PORTION_COLUMNS = (
+    "feature",
+    "stroke",
+    "portion",
+    "repetition",
+    "base_stroke",
+    "from_x_mm",
+    "from_y_mm",
+    "to_x_mm",
+    "to_y_mm",
+    "length_mm",
+    "printed_from_s",
+    "printed_to_s",
+    "speed_mm_s",
+    "lw_mean_um",
+    "lw_lo_um",
+    "lw_hi_um",
+    "lw_sd_um",
+    "lo_mean_um",
+    "lo_lo_um",
+    "lo_hi_um",
+    "p_out",
+    "flagged",
+)
+#: Default longest stroke portion [mm] and spacing of the sample points along it [mm].
+PORTION_MM = 1.0
+STEP_MM = 0.1
+#: Default probability from which a portion is flagged.
+FLAG_PROBABILITY = 0.5
+#: Largest block of points evaluated in one call (the padded sizes compile once each).
+_BLOCK = 1 << 15
+
+
+# --------------------------------------------------------------------------- #
+# The tolerance
+# --------------------------------------------------------------------------- #
+
+
+class Tolerance(NamedTuple):
+    """The linewidth's tolerance band [µm]."""
+
+    low_um: float
+    high_um: float
+
+    @property
+    def target_um(self) -> float:
+        """The middle of the band (what deviations are measured from) [µm]."""
+        return 0.5 * (self.low_um + self.high_um)
+
+    @property
+    def text(self) -> str:
+        """The band as an operator writes it, ``45±3 µm``."""
+        half = 0.5 * (self.high_um - self.low_um)
+        return f"{self.target_um:g}±{half:g} µm"
+
+
+_NUMBER = r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*"
+
+
+def parse_tolerance(text) -> Tolerance:
+    """``"45±3"``, ``"45+-3"``, ``"45 +/- 3"`` or ``"42:48"`` (µm; a trailing ``um``/``µm``
+    allowed) → :class:`Tolerance`. ValueError naming the text otherwise."""
+    raw = str(text).strip()
+    body = re.sub(r"\s*(?:µm|um)\s*$", "", raw)
+    centred = re.fullmatch(_NUMBER + r"(?:±|\+-|\+/-)" + _NUMBER, body)
+    ranged = re.fullmatch(_NUMBER + r":" + _NUMBER, body)
+    if centred:
+        target, half = float(centred.group(1)), float(centred.group(2))
+        low, high = target - half, target + half
+    elif ranged:
+        low, high = float(ranged.group(1)), float(ranged.group(2))
+    else:
+        raise ValueError(
+            f"cannot read the tolerance {raw!r}: write the target and half-width in µm as "
+            "45±3 (or 45+-3), or the limits as 42:48"
+        )
+    if not (math.isfinite(low) and math.isfinite(high) and 0.0 < low < high):
+        raise ValueError(
+            f"tolerance {raw!r}: the limits must be positive widths with low < high "
+            f"(got {low:g} to {high:g} µm)"
+        )
+    return Tolerance(low, high)
+
+
+def out_of_tolerance_probability(mean, sd, tolerance: Tolerance):
+    """P(L ∉ [lo, hi]) for L ~ N(mean, sd²), array-wise (sd = 0: 0 or 1)."""
+    mean = np.asarray(mean, dtype=float)
+    sd = np.asarray(sd, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        below = ndtr((tolerance.low_um - mean) / sd)
+        above = 1.0 - ndtr((tolerance.high_um - mean) / sd)
+    exact = ((mean < tolerance.low_um) | (mean > tolerance.high_um)).astype(float)
+    return np.where(sd > 0, below + above, exact)
+
+
+# --------------------------------------------------------------------------- #
+# The line from the twin's states
+# --------------------------------------------------------------------------- #
+
+
+class SmoothedRun(NamedTuple):
+    """A batch run of the twin with what the line needs: the run (smoothed), the model
+    spec it ran on and the print's inputs (T, 3) [mA, sccm, sccm]."""
+
+    run: object  # ajtwin.estimation.twin.TwinRun with .smoothed
+    spec: object  # ajtwin.estimation.filters.ModelSpec
+    inputs: np.ndarray
+
+
+def smoothed_run(record, twin: Twin | None = None, start=None, progress=None) -> SmoothedRun:
+    """The twin (EKF + EM, then RTS) over ``record``: :meth:`Twin.run` with ``smooth=True``.
+
+    ``twin``: the machine's twin with its θ (default :meth:`Twin.default`); ``start``: the
+    start (mean, cov) (default: the initial-state fit).
+    """
+    twin = twin or Twin.default()
+    run = twin.run(record, start=start, smooth=True, progress=progress)
+    return SmoothedRun(run, twin.spec, np.asarray(record.inputs, dtype=float))
+
+
+def line_at(run: SmoothedRun, times_s, speeds_mm_s) -> tuple[np.ndarray, np.ndarray]:
+    """The line printed at times τ [s] and platen speeds ν [mm/s], from the smoothed states.
+
+    THE place the part map reads the twin's line from a batch run: mean (n, 2) and σ (n, 2)
+    of [L_w, L_o] in µm (:func:`line_from_states` on the smoothed states and their
+    covariance as the twin reports it: the smoother's, plus the calibration's share and the
+    floor of never-seen states).
+    """
+    twin_run = run.run
+    # the total covariance the twin reports for its states (TwinRun.to_frame(smoothed=True))
+    covariances = twin_run._total_cov(twin_run.smoothed.covariances)
+    return line_from_states(
+        run.spec,
+        twin_run.time_s,
+        np.asarray(twin_run.smoothed.means),
+        covariances,
+        run.inputs,
+        times_s,
+        speeds_mm_s,
+    )
+
+
+def _line_moments(spec, x, p, u, nu):
+    """:func:`output_moments` over rows: (n, 5) means and variances."""
+    return jax.vmap(output_moments, in_axes=(None, 0, 0, 0, 0))(spec, x, p, u, nu)
+
+
+_line_moments = jax.jit(_line_moments)
+
+
+def _padded(array: np.ndarray, size: int) -> np.ndarray:
+    pad = size - len(array)
+    return np.concatenate([array, np.repeat(array[-1:], pad, axis=0)]) if pad else array
+
+
+def line_from_states(
+    spec, time_s, means, covariances, inputs, times_s, speeds_mm_s, progress=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """[L_w, L_o] mean (n, 2) and σ (n, 2) [µm] at times τ and speeds ν from 1 Hz states.
+
+    x̂(τ) and P(τ) are interpolated linearly between the samples around τ (times outside
+    the samples take the nearest), the inputs are held over the second (as the machine
+    holds them), and the output model is linearised at x̂(τ):
+    σ² = diag(H P Hᵀ), H = ∂g(x, u, ν)/∂x (:func:`~ajtwin.apps.planning.forecast.output_moments`).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        The twin's model (parameters, output coefficients with its calibration).
+    time_s : array (T,)
+        Sample times [s], increasing.
+    means, covariances, inputs : arrays (T, 5), (T, 5, 5), (T, 3)
+        States, their covariance and the inputs at the samples (display units).
+    times_s, speeds_mm_s : arrays (n,)
+        τ [s] and ν [mm/s] of the points.
+    progress : callable(int), optional
+        Called with the number of points done.
+    """
+    time_s = np.asarray(time_s, dtype=float)
+    means = np.asarray(means, dtype=float)
+    covariances = np.asarray(covariances, dtype=float)
+    inputs = np.asarray(inputs, dtype=float)
+    tau = np.asarray(times_s, dtype=float).ravel()
+    nu = np.asarray(speeds_mm_s, dtype=float).ravel()
+    n = tau.size
+    mean_out, sd_out = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
+    if n == 0:
+        return mean_out, sd_out
+    if len(time_s) == 1:
+        k, w = np.zeros(n, dtype=np.int64), np.zeros(n)
+        nxt = k
+    else:
+        k = np.clip(np.searchsorted(time_s, tau, side="right") - 1, 0, len(time_s) - 2)
+        span = time_s[k + 1] - time_s[k]
+        w = np.clip((tau - time_s[k]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+        nxt = k + 1
+    held = np.where(tau >= time_s[np.minimum(nxt, len(time_s) - 1)], nxt, k)
+    for lo in range(0, n, _BLOCK):
+        sel = slice(lo, min(lo + _BLOCK, n))
+        kk, ww = k[sel], w[sel]
+        x = means[kk] + ww[:, None] * (means[nxt[sel]] - means[kk])
+        p = covariances[kk] + ww[:, None, None] * (covariances[nxt[sel]] - covariances[kk])
+        u = inputs[held[sel]]
+        size = max(256, 1 << (len(kk) - 1).bit_length())
+        y, var = _line_moments(
+            spec, _padded(x, size), _padded(p, size), _padded(u, size), _padded(nu[sel], size)
+        )
+        m = len(kk)
+        mean_out[sel] = np.asarray(y)[:m, :2]
+        sd_out[sel] = np.sqrt(np.maximum(np.asarray(var)[:m, :2], 0.0))
+        if progress:
+            progress(sel.stop)
+    return mean_out, sd_out
+
+
+# --------------------------------------------------------------------------- #
+# Portions and their sample points
+# --------------------------------------------------------------------------- #
+
+
+def sample_points(job, portions: pd.DataFrame, step_mm: float = STEP_MM) -> pd.DataFrame:
+    """Points along every portion, at most ``step_mm`` apart, both ends included.
+
+    Returns one row per point: ``portion`` (row of ``portions``), ``s_mm`` (arclength along
+    the stroke), ``x_mm``, ``y_mm``, ``time_s`` (when the nozzle printed it), ``speed_mm_s``
+    (the platen speed there) and ``weight_mm`` (the length the point stands for: the
+    trapezoid rule along the portion; 0 for a portion of zero length).
+    """
+    if not (step_mm > 0 and math.isfinite(step_mm)):
+        raise ValueError(f"step_mm must be a positive length, got {step_mm}")
+    length = portions["length_mm"].to_numpy(dtype=float)
+    count = np.maximum(2, np.ceil(length / step_mm - 1e-9).astype(np.int64) + 1)
+    index = np.repeat(np.arange(len(portions)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    j = np.arange(index.size) - first
+    last = count[index] - 1
+    frac = j / last
+    s_from = portions["s_from_mm"].to_numpy(dtype=float)[index]
+    s = s_from + frac * length[index]
+    stroke = portions["stroke"].to_numpy(dtype=np.int64)[index]
+    points = job.point_at(stroke, s)
+    spacing = length[index] / last
+    weight = np.where((j == 0) | (j == last), 0.5, 1.0) * spacing
+    speed = np.asarray(job.segments["speed_mm_s"], dtype=float)[points.segment]
+    return pd.DataFrame(
+        {
+            "portion": index,
+            "s_mm": s,
+            "x_mm": points.x_mm,
+            "y_mm": points.y_mm,
+            "time_s": points.time_s,
+            "speed_mm_s": speed,
+            "weight_mm": weight,
+        }
+    )
+
+
+def _per_portion(values: np.ndarray, index: np.ndarray, n: int, how: str) -> np.ndarray:
+    """Reduce point values to their portions (``index`` sorted): min, max or sum."""
+    starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
+    out = np.full(n, np.nan)
+    reduce = {"min": np.minimum, "max": np.maximum, "sum": np.add}[how]
+    out[index[starts]] = reduce.reduceat(values, starts)
+    return out
+
+
+def portion_table(
+    portions: pd.DataFrame,
+    points: pd.DataFrame,
+    tolerance: Tolerance | None,
+    flag_probability: float = FLAG_PROBABILITY,
+) -> pd.DataFrame:
+    """The strokes.csv table from the portions and their evaluated points.
+
+    ``points`` carries ``lw_mean_um``, ``lw_sd_um``, ``lo_mean_um``, ``lo_sd_um`` per point
+    (:func:`line_at`). Means are length-weighted over the portion; lo/hi are the band's
+    envelope over it (lowest μ − 2σ, highest μ + 2σ); ``p_out`` the worst point's
+    probability (module docstring); NaN without a tolerance.
+    """
+    n = len(portions)
+    idx = points["portion"].to_numpy(dtype=np.int64)
+    weight = points["weight_mm"].to_numpy(dtype=float)
+    total = _per_portion(weight, idx, n, "sum")
+    out = {}
+
+    def weighted(column):
+        value = points[column].to_numpy(dtype=float)
+        summed = _per_portion(value * weight, idx, n, "sum")
+        plain = _per_portion(value, idx, n, "sum") / np.bincount(idx, minlength=n)
+        return np.where(total > 0, summed / np.where(total > 0, total, 1.0), plain)
+
+    for name in ("lw", "lo"):
+        mean = points[f"{name}_mean_um"].to_numpy(dtype=float)
+        sd = points[f"{name}_sd_um"].to_numpy(dtype=float)
+        out[f"{name}_mean_um"] = weighted(f"{name}_mean_um")
+        out[f"{name}_lo_um"] = _per_portion(mean - 2 * sd, idx, n, "min")
+        out[f"{name}_hi_um"] = _per_portion(mean + 2 * sd, idx, n, "max")
+        out[f"{name}_sd_um"] = weighted(f"{name}_sd_um")
+    speed = _per_portion(points["speed_mm_s"].to_numpy(dtype=float) * weight, idx, n, "sum")
+    if tolerance is None:
+        p_out = np.full(n, np.nan)
+    else:
+        p_point = out_of_tolerance_probability(
+            points["lw_mean_um"].to_numpy(dtype=float),
+            points["lw_sd_um"].to_numpy(dtype=float),
+            tolerance,
+        )
+        p_out = _per_portion(p_point, idx, n, "max")
+    table = pd.DataFrame(
+        {
+            "feature": portions["feature"].to_numpy(),
+            "stroke": portions["stroke"].to_numpy(),
+            "portion": portions["portion"].to_numpy(),
+            "repetition": portions["repetition"].to_numpy(),
+            "base_stroke": portions["base_stroke"].to_numpy(),
+            "from_x_mm": portions["x_from_mm"].to_numpy(),
+            "from_y_mm": portions["y_from_mm"].to_numpy(),
+            "to_x_mm": portions["x_to_mm"].to_numpy(),
+            "to_y_mm": portions["y_to_mm"].to_numpy(),
+            "length_mm": portions["length_mm"].to_numpy(),
+            "printed_from_s": portions["t_from_s"].to_numpy(),
+            "printed_to_s": portions["t_to_s"].to_numpy(),
+            "speed_mm_s": np.where(total > 0, speed / np.where(total > 0, total, 1.0), 0.0),
+            **out,
+            "p_out": p_out,
+            "flagged": np.nan_to_num(p_out, nan=0.0) >= flag_probability,
+        }
+    )
+    return table[list(PORTION_COLUMNS)]
+
+
+# --------------------------------------------------------------------------- #
+# Alarms on the part
+# --------------------------------------------------------------------------- #
+
+ALARM_COLUMNS = (
+    "alarm",
+    "cause",
+    "description",
+    "detectors",
+    "detected_s",
+    "onset_s",
+    "detected_x_mm",
+    "detected_y_mm",
+    "detected_stroke",
+    "detected_repetition",
+    "onset_x_mm",
+    "onset_y_mm",
+    "onset_stroke",
+    "onset_repetition",
+)
+
+
+def place_alarms(job, events) -> pd.DataFrame:
+    """Each alarm on the part: where the nozzle was when it was raised and at its onset.
+
+    ``events``: anomaly events (objects or dicts with ``detected_s``, ``onset_s``,
+    ``cause``, ``description``, ``detectors``). Positions from :meth:`Job.state_at`; the
+    stroke is −1 when the shutter was closed at that moment; the repetition is the run of
+    a looped job the nozzle was in.
+    """
+    rows = []
+    for number, ev in enumerate(events, start=1):
+        get = ev.get if isinstance(ev, dict) else lambda key, e=ev: getattr(e, key)
+        detectors = get("detectors")
+        rows.append(
+            {
+                "alarm": number,
+                "cause": str(get("cause")),
+                "description": str(get("description")),
+                "detectors": detectors
+                if isinstance(detectors, str)
+                else ", ".join(str(d) for d in detectors or ()),
+                "detected_s": float(get("detected_s")),
+                "onset_s": float(get("onset_s")),
+            }
+        )
+    table = pd.DataFrame(rows, columns=["alarm", "cause", "description", "detectors",
+                                        "detected_s", "onset_s"])  # fmt: skip
+    for when in ("detected", "onset"):
+        state = job.state_at(table[f"{when}_s"].to_numpy(dtype=float))
+        table[f"{when}_x_mm"] = state.x_mm
+        table[f"{when}_y_mm"] = state.y_mm
+        table[f"{when}_stroke"] = state.stroke
+        offsets = np.asarray(job.repetition_offsets_s, dtype=float)
+        run = np.searchsorted(offsets, table[f"{when}_s"].to_numpy(dtype=float), side="right")
+        table[f"{when}_repetition"] = np.clip(run - 1, 0, len(offsets) - 1)
+    return table[list(ALARM_COLUMNS)]
+
+
+# --------------------------------------------------------------------------- #
+# The map
+# --------------------------------------------------------------------------- #
+
+
+@dataclass
+class PartMap:
+    """The part quality map of one print (see the module docstring).
+
+    Attributes
+    ----------
+    job : ajtwin.job.Job
+        The job as printed (looped as the print ran it).
+    portions : DataFrame
+        One row per stroke portion printed within the record (:data:`PORTION_COLUMNS`).
+    points : DataFrame
+        The sample points (:func:`sample_points`) with the line's mean and σ at each.
+    alarms : DataFrame
+        The alarms on the part (:func:`place_alarms`).
+    tolerance : Tolerance or None
+    flag_probability : float
+    source : str
+        What print this is (file, or machine and print number).
+    notes : list of str
+        What the reader should know (portions not printed within the record, …).
+    """
+
+    job: object
+    portions: pd.DataFrame
+    points: pd.DataFrame
+    alarms: pd.DataFrame
+    tolerance: Tolerance | None
+    flag_probability: float = FLAG_PROBABILITY
+    source: str = ""
+    notes: list = field(default_factory=list)
+    #: the smoothed run the map was made from (None when built from elsewhere)
+    run: object = None
+
+    @property
+    def program(self) -> str:
+        """The program's file name."""
+        return str(self.job.path).replace("\\", "/").rsplit("/", 1)[-1]
+
+    def flagged(self) -> pd.DataFrame:
+        """The flagged portions, most probably out first."""
+        table = self.portions[self.portions["flagged"]]
+        return table.sort_values(["p_out", "printed_from_s"], ascending=[False, True])
+
+    def feature_summary(self) -> pd.DataFrame:
+        """Per feature: strokes, portions, printed and flagged length, L_w range, worst P."""
+        table = self.portions.assign(
+            flagged_mm=np.where(self.portions["flagged"], self.portions["length_mm"], 0.0),
+            weighted=self.portions["lw_mean_um"] * self.portions["length_mm"],
+        )
+        grouped = table.groupby("feature", sort=True)
+        summary = pd.DataFrame(
+            {
+                "strokes": grouped["stroke"].nunique(),
+                "portions": grouped.size(),
+                "printed_mm": grouped["length_mm"].sum(),
+                "flagged_portions": grouped["flagged"].sum(),
+                "flagged_mm": grouped["flagged_mm"].sum(),
+                "lw_mean_um": grouped["weighted"].sum() / grouped["length_mm"].sum(),
+                "lw_min_um": grouped["lw_mean_um"].min(),
+                "lw_max_um": grouped["lw_mean_um"].max(),
+                "p_out_max": grouped["p_out"].max(),
+            }
+        ).reset_index()
+        names = self.job.feature_names
+        summary.insert(
+            1,
+            "name",
+            [names.get(int(f), "") if f >= 0 else "(no feature)" for f in summary["feature"]],
+        )
+        return summary
+
+    def coverage_of(self, true_linewidth_um) -> float:
+        """Share of the printed length whose true width (one value per point) lies in the
+        ±2σ band."""
+        mean = self.points["lw_mean_um"].to_numpy(dtype=float)
+        sd = self.points["lw_sd_um"].to_numpy(dtype=float)
+        truth = np.asarray(true_linewidth_um, dtype=float)
+        inside = np.abs(truth - mean) <= 2.0 * sd
+        weight = self.points["weight_mm"].to_numpy(dtype=float)
+        ok = np.isfinite(truth)
+        return float(np.sum(weight[ok] * inside[ok]) / np.sum(weight[ok]))
+
+
+def evaluate_portions(
+    job,
+    line,
+    tolerance: Tolerance | None,
+    *,
+    printed_until_s: float,
+    portion_mm: float = PORTION_MM,
+    step_mm: float = STEP_MM,
+    flag_probability: float = FLAG_PROBABILITY,
+    progress=None,
+):
+    """(portions table, points, notes) of the strokes printed by ``printed_until_s``.
+
+    ``line(times_s, speeds_mm_s) -> (mean (n, 2), sd (n, 2))`` evaluates the line
+    (:func:`line_at` with a run bound), called in blocks of points; ``progress(done,
+    total)`` after each. Portions not finished by ``printed_until_s`` are left out (a note
+    says how many).
+    """
+    if not 0.0 <= flag_probability <= 1.0:
+        raise ValueError(f"flag_probability must lie in [0, 1], got {flag_probability}")
+    portions = job.portions(portion_mm)
+    done = portions["t_to_s"].to_numpy(dtype=float) <= printed_until_s + 1e-9
+    notes = []
+    if not done.all():
+        left = int((~done).sum())
+        notes.append(
+            f"{left} of {len(portions)} portions were printed after the record ends "
+            f"({printed_until_s:g} s) and are left out"
+        )
+    portions = portions[done].reset_index(drop=True)
+    points = sample_points(job, portions, step_mm)
+    times, speeds = points["time_s"].to_numpy(), points["speed_mm_s"].to_numpy()
+    mean, sd = np.full((len(times), 2), np.nan), np.full((len(times), 2), np.nan)
+    for lo in range(0, len(times), _BLOCK):
+        sel = slice(lo, lo + _BLOCK)
+        mean[sel], sd[sel] = line(times[sel], speeds[sel])
+        if progress:
+            progress(min(lo + _BLOCK, len(times)), len(times))
+    points["lw_mean_um"], points["lo_mean_um"] = mean[:, 0], mean[:, 1]
+    points["lw_sd_um"], points["lo_sd_um"] = sd[:, 0], sd[:, 1]
+    table = portion_table(portions, points, tolerance, flag_probability)
+    return table, points, notes
+
+
+def build_part_map(
+    job,
+    run: SmoothedRun,
+    tolerance: Tolerance | None,
+    *,
+    events=(),
+    source: str = "",
+    portion_mm: float = PORTION_MM,
+    step_mm: float = STEP_MM,
+    flag_probability: float = FLAG_PROBABILITY,
+    progress=None,
+) -> PartMap:
+    """The part map of a smoothed run over a print of ``job`` (module docstring).
+
+    ``events``: the print's alarms (placed on the part). ``progress(done, total)`` is
+    called as the sample points are evaluated.
+    """
+    end_s = float(np.asarray(run.run.time_s)[-1]) + 1.0
+
+    def line(times, speeds):
+        return line_at(run, times, speeds)
+
+    table, points, notes = evaluate_portions(
+        job,
+        line,
+        tolerance,
+        printed_until_s=end_s,
+        portion_mm=portion_mm,
+        step_mm=step_mm,
+        flag_probability=flag_probability,
+        progress=progress,
+    )
+    return PartMap(
+        job,
+        table,
+        points,
+        place_alarms(job, events),
+        tolerance,
+        flag_probability,
+        source,
+        notes,
+    )
+
+
+def part_map_of_record(
+    record,
+    job,
+    tolerance: Tolerance | None,
+    *,
+    twin: Twin | None = None,
+    start=None,
+    source: str = "",
+    portion_mm: float = PORTION_MM,
+    step_mm: float = STEP_MM,
+    flag_probability: float = FLAG_PROBABILITY,
+    events=None,
+    twin_progress=None,
+    line_progress=None,
+) -> PartMap:
+    """Run the twin (smoothed) over ``record`` and map its part.
+
+    ``twin``/``start``: the machine's twin and where its print starts (default: the initial
+    fit of a new twin). ``events``: the print's alarms; default: those the detectors raise
+    over this run (:func:`ajtwin.apps.detection.batch.detect_run`).
+    """
+    run = smoothed_run(record, twin, start, twin_progress)
+    if events is None:
+        events = detect_run(run.run, record).events
+    part = build_part_map(
+        job,
+        run,
+        tolerance,
+        events=events,
+        source=source,
+        portion_mm=portion_mm,
+        step_mm=step_mm,
+        flag_probability=flag_probability,
+        progress=line_progress,
+    )
+    part.run = run
+    return part

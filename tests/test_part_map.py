@@ -1,0 +1,231 @@
+"""The part quality map: portions, the line along them, the probability, flags and files."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ajtwin.engine.part_map import (
+    PORTION_COLUMNS,
+    Tolerance,
+    build_part_map,
+    evaluate_portions,
+    line_from_states,
+    out_of_tolerance_probability,
+    parse_tolerance,
+    place_alarms,
+    smoothed_run,
+)
+from ajtwin.engine.part_report import write_report
+from ajtwin.job import read_program_text
+from ajtwin.model import load_parameters
+from ajtwin.model.line_speed import load_line_speed_law
+from ajtwin.model.system import output_function
+from ajtwin.simulation import CameraSettings, run_job_print
+from ajtwin.simulation.job_print import line_at_print_times
+
+#: two strokes and a rapid between them, speeds written in the program
+PROGRAM = """
+ptp/ev (X,Y),0,0,10
+OUT0.0=1
+ptp/ev (X,Y),3,0,2
+OUT0.0=0
+ptp/ev (X,Y),3,4,10
+OUT0.0=1
+ptp/ev (X,Y),3,6,1
+OUT0.0=0
+"""
+
+
+def _phi(z):
+    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
+
+
+def test_tolerance_reads_the_ways_an_operator_writes_it():
+    assert parse_tolerance("45±3") == Tolerance(42.0, 48.0)
+    assert parse_tolerance("45+-3") == Tolerance(42.0, 48.0)
+    assert parse_tolerance(" 45 +/- 2.5 µm") == Tolerance(42.5, 47.5)
+    assert parse_tolerance("42:48") == Tolerance(42.0, 48.0)
+    assert parse_tolerance("42:48").text == "45±3 µm"
+    for bad in ("45", "48:42", "45±-3", "abc", "nan:3", "0:5"):
+        with pytest.raises(ValueError, match="tolerance"):
+            parse_tolerance(bad)
+
+
+def test_probability_out_of_tolerance_against_a_hand_computation():
+    tol = Tolerance(42.0, 48.0)
+    # 44 ± 2: below 42 is z = -1, above 48 is z = +2
+    expected = _phi(-1.0) + 1.0 - _phi(2.0)
+    assert out_of_tolerance_probability(44.0, 2.0, tol) == pytest.approx(expected, abs=1e-12)
+    assert expected == pytest.approx(0.181405, abs=1e-6)
+    assert out_of_tolerance_probability(48.0, 1.0, tol) == pytest.approx(0.5 + _phi(-6.0))
+    assert out_of_tolerance_probability([41.0, 45.0], [0.0, 0.0], tol).tolist() == [1.0, 0.0]
+
+
+def test_portions_of_a_hand_made_program_get_their_print_times_and_coordinates():
+    job = read_program_text(PROGRAM, process_speed_mm_s=2.0, rapid_speed_mm_s=10.0)
+
+    def line(times, speeds):  # a line that widens 2 µm per second, σ 0.5 µm
+        times = np.asarray(times)
+        mean = np.stack([40.0 + 2.0 * times, 20.0 + times], axis=1)
+        return mean, np.full_like(mean, 0.5)
+
+    tol = Tolerance(38.0, 41.5)
+    table, points, notes = evaluate_portions(job, line, tol, printed_until_s=100.0)
+    assert notes == [] and list(table.columns) == list(PORTION_COLUMNS)
+    # stroke 0: (0,0)→(3,0) at 2 mm/s over 0–1.5 s; the rapid (3,0)→(3,4) at 10 mm/s is no
+    # stroke; stroke 1: (3,4)→(3,6) at 1 mm/s from 1.9 s to 3.9 s
+    expected = [
+        (0, 0, (0, 0), (1, 0), 0.0, 0.5, 2.0),
+        (0, 1, (1, 0), (2, 0), 0.5, 1.0, 2.0),
+        (0, 2, (2, 0), (3, 0), 1.0, 1.5, 2.0),
+        (1, 0, (3, 4), (3, 5), 1.9, 2.9, 1.0),
+        (1, 1, (3, 5), (3, 6), 2.9, 3.9, 1.0),
+    ]
+    assert len(table) == len(expected)
+    for row, (stroke, portion, a, b, t0, t1, speed) in zip(table.itertuples(), expected):
+        assert (row.stroke, row.portion) == (stroke, portion)
+        assert (row.from_x_mm, row.from_y_mm) == pytest.approx(a, abs=1e-12)
+        assert (row.to_x_mm, row.to_y_mm) == pytest.approx(b, abs=1e-12)
+        assert (row.printed_from_s, row.printed_to_s) == pytest.approx((t0, t1), abs=1e-12)
+        assert row.length_mm == pytest.approx(1.0) and row.speed_mm_s == pytest.approx(speed)
+        # a linear line: the length-weighted mean is the middle's; the band's envelope ±2σ
+        assert row.lw_mean_um == pytest.approx(40.0 + (t0 + t1), abs=1e-9)
+        assert (row.lw_lo_um, row.lw_hi_um) == pytest.approx((39 + 2 * t0, 41 + 2 * t1))
+        # the worst point is the portion's end (widest): P(L_w > 41.5) there
+        worst = 40.0 + 2.0 * t1
+        p = _phi((38.0 - worst) / 0.5) + 1.0 - _phi((41.5 - worst) / 0.5)
+        assert row.p_out == pytest.approx(p, abs=1e-9)
+        assert row.flagged == (p >= 0.5)
+    assert table["flagged"].tolist() == [False, True, True, True, True]
+    # no sample point on the rapid: every point lies on a stroke
+    assert points["speed_mm_s"].min() == pytest.approx(1.0)
+    # a record that ended at 3 s: the last portion (printed to 3.9 s) is left out and said
+    short, _, notes = evaluate_portions(job, line, tol, printed_until_s=3.0)
+    assert len(short) == 4 and "1 of 5 portions" in notes[0]
+
+
+def test_line_from_states_is_the_output_model_and_its_linearised_band():
+    """Against an independent computation: central differences for ∂g/∂x at the state
+    interpolated between two samples, ν applied by the speed law."""
+    from ajtwin.estimation import Twin
+
+    spec = Twin.default().spec
+    params = load_parameters()
+    x0 = np.array([3.6, 0.99, 1e-3, 0.03, 5e-7])
+    x1 = np.array([3.7, 0.98, 2e-3, 0.05, 5.5e-7])
+    scale = np.array([0.05, 1e-3, 1e-4, 5e-3, 2e-8])
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 5)) * scale
+    p0 = a @ a.T + np.diag(scale**2)
+    p1 = 1.3 * p0
+    u = np.array([[375.0, 23.0, 50.0], [380.0, 24.0, 50.0]])
+    tau, nu = np.array([0.25, 0.5]), np.array([3.0, 2.0])
+    mean, sd = line_from_states(spec, [0.0, 1.0], [x0, x1], [p0, p1], u, tau, nu)
+    for i in range(2):
+        w = tau[i]
+        x = x0 + w * (x1 - x0)
+        p = (1 - w) * p0 + w * p1
+
+        def g(state, i=i):
+            y = np.asarray(output_function(state, u[0], params, spec.coefficients))[:2]
+            factor = (load_line_speed_law().reference_speed_mm_s / nu[i]) ** 0.3
+            return y * factor
+
+        jac = np.zeros((2, 5))
+        for j in range(5):
+            step = np.zeros(5)
+            step[j] = 1e-4 * max(abs(x[j]), scale[j])
+            jac[:, j] = (g(x + step) - g(x - step)) / (2 * step[j])
+        assert mean[i] == pytest.approx(g(x), rel=1e-12)
+        assert sd[i] == pytest.approx(np.sqrt(np.diag(jac @ p @ jac.T)), rel=1e-5)
+
+
+def test_alarms_are_placed_where_the_nozzle_was():
+    job = read_program_text(PROGRAM, process_speed_mm_s=2.0, rapid_speed_mm_s=10.0)
+    events = [{"detected_s": 0.75, "onset_s": 1.7, "cause": "nozzle_clog",
+               "description": "nozzle clog", "detectors": ["cusum+ P_c"]}]  # fmt: skip
+    table = place_alarms(job, events)
+    row = table.iloc[0]
+    assert (row.detected_x_mm, row.detected_y_mm, row.detected_stroke) == pytest.approx((1.5, 0, 0))
+    # at 1.7 s the stage is on the rapid, 0.2 s after (3, 0): 2 mm up, shutter closed
+    assert (row.onset_x_mm, row.onset_y_mm, row.onset_stroke) == pytest.approx((3.0, 2.0, -1))
+    assert row.detectors == "cusum+ P_c"
+
+
+@pytest.fixture(scope="module")
+def clog_print():
+    """A 12-min job print whose nozzle clogs fast from 4 min (first generator, seed 1)."""
+    return run_job_print(
+        "tests/data/prg/prg2svg/2 and 6-Au.prg",
+        "nozzle_clog",
+        seed=1,
+        duration_min=12,
+        camera=CameraSettings(mode="trailing"),
+        overrides={"fault": {"onset_min": 4.0, "nozzle_deposition_multiplier": 1500.0}},
+    )
+
+
+@pytest.fixture(scope="module")
+def clog_map(clog_print):
+    record = clog_print.record
+    width = record.data["true_linewidth_um"].to_numpy()[:240]
+    target = round(float(np.nanmedian(width)))
+    tol = Tolerance(target - 1.5, target + 1.5)
+    run = smoothed_run(record)
+    return build_part_map(clog_print.plan.job, run, tol, source="clog")
+
+
+def test_flagged_portions_are_those_whose_true_width_leaves_the_tolerance(clog_print, clog_map):
+    points, table = clog_map.points, clog_map.portions
+    virtual = clog_print.virtual
+    truth = line_at_print_times(
+        np.minimum(points["time_s"].to_numpy(), len(clog_print.record) - 1),
+        points["speed_mm_s"].to_numpy(),
+        virtual.states,
+        virtual.processes.head_inputs,
+        virtual.outputs_true,
+        load_parameters(),
+        virtual.line_coefficients,
+        virtual.machine,
+        clog_print.line_speed_law,
+    )[:, 0]
+    tol = clog_map.tolerance
+    out = (truth < tol.low_um) | (truth > tol.high_um)
+    truly = pd.Series(out).groupby(points["portion"].to_numpy()).max().to_numpy()
+    flagged = table["flagged"].to_numpy()
+    onset = clog_print.record.meta["fault_onset_s"]
+    after = table["printed_from_s"].to_numpy() >= onset
+    assert truly[after].sum() > 200 and not truly[~after].any()  # the clog made them
+    both = (truly & flagged).sum()
+    assert both / flagged.sum() >= 0.85  # precision
+    assert both / truly.sum() >= 0.95  # recall
+    assert not flagged[~after].any()  # nothing flagged before the clog began
+    # the band holds the true width over most of the length (a fast clog: ~84 %)
+    assert clog_map.coverage_of(truth) >= 0.75
+
+
+def test_report_files_are_written_readable_and_self_contained(clog_map, tmp_path):
+    import matplotlib.image
+
+    paths = write_report(clog_map, tmp_path / "out")
+    table = pd.read_csv(paths["strokes.csv"])
+    assert list(table.columns) == list(PORTION_COLUMNS)
+    assert len(table) == len(clog_map.portions) and table["flagged"].sum() > 0
+    assert (table["lw_lo_um"] <= table["lw_mean_um"]).all()
+    assert (table["lw_mean_um"] <= table["lw_hi_um"]).all()
+    image = matplotlib.image.imread(paths["part.png"])
+    assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 300
+    page = paths["report.html"].read_text(encoding="utf-8")
+    assert not re.search(r"https?://|//[a-z0-9.-]+\.[a-z]{2,}/|<link|<script\s+src", page, re.I)
+    assert 'src="data:image/png;base64,' in page
+    facts = json.loads(re.search(r'id="facts">(.*?)</script>', page, re.S).group(1))
+    assert facts["flagged_portions"] == int(clog_map.portions["flagged"].sum())
+    # the flagged table lists the most probable first
+    rows = re.findall(r"<h2>Flagged portions.*?</table>", page, re.S)[0]
+    assert rows.count("<tr>") == min(500, facts["flagged_portions"]) + 1

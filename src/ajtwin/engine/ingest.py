@@ -209,10 +209,9 @@ def ingest_record(
     detectors, over each chunk of the run), judge the run
     (:func:`ajtwin.engine.chain.judge_run`) and store everything in one transaction.
 
-    The run is taken a chunk at a time (:class:`IngestSink`): each chunk's arrays go to the
-    registry as they are produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the
-    final transaction adopts), so the memory does not grow with the print's length but for
-    the mismatch guard's per-second inputs (18 numbers a second) and the record itself.
+    The run is taken a chunk at a time (:class:`IngestSink`), each chunk's arrays written as
+    produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the final transaction
+    adopts): memory grows only by the guard's inputs (18 numbers a second) and the record.
 
     Parameters
     ----------
@@ -242,16 +241,7 @@ def ingest_record(
     digest = record_hash(record)
     existing = registry.find_print(machine, digest)
     if existing is not None:
-        return IngestResult(
-            machine,
-            existing["id"],
-            existing["seq"],
-            True,
-            digest,
-            existing["n_samples"],
-            summary=existing["summary"],
-            seconds=time.perf_counter() - t0,
-        )
+        return _stored_before(machine, existing, digest, t0)
     chain = chain_start(registry, machine)
     # the machine's calibration, commissioning start and maintenance (model reference §11)
     begin = machine_start(registry, machine, chain, twin_overrides)
@@ -298,9 +288,7 @@ def ingest_record(
         existing = registry.find_print(machine, digest)
         if existing is None:
             raise
-        return IngestResult(
-            machine, existing["id"], existing["seq"], True, digest, existing["n_samples"]
-        )
+        return _stored_before(machine, existing, digest, t0)
     except BaseException:
         with contextlib.suppress(RegistryError):
             writer.discard()
@@ -319,6 +307,20 @@ def ingest_record(
         seconds=time.perf_counter() - t0,
         run=whole,
         detection=detection,
+    )
+
+
+def _stored_before(machine: str, existing: dict, digest: str, t0: float) -> IngestResult:
+    """The result of ingesting a print the machine has already (nothing changed)."""
+    return IngestResult(
+        machine,
+        existing["id"],
+        existing["seq"],
+        True,
+        digest,
+        existing["n_samples"],
+        summary=existing["summary"],
+        seconds=time.perf_counter() - t0,
     )
 
 

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -201,6 +202,9 @@ class TwinStream:
         self.last_inputs: np.ndarray | None = None
         self._waiting: list[Sample] = []  # before the initial fit
         self._pending: list[Sample] = []  # arrived while EM runs
+        # held samples after EM's result, committed REPLAY_STEPS per poll (then the new ones)
+        self._replay: deque[Sample] = deque()
+        self._replaying = False
         self._em_future: Future | None = None
         self._em_pos: int | None = None
         self._em_done: int | None = None  # boundary whose EM result is in force
@@ -325,6 +329,7 @@ class TwinStream:
             self.carry is None
             or self._bins is not None
             or self._em_future is not None
+            or self._replay
             or self._waiting
             or self.last_time is None
             or int(round(float(sample.time_s) - self.last_time)) != 1
@@ -407,6 +412,9 @@ class TwinStream:
     # ------------------------------------------------------------------ #
     def _advance(self, sample: Sample) -> list[dict]:
         """Step k = next grid index; handles chunk boundaries and EM."""
+        if self._replay and not self._replaying:
+            self._replay.append(sample)  # after the held samples still to be committed
+            return []
         if self._em_future is not None:
             self._pending.append(sample)
             return [self._speculative(sample)]
@@ -476,7 +484,7 @@ class TwinStream:
             return []
         first, last = bins.first_open, bins.n_rows - 1
         head = self._spec_carry if self._em_future is not None else self.carry
-        if head is None and self.n_committed == 0 and not self._pending:
+        if head is None and self.n_committed == 0 and not self._pending and not self._replay:
             head = self._provisional_start(changed)
         if head is None:
             return []
@@ -561,11 +569,12 @@ class TwinStream:
         if self._dynamics is None:
             return np.array([step.inputs for step in pending], dtype=float)
         response = self._response
-        held = [s.inputs for s in self._pending] + [s.inputs for s in self._bins.pending()]
+        before = [*self._pending, *self._replay]  # held, in order, before the pending bins
+        held = [s.inputs for s in before] + [s.inputs for s in self._bins.pending()]
         rows = []
         for i, inputs in enumerate(held):
             u, response = self.model_input(inputs, response)
-            if i >= len(self._pending) + skipped:
+            if i >= len(before) + skipped:
                 rows.append(u)
         return np.array(rows, dtype=float)
 
@@ -620,12 +629,33 @@ class TwinStream:
             future.set_result(run_em(*args, **kwargs))
             self._em_future = future
 
+    #: held samples committed per :meth:`poll` once EM's result is in (a burst of rows that
+    #: arrived while EM ran is replayed in slices, so a live link's event loop keeps running)
+    REPLAY_STEPS = 50
+
     def poll(self, wait: bool = False) -> list[dict]:
-        """Apply a finished EM (``wait``: block until it is) and replay the samples held."""
+        """Apply a finished EM (``wait``: block until it is) and replay the samples held:
+        :attr:`REPLAY_STEPS` of them per call, all with ``wait``. Samples that arrive while
+        some are still to be replayed wait behind them."""
         future = self._em_future
-        if future is None or (not wait and not future.done()):
-            return []
-        em = future.result()
+        if future is not None and (wait or future.done()):
+            self._apply_em(future.result())
+        return self._drain(None if wait else self.REPLAY_STEPS)
+
+    def _drain(self, limit: int | None) -> list[dict]:
+        """Commit up to ``limit`` (None: all) held samples, oldest first."""
+        out, n = [], 0
+        was, self._replaying = self._replaying, True
+        try:
+            while self._replay and (limit is None or n < limit):
+                out += self._advance(self._replay.popleft())
+                n += 1
+        finally:
+            self._replaying = was
+        return out
+
+    def _apply_em(self, em) -> None:
+        """EM's result in force from its boundary; the samples it held go first in line."""
         pos = self._em_pos
         h = self.history
         w0 = max(pos - int(self.config.window_s), 0)
@@ -645,11 +675,9 @@ class TwinStream:
         self._em_future = None
         self._em_done, self._em_pos = pos, None
         self._spec_carry = None
-        pending, self._pending = self._pending, []
-        out = []
-        for s in pending:
-            out += self._advance(s)
-        return out
+        # held while EM ran: older than any still to be replayed
+        self._replay.extendleft(reversed(self._pending))
+        self._pending = []
 
     def _speculative(self, sample: Sample) -> dict:
         """Step with the old θ while EM runs: published as provisional, not kept."""
@@ -797,6 +825,8 @@ class TwinStream:
         the filter with what there is.
         """
         out = self.poll(wait=True)
+        while self._em_future is not None or self._replay:  # an EM the replay started
+            out += self.poll(wait=True)
         if self._bins is not None:  # the end of the print: every step left is final
             for step in self._bins.finish():
                 final = Sample(step.time_s, step.inputs, step.outputs, line=step.line)

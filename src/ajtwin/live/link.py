@@ -34,6 +34,7 @@ import asyncio
 import json
 import logging
 import time
+from collections import deque
 
 import numpy as np
 from asyncua import Client, ua
@@ -137,6 +138,8 @@ class OpcUaLink:
         self.finished: set[str] = set()
         self.last_time: dict[str, float] = {}
         self.queues: dict[str, RowQueue] = {}  # rows received, not yet fed
+        # samples taken from the queues and not fed yet, by time: [(machine, Sample), ...]
+        self._unfed: deque[list] = deque()
         self.longest_slice_s = 0.0  # the longest the feeding held the event loop
         self.first_published: float | None = None
         self.reconnects = 0
@@ -261,7 +264,7 @@ class OpcUaLink:
             buffered: set[str] = set()  # machines whose buffer came on this connection
             last_check = time.monotonic()
             while stop is None or not stop.is_set():
-                if any(self.queues.values()):  # rows to feed: only look at the queue
+                if self._unfed or any(self.queues.values()):  # to feed: only look at the queue
                     await asyncio.sleep(0)
                     item = None
                 else:
@@ -295,6 +298,7 @@ class OpcUaLink:
                         and name in buffered
                         and name not in buffers
                         and not self.queues.get(name)
+                        and not any(m == name for items in self._unfed for m, _ in items)
                     ):
                         if self.close_finished and name in self.engine.sessions:
                             final = self.engine.close(name)
@@ -385,19 +389,22 @@ class OpcUaLink:
         round), machines merged in time order so that their ordinary steps run batched."""
         messages = []
         start = time.monotonic()
-        while any(self.queues.values()):
-            by_time: dict[float, list] = {}
-            for name, queue in self.queues.items():
-                rows = queue.take(FEED_ROWS)
-                if not len(rows):
-                    continue
-                samples, _, problems = buffer_samples(name, rows, -np.inf)
-                for p in problems:
-                    log.warning(p)
-                for sample in samples:
-                    by_time.setdefault(sample.time_s, []).append((name, sample))
-            for t in sorted(by_time):
-                messages += self.engine.feed_many(by_time[t])
+        while self._unfed or any(self.queues.values()):
+            if not self._unfed:
+                by_time: dict[float, list] = {}
+                for name, queue in self.queues.items():
+                    rows = queue.take(FEED_ROWS)
+                    if not len(rows):
+                        continue
+                    samples, _, problems = buffer_samples(name, rows, -np.inf)
+                    for p in problems:
+                        log.warning(p)
+                    for sample in samples:
+                        by_time.setdefault(sample.time_s, []).append((name, sample))
+                self._unfed.extend(by_time[t] for t in sorted(by_time))
+            # the budget is checked after each time step (a step may replay held samples)
+            while self._unfed and time.monotonic() - start < FEED_BUDGET_S:
+                messages += self.engine.feed_many(self._unfed.popleft())
             if time.monotonic() - start >= FEED_BUDGET_S:
                 break
         self.longest_slice_s = max(self.longest_slice_s, time.monotonic() - start)

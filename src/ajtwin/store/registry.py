@@ -1048,11 +1048,9 @@ class Registry:
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
-        ``draft``: the print's per-step arrays were written in parts as it ran
-        (:meth:`open_draft`, :meth:`append_draft`); they become this print's in the same
-        transaction (``arrays`` then holds the rest: the θ history).
-
-        ``job``: the machine program the print ran, kept with it (``print_jobs``):
+        ``draft``: the print's per-step arrays written in parts as it ran (:meth:`open_draft`,
+        :meth:`append_draft`), made this print's in the same transaction (``arrays``: the
+        rest, the θ history). ``job``: the machine program the print ran (``print_jobs``):
         ``program`` (file name), ``program_bytes`` (the file's bytes) and ``settings`` (a
         JSON-ready dict: speeds used, looping, tolerance); read back by :meth:`print_job`.
 

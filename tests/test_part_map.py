@@ -15,13 +15,14 @@ from ajtwin.engine.part_map import (
     Tolerance,
     build_part_map,
     evaluate_portions,
-    line_from_states,
     out_of_tolerance_probability,
     parse_tolerance,
     place_alarms,
     smoothed_run,
 )
 from ajtwin.engine.part_report import write_report
+from ajtwin.estimation.part_line import block_size, line_at
+from ajtwin.estimation.print_time import program_for_record
 from ajtwin.job import read_program_text
 from ajtwin.model import load_parameters
 from ajtwin.model.line_speed import load_line_speed_law
@@ -70,7 +71,7 @@ def test_probability_out_of_tolerance_against_a_hand_computation():
 def test_portions_of_a_hand_made_program_get_their_print_times_and_coordinates():
     job = read_program_text(PROGRAM, process_speed_mm_s=2.0, rapid_speed_mm_s=10.0)
 
-    def line(times, speeds):  # a line that widens 2 µm per second, σ 0.5 µm
+    def line(times, speeds, progress):  # a line that widens 2 µm per second, σ 0.5 µm
         times = np.asarray(times)
         mean = np.stack([40.0 + 2.0 * times, 20.0 + times], axis=1)
         return mean, np.full_like(mean, 0.5)
@@ -110,12 +111,17 @@ def test_portions_of_a_hand_made_program_get_their_print_times_and_coordinates()
     assert len(short) == 4 and "1 of 5 portions" in notes[0]
 
 
-def test_line_from_states_is_the_output_model_and_its_linearised_band():
-    """Against an independent computation: central differences for ∂g/∂x at the state
-    interpolated between two samples, ν applied by the speed law."""
+def test_the_line_is_the_output_model_with_its_linearised_band_and_the_law_uncertainty():
+    """The twin's line evaluation, which the part map uses, against an independent
+    computation: the state interpolated between two samples, ν applied by the speed law
+    written out, ∂g/∂x by central differences. Away from ν_ref the band also holds the speed
+    law's own uncertainty, (L ln(ν_ref/ν) σ_b)² with σ_b a quarter of the exponent's
+    bracketed range in data/line_speed.toml: the honest band of a line printed at another
+    speed than the law was anchored at; at ν_ref that term is 0 and σ is the state's alone."""
     from ajtwin.estimation import Twin
 
-    spec = Twin.default().spec
+    twin = Twin.default()
+    spec = twin.spec
     params = load_parameters()
     x0 = np.array([3.6, 0.99, 1e-3, 0.03, 5e-7])
     x1 = np.array([3.7, 0.98, 2e-3, 0.05, 5.5e-7])
@@ -126,15 +132,17 @@ def test_line_from_states_is_the_output_model_and_its_linearised_band():
     p1 = 1.3 * p0
     u = np.array([[375.0, 23.0, 50.0], [380.0, 24.0, 50.0]])
     tau, nu = np.array([0.25, 0.5]), np.array([3.0, 2.0])
-    mean, sd = line_from_states(spec, [0.0, 1.0], [x0, x1], [p0, p1], u, tau, nu)
+    line = line_at(twin.line_model, [0.0, 1.0], [x0, x1], [p0, p1], u, tau, nu)
+    law = load_line_speed_law()
+    sigma_b = (0.5 - 0.0) / 4.0  # linewidth_exponent_range = [0, 0.5] taken as ±2σ
     for i in range(2):
         w = tau[i]
         x = x0 + w * (x1 - x0)
         p = (1 - w) * p0 + w * p1
+        factor = (law.reference_speed_mm_s / nu[i]) ** 0.3
 
-        def g(state, i=i):
+        def g(state, factor=factor):
             y = np.asarray(output_function(state, u[0], params, spec.coefficients))[:2]
-            factor = (load_line_speed_law().reference_speed_mm_s / nu[i]) ** 0.3
             return y * factor
 
         jac = np.zeros((2, 5))
@@ -142,8 +150,40 @@ def test_line_from_states_is_the_output_model_and_its_linearised_band():
             step = np.zeros(5)
             step[j] = 1e-4 * max(abs(x[j]), scale[j])
             jac[:, j] = (g(x + step) - g(x - step)) / (2 * step[j])
-        assert mean[i] == pytest.approx(g(x), rel=1e-12)
-        assert sd[i] == pytest.approx(np.sqrt(np.diag(jac @ p @ jac.T)), rel=1e-5)
+        mean = g(x)
+        law_share = (mean * math.log(law.reference_speed_mm_s / nu[i]) * sigma_b) ** 2
+        expected_sd = np.sqrt(np.diag(jac @ p @ jac.T) + law_share)
+        assert (line.linewidth_um[i], line.overspray_um[i]) == pytest.approx(mean, rel=1e-12)
+        got_sd = (line.linewidth_std_um[i], line.overspray_std_um[i])
+        assert got_sd == pytest.approx(expected_sd, rel=1e-5)
+    # at ν_ref the law adds nothing: σ is the state's alone
+    assert law_share.max() == 0.0
+
+
+def test_the_line_in_padded_blocks_equals_the_line_point_by_point():
+    """Blocks padded to a power of two (so a live map's changing number of points does not
+    recompile) give each point's value as evaluated alone, and report their progress."""
+    from ajtwin.estimation import Twin
+
+    twin = Twin.default()
+    rng = np.random.default_rng(5)
+    t = np.arange(6.0)
+    x = np.array([3.5, 1.0, 0.0, 0.03, 4.6e-7]) * (1 + 0.01 * rng.normal(size=(6, 5)))
+    p = np.array([np.diag([1e-3, 1e-6, 1e-9, 1e-6, 1e-16])] * 6)
+    u = np.tile([375.0, 23.0, 50.0], (6, 1))
+    tau = rng.uniform(-0.5, 5.5, size=300)  # outside the steps: the nearest
+    nu = rng.uniform(1.0, 4.0, size=300)
+    done = []
+    all_at_once = line_at(twin.line_model, t, x, p, u, tau, nu, progress=done.append)
+    assert done == [300] and block_size(300) == 512
+    for i in (0, 17, 299):
+        alone = line_at(twin.line_model, t, x, p, u, tau[i], nu[i])
+        assert alone.linewidth_um[0] == pytest.approx(all_at_once.linewidth_um[i], rel=1e-13)
+        assert alone.linewidth_std_um[0] == pytest.approx(
+            all_at_once.linewidth_std_um[i], rel=1e-12
+        )
+    before = line_at(twin.line_model, t, x, p, u, [-3.0, 0.0], [2.0, 2.0])
+    assert before.linewidth_um[0] == before.linewidth_um[1]  # before the first step: its state
 
 
 def test_alarms_are_placed_where_the_nozzle_was():
@@ -158,11 +198,14 @@ def test_alarms_are_placed_where_the_nozzle_was():
     assert row.detectors == "cusum+ P_c"
 
 
+CLOG_PROGRAM = "tests/data/prg/prg2svg/2 and 6-Au.prg"
+
+
 @pytest.fixture(scope="module")
 def clog_print():
     """A 12-min job print whose nozzle clogs fast from 4 min (first generator, seed 1)."""
     return run_job_print(
-        "tests/data/prg/prg2svg/2 and 6-Au.prg",
+        CLOG_PROGRAM,
         "nozzle_clog",
         seed=1,
         duration_min=12,
@@ -177,8 +220,10 @@ def clog_map(clog_print):
     width = record.data["true_linewidth_um"].to_numpy()[:240]
     target = round(float(np.nanmedian(width)))
     tol = Tolerance(target - 1.5, target + 1.5)
-    run = smoothed_run(record)
-    return build_part_map(clog_print.plan.job, run, tol, source="clog")
+    job = program_for_record(record, CLOG_PROGRAM)  # the program as the print ran it
+    run = smoothed_run(record, job=job)  # its frames filed at their print times
+    assert run.camera_counts["filed"] > 0 and run.line_factors is not None
+    return build_part_map(job, run, tol, source="clog")
 
 
 def test_flagged_portions_are_those_whose_true_width_leaves_the_tolerance(clog_print, clog_map):

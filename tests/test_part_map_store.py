@@ -16,8 +16,8 @@ from ajtwin.cli.job import job as job_group
 from ajtwin.cli.machine import machine
 from ajtwin.engine.ingest import ingest_record
 from ajtwin.engine.part_live import LivePartMap, follow_engine
-from ajtwin.engine.part_map import Tolerance, line_from_states, portion_table, sample_points
-from ajtwin.engine.print_job import job_entry, job_from_entry
+from ajtwin.engine.part_map import Tolerance, portion_table, sample_points
+from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.io.records import write_record
 from ajtwin.simulation import run_job_print, simulate
 from ajtwin.store import registry as R
@@ -83,6 +83,54 @@ def test_ingest_with_its_job_stores_it_and_history_names_it(job_print_file, tmp_
     assert "lab1 print 1" in b.output and "away from the stored end state" not in b.output
 
 
+def test_a_job_looped_side_by_side_is_kept_and_read_back_as_the_print_ran_it(tmp_path):
+    """A print that looped its program as parts side by side: the record's reading and the
+    registry's (ingest --job, then the stored entry) give the same job — the same runs at
+    the same places — because one function reads both."""
+    from ajtwin.estimation.print_time import program_for_record
+
+    record = run_job_print(PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(12.0, 9.0)).record
+    assert record.meta["job"]["repeat_pitch_mm"] == [12.0, 9.0]
+    from_record = program_for_record(record, PROGRAM)
+    assert from_record.repetitions > 1 and np.ptp(from_record.repetition_offsets_mm[:, 0]) > 0
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("lab")
+    result = ingest_record(reg, "lab", record, job=job_entry(PROGRAM, record))
+    entry = reg.print_job(result.print_id)
+    assert entry["settings"]["repeat_pitch_mm"] == [12.0, 9.0]
+    from_store = entry_job(entry)
+    np.testing.assert_array_equal(
+        from_store.repetition_offsets_mm, from_record.repetition_offsets_mm
+    )
+    pd.testing.assert_frame_equal(from_store.timeline(), from_record.timeline())
+    # overprinted instead (no pitch): the same part printed again, runs at one place
+    again = entry_job({**entry, "settings": {**entry["settings"], "repeat_pitch_mm": None}})
+    assert np.ptp(again.repetition_offsets_mm, axis=0).max() == 0.0
+    reg.close()
+
+
+def test_job_report_of_a_log_that_names_no_job_takes_the_looping_from_the_options(tmp_path):
+    """A machine log that does not say how the job was looped, given --repeat-to and
+    --repeat-pitch-mm, is mapped as the same print whose record says so."""
+    from ajtwin.io.records import PrintRecord
+
+    record = run_job_print(PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(12.0, 9.0)).record
+    named = tmp_path / "named.parquet"
+    write_record(record, named)
+    meta = {k: v for k, v in record.meta.items() if k != "job"}
+    bare = tmp_path / "bare.parquet"
+    write_record(PrintRecord(record.data, meta), bare)
+    common = ["--job", PROGRAM, "--tolerance", "74+-2", "--no-progress"]
+    a = run(job_group, "report", named, "--out", tmp_path / "a", *common)
+    looping = ["--repeat-to", record.meta["job"]["repeat_to_s"], "--repeat-pitch-mm", "12,9"]
+    b = run(job_group, "report", bare, "--out", tmp_path / "b", *common, *looping)
+    assert a.exit_code == 0 and b.exit_code == 0, (a.output, b.output)
+    first = pd.read_csv(tmp_path / "a" / "strokes.csv")
+    second = pd.read_csv(tmp_path / "b" / "strokes.csv")
+    assert first["repetition"].max() >= 1
+    pd.testing.assert_frame_equal(first, second)
+
+
 def test_an_older_registry_opens_after_the_migration_and_keeps_its_prints(tmp_path, job_print_file):
     store = tmp_path / "v5.sqlite"
     reg = Registry(store)
@@ -128,51 +176,74 @@ def test_a_damaged_stored_program_is_named(tmp_path, job_print_file):
         reg.print_job(reg.last_print("lab")["id"])
 
 
-def test_the_live_twin_maps_the_part_as_the_batch_filter_does_and_stores_the_job(tmp_path):
-    """Fed sample by sample, the live map's portions carry the line of the filtered states
-    (stream = batch), and the finished print is stored with its job."""
+def test_the_live_twin_maps_the_final_part_as_the_batch_filter_does_and_stores_the_job(
+    tmp_path,
+):
+    """Fed a job print sample by sample (the camera trailing, frames filed at their print
+    times), the live map hands out a portion only once its seconds are final — H rows after
+    it was printed — with the line of the filtered states the batch twin has (stream =
+    batch), evaluated by the twin's own line evaluation; the finished print is stored with
+    its job and the speed-law factors of its filed steps."""
     from ajtwin.engine.fleet import LiveEngine
     from ajtwin.engine.samples import Sample
     from ajtwin.estimation import Twin
+    from ajtwin.estimation.print_time import print_context
 
     job_print = run_job_print(PROGRAM, "exp1", 2, duration_min=3.0)
     record = job_print.record
     entry = job_entry(PROGRAM, record, tolerance=Tolerance(72.0, 76.0))
+    job = entry_job(entry)
+    context = print_context(record, job)
+    horizon = context.horizon_s
+    assert record.meta["camera"]["mode"] == "trailing" and 5 <= horizon < 120
     reg = Registry(tmp_path / "r.sqlite")
     engine = LiveEngine(reg, asynchronous=False)
     engine.jobs["m"] = entry
-    part = LivePartMap(job_from_entry(entry), tolerance=Tolerance(72.0, 76.0))
-    chunks = []
-    follow_engine(engine, "m", part, lambda machine, chunk: chunks.append(chunk))
-    for t, u, y in zip(record.time_s, record.inputs, record.outputs):
-        engine.feed("m", Sample(t, u, y))
+    engine.open("m", print_context=context)
+    part = LivePartMap(entry_job(entry), tolerance=Tolerance(72.0, 76.0))
+    chunks, fed = [], [0]  # chunks with the row that made them; rows fed so far
+    follow_engine(engine, "m", part, lambda machine, chunk: chunks.append((fed[0], chunk)))
+    columns = zip(record.time_s, record.inputs, record.outputs, record.shutter_open,
+                  record.platen_speed, record.printed_at)  # fmt: skip
+    for row, values in enumerate(columns):
+        fed[0] = row
+        engine.feed("m", Sample(*values))
+    fed[0] = len(record)  # what the end of the print makes final
     print_id = engine.close("m")
     assert reg.print_job(print_id)["program"] == PROGRAM.name
+    # a portion is handed out once final: printed at least H s before the row that did it
+    for at, chunk in chunks:
+        if "portions" in chunk and at < len(record):
+            latest = max(chunk["portions"]["printed_to_s"])
+            assert latest <= record.time_s[at] - horizon + 1e-6
+    assert any(at < len(record) for at, c in chunks if "portions" in c)
     live = {
-        k: np.concatenate([c["portions"][k] for c in chunks if "portions" in c])
-        for k in ("index", "stroke", "portion", "lw_mean_um", "p_out")
+        k: np.concatenate([c["portions"][k] for _, c in chunks if "portions" in c])
+        for k in ("index", "stroke", "portion", "lw_mean_um", "lw_hi_um", "p_out")
     }
     n = len(live["index"])
     assert np.array_equal(live["index"], np.arange(n))
-    # the batch filter over the same samples, evaluated the same way
-    twin = Twin.default()
-    run_ = twin.run(record)
+    # the batch twin over the same print as it ran, its filtered line at the same points
+    run_ = Twin.default().run(record, job=job)
+    assert run_.camera_counts["horizon_s"] == horizon
     portions = part.job.portions(1.0)
     portions = portions[portions["t_to_s"] <= record.time_s[-1] + 1e-9].reset_index(drop=True)
     assert n == len(portions) > 100
     points = sample_points(part.job, portions)
-    mean, sd = line_from_states(
-        twin.spec, run_.time_s, run_.means, np.asarray(run_.filtered.covariances),
-        record.inputs, points["time_s"], points["speed_mm_s"],
-    )  # fmt: skip
-    points["lw_mean_um"], points["lo_mean_um"] = mean[:, 0], mean[:, 1]
-    points["lw_sd_um"], points["lo_sd_um"] = sd[:, 0], sd[:, 1]
+    line = run_.line_at(points["time_s"], points["speed_mm_s"], smoothed=False)
+    points["lw_mean_um"], points["lo_mean_um"] = line.linewidth_um, line.overspray_um
+    points["lw_sd_um"], points["lo_sd_um"] = line.linewidth_std_um, line.overspray_std_um
     batch = portion_table(portions, points, Tolerance(72.0, 76.0))
-    # each portion was evaluated when it finished, from the states up to then, which are
+    # each portion was evaluated when it was final, from the states up to then, which are
     # the batch filter's (stream = batch): equal to the page's rounding (0.001 µm, 1e-4)
     np.testing.assert_allclose(live["lw_mean_um"], batch["lw_mean_um"], rtol=0, atol=5.01e-4)
+    np.testing.assert_allclose(live["lw_hi_um"], batch["lw_hi_um"], rtol=0, atol=5.01e-4)
     np.testing.assert_allclose(live["p_out"], batch["p_out"], rtol=0, atol=5.01e-5)
     assert batch["flagged"].any() and not batch["flagged"].all()
+    # the stored live print keeps its filed steps' factors: its map re-runs the same filter
+    arrays = reg.print_arrays(print_id)
+    np.testing.assert_array_equal(arrays["line_factors"], run_.line_factors)
+    np.testing.assert_array_equal(arrays["measurements"], run_.measurements)
 
 
 def test_a_served_virtual_printer_runs_the_job():

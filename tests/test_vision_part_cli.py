@@ -169,7 +169,7 @@ def test_program_other_than_the_records_is_refused(part, tmp_path):
         ],
     )
     assert result.exit_code == 1
-    assert "is not the program this record was printed with" in result.output
+    assert "is not the program this print ran" in result.output
 
 
 def test_camera_file_with_zero_scale_is_refused(part, tmp_path):

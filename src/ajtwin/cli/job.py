@@ -11,6 +11,7 @@ import click
 
 from ajtwin.cli.options import (
     BoundedFloat,
+    PitchMM,
     ToleranceType,
     open_registry,
     record_options,
@@ -300,6 +301,14 @@ def _echo_part_report(part, paths) -> None:
     "looped to the record's length when the print outlasts the program).",
 )
 @click.option(
+    "--repeat-pitch-mm",
+    "repeat_pitch",
+    type=PitchMM(),
+    default=None,
+    help="The loops were placed side by side, DX[,DY] mm apart (default: the record's; else "
+    "each run printed over the last).",
+)
+@click.option(
     "--portion-mm",
     type=BoundedFloat(0.0, 1000.0),
     default=1.0,
@@ -326,6 +335,7 @@ def report(
     process_speed,
     rapid_speed,
     repeat_to,
+    repeat_pitch,
     portion_mm,
     flag_probability,
     progress,
@@ -343,12 +353,8 @@ def report(
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_map import part_map_of_record
     from ajtwin.engine.part_report import write_report
-    from ajtwin.engine.print_job import (
-        job_of_print,
-        next_print_twin,
-        record_duration_s,
-        stored_part_map,
-    )
+    from ajtwin.engine.print_job import next_print_twin, stored_part_map
+    from ajtwin.estimation.print_time import program_for_record
     from ajtwin.io.records import RecordError, read_record
     from ajtwin.job import ProgramError
     from ajtwin.store.registry import RegistryError
@@ -369,14 +375,13 @@ def report(
             )
         else:
             rec = read_record(record, aliases=aliases, dialect=csv_dialect)
-            the_job = job_of_print(
-                program.read_bytes(),
-                program.name,
-                rec.meta,
+            the_job = program_for_record(
+                rec,
+                program,
                 process_speed_mm_s=process_speed,
                 rapid_speed_mm_s=rapid_speed,
                 repeat_to_s=repeat_to,
-                print_duration_s=record_duration_s(rec),
+                repeat_pitch_mm=repeat_pitch,
             )
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start

@@ -202,9 +202,9 @@ def _follow_parts(engine, publisher, machines, entry: dict, tolerance) -> None:
     """Each machine's live part map, fed by the engine and published to the dashboard."""
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_live import LivePartMap, follow_engine
-    from ajtwin.engine.print_job import job_from_entry
+    from ajtwin.engine.print_job import entry_job
 
-    the_job = job_from_entry(entry)
+    the_job = entry_job(entry)
     for name in machines:
         part = LivePartMap(the_job, tolerance=tolerance)
         publisher.open_part(name, part.header())

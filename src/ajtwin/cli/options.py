@@ -12,8 +12,9 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.engine.chain import open_registry as open_checked_registry
+from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.io.dialect import DIALECT_CHOICES
-from ajtwin.job import ProgramError, read_printed_program
+from ajtwin.job import ProgramError
 from ajtwin.model import load_parameters
 from ajtwin.store.registry import RegistryError
 from ajtwin.vision.camera import CameraFileError, load_camera
@@ -130,14 +131,19 @@ def load_camera_option(camera_path):
 
 
 def load_job_option(job_path, *, meta=None, process_speed=None, rapid_speed=None, repeat_to=None):
-    """The program of ``--job`` as the print ran it (:func:`ajtwin.job.read_printed_program`:
-    speeds and looping from the record's metadata ``meta`` where not given, and refused when
-    the record names another program)."""
+    """The program of ``--job`` as the print ran it
+    (:func:`ajtwin.estimation.print_time.job_as_printed`: speeds and looping from the record's
+    metadata ``meta`` where not given, and refused when the record names another program)."""
     if job_path is None:
         raise click.UsageError("--camera needs --job PROGRAM.prg")
+    info = (meta or {}).get("job")
     try:
-        return read_printed_program(
-            job_path, (meta or {}).get("job"), process_speed, rapid_speed, repeat_to
+        return job_as_printed(
+            job_path,
+            info if isinstance(info, dict) else None,
+            process_speed_mm_s=process_speed,
+            rapid_speed_mm_s=rapid_speed,
+            repeat_to_s=repeat_to,
         )
     except (ProgramError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
@@ -193,6 +199,34 @@ class BoundedFloat(click.ParamType):
             high = "inf" if self.high is None else f"{self.high:g}"
             self.fail(f"{number:g} is outside {left}{low}, {high}{right}", param, ctx)
         return number
+
+
+class OffsetMM(click.ParamType):
+    """``DX[,DY]`` in mm (DY = 0 when left out); finite numbers only."""
+
+    name = "DX[,DY]"
+    #: what a value beyond 1 m would be (the error says so)
+    beyond_1_m = "an offset beyond 1 m is not a camera on the head"
+
+    def convert(self, value, param, ctx):
+        """``"DX"`` or ``"DX,DY"`` [mm] → (dx, dy); click's error names the option."""
+        if isinstance(value, tuple):
+            return value
+        parts = [p.strip() for p in str(value).split(",")]
+        if not 1 <= len(parts) <= 2:
+            self.fail(f"{value!r}: give DX or DX,DY in mm", param, ctx)
+        numbers = [BoundedFloat().convert(p, param, ctx) for p in parts]
+        if len(numbers) == 1:
+            numbers.append(0.0)
+        if any(abs(v) > 1000.0 for v in numbers):
+            self.fail(f"{value!r}: {self.beyond_1_m}", param, ctx)
+        return tuple(numbers)
+
+
+class PitchMM(OffsetMM):
+    """``DX[,DY]`` in mm between parts of a looped job, within the stage (1 m)."""
+
+    beyond_1_m = "a pitch beyond 1 m does not fit on a printer's stage"
 
 
 def check_vial_fill(ctx, param, value):

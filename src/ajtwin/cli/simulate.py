@@ -9,38 +9,10 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.cli.options import BoundedFloat, csv_dialect_option
+from ajtwin.cli.options import BoundedFloat, OffsetMM, PitchMM, csv_dialect_option
 from ajtwin.io.records import RecordError, read_record, write_record
 
 _SPEED = BoundedFloat(0.0, 10_000.0)
-
-
-class OffsetMM(click.ParamType):
-    """``DX[,DY]`` in mm (DY = 0 when left out); finite numbers only."""
-
-    name = "DX[,DY]"
-    #: what a value beyond 1 m would be (the error says so)
-    beyond_1_m = "an offset beyond 1 m is not a camera on the head"
-
-    def convert(self, value, param, ctx):
-        """``"DX"`` or ``"DX,DY"`` [mm] → (dx, dy); click's error names the option."""
-        if isinstance(value, tuple):
-            return value
-        parts = [p.strip() for p in str(value).split(",")]
-        if not 1 <= len(parts) <= 2:
-            self.fail(f"{value!r}: give DX or DX,DY in mm", param, ctx)
-        numbers = [BoundedFloat().convert(p, param, ctx) for p in parts]
-        if len(numbers) == 1:
-            numbers.append(0.0)
-        if any(abs(v) > 1000.0 for v in numbers):
-            self.fail(f"{value!r}: {self.beyond_1_m}", param, ctx)
-        return tuple(numbers)
-
-
-class PitchMM(OffsetMM):
-    """``DX[,DY]`` in mm between parts of a looped job, within the stage (1 m)."""
-
-    beyond_1_m = "a pitch beyond 1 m does not fit on a printer's stage"
 
 
 @click.command()

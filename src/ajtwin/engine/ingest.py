@@ -31,9 +31,10 @@ from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.chain import chain_start
 from ajtwin.engine.parts import PrintWriter
-from ajtwin.engine.print_job import job_entry
+from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
+from ajtwin.estimation.print_time import is_job_record, record_duration_s
 from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import JOB_COLUMNS, read_record
 from ajtwin.model import STATE_NAMES
@@ -230,8 +231,8 @@ def ingest_record(
         Also return the whole run and the detectors' results (``run``, ``detection``: a
         report's plots); memory then grows with the print.
     job : dict, optional
-        The machine program the print ran, stored with it
-        (:func:`ajtwin.engine.print_job.job_entry`).
+        The program the print ran (:func:`ajtwin.engine.print_job.job_entry`), stored with
+        it; on a job print the twin files the camera's frames with it.
 
     Returns
     -------
@@ -253,7 +254,9 @@ def ingest_record(
     try:
         carried = carried_long_run_history(registry, machine, chain)
         sink = IngestSink(writer, record, detector_settings, carried, keep=keep_run)
-        run = twin.run(record, start=start, progress=progress, sink=sink)
+        run = twin.run(
+            record, start=start, progress=progress, sink=sink, job=_printed_job(job, record)
+        )
         events, mismatch = sink.finish(run)
         print_id, summary = save_print(
             registry,
@@ -460,13 +463,23 @@ def theta_history_arrays(run) -> dict:
     }
 
 
+def _printed_job(entry: dict | None, record):
+    """The job a job record's print ran (from the entry kept with it), for the twin to file
+    the camera's frames with; None without an entry or for a record without job columns."""
+    if entry is None or not is_job_record(record):
+        return None
+    return entry_job(entry, print_duration_s=record_duration_s(record))
+
+
 def run_arrays(run, record) -> dict:
     """The per-second arrays the registry keeps of a twin run over a print (names as
     :meth:`ajtwin.store.registry.Registry.print_arrays` returns them). ``measurements`` are
-    those the filter used: on a job print, the camera's filed at their print times."""
+    those the filter used: on a job print, the camera's filed at their print times, with
+    their speed-law factors (``line_factors``) so that the run can be made again."""
     f = run.filtered
     hist = run.theta_history
     measured = getattr(run, "measurements", None)
+    line = getattr(run, "line_factors", None)
     return {
         "time_s": run.time_s,
         "means": run.means,
@@ -483,10 +496,11 @@ def run_arrays(run, record) -> dict:
         "theta_per_step": run.theta_per_step,
         "theta_history_time_s": hist["time_s"].to_numpy(float),
         "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
-        # a job print's shutter, speed and print times, kept exactly to rebuild the record
+        # a job print's shutter, speed and print times as the machine logged them
         **(
             {c: record.data[c].to_numpy(dtype=float) for c in JOB_COLUMNS} if record.has_job else {}
         ),
+        **({} if line is None else {"line_factors": np.asarray(line, dtype=float)}),
     }
 
 

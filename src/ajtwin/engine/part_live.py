@@ -6,11 +6,16 @@ portions with their line and probability, the sample points along them, the alar
 
 :class:`LivePartMap` builds the same thing while the machine prints, from the live twin's
 *filtered* states (the live twin has no smoother: a portion's line is what the twin knew
-when the portion was finished, and the stored print's map, smoothed, replaces it
-afterwards). Each committed step k gives the state and covariance at t_k; the portions
-finished by t_k are evaluated with :func:`~ajtwin.engine.part_map.line_from_states` over
-the last steps (the same line, band and probability as the batch map) and handed out as a
-chunk. :func:`follow_engine` feeds it from a :class:`~ajtwin.engine.fleet.LiveEngine`.
+when the portion was final, and the stored print's map, smoothed, replaces it
+afterwards). It follows the engine's *committed* steps only: on a job print a step is
+committed once it is final — H seconds after it was printed, when no camera frame of it
+can still arrive (:mod:`ajtwin.estimation.print_time`) — and the engine's provisional
+"now" is not used, since a late frame can still move it. Each committed step k gives the
+state and covariance at t_k (P_k with the floor of never-seen states, as the engine
+reports σ); the portions finished by t_k are evaluated by the twin's own
+:func:`ajtwin.estimation.part_line.line_at` over the last steps (the same line, band and
+probability as the batch map) and handed out as a chunk. :func:`follow_engine` feeds it
+from a :class:`~ajtwin.engine.fleet.LiveEngine`.
 
 Coordinates in a payload are the drawing's: a looped job's runs side by side
 (:func:`ajtwin.job.plot.repetition_layout`), as in ``part.png``.
@@ -30,12 +35,12 @@ from ajtwin.engine.part_map import (
     STEP_MM,
     PartMap,
     Tolerance,
-    line_from_states,
     place_alarms,
     portion_table,
     sample_points,
 )
 from ajtwin.engine.part_report import summary_facts
+from ajtwin.estimation.part_line import line_at
 from ajtwin.job.plot import repetition_layout
 
 log = logging.getLogger("ajtwin.live")
@@ -168,9 +173,9 @@ class LivePartMap:
     job : ajtwin.job.Job
         The job the machine runs (looped already, or the program once: then it is looped
         further whenever the print outlasts it).
-    spec : ModelSpec, optional
-        The live twin's model (:attr:`ajtwin.estimation.twin.Twin.spec`, with the machine's
-        calibration); :func:`follow_engine` takes it from the machine's stream.
+    line_model : LineModel, optional
+        The live twin's line (:attr:`ajtwin.estimation.twin.Twin.line_model`, with the
+        machine's calibration); :func:`follow_engine` takes it from the machine's stream.
     tolerance : Tolerance, optional
     portion_mm, step_mm, flag_probability
         As for :func:`ajtwin.engine.part_map.build_part_map`.
@@ -179,7 +184,7 @@ class LivePartMap:
     def __init__(
         self,
         job,
-        spec=None,
+        line_model=None,
         tolerance: Tolerance | None = None,
         *,
         portion_mm: float = PORTION_MM,
@@ -187,7 +192,7 @@ class LivePartMap:
         flag_probability: float = FLAG_PROBABILITY,
     ):
         self.base_job = job
-        self.spec = spec
+        self.line_model = line_model
         self.tolerance = tolerance
         self.portion_mm, self.step_mm = float(portion_mm), float(step_mm)
         self.flag_probability = float(flag_probability)
@@ -216,8 +221,9 @@ class LivePartMap:
         return True
 
     def step(self, time_s: float, mean, covariance, inputs) -> dict | None:
-        """One committed step of the live twin; the chunk of portions finished by
-        ``time_s`` (None: none), numbered on from the previous chunks.
+        """One committed (final) step of the live twin: its state, covariance (as the twin
+        reports it) and inputs; the chunk of portions finished by ``time_s`` (None: none),
+        numbered on from the previous chunks.
 
         Returns
         -------
@@ -243,11 +249,17 @@ class LivePartMap:
     def _evaluate(self, portions: pd.DataFrame) -> dict:
         points = sample_points(self.job, portions, self.step_mm)
         t, means, covs, u = (np.array(v) for v in zip(*self._steps))
-        mean, sd = line_from_states(
-            self.spec, t, means, covs, u, points["time_s"].to_numpy(), points["speed_mm_s"]
+        line = line_at(
+            self.line_model,
+            t,
+            means,
+            covs,
+            u,
+            points["time_s"].to_numpy(),
+            points["speed_mm_s"].to_numpy(),
         )
-        points["lw_mean_um"], points["lo_mean_um"] = mean[:, 0], mean[:, 1]
-        points["lw_sd_um"], points["lo_sd_um"] = sd[:, 0], sd[:, 1]
+        points["lw_mean_um"], points["lo_mean_um"] = line.linewidth_um, line.overspray_um
+        points["lw_sd_um"], points["lo_sd_um"] = line.linewidth_std_um, line.overspray_std_um
         table = portion_table(portions, points, self.tolerance, self.flag_probability)
         chunk = {
             "portions": _portion_columns(table, self.n_sent),
@@ -261,13 +273,25 @@ class LivePartMap:
         return alarm_payload(place_alarms(self.job, events), self.layout)
 
 
+def reported_covariance(covariance, prior_floor=None) -> np.ndarray:
+    """P_k as the twin reports it: its diagonal raised to the floor of states no data has
+    seen yet (:func:`ajtwin.estimation.twin.never_seen_variance_floor`; None: none)."""
+    cov = np.array(covariance, dtype=float)
+    if prior_floor is not None:
+        diagonal = np.einsum("ii->i", cov)
+        np.maximum(diagonal, np.asarray(prior_floor, dtype=float), out=diagonal)
+    return cov
+
+
 def follow_engine(engine, machine: str, part: LivePartMap, publish) -> callable:
     """Feed ``part`` from a live engine's committed steps of ``machine``; each chunk goes to
     ``publish(machine, chunk)``. Returns the function that stops it.
 
-    The step's covariance is read from the machine's stream (the message carries σ only):
-    the same P_k the twin stores. The stream is kept once seen, so the steps a finishing
-    print commits last still reach the map.
+    Only committed steps are used (on a job print: final ones, H seconds after they were
+    printed; provisional messages are skipped). The step's covariance is read from the
+    machine's stream (the message carries σ only): the P_k the twin stores, with the floor
+    of never-seen states as the engine reports σ. The stream is kept once seen, so the
+    steps a finishing print commits last still reach the map.
     """
     streams = {}
 
@@ -280,8 +304,8 @@ def follow_engine(engine, machine: str, part: LivePartMap, publish) -> callable:
             streams["stream"] = engine.stream(machine)
         if streams["stream"] is None:
             return
-        if part.spec is None:  # the machine's own twin (its calibration)
-            part.spec = streams["stream"].twin.spec
+        if part.line_model is None:  # the machine's own twin (its calibration)
+            part.line_model = streams["stream"].twin.line_model
         history = streams["stream"].history
         k = int(message["step"])
         if k >= len(history):
@@ -289,7 +313,7 @@ def follow_engine(engine, machine: str, part: LivePartMap, publish) -> callable:
         chunk = part.step(
             float(history.time_s[k]),
             history.means[k],
-            history.covariances[k],
+            reported_covariance(history.covariances[k], history.prior_floor[k]),
             history.inputs[k],
         )
         alarms = [ev for ev in message.get("events", ()) if ev.get("state") == "raised"]

@@ -1,15 +1,16 @@
 """The part quality map: which traces of a part are out of tolerance, and how likely.
 
-The twin's smoothed states over a print give the line printed at any time τ and platen
-speed ν (:func:`line_at`, model reference §5, §12):
+The twin runs over the print as it ran (the camera's frames filed at their print times,
+:func:`smoothed_run`); its smoothed states give the line printed at any time τ and
+platen speed ν (:func:`line_at`, the twin's own
+:func:`ajtwin.estimation.part_line.line_at`, model reference §5, §12):
 
-    L(τ) = g(x̂(τ), u(τ), ν),      σ²(τ) = diag(H P(τ) Hᵀ),   H = ∂g/∂x at x̂(τ),
+    L(τ) = g(x̂(τ), u(τ), ν),   σ²(τ) = diag(H P(τ) Hᵀ) + (L ln(ν_ref/ν))² σ_b²,   H = ∂g/∂x,
 
 with x̂(τ), P(τ) the smoothed mean and covariance interpolated linearly between the 1 Hz
 samples around τ (P with the calibration's share and the floor of never-seen states, as
-the twin reports its states), u(τ) the inputs held over that second and g the output
-model with the speed law — the forecast's bands
-(:func:`ajtwin.apps.planning.forecast.output_moments`), evaluated along the strokes.
+the twin reports its states), u(τ) the inputs held over that second, g the output model
+with the speed law and σ_b the law's own uncertainty (0 at ν_ref).
 
 The job (:mod:`ajtwin.job`) says what was printed when: each stroke is cut into portions of
 at most ``portion_mm`` (:meth:`ajtwin.job.Job.portions`) and each portion sampled along its
@@ -31,8 +32,8 @@ correlated points P(some point out) is exactly the largest single-point probabil
 general it is a lower bound). A portion is **flagged** when P_out ≥ ``flag_probability``
 (default 0.5: more likely out than in).
 
-:func:`line_at` is the one place the line is evaluated from a batch run; everything else
-(portions, probability, alarms, the report) is geometry and bookkeeping around it.
+The line is evaluated in one place, the twin's; everything here (portions, probability,
+alarms, the report) is geometry and bookkeeping around it.
 
 Examples
 --------
@@ -55,9 +56,8 @@ import numpy as np
 import pandas as pd
 from scipy.special import ndtr
 
-from ajtwin._jax import jax
 from ajtwin.apps.detection.batch import detect_run
-from ajtwin.apps.planning.forecast import output_moments
+from ajtwin.estimation.print_time import is_job_record
 from ajtwin.estimation.twin import Twin
 
 #: The strokes.csv columns, in order (one row a stroke portion).
@@ -90,8 +90,6 @@ PORTION_MM = 1.0
 STEP_MM = 0.1
 #: Default probability from which a portion is flagged.
 FLAG_PROBABILITY = 0.5
-#: Largest block of points evaluated in one call (the padded sizes compile once each).
-_BLOCK = 1 << 15
 
 
 # --------------------------------------------------------------------------- #
@@ -161,119 +159,35 @@ def out_of_tolerance_probability(mean, sd, tolerance: Tolerance):
 # --------------------------------------------------------------------------- #
 
 
-class SmoothedRun(NamedTuple):
-    """A batch run of the twin with what the line needs: the run (smoothed), the model
-    spec it ran on and the print's inputs (T, 3) [mA, sccm, sccm]."""
-
-    run: object  # ajtwin.estimation.twin.TwinRun with .smoothed
-    spec: object  # ajtwin.estimation.filters.ModelSpec
-    inputs: np.ndarray
-
-
-def smoothed_run(record, twin: Twin | None = None, start=None, progress=None) -> SmoothedRun:
-    """The twin (EKF + EM, then RTS) over ``record``: :meth:`Twin.run` with ``smooth=True``.
+def smoothed_run(record, twin: Twin | None = None, start=None, progress=None, job=None):
+    """The twin (EKF + EM, then RTS) over ``record`` as the print ran:
+    :meth:`Twin.run` with ``smooth=True`` and, for a job print, its job.
 
     ``twin``: the machine's twin with its θ (default :meth:`Twin.default`); ``start``: the
-    start (mean, cov) (default: the initial-state fit).
+    start (mean, cov) (default: the initial-state fit); ``job``: the job as printed
+    (:func:`ajtwin.estimation.print_time.job_as_printed`) — on a job print (a format-2
+    record with the job columns) the camera's frames are filed at their print times with
+    the speeds and the horizon the program gives; a record without the job columns runs
+    as before (its frames at their row times). Returns the
+    :class:`~ajtwin.estimation.twin.TwinRun`.
     """
     twin = twin or Twin.default()
-    run = twin.run(record, start=start, smooth=True, progress=progress)
-    return SmoothedRun(run, twin.spec, np.asarray(record.inputs, dtype=float))
+    printed = job if job is not None and is_job_record(record) else None
+    return twin.run(record, start=start, smooth=True, progress=progress, job=printed)
 
 
-def line_at(run: SmoothedRun, times_s, speeds_mm_s) -> tuple[np.ndarray, np.ndarray]:
-    """The line printed at times τ [s] and platen speeds ν [mm/s], from the smoothed states.
+def line_at(run, times_s, speeds_mm_s, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """The line printed at times τ [s] and platen speeds ν [mm/s], from a smoothed run.
 
-    THE place the part map reads the twin's line from a batch run: mean (n, 2) and σ (n, 2)
-    of [L_w, L_o] in µm (:func:`line_from_states` on the smoothed states and their
-    covariance as the twin reports it: the smoother's, plus the calibration's share and the
-    floor of never-seen states).
+    The twin's own evaluation (:meth:`ajtwin.estimation.TwinRun.line_at`: the smoothed
+    states and their total covariance through the output model and the speed law with its
+    uncertainty), as the part map's arrays: mean (n, 2) and σ (n, 2) of [L_w, L_o] in µm.
+    ``progress(done)`` after each block of points.
     """
-    twin_run = run.run
-    # the total covariance the twin reports for its states (TwinRun.to_frame(smoothed=True))
-    covariances = twin_run._total_cov(twin_run.smoothed.covariances)
-    return line_from_states(
-        run.spec,
-        twin_run.time_s,
-        np.asarray(twin_run.smoothed.means),
-        covariances,
-        run.inputs,
-        times_s,
-        speeds_mm_s,
-    )
-
-
-def _line_moments(spec, x, p, u, nu):
-    """:func:`output_moments` over rows: (n, 5) means and variances."""
-    return jax.vmap(output_moments, in_axes=(None, 0, 0, 0, 0))(spec, x, p, u, nu)
-
-
-_line_moments = jax.jit(_line_moments)
-
-
-def _padded(array: np.ndarray, size: int) -> np.ndarray:
-    pad = size - len(array)
-    return np.concatenate([array, np.repeat(array[-1:], pad, axis=0)]) if pad else array
-
-
-def line_from_states(
-    spec, time_s, means, covariances, inputs, times_s, speeds_mm_s, progress=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """[L_w, L_o] mean (n, 2) and σ (n, 2) [µm] at times τ and speeds ν from 1 Hz states.
-
-    x̂(τ) and P(τ) are interpolated linearly between the samples around τ (times outside
-    the samples take the nearest), the inputs are held over the second (as the machine
-    holds them), and the output model is linearised at x̂(τ):
-    σ² = diag(H P Hᵀ), H = ∂g(x, u, ν)/∂x (:func:`~ajtwin.apps.planning.forecast.output_moments`).
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The twin's model (parameters, output coefficients with its calibration).
-    time_s : array (T,)
-        Sample times [s], increasing.
-    means, covariances, inputs : arrays (T, 5), (T, 5, 5), (T, 3)
-        States, their covariance and the inputs at the samples (display units).
-    times_s, speeds_mm_s : arrays (n,)
-        τ [s] and ν [mm/s] of the points.
-    progress : callable(int), optional
-        Called with the number of points done.
-    """
-    time_s = np.asarray(time_s, dtype=float)
-    means = np.asarray(means, dtype=float)
-    covariances = np.asarray(covariances, dtype=float)
-    inputs = np.asarray(inputs, dtype=float)
-    tau = np.asarray(times_s, dtype=float).ravel()
-    nu = np.asarray(speeds_mm_s, dtype=float).ravel()
-    n = tau.size
-    mean_out, sd_out = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
-    if n == 0:
-        return mean_out, sd_out
-    if len(time_s) == 1:
-        k, w = np.zeros(n, dtype=np.int64), np.zeros(n)
-        nxt = k
-    else:
-        k = np.clip(np.searchsorted(time_s, tau, side="right") - 1, 0, len(time_s) - 2)
-        span = time_s[k + 1] - time_s[k]
-        w = np.clip((tau - time_s[k]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
-        nxt = k + 1
-    held = np.where(tau >= time_s[np.minimum(nxt, len(time_s) - 1)], nxt, k)
-    for lo in range(0, n, _BLOCK):
-        sel = slice(lo, min(lo + _BLOCK, n))
-        kk, ww = k[sel], w[sel]
-        x = means[kk] + ww[:, None] * (means[nxt[sel]] - means[kk])
-        p = covariances[kk] + ww[:, None, None] * (covariances[nxt[sel]] - covariances[kk])
-        u = inputs[held[sel]]
-        size = max(256, 1 << (len(kk) - 1).bit_length())
-        y, var = _line_moments(
-            spec, _padded(x, size), _padded(p, size), _padded(u, size), _padded(nu[sel], size)
-        )
-        m = len(kk)
-        mean_out[sel] = np.asarray(y)[:m, :2]
-        sd_out[sel] = np.sqrt(np.maximum(np.asarray(var)[:m, :2], 0.0))
-        if progress:
-            progress(sel.stop)
-    return mean_out, sd_out
+    line = run.line_at(times_s, speeds_mm_s, smoothed=True, progress=progress)
+    mean = np.stack([line.linewidth_um, line.overspray_um], axis=1)
+    sd = np.stack([line.linewidth_std_um, line.overspray_std_um], axis=1)
+    return mean, sd
 
 
 # --------------------------------------------------------------------------- #
@@ -486,7 +400,7 @@ class PartMap:
     flag_probability: float = FLAG_PROBABILITY
     source: str = ""
     notes: list = field(default_factory=list)
-    #: the smoothed run the map was made from (None when built from elsewhere)
+    #: the smoothed run (TwinRun) the map was made from (None when built from elsewhere)
     run: object = None
 
     @property
@@ -552,10 +466,10 @@ def evaluate_portions(
 ):
     """(portions table, points, notes) of the strokes printed by ``printed_until_s``.
 
-    ``line(times_s, speeds_mm_s) -> (mean (n, 2), sd (n, 2))`` evaluates the line
-    (:func:`line_at` with a run bound), called in blocks of points; ``progress(done,
-    total)`` after each. Portions not finished by ``printed_until_s`` are left out (a note
-    says how many).
+    ``line(times_s, speeds_mm_s, progress) -> (mean (n, 2), sd (n, 2))`` evaluates the
+    line at every sample point (:func:`line_at` with a run bound), calling ``progress(done)``
+    as it goes (None: no progress); ``progress(done, total)`` is called alike. Portions not
+    finished by ``printed_until_s`` are left out (a note says how many).
     """
     if not 0.0 <= flag_probability <= 1.0:
         raise ValueError(f"flag_probability must lie in [0, 1], got {flag_probability}")
@@ -571,12 +485,8 @@ def evaluate_portions(
     portions = portions[done].reset_index(drop=True)
     points = sample_points(job, portions, step_mm)
     times, speeds = points["time_s"].to_numpy(), points["speed_mm_s"].to_numpy()
-    mean, sd = np.full((len(times), 2), np.nan), np.full((len(times), 2), np.nan)
-    for lo in range(0, len(times), _BLOCK):
-        sel = slice(lo, lo + _BLOCK)
-        mean[sel], sd[sel] = line(times[sel], speeds[sel])
-        if progress:
-            progress(min(lo + _BLOCK, len(times)), len(times))
+    total = len(times)
+    mean, sd = line(times, speeds, None if progress is None else lambda done: progress(done, total))
     points["lw_mean_um"], points["lo_mean_um"] = mean[:, 0], mean[:, 1]
     points["lw_sd_um"], points["lo_sd_um"] = sd[:, 0], sd[:, 1]
     table = portion_table(portions, points, tolerance, flag_probability)
@@ -585,7 +495,7 @@ def evaluate_portions(
 
 def build_part_map(
     job,
-    run: SmoothedRun,
+    run,
     tolerance: Tolerance | None,
     *,
     events=(),
@@ -595,15 +505,16 @@ def build_part_map(
     flag_probability: float = FLAG_PROBABILITY,
     progress=None,
 ) -> PartMap:
-    """The part map of a smoothed run over a print of ``job`` (module docstring).
+    """The part map of a smoothed run (:class:`~ajtwin.estimation.twin.TwinRun`) over a
+    print of ``job`` (module docstring).
 
     ``events``: the print's alarms (placed on the part). ``progress(done, total)`` is
     called as the sample points are evaluated.
     """
-    end_s = float(np.asarray(run.run.time_s)[-1]) + 1.0
+    end_s = float(np.asarray(run.time_s)[-1]) + 1.0
 
-    def line(times, speeds):
-        return line_at(run, times, speeds)
+    def line(times, speeds, step):
+        return line_at(run, times, speeds, step)
 
     table, points, notes = evaluate_portions(
         job,
@@ -642,15 +553,18 @@ def part_map_of_record(
     twin_progress=None,
     line_progress=None,
 ) -> PartMap:
-    """Run the twin (smoothed) over ``record`` and map its part.
+    """Run the twin (smoothed) over ``record`` as the print ran ``job`` and map its part.
 
-    ``twin``/``start``: the machine's twin and where its print starts (default: the initial
-    fit of a new twin). ``events``: the print's alarms; default: those the detectors raise
-    over this run (:func:`ajtwin.apps.detection.batch.detect_run`).
+    ``job``: the job as printed (:func:`ajtwin.estimation.print_time.job_as_printed`); on a
+    job record the twin files the camera's frames at their print times with it
+    (:func:`smoothed_run`). ``twin``/``start``: the machine's twin and where its print
+    starts (default: the initial fit of a new twin). ``events``: the print's alarms;
+    default: those the detectors raise over this run
+    (:func:`ajtwin.apps.detection.batch.detect_run`).
     """
-    run = smoothed_run(record, twin, start, twin_progress)
+    run = smoothed_run(record, twin, start, twin_progress, job=job)
     if events is None:
-        events = detect_run(run.run, record).events
+        events = detect_run(run, record).events
     part = build_part_map(
         job,
         run,

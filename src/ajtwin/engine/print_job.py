@@ -1,23 +1,23 @@
-"""The job a print ran: read it as the print ran it, keep it with the print, map a stored
-print's part.
+"""The job a print ran: keep it with the print, map a stored print's part.
 
 A print's record names its program (format 2: ``job`` metadata with the file name, its
-SHA-256, the speeds and ``repeat_to_s``). :func:`job_of_print` reads the program as the
-print ran it (a different program is refused); :func:`job_entry` is what the registry keeps
-with a print (``ajtwin ingest --job``: the program's bytes, the speeds used, the looping,
-the part's tolerance); :func:`stored_part_map` maps the part of a stored print: the
-record rebuilt from the registry, the twin re-run from the print's stored start, θ and
-calibration (the same run the ingest made, now smoothed), the stored alarms placed on it.
+SHA-256, the speeds and how it was looped). :func:`job_entry` is what the registry keeps
+with a print (``ajtwin ingest --job``: the program's bytes, the speeds used, the looping —
+``repeat_to_s`` and ``repeat_pitch_mm`` — and the part's tolerance); the job is read back
+as the print ran it by :func:`ajtwin.estimation.print_time.job_as_printed`, the one reader
+for a record's metadata and a stored entry alike. :func:`stored_part_map` maps the part of
+a stored print: the twin re-run over the measurements it filtered — on a job print the
+camera's filed at their print times, with the speed law's factors kept beside them — from
+the print's stored start, θ and calibration (the run the ingest or the live twin made, now
+smoothed), the stored alarms placed on it.
 """
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from ajtwin.engine.chain import chain_start
 from ajtwin.engine.commissioning import calibration_twin_kwargs
@@ -27,77 +27,16 @@ from ajtwin.engine.part_map import (
     STEP_MM,
     PartMap,
     Tolerance,
-    part_map_of_record,
+    build_part_map,
 )
 from ajtwin.engine.start import machine_start
+from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
-from ajtwin.io.records import INPUT_COLUMNS, JOB_COLUMNS, OUTPUT_COLUMNS, PrintRecord
-from ajtwin.job import decode_program, read_program_text
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
 #: relative difference of a re-run's end state from the stored one that is reported
 RERUN_TOLERANCE = 1e-6
-
-
-def program_digest(raw: bytes) -> str:
-    """SHA-256 of a program's bytes (what a record's ``job`` metadata names)."""
-    return hashlib.sha256(raw).hexdigest()
-
-
-def job_of_print(
-    program_bytes: bytes,
-    program_name: str,
-    record_meta: dict | None = None,
-    *,
-    process_speed_mm_s: float | None = None,
-    rapid_speed_mm_s: float | None = None,
-    repeat_to_s: float | None = None,
-    print_duration_s: float | None = None,
-):
-    """The job as a print ran it: the program read with the print's speeds and looped as
-    the print looped it.
-
-    The record's ``job`` metadata (format 2) names the program's SHA-256 (a different
-    program is refused with a ValueError), the speeds used and ``repeat_to_s``;
-    ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s`` override them. Without
-    either the program runs at the GUI's default speeds (``stage.toml``), once, or looped
-    to ``print_duration_s`` when the print outlasts it (the machine ran it again, as the
-    live twin assumes). A program that cannot be read raises
-    :class:`ajtwin.job.ProgramError` naming its line.
-    """
-    from_record = dict((record_meta or {}).get("job") or {})
-    expected = from_record.get("sha256")
-    digest = program_digest(program_bytes)
-    if expected and expected != digest:
-        raise ValueError(
-            f"{program_name} (sha256 {digest[:12]}…) is not the program this print ran: its "
-            f"record names {from_record.get('program', '?')} (sha256 {str(expected)[:12]}…)"
-        )
-    process = process_speed_mm_s
-    if process is None:
-        process = from_record.get("process_speed_mm_s")
-    rapid = rapid_speed_mm_s
-    if rapid is None:
-        rapid = from_record.get("rapid_speed_mm_s")
-    job = read_program_text(
-        decode_program(program_bytes),
-        None if process is None else float(process),
-        None if rapid is None else float(rapid),
-        path=program_name,
-    )
-    loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
-    if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
-        loop = print_duration_s
-    if loop is not None and float(loop) > 0:
-        job = job.repeat(float(loop))
-    return job
-
-
-def record_duration_s(record) -> float:
-    """How long a record's print ran [s]: one second per row (the last row's second
-    included)."""
-    return float(record.duration_s + 1.0)
 
 
 def job_entry(
@@ -107,35 +46,33 @@ def job_entry(
     process_speed_mm_s: float | None = None,
     rapid_speed_mm_s: float | None = None,
     repeat_to_s: float | None = None,
+    repeat_pitch_mm=None,
     tolerance: Tolerance | None = None,
 ) -> dict:
     """What the registry keeps of the job a print ran (``ajtwin ingest --job``).
 
     The program is read first (a bad program or one that is not the record's is refused
     before anything is stored); the speeds kept are those the print ran at (the given
-    ones, else the record's, else the GUI's defaults the reader used).
+    ones, else the record's, else the GUI's defaults the reader used), the looping the
+    given one, else the record's.
 
     Returns
     -------
     dict
         ``program`` (file name), ``program_bytes``, ``settings``: ``process_speed_mm_s``,
-        ``rapid_speed_mm_s``, ``speed_source``, ``repeat_to_s``, ``tolerance_um``
-        ([low, high] or None).
+        ``rapid_speed_mm_s``, ``speed_source``, ``repeat_to_s``, ``repeat_pitch_mm``
+        ([dx, dy] or None), ``tolerance_um`` ([low, high] or None) — the settings
+        :func:`~ajtwin.estimation.print_time.job_as_printed` reads back.
     """
     path = Path(program)
     raw = path.read_bytes()
-    meta = None if record is None else record.meta
-    job = job_of_print(
-        raw,
-        path.name,
-        meta,
-        process_speed_mm_s=process_speed_mm_s,
-        rapid_speed_mm_s=rapid_speed_mm_s,
-        repeat_to_s=repeat_to_s,
-    )
+    from_record = dict(((None if record is None else record.meta) or {}).get("job") or {})
+    given = {"process_speed_mm_s": process_speed_mm_s, "rapid_speed_mm_s": rapid_speed_mm_s,
+             "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm}  # fmt: skip
+    job = job_as_printed(raw, from_record, name=path.name, **given)
     summary = job.summary()
-    from_record = dict((meta or {}).get("job") or {})
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
+    pitch = repeat_pitch_mm if repeat_pitch_mm is not None else from_record.get("repeat_pitch_mm")
     return {
         "program": path.name,
         "program_bytes": raw,
@@ -144,43 +81,23 @@ def job_entry(
             "rapid_speed_mm_s": summary["rapid_speed_mm_s"],
             "speed_source": summary["process_speed_source"],
             "repeat_to_s": None if loop is None else float(loop),
+            "repeat_pitch_mm": None if pitch is None else [float(v) for v in pitch],
             "tolerance_um": None if tolerance is None else [float(v) for v in tolerance],
         },
     }
 
 
-def job_from_entry(entry: dict, repeat_to_s: float | None = None, print_duration_s=None):
-    """The job of a stored entry (:meth:`ajtwin.store.registry.Registry.print_job`), read
-    with the speeds it was stored with and looped as stored (or to ``repeat_to_s``; or, with
-    no looping stored, to ``print_duration_s`` when the print outlasted the program)."""
-    settings = entry.get("settings") or {}
-    return job_of_print(
+def entry_job(entry: dict, print_duration_s: float | None = None, **overrides):
+    """The job of a stored entry (:meth:`ajtwin.store.registry.Registry.print_job` or
+    :func:`job_entry`) as the print ran it: :func:`~ajtwin.estimation.print_time.
+    job_as_printed` on its bytes and settings."""
+    return job_as_printed(
         entry["program_bytes"],
-        entry["program"],
-        None,
-        process_speed_mm_s=settings.get("process_speed_mm_s"),
-        rapid_speed_mm_s=settings.get("rapid_speed_mm_s"),
-        repeat_to_s=repeat_to_s if repeat_to_s is not None else settings.get("repeat_to_s"),
+        entry.get("settings") or {},
+        name=entry["program"],
         print_duration_s=print_duration_s,
+        **overrides,
     )
-
-
-def stored_record(registry, print_row: dict) -> PrintRecord:
-    """A stored print as a record: its samples (kept exactly), the job's columns when the
-    print had them, its metadata."""
-    arrays = registry.print_arrays(print_row["id"])
-    if "inputs" not in arrays or "measurements" not in arrays:
-        raise RegistryError(
-            f"print {print_row['seq']} keeps no samples (stored by an older ajtwin): its part "
-            "cannot be mapped"
-        )
-    data = {"time_s": arrays["time_s"]}
-    data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
-    data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
-    data.update({c: arrays[c] for c in JOB_COLUMNS if c in arrays})
-    meta = dict(print_row.get("meta") or {})
-    meta.setdefault("source_file", f"registry print {print_row['seq']}")
-    return PrintRecord(pd.DataFrame(data), meta)
 
 
 def stored_print_twin(registry, print_row: dict) -> tuple[Twin, tuple]:
@@ -209,11 +126,15 @@ def stored_print(registry, machine: str, seq: int | None = None) -> dict:
 @dataclass
 class StoredPrint:
     """What mapping a stored print's part needs, read from the registry in one go
-    (:func:`load_stored_print`); the mapping itself reads nothing more."""
+    (:func:`load_stored_print`); the mapping itself reads nothing more.
+
+    ``arrays``: the print's per-second arrays (:meth:`~ajtwin.store.registry.Registry.
+    print_arrays`): the inputs, the measurements the twin filtered and, for a job print,
+    their ``line_factors``."""
 
     machine: str
     row: dict
-    record: PrintRecord
+    arrays: dict
     job: object
     entry: dict | None
     events: list
@@ -224,17 +145,24 @@ class StoredPrint:
 def load_stored_print(registry, machine: str, seq: int | None = None, program=None):
     """Read a stored print, its job (``program``: a program file instead of, or for a
     print stored without, its stored job), alarms, twin and start. RegistryError when the
-    print has no job and none is given."""
+    print has no job and none is given, or keeps no samples."""
     row = stored_print(registry, machine, seq)
-    record = stored_record(registry, row)
+    arrays = registry.print_arrays(row["id"])
+    if "inputs" not in arrays or "measurements" not in arrays:
+        raise RegistryError(
+            f"print {row['seq']} keeps no samples (stored by an older ajtwin): its part "
+            "cannot be mapped"
+        )
     entry = registry.print_job(row["id"])
-    duration = record_duration_s(record)
+    time_s = np.asarray(arrays["time_s"], dtype=float)
+    duration = float(time_s[-1] - time_s[0] + 1.0)
     if program is not None:
-        job = job_of_print(
-            Path(program).read_bytes(), Path(program).name, record.meta, print_duration_s=duration
+        info = (row.get("meta") or {}).get("job")
+        job = job_as_printed(
+            program, info if isinstance(info, dict) else None, print_duration_s=duration
         )
     elif entry is not None:
-        job = job_from_entry(entry, print_duration_s=duration)
+        job = entry_job(entry, print_duration_s=duration)
     else:
         raise RegistryError(
             f"print {row['seq']} of {machine!r} was stored without its job: give the program "
@@ -243,7 +171,24 @@ def load_stored_print(registry, machine: str, seq: int | None = None, program=No
     alarms = registry.anomalies(machine)
     events = alarms[alarms["seq"] == row["seq"]].to_dict("records")
     twin, start = stored_print_twin(registry, row)
-    return StoredPrint(machine, row, record, job, entry, events, twin, start)
+    return StoredPrint(machine, row, arrays, job, entry, events, twin, start)
+
+
+def stored_run(stored: StoredPrint, progress=None):
+    """The twin re-run (smoothed) over a stored print as it ran: from its stored start, θ
+    and calibration over the measurements it filtered (on a job print, filed at their print
+    times, with their speed-law factors). Returns the :class:`~ajtwin.estimation.twin.TwinRun`."""
+    arrays = stored.arrays
+    line = arrays.get("line_factors")
+    return stored.twin.run(
+        inputs=arrays["inputs"],
+        measurements=arrays["measurements"],
+        time_s=arrays["time_s"],
+        line_factors=None if line is None else np.asarray(line, dtype=float).reshape(-1, 4),
+        start=stored.start,
+        smooth=True,
+        progress=progress,
+    )
 
 
 def map_stored_print(
@@ -256,26 +201,25 @@ def map_stored_print(
     twin_progress=None,
     line_progress=None,
 ) -> PartMap:
-    """The part map of a stored print: the twin re-run (smoothed) from its stored start,
-    θ and calibration; ``tolerance`` instead of the one stored with the job."""
+    """The part map of a stored print (:func:`stored_run`); ``tolerance`` instead of the
+    one stored with the job."""
     entry = stored.entry
     if tolerance is None and entry is not None and entry["settings"].get("tolerance_um"):
         tolerance = Tolerance(*entry["settings"]["tolerance_um"])
-    part = part_map_of_record(
-        stored.record,
+    run = stored_run(stored, twin_progress)
+    part = build_part_map(
         stored.job,
+        run,
         tolerance,
-        twin=stored.twin,
-        start=stored.start,
+        events=stored.events,
         source=f"{stored.machine} print {stored.row['seq']}",
         portion_mm=portion_mm,
         step_mm=step_mm,
         flag_probability=flag_probability,
-        events=stored.events,
-        twin_progress=twin_progress,
-        line_progress=line_progress,
+        progress=line_progress,
     )
-    end = np.asarray(part.run.run.end_mean, dtype=float)
+    part.run = run
+    end = np.asarray(run.end_mean, dtype=float)
     stored_end = np.asarray(stored.row["end_mean"], dtype=float)
     scale = np.maximum(np.abs(stored_end), 1e-30)
     if np.any(np.abs(end - stored_end) / scale > RERUN_TOLERANCE):

@@ -49,6 +49,20 @@ from ajtwin.estimation import Twin
 from ajtwin.simulation import load_scenario, run_job_print, simulate
 
 
+def _merge_chunk(into: dict, chunk: dict) -> None:
+    """Append a part chunk to one published at the same row (portions, points, alarms;
+    the newest outline wins)."""
+    for key in ("portions", "points"):
+        if key in chunk:
+            held = into.setdefault(key, {})
+            for name, values in chunk[key].items():
+                held.setdefault(name, []).extend(values)
+    if "alarms" in chunk:
+        into.setdefault("alarms", []).extend(chunk["alarms"])
+    if "outline" in chunk:
+        into["outline"] = chunk["outline"]
+
+
 class VirtualPrintFeed:
     """Replays a virtual print through the twin as live samples (module docstring)."""
 
@@ -103,7 +117,8 @@ class VirtualPrintFeed:
                 self.job, self.scenario, self.seed, duration_min=self.minutes, overrides=overrides
             )
             record, printed_job = job_print.record, job_print.plan.job
-        run = twin.run(record)
+        # as the print ran: the camera's frames filed at their print times
+        run = twin.run(record, job=printed_job)
         det = detect_run(run, record)
         f = run.filtered
         means, stds = run.means, run.stds
@@ -153,21 +168,27 @@ class VirtualPrintFeed:
         self.fault_onset_s = record.meta.get("fault_onset_s")
         self.events = det.events
         if printed_job is not None:
-            self._prepare_part(printed_job, twin.spec, run, record, by_step)
+            self._prepare_part(printed_job, twin.line_model, run, record, by_step)
         return samples
 
-    def _prepare_part(self, job, spec, run, record, alarms_by_step: dict) -> None:
-        """The part map's chunks, step by step, from the filtered states (as a live twin)."""
-        part = LivePartMap(job, spec, self.tolerance)
+    def _prepare_part(self, job, line_model, run, record, alarms_by_step: dict) -> None:
+        """The part map's chunks, step by step, from the filtered states, each published
+        when a live twin would have it: once the step is final, H rows after it (the
+        camera's horizon, :mod:`ajtwin.estimation.print_time`; 0 without a job)."""
+        part = LivePartMap(job, line_model, self.tolerance)
         self.part_header = part.header()
-        covariances = np.asarray(run.filtered.covariances)
+        covariances = run.total_covariances()
+        last = len(run.time_s) - 1
+        horizon = float(run.camera_counts.get("horizon_s", 0.0))
         for k, t in enumerate(run.time_s):
             chunk = part.step(float(t), run.means[k], covariances[k], record.inputs[k])
             if alarms_by_step.get(k):
                 chunk = dict(chunk or {})
                 chunk["alarms"] = part.alarms(alarms_by_step[k])
             if chunk:
-                self.part_chunks[k] = chunk
+                final_at = last if not np.isfinite(horizon) else min(k + int(horizon), last)
+                held = self.part_chunks.setdefault(final_at, {})
+                _merge_chunk(held, chunk)
 
     # ------------------------------------------------------------------ replay
     def _run(self):

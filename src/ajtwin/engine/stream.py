@@ -848,8 +848,9 @@ class TwinStream:
 
     def arrays(self, since: int | None = None) -> dict[str, np.ndarray]:
         """The committed per-step results from step ``since`` on (default: the oldest step
-        kept), named as the registry stores a print. A stream keeps its last steps only (a
-        long live print is written in parts as it goes, :class:`~ajtwin.engine.parts.
+        kept), named as the registry stores a print (a job print's with ``line_factors``, the
+        (F_w, F_o, v_w, v_o) of each filed step). A stream keeps its last steps only (a long
+        live print is written in parts as it goes, :class:`~ajtwin.engine.parts.
         PrintWriter`); a short print's are all kept."""
         h = self.history
         since = h.time_s.first if since is None else since
@@ -878,6 +879,12 @@ class TwinStream:
             "theta_history": np.array(
                 [[r[f"theta_{n}"] for n in STATE_NAMES] for r in hist], dtype=float
             ).reshape(-1, 5),
+            # a job print's filed steps carry their speed-law factors: the run can be re-made
+            **(
+                {}
+                if self._bins is None
+                else {"line_factors": h.array("line_factors", since).reshape(-1, 4)}
+            ),
         }
 
 

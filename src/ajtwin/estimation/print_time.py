@@ -75,7 +75,7 @@ import numpy as np
 
 from ajtwin.config import packaged_toml
 from ajtwin.io.records import PrintRecord
-from ajtwin.job import Job, read_program
+from ajtwin.job import Job, ProgramError, decode_program, read_program_text
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
 #: Row times within this of the 1 s grid count as on it [s].
@@ -367,38 +367,109 @@ def is_job_record(record: PrintRecord) -> bool:
     return record.has_job and int(record.meta.get("format_version", 2)) >= 2
 
 
-def program_for_record(record: PrintRecord, program) -> Job:
-    """The program a job record was printed from, read and looped as the print ran it.
+#: What a print's job settings say about how it ran the program (a record's ``job``
+#: metadata and the settings the registry keeps with a print share these keys).
+PRINTED_AS = ("process_speed_mm_s", "rapid_speed_mm_s", "repeat_to_s", "repeat_pitch_mm")
 
-    ``program`` is the ``.prg`` path. Its bytes must hash to the record's
-    ``job.sha256``; the record's process and rapid speeds, ``repeat_to_s`` and
-    ``repeat_pitch_mm`` are applied.
+
+def job_as_printed(
+    program,
+    settings: dict | None = None,
+    *,
+    name: str | None = None,
+    print_duration_s: float | None = None,
+    **overrides,
+) -> Job:
+    """The job as a print ran it: the program read at the print's speeds and looped as the
+    print looped it (side by side when it was). The one place a program is read "as
+    printed": from a record's metadata (:func:`program_for_record`), from what the registry
+    keeps with a print, and for a live print.
+
+    Parameters
+    ----------
+    program : str, Path or bytes
+        The ``.prg`` file, or its bytes (then ``name`` is its file name).
+    settings : dict, optional
+        A format-2 record's ``job`` metadata, or the settings the registry keeps with a
+        print: ``sha256`` (checked: another program is refused), and
+        :data:`PRINTED_AS` — ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s``
+        (the print looped the program to this many seconds) and ``repeat_pitch_mm``
+        ([dx, dy]: the runs placed side by side, :meth:`ajtwin.job.Job.repeat`).
+    print_duration_s : float, optional
+        How long the print ran [s]: when nothing says how it looped and it outlasted the
+        program, the program ran again over the same part (as the live map assumes).
+    **overrides
+        Any of :data:`PRINTED_AS` given by the user instead of ``settings`` (None: not given).
+        Without either the program runs at the GUI's default speeds (``stage.toml``), once.
 
     Raises
     ------
     ValueError
-        The record names no job, or the program is not the one it was printed from.
+        The program is not the one the settings name (its SHA-256 differs), or an unknown
+        override.
+    ajtwin.job.ProgramError
+        A program that cannot be read, naming its line.
     """
-    where = str(record.meta.get("source_file", "<record>"))
-    info = record.meta.get("job")
-    if not isinstance(info, dict):
-        raise ValueError(
-            f"{where}: the record names no job (format-2 'job' metadata); --job needs a job print"
-        )
-    path = Path(program)
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    expected = info.get("sha256")
+    unknown = set(overrides) - set(PRINTED_AS)
+    if unknown:
+        raise TypeError(f"job_as_printed: unknown settings {sorted(unknown)}")
+    if isinstance(program, bytes):
+        raw = program
+    else:
+        try:
+            raw = Path(program).read_bytes()
+        except OSError as exc:
+            raise ProgramError(
+                str(program), None, "", f"cannot read the program: {exc.strerror}"
+            ) from None
+    name = name if name is not None else str(program)
+    given = dict(settings or {})
+    expected = given.get("sha256")
+    digest = hashlib.sha256(raw).hexdigest()
     if expected and digest != expected:
         raise ValueError(
-            f"{path}: sha256 {digest[:12]}… is not the program this print ran "
-            f"({info.get('program', '?')}, sha256 {str(expected)[:12]}…); give the same file"
+            f"{name}: sha256 {digest[:12]}… is not the program this print ran "
+            f"({given.get('program', '?')}, sha256 {str(expected)[:12]}…); give the same file"
         )
-    job = read_program(path, info.get("process_speed_mm_s"), info.get("rapid_speed_mm_s"))
-    repeat_to = info.get("repeat_to_s")
-    if repeat_to:
-        pitch = info.get("repeat_pitch_mm")
-        job = job.repeat(float(repeat_to), pitch_mm=None if pitch is None else tuple(pitch))
+    value = {key: overrides.get(key) if overrides.get(key) is not None else given.get(key)
+             for key in PRINTED_AS}  # fmt: skip
+    job = read_program_text(
+        decode_program(raw),
+        None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
+        None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
+        path=name,
+    )
+    loop, pitch = value["repeat_to_s"], value["repeat_pitch_mm"]
+    if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
+        loop = print_duration_s
+    if loop is not None and float(loop) > 0:
+        pitch = None if pitch is None else tuple(float(v) for v in pitch)
+        job = job.repeat(float(loop), pitch_mm=pitch)
     return job
+
+
+def program_for_record(record: PrintRecord, program, **overrides) -> Job:
+    """The program ``program`` (a ``.prg`` path) read and looped as ``record``'s print ran
+    it (:func:`job_as_printed` with the record's ``job`` metadata and its length).
+
+    A format-2 record names the program's SHA-256 (another file is refused with a
+    ValueError naming both), the speeds and the looping; ``overrides`` (any of
+    :data:`PRINTED_AS`) replace them. A bare machine log names nothing: the GUI's speeds,
+    time 0 = the program's start, the program run again whenever the log outlasts it.
+    """
+    info = record.meta.get("job")
+    return job_as_printed(
+        program,
+        info if isinstance(info, dict) else None,
+        print_duration_s=record_duration_s(record),
+        **overrides,
+    )
+
+
+def record_duration_s(record: PrintRecord) -> float:
+    """How long a record's print ran [s]: one second per row (the last row's second
+    included)."""
+    return float(record.duration_s + 1.0)
 
 
 def trailing_delays(job: Job, offset_mm, duration_s: float) -> np.ndarray:

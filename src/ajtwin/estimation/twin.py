@@ -265,7 +265,16 @@ class TwinRun:
             np.maximum(diagonal, self.prior_floor, out=diagonal)
         return covariances
 
-    def line_at(self, times, speeds, smoothed: bool | None = None) -> LineEstimate:
+    def total_covariances(self, smoothed: bool = False) -> np.ndarray:
+        """The state covariances (T, 5, 5) as the twin reports them: the filter's (or the
+        smoother's) plus the calibration's share, the never-seen states' floor on the
+        diagonal (what :attr:`stds` and :meth:`line_at` use)."""
+        if smoothed and self.smoothed is None:
+            raise ValueError("this run has no smoothed estimates (run with smooth=True)")
+        src = self.smoothed if smoothed else self.filtered
+        return self._total_cov(src.covariances)
+
+    def line_at(self, times, speeds, smoothed: bool | None = None, progress=None) -> LineEstimate:
         """The line printed at print times ``times`` [s] at platen speeds ``speeds`` [mm/s].
 
         What a part map calls for every stroke portion: mean and σ of L_w and L_o from the
@@ -281,6 +290,8 @@ class TwinRun:
         speeds : array_like (n,) or float
             Platen speed ν at τ [mm/s] (the program's, e.g. ``Job.state_at(τ).speed_mm_s``).
         smoothed : bool, optional
+        progress : callable(int), optional
+            Called with the number of print times done (they are evaluated in blocks).
 
         Returns
         -------
@@ -294,17 +305,17 @@ class TwinRun:
         if self.line_model is None or self.inputs is None:
             raise ValueError("this run has no output model attached (made by Twin.run)")
         use_smoothed = self.smoothed is not None if smoothed is None else smoothed
-        if use_smoothed and self.smoothed is None:
-            raise ValueError("this run has no smoothed estimates (run with smooth=True)")
+        covariances = self.total_covariances(use_smoothed)
         src = self.smoothed if use_smoothed else self.filtered
         return line_at(
             self.line_model,
             self.time_s,
             np.asarray(src.means),
-            self._total_cov(src.covariances),
+            covariances,
             self.inputs,
             times,
             speeds,
+            progress,
         )
 
     @property
@@ -549,6 +560,16 @@ class Twin:
         return augment_inputs(inputs, self.droplet_dynamics, response0, self.spec.dt)
 
     @property
+    def line_model(self):
+        """The twin's line as a part map evaluates it: its output model, (calibrated)
+        coefficients and speed law with the law's uncertainty
+        (:func:`ajtwin.estimation.part_line.line_at`; what :meth:`TwinRun.line_at` and the
+        live map use)."""
+        return line_model(
+            self.model.params, self.spec.coefficients, self.functions.output, self.speed_law
+        )
+
+    @property
     def process_cov(self) -> np.ndarray:
         """Σ_ξ: the process noise covariance (5, 5) per second."""
         return np.diag(np.asarray(self.config.process_std) ** 2)
@@ -775,9 +796,7 @@ class Twin:
             line_factors=line,
             n_camera=None if filed is None else filed.n_camera,
             camera_counts={} if filed is None else dict(filed.counts),
-            line_model=line_model(
-                self.model.params, self.spec.coefficients, self.functions.output, self.speed_law
-            ),
+            line_model=self.line_model,
         )
 
     def _filed(self, record, job) -> FiledPrint | None:

@@ -27,14 +27,13 @@ Examples
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin.job.errors import ProgramError, ProgramWarning
-from ajtwin.job.geometry import segment_bbox
+from ajtwin.job.geometry import GEOMETRY_FIELDS, segment_bbox
 from ajtwin.job.job import (
     SEGMENT_FIELDS,
     TIMELINE_COLUMNS,
@@ -57,7 +56,6 @@ from ajtwin.job.settings import ReaderSettings, Stage, load_reader_settings, loa
 __all__ = [
     "read_program",
     "decode_program",
-    "read_printed_program",
     "read_program_text",
     "Job",
     "JobState",
@@ -163,63 +161,6 @@ def decode_program(raw: bytes) -> str:
         return raw.decode("latin-1")
 
 
-def read_printed_program(
-    path: str | Path,
-    job_meta: dict | None = None,
-    process_speed_mm_s: float | None = None,
-    rapid_speed_mm_s: float | None = None,
-    repeat_to_s: float | None = None,
-) -> Job:
-    """The program as a print ran it: the speeds and the looping its record states.
-
-    Parameters
-    ----------
-    path : str or Path
-        The ``.prg`` file.
-    job_meta : dict, optional
-        The print record's ``job`` metadata (record format version 2: ``program``,
-        ``sha256``, ``process_speed_mm_s``, ``rapid_speed_mm_s``, ``repeat_to_s``); its
-        values fill what is not given.
-    process_speed_mm_s, rapid_speed_mm_s : float, optional
-        The GUI's speeds (default: the record's, else ``stage.toml``).
-    repeat_to_s : float, optional
-        The program was looped to this many seconds, or cut there when the print was
-        shorter than the program (default: the record's).
-
-    Raises
-    ------
-    ProgramError
-        A file that cannot be read, a program the reader refuses, or one whose sha256 is
-        not the one the record names (another program than the print's).
-    ValueError
-        A looping the job cannot do.
-    """
-    job_meta = job_meta if isinstance(job_meta, dict) else {}
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise ProgramError(
-            str(path), None, "", f"cannot read the program: {exc.strerror}"
-        ) from None
-    sha = job_meta.get("sha256")
-    if sha and sha != hashlib.sha256(data).hexdigest():
-        raise ProgramError(
-            str(path),
-            None,
-            "",
-            f"is not the program this record was printed with (the record names "
-            f"{job_meta.get('program', '?')!r}, sha256 {sha[:12]}…; this file's differs)",
-        )
-    process_speed_mm_s = process_speed_mm_s or job_meta.get("process_speed_mm_s")
-    rapid_speed_mm_s = rapid_speed_mm_s or job_meta.get("rapid_speed_mm_s")
-    repeat_to_s = repeat_to_s or job_meta.get("repeat_to_s")
-    job = read_program(path, process_speed_mm_s, rapid_speed_mm_s)
-    # looped to a longer print, or cut at a shorter one (as the virtual printer prints it)
-    if repeat_to_s and abs(float(repeat_to_s) - job.duration_s) > 1e-9:
-        job = job.repeat(float(repeat_to_s))
-    return job
-
-
 def read_program_text(
     text: str,
     process_speed_mm_s: float | None = None,
@@ -266,19 +207,7 @@ def _check_travel(job: Job, stage: Stage, origin, text: str) -> None:
 
     s = job.segments
     moving = np.flatnonzero(s["kind"] != KIND_DWELL)
-    fields = (
-        "kind",
-        "x0_mm",
-        "y0_mm",
-        "x1_mm",
-        "y1_mm",
-        "cx_mm",
-        "cy_mm",
-        "radius_mm",
-        "a0_rad",
-        "sweep_rad",
-    )
-    xmin, ymin, xmax, ymax = segment_bbox(*(s[k][moving] for k in fields))
+    xmin, ymin, xmax, ymax = segment_bbox(*(s[k][moving] for k in GEOMETRY_FIELDS))
     for axis, lo, hi, travel, offset in (
         ("X", xmin, xmax, stage.travel_x_mm, None if origin is None else origin[0]),
         ("Y", ymin, ymax, stage.travel_y_mm, None if origin is None else origin[1]),

@@ -13,7 +13,29 @@ import numpy as np
 
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 
-__all__ = ["point_at", "tangent_at", "closest_point", "segment_bbox", "arc_steps"]
+__all__ = [
+    "GEOMETRY_FIELDS",
+    "point_at",
+    "tangent_at",
+    "closest_point",
+    "segment_bbox",
+    "arc_steps",
+]
+
+#: The segment arrays that fix a segment's shape, in the order :func:`point_at` and
+#: :func:`segment_bbox` take them (before ``f``).
+GEOMETRY_FIELDS = (
+    "kind",
+    "x0_mm",
+    "y0_mm",
+    "x1_mm",
+    "y1_mm",
+    "cx_mm",
+    "cy_mm",
+    "radius_mm",
+    "a0_rad",
+    "sweep_rad",
+)
 
 TWO_PI = 2.0 * np.pi
 

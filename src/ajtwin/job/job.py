@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.job.errors import ProgramError
-from ajtwin.job.geometry import arc_steps, point_at, segment_bbox, tangent_at
+from ajtwin.job.geometry import GEOMETRY_FIELDS, arc_steps, point_at, segment_bbox, tangent_at
 from ajtwin.job.locate import TraceIndex
 from ajtwin.job.program import (
     KIND_ARC,
@@ -141,21 +141,7 @@ def _empty_like_fields(n: int) -> dict:
 def _sub_segments(seg: dict, parent: np.ndarray, f_s: np.ndarray, f_e: np.ndarray) -> dict:
     """Parts [f_s, f_e] (fractions of length and time) of the segments ``parent``."""
     g = {name: seg[name][parent] for name in SEGMENT_FIELDS}
-    args = [
-        g[k]
-        for k in (
-            "kind",
-            "x0_mm",
-            "y0_mm",
-            "x1_mm",
-            "y1_mm",
-            "cx_mm",
-            "cy_mm",
-            "radius_mm",
-            "a0_rad",
-            "sweep_rad",
-        )
-    ]
+    args = [g[k] for k in GEOMETRY_FIELDS]
     xs, ys = point_at(*args, f_s)
     xe, ye = point_at(*args, f_e)
     dt = g["t1_s"] - g["t0_s"]
@@ -509,19 +495,7 @@ class Job:
         s = self._seg
         if not np.any(mask):
             return None
-        fields = (
-            "kind",
-            "x0_mm",
-            "y0_mm",
-            "x1_mm",
-            "y1_mm",
-            "cx_mm",
-            "cy_mm",
-            "radius_mm",
-            "a0_rad",
-            "sweep_rad",
-        )
-        xmin, ymin, xmax, ymax = segment_bbox(*(s[k][mask] for k in fields))
+        xmin, ymin, xmax, ymax = segment_bbox(*(s[k][mask] for k in GEOMETRY_FIELDS))
         return [float(xmin.min()), float(ymin.min()), float(xmax.max()), float(ymax.max())]
 
     def _speed_uses(self, mask) -> list[dict]:
@@ -633,21 +607,7 @@ class Job:
         parent = np.repeat(np.arange(self.n_segments), steps)
         within = np.arange(parent.size) - np.repeat(np.cumsum(steps) - steps, steps)
         f = within / steps[parent]
-        g = {
-            k: s[k][parent]
-            for k in (
-                "kind",
-                "x0_mm",
-                "y0_mm",
-                "x1_mm",
-                "y1_mm",
-                "cx_mm",
-                "cy_mm",
-                "radius_mm",
-                "a0_rad",
-                "sweep_rad",
-            )
-        }
+        g = {k: s[k][parent] for k in GEOMETRY_FIELDS}
         x, y = point_at(*g.values(), f)
         t = s["t0_s"][parent] + f * (s["t1_s"] - s["t0_s"])[parent]
         last = self.n_segments - 1
@@ -722,21 +682,7 @@ class Job:
         """
         s = self._seg
         t, index, f = self._locate_times(t)
-        g = {
-            k: s[k][index]
-            for k in (
-                "kind",
-                "x0_mm",
-                "y0_mm",
-                "x1_mm",
-                "y1_mm",
-                "cx_mm",
-                "cy_mm",
-                "radius_mm",
-                "a0_rad",
-                "sweep_rad",
-            )
-        }
+        g = {k: s[k][index] for k in GEOMETRY_FIELDS}
         x, y = point_at(*g.values(), f)
         ux, uy = tangent_at(
             g["kind"],
@@ -882,21 +828,7 @@ class Job:
             ),
             0.0,
         )
-        g = {
-            k: s[k][seg]
-            for k in (
-                "kind",
-                "x0_mm",
-                "y0_mm",
-                "x1_mm",
-                "y1_mm",
-                "cx_mm",
-                "cy_mm",
-                "radius_mm",
-                "a0_rad",
-                "sweep_rad",
-            )
-        }
+        g = {k: s[k][seg] for k in GEOMETRY_FIELDS}
         x, y = point_at(*g.values(), f)
         ux, uy = tangent_at(
             g["kind"],

@@ -22,23 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from ajtwin.job.geometry import closest_point, point_at, segment_bbox, tangent_at
+from ajtwin.job.geometry import GEOMETRY_FIELDS, closest_point, point_at, segment_bbox, tangent_at
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 
 __all__ = ["TraceIndex", "TraceHits"]
 
-_FIELDS = (
-    "kind",
-    "x0_mm",
-    "y0_mm",
-    "x1_mm",
-    "y1_mm",
-    "cx_mm",
-    "cy_mm",
-    "radius_mm",
-    "a0_rad",
-    "sweep_rad",
-)
+
 _MIN_CELL_MM = 0.02
 _MAX_CHUNKS = 400_000
 _BATCH_PAIRS = 4_000_000
@@ -126,7 +115,7 @@ class TraceIndex:
         self.parent = parent
         self.f_start = within / n
         self.f_end = (within + 1) / n
-        g = {k: s[k][parent] for k in _FIELDS}
+        g = {k: s[k][parent] for k in GEOMETRY_FIELDS}
         x0, y0 = point_at(*g.values(), self.f_start)
         x1, y1 = point_at(*g.values(), self.f_end)
         arc = g["kind"] == KIND_ARC
@@ -292,7 +281,7 @@ class TraceIndex:
         is_min = np.flatnonzero(d == d_min)
         reference = is_min[np.r_[True, point[is_min][1:] != point[is_min][:-1]]]
         near = np.flatnonzero(d <= d_min + _TIE_MM)
-        g = {k: s[k][parent[near]] for k in _FIELDS}
+        g = {k: s[k][parent[near]] for k in GEOMETRY_FIELDS}
         px, py = point_at(*g.values(), f_parent[near])
         ref_of = np.repeat(np.arange(starts.size), sizes)[near]
         ref_x, ref_y = px[np.searchsorted(near, reference)], py[np.searchsorted(near, reference)]
@@ -320,7 +309,7 @@ class TraceIndex:
             )
         parent = self.parent[chunk]
         f = self.f_start[chunk] + best_f * (self.f_end[chunk] - self.f_start[chunk])
-        g = {k: s[k][parent] for k in _FIELDS}
+        g = {k: s[k][parent] for k in GEOMETRY_FIELDS}
         px, py = point_at(*g.values(), f)
         ux, uy = tangent_at(
             g["kind"],

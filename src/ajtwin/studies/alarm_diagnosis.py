@@ -42,9 +42,9 @@ CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    # v5: weighed fills, a cleaned nozzle's residue and φ_A's 5 % prior — bump
-    # whenever the twin's runs or the virtual printer's truth change
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v5".encode()).hexdigest()
+    # v6: the camera's σ of L_w from the paper (3 µm) — bump whenever the twin's runs or
+    # the virtual printer's truth change
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v6".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)

@@ -5,9 +5,11 @@ scenario's 90 min is printed by the virtual printer (both truth generators, seve
 seeds) three times per machine: with the packaged ``nozzle_clog`` fault (deposition × 50
 from 60 min), with a faster clog (× 300 from 60 min: the packaged one widens the line by
 0–4 µm by the print's end, no more than the line's own wander on most machines), and
-clean (``exp1``, the same inputs without the fault). The twin maps each print's part
-(:func:`ajtwin.engine.part_map.part_map_of_record`, the default trailing camera) and the
-map is judged against the true line at the sample points' print times
+clean (``exp1``, the same inputs without the fault). The twin maps each print's part as
+the print ran (:func:`ajtwin.engine.part_map.part_map_of_record` with the program read from
+the record, :func:`ajtwin.estimation.print_time.program_for_record`: the default trailing
+camera's frames filed at their print times) and the map is judged against the true line
+at the sample points' print times
 (:func:`ajtwin.simulation.job_print.line_at_print_times`: the truth's states, line model and
 speed law at τ, not the 1 Hz ``true_linewidth_um`` rows):
 
@@ -29,7 +31,8 @@ the packaged clog would not leave on any machine).
 
 Writes ``NAME.json`` (per print and pooled) and ``NAME.md`` (``--name``, default
 ``results``) into ``--out`` and the example figures into ``--figures``;
-``--linewidth-noise-um`` runs the twin with another camera noise σ of L_w.
+``--linewidth-noise-um`` runs the twin with another camera noise σ of L_w (default: the
+twin's, ``noise.toml``).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ import pandas as pd
 from ajtwin.engine.part_map import Tolerance, part_map_of_record
 from ajtwin.engine.part_report import plot_part_map
 from ajtwin.estimation import Twin
+from ajtwin.estimation.print_time import program_for_record
 from ajtwin.model import load_parameters
 from ajtwin.simulation import run_job_print
 from ajtwin.simulation.job_print import line_at_print_times
@@ -165,7 +169,7 @@ def measure_print(
     tolerance = print_tolerance(record, half_width)
     part = part_map_of_record(
         record,
-        job_print.plan.job,
+        program_for_record(record, program),
         tolerance,
         twin=study_twin(linewidth_noise_um),
         source=f"{scenario} seed {seed} ({truth})",

@@ -38,6 +38,8 @@ def test_the_table_in_chunks_is_the_table_of_the_whole_run(tmp_path, record):
         parts = estimate_to_csv(twin, record, tmp_path / "parts.csv")
     whole = estimate_to_csv(Twin.default(), record, tmp_path / "whole.csv", whole=True)
     assert len(chunks) >= 4 and chunks[0] == 0
+    # the rows waited on disk beside the output, and are gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["parts.csv", "whole.csv"]
     a, b = pd.read_csv(tmp_path / "parts.csv"), pd.read_csv(tmp_path / "whole.csv")
     assert list(a.columns) == list(b.columns)
     assert len(a) == len(b) == parts.rows == whole.rows == len(record)

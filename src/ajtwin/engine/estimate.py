@@ -5,9 +5,10 @@ data saw, the vial observer, the mismatch guard's flag and each state's data sha
 (:meth:`ajtwin.estimation.twin.TwinRun.to_frame`, then the guard's and the share's
 columns). Filtered states are taken from the twin a chunk at a time
 (:meth:`~ajtwin.estimation.Twin.run` with a ``sink``): the filter's covariances and
-Jacobians of a chunk are dropped once its rows are made, so a week-long print needs
-~0.4 kB a second for its rows instead of ~4 kB. The smoother (``smooth``) and a plot need
-the whole run and hold it.
+Jacobians of a chunk are dropped once its rows are made, and the rows wait in a temporary
+folder beside the output until the guard's verdict and the vial observer (which need the
+whole print) give their columns; what stays in memory is the guard's per-second inputs
+(18 numbers a second). The smoother (``smooth``) and a plot need the whole run and hold it.
 
 Example
 -------
@@ -18,6 +19,7 @@ Example
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +36,9 @@ from ajtwin.apps.detection.mismatch import (
 )
 from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.model import STATE_NAMES
+
+#: the data share's columns (:func:`_with_share`), the table's last
+SHARE_PREFIXES = ("data_share_", "determined_")
 
 #: the TwinRun.to_frame columns of the vial observer (filled in after the run)
 VIAL_COLUMNS = {
@@ -83,10 +88,11 @@ def estimate_to_csv(
     out.parent.mkdir(parents=True, exist_ok=True)
     if smooth or whole:
         return _whole(twin, record, out, smooth, progress, job)
-    rows = _Rows(record)
-    run = twin.run(record, progress=progress, sink=rows, job=job)
-    mismatch = rows.guard_verdict(run)
-    rows.write(out, run, mismatch.flags)
+    with tempfile.TemporaryDirectory(prefix=".ajtwin-rows-", dir=out.parent) as spill:
+        rows = _Rows(record, Path(spill))
+        run = twin.run(record, progress=progress, sink=rows, job=job)
+        mismatch = rows.guard_verdict(run)
+        rows.write(out, run, mismatch.flags)
     return EstimateResult(
         run,
         rows.n,
@@ -137,12 +143,13 @@ class _Rows:
     what the guard needs of them; written once the run has ended (the guard's flags and
     the vial observer come with the end)."""
 
-    def __init__(self, record):
+    def __init__(self, record, spill: Path):
         self.outputs = record.outputs  # once: a record makes a new array at each access
-        self.frames: list[pd.DataFrame] = []
+        # each chunk's rows wait on disk for the end (a week's rows held were ~0.25 GB)
+        self.spill = spill
+        self.frames: list[Path] = []
         self.guard: dict[str, list] = {k: [] for k in ("t", "means", "e", "nis", "n", "stds")}
         self.carry: dict = {}
-        self._shares: list[np.ndarray] = []
         self.share_end = None
         self.n = 0
         self.nis_sum, self.nis_n, self.reinitialised = 0.0, 0, 0
@@ -152,7 +159,8 @@ class _Rows:
         frame = chunk.to_frame(smoothed=False)
         share = data_share(chunk.filtered, self.carry)
         self.share_end = share[-1:]
-        self.frames.append(frame)
+        self.frames.append(self.spill / f"{len(self.frames)}.pkl")
+        _with_share(frame, share).to_pickle(self.frames[-1])
         f = chunk.filtered
         # the measurements the filter used (on a job print: the camera's filed at print times)
         y = chunk.measurements
@@ -172,7 +180,6 @@ class _Rows:
         self.nis_sum += float(np.nansum(per_output))
         self.nis_n += int(np.isfinite(per_output).sum())
         self.reinitialised += int(frame["reinitialised"].sum())
-        self._shares.append(share)
         self.n += len(frame)
 
     def guard_verdict(self, run):
@@ -197,13 +204,16 @@ class _Rows:
         vial = run.vial
         start = 0
         with open(out, "w", newline="", encoding="utf-8") as fh:
-            for frame, share in zip(self.frames, self._shares, strict=True):
+            for path in self.frames:
+                frame = pd.read_pickle(path)
+                path.unlink()
                 stop = start + len(frame)
                 if vial is not None:
                     for column, attribute in VIAL_COLUMNS.items():
                         frame[column] = np.asarray(getattr(vial, attribute))[start:stop]
                 frame["mismatch"] = np.asarray(flags)[start:stop]
-                frame = _with_share(frame, share)
+                share = [c for c in frame.columns if c.startswith(SHARE_PREFIXES)]
+                frame = frame[[c for c in frame.columns if c not in share] + share]
                 frame.to_csv(fh, index=False, header=start == 0)
                 start = stop
-        self.frames, self._shares = [], []
+        self.frames = []

@@ -228,8 +228,7 @@ def ingest_record(
     twin_overrides : dict, optional
         :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
     keep_run : bool
-        Also return the whole run and the detectors' results (``run``, ``detection``: a
-        report's plots); memory then grows with the print.
+        Also return the whole run and detectors' results (memory then grows with the print).
     job : dict, optional
         The program the print ran (:func:`ajtwin.engine.print_job.job_entry`), stored with
         it; on a job print the twin files the camera's frames with it.
@@ -254,9 +253,8 @@ def ingest_record(
     try:
         carried = carried_long_run_history(registry, machine, chain)
         sink = IngestSink(writer, record, detector_settings, carried, keep=keep_run)
-        run = twin.run(
-            record, start=start, progress=progress, sink=sink, job=_printed_job(job, record)
-        )
+        job_run = _printed_job(job, record)
+        run = twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
         events, mismatch = sink.finish(run)
         print_id, summary = save_print(
             registry,

@@ -218,7 +218,9 @@ def test_parsers():
 def twin_and_state():
     from ajtwin.estimation import Twin
 
-    twin = Twin.default()
+    # the paper's droplet row: its forecasts are checked against the model's own open loop
+    # (DigitalModel.simulate); the input-following row's in test_droplet_dynamics
+    twin = Twin.default(transition="paper")
     phi = float(twin.model.steady_aerosol_fraction(np.array([375.0, 23.0, 50.0]), 1.0))
     mean = np.array([3.5, 1.0, 1e-4, 0.05, phi])
     cov = np.diag([0.05, 1e-4, 1e-8, 1e-4, (0.05 * phi) ** 2])
@@ -241,7 +243,7 @@ def test_forecast_covariance_matches_monte_carlo(twin_and_state):
     from ajtwin.estimation import Twin
 
     _, mean, cov = twin_and_state
-    quiet = Twin.default(process_std=(0.0,) * 5)
+    quiet = Twin.default(process_std=(0.0,) * 5, transition="paper")  # as the Monte Carlo
     u = np.tile([375.0, 23.0, 50.0], (60, 1))
     fc = forecast(quiet, mean, cov / 100, u, aerosol_wander_per_sqrt_h=0.0)
     rng = np.random.default_rng(0)
@@ -265,7 +267,7 @@ def test_forecast_aerosol_level_walk_matches_monte_carlo(twin_and_state):
     from ajtwin.model.system import euler_step
 
     _, mean, _ = twin_and_state
-    quiet = Twin.default(process_std=(0.0,) * 5)
+    quiet = Twin.default(process_std=(0.0,) * 5, transition="paper")  # as the Monte Carlo
     tiny = np.diag([1e-6, 1e-8, 1e-12, 1e-10, (1e-6 * mean[4]) ** 2])
     n_steps, wander = 1800, 0.2
     u = np.tile([375.0, 23.0, 50.0], (n_steps, 1))

@@ -71,3 +71,26 @@ def test_cli_reference_renders_usage_help_options_and_subcommands():
         "| `--rate FLOAT` | Rate, mL/s. [default: 2.5] |\n"
         "| `--fast / --slow` | Speed. |\n"
     )
+
+
+def _every_help(command, ctx):
+    """(command path, its --help text) of a command and all its subcommands."""
+    out = [(ctx.command_path, command.get_help(ctx))]
+    if isinstance(command, click.Group):
+        for name in command.list_commands(ctx):
+            sub = command.get_command(ctx, name)
+            out += _every_help(sub, click.Context(sub, info_name=name, parent=ctx))
+    return out
+
+
+def test_no_help_text_points_to_a_working_note_the_user_does_not_have():
+    from ajtwin.cli import main
+
+    outside = ".." + "/shared"  # the working note's folder, not named literally in the repo
+    helps = _every_help(main, click.Context(main, info_name="ajtwin"))
+    assert len(helps) > 30
+    for path, text in helps:
+        flat = " ".join(text.split())
+        assert "SPEC" not in flat and outside not in flat, path
+        # a section of the model is named by the file a user has
+        assert "model reference §" not in flat, path

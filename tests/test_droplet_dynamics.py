@@ -178,7 +178,7 @@ def test_forecast_follows_a_planned_carrier_step_only_with_the_variant():
     shift = 3.0 * dyn.carrier_um_per_sccm
     settled = shift * (1 - (1 - 1 / dyn.response_time_s) ** (900 - 60))
     assert fc.state_means[-1, 0] - 3.5 == pytest.approx(settled, rel=1e-9)
-    paper = forecast(Twin.default(), x0, cov, inputs, np.zeros(5))
+    paper = forecast(Twin.default(transition="paper"), x0, cov, inputs, np.zeros(5))
     assert paper.state_means[-1, 0] == pytest.approx(3.5, abs=1e-12)
     # d_a's row does not see the other states: its variance is a random walk's, with the
     # filter's σ_da (noise.toml) unless the variant sets a forecast σ

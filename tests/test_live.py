@@ -128,7 +128,9 @@ def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchro
     assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
     assert _relative(stream.theta, batch_twin.theta) < 1e-9
     # the paper variant on the same inputs differs: the response column is not ignored
-    paper = Twin.default(**FAST_EM).run(inputs=u, measurements=rec.outputs, time_s=rec.time_s)
+    paper = Twin.default(**FAST_EM, transition="paper").run(
+        inputs=u, measurements=rec.outputs, time_s=rec.time_s
+    )
     assert _relative(paper.means[:, 0], run.means[:, 0]) > 1e-3
 
 
@@ -313,4 +315,43 @@ def test_live_cli_refuses_an_unknown_transition_variant(tmp_path):
         + ["--store", str(tmp_path / "s.sqlite")],
     )
     assert result.exit_code == 2
-    assert "no variant 'nope'" in result.output and "input_following" in result.output
+    assert "no transition variant 'nope'" in result.output and "input_following" in result.output
+
+
+def test_machine_show_during_a_live_print_shows_the_live_twin_and_its_alarm(clog_record, tmp_path):
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.store.registry import Registry
+
+    registry = Registry(tmp_path / "r.sqlite")
+    registry.add_machine("m1")
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    published = []
+    engine.subscribe(published.append)
+    try:
+        for k in range(300):  # the clog starts at 180 s; the print goes on
+            engine.feed("m1", Sample(clog_record.time_s[k], clog_record.inputs[k],
+                                     clog_record.outputs[k]))  # fmt: skip
+        engine.flush()
+        raised = [e for m in published for e in m.get("events", []) if e["state"] == "raised"]
+        assert raised and raised[0]["cause"] == "nozzle_clog"
+        out = CliRunner().invoke(main, ["machine", "show", "m1", "--store", str(registry.path)])
+        assert out.exit_code == 0, out.output
+        text = out.output
+        assert "LIVE print since" in text and "300 samples" in text
+        assert "the twin now (299 s into the print" in text
+        assert "alarms so far: 1" in text and "nozzle clog" in text
+        assert f"at {raised[0]['detected_s']:.0f} s" in text
+        assert "ppm by volume" in text  # φ_A in a unit a person reads
+        # no stored print yet: the live one is all there is
+        assert "no print in the chain" in text
+    finally:
+        engine.shutdown()
+    # after the print is stored, `machine show` shows the stored print and no live one
+    engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
+    engine.open("m1")
+    engine.close("m1")
+    out = CliRunner().invoke(main, ["machine", "show", "m1", "--store", str(registry.path)])
+    assert "LIVE print" not in out.output and "last stored print: #1" in out.output

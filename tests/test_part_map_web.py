@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import time
 from pathlib import Path
 
 import pytest
@@ -140,11 +141,34 @@ def test_stored_print_part_map_is_drawn_from_the_api(job_registry, browser, tmp_
         assert not errors, errors
 
 
+@pytest.fixture(scope="module")
+def live_job_print_work_s():
+    """The live job print's twin, detectors and part map run once here first, so the server
+    finds their compiled programs in the persistent cache (the same AJTWIN_CACHE_DIR) instead
+    of compiling them against the page's clock; returns the wall time of a warm run [s]."""
+    from ajtwin.engine.part_map import parse_tolerance
+    from ajtwin.engine.replay import VirtualPrintFeed
+
+    feed = VirtualPrintFeed(None, "vm-job", "nozzle_clog", seed=1, minutes=4, onset_min=2,
+                            job=PROGRAM, tolerance=parse_tolerance("74+-1.5"))  # fmt: skip
+    feed.prepare()  # compiles (on an empty cache, however long that takes) and fills the cache
+    t0 = time.monotonic()
+    feed.prepare()
+    return time.monotonic() - t0
+
+
 @browser_only
-def test_live_job_print_part_map_appears_and_fills_in(job_registry, browser, tmp_path, shots):
+def test_live_job_print_part_map_appears_and_fills_in(
+    job_registry, browser, tmp_path, shots, live_job_print_work_s
+):
+    # every wait is bounded by the work it waits on: the server's run of the twin (warmed
+    # above) and the replay of 4 min of samples at 25 samples/s
+    start_ms = 1000 * (10 * live_job_print_work_s + 30)
+    replay_ms = 1000 * (10 * 4 * 60 / 25 + 30)
     args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-job",
             "--virtual-minutes", "4", "--virtual-onset", "2", "--virtual-rate", "25",
-            "--virtual-wait", "120", "--job", str(PROGRAM), "--tolerance", "74+-1.5"]  # fmt: skip
+            "--virtual-wait", str(start_ms / 1000), "--job", str(PROGRAM),
+            "--tolerance", "74+-1.5"]  # fmt: skip
     log = tmp_path / "s.log"
     with DashboardProcess(job_registry["store"], extra_args=args, log_path=log) as dash:
         page, errors = _page(browser)
@@ -153,17 +177,17 @@ def test_live_job_print_part_map_appears_and_fills_in(job_registry, browser, tmp
             page.wait_for_function(
                 "window.__ajtwin.part && window.__ajtwin.part.kind === 'live' "
                 "&& window.__ajtwin.part.portions > 0",
-                timeout=TIMEOUT_MS,
+                timeout=start_ms,
             )
             first = page.evaluate("window.__ajtwin.part.portions")
             # it fills in: more portions are drawn as the print goes on, without a reload
             page.wait_for_function(
-                f"window.__ajtwin.part.portions > {first} + 50", timeout=TIMEOUT_MS
+                f"window.__ajtwin.part.portions > {first} + 50", timeout=replay_ms
             )
             page.wait_for_function(
                 "document.getElementById('plot-part').data.some("
                 "t => t.name === 'alarm raised (nozzle there)')",
-                timeout=TIMEOUT_MS,
+                timeout=replay_ms,
             )
             later = page.evaluate("window.__ajtwin.part")
             assert later["draws"] >= 2 and later["portions"] > first

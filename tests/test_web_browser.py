@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -216,17 +217,69 @@ def test_bad_form_value_shows_a_message(server, page, shots):
     page.screenshot(path=shots / "whatif_error.png", full_page=True)
 
 
-def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
+def _wait_for_print_end(dash, machine: str, bound_s: float) -> None:
+    """Poll /api/fleet until ``machine``'s live print has ended (bounded by ``bound_s``)."""
+    deadline = time.monotonic() + bound_s
+    while time.monotonic() < deadline:
+        rows = {m["name"]: m for m in json.loads(dash.get("api/fleet")[1])["machines"]}
+        live = rows.get(machine, {}).get("live") or {}
+        if live and not live.get("printing"):
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"{machine}'s live print did not end within {bound_s:.0f} s")
+
+
+LIVE_PRINT = {"scenario": "nozzle_clog", "seed": 1, "minutes": 5, "onset_min": 3}
+
+
+@pytest.fixture(scope="module")
+def live_print_work_s():
+    """The live print's twin and detectors run once here first, so the server finds their
+    compiled programs in the persistent cache (the same AJTWIN_CACHE_DIR) instead of
+    compiling them against the page's clock; returns the wall time of a warm run [s], the
+    work the server does before its first sample."""
+    from ajtwin.engine.replay import VirtualPrintFeed
+
+    print_ = dict(LIVE_PRINT)
+    feed = VirtualPrintFeed(None, "vm-live", print_.pop("scenario"), **print_)
+    feed.prepare()  # compiles (on an empty cache, however long that takes) and fills the cache
+    t0 = time.monotonic()
+    feed.prepare()
+    return time.monotonic() - t0
+
+
+def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots, live_print_work_s):
     """A live virtual print (twin + detectors) with a nozzle clog from 3 min: the alarm is
-    on the page within seconds of the twin raising it, labelled as a clog, after the onset."""
-    args = ["--virtual-print", "nozzle_clog", "--virtual-machine", "vm-live",
-            "--virtual-minutes", "5", "--virtual-onset", "3", "--virtual-rate", "25",
-            "--virtual-wait", "120"]  # fmt: skip
+    on the page within seconds of the twin raising it, labelled as a clog, after the onset.
+    A fleet page drawn while the print runs, whose socket opens only after the print ended,
+    still says so: the rows are read again when the socket opens (on a slow first run the
+    end used to fall between the page's rows and its socket, and the row said 'live'
+    forever)."""
+    minutes, rate = LIVE_PRINT["minutes"], 25  # the virtual print, its replay rate [samples/s]
+    # every wait is bounded by the work it waits on: the server's run of the twin (its
+    # programs warmed above, so loading them is all that is left of compiling) and the
+    # replay of `minutes` of samples at `rate`
+    start_ms = 1000 * (10 * live_print_work_s + 30)
+    replay_ms = 1000 * (10 * minutes * 60 / rate + 30)
+    args = ["--virtual-print", LIVE_PRINT["scenario"], "--virtual-machine", "vm-live",
+            "--virtual-seed", str(LIVE_PRINT["seed"]), "--virtual-minutes", str(minutes),
+            "--virtual-onset", str(LIVE_PRINT["onset_min"]), "--virtual-rate", str(rate),
+            "--virtual-wait", str(start_ms / 1000)]  # fmt: skip
     with DashboardProcess(registry["store"], extra_args=args, log_path=tmp_path / "s.log") as dash:
-        page = browser.new_page()
+        page, fleet = browser.new_page(), browser.new_page()
+        held = []
+
+        def hold(ws):  # the fleet page's socket opens against this stand-in, not the server
+            held.append(ws)
+
+        fleet.route_web_socket("**/ws", hold)
         try:
-            page.goto(dash.page_url("/machine/vm-live"))
-            page.locator("#alarm-banner").wait_for(state="visible", timeout=TIMEOUT_MS)
+            page.goto(dash.page_url("/machine/vm-live"))  # a viewer: the print starts
+            page.wait_for_function("window.__ajtwin.events > 5", timeout=start_ms)
+            fleet.goto(dash.page_url("/"))  # drawn while the print runs ...
+            row = fleet.locator('tr[data-machine="vm-live"]')
+            assert "live print ended" not in row.inner_text()
+            page.locator("#alarm-banner").wait_for(state="visible", timeout=replay_ms)
             shown = page.evaluate("window.__ajtwin.alarmsShown")
             assert shown and shown[0]["cause"] == "nozzle_clog"
             assert 180.0 < shown[0]["detected_s"] < 180.0 + 90.0  # after the true onset
@@ -237,19 +290,26 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots):
             assert page.evaluate("document.getElementById('plot-states').data.length") == 20
             assert len(page.evaluate("window.__ajtwin.latencies")) > 10
             page.screenshot(path=shots / "machine_live.png", full_page=True)
-            page.goto(dash.page_url("/"))
-            row = page.locator('tr[data-machine="vm-live"]')
-            assert row.get_attribute("data-status") == "alarm"
-            # when the print ends the fleet row says so (pushed, no reload) and keeps the
-            # live-only machine's last ΔR_N, which grew with the clog
-            ended = page.locator('tr[data-machine="vm-live"]', has_text="live print ended")
-            ended.wait_for(timeout=60_000)
+            # the rest of the print is (5 min − the alarm's time) at `rate` samples/s: wait
+            # for its end with a bound made of that work, not of a compilation's duration
+            remaining_s = (minutes * 60 - shown[0]["detected_s"]) / rate
+            _wait_for_print_end(dash, "vm-live", bound_s=10 * remaining_s + 30)
+            # ... and its socket opens only now: nothing reached it, the row still says live
+            assert held and fleet.evaluate("window.__ajtwin.events") == 0
+            assert "live print ended" not in row.inner_text()
+            for ws in held:
+                ws.connect_to_server()
+            # the page reads its rows again when its socket opens (one fetch): the row says
+            # the print ended, and keeps the live-only machine's last ΔR_N, grown by the clog
+            ended = fleet.locator('tr[data-machine="vm-live"]', has_text="live print ended")
+            ended.wait_for(timeout=30_000)
             assert row.get_attribute("data-status") == "alarm"
             dr_n = float(row.locator("td").nth(6).locator(".val").inner_text().split()[0])
             assert dr_n > 0.04
-            page.screenshot(path=shots / "fleet_live.png", full_page=True)
+            fleet.screenshot(path=shots / "fleet_live.png", full_page=True)
         finally:
             page.close()
+            fleet.close()
 
 
 def test_token_required(registry, tmp_path, browser):

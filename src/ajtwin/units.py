@@ -201,6 +201,24 @@ def m3_to_ml(volume):
     return volume / ML_IN_M3
 
 
+#: parts per million by volume in one volume fraction (φ_A as a person reads it)
+PPM_IN_FRACTION = 1e6
+
+
+def fraction_to_ppm(fraction):
+    """A volume fraction (φ_A) → parts per million by volume.
+
+    >>> round(fraction_to_ppm(4.377e-7), 4)
+    0.4377
+    """
+    return fraction * PPM_IN_FRACTION
+
+
+def ppm_to_fraction(ppm):
+    """Parts per million by volume → a volume fraction."""
+    return ppm / PPM_IN_FRACTION
+
+
 def um3_per_s_to_ml_per_s(rate):
     """Volume rate in µm³/s → mL/s (the generation fit H is in µm³/s)."""
     return rate * UM3_IN_ML

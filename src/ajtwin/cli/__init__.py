@@ -102,5 +102,5 @@ def main():
     Reads the machine's logs and alignment-camera video, infers the hidden
     states that make lines drift (droplet size, aerosol density, ink level,
     ink building up in tube and nozzle), warns early, and forecasts what an
-    input change will do. Units: µm, mL, mA, sccm, Pa (model reference §3).
+    input change will do. Units: µm, mL, mA, sccm, Pa (docs/reference/model.md §3).
     """

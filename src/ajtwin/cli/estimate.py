@@ -8,7 +8,13 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from ajtwin.cli.options import BoundedFloat, check_vial_fill, record_options
+from ajtwin.cli.options import (
+    BoundedFloat,
+    check_vial_fill,
+    record_options,
+    transition_option,
+    transition_overrides,
+)
 from ajtwin.io.records import read_record
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
@@ -31,9 +37,10 @@ def parse_early_em(text: str) -> tuple:
 
 
 def _read_calibration(calibration_path):
-    """(calibration, its covariance, per-output noise factors) of ``--calibration``, or Nones."""
+    """(calibration, its covariance, per-output noise factors, φ_A's level) of
+    ``--calibration``, or Nones."""
     if calibration_path is None:
-        return None, None, None
+        return None, None, None, None
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.model.calibration import read_calibration_file
 
@@ -47,7 +54,11 @@ def _read_calibration(calibration_path):
     if "noise_factor" in content:
         factors = content["noise_factor"]
         noise_factors = np.array([float(factors.get(n, 1.0)) for n in OUTPUT_NAMES])
-    return calibration, calibration_cov, noise_factors
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.commission import unpinned_aerosol_level
+
+    level = content.get("aerosol_level") or unpinned_aerosol_level()
+    return calibration, calibration_cov, noise_factors, level
 
 
 @click.command("estimate")
@@ -113,6 +124,7 @@ def _read_calibration(calibration_path):
     help="The machine's calibration TOML (`ajtwin machine commission --out`); default: "
     "the nominal model.",
 )
+@transition_option
 @click.option(
     "--job",
     "job_program",
@@ -157,6 +169,7 @@ def estimate(
     noise_tuning,
     vial_ml,
     calibration_path,
+    transition,
     job_program,
     camera_horizon,
     theta_out,
@@ -179,7 +192,7 @@ def estimate(
         record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
-    calibration, calibration_cov, noise_factors = _read_calibration(calibration_path)
+    calibration, calibration_cov, noise_factors, level = _read_calibration(calibration_path)
     try:
         early = parse_early_em(early_em)
     except ValueError as exc:
@@ -196,7 +209,9 @@ def estimate(
         early_em_s=early,
         gate_sigma=gate,
         vial_fill_ml=vial_ml,
+        aerosol_level_std=float((level or {}).get("relative_std", 0.0)),
         camera_horizon_s=camera_horizon,
+        **transition_overrides(transition),
     )
     n = len(record)
     with tqdm(total=n, unit="s", desc="twin", disable=None) as bar:
@@ -221,11 +236,24 @@ def estimate(
     theta_path = Path(theta_out) if theta_out else out.with_name("theta.csv")
     run.theta_history.to_csv(theta_path, index=False)
     click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
+    _echo_summary(run, done, mismatch, level, has_job=job is not None)
+    if plot_path:
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.estimation.plotting import estimate_figure
+
+        estimate_figure(record, run, plot_path)
+        click.echo(f"wrote {plot_path}")
+
+
+def _echo_summary(run, done, mismatch, level, has_job: bool) -> None:
+    """What ``estimate`` says after writing its files: the end state, the fit, the guard,
+    φ_A's level and the states the print's data did not determine (``done``: what
+    :func:`ajtwin.engine.estimate.estimate_to_csv` reports)."""
     end = ", ".join(f"{c} {v:.4g}" for c, v in zip(STATE_NAMES, run.end_mean))
     click.echo(f"end state: {end}")
     click.echo(f"mean NIS per measured output: {done.mean_nis_per_output:.2f} (1 = consistent)")
     if run.camera_counts:
-        click.echo(_camera_line(run.camera_counts, job is not None))
+        click.echo(_camera_line(run.camera_counts, has_job))
     if mismatch.mismatch:
         click.echo(f"WARNING {mismatch.message}", err=True)
         click.echo(
@@ -242,6 +270,10 @@ def estimate(
         )
     for note in run.visibility_notes():
         click.echo(note, err=True)
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.estimation.commission import aerosol_level_note
+
+    click.echo(f"note: {aerosol_level_note(level)}", err=True)
     if done.undetermined:
         click.echo(
             f"note: not determined by this print's data: {', '.join(done.undetermined)} — "
@@ -249,12 +281,6 @@ def estimate(
             "= False)",
             err=True,
         )
-    if plot_path:
-        # lazy CLI loading: imported when the command runs, not for --help
-        from ajtwin.estimation.plotting import estimate_figure
-
-        estimate_figure(record, run, plot_path)
-        click.echo(f"wrote {plot_path}")
 
 
 def _read_job(record, job_program, camera_horizon):

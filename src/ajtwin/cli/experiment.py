@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ajtwin.cli.options import parse_seeds
+from ajtwin.cli.options import parse_seeds, transition_option, transition_overrides
 
 
 @click.command("experiment")
@@ -31,13 +31,7 @@ from ajtwin.cli.options import parse_seeds
     help="exp3 only: the virtual printer's truth generator; 'alt' is the second, "
     "structurally different one (ajtwin.simulation.truth_alt), for evaluation only.",
 )
-@click.option(
-    "--transition",
-    default="paper",
-    show_default=True,
-    help="Droplet-size dynamics: a variant of ajtwin/data/transition.toml "
-    "(paper, input_following, mean_reverting; docs/explanation/forecast-droplet-dynamics.md).",
-)
+@transition_option
 def experiment(name, seed, seeds_text, out_dir, noise_tuning, truth, transition):
     """Reproduce one of the paper's experiments on virtual prints: figures + metrics.json."""
     # lazy CLI loading: the experiments load JAX and matplotlib when they run
@@ -52,7 +46,7 @@ def experiment(name, seed, seeds_text, out_dir, noise_tuning, truth, transition)
             name,
             seeds,
             out_dir,
-            {"noise_tuning": noise_tuning, "transition": transition},
+            {"noise_tuning": noise_tuning, **transition_overrides(transition)},
             progress=lambda _: bar.update(1),
             truth=truth,
             figures=experiment_figures,

@@ -7,7 +7,14 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.cli.options import SHORT, open_registry, parse_inputs, store_option
+from ajtwin.cli.options import (
+    SHORT,
+    open_registry,
+    parse_inputs,
+    store_option,
+    transition_option,
+    transition_overrides,
+)
 from ajtwin.store.registry import RegistryError
 
 
@@ -50,14 +57,7 @@ from ajtwin.store.registry import RegistryError
     is_flag=True,
     help="Use θ = 0 instead of the machine's learned θ (e.g. after cleaning the nozzle).",
 )
-@click.option(
-    "--transition",
-    default="paper",
-    show_default=True,
-    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml; "
-    "input_following lets d_a follow planned Q_c/I_A changes "
-    "(docs/explanation/forecast-droplet-dynamics.md).",
-)
+@transition_option
 @store_option
 def forecast(
     machine_name,
@@ -91,7 +91,7 @@ def forecast(
     reg = open_registry(store)
     try:
         twin, mean, cov, u_last, _, last = machine_twin(
-            reg, machine_name, nominal_theta, transition
+            reg, machine_name, nominal_theta, transition_overrides(transition).get("transition")
         )
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None

@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from ajtwin.cli.options import (
+    STATE_DISPLAY_SCALE,
     STATE_LABELS,
     BoundedFloat,
     ToleranceType,
@@ -142,8 +143,15 @@ def ingest(
     if program is not None:
         click.echo(f"  job {program.name} kept with the print")
     end = result.summary["end_state"]
-    for key, short, unit in STATE_LABELS:
-        click.echo(f"  end {short:5s} = {end[key]:.4g} {unit}")
+    for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
+        click.echo(f"  end {short:5s} = {end[key] * scale:.4g} {unit}")
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.commissioning import aerosol_level
+    from ajtwin.estimation.commission import aerosol_level_note
+    from ajtwin.store.calibration import active_calibration
+
+    active = active_calibration(reg, machine_name)
+    click.echo(f"  note: {aerosol_level_note(None if active is None else aerosol_level(active))}")
     for note in result.run.visibility_notes() if result.run is not None else ():
         click.echo(note, err=True)  # e.g. no camera: which states the data cannot see
     if result.events:

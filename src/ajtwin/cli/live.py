@@ -16,6 +16,8 @@ from ajtwin.cli.options import (
     open_registry,
     record_options,
     store_option,
+    transition_option,
+    transition_overrides,
 )
 
 
@@ -47,14 +49,7 @@ from ajtwin.cli.options import (
     metavar="PORT",
     help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
 )
-@click.option(
-    "--transition",
-    default="paper",
-    show_default=True,
-    help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml "
-    "(input_following: d_a follows Q_c/I_A; the engine carries the input response; "
-    "docs/explanation/forecast-droplet-dynamics.md).",
-)
+@transition_option
 @click.option(
     "--job",
     "program",
@@ -112,19 +107,10 @@ def live(
         raise click.UsageError("give exactly one of --opcua URL or --follow FILE")
     if follow is not None and len(machines) != 1:
         raise click.UsageError("--follow follows one --machine")
-    # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.model.droplet_dynamics import transition_variants
-
-    if transition not in transition_variants():
-        raise click.BadParameter(
-            f"no variant {transition!r}; choose one of {', '.join(transition_variants())}",
-            param_hint="--transition",
-        )
+    overrides = transition_overrides(transition)
     entry = _job(program, process_speed, rapid_speed, tolerance)
     registry = open_registry(store, create=True)  # the live twin writes
-    engine = LiveEngine(
-        registry, twin_overrides=None if transition == "paper" else {"transition": transition}
-    )
+    engine = LiveEngine(registry, twin_overrides=overrides or None)
     engine.warm_up(len(machines))
     engine.jobs.update(dict.fromkeys(machines, entry) if entry else {})  # stored with prints
     out = None

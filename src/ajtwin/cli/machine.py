@@ -4,18 +4,28 @@ docs/howto/commission-a-machine.md)."""
 
 from __future__ import annotations
 
+import datetime as _dt
 import sqlite3
+import time
 from pathlib import Path
 
 import click
 import numpy as np
 import pandas as pd
 
-from ajtwin.cli.options import STATE_LABELS, open_registry, record_options, store_option
+from ajtwin.cli.options import (
+    STATE_DISPLAY_SCALE,
+    STATE_LABELS,
+    open_registry,
+    record_options,
+    store_option,
+)
 from ajtwin.engine.chain import chain_start, state_violations
 from ajtwin.io.records import RecordError, read_record
 from ajtwin.store.archive import export_machine, import_machine
 from ajtwin.store.compaction import compact
+from ajtwin.store.live_log import live_session_now
+from ajtwin.store.queries import reported_end_std
 from ajtwin.store.registry import STATUS_DROPPED, STATUS_OK, RegistryError, printable
 
 
@@ -80,7 +90,8 @@ def list_machines(store):
 @click.argument("name")
 @store_option
 def show(name, store):
-    """The machine's current twin: last state ± σ, θ, limits, recent anomalies."""
+    """The machine's current twin: the live print if one runs (since when, samples, the
+    state now, its alarms so far), the last stored state ± σ, θ, limits, recent anomalies."""
 
     reg = open_registry(store)
     try:
@@ -88,6 +99,7 @@ def show(name, store):
         last = reg.last_print(name)
         newest = reg.last_print(name, in_chain=False)
         anomalies = reg.anomalies(name)
+        live = live_session_now(reg, m["name"])
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"machine {printable(m['name'])}  (registry {reg.path})")
@@ -95,6 +107,8 @@ def show(name, store):
     for key, (low, high) in m["limits"].items():
         click.echo(f"  limit {key}: {low:g} – {high:g}")
     for line in describe_calibration(reg, name):
+        click.echo(line)
+    for line in describe_live(live):
         click.echo(line)
     if newest is not None and (last is None or newest["seq"] != last["seq"]):
         click.echo(
@@ -105,14 +119,15 @@ def show(name, store):
         click.echo("  no print in the chain: the next ingest starts from the initial-state fit")
         return
     click.echo(
-        f"  last print: #{last['seq']} from {printable(last['source'])} "
-        f"({last['ingested_at']}), the twin's current state:"
+        f"  last stored print: #{last['seq']} from {printable(last['source'])} "
+        f"({last['ingested_at']}), the twin's state at its end:"
     )
-    std = np.sqrt(np.diag(last["end_cov"]))
+    std = reported_end_std(reg, last)  # the band as reported (calibration, φ_A's level)
     # which bands that print's data set (apps.mismatch.data_share; prints before it: none)
     shares = (last.get("summary") or {}).get("data_share") or {}
     for i, (name_i, short, unit) in enumerate(STATE_LABELS):
-        line = f"    {short:5s} = {last['end_mean'][i]:.4g} ± {std[i]:.2g} {unit}"
+        scale = STATE_DISPLAY_SCALE[i]
+        line = f"    {short:5s} = {last['end_mean'][i] * scale:.4g} ± {std[i] * scale:.2g} {unit}"
         share = shares.get(name_i)
         if share is not None and not share["determined"]:
             line += (
@@ -283,11 +298,19 @@ def import_command(archive, as_name, store):
     "--known",
     "known_items",
     multiple=True,
-    help="A state known at the start, NAME=VALUE±STD (e.g. droplet_diameter_um=3.5±0.2); "
-    "repeatable. Pins what the print confounds (d_a with the line offsets, φ_A with the "
-    "Q_m gain).",
+    help="A state known at the start or a calibration parameter known from elsewhere, "
+    "NAME=VALUE±STD (e.g. droplet_diameter_um=3.5±0.2 from a droplet sizer, "
+    "material_flow_gain=1.00±0.03 from a profilometer-calibrated CNN); repeatable. Pins "
+    "what the print confounds (d_a with the line offsets, φ_A with the Q_m gain).",
 )
 @click.option("--vial-ml", default=1.0, show_default=True, help="The weighed fill [mL].")
+@click.option(
+    "--vial-used-ml",
+    "vial_used",
+    default=None,
+    help="The ink the print drew, VALUE±STD [mL]: the vial weighed before and after it "
+    "(an evaporation blank subtracted). Pins φ_A's level through dV_l/dt = −φ_A Q_c.",
+)
 @click.option(
     "--out",
     "out_path",
@@ -303,7 +326,16 @@ def import_command(archive, as_name, store):
 @record_options
 @store_option
 def commission(
-    name, record, known_items, vial_ml, out_path, no_registry, csv_dialect, aliases, store
+    name,
+    record,
+    known_items,
+    vial_ml,
+    vial_used,
+    out_path,
+    no_registry,
+    csv_dialect,
+    aliases,
+    store,
 ):
     """Fit machine NAME's calibration from a commissioning print RECORD.
 
@@ -315,12 +347,22 @@ def commission(
     # lazy CLI loading: the fit loads JAX, `machine --help` must not
     from ajtwin.engine.commissioning import commission_machine, save_commissioning
     from ajtwin.engine.commissioning import write_calibration as write_calibration_toml
-    from ajtwin.estimation.commission import CommissioningError, parse_known
+    from ajtwin.estimation.commission import CommissioningError, parse_amount, parse_known
 
     try:
         known = parse_known(known_items)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--known") from None
+    vial_used_ml = None
+    if vial_used is not None:
+        try:
+            vial_used_ml = parse_amount(vial_used, "--vial-used-ml")
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--vial-used-ml") from None
+        if not vial_used_ml[0] > 0:
+            raise click.BadParameter(
+                f"{vial_used!r}: the ink used must be positive [mL]", param_hint="--vial-used-ml"
+            )
     reg = None
     if not no_registry:
         reg = open_registry(store, write=True)
@@ -334,6 +376,7 @@ def commission(
             rec,
             known=known,
             vial_fill_ml=vial_ml,
+            vial_used_ml=vial_used_ml,
             where=str(record),
             learn_noise_scale=reg is not None,
         )
@@ -348,7 +391,10 @@ def commission(
             "samples": result.n_samples,
             "vial_fill_mL": vial_ml,
             "priors": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in result.priors.items()},
+            "known": {k: f"{v[0]:.6g}±{v[1]:.3g}" for k, v in known.items()},
         }
+        if vial_used_ml is not None:
+            provenance["vial_used_mL"] = f"{vial_used_ml[0]:.6g}±{vial_used_ml[1]:.3g}"
         write_calibration_toml(out_path, result, provenance)
         click.echo(f"wrote {out_path}")
     if reg is not None:
@@ -361,8 +407,11 @@ def _echo_commissioning(name, record, result) -> None:
     """The fitted calibration, one parameter a line, with its standard error and prior."""
     click.echo(f"commissioning of {name} from {record} ({result.n_samples} s):")
     click.echo(f"  {'parameter':26s} {'value':>11s} {'std error':>10s} {'prior σ':>9s}  print")
+    unpinned = not result.aerosol_level.get("pinned_by")
     for row in result.table():
         status = "determined" if row["determined"] else "NOT determined (prior)"
+        if row["parameter"] == "material_flow_gain" and unpinned:
+            status = "rests on φ_A's prior (see note)"
         click.echo(
             f"  {row['parameter']:26s} {row['value']:11.5g} {row['std_error']:10.3g} "
             f"{row['prior_std']:9.3g}  {status}"
@@ -432,6 +481,38 @@ def calibrations(name, store):
         click.echo(events.to_string(index=False))
 
 
+def describe_live(live: dict | None, now: float | None = None) -> list[str]:
+    """Lines for `machine show` on the machine's live print (:func:`live_session_now`): since
+    when, how many samples, the twin's state now with its ±1σ, the alarms so far."""
+    if live is None:
+        return []
+    now = time.time() if now is None else now
+    started = _dt.datetime.fromtimestamp(live["started_at"], _dt.UTC)
+    lines = [
+        f"  LIVE print since {started:%Y-%m-%d %H:%M:%S} UTC "
+        f"({(now - live['started_at']) / 60:.1f} min ago) from {printable(live['source'])}: "
+        f"{live['n_samples']} samples"
+    ]
+    latest = live["latest"]
+    if latest is None:
+        lines.append("    the twin has not committed a step yet")
+    else:
+        lines.append(
+            f"    the twin now ({latest['time_s']:.0f} s into the print, {latest['status']}):"
+        )
+        for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
+            mean, std = latest["states"][key] * scale, latest["stds"][key] * scale
+            lines.append(f"      {short:5s} = {mean:.4g} ± {std:.2g} {unit}")
+    alarms = live["alarms"]
+    lines.append(f"    alarms so far: {len(alarms) if alarms else 'none'}")
+    for event in alarms:
+        lines.append(
+            f"      at {event['detected_s']:.0f} s (onset ≈ {event['onset_s']:.0f} s): "
+            f"{printable(event['description'])}"
+        )
+    return lines
+
+
 def describe_calibration(reg, name) -> list[str]:
     """Lines for `machine show`: the active calibration and the last mismatch status."""
     # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
@@ -450,6 +531,12 @@ def describe_calibration(reg, name) -> list[str]:
             f"P_s gain {cal.sheath_gauge_gain:.4g} offset {cal.sheath_gauge_offset_Pa:+.3g} Pa, "
             f"Q_m gain {cal.material_flow_gain:.3g}",
         ]
+    # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
+    from ajtwin.engine.commissioning import aerosol_level
+    from ajtwin.estimation.commission import aerosol_level_note
+
+    level = None if active is None else aerosol_level(active)
+    lines.append(f"  {aerosol_level_note(level)}")
     last = reg.last_print(name)
     if last is not None and "mismatch" in last["summary"]:
         status = last["summary"]["mismatch"]

@@ -11,6 +11,7 @@ import click
 import numpy as np
 
 from ajtwin import units
+from ajtwin.config import packaged_toml
 from ajtwin.engine.chain import open_registry as open_checked_registry
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.io.dialect import DIALECT_CHOICES
@@ -242,6 +243,37 @@ def check_vial_fill(ctx, param, value):
     return value
 
 
+def transition_option(func):
+    """``--transition NAME``: the twin's droplet-size row, a variant of data/transition.toml
+    (None: that file's default, read when the twin is made)."""
+    default = packaged_toml("data/transition.toml")["default"]
+    return click.option(
+        "--transition",
+        default=None,
+        help="Droplet-size row of the twin: a variant of ajtwin/data/transition.toml — "
+        "input_following (d_a follows Q_c/I_A), paper (the paper's model unchanged), "
+        "mean_reverting; docs/explanation/forecast-droplet-dynamics.md. "
+        f"[default: {default}]",
+    )(func)
+
+
+def transition_overrides(transition) -> dict:
+    """Twin overrides of a ``--transition`` value ({} = the default variant); an unknown
+    variant is a clear usage error."""
+    if transition is None:
+        return {}
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.model.droplet_dynamics import transition_variants
+
+    if transition not in transition_variants():
+        raise click.BadParameter(
+            f"no transition variant {transition!r}; choose one of "
+            f"{', '.join(transition_variants())}",
+            param_hint="--transition",
+        )
+    return {"transition": transition}
+
+
 def store_option(func):
     """``--store PATH`` (or ``$AJTWIN_STORE``): the machine registry a command reads or writes."""
     return click.option(
@@ -312,8 +344,10 @@ STATE_LABELS = (
     ("vial_volume_mL", "V_l", "mL"),
     ("tube_deposition_um", "ΔR_T", "µm"),
     ("nozzle_deposition_um", "ΔR_N", "µm"),
-    ("aerosol_fraction", "φ_A", "–"),
+    ("aerosol_fraction", "φ_A", "ppm by volume"),
 )
+#: the factor from a state's model unit to the unit of :data:`STATE_LABELS` (φ_A → ppm)
+STATE_DISPLAY_SCALE = (1.0, 1.0, 1.0, 1.0, float(units.fraction_to_ppm(1.0)))
 
 
 #: symbol and unit of each input and output, as the commands print them

@@ -405,13 +405,13 @@ def extract(
     csv_dialect,
     **part,
 ):
-    """Linewidth and overspray from alignment-camera video (paper App. A, model reference §9).
+    """Linewidth and overspray from alignment-camera video (paper App. A).
 
     SOURCE is a video (mp4/avi/...), a folder of images or one PNG/TIFF.  Frames are
     streamed one at a time.  The CSV has one row per frame: frame, time_s, linewidth_um,
     overspray_um, linewidth_std_um, overspray_std_um (spread over the batches), n_batches
     (batches measured) and status (ok, or why the frame gave no value).  Lines must lie
-    within 45° of the image's horizontal.
+    within 45° of the image's horizontal.  The method: docs/reference/model.md §9.
 
     With --job PROGRAM.prg --camera camera.toml: every trace of the part in view, at any
     angle and on arcs, measured across the stroke; OUT has one row per reading (frame,

@@ -29,7 +29,11 @@ import numpy as np
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.engine.chain import carry_over
-from ajtwin.estimation.commission import CommissioningResult, commission
+from ajtwin.estimation.commission import (
+    CommissioningResult,
+    commission,
+    unpinned_aerosol_level,
+)
 from ajtwin.estimation.twin import Twin
 from ajtwin.model import OUTPUT_NAMES
 from ajtwin.model.calibration import write_calibration_file
@@ -54,23 +58,40 @@ class Commissioning:
 
 
 def calibrated_twin(result: CommissioningResult) -> Twin:
-    """The twin of a commissioned machine: its calibration, covariance and noise factors."""
-    return Twin.default(**calibration_twin_kwargs(result))
+    """The twin of a commissioned machine: its calibration, covariance and noise factors,
+    with θ_φA holding the atomizer's level when commissioning pinned it."""
+    twin = Twin.default(**calibration_twin_kwargs(result))
+    twin.theta[4] = aerosol_level(result).get("theta_per_s", 0.0)
+    return twin
+
+
+def aerosol_level(calibrated) -> dict:
+    """φ_A's level of a calibration (:attr:`CommissioningResult.aerosol_level`; for a stored
+    row, its ``priors``' ``aerosol_level``); a calibration stored without one: the
+    generation model's ± its prior (:func:`unpinned_aerosol_level`)."""
+    if isinstance(calibrated, dict):
+        level = (calibrated.get("priors") or {}).get("aerosol_level")
+    else:
+        level = calibrated.aerosol_level
+    return dict(level) if level else unpinned_aerosol_level()
 
 
 def calibration_twin_kwargs(calibrated) -> dict:
     """:meth:`Twin.default` keywords of a calibration: a :class:`CommissioningResult` or a
     stored calibration row (:func:`ajtwin.store.calibration.active_calibration`)."""
+    level = aerosol_level(calibrated).get("relative_std", 0.0)
     if isinstance(calibrated, dict):
         return {
             "calibration": calibrated["calibration"],
             "calibration_cov": calibrated["calibration_cov"],
             "noise_factors": calibrated.get("noise_factors"),
+            "aerosol_level_std": level,
         }
     return {
         "calibration": calibrated.calibration,
         "calibration_cov": calibrated.calibration_cov,
         "noise_factors": calibrated.noise_factors,
+        "aerosol_level_std": level,
     }
 
 
@@ -107,6 +128,7 @@ def commission_machine(
     *,
     known: dict | None = None,
     vial_fill_ml: float = 1.0,
+    vial_used_ml: tuple | None = None,
     where: str = "",
     learn_noise_scale: bool = True,
 ) -> Commissioning:
@@ -122,6 +144,8 @@ def commission_machine(
         droplet sizer).
     vial_fill_ml : float
         The weighed fill [mL].
+    vial_used_ml : (mean, std), optional
+        The ink the print drew [mL] (the vial weighed before and after): pins φ_A's level.
     where : str
         The print's file, for error messages.
     learn_noise_scale : bool
@@ -134,7 +158,9 @@ def commission_machine(
     CommissioningError
         A print that cannot determine the calibration.
     """
-    result = commission(record, known=known, vial_fill_ml=vial_fill_ml, where=where)
+    result = commission(
+        record, known=known, vial_fill_ml=vial_fill_ml, vial_used_ml=vial_used_ml, where=where
+    )
     history = commissioning_long_run_history(record, result) if learn_noise_scale else None
     return Commissioning(result, history)
 
@@ -159,4 +185,5 @@ def write_calibration(path, result: CommissioningResult, provenance: dict) -> Pa
         provenance,
         covariance=result.calibration_cov,
         noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(result.noise_factors).tolist())),
+        aerosol_level=result.aerosol_level,
     )

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ajtwin.engine.chain import carry_over, chain_start
-from ajtwin.engine.commissioning import calibration_twin_kwargs
+from ajtwin.engine.commissioning import aerosol_level, calibration_twin_kwargs
 from ajtwin.estimation.commission import load_commissioning_settings
 from ajtwin.estimation.twin import Twin
 from ajtwin.model.droplet_dynamics import next_response
@@ -75,14 +75,15 @@ def machine_start(registry, machine: str, chain, twin_overrides: dict | None = N
     :meth:`Twin.default`), ``started_from``, ``calibration_id``, ``maintenance``.
     """
     start = chain.start
-    theta = np.zeros(5) if chain.theta is None else np.asarray(chain.theta, dtype=float)
+    theta = np.zeros(5) if chain.theta is None else np.array(chain.theta, dtype=float)
     started_from = chain.description
     active = active_calibration(registry, machine)
     overrides = dict(twin_overrides or {})
     since = 0.0
     if commissioned_since_last_print(active, chain):
-        # start where commissioning left the machine
+        # start where commissioning left the machine, θ_φA holding its pinned atomizer level
         start = carry_over(active["end_mean"], active["end_cov"])
+        theta[4] = aerosol_level(active).get("theta_per_s", 0.0)
         since = active["created_unix"]
         started_from = f"commissioning {active['id']}"
     events = pending_maintenance(registry, machine, since)
@@ -126,7 +127,7 @@ def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
     return None if stored is None else stored[1]
 
 
-def machine_twin(reg, name, nominal_theta=False, transition="paper"):
+def machine_twin(reg, name, nominal_theta=False, transition=None):
     """The twin at a machine's current state, as forecasts and advice start from it.
 
     Parameters
@@ -136,9 +137,10 @@ def machine_twin(reg, name, nominal_theta=False, transition="paper"):
         A registered machine with at least one print in its chain.
     nominal_theta : bool
         θ = 0 instead of the machine's learned θ (e.g. after cleaning the nozzle).
-    transition : str
-        A variant of ``data/transition.toml`` for the twin's droplet row. A variant with
-        a bounded θ_da prior (σ) clips the machine's learned θ_da to ±2σ.
+    transition : str, optional
+        A variant of ``data/transition.toml`` for the twin's droplet row (default: that
+        file's default). A variant with a bounded θ_da prior (σ) clips the machine's
+        learned θ_da to ±2σ.
 
     Returns
     -------
@@ -161,11 +163,12 @@ def machine_twin(reg, name, nominal_theta=False, transition="paper"):
     # the machine's calibration (model reference §11): forecasts and advice speak its outputs
     active = active_calibration(reg, name)
     calibrated = {} if active is None else calibration_twin_kwargs(active)
-    twin = Twin.default(transition=transition, **calibrated)
+    chosen = {} if transition is None else {"transition": transition}
+    twin = Twin.default(**chosen, **calibrated)
     if not nominal_theta:
         twin.theta = np.asarray(last["theta_after"], dtype=float)
         bound = 2.0 * twin.droplet_dynamics.theta_prior_std
-        if transition != "paper" and bound > 0:
+        if twin.config.transition != "paper" and bound > 0:
             twin.theta[0] = float(np.clip(twin.theta[0], -bound, bound))
     inputs = reg.print_arrays(last["id"]).get("inputs")
     u_last = np.nanmedian(inputs[-60:], axis=0) if inputs is not None else np.array([375, 23, 50])

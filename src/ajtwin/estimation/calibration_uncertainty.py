@@ -110,3 +110,35 @@ def calibration_state_covariance(
     sensitivity[:, 1, :] -= drain / s[1]
     out = np.einsum("tic,cd,tjd->tij", sensitivity, cal_cov, sensitivity)
     return out * np.outer(s, s)[None]
+
+
+def aerosol_level_covariance(
+    means, inputs, relative_std, dt: float = 1.0, carry: dict | None = None
+) -> np.ndarray:
+    """(T, 5, 5), display units: what an unknown level of φ_A adds to the states' covariance.
+
+    The atomizer's output relative to the generation model is known only to a relative σ
+    (commissioning's ``aerosol_level``, model reference §11): one systematic factor (1 + ε),
+    ε ~ N(0, σ²), on φ_A for the whole print, which the outputs cannot see once the Q_m gain
+    has absorbed it. With v_k = [0, −σ Σ_{j<k} φ̂_j Q_c,j Δt, 0, 0, σ φ̂_k] (the vial drains
+    by the same factor), the addition is v_k v_kᵀ. ``carry``: a dict kept between the chunks
+    of one run (the sum so far), so chunks give the whole run's result.
+
+    >>> means = np.tile([3.5, 1.0, 0.0, 0.0, 4.6e-7], (3, 1))
+    >>> c = aerosol_level_covariance(means, np.tile([375.0, 23.0, 50.0], (3, 1)), 0.35)
+    >>> round(float(np.sqrt(c[1, 4, 4]) / 4.6e-7), 3)
+    0.35
+    """
+    means = np.asarray(means, dtype=float)
+    carrier_ml_s = np.asarray(units.sccm_to_ml_per_s(np.asarray(inputs, dtype=float)[:, 1]))
+    aerosol = relative_std * means[:, 4]
+    # a chunk of a run starts from what the vial drained before it (``carry``, updated)
+    before = 0.0 if carry is None else carry.get("aerosol_level_drained", 0.0)
+    steps = np.cumsum(aerosol * carrier_ml_s * dt)
+    drained = before + np.concatenate([[0.0], steps[:-1]])
+    if carry is not None and len(steps):
+        carry["aerosol_level_drained"] = before + float(steps[-1])
+    v = np.zeros_like(means)
+    v[:, 1] = -drained
+    v[:, 4] = aerosol
+    return v[:, :, None] * v[:, None, :]

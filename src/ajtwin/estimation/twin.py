@@ -24,7 +24,10 @@ import numpy as np
 import pandas as pd
 
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation.calibration_uncertainty import calibration_state_covariance
+from ajtwin.estimation.calibration_uncertainty import (
+    aerosol_level_covariance,
+    calibration_state_covariance,
+)
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.em_calibration import output_m_step
 from ajtwin.estimation.filters import (
@@ -53,7 +56,12 @@ from ajtwin.estimation.record_checks import (
 from ajtwin.estimation.vial import load_vial_settings, observe_vial
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
-from ajtwin.model.droplet_dynamics import DropletStep, augment_inputs, load_droplet_dynamics
+from ajtwin.model.droplet_dynamics import (
+    DropletStep,
+    augment_inputs,
+    default_transition,
+    load_droplet_dynamics,
+)
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.system import check_input
@@ -93,10 +101,14 @@ class TwinConfig:
     # generation signature; the vial observer (ajtwin.estimation.vial) estimates it from data
     vial_consider: bool = True
     # droplet-size dynamics: a variant of data/transition.toml ("paper" = model reference §4
-    # unchanged)
-    transition: str = "paper"
+    # unchanged); default: that file's ``default``
+    transition: str = field(default_factory=default_transition)
 
     noise_tuning: str = "calibrated"
+    # relative σ of φ_A's level that no output sees (commissioning's aerosol_level: the
+    # generation model's error unless pinned); added to the reported covariance. 0: none
+    # (an uncommissioned twin takes the nominal Q_m scale as exact)
+    aerosol_level_std: float = 0.0
     # online EM of the output side (ajtwin.estimation.em_calibration; never the pressures)
     learn_line_offsets: bool = False
     learn_output_noise: bool = False
@@ -935,21 +947,32 @@ class Twin:
         return em, learned
 
     def _calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
-        """The states' covariance from the calibration's uncertainty (None: none given);
-        ``line``: a job print's line factors; ``carry``: a chunk of a run
-        (:func:`calibration_state_covariance`)."""
-        if self.calibration is None or self.calibration_cov is None:
-            return None
-        return calibration_state_covariance(
-            self.spec,
-            filtered,
-            model_inputs,
-            self.measurement_var,
-            self.calibration_cov,
-            self.functions,
-            line_factors=line,
-            carry=carry,
-        )
+        """The states' covariance from the calibration's uncertainty and φ_A's unknown level
+        (None: neither given). ``line``: a job print's per-step line factors; ``carry``: a
+        chunk of a run (what the vial drained before it, :func:`calibration_state_covariance`
+        and :func:`aerosol_level_covariance`)."""
+        out = None
+        if self.calibration is not None and self.calibration_cov is not None:
+            out = calibration_state_covariance(
+                self.spec,
+                filtered,
+                model_inputs,
+                self.measurement_var,
+                self.calibration_cov,
+                self.functions,
+                line_factors=line,
+                carry=carry,
+            )
+        if self.config.aerosol_level_std > 0:
+            level = aerosol_level_covariance(
+                filtered.means,
+                model_inputs,
+                self.config.aerosol_level_std,
+                self.spec.dt,
+                carry=carry,
+            )
+            out = level if out is None else out + level
+        return out
 
     def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data):
         """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each

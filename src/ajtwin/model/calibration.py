@@ -194,10 +194,13 @@ def write_calibration_file(
     *,
     covariance=None,
     noise_factors: dict | None = None,
+    aerosol_level: dict | None = None,
 ) -> Path:
     """Write a calibration TOML: ``[calibration]``, ``[standard_error]``, ``[provenance]``,
-    and optionally ``covariance`` (11 × 11, :data:`CALIBRATION_NAMES` order) and
-    ``[noise_factor]`` (output name → σ_w factor)."""
+    and optionally ``covariance`` (11 × 11, :data:`CALIBRATION_NAMES` order),
+    ``[noise_factor]`` (output name → σ_w factor) and ``[aerosol_level]`` (φ_A's level
+    relative to the generation model: ``relative``, ``relative_std``, ``pinned_by``,
+    ``theta_per_s``)."""
     path = Path(path)
     lines = ["format_version = 1", ""]
     prov = {"written": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
@@ -219,6 +222,9 @@ def write_calibration_file(
     if noise_factors:
         lines += ["", "[noise_factor]"]
         lines += [f"{k} = {_toml_value(float(v))}" for k, v in noise_factors.items()]
+    if aerosol_level:
+        lines += ["", "[aerosol_level]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in aerosol_level.items()]
     if covariance is not None:
         rows = [[float(v) for v in row] for row in np.asarray(covariance, dtype=float)]
         lines += ["", "[covariance]", f"order = {_toml_value(list(CALIBRATION_NAMES))}"]

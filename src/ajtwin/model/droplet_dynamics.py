@@ -121,6 +121,16 @@ def transition_variants(path: str | Path | None = None) -> tuple[str, ...]:
     return tuple(_transition_file(path)["variants"])
 
 
+def default_transition(path: str | Path | None = None) -> str:
+    """The variant the twin runs when none is named (``default`` of ``transition.toml``)."""
+    raw = _transition_file(path)
+    variant = str(raw.get("default", "paper"))
+    if variant not in raw.get("variants", {}):
+        where = str(path) if path is not None else "ajtwin/data/transition.toml"
+        raise ValueError(f"{where}: default = {variant!r} is not one of its [variants]")
+    return variant
+
+
 def load_droplet_dynamics(variant: str = "paper", path: str | Path | None = None):
     """The droplet-dynamics variant ``variant`` of ``transition.toml``.
 

@@ -226,6 +226,25 @@ def aerosol_level_theta_std(u, vial_volume_ml, params, relative_std):
     return relative_std * carrier_ml_s / vial_headspace_ml(vial_volume_ml, params)
 
 
+def aerosol_level_theta(u, vial_volume_ml, params, level):
+    """θ_φA [1/s] at which the steady aerosol fraction is ``level`` × the generation model's.
+
+    From φ* = H / (Q_c − θ_φA (V_v − V_l)) (:func:`steady_aerosol_fraction`):
+    φ* = level · H/Q_c when θ_φA = (1 − 1/level) Q_c / (V_v − V_l). An atomizer that
+    delivers a known factor of H is, to the model, this drift of the aerosol row.
+
+    >>> from ajtwin.model.parameters import load_parameters
+    >>> p = load_parameters()
+    >>> u = jnp.array([375.0, 23.0, 50.0])
+    >>> theta = aerosol_level_theta(u, 1.0, p, 0.8)
+    >>> held, nominal = (steady_aerosol_fraction(u, 1.0, p, t) for t in (theta, 0.0))
+    >>> round(float(held / nominal), 6)
+    0.8
+    """
+    carrier_ml_s = units.sccm_to_ml_per_s(jnp.asarray(u)[..., 1])
+    return (1.0 - 1.0 / level) * carrier_ml_s / vial_headspace_ml(vial_volume_ml, params)
+
+
 def ink_flows(x, u, params):
     """Where the ink leaving the vial goes, per second [mL/s].
 

@@ -64,11 +64,23 @@ class MachineDeviation:
     overspray_offset_um: float = 0.0
     camera_scale: float = 1.0
     material_flow_gain: float = 1.0
+    #: the atomizer's output relative to the generation model H (a state-side deviation the
+    #: output calibration does not hold; commissioning sees only its product with the Q_m
+    #: gain). Drawn only by the second generator's off-model atomizer variant
+    #: (:func:`ajtwin.simulation.truth_alt.off_model_atomizer_machine`), evaluation only.
+    atomizer_output: float = 1.0
+    #: half-range of the per-print linear trend of the atomizer's efficiency [1/h]
+    atomizer_wander_per_h: float = 0.0
 
     @property
     def is_nominal(self) -> bool:
         """Whether this machine is the nominal model (no deviation)."""
-        return self.calibration().is_identity()
+        return self.calibration().is_identity() and not self.has_off_model_atomizer
+
+    @property
+    def has_off_model_atomizer(self) -> bool:
+        """Whether the atomizer departs from the generation model (output or wander)."""
+        return self.atomizer_output != 1.0 or self.atomizer_wander_per_h != 0.0
 
     def calibration(self) -> Calibration:
         """The equivalent twin calibration (camera scale folded into the line gains)."""
@@ -103,7 +115,7 @@ class MachineDeviation:
 
     def apply(self, outputs, states, inputs, params) -> np.ndarray:
         """Outputs (T, 5) of this machine from the nominal machine's (T, 5)."""
-        if self.is_nominal:
+        if self.calibration().is_identity():
             return np.asarray(outputs, dtype=float)
         return np.asarray(apply_calibration(outputs, states, inputs, params, self.calibration()))
 

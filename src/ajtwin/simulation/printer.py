@@ -44,7 +44,12 @@ from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
 from ajtwin.simulation.truth import integrate_truth, true_generation
-from ajtwin.simulation.truth_alt import alt_measure, alt_processes, integrate_alt_truth
+from ajtwin.simulation.truth_alt import (
+    alt_measure,
+    alt_processes,
+    apply_machine_atomizer,
+    integrate_alt_truth,
+)
 
 # Named random streams, in a fixed order (append only: never reorder).
 STREAMS = (
@@ -408,6 +413,24 @@ def _continuation_overrides(previous: PrintRecord, overrides: dict | None) -> di
     return merged
 
 
+def generator_processes(scenario, processes, machine, seed: int, truth_generator: str):
+    """The processes of the truth generator: the first's as drawn, or the second's
+    (:func:`~ajtwin.simulation.truth_alt.alt_processes`), with the machine's atomizer when
+    it is not the generation model (second generator only: an evaluation variant)."""
+    if truth_generator not in ("model", "alt"):
+        raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
+    if truth_generator == "alt":
+        processes = alt_processes(scenario, processes, seed)
+    if machine.has_off_model_atomizer:
+        if truth_generator != "alt":
+            raise ValueError(
+                f"machine {machine.name!r} has an off-model atomizer, an evaluation variant "
+                "of the second truth generator: use truth_generator='alt'"
+            )
+        processes = apply_machine_atomizer(processes, machine, seed)
+    return processes
+
+
 def run_virtual_print(
     scenario: str | Path | Scenario | dict = "exp1",
     seed: int = 0,
@@ -436,11 +459,9 @@ def run_virtual_print(
     coefficients = load_output_coefficients() if coefficients is None else coefficients
     nominal = coefficient_matrix(coefficients)
     streams = make_streams(seed)
-    processes = draw_processes(scenario, streams)
-    if truth_generator not in ("model", "alt"):
-        raise ValueError(f"truth generator {truth_generator!r}: choose 'model' or 'alt'")
-    if truth_generator == "alt":
-        processes = alt_processes(scenario, processes, int(seed))
+    processes = generator_processes(
+        scenario, draw_processes(scenario, streams), deviation, int(seed), truth_generator
+    )
     cfg = scenario.config
     line_factors, line_coefficients = draw_line_coefficients(scenario, streams, nominal, params)
     x0 = true_initial_state(scenario, processes, params, streams)

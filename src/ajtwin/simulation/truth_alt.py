@@ -18,6 +18,12 @@ constants live in ``data/truth_alt.toml``. What differs:
 * **noise** — Student-t line noise (heavy tails), AR(1) pressure noise (slow gauge
   wander), Gaussian Q_m noise, instead of log-normal and white noise.
 
+A third atomizer, the **off-model atomizer** (``[atomizer_variant]``): a machine whose
+atomizer delivers a constant 0.7–1.3 × the generation model H (drawn per machine,
+:func:`off_model_atomizer_machine`) and whose efficiency drifts by up to ±12 % per hour
+in each print (:func:`apply_machine_atomizer`). Only on this generator: it is evaluation,
+never tuning.
+
 Faults (clog, leak, dropout, pressure drift), the MFC layer, the machine deviation and
 the output model g are shared with the first generator: a fault is the same fault.
 
@@ -31,6 +37,8 @@ Examples
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.signal import lfilter
 
@@ -39,6 +47,7 @@ from ajtwin._jax import jax, jnp
 from ajtwin.config import packaged_toml
 from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.system import output_function
+from ajtwin.simulation.machine import draw_machine
 from ajtwin.simulation.truth import truth_rates
 
 CHUNK_S = 600
@@ -106,6 +115,59 @@ def alt_processes(scenario, processes, seed: int, settings: dict | None = None):
         "alt_generation_offset": float(offset),
         "alt_generation_trend_per_h": float(trend),
         "alt_droplet_jumps": int(jumps.sum()),
+    }
+    return processes
+
+
+def off_model_atomizer_machine(machine_seed: int, machine=None, settings: dict | None = None):
+    """A virtual machine whose atomizer is not the generation model (evaluation only).
+
+    Parameters
+    ----------
+    machine_seed : int
+        Draws the atomizer's output factor, uniform in 1 + ``output_range`` of
+        ``[atomizer_variant]``, from its own stream of the seed.
+    machine : MachineDeviation, optional
+        The machine's other deviations (default: :func:`~ajtwin.simulation.machine.draw_machine`
+        of the same seed, so the plumbing, gauges and lines are those of ``--seeds`` alone).
+
+    Examples
+    --------
+    >>> m = off_model_atomizer_machine(1201)
+    >>> 0.7 <= m.atomizer_output <= 1.3, m.atomizer_wander_per_h
+    (True, 0.12)
+    """
+    cfg = (settings or load_alt_settings())["atomizer_variant"]
+    machine = draw_machine(int(machine_seed)) if machine is None else machine
+    rng = np.random.default_rng(np.random.SeedSequence([int(machine_seed), 7003]))
+    low, high = (float(v) for v in cfg["output_range"])
+    return replace(
+        machine,
+        name=f"{machine.name}-atomizer",
+        atomizer_output=float(1.0 + rng.uniform(low, high)),
+        atomizer_wander_per_h=float(cfg["wander_per_h"]),
+    )
+
+
+def apply_machine_atomizer(processes, machine, seed: int):
+    """Scale the generation driver of ``processes`` by the machine's atomizer (in place).
+
+    efficiency ← efficiency · a · (1 + r t/3600), with a the machine's
+    ``atomizer_output`` and r a trend drawn per print uniformly from
+    ±``atomizer_wander_per_h`` (its own stream of the print ``seed``).
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7004]))
+    wander = float(machine.atomizer_wander_per_h)
+    trend = float(rng.uniform(-wander, wander)) if wander > 0 else 0.0
+    t = np.arange(len(processes.drivers), dtype=float)
+    drivers = processes.drivers.copy()
+    factor = machine.atomizer_output * np.maximum(1.0 + trend * t / 3600.0, 0.0)
+    drivers[:, 0] = drivers[:, 0] * factor
+    processes.drivers = drivers
+    processes.draws = {
+        **processes.draws,
+        "atomizer_output": float(machine.atomizer_output),
+        "atomizer_trend_per_h": trend,
     }
     return processes
 

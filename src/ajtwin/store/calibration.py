@@ -117,7 +117,8 @@ def save_calibration(
             json.dumps(result.std),
             json.dumps(result.prior_std),
             json.dumps(result.determined),
-            json.dumps(result.priors),
+            # φ_A's level (what pinned it) rides with the priors: no schema change
+            json.dumps({**result.priors, "aerosol_level": getattr(result, "aerosol_level", {})}),
             json.dumps(result.notes),
             json.dumps(np.asarray(result.end_state, float).tolist()),
             json.dumps(np.asarray(result.end_state_cov, float).tolist()),

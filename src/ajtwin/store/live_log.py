@@ -205,3 +205,45 @@ class LiveLog:
             "UPDATE live_sessions SET status = 'closed', print_id = ?, closed_at = ? WHERE id = ?",
             (print_id, time.time(), session_id),
         )
+
+
+def live_session_now(registry, machine: str) -> dict | None:
+    """The machine's open live session as a command shows it, read through ``registry``
+    (no writes): ``id``, ``started_at`` (unix s), ``source``, ``n_samples``, ``latest``
+    (the last committed step's published message: ``time_s``, ``states``, ``stds``, ...,
+    or None before the first) and ``alarms`` (each event once, its final form when it has
+    one, in detection order). None when no live print is running.
+    """
+    conn = registry._conn
+    row = conn.execute(
+        "SELECT id, started_at, source FROM live_sessions WHERE machine = ? AND status = 'open' "
+        "ORDER BY id DESC LIMIT 1",
+        (machine,),
+    ).fetchone()
+    if row is None:
+        return None
+    session = int(row["id"])
+    n = conn.execute(
+        "SELECT COUNT(*) FROM live_samples WHERE session_id = ?", (session,)
+    ).fetchone()[0]
+    latest = conn.execute(
+        "SELECT message_json FROM live_states WHERE session_id = ? ORDER BY step DESC LIMIT 1",
+        (session,),
+    ).fetchone()
+    events = {}
+    for (text,) in conn.execute(
+        "SELECT event_json FROM live_events WHERE session_id = ? ORDER BY detected_s, state",
+        (session,),
+    ):
+        event = json.loads(text)
+        key = float(event["detected_s"])
+        if key not in events or event.get("state") == "final":
+            events[key] = event
+    return {
+        "id": session,
+        "started_at": float(row["started_at"]),
+        "source": row["source"],
+        "n_samples": int(n),
+        "latest": None if latest is None else json.loads(latest[0]),
+        "alarms": [events[k] for k in sorted(events)],
+    }

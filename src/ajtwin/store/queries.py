@@ -55,6 +55,17 @@ def print_array(registry, print_id: int, name: str) -> np.ndarray | None:
     return None if row is None else _arrays.decode(row[0], row[1])
 
 
+def reported_end_std(registry, stored_print: dict) -> np.ndarray:
+    """σ (5,) of a stored print's end state as the twin reported it: the last row of its
+    ``stds`` array (the filter's σ with what the calibration's and φ_A's level uncertainty
+    add), else from its end covariance (the filter's alone, which the next print starts
+    from)."""
+    stds = print_array(registry, stored_print["id"], "stds")
+    if stds is not None and len(stds) and np.all(np.isfinite(stds[-1])):
+        return np.asarray(stds[-1], dtype=float)
+    return np.sqrt(np.maximum(np.diag(np.asarray(stored_print["end_cov"], float)), 0.0))
+
+
 def latest_seq(registry, name: str) -> int | None:
     """The seq of the machine's newest print, in the chain or not (None: no print)."""
     machine = registry.machine(name)
@@ -64,17 +75,19 @@ def latest_seq(registry, name: str) -> int | None:
     return row[0]
 
 
-def latest_alarm(registry, name: str) -> dict | None:
-    """The machine's newest anomaly: ``seq``, ``ingested_at``, ``detected_s``, ``onset_s``
-    [s], ``cause``, ``description`` (None: never an alarm)."""
+def newest_print_alarms(registry, name: str) -> list[dict]:
+    """The anomalies of the machine's newest print that raised any, in detection order:
+    ``seq``, ``ingested_at``, ``detected_s``, ``onset_s`` [s], ``cause``, ``description``
+    ([] when no print ever raised one)."""
     machine = registry.machine(name)
-    row = registry._conn.execute(
-        "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, "
-        "a.description FROM anomalies a JOIN prints p ON a.print_id = p.id "
-        "WHERE p.machine_id = ? ORDER BY p.seq DESC, a.detected_s DESC LIMIT 1",
-        (machine["id"],),
-    ).fetchone()
-    return None if row is None else dict(row)
+    rows = registry._conn.execute(
+        "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, a.description "
+        "FROM anomalies a JOIN prints p ON a.print_id = p.id WHERE p.machine_id = ? AND "
+        "p.seq = (SELECT MAX(p2.seq) FROM anomalies a2 JOIN prints p2 ON a2.print_id = p2.id "
+        "WHERE p2.machine_id = ?) ORDER BY a.detected_s",
+        (machine["id"], machine["id"]),
+    ).fetchall()
+    return [dict(r) for r in rows]
 
 
 def count_alarms(registry, name: str, seq: int, except_cause: str = "") -> int:

@@ -42,9 +42,10 @@ CACHE = Path("/tmp/ajtwin-alarm-cache")
 
 def case(truth: str, machine_seed, print_seed: int, minutes: float = 90.0) -> dict:
     """Filter outputs of the clean print and of the clog print (cached)."""
-    # v6: the camera's σ of L_w from the paper (3 µm) — bump whenever the twin's runs or
-    # the virtual printer's truth change
-    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v6".encode()).hexdigest()
+    # v8: the input_following droplet row by default, φ_A's level kept apart from the Q_m
+    # gain, the camera's σ of L_w from the paper (3 µm) — bump whenever the twin's runs or the
+    # virtual printer's truth change
+    key = hashlib.sha1(f"{truth}-{machine_seed}-{print_seed}-{minutes}-v8".encode()).hexdigest()
     path = CACHE / f"{key[:16]}.npz"
     if path.exists():
         z = np.load(path)

@@ -22,6 +22,7 @@ Each step is a function of this module; :func:`run_demo` runs them in order.
 
 from __future__ import annotations
 
+import html
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,11 +31,13 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from ajtwin import units
 from ajtwin.apps.planning.advice import advise
 from ajtwin.apps.planning.forecast import forecast, input_schedule, parse_change
 from ajtwin.engine.ingest import ingest_record
 from ajtwin.engine.video import join_video
 from ajtwin.estimation import Twin
+from ajtwin.estimation.commission import aerosol_level_note
 from ajtwin.io.records import write_record
 from ajtwin.simulation import simulate
 from ajtwin.store.registry import Registry
@@ -324,19 +327,23 @@ def _report_runs(run: DemoRun) -> list[dict]:
 
 
 def _state_table(run: DemoRun) -> str:
-    """Print 2's states ± 2σ against the truth at a few times."""
+    """Print 2's states ± 2σ against the truth at a few times (φ_A in ppm by volume), and
+    how well φ_A's level is known."""
     truth = run.faulty.true_states
+    scale = np.array([1.0, 1.0, 1.0, 1.0, units.fraction_to_ppm(1.0)])
     rows = []
     for frac in (0.1, 0.3, 0.5, 0.6, 0.75, 0.9, 1.0):
         k = min(int(frac * len(truth)), len(truth) - 1)
-        m, s = run.second.run.means[k], run.second.run.stds[k]
+        m, s = run.second.run.means[k] * scale, run.second.run.stds[k] * scale
         cells = [
-            f"{_fmt(m[i])} ± {_fmt(2 * s[i], 2)} (true {_fmt(truth[k, i])})" for i in (0, 1, 3, 4)
+            f"{_fmt(m[i])} ± {_fmt(2 * s[i], 2)} (true {_fmt(truth[k, i] * scale[i])})"
+            for i in (0, 1, 3, 4)
         ]
         rows.append([f"{k / 60:.1f}", *cells])
-    return report.table_html(
-        ["print 2 time [min]", "d_a [µm]", "V_l [mL]", "ΔR_N [µm]", "φ_A"], rows
+    table = report.table_html(
+        ["print 2 time [min]", "d_a [µm]", "V_l [mL]", "ΔR_N [µm]", "φ_A [ppm by volume]"], rows
     )
+    return table + f"<p class='note'>{html.escape(aerosol_level_note(None))}.</p>"
 
 
 def _alarm_table(run: DemoRun) -> str:

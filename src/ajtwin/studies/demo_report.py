@@ -8,10 +8,13 @@ import io
 
 import numpy as np
 
+from ajtwin import units
 from ajtwin.apps.detection.settings import cusum_thresholds
 
 OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
-STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [–]")
+STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [ppm]")
+#: from the states' model units to :data:`STATE_LABELS` (φ_A: a volume fraction → ppm)
+STATE_SCALE = np.array([1.0, 1.0, 1.0, 1.0, units.fraction_to_ppm(1.0)])
 
 
 def _plt():
@@ -88,7 +91,7 @@ def states_figure(prints) -> bytes:
     offset = 0.0
     for p in prints:
         t = (np.asarray(p["time_s"]) + offset) / 60
-        m, s = np.asarray(p["means"]), np.asarray(p["stds"])
+        m, s = np.asarray(p["means"]) * STATE_SCALE, np.asarray(p["stds"]) * STATE_SCALE
         for i, ax in enumerate(axes):
             ax.fill_between(
                 t,
@@ -102,7 +105,7 @@ def states_figure(prints) -> bytes:
             if p.get("truth") is not None:
                 ax.plot(
                     t,
-                    np.asarray(p["truth"])[:, i],
+                    np.asarray(p["truth"])[:, i] * STATE_SCALE[i],
                     lw=1,
                     color="k",
                     ls=":",

@@ -25,6 +25,7 @@ import numpy as np
 from ajtwin.apps.detection.batch import DetectionResult, detect_anomalies
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.estimation import Twin
+from ajtwin.model.droplet_dynamics import default_transition
 from ajtwin.simulation import simulate
 
 FAULT_SCENARIOS = (
@@ -80,6 +81,16 @@ def detection_delay(result: DetectionResult, fault_onset_s: float | None) -> dic
     }
 
 
+def later_events(result: DetectionResult, fault_onset_s: float | None) -> list:
+    """The events after the first one at/after the fault's onset: a fault raises one event;
+    more are a second alarm about the same fault (or a new one), which the user reads as
+    another fault. [] without a fault or a detection."""
+    if fault_onset_s is None:
+        return []
+    after = [ev for ev in result.events if ev.detected_s >= fault_onset_s]
+    return after[1:]
+
+
 def detector_arrays(run, record) -> dict:
     """What the detectors read from a twin run on ``record``, as NumPy arrays, named as
     :data:`KEYS` (``measurements`` = the record's outputs), plus the record's true states
@@ -100,12 +111,17 @@ def detector_arrays(run, record) -> dict:
     }
 
 
-def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> dict:
+def twin_arrays(
+    scenario: str, seed: int, cache_dir=None, duration_min=None, transition=None
+) -> dict:
     """Simulate a print, run the default twin on it, return the detector's input arrays.
 
-    Cached in ``cache_dir`` (``{scenario}_s{seed}[_d{min}].npz``) when given.
+    Cached in ``cache_dir`` (``{scenario}_s{seed}[_d{min}]_{transition}.npz``) when given;
+    ``transition``: the twin's droplet row (None: the default of data/transition.toml).
     """
+    transition = transition or default_transition()
     name = f"{scenario}_s{seed}" + (f"_d{duration_min:g}" if duration_min else "")
+    name += f"_{transition}"
     path = Path(cache_dir) / f"{name}.npz" if cache_dir else None
     if path is not None and path.exists():
         with np.load(path, allow_pickle=False) as data:
@@ -118,7 +134,7 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
     # the operator knows the fill (weighed at loading, σ in noise.toml): ink_running_low
     # starts at 0.70 mL, the others at 1.0 mL
     fill = float(rec.meta["scenario_config"]["initial"]["vial_volume_mL"])
-    run = Twin.default(vial_fill_ml=fill).run(rec)
+    run = Twin.default(vial_fill_ml=fill, transition=transition).run(rec)
     out = detector_arrays(run, rec)
     meta = {
         "scenario": scenario,
@@ -126,6 +142,7 @@ def twin_arrays(scenario: str, seed: int, cache_dir=None, duration_min=None) -> 
         "fault_kind": rec.meta.get("fault_kind"),
         "fault_onset_s": rec.meta.get("fault_onset_s"),
         "twin_seconds": time.perf_counter() - t0,
+        "transition": transition,
     }
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,6 +166,7 @@ def evaluate(
     scenarios=FAULT_SCENARIOS,
     clean_scenario: str = "clean_long",
     progress=print,
+    transition=None,
 ) -> dict:
     """Detection delay per fault and false alarms per 10 print-hours on clean prints.
 
@@ -161,9 +179,10 @@ def evaluate(
     rows = []
     for scenario in scenarios:
         for seed in seeds:
-            arrays = twin_arrays(scenario, seed, cache_dir)
+            arrays = twin_arrays(scenario, seed, cache_dir, transition=transition)
             result = detect_arrays(arrays, settings)
             d = detection_delay(result, arrays["meta"]["fault_onset_s"])
+            follow_ups = later_events(result, arrays["meta"]["fault_onset_s"])
             rows.append(
                 {
                     "scenario": scenario,
@@ -173,19 +192,22 @@ def evaluate(
                     "cause": d["cause"],
                     "expected_cause": EXPECTED_CAUSE.get(scenario),
                     "false_alarms_before_onset": d["false_alarms"],
+                    "later_events": [(ev.cause, ev.detected_s) for ev in follow_ups],
                     "events": [ev.to_dict() for ev in result.events],
                 }
             )
             if progress:
                 progress(
                     f"{scenario} seed {seed}: delay {d['delay_s']:.0f} s, cause {d['cause']}, "
-                    f"{d['false_alarms']} false alarm(s) before onset"
+                    f"{d['false_alarms']} false alarm(s) before onset, "
+                    f"{len(follow_ups)} more event(s) after it "
+                    f"{[(c, round(t / 60, 1)) for c, t in rows[-1]['later_events']]}"
                 )
     clean = []
     hours = 0.0
     n_events = 0
     for seed in clean_seeds:
-        arrays = twin_arrays(clean_scenario, seed, cache_dir)
+        arrays = twin_arrays(clean_scenario, seed, cache_dir, transition=transition)
         result = detect_arrays(arrays, settings)
         t = arrays["time_s"]
         hours += (t[-1] - t[0] + 1.0) / 3600.0
@@ -228,16 +250,47 @@ def summary_figures(cache_dir=DEFAULT_CACHE) -> dict:
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated fault seeds.")
 @click.option("--clean-seeds", default="0", show_default=True)
 @click.option("--json-out", default=None, help="Write the full result as JSON.")
-def main(cache_dir, seeds, clean_seeds, json_out):
-    """Detection delay per fault scenario and false alarms on clean_long."""
+@click.option(
+    "--scenarios",
+    default=",".join(FAULT_SCENARIOS),
+    show_default=True,
+    help="Comma-separated fault scenarios.",
+)
+@click.option(
+    "--transition", default=None, help="The twin's droplet row (default: data/transition.toml's)."
+)
+def main(cache_dir, seeds, clean_seeds, json_out, scenarios, transition):
+    """Detection delay per fault scenario, events after it, and false alarms on clean_long.
+
+    ``--seeds`` takes comma-separated seeds or ranges (0-23)."""
     result = evaluate(
         cache_dir,
-        [int(s) for s in seeds.split(",")],
-        [int(s) for s in clean_seeds.split(",")],
+        _seed_list(seeds),
+        _seed_list(clean_seeds),
+        scenarios=tuple(scenarios.split(",")),
+        transition=transition,
     )
+    for scenario in scenarios.split(","):
+        rows = [r for r in result["faults"] if r["scenario"] == scenario]
+        later = [r for r in rows if r["later_events"]]
+        wrong = sum(r["cause"] != r["expected_cause"] for r in rows)
+        click.echo(
+            f"{scenario}: {len(rows)} prints, first event mislabelled on {wrong}, "
+            f"a second event after the fault's on {len(later)} "
+            f"({sorted({c for r in later for c, _ in r['later_events']})})"
+        )
     click.echo(f"false alarms per 10 print-hours on clean_long: {result['false_alarms_per_10h']}")
     if json_out:
         Path(json_out).write_text(json.dumps(result, indent=1, default=str))
+
+
+def _seed_list(text: str) -> list[int]:
+    """'0,3,5-7' → [0, 3, 5, 6, 7]."""
+    seeds = []
+    for part in str(text).split(","):
+        first, _, last = part.partition("-")
+        seeds += list(range(int(first), int(last or first) + 1))
+    return seeds
 
 
 if __name__ == "__main__":

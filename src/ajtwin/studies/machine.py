@@ -16,6 +16,14 @@ machine and the paper's machine. Per machine:
 4. a 30-min ``nozzle_clog`` print (onset 15 min) on the commissioned machine:
    detection delay and label.
 
+``--atomizer-variant``: the same machines with an atomizer that is not the generation
+model (0.7–1.3 × H, drifting up to ±12 % per hour;
+:func:`ajtwin.simulation.truth_alt.off_model_atomizer_machine`), to judge φ_A's band when
+nothing pins its level; ``--pin gain`` adds a profilometer-calibrated CNN's gain (truth +
+N(0, 3 %), declared ±3 %), ``--pin vial`` the vial weighed before and after the
+commissioning print (ink used: truth + N(0, 0.01 µL), declared ±0.01 µL — a 0.01-mg balance
+on a silver ink of ~2 g/mL, an assumption).
+
 ``python -m ajtwin.studies.machine [--quick]`` writes
 ``docs/results/machine/results.json`` and ``summary.md``; ``main()`` (``make bench``)
 runs the quick version (one machine, shorter prints).
@@ -40,6 +48,7 @@ from ajtwin.engine.commissioning import (
 )
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.printer import run_virtual_print
+from ajtwin.simulation.truth_alt import off_model_atomizer_machine
 from ajtwin.studies import machine_description
 
 #: where the full run writes (relative to the working directory: the repository's root)
@@ -49,6 +58,11 @@ CHECK_MIN = (30, 60, 90)
 STATES = ("d_a", "V_l", "ΔR_T", "ΔR_N", "φ_A")
 #: d_a measured at commissioning (a droplet sizer): its error, drawn and declared alike
 DROPLET_SIZER_STD_UM = 0.1
+#: ``--pin gain``: a CNN calibrated against a profilometer, relative error of its Q_m gain
+GAIN_PIN_RELATIVE_STD = 0.03
+#: ``--pin vial``: the ink used, weighed before and after the commissioning print [mL]
+VIAL_USED_STD_ML = 1e-5
+PINS = ("none", "gain", "vial")
 
 
 def _errors(run, states, minutes):
@@ -91,14 +105,32 @@ def print_seed_of(machine_seed: int) -> int:
     return 2001 + 10 * (machine_seed - MACHINE_SEEDS[0])
 
 
+def level_pins(comm, pin: str, rng) -> dict:
+    """The ``commission_machine`` keywords of a pin of φ_A's level, drawn with a lab's error
+    from the commissioning print's truth: ``gain`` (a profilometer-calibrated CNN), ``vial``
+    (the ink used, weighed), ``none``."""
+    if pin == "gain":
+        true_gain = comm.machine.calibration().material_flow_gain
+        known = true_gain * (1.0 + GAIN_PIN_RELATIVE_STD * rng.standard_normal())
+        return {"known": {"material_flow_gain": (known, GAIN_PIN_RELATIVE_STD * known)}}
+    if pin == "vial":
+        used = float(comm.states[0, 1] - comm.states[-1, 1])
+        weighed = used + VIAL_USED_STD_ML * rng.standard_normal()
+        return {"vial_used_ml": (weighed, VIAL_USED_STD_ML)}
+    if pin != "none":
+        raise ValueError(f"pin {pin!r}: choose one of {', '.join(PINS)}")
+    return {}
+
+
 def commission_virtual_machine(
-    print_seed, truth="alt", machine=None, machine_seed=None, learn_noise_scale=True
+    print_seed, truth="alt", machine=None, machine_seed=None, learn_noise_scale=True, pin="none"
 ):
     """A virtual machine's 20-min commissioning print, commissioned as ``ajtwin machine
     commission`` does (:func:`ajtwin.engine.commissioning.commission_machine`).
 
     d_a is known from a droplet sizer: truth + N(0, 0.1 µm), declared ±0.1 µm.
     ``learn_noise_scale``: also the detectors' long-run statistics (not timed).
+    ``pin``: what pins φ_A's level (:func:`level_pins`).
     Returns (commissioning print, Commissioning, CPU seconds of the fit).
     """
     rng = np.random.default_rng(print_seed)
@@ -111,8 +143,10 @@ def commission_virtual_machine(
     )
     measured_da = float(comm.states[0, 0] + DROPLET_SIZER_STD_UM * rng.standard_normal())
     known = {"droplet_diameter_um": (measured_da, DROPLET_SIZER_STD_UM)}
+    pinned = level_pins(comm, pin, rng)
+    known.update(pinned.pop("known", {}))
     t0 = time.process_time()
-    done = commission_machine(comm.record, known=known, learn_noise_scale=False)
+    done = commission_machine(comm.record, known=known, learn_noise_scale=False, **pinned)
     cpu = time.process_time() - t0
     if learn_noise_scale:
         # the detectors' long-run noise scale of this machine, as `machine commission` stores it
@@ -121,7 +155,14 @@ def commission_virtual_machine(
 
 
 def evaluate_machine(
-    machine_seed=None, machine=None, print_seed=2001, minutes=90.0, clog=True, truth="alt"
+    machine_seed=None,
+    machine=None,
+    print_seed=2001,
+    minutes=90.0,
+    clog=True,
+    truth="alt",
+    atomizer_variant=False,
+    pin="none",
 ):
     """One virtual machine: commission it, then its next print by the calibrated and by the
     nominal twin (errors, coverage, alarms, the guard) and a clog (delay, label).
@@ -137,9 +178,15 @@ def evaluate_machine(
         Also the clogging print.
     truth : str
         ``alt`` (evaluation) or ``model``.
+    atomizer_variant : bool
+        The machine's atomizer is not the generation model (``machine_seed`` draws it).
+    pin : str
+        What pins φ_A's level at commissioning (:data:`PINS`).
     """
+    if atomizer_variant:
+        machine, machine_seed = off_model_atomizer_machine(machine_seed), None
     comm, done, commission_cpu = commission_virtual_machine(
-        print_seed, truth, machine, machine_seed
+        print_seed, truth, machine, machine_seed, pin=pin
     )
     result, history = done.result, done.long_run_history
     truth_cal = comm.machine.calibration()._asdict()
@@ -172,6 +219,8 @@ def evaluate_machine(
     out = {
         "machine": comm.machine.name,
         "deviation": comm.machine.as_dict()["equivalent_calibration"],
+        "atomizer_output": comm.machine.atomizer_output,
+        "aerosol_level": getattr(result, "aerosol_level", {}),
         "commission_cpu_s": commission_cpu,
         "calibration_recovery": recovery,
         "after": {
@@ -262,6 +311,12 @@ def summarise(results: dict) -> dict:
         "worst": worst,
         "false_alarms_per_10h_clean": 10.0 * clean_alarms / hours,
         "clean_print_hours": hours,
+        "coverage_pooled_after": {
+            st: float(np.mean([m["after"]["coverage"][st] for m in machines])) for st in STATES
+        },
+        "machines_below_85_after": {
+            st: int(sum(m["after"]["coverage"][st] < 0.85 for m in machines)) for st in STATES
+        },
         "clog_delay_s": [m.get("clog", {}).get("delay_s") for m in machines],
         "guard_uncommissioned_first_s": [m["before"]["mismatch"]["first_s"] for m in machines],
         "guard_commissioned_fired": [m["after"]["mismatch"]["mismatch"] for m in machines],
@@ -290,11 +345,14 @@ def run_all(
     checkpoint=None,
     seeds=None,
     truth="alt",
+    atomizer_variant=False,
+    pin="none",
 ) -> dict:
     """``seeds``: other held-out machine seeds (``--seeds 1006-1020``; print seeds follow
     the machine seed, so 1001-1005 print exactly as in the default run). ``truth``: the
     generator of the varied machines' prints — "alt" (evaluation, the default) or "model"
-    (the first generator, on which the twin's priors may be tuned)."""
+    (the first generator, on which the twin's priors may be tuned). ``atomizer_variant``
+    and ``pin``: see the module docstring."""
     if seeds is None:
         seeds = MACHINE_SEEDS[:1] if quick else MACHINE_SEEDS[: n_machines or len(MACHINE_SEEDS)]
     minutes = 30.0 if quick else 90.0
@@ -304,8 +362,10 @@ def run_all(
     results["nominal"] = evaluate_nominal(minutes=minutes)
     progress(f"nominal done ({time.perf_counter() - t0:.0f} s)")
     results["truth"] = truth
+    results["atomizer_variant"] = bool(atomizer_variant)
+    results["pin"] = pin
     results["paper"] = evaluate_machine(
-        machine="paper", print_seed=2201, minutes=minutes, clog=False, truth=truth
+        machine="paper", print_seed=2201, minutes=minutes, clog=False, truth=truth, pin=pin
     )
     progress(f"paper done ({time.perf_counter() - t0:.0f} s)")
     for seed in seeds:
@@ -315,6 +375,8 @@ def run_all(
                 print_seed=print_seed_of(seed),
                 minutes=minutes,
                 truth=truth,
+                atomizer_variant=atomizer_variant,
+                pin=pin,
             )
         )
         progress(f"machine {seed} done ({time.perf_counter() - t0:.0f} s)")
@@ -377,10 +439,16 @@ def _markdown(results: dict, command: str, computer: str) -> str:
         f"on the nominal machine: {s['guard_nominal_fired']}.",
         "rms z = (estimate − truth)/σ pooled over the commissioned machines (1 = honest "
         "bands): " + ", ".join(f"{k} {v:.2f}" for k, v in s["rms_z_after"].items()) + ".",
-        "",
-        "Calibration recovery (z = (fitted − true)/std error, determined parameters):",
+        "±2σ coverage pooled over the commissioned machines: "
+        + ", ".join(f"{k} {v * 100:.1f} %" for k, v in s["coverage_pooled_after"].items())
+        + "; machines below 85 %: "
+        + ", ".join(f"{k} {v}" for k, v in s["machines_below_85_after"].items())
+        + ".",
         "",
     ]
+    if results.get("atomizer_variant"):
+        lines += _atomizer_lines(results), ""
+    lines += ["Calibration recovery (z = (fitted − true)/std error, determined parameters):", ""]
     for m in results["machines"] + ([results["paper"]] if "paper" in results else []):
         zs = {k: v["z"] for k, v in m["calibration_recovery"].items() if v["determined"]}
         worst = max(zs, key=lambda k: abs(zs[k]))
@@ -389,6 +457,31 @@ def _markdown(results: dict, command: str, computer: str) -> str:
             f"{[k for k, v in m['calibration_recovery'].items() if not v['determined']]}"
         )
     return "\n".join(lines) + "\n"
+
+
+def _atomizer_lines(results: dict) -> str:
+    """Per machine of the atomizer variant: its atomizer's output, φ_A's level as
+    commissioning found it, the Q_m gain's recovery, φ_A's coverage and worst error."""
+    rows = [
+        f"Atomizer not the generation model (pin: {results.get('pin', 'none')}):",
+        "",
+        "| machine | atomizer / H | level found | Q_m gain true / fitted (z) | φ_A cover | "
+        "φ_A worst err |",
+        "|---|---|---|---|---|---|",
+    ]
+    for m in results["machines"]:
+        level = m.get("aerosol_level") or {}
+        gain = m["calibration_recovery"]["material_flow_gain"]
+        found = (
+            f"{level['relative']:.3f} ± {level['relative_std']:.3f}" if level else "–"
+        )  # fmt: skip
+        worst = max(e["phi_A_rel"] for e in m["after"]["errors"].values())
+        rows.append(
+            f"| {m['machine']} | {m['atomizer_output']:.3f} | {found} | {gain['true']:.3f} / "
+            f"{gain['fitted']:.3f} ({gain['z']:+.1f}) | {m['after']['coverage']['φ_A'] * 100:.0f} "
+            f"% | {worst * 100:.1f} % |"
+        )
+    return "\n".join(rows)
 
 
 def main() -> dict:
@@ -417,16 +510,34 @@ if __name__ == "__main__":
         truth = sys.argv[sys.argv.index("--truth") + 1]
         if truth not in ("alt", "model"):
             sys.exit(f"--truth {truth!r}: choose alt or model")
+    atomizer_variant = "--atomizer-variant" in sys.argv
+    if atomizer_variant and truth != "alt":
+        sys.exit("--atomizer-variant is a variant of the second generator: use --truth alt")
+    pin = "none"
+    if "--pin" in sys.argv:  # what pins φ_A's level at commissioning
+        pin = sys.argv[sys.argv.index("--pin") + 1]
+        if pin not in PINS:
+            sys.exit(f"--pin {pin!r}: choose one of {', '.join(PINS)}")
     OUT.mkdir(parents=True, exist_ok=True)
     name = "quick" if quick else "results" if seeds is None else f"results_{first}_{last}"
     if truth != "alt":
         name += f"_{truth}"
+    if atomizer_variant:
+        name += "_atomizer"
+    if pin != "none":
+        name += f"_pin_{pin}"
 
     def checkpoint(partial):
         (OUT / f"{name}.partial.json").write_text(json.dumps(partial, indent=1, default=float))
 
     results = run_all(
-        quick=quick, n_machines=n_machines, checkpoint=checkpoint, seeds=seeds, truth=truth
+        quick=quick,
+        n_machines=n_machines,
+        checkpoint=checkpoint,
+        seeds=seeds,
+        truth=truth,
+        atomizer_variant=atomizer_variant,
+        pin=pin,
     )
     (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
     (OUT / f"{name}.partial.json").unlink(missing_ok=True)  # the whole run is in name.json
@@ -437,5 +548,9 @@ if __name__ == "__main__":
         command += f" --seeds {first}-{last}"
     if truth != "alt":
         command += f" --truth {truth}"
+    if atomizer_variant:
+        command += " --atomizer-variant"
+    if pin != "none":
+        command += f" --pin {pin}"
     (OUT / f"{name}.md").write_text(_markdown(results, command, machine_description()))
     print(_markdown(results, command, machine_description()))

@@ -55,7 +55,15 @@ from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, pars
 from ajtwin.engine.part_map import parse_tolerance
 from ajtwin.store.registry import RegistryError
 from ajtwin.web import pages
-from ajtwin.web.data import KEY_STATES, NAMES, STATE_UNITS, RegistryView, json_list
+from ajtwin.web.data import (
+    KEY_STATES,
+    NAMES,
+    STATE_SCALE,
+    STATE_UNITS,
+    RegistryView,
+    headline_alarm,
+    json_list,
+)
 from ajtwin.web.publisher import LivePublisher, event_text
 from ajtwin.web.watcher import RegistryWatcher
 
@@ -414,7 +422,8 @@ def fleet_summaries(view: RegistryView, publisher: LivePublisher) -> list[dict]:
                     "name": name,
                     "status": "idle",
                     "last_print": None,
-                    "last_alarm": None,
+                    "alarm": None,
+                    "other_alarms": [],
                     "states": None,
                     "n_prints": 0,
                     "live_only": True,
@@ -695,6 +704,7 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
                     {
                         "symbol": NAMES["states"][k],
                         "unit": STATE_UNITS[k],
+                        "scale": STATE_SCALE[k],
                         "mean": latest["states"][k],
                         "std": (latest.get("state_stds") or [None] * 5)[k],
                         "trend": {"t": json_list(trend_t), "v": json_list(trend_v)},
@@ -702,9 +712,9 @@ def _merge_live(entry: dict, publisher: LivePublisher) -> None:
                 )
             entry["states"] = states
     alarms = publisher.alarms(name)
-    if alarms:
-        a = alarms[-1]
-        entry["last_alarm"] = {**a, "seq": None, "ingested_at": None}
+    if alarms:  # the live print's: its first unresolved fault, the rest beneath
+        live = [{**a, "seq": None, "ingested_at": None} for a in alarms]
+        entry["alarm"], entry["other_alarms"] = headline_alarm(live)
     entry["status"] = _status(entry, publisher)
 
 

@@ -35,13 +35,16 @@ import click
 import numpy as np
 import pandas as pd
 
+from ajtwin import units
 from ajtwin.apps.detection.batch import detect_anomalies
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
+from ajtwin.engine.commissioning import aerosol_level
 from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
 from ajtwin.engine.part_live import part_payload
 from ajtwin.engine.print_job import load_stored_print, map_stored_print
 from ajtwin.engine.start import machine_twin
+from ajtwin.estimation.commission import aerosol_level_note
 from ajtwin.io.records import read_record
 from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
 from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
@@ -50,7 +53,10 @@ from ajtwin.store.calibration import active_calibration, maintenance_history
 from ajtwin.store.registry import Registry, RegistryError
 
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
-STATE_UNITS = ("µm", "mL", "µm", "µm", "–")
+#: the units a page shows the states in (φ_A, a volume fraction, in ppm by volume) ...
+STATE_UNITS = ("µm", "mL", "µm", "µm", "ppm")
+#: ... and the factor from the model's units (display units of model reference §3) to them
+STATE_SCALE = (1.0, 1.0, 1.0, 1.0, float(units.fraction_to_ppm(1.0)))
 OUTPUT_UNITS = ("µm", "µm", "Pa", "Pa", "mL/s")
 INPUT_UNITS = ("mA", "sccm", "sccm")
 #: the hidden states shown on the fleet page, in this order: d_a, φ_A, ΔR_N, V_l
@@ -66,6 +72,7 @@ PART_CACHE = 4
 NAMES = {
     "states": list(STATE_SYMBOLS),
     "state_units": list(STATE_UNITS),
+    "state_scale": list(STATE_SCALE),
     "outputs": list(OUTPUT_SYMBOLS),
     "output_units": list(OUTPUT_UNITS),
     "inputs": list(INPUT_SYMBOLS),
@@ -103,18 +110,58 @@ def binned_max(values, index) -> np.ndarray:
     return np.stack([np.nanmax(values[s : e + 1], axis=0) for s, e in zip(starts, index)])
 
 
+#: the maintenance event that resolves a fault (a cleaned nozzle, a refilled vial)
+RESOLVED_BY = {"nozzle_clog": "nozzle_cleaned", "ink_low": "vial_refilled_ml"}
+
+
+def maintenance_after(registry, name: str, seq: int) -> list[dict]:
+    """The machine's maintenance events recorded after its print ``seq``."""
+    events = maintenance_history(registry, name)
+    if events.empty:
+        return []
+    return events[events["after_print_seq"] >= seq].to_dict("records")
+
+
+def headline_alarm(alarms: list[dict], maintenance: list[dict] = ()) -> tuple:
+    """(headline, the others) of a print's alarms (in detection order).
+
+    The headline is the first fault still unresolved: not a model–machine mismatch (not a
+    fault) and not undone by maintenance since (:data:`RESOLVED_BY`); a later alarm is often
+    a consequence of the first. With no such fault, the first alarm. (None, []) for none.
+
+    >>> clog = {"cause": "nozzle_clog", "detected_s": 3600}
+    >>> leak = {"cause": "carrier_leak", "detected_s": 4300}
+    >>> headline_alarm([clog, leak])[0]["cause"]
+    'nozzle_clog'
+    >>> headline_alarm([clog, leak], [{"nozzle_cleaned": True}])[0]["cause"]
+    'carrier_leak'
+    """
+    if not alarms:
+        return None, []
+
+    def resolved(alarm) -> bool:
+        key = RESOLVED_BY.get(alarm["cause"])
+        return key is not None and any(bool(m.get(key)) for m in maintenance)
+
+    faults = [a for a in alarms if a["cause"] != MISMATCH_CAUSE and not resolved(a)]
+    headline = faults[0] if faults else alarms[0]
+    return headline, [a for a in alarms if a is not headline]
+
+
 def care_fields(registry, name: str) -> dict:
     """Commissioning, maintenance and the model–machine guard of machine ``name``.
 
     Read through :mod:`ajtwin.store.calibration` and the newest print's summary (its
     ``mismatch`` entry, written at ingest by :func:`ajtwin.apps.detection.mismatch.assess_run`).
-    Keys present only when there is something to show:
+    Keys present only when there is something to show (``aerosol_level``: always):
 
     * ``commissioned_at`` — ISO time of the active (newest) calibration;
     * ``calibration`` — that calibration: ``id``, ``source``, ``created_at`` and
       ``parameters`` [{``name``, ``value``, ``std_error``, ``determined``}];
     * ``last_maintenance_at`` — ISO time of the newest maintenance event, and
       ``last_maintenance`` (what was done);
+    * ``aerosol_level`` — always: ``note`` (how well φ_A's level is known, in words),
+      ``pinned_by`` (what pinned it at commissioning; [] = nothing), ``relative_std``;
     * ``mismatch`` — when the newest print's guard fired: ``seq``, ``message``,
       ``outputs`` and ``states`` it names, ``first_s``, ``fixes``;
       ``model_fit`` — ``{"seq", "ok"}`` whenever the newest print was checked.
@@ -122,6 +169,14 @@ def care_fields(registry, name: str) -> dict:
 
     out: dict = {}
     active = active_calibration(registry, name)
+    # how well φ_A's level is known: pinned at commissioning, or relative to the generation
+    # model only (model reference §11)
+    level = None if active is None else aerosol_level(active)
+    out["aerosol_level"] = {
+        "note": aerosol_level_note(level),
+        "pinned_by": [] if level is None else list(level.get("pinned_by", [])),
+        "relative_std": None if level is None else level.get("relative_std"),
+    }
     if active is not None:
         values = calibration_to_dict(active["calibration"])
         out["commissioned_at"] = active["created_at"]
@@ -214,7 +269,7 @@ class RegistryView:
                 # the twin's current state: the last print in the chain (registry rule)
                 last = self.registry.last_print(row["name"])
                 latest_seq = queries.latest_seq(self.registry, row["name"])
-                alarm = queries.latest_alarm(self.registry, row["name"])
+                alarms = queries.newest_print_alarms(self.registry, row["name"])
                 n_prints = row["n_prints"]
                 entry = {
                     "name": row["name"],
@@ -222,13 +277,14 @@ class RegistryView:
                     "notes": row.get("notes", ""),
                     "n_prints": int(n_prints),
                     "last_print": None,
-                    "last_alarm": None,
+                    "alarm": None,
+                    "other_alarms": [],
                     "states": None,
                     "status": "idle",
                 }
                 if last is not None:
                     mean = last["end_mean"]
-                    std = np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))
+                    std = queries.reported_end_std(self.registry, last)
                     means = queries.print_array(self.registry, last["id"], "means")
                     time_s = queries.print_array(self.registry, last["id"], "time_s")
                     entry["last_print"] = {
@@ -247,13 +303,16 @@ class RegistryView:
                             {
                                 "symbol": STATE_SYMBOLS[k],
                                 "unit": STATE_UNITS[k],
+                                "scale": STATE_SCALE[k],
                                 "mean": float(mean[k]),
                                 "std": float(std[k]),
                                 "trend": trend,
                             }
                         )
-                if alarm is not None:
-                    entry["last_alarm"] = alarm
+                if alarms:
+                    entry["alarm"], entry["other_alarms"] = headline_alarm(
+                        alarms, maintenance_after(self.registry, row["name"], alarms[0]["seq"])
+                    )
                 # the latest print raised a fault alarm (the guard's own "mismatch, not a
                 # fault" events make the status mismatch below, as on the machine page)
                 if queries.count_alarms(self.registry, row["name"], latest_seq, MISMATCH_CAUSE):
@@ -311,7 +370,7 @@ class RegistryView:
             out["last"] = {
                 "seq": int(last["seq"]),
                 "mean": json_list(last["end_mean"]),
-                "std": json_list(np.sqrt(np.maximum(np.diag(last["end_cov"]), 0.0))),
+                "std": json_list(queries.reported_end_std(self.registry, last)),
                 "theta": json_list(last["theta_after"]),
             }
         return out

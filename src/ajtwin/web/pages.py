@@ -126,6 +126,27 @@ def link_badge(link: dict) -> str:
     )
 
 
+def alarm_cell_html(alarm: dict | None, others: list[dict]) -> str:
+    """The fleet's alarm cell: the headline (the first unresolved fault,
+    :func:`ajtwin.web.data.headline_alarm`) and the print's other alarms beneath it."""
+    if not alarm:
+        return '<span class="dim">none</span>'
+    where = f"print #{alarm['seq']}, " if alarm.get("seq") else "live, "
+    cell = (
+        f'<span class="cause headline">{escape(str(alarm["description"]))}</span><br>'
+        f'<span class="dim">{where}{alarm["detected_s"] / 60:.1f} min in'
+        + (f" · {_when(alarm.get('ingested_at'))}" if alarm.get("ingested_at") else "")
+        + "</span>"
+    )
+    if others:
+        listed = "; ".join(
+            f"{escape(str(a['cause']).replace('_', ' '))} at {a['detected_s'] / 60:.1f} min"
+            for a in sorted(others, key=lambda a: a["detected_s"])
+        )
+        cell += f'<br><span class="dim others">also: {listed}</span>'
+    return cell
+
+
 def fleet_rows(machines: list[dict]) -> str:
     """The ``<tbody>`` rows of the fleet table."""
     if not machines:
@@ -159,25 +180,16 @@ def fleet_rows(machines: list[dict]) -> str:
             )
         else:
             last_cell = '<span class="dim">no prints</span>'
-        alarm = m.get("last_alarm")
-        if alarm:
-            where = f"print #{alarm['seq']}, " if alarm.get("seq") else "live, "
-            alarm_cell = (
-                f'<span class="cause">{escape(str(alarm["description"]))}</span><br>'
-                f'<span class="dim">{where}{alarm["detected_s"] / 60:.1f} min in'
-                + (f" · {_when(alarm.get('ingested_at'))}" if alarm.get("ingested_at") else "")
-                + "</span>"
-            )
-        else:
-            alarm_cell = '<span class="dim">none</span>'
+        alarm_cell = alarm_cell_html(m.get("alarm"), m.get("other_alarms") or [])
         state_cells = []
         for s in m.get("states") or [None] * 4:
             if s is None:
                 state_cells.append('<td class="num dim">—</td>')
                 continue
-            band = "" if s.get("std") is None else f" ± {fmt(2 * s['std'])}"
+            scale = s.get("scale", 1.0)
+            band = "" if s.get("std") is None else f" ± {fmt(2 * s['std'] * scale)}"
             state_cells.append(
-                f'<td class="num"><span class="val">{fmt(s["mean"], s["unit"])}</span>'
+                f'<td class="num"><span class="val">{fmt(s["mean"] * scale, s["unit"])}</span>'
                 f'<span class="dim">{band}</span><br>{sparkline(s.get("trend"))}</td>'
             )
         # what-if needs a registered machine with a print (its state and limits)
@@ -203,12 +215,13 @@ def fleet_page(machines: list[dict], store: str) -> str:
     """The fleet page: one row per machine (filled and refreshed by the page's script)."""
     head = "".join(
         f"<th>{s}<br><span class='dim'>now ± 2σ, last print</span></th>"
-        for s in ("d_a", "φ_A", "ΔR_N", "V_l")
+        for s in ("d_a [µm]", "φ_A [ppm by volume]", "ΔR_N [µm]", "V_l [mL]")
     )
     body = f"""
 <h1>Fleet <span class="dim small">{len(machines)} machine(s) · {escape(store)}</span></h1>
 <table id="fleet" class="grid">
-<thead><tr><th>Machine</th><th>Status</th><th>Last print</th><th>Last alarm (likely cause)</th>
+<thead><tr><th>Machine</th><th>Status</th><th>Last print</th><th>Fault (the first unresolved;
+others beneath)</th>
 {head}<th>Commissioned / maintained</th><th></th></tr></thead>
 <tbody id="fleet-rows">
 {fleet_rows(machines)}
@@ -218,7 +231,10 @@ def fleet_page(machines: list[dict], store: str) -> str:
 twin's machine link, e.g. <i>link lost — reconnecting</i>; the gap is missing data);
 <b>mismatch</b> = the model–machine guard fired on the newest print (the outputs it names
 beneath; commission the machine). States are the twin's estimate at the end of the last print
-(live: now); the line is their course over that print.</p>
+(live: now); the line is their course over that print. φ_A, the aerosol volume fraction in the
+carrier gas, is in parts per million by volume; its level is known only relative to the
+generation model (to the prior of its commissioning) unless that commissioning pinned it (a
+profilometer-calibrated CNN or the weighed vial): the machine page says which.</p>
 """
     return _page("Fleet", body, "fleet", plots=False)
 

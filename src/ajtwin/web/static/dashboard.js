@@ -82,7 +82,9 @@ function fleetPage() {
   }
   connect(null, (ev) => {
     if (ev.type === "sample") schedule(ev.alarms && ev.alarms.length > 0);
-    else if (ev.type !== "hello") schedule(true);
+    // hello: the socket (re)opened — what was pushed between the page's rows and now
+    // (a print that ended meanwhile) never reaches it, so the rows are read again
+    else schedule(true);
   });
 }
 
@@ -122,10 +124,13 @@ function buildOutputs(s) {
   return { traces, layout: rowsLayout(5, titles), map };
 }
 
+// a state in the unit a page shows it in (φ_A: a volume fraction, shown in ppm)
+function scaled(n, i, v) { return v === null || v === undefined ? v : v * ((n.state_scale || [])[i] || 1); }
+
 function buildStates(s) {
   const n = s.names, t = s.time_s.map(minutes), traces = [], map = { lo: [], hi: [], mean: [], truth: [] };
   for (let i = 0; i < 5; i++) {
-    const m = s.means.map((r) => r[i]), sd = s.stds.map((r) => r[i]);
+    const m = s.means.map((r) => scaled(n, i, r[i])), sd = s.stds.map((r) => scaled(n, i, r[i]));
     map.lo.push(traces.length);
     traces.push({ x: t, y: m.map((v, k) => v === null ? null : v - 2 * sd[k]), mode: "lines",
       line: { width: 0 }, hoverinfo: "skip", showlegend: false, yaxis: ax(i) });
@@ -138,7 +143,7 @@ function buildStates(s) {
       name: "estimate x̂", legendgroup: "e", showlegend: i === 0, yaxis: ax(i) });
     if (s.truth) {
       map.truth.push(traces.length);
-      traces.push({ x: t, y: s.truth.map((r) => r[i]), mode: "lines",
+      traces.push({ x: t, y: s.truth.map((r) => scaled(n, i, r[i])), mode: "lines",
         line: { width: 1.2, color: "#222", dash: "dot" }, name: "truth (virtual printer)",
         legendgroup: "t", showlegend: i === 0, yaxis: ax(i) });
     }
@@ -393,10 +398,16 @@ function machinePage() {
     if (mean) n.states.forEach((s, i) => {
       const c = el("div", { class: "card" });
       c.append(el("div", { class: "dim" }, s + (n.state_units[i] !== "–" ? " [" + n.state_units[i] + "]" : "")));
-      c.append(el("div", { class: "big" }, fmt(mean[i])));
-      c.append(el("div", { class: "dim" }, "± " + fmt(2 * std[i], 2) + " (2σ) · " + where));
+      c.append(el("div", { class: "big" }, fmt(scaled(n, i, mean[i]))));
+      c.append(el("div", { class: "dim" }, "± " + fmt(scaled(n, i, 2 * std[i]), 2) + " (2σ) · " + where));
       box.append(c);
     });
+    if (m.aerosol_level) {
+      const c = el("div", { class: "card aerosol-level", id: "aerosol-level" });
+      c.append(el("div", { class: "dim" }, "φ_A's level"));
+      c.append(el("div", {}, m.aerosol_level.note));
+      box.append(c);
+    }
     const extra = [["commissioned_at", "last commissioned"], ["last_maintenance_at", "last maintained"]];
     for (const [k, label] of extra) if (m[k]) {
       const c = el("div", { class: "card" });
@@ -535,12 +546,14 @@ function machinePage() {
     for (let i = 0; i < 5; i++) { op.push([o.meas[i], col("measured", i)]); op.push([o.pred[i], col("predicted", i)]); }
     ext("outputs", op);
     const sp = [];
+    const n = info.names;
     for (let i = 0; i < 5; i++) {
-      const m = col("states", i), sd = col("state_stds", i);
+      const m = col("states", i).map((v) => scaled(n, i, v));
+      const sd = col("state_stds", i).map((v) => scaled(n, i, v));
       sp.push([st.lo[i], m.map((v, k) => v === null ? null : v - 2 * sd[k])]);
       sp.push([st.hi[i], m.map((v, k) => v === null ? null : v + 2 * sd[k])]);
       sp.push([st.mean[i], m]);
-      if (st.truth.length) sp.push([st.truth[i], col("truth", i)]);
+      if (st.truth.length) sp.push([st.truth[i], col("truth", i).map((v) => scaled(n, i, v))]);
     }
     ext("states", sp);
     if (figs.detectors) {

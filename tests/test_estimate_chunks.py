@@ -18,9 +18,11 @@ def record():
     return simulate("exp1", seed=2, duration_min=25)
 
 
-def test_the_table_in_chunks_is_the_table_of_the_whole_run(tmp_path, record):
+@pytest.mark.parametrize("aerosol_level_std", [0.0, 0.35])
+def test_the_table_in_chunks_is_the_table_of_the_whole_run(tmp_path, record, aerosol_level_std):
+    """Also with φ_A's level unknown (its band carries the vial's drain from chunk to chunk)."""
     chunks, whole = [], None
-    twin = Twin.default()
+    twin = Twin.default(aerosol_level_std=aerosol_level_std)
     real_run = Twin.run
 
     def counting_run(self, *args, sink=None, **kwargs):
@@ -36,7 +38,12 @@ def test_the_table_in_chunks_is_the_table_of_the_whole_run(tmp_path, record):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Twin, "run", counting_run)
         parts = estimate_to_csv(twin, record, tmp_path / "parts.csv")
-    whole = estimate_to_csv(Twin.default(), record, tmp_path / "whole.csv", whole=True)
+    whole = estimate_to_csv(
+        Twin.default(aerosol_level_std=aerosol_level_std),
+        record,
+        tmp_path / "whole.csv",
+        whole=True,
+    )
     assert len(chunks) >= 4 and chunks[0] == 0
     # the rows waited on disk beside the output, and are gone
     assert sorted(p.name for p in tmp_path.iterdir()) == ["parts.csv", "whole.csv"]

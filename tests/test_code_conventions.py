@@ -39,6 +39,7 @@ SESSION_FILES = {
     "src/ajtwin/cli/machine.py",
     "src/ajtwin/engine/fleet.py",
     "src/ajtwin/engine/ingest.py",
+    "src/ajtwin/engine/parts.py",
     "src/ajtwin/engine/samples.py",
     "src/ajtwin/live/control_link.py",
     "src/ajtwin/live/link.py",
@@ -51,6 +52,7 @@ SESSION_FILES = {
     "tests/test_control_live.py",
     "tests/test_docs.py",
     "tests/test_live.py",
+    "tests/test_live_link_faults.py",
     "tests/test_live_opcua.py",
     "tests/test_store_live_tables.py",
 }

@@ -168,14 +168,14 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("m")
     seen = []
-    real = ingest.detect_run
 
-    def spy(run, record, settings=None, long_run_history=None):
-        seen.append(long_run_history)
-        return real(run, record, settings, long_run_history)
+    class Spy(ingest.IngestSink):  # the detectors of an ingest start with what it carries
+        def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
+            seen.append(long_run_history)
+            super().__init__(writer, record, settings, long_run_history, keep)
 
-    monkeypatch.setattr(ingest, "detect_run", spy)
-    first = ingest.ingest_record(reg, "m", two_prints[0])
+    monkeypatch.setattr(ingest, "IngestSink", Spy)
+    first = ingest.ingest_record(reg, "m", two_prints[0], keep_run=True)
     ingest.ingest_record(reg, "m", two_prints[1])
     assert seen[0] is None  # a new machine: nothing to carry
     stored = json.loads(

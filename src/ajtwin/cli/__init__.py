@@ -73,6 +73,19 @@ class LazyGroup(click.Group):
         module = importlib.import_module(module_name)
         return getattr(module, attr, None)
 
+    def invoke(self, ctx):
+        """Run the command; an error that is a sentence for the user (``shown_as_sentence``:
+        a failure of the registry's file or disk — full, read-only, damaged —
+        :class:`ajtwin.store.connection.StoreError`) ends it with that sentence, never a
+        traceback, whichever command met it. (Recognised by the attribute: this module
+        imports no part of ajtwin but its version, to keep ``--help`` fast.)"""
+        try:
+            return super().invoke(ctx)
+        except Exception as exc:
+            if getattr(exc, "shown_as_sentence", False):
+                raise click.ClickException(str(exc)) from None
+            raise
+
     def format_commands(self, ctx, formatter):
         """The command list of ``--help`` from :data:`SUBCOMMANDS` (no module imported)."""
         rows = [(name, SUBCOMMANDS[name][1]) for name in self.list_commands(ctx)]

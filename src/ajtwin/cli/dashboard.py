@@ -9,7 +9,7 @@ import click
 
 from ajtwin.cli.options import ToleranceType, store_option
 from ajtwin.store.registry import RegistryError, default_store_path
-from ajtwin.web.access import TOKEN_ENV, check_access
+from ajtwin.web.access import TOKEN_ENV, check_access, dashboard_token
 
 
 @click.command()
@@ -20,7 +20,14 @@ from ajtwin.web.access import TOKEN_ENV, check_access
     "--token",
     default=None,
     envvar=TOKEN_ENV,
-    help=f"Access token every request must carry (required beyond 127.0.0.1; also ${TOKEN_ENV}).",
+    help=f"Access token every request must carry (required beyond 127.0.0.1). Prefer "
+    f"${TOKEN_ENV} or --token-file: a command line is visible to every user (ps).",
+)
+@click.option(
+    "--token-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="File whose first line is the access token (private: mode 600).",
 )
 @click.option(
     "--virtual-print",
@@ -78,6 +85,7 @@ def dashboard(
     host,
     port,
     token,
+    token_file,
     virtual_scenario,
     virtual_machine,
     virtual_seed,
@@ -94,6 +102,8 @@ def dashboard(
     address in a browser; every script is served by this process (no internet needed).
     """
 
+    source = click.get_current_context().get_parameter_source("token")
+    token = dashboard_token(token, token_file, source == click.core.ParameterSource.COMMANDLINE)
     check_access(host, token)
     if (program is not None or tolerance is not None) and not virtual_scenario:
         raise click.UsageError("--job and --tolerance go with --virtual-print SCENARIO")

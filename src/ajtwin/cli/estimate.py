@@ -185,6 +185,7 @@ def estimate(
     """
 
     # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.engine.estimate import estimate_to_csv
     from ajtwin.estimation.twin import Twin
 
     try:
@@ -219,33 +220,23 @@ def estimate(
             bar.update(done - bar.n)
 
         try:
-            run = twin.run(record, smooth=smooth, progress=progress, job=job)
+            done = estimate_to_csv(
+                twin,
+                record,
+                out_path,
+                smooth=smooth,
+                whole=bool(plot_path),
+                progress=progress,
+                job=job,
+            )
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
-    frame = run.to_frame(smoothed=smooth)
-    # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.apps.detection.mismatch import assess_run
-
-    # the guard: never return states from a model that does not fit without saying so
-    mismatch = assess_run(run, record)
-    frame["mismatch"] = mismatch.flags
-    # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.apps.detection.mismatch import data_share, determined_states, load_guard_settings
-
-    # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
-    share = data_share(run.filtered)
-    threshold = float(load_guard_settings()["undetermined_share"])
-    for i, name in enumerate(STATE_NAMES):
-        frame["data_share_" + name] = share[:, i]
-        frame["determined_" + name] = share[:, i] >= threshold
-    undetermined = [n for n, v in determined_states(share).items() if not v["determined"]]
+    run, mismatch = done.run, done.mismatch
     out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(out, index=False)
     theta_path = Path(theta_out) if theta_out else out.with_name("theta.csv")
     run.theta_history.to_csv(theta_path, index=False)
     click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
-    _echo_summary(run, frame, mismatch, level, undetermined, has_job=job is not None)
+    _echo_summary(run, done, mismatch, level, has_job=job is not None)
     if plot_path:
         # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.estimation.plotting import estimate_figure
@@ -254,14 +245,13 @@ def estimate(
         click.echo(f"wrote {plot_path}")
 
 
-def _echo_summary(run, frame, mismatch, level, undetermined, has_job: bool) -> None:
+def _echo_summary(run, done, mismatch, level, has_job: bool) -> None:
     """What ``estimate`` says after writing its files: the end state, the fit, the guard,
-    φ_A's level and the states the print's data did not determine."""
-    reinit = int(np.asarray(run.filtered.reinitialised).sum())
-    end = ", ".join(f"{c} {v:.4g}" for c, v in zip(frame.columns[1:11:2], run.end_mean))
+    φ_A's level and the states the print's data did not determine (``done``: what
+    :func:`ajtwin.engine.estimate.estimate_to_csv` reports)."""
+    end = ", ".join(f"{c} {v:.4g}" for c, v in zip(STATE_NAMES, run.end_mean))
     click.echo(f"end state: {end}")
-    mean_nis = float(np.nanmean(frame["nis"] / np.maximum(frame["n_measured"], 1)))
-    click.echo(f"mean NIS per measured output: {mean_nis:.2f} (1 = consistent)")
+    click.echo(f"mean NIS per measured output: {done.mean_nis_per_output:.2f} (1 = consistent)")
     if run.camera_counts:
         click.echo(_camera_line(run.camera_counts, has_job))
     if mismatch.mismatch:
@@ -273,9 +263,10 @@ def _echo_summary(run, frame, mismatch, level, undetermined, has_job: bool) -> N
         )
     else:
         click.echo("model–machine fit: ok (no mismatch found)")
-    if reinit:
+    if done.reinitialised:
         click.echo(
-            f"warning: the divergence guard re-initialised the filter {reinit} time(s)", err=True
+            f"warning: the divergence guard re-initialised the filter {done.reinitialised} time(s)",
+            err=True,
         )
     for note in run.visibility_notes():
         click.echo(note, err=True)
@@ -283,10 +274,11 @@ def _echo_summary(run, frame, mismatch, level, undetermined, has_job: bool) -> N
     from ajtwin.estimation.commission import aerosol_level_note
 
     click.echo(f"note: {aerosol_level_note(level)}", err=True)
-    if undetermined:
+    if done.undetermined:
         click.echo(
-            f"note: not determined by this print's data: {', '.join(undetermined)} — their "
-            "bands are the start prior's, carried by the model (columns determined_* = False)",
+            f"note: not determined by this print's data: {', '.join(done.undetermined)} — "
+            "their bands are the start prior's, carried by the model (columns determined_* "
+            "= False)",
             err=True,
         )
 

@@ -89,7 +89,7 @@ def ingest(
                    "tolerance": tolerance}  # fmt: skip
     if program is None and any(v is not None for v in job_options.values()):
         raise click.UsageError("--process-speed, --rapid-speed and --tolerance go with --job")
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     bar = None
     state = {"done": 0}
 

@@ -188,7 +188,7 @@ def drop(name, seq, reason, store):
     """Take print SEQ out of NAME's chain (kept for history; the next ingest starts from
     the newest print still in the chain)."""
 
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     try:
         p = reg.set_status(name, seq, STATUS_DROPPED, reason)
         chain = chain_start(reg, name)
@@ -208,7 +208,7 @@ def drop(name, seq, reason, store):
 def restore(name, seq, store):
     """Put a dropped or excluded print SEQ back into NAME's chain."""
 
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     try:
         p = reg.print_by_seq(name, seq)
         problems = state_violations(p["end_mean"])
@@ -236,7 +236,7 @@ def restore(name, seq, store):
 def compact_command(name, keep_covariances_days, store):
     """Apply the storage policy and covariance retention to NAME, then VACUUM."""
 
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     try:
         stats = compact(reg, name, keep_covariances_days)
     except RegistryError as exc:
@@ -365,7 +365,7 @@ def commission(
             )
     reg = None
     if not no_registry:
-        reg = open_registry(store)
+        reg = open_registry(store, write=True)
         try:
             reg.machine(name)
         except RegistryError as exc:
@@ -437,7 +437,7 @@ def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
     # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
     from ajtwin.store.calibration import record_maintenance
 
-    reg = open_registry(store)
+    reg = open_registry(store, write=True)
     try:
         event = record_maintenance(
             reg,

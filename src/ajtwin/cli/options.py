@@ -324,15 +324,17 @@ def store_option(func):
     )(func)
 
 
-def open_registry(store, create: bool = False):
+def open_registry(store, create: bool = False, write: bool | None = None):
     """The registry at ``store``; read-only commands (the default) never create it.
 
+    A command that writes (``write``; default: when it may ``create``) is refused at once,
+    before any work, when the registry cannot be written (read-only file, journal or folder).
     A registry of an older schema is migrated on open (each migration said on stderr);
     one from before the chain's range check gets its impossible prints excluded
     (:func:`ajtwin.engine.chain.open_registry`).
     """
     try:
-        reg = open_checked_registry(store, create=create)
+        reg = open_checked_registry(store, create=create, write=create if write is None else write)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     for message in reg.migrated:

@@ -32,17 +32,15 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
-import pandas as pd
 
 from ajtwin.apps.detection.settings import DetectorSettings
-from ajtwin.engine.chain import chain_start, judge_run
+from ajtwin.engine.chain import chain_start
 from ajtwin.engine.ingest import save_print
+from ajtwin.engine.parts import WHOLE_PRINT_ARRAYS, PrintWriter
 from ajtwin.engine.samples import Sample
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.stream import TwinStream, step_together, warm_up_streams
-from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PrintRecord
 from ajtwin.store.live_log import LiveLog
-from ajtwin.store.registry import record_hash
 
 log = logging.getLogger("ajtwin.live")
 
@@ -57,6 +55,8 @@ class _Session:
     unsaved: list
     unsaved_events: list
     last_flush: float
+    writer: PrintWriter | None = None  # the print's arrays, written as the steps commit
+    written: int = 0  # committed steps given to the writer
 
 
 class LiveEngine:
@@ -219,27 +219,51 @@ class LiveEngine:
             long_run_history=long_run,
             print_context=print_context,
         )
-        if resumed is not None:
-            t, u, y = self.log.samples(session_id)
-            for k in range(len(t)):
-                stream.feed(Sample(t[k], u[k], y[k]))
-            log.info(
-                "%s: resumed live session %d at step %d (t = %s s)",
-                machine,
-                session_id,
-                stream.n_received,
-                None if not len(t) else f"{t[-1]:g}",
-            )
-        stream.asynchronous = self.asynchronous
-        self.sessions[machine] = _Session(
+        session = _Session(
             stream, session_id, expected, started_from, source, [], [], time.monotonic()
         )
+        if session_id is not None:
+            label = f"live session {session_id}"
+            self.registry.discard_drafts(machine, label)  # a replay writes its parts again
+            session.writer = PrintWriter(self.registry, machine, label)
+        if resumed is not None:
+            self._replay(session, machine)
+        stream.asynchronous = self.asynchronous
+        self.sessions[machine] = session
         return stream
 
     def stream(self, machine: str) -> TwinStream | None:
         """The machine's stream while its print is open (None otherwise)."""
         entry = self.sessions.get(machine)
         return None if entry is None else entry.stream
+
+    def _replay(self, session: _Session, machine: str) -> None:
+        """A resumed session: its stored samples through the twin again, a batch at a time,
+        the print's parts written as they go."""
+        stream, t_last = session.stream, None
+        for t, u, y in self.log.iter_samples(session.session_id):
+            for k in range(len(t)):
+                stream.feed(Sample(t[k], u[k], y[k]))
+            self._write_parts(session)
+            t_last = t[-1] if len(t) else t_last
+        log.info(
+            "%s: resumed live session %d at step %d (t = %s s)",
+            machine,
+            session.session_id,
+            stream.n_received,
+            None if t_last is None else f"{t_last:g}",
+        )
+
+    def _write_parts(self, session: _Session) -> None:
+        """Give the writer the steps committed since the last call (it writes whole parts)."""
+        if session.writer is None:
+            return
+        stream = session.stream
+        done = stream.n_committed
+        if done > session.written:
+            arrays = stream.arrays(since=session.written)
+            session.writer.add(arrays)
+            session.written = done
 
     def feed(self, machine: str, sample: Sample) -> list[dict]:
         """One sample of one machine (opens the machine on first use)."""
@@ -289,6 +313,9 @@ class LiveEngine:
             y = np.array(list(m["measured_outputs"].values()), dtype=float)
             session.unsaved.append((m["step"], m["time_s"], u, y, m))
             session.unsaved_events += m.get("events", [])
+            if session.writer is not None:
+                for event in m.get("events", []):
+                    session.writer.note_alarm(event["detected_s"], event["onset_s"])
         for session in self.sessions.values():
             if session.unsaved and now - session.last_flush >= self.commit_every_s:
                 self._flush(session)
@@ -299,6 +326,7 @@ class LiveEngine:
         self.log.append(session.session_id, session.unsaved, session.unsaved_events)
         session.unsaved, session.unsaved_events = [], []
         session.last_flush = time.monotonic()
+        self._write_parts(session)
 
     def flush(self) -> None:
         """Write every committed step not yet stored."""
@@ -315,52 +343,44 @@ class LiveEngine:
         self._publish(messages)
         if self.registry is None or session.session_id is None:
             return None
-        print_id = None
-        arrays = stream.arrays()
-        if len(arrays["time_s"]) >= 2:
-            status, reason = judge_run(
-                SimpleNamespace(
-                    means=arrays["means"],
-                    time_s=arrays["time_s"],
-                    start_mean=stream.start_mean,
-                    end_mean=arrays["means"][-1],
-                    end_cov=arrays["covariances"][-1],
-                )
-            )
-            data = {"time_s": arrays["time_s"]}
-            data.update({c: arrays["inputs"][:, i] for i, c in enumerate(INPUT_COLUMNS)})
-            data.update({c: arrays["measurements"][:, i] for i, c in enumerate(OUTPUT_COLUMNS)})
-            record = PrintRecord(
-                pd.DataFrame(data),
-                {
-                    "machine_id": machine,
-                    "source": session.source,
-                    "live_session": session.session_id,
-                },
-            )
-            print_id, _ = save_print(
-                self.registry,
-                machine,
-                record,
-                digest=record_hash(record),
-                source=f"live session {session.session_id} ({session.source})",
-                arrays=arrays,
-                events=list(stream.detector.events),
-                start=(stream.start_mean, stream.start_cov),
-                end=(arrays["means"][-1], arrays["covariances"][-1]),
-                theta_before=stream.theta_before,
-                theta_after=stream.theta,
-                expected_last_seq=session.expected_last_seq,
-                started_from=session.started_from,
-                status=status,
-                status_reason=reason,
-                live_session=session.session_id,  # closed (and thinned) with the print
-                keep_live_steps=self.keep_live_steps,
-                long_run_history=stream.detector.long_run_history(),
-                job=self.jobs.get(machine),
-            )
-        else:  # nothing stored: the session's rows are all there is of it
-            self.log.close_session(session.session_id, print_id)
+        self._write_parts(session)
+        writer = session.writer
+        if writer.n_steps < 2:  # nothing stored: the session's rows are all there is of it
+            writer.discard()
+            self.log.close_session(session.session_id, None)
+            return None
+        meta = {"machine_id": machine, "source": session.source, "live_session": session.session_id}
+        for event in stream.detector.events:  # the alarms' covariances are key frames
+            writer.note_alarm(event.detected_s, event.onset_s)
+        status, reason = writer.judgement(stream.start_mean)
+        theta_history = {
+            k: v
+            for k, v in stream.arrays(since=len(stream.history)).items()
+            if k in WHOLE_PRINT_ARRAYS
+        }
+        print_id, _ = save_print(
+            self.registry,
+            machine,
+            SimpleNamespace(meta=meta),
+            digest=writer.content_hash(meta),
+            source=f"live session {session.session_id} ({session.source})",
+            arrays=theta_history,
+            events=list(stream.detector.events),
+            start=(stream.start_mean, stream.start_cov),
+            end=(writer.last_mean, writer.last_cov),
+            theta_before=stream.theta_before,
+            theta_after=stream.theta,
+            expected_last_seq=session.expected_last_seq,
+            started_from=session.started_from,
+            status=status,
+            status_reason=reason,
+            live_session=session.session_id,  # closed (and thinned) with the print
+            keep_live_steps=self.keep_live_steps,
+            long_run_history=stream.detector.long_run_history(),
+            writer=writer,
+            n_samples=writer.n_steps,
+            job=self.jobs.get(machine),
+        )
         return print_id
 
     def _record_into(self, session: _Session, messages: list[dict]) -> None:

@@ -10,15 +10,27 @@ through the same :func:`save_print`.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from ajtwin.apps.detection.batch import detect_run
-from ajtwin.apps.detection.mismatch import assess_run, data_share, determined_states, relabel_events
-from ajtwin.engine.chain import chain_start, judge_run
+from ajtwin.apps.detection.mismatch import (
+    assess,
+    assess_run,
+    data_share,
+    determined_states,
+    first_em_update_s,
+    relabel_events,
+)
+from ajtwin.apps.detection.statistics import normalised_innovations
+from ajtwin.apps.detection.streaming import AnomalyDetector
+from ajtwin.engine.chain import chain_start
+from ajtwin.engine.parts import PrintWriter
 from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
@@ -48,7 +60,10 @@ class IngestResult:
     seconds : float
         Wall time of the ingest.
     run : TwinRun or None
+        The run's start, end, θ history, initial fit and visibility (its per-step results
+        went to the registry as they were produced); the whole run with ``keep_run``.
     detection : DetectionResult or None
+        The detectors' statistics over the print (``keep_run`` only).
     """
 
     machine: str
@@ -110,6 +125,8 @@ def save_print(
     live_session: int | None = None,
     keep_live_steps: bool = False,
     long_run_history: dict | None = None,
+    writer=None,
+    n_samples: int | None = None,
     job: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
@@ -119,13 +136,22 @@ def save_print(
     ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
     same transaction (:meth:`ajtwin.store.registry.Registry.save_print`);
     ``long_run_history``: the detectors' long-run statistics for the machine's next print;
+    ``writer``: a :class:`~ajtwin.engine.parts.PrintWriter` that wrote the per-step arrays
+    as they came (closed here; ``arrays`` then holds the θ history, ``record`` may be None
+    with ``n_samples`` given);
     ``job``: the machine program the print ran (:meth:`ajtwin.store.registry.Registry.save_print`).
     """
+    if writer is not None:
+        writer.close()
+        totals = writer.totals
+        nis, reinitialised = [totals["mean_nis"]], [totals["reinitialised"]]
+    else:
+        nis, reinitialised = arrays["nis"], arrays["reinitialised"]
     summary = print_summary(
         end[0],
         end[1],
-        arrays["nis"],
-        arrays["reinitialised"],
+        nis,
+        reinitialised,
         len(events),
         len(arrays["theta_history_time_s"]),
         started_from,
@@ -134,14 +160,15 @@ def save_print(
     )
     summary.update(extra_summary or {})
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
+    n = len(record) if n_samples is None else int(n_samples)
     print_id = registry.save_print(
         machine,
         content_hash=digest,
         source=source,
         meta=meta,
         summary=summary,
-        n_samples=len(record),
-        duration_s=float(record.duration_s + 1.0),
+        n_samples=n,
+        duration_s=float(record.duration_s + 1.0) if n_samples is None else float(n),
         start_mean=start[0],
         start_cov=start[1],
         end_mean=end[0],
@@ -156,6 +183,7 @@ def save_print(
         live_session=live_session,
         keep_live_steps=keep_live_steps,
         long_run_history=long_run_history,
+        draft=None if writer is None else writer.draft,
         job=job,
     )
     return print_id, summary
@@ -170,6 +198,7 @@ def ingest_record(
     progress=None,
     twin_overrides: dict | None = None,
     detector_settings=None,
+    keep_run: bool = False,
     job: dict | None = None,
 ):
     """Run the machine's twin over one finished print and store the result.
@@ -177,9 +206,13 @@ def ingest_record(
     Hash the print (duplicate → stop before any work), start from the machine's chain
     (:func:`ajtwin.engine.chain.chain_start`: the newest good print's end state and θ; the
     initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
-    the detectors (:func:`~ajtwin.apps.detection.batch.detect_run`, the live detectors over the
-    arrays), judge the run (:func:`ajtwin.engine.chain.judge_run`) and store everything in
-    one transaction.
+    the detectors (:class:`~ajtwin.apps.detection.streaming.AnomalyDetector`, the live
+    detectors, over each chunk of the run), judge the run
+    (:func:`ajtwin.engine.chain.judge_run`) and store everything in one transaction.
+
+    The run is taken a chunk at a time (:class:`IngestSink`), each chunk's arrays written as
+    produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the final transaction
+    adopts): memory grows only by the guard's inputs (18 numbers a second) and the record.
 
     Parameters
     ----------
@@ -194,6 +227,8 @@ def ingest_record(
         Steps done, for a progress bar.
     twin_overrides : dict, optional
         :class:`~ajtwin.estimation.twin.TwinConfig` overrides.
+    keep_run : bool
+        Also return the whole run and detectors' results (memory then grows with the print).
     job : dict, optional
         The program the print ran (:func:`ajtwin.engine.print_job.job_entry`), stored with
         it; on a job print the twin files the camera's frames with it.
@@ -206,16 +241,7 @@ def ingest_record(
     digest = record_hash(record)
     existing = registry.find_print(machine, digest)
     if existing is not None:
-        return IngestResult(
-            machine,
-            existing["id"],
-            existing["seq"],
-            True,
-            digest,
-            existing["n_samples"],
-            summary=existing["summary"],
-            seconds=time.perf_counter() - t0,
-        )
+        return _stored_before(machine, existing, digest, t0)
     chain = chain_start(registry, machine)
     # the machine's calibration, commissioning start and maintenance (model reference §11)
     begin = machine_start(registry, machine, chain, twin_overrides)
@@ -223,51 +249,53 @@ def ingest_record(
     start, expected = begin["start"], chain.latest_seq
     twin.theta = begin["theta"]
     theta_before = twin.theta.copy()
-    run = twin.run(record, start=start, progress=progress, job=_printed_job(job, record))
-    status, status_reason = judge_run(run)
-    detection = detect_run(
-        run, record, detector_settings, carried_long_run_history(registry, machine, chain)
-    )
-    # a model that does not fit the machine is reported as such, never as a fault
-    mismatch = assess_run(run, record)
-    detection.events = relabel_events(detection.events, mismatch)
-
+    writer = PrintWriter(registry, machine, f"ingest of {source or 'a record'}")
     try:
+        carried = carried_long_run_history(registry, machine, chain)
+        sink = IngestSink(writer, record, detector_settings, carried, keep=keep_run)
+        job_run = _printed_job(job, record)
+        run = twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
+        events, mismatch = sink.finish(run)
         print_id, summary = save_print(
             registry,
             machine,
             record,
             digest=digest,
             source=source,
-            arrays=run_arrays(run, record),
-            events=detection.events,
+            arrays=theta_history_arrays(run),
+            events=events,
             start=(run.start_mean, run.start_cov),
             end=(run.end_mean, run.end_cov),
             theta_before=theta_before,
             theta_after=twin.theta,
             expected_last_seq=expected,
             started_from=begin["started_from"],
-            status=status,
-            status_reason=status_reason,
+            status=sink.status[0],
+            status_reason=sink.status[1],
             extra_summary={
                 "calibration_id": begin["calibration_id"],
                 "maintenance": begin["maintenance"],
                 "mismatch": mismatch.to_dict(),
                 # which states this print's data determined (ΔR_T: the prior's band)
-                "data_share": determined_states(data_share(run.filtered)),
+                "data_share": determined_states(sink.share),
             },
-            long_run_history=detection.long_run_history,
+            long_run_history=sink.detector.long_run_history(),
+            writer=writer,
             job=job,
         )
     except RegistryError:
+        writer.discard()
         # a concurrent ingest of the same print may have won the race
         existing = registry.find_print(machine, digest)
         if existing is None:
             raise
-        return IngestResult(
-            machine, existing["id"], existing["seq"], True, digest, existing["n_samples"]
-        )
+        return _stored_before(machine, existing, digest, t0)
+    except BaseException:
+        with contextlib.suppress(RegistryError):
+            writer.discard()
+        raise
     seq = registry.get_print(print_id)["seq"]
+    whole, detection = sink.whole_run(run) if keep_run else (run, None)
     return IngestResult(
         machine,
         print_id,
@@ -275,12 +303,162 @@ def ingest_record(
         False,
         digest,
         len(record),
-        events=detection.events,
+        events=events,
         summary=summary,
         seconds=time.perf_counter() - t0,
-        run=run,
+        run=whole,
         detection=detection,
     )
+
+
+def _stored_before(machine: str, existing: dict, digest: str, t0: float) -> IngestResult:
+    """The result of ingesting a print the machine has already (nothing changed)."""
+    return IngestResult(
+        machine,
+        existing["id"],
+        existing["seq"],
+        True,
+        digest,
+        existing["n_samples"],
+        summary=existing["summary"],
+        seconds=time.perf_counter() - t0,
+    )
+
+
+class IngestSink:
+    """The twin's run over a print taken a chunk at a time (:meth:`Twin.run`'s ``sink``):
+    each chunk's arrays to the :class:`~ajtwin.engine.parts.PrintWriter`, its steps through
+    the detectors, its data share and the mismatch guard's per-second inputs kept.
+
+    Parameters
+    ----------
+    writer : PrintWriter
+    record : PrintRecord
+        The print (its measured outputs and inputs for the detectors and the stored arrays).
+    settings : DetectorSettings, optional
+    long_run_history : dict, optional
+        The detectors' carried long-run statistics (:class:`AnomalyDetector`).
+    keep : bool
+        Keep the chunks too (:meth:`whole_run`).
+    """
+
+    def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
+        self.writer = writer
+        self.record = record
+        # once: a record makes a new (T, n) array at each access of these
+        self._outputs, self._inputs = record.outputs, record.inputs
+        # a job print's shutter, speed and print times (stored with the arrays)
+        self._job = record.data[list(JOB_COLUMNS)] if record.has_job else None
+        self.settings, self.long_run_history = settings, long_run_history
+        self.detector = AnomalyDetector(settings, long_run_history)
+        self.keep = keep
+        self.chunks: list = []
+        self.share = None  # (1, 5) the data share at the last step so far
+        self._share_carry: dict = {}
+        self._guard: dict[str, list] = {k: [] for k in _GUARD_KEYS}
+        self.status = ("ok", "")
+
+    def __call__(self, first: int, chunk) -> None:
+        """Take the chunk of steps [first, first + n) (a TwinRun of them)."""
+        stop = first + len(chunk.time_s)
+        part = SimpleNamespace(
+            outputs=self._outputs[first:stop],
+            inputs=self._inputs[first:stop],
+            has_job=self._job is not None,
+            data=None if self._job is None else self._job.iloc[first:stop],
+        )
+        arrays = run_arrays(chunk, part)
+        for step in _detector_steps(self.detector, arrays):
+            for event in step.raised:
+                self.writer.note_alarm(event.detected_s, event.onset_s)
+        self.writer.add(arrays)
+        self.share = data_share(chunk.filtered, self._share_carry)[-1:]
+        e = normalised_innovations(
+            arrays["measurements"], arrays["predicted_outputs"], arrays["innovation_variances"]
+        )
+        for key, value in zip(
+            _GUARD_KEYS,
+            (arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
+             arrays["stds"]),
+            strict=True,
+        ):  # fmt: skip
+            self._guard[key].append(np.asarray(value, dtype=float))
+        if self.keep:
+            self.chunks.append(chunk)
+
+    def finish(self, run) -> tuple[list, object]:
+        """(the print's events, the mismatch guard's verdict) once the run is done; the
+        events a mismatch explains relabelled, the print judged (:attr:`status`)."""
+        events = self.detector.finish()
+        guard = {k: np.concatenate(v) for k, v in self._guard.items()}
+        mismatch = assess(
+            guard["time_s"],
+            guard["means"],
+            guard["e"],
+            guard["nis"],
+            guard["n_measured"],
+            start_mean=run.start_mean,
+            start_cov=run.start_cov,
+            level_learned_s=first_em_update_s(run),
+            stds=guard["stds"],
+        )
+        # a model that does not fit the machine is reported as such, never as a fault
+        events = relabel_events(events, mismatch)
+        for event in events:
+            self.writer.note_alarm(event.detected_s, event.onset_s)
+        self.status = self.writer.judgement(run.start_mean)
+        return events, mismatch
+
+    def whole_run(self, run):
+        """(the whole TwinRun, the detectors' DetectionResult) from the kept chunks."""
+        parts = [c.filtered for c in self.chunks]
+        whole = replace(
+            run,
+            filtered=type(parts[0])(*[np.concatenate(x, axis=0) for x in zip(*parts)]),
+            theta_per_step=np.concatenate([c.theta_per_step for c in self.chunks]),
+            calibration_covariances=_joined(self.chunks, "calibration_covariances"),
+            prior_floor=_joined(self.chunks, "prior_floor"),
+        )
+        detection = detect_run(whole, self.record, self.settings, self.long_run_history)
+        detection.events = relabel_events(detection.events, assess_run(whole, self.record))
+        return whole, detection
+
+
+#: the mismatch guard's per-second inputs an ingest keeps (:func:`assess`)
+_GUARD_KEYS = ("time_s", "means", "e", "nis", "n_measured", "stds")
+
+
+def _joined(chunks, name):
+    parts = [getattr(c, name) for c in chunks]
+    return None if any(p is None for p in parts) else np.concatenate(parts, axis=0)
+
+
+def _detector_steps(detector, arrays):
+    """The detectors' steps over a chunk's arrays (run_arrays names)."""
+    columns = [
+        arrays[k]
+        for k in (
+            "measurements",
+            "predicted_outputs",
+            "innovation_variances",
+            "nis",
+            "n_measured",
+            "means",
+            "predicted_means",
+            "covariances",
+        )
+    ]
+    for k, t in enumerate(arrays["time_s"]):
+        yield detector.update(t, *(c[k] for c in columns), inputs=arrays["inputs"][k])
+
+
+def theta_history_arrays(run) -> dict:
+    """The θ history of a run, as the registry keeps it with the print's row."""
+    hist = run.theta_history
+    return {
+        "theta_history_time_s": hist["time_s"].to_numpy(float),
+        "theta_history": hist[[c for c in hist.columns if c.startswith("theta_")]].to_numpy(float),
+    }
 
 
 def _printed_job(entry: dict | None, record):

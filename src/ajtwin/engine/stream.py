@@ -58,12 +58,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.steplog import StepLog
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.samples import MAX_GAP_S, Sample
 from ajtwin.estimation.em import run_em
@@ -97,8 +99,14 @@ _step_many = jax.jit(_batched, static_argnames=("functions",))
 _rerun = jax.jit(ekf.__wrapped__, static_argnames=("functions",))
 
 
+#: committed steps a stream keeps beyond its EM window and period: the part of the print a
+#: live engine has not yet written to the registry (:data:`ajtwin.engine.parts.PART_STEPS`)
+UNWRITTEN_STEPS = 3600
+
+
 class _History:
-    """Per-step committed results, grown as the print goes on (display units)."""
+    """Per-step committed results of the last ``keep`` steps (display units), addressed by
+    step number (:class:`~ajtwin.apps.detection.steplog.StepLog`)."""
 
     FIELDS = (
         "time_s",
@@ -120,15 +128,18 @@ class _History:
         "line_factors",  # a job step's (F_w, F_o, v_w, v_o); None without a job
     )
 
-    def __init__(self):
+    def __init__(self, keep: int | None = None):
         for name in self.FIELDS:
-            setattr(self, name, [])
+            setattr(self, name, StepLog(keep))
 
     def __len__(self):
         return len(self.time_s)
 
-    def array(self, name) -> np.ndarray:
-        return np.asarray(getattr(self, name), dtype=float)
+    def array(self, name, start: int | None = None, stop: int | None = None) -> np.ndarray:
+        """Steps [start, stop) of a field as an array (default: every step kept)."""
+        log = getattr(self, name)
+        start = log.first if start is None else start
+        return np.asarray(log[start:stop], dtype=float)
 
 
 class TwinStream:
@@ -181,7 +192,9 @@ class TwinStream:
         self.initial = None
         self.start_mean = self.start_cov = None
         self.detector = AnomalyDetector(detector_settings, long_run_history)
-        self.history = _History()
+        # the EM window (and the restart step before it) and what a live engine still writes
+        keep = int(self.config.window_s) + int(self.config.every_s) + UNWRITTEN_STEPS
+        self.history = _History(keep)
         self.theta_history: list[dict] = []
         self.carry: EKFCarry | None = None  # committed carry for the next step
         self.n_received = 0  # samples on the grid so far (committed + pending + waiting)
@@ -189,6 +202,9 @@ class TwinStream:
         self.last_inputs: np.ndarray | None = None
         self._waiting: list[Sample] = []  # before the initial fit
         self._pending: list[Sample] = []  # arrived while EM runs
+        # held samples after EM's result, committed REPLAY_STEPS per poll (then the new ones)
+        self._replay: deque[Sample] = deque()
+        self._replaying = False
         self._em_future: Future | None = None
         self._em_pos: int | None = None
         self._em_done: int | None = None  # boundary whose EM result is in force
@@ -316,6 +332,7 @@ class TwinStream:
             self.carry is None
             or self._bins is not None
             or self._em_future is not None
+            or self._replay
             or self._waiting
             or self.last_time is None
             or int(round(float(sample.time_s) - self.last_time)) != 1
@@ -398,6 +415,9 @@ class TwinStream:
     # ------------------------------------------------------------------ #
     def _advance(self, sample: Sample) -> list[dict]:
         """Step k = next grid index; handles chunk boundaries and EM."""
+        if self._replay and not self._replaying:
+            self._replay.append(sample)  # after the held samples still to be committed
+            return []
         if self._em_future is not None:
             self._pending.append(sample)
             return [self._speculative(sample)]
@@ -467,7 +487,7 @@ class TwinStream:
             return []
         first, last = bins.first_open, bins.n_rows - 1
         head = self._spec_carry if self._em_future is not None else self.carry
-        if head is None and self.n_committed == 0 and not self._pending:
+        if head is None and self.n_committed == 0 and not self._pending and not self._replay:
             head = self._provisional_start(changed)
         if head is None:
             return []
@@ -557,11 +577,12 @@ class TwinStream:
         if self._dynamics is None:
             return np.array([step.inputs for step in pending], dtype=float)
         response = self._response
-        held = [s.inputs for s in self._pending] + [s.inputs for s in self._bins.pending()]
+        before = [*self._pending, *self._replay]  # held, in order, before the pending bins
+        held = [s.inputs for s in before] + [s.inputs for s in self._bins.pending()]
         rows = []
         for i, inputs in enumerate(held):
             u, response = self.model_input(inputs, response)
-            if i >= len(self._pending) + skipped:
+            if i >= len(before) + skipped:
                 rows.append(u)
         return np.array(rows, dtype=float)
 
@@ -590,8 +611,8 @@ class TwinStream:
             self.twin.spec,
             np.asarray(h.predicted_means[w0]),
             np.asarray(h.predicted_covariances[w0]),
-            h.array("model_inputs")[w0:pos],
-            h.array("measurements")[w0:pos],
+            h.array("model_inputs", w0, pos),
+            h.array("measurements", w0, pos),
             self.theta.copy(),
             self.twin.process_cov,
             self.twin.measurement_var,
@@ -602,7 +623,7 @@ class TwinStream:
             tolerance=c.em_tolerance,
             gate=c.gate_sigma,
             functions=self.twin.functions,
-            line_factors=None if self._bins is None else h.array("line_factors")[w0:pos],
+            line_factors=None if self._bins is None else h.array("line_factors", w0, pos),
         )
         self._em_pos = pos
         self._spec_carry = None
@@ -616,12 +637,33 @@ class TwinStream:
             future.set_result(run_em(*args, **kwargs))
             self._em_future = future
 
+    #: held samples committed per :meth:`poll` once EM's result is in (a burst of rows that
+    #: arrived while EM ran is replayed in slices, so a live link's event loop keeps running)
+    REPLAY_STEPS = 50
+
     def poll(self, wait: bool = False) -> list[dict]:
-        """Apply a finished EM (``wait``: block until it is) and replay the samples held."""
+        """Apply a finished EM (``wait``: block until it is) and replay the samples held:
+        :attr:`REPLAY_STEPS` of them per call, all with ``wait``. Samples that arrive while
+        some are still to be replayed wait behind them."""
         future = self._em_future
-        if future is None or (not wait and not future.done()):
-            return []
-        em = future.result()
+        if future is not None and (wait or future.done()):
+            self._apply_em(future.result())
+        return self._drain(None if wait else self.REPLAY_STEPS)
+
+    def _drain(self, limit: int | None) -> list[dict]:
+        """Commit up to ``limit`` (None: all) held samples, oldest first."""
+        out, n = [], 0
+        was, self._replaying = self._replaying, True
+        try:
+            while self._replay and (limit is None or n < limit):
+                out += self._advance(self._replay.popleft())
+                n += 1
+        finally:
+            self._replaying = was
+        return out
+
+    def _apply_em(self, em) -> None:
+        """EM's result in force from its boundary; the samples it held go first in line."""
         pos = self._em_pos
         h = self.history
         w0 = max(pos - int(self.config.window_s), 0)
@@ -641,11 +683,9 @@ class TwinStream:
         self._em_future = None
         self._em_done, self._em_pos = pos, None
         self._spec_carry = None
-        pending, self._pending = self._pending, []
-        out = []
-        for s in pending:
-            out += self._advance(s)
-        return out
+        # held while EM ran: older than any still to be replayed
+        self._replay.extendleft(reversed(self._pending))
+        self._pending = []
 
     def _speculative(self, sample: Sample) -> dict:
         """Step with the old θ while EM runs: published as provisional, not kept."""
@@ -793,6 +833,8 @@ class TwinStream:
         the filter with what there is.
         """
         out = self.poll(wait=True)
+        while self._em_future is not None or self._replay:  # an EM the replay started
+            out += self.poll(wait=True)
         if self._bins is not None:  # the end of the print: every step left is final
             for step in self._bins.finish():
                 final = Sample(step.time_s, step.inputs, step.outputs, line=step.line)
@@ -812,29 +854,35 @@ class TwinStream:
             }
         ]
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The committed per-step results, named as the registry stores a print (a job
-        print's with ``line_factors``, the (F_w, F_o, v_w, v_o) of each filed step)."""
+    def arrays(self, since: int | None = None) -> dict[str, np.ndarray]:
+        """The committed per-step results from step ``since`` on (default: the oldest step
+        kept), named as the registry stores a print (a job print's with ``line_factors``, the
+        (F_w, F_o, v_w, v_o) of each filed step). A stream keeps its last steps only (a long
+        live print is written in parts as it goes, :class:`~ajtwin.engine.parts.
+        PrintWriter`); a short print's are all kept."""
         h = self.history
-        means = h.array("means")
-        covs = h.array("covariances").reshape(-1, 5, 5)
+        since = h.time_s.first if since is None else since
+
+        def steps(name, *shape):
+            return h.array(name, since).reshape(-1, *shape)
+
+        means = steps("means", 5)
+        covs = steps("covariances", 5, 5)
         hist = self.theta_history
         return {
-            "time_s": h.array("time_s"),
-            "means": means.reshape(-1, 5),
-            "stds": np.sqrt(
-                np.maximum(np.diagonal(covs, 0, 1, 2), h.array("prior_floor").reshape(-1, 5))
-            ),
+            "time_s": h.array("time_s", since),
+            "means": means,
+            "stds": np.sqrt(np.maximum(np.diagonal(covs, 0, 1, 2), steps("prior_floor", 5))),
             "covariances": covs,
-            "predicted_means": h.array("predicted_means").reshape(-1, 5),
-            "predicted_outputs": h.array("predicted_outputs").reshape(-1, 5),
-            "innovation_variances": h.array("innovation_variances").reshape(-1, 5),
-            "measurements": h.array("measurements").reshape(-1, 5),
-            "inputs": h.array("inputs").reshape(-1, 3),
-            "nis": h.array("nis"),
-            "n_measured": h.array("n_measured"),
-            "reinitialised": np.asarray(h.reinitialised, dtype=bool),
-            "theta_per_step": h.array("theta_per_step").reshape(-1, 5),
+            "predicted_means": steps("predicted_means", 5),
+            "predicted_outputs": steps("predicted_outputs", 5),
+            "innovation_variances": steps("innovation_variances", 5),
+            "measurements": steps("measurements", 5),
+            "inputs": steps("inputs", 3),
+            "nis": h.array("nis", since),
+            "n_measured": h.array("n_measured", since),
+            "reinitialised": np.asarray(h.reinitialised[since:], dtype=bool),
+            "theta_per_step": steps("theta_per_step", 5),
             "theta_history_time_s": np.array([r["time_s"] for r in hist], dtype=float),
             "theta_history": np.array(
                 [[r[f"theta_{n}"] for n in STATE_NAMES] for r in hist], dtype=float
@@ -843,7 +891,7 @@ class TwinStream:
             **(
                 {}
                 if self._bins is None
-                else {"line_factors": h.array("line_factors").reshape(-1, 4)}
+                else {"line_factors": h.array("line_factors", since).reshape(-1, 4)}
             ),
         }
 

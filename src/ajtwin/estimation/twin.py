@@ -467,6 +467,14 @@ def _slice(result: FilterResult, stop: int) -> FilterResult:
     return FilterResult(*[np.asarray(part)[:stop] for part in result])
 
 
+def _keep_from(pieces: list, starts: list, step: int) -> None:
+    """Drop the filter chunks that end before ``step`` (an EM window starts there at the
+    earliest); the chunk that holds it stays."""
+    while len(starts) > 1 and starts[1] <= step:
+        pieces.pop(0)
+        starts.pop(0)
+
+
 def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
     if len(array) == length:
         return array
@@ -699,6 +707,7 @@ class Twin:
         progress=None,
         job=None,
         line_factors=None,
+        sink=None,
     ) -> TwinRun:
         """Estimate the states over a print (and learn θ if ``config.em``).
 
@@ -720,7 +729,15 @@ class Twin:
             program_for_record`): speeds at print times come from it, not the record's rows.
         line_factors : array (T, 4), optional
             With ``inputs``/``measurements`` already filed: each step's (F_w, F_o, v_w, v_o).
+        sink : callable(first_step, TwinRun), optional
+            Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
+            steps: the filter's results, θ, the calibration's share, the prior floor, what
+            was seen), so that nothing keeps the whole print's results: the run returned
+            then has the print's start, end, θ history, initial fit, vial observer and
+            ``seen``, and ``filtered`` holds only the last chunks. Not with ``smooth``.
         """
+        if sink is not None and smooth:
+            raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
         inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
         filed = self._filed(record, job)
         if filed is not None:
@@ -745,15 +762,22 @@ class Twin:
         )
         # the transition variant's extra input column (input response), if it has one
         model_inputs = self.model_inputs(inputs)
+        emit = None
+        if sink is not None:
+            emit = self._chunk_emitter(
+                sink, time_s, initial, seen, model_inputs, (inputs, measurements, line, filed)
+            )
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
             filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
             theta, history = self.theta.copy(), []
+            if emit is not None:
+                emit(0, filtered, thetas)
             if progress:
                 progress(n)
         else:
             filtered, theta, thetas, history = self._filter_with_em(
-                mean, cov, model_inputs, measurements, time_s, progress, line
+                mean, cov, model_inputs, measurements, time_s, progress, line, emit
             )
         smoothed = None
         if smooth:
@@ -773,9 +797,11 @@ class Twin:
             start_cov=start_cov,
             end_mean=np.asarray(filtered.means[-1]),
             end_cov=np.asarray(filtered.covariances[-1]),
-            calibration_covariances=self._calibration_covariances(filtered, model_inputs, line),
+            calibration_covariances=None
+            if sink
+            else self._calibration_covariances(filtered, model_inputs, line),
             seen=seen,
-            prior_floor=never_seen_variance_floor(initial, seen, filtered.means),
+            prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
             vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
             measurements=measurements,
             inputs=inputs,
@@ -822,11 +848,14 @@ class Twin:
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
         return inputs, measurements, time_s
 
-    def _filter_with_em(self, mean, cov, model_inputs, measurements, time_s, progress, line=None):
+    def _filter_with_em(
+        self, mean, cov, model_inputs, measurements, time_s, progress, line=None, emit=None
+    ):
         """The filter in chunks between EM boundaries; EM over the trailing window at each
         boundary, its θ and re-filtered end state taking effect from there (the module's
-        chunking). ``line``: a job print's (T, 4) line factors. Returns (filter result, θ at
-        the end, θ per step (T, 5), EM history)."""
+        chunking). ``line``: a job print's (T, 4) line factors. ``emit(first_step, chunk,
+        θ per step)`` takes each chunk as it is done, and only the chunks EM still needs are
+        kept. Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
         c = self.config
         n = len(model_inputs)
         every, window = int(c.every_s), int(c.window_s)
@@ -851,6 +880,9 @@ class Twin:
             pieces.append(seg)
             starts.append(pos)
             thetas[pos:end] = theta
+            if emit is not None:
+                emit(pos, seg, thetas[pos:end])
+                _keep_from(pieces, starts, end - window)
             last_mean = np.asarray(seg.means[-1])
             last_cov = np.asarray(seg.covariances[-1])
             pos = end
@@ -914,9 +946,11 @@ class Twin:
             learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
         return em, learned
 
-    def _calibration_covariances(self, filtered, model_inputs, line=None):
+    def _calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
         """The states' covariance from the calibration's uncertainty and φ_A's unknown level
-        (None: neither given). ``line``: a job print's per-step line factors."""
+        (None: neither given). ``line``: a job print's per-step line factors; ``carry``: a
+        chunk of a run (what the vial drained before it, :func:`calibration_state_covariance`
+        and :func:`aerosol_level_covariance`)."""
         out = None
         if self.calibration is not None and self.calibration_cov is not None:
             out = calibration_state_covariance(
@@ -927,13 +961,62 @@ class Twin:
                 self.calibration_cov,
                 self.functions,
                 line_factors=line,
+                carry=carry,
             )
         if self.config.aerosol_level_std > 0:
             level = aerosol_level_covariance(
-                filtered.means, model_inputs, self.config.aerosol_level_std, self.spec.dt
+                filtered.means,
+                model_inputs,
+                self.config.aerosol_level_std,
+                self.spec.dt,
+                carry=carry,
             )
             out = level if out is None else out + level
         return out
+
+    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data):
+        """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each
+        chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
+        calibration's share, with the vial's drain carried over; the prior floor, with
+        what was seen before the chunk; the inputs, the measurements the filter used and a
+        job print's line factors and camera frames). ``data``: (inputs, measurements, line
+        factors or None, the filed print or None)."""
+        inputs, measurements, line, filed = data
+        carry: dict = {}
+        seen_before = np.zeros(seen.shape[1], dtype=bool)
+
+        def emit(first: int, chunk, thetas) -> None:
+            nonlocal seen_before
+            stop = first + len(chunk.means)
+            seen_chunk = np.asarray(seen[first:stop]) | seen_before
+            seen_before = seen_before | seen_chunk.any(axis=0)
+            sink(
+                first,
+                TwinRun(
+                    time_s=time_s[first:stop],
+                    filtered=chunk,
+                    smoothed=None,
+                    theta_per_step=np.asarray(thetas),
+                    theta_history=_theta_history_frame([]),
+                    initial=None,
+                    start_mean=None,
+                    start_cov=None,
+                    calibration_covariances=self._calibration_covariances(
+                        chunk,
+                        model_inputs[first:stop],
+                        None if line is None else line[first:stop],
+                        carry,
+                    ),
+                    seen=seen[first:stop],
+                    prior_floor=never_seen_variance_floor(initial, seen_chunk, chunk.means),
+                    measurements=measurements[first:stop],
+                    inputs=inputs[first:stop],
+                    line_factors=None if line is None else line[first:stop],
+                    n_camera=None if filed is None else filed.n_camera[first:stop],
+                ),
+            )
+
+        return emit
 
     def _observe_vial(self, inputs, measurements, start_mean, start_cov):
         """The vial observer over the print's Q_m (None when Q_m was never measured)."""

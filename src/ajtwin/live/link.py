@@ -14,7 +14,16 @@ reconnecting since T (attempt n), refused, ended — is logged and published on 
 engine's message path (:meth:`LiveEngine.publish_link`, shown by the dashboard), and
 after each (re)connection written to each machine's ``Health/LinkStatus`` for HMIs;
 a refused login or certificate stops the link with a clear message (retrying cannot
-help); a missing node or bad values are logged and the sample treated as missing.
+help); a missing node or bad values are logged and the sample treated as missing; a
+``PrintState`` that is not one of its texts is logged and ignored.
+
+New rows of a buffer are queued (:class:`RowQueue`) and fed to the engine a slice at a
+time (:data:`FEED_BUDGET_S` of work, then the event loop runs): a burst of 100,000 rows
+is taken over minutes while the session's keep-alives and the ``finished`` state still
+get through, and a machine's print is closed only when its queue is empty. Rows whose time
+goes back (the machine's clock stepped back, a buffer out of order) are dropped with one
+log line per notification saying how many and which times (:func:`new_rows`); their
+seconds are missing data for the twin.
 
 :func:`follow_csv` tails a growing CSV in the record format.
 """
@@ -25,6 +34,7 @@ import asyncio
 import json
 import logging
 import time
+from collections import deque
 
 import numpy as np
 from asyncua import Client, ua
@@ -55,6 +65,16 @@ REFUSALS = {
     "No matching endpoints": "the server offers no endpoint with this security "
     "(an encrypted server needs --security Basic256Sha256_SignAndEncrypt)",
 }
+
+
+#: the texts ``PrintState`` takes (docs/reference/opcua.md)
+PRINT_STATES = ("printing", "finished")
+
+#: seconds of feeding queued samples before the link lets the event loop run again (the
+#: OPC UA session's keep-alives, new notifications); a slice is at least one row per machine
+FEED_BUDGET_S = 0.25
+#: rows taken from each machine's queue at a time within a slice
+FEED_ROWS = 32
 
 
 class LinkRefused(RuntimeError):
@@ -117,6 +137,10 @@ class OpcUaLink:
         self.status = "starting"
         self.finished: set[str] = set()
         self.last_time: dict[str, float] = {}
+        self.queues: dict[str, RowQueue] = {}  # rows received, not yet fed
+        # samples taken from the queues and not fed yet, by time: [(machine, Sample), ...]
+        self._unfed: deque[list] = deque()
+        self.longest_slice_s = 0.0  # the longest the feeding held the event loop
         self.first_published: float | None = None
         self.reconnects = 0
         self.link: dict = {}  # the last published link state (engine.publish_link)
@@ -164,14 +188,13 @@ class OpcUaLink:
                     self._announce("refused", reason=refusal)
                     raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
                 self.engine.flush()
+                reason = fault_text(exc, self.url, self.timeout_s)
                 self._set_status(
-                    f"disconnected ({type(exc).__name__}: {exc}); reconnecting in {backoff:g} s",
-                    logging.WARNING,
+                    f"disconnected ({reason}); reconnecting in {backoff:g} s", logging.WARNING
                 )
                 if self._lost_at is None:
                     self._lost_at = time.time()
                 self._attempt += 1
-                reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 self._announce("reconnecting", reason=reason, retry_in_s=backoff)
                 self.reconnects += 1
                 try:
@@ -241,10 +264,14 @@ class OpcUaLink:
             buffered: set[str] = set()  # machines whose buffer came on this connection
             last_check = time.monotonic()
             while stop is None or not stop.is_set():
-                try:
-                    item = await asyncio.wait_for(queue.get(), timeout=0.5)
-                except TimeoutError:
+                if self._unfed or any(self.queues.values()):  # to feed: only look at the queue
+                    await asyncio.sleep(0)
                     item = None
+                else:
+                    try:
+                        item = await asyncio.wait_for(queue.get(), timeout=0.5)
+                    except TimeoutError:
+                        item = None
                 batch = [item] if item else []
                 while not queue.empty():
                     batch.append(queue.get_nowait())
@@ -255,16 +282,24 @@ class OpcUaLink:
                     if name is None:
                         continue
                     if nodeid == nodes[name]["state"].nodeid:
-                        states[name] = str(value)
+                        states[name] = print_state(name, value, states.get(name, "printing"))
                     else:
                         buffers[name] = value
                 buffered.update(buffers)
-                messages = self._feed(buffers)
+                for name, value in buffers.items():
+                    self._enqueue(name, value)
+                messages = self._feed_slice()
                 messages += self.engine.poll_and_publish()
                 await self._publish(client, nodes, messages)
                 for name in list(nodes):
-                    # finished, and its final buffer has been read (not only the state)
-                    if states.get(name) == "finished" and name in buffered and name not in buffers:
+                    # finished, its final buffer read (not only the state) and all of it fed
+                    if (
+                        states.get(name) == "finished"
+                        and name in buffered
+                        and name not in buffers
+                        and not self.queues.get(name)
+                        and not any(m == name for items in self._unfed for m, _ in items)
+                    ):
                         if self.close_finished and name in self.engine.sessions:
                             final = self.engine.close(name)
                             log.info("%s: print finished, stored as registry print %s", name, final)
@@ -320,23 +355,59 @@ class OpcUaLink:
             out["link_status"] = None
         return out
 
-    def _feed(self, buffers: dict) -> list[dict]:
-        """New rows of each machine's buffer → samples, fed in time order, batched."""
-        by_time: dict[float, list] = {}
-        for name, value in buffers.items():
-            last = self.last_time.get(name, -np.inf)
-            session = self.engine.sessions.get(name)
-            if session is not None and session.stream.last_time is not None:
-                last = max(last, session.stream.last_time)  # resumed: skip what is stored
-            samples, last, problems = buffer_samples(name, value, last)
+    def _enqueue(self, name: str, value) -> None:
+        """Queue the new rows of a machine's buffer (:func:`new_rows`); log what is refused."""
+        queue = self.queues.setdefault(name, RowQueue())
+        newest = self.last_time.get(name, -np.inf)
+        session = self.engine.sessions.get(name)
+        if session is not None and session.stream.last_time is not None:
+            newest = max(newest, session.stream.last_time)  # resumed: skip what is stored
+        rows, problems = buffer_rows(name, value)
+        if rows is None:
             for p in problems:
                 log.warning(p)
-            for sample in samples:
-                by_time.setdefault(sample.time_s, []).append((name, sample))
-            self.last_time[name] = last
+            return
+        taken, queue.tail, dropped, after, problems = new_rows(name, rows, queue.tail, newest)
+        for p in problems:
+            log.warning(p)
+        if len(dropped):
+            log.warning(
+                "%s: %d sample(s) whose time went backwards dropped (t = %s s, after t = %g s):"
+                " the machine's clock stepped back or its buffer is out of order; their seconds"
+                " are missing data",
+                name,
+                len(dropped),
+                _times_text(dropped),
+                after,
+            )
+        if len(taken):
+            queue.append(taken)
+            self.last_time[name] = float(taken[-1, 0])
+
+    def _feed_slice(self) -> list[dict]:
+        """Feed queued rows to the engine for about :data:`FEED_BUDGET_S` (at least one
+        round), machines merged in time order so that their ordinary steps run batched."""
         messages = []
-        for t in sorted(by_time):
-            messages += self.engine.feed_many(by_time[t])
+        start = time.monotonic()
+        while self._unfed or any(self.queues.values()):
+            if not self._unfed:
+                by_time: dict[float, list] = {}
+                for name, queue in self.queues.items():
+                    rows = queue.take(FEED_ROWS)
+                    if not len(rows):
+                        continue
+                    samples, _, problems = buffer_samples(name, rows, -np.inf)
+                    for p in problems:
+                        log.warning(p)
+                    for sample in samples:
+                        by_time.setdefault(sample.time_s, []).append((name, sample))
+                self._unfed.extend(by_time[t] for t in sorted(by_time))
+            # the budget is checked after each time step (a step may replay held samples)
+            while self._unfed and time.monotonic() - start < FEED_BUDGET_S:
+                messages += self.engine.feed_many(self._unfed.popleft())
+            if time.monotonic() - start >= FEED_BUDGET_S:
+                break
+        self.longest_slice_s = max(self.longest_slice_s, time.monotonic() - start)
         return messages
 
     async def _publish(self, client, nodes, messages):
@@ -381,6 +452,145 @@ class OpcUaLink:
                     event["description"],
                 )
                 await asyncio.sleep(0.15)  # one server-side notification per alarm
+
+
+class RowQueue:
+    """A machine's buffer rows received and not yet fed (oldest first), and the last row of
+    its latest buffer (where the next buffer's new rows begin)."""
+
+    def __init__(self):
+        self._parts: list[np.ndarray] = []
+        self._head = 0  # rows of the first part already taken
+        self.tail: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self._parts) - self._head
+
+    def append(self, rows: np.ndarray) -> None:
+        """Queue rows (n, SAMPLE_WIDTH)."""
+        self._parts.append(np.asarray(rows, dtype=float))
+
+    def take(self, n: int) -> np.ndarray:
+        """Up to ``n`` oldest rows, removed from the queue."""
+        out = []
+        while self._parts and n > 0:
+            part = self._parts[0]
+            chunk = part[self._head : self._head + n]
+            out.append(chunk)
+            n -= len(chunk)
+            self._head += len(chunk)
+            if self._head >= len(part):
+                self._parts.pop(0)
+                self._head = 0
+        return np.concatenate(out) if out else np.empty((0, SAMPLE_WIDTH))
+
+
+def buffer_rows(name: str, value) -> tuple[np.ndarray | None, list[str]]:
+    """A ``SampleBuffer`` value as rows (n, SAMPLE_WIDTH), or (None, the log line) when it
+    is not a table of numbers of that width (None, text, bytes, a ragged list)."""
+    try:
+        return np.asarray(value, dtype=float).reshape(-1, SAMPLE_WIDTH), []
+    except (TypeError, ValueError, OverflowError):
+        return None, [f"{name}: SampleBuffer has the wrong shape or type; ignored"]
+
+
+def _last_index_of(rows: np.ndarray, row: np.ndarray) -> int | None:
+    same = (rows == row) | (np.isnan(rows) & np.isnan(row))
+    found = np.flatnonzero(same.all(axis=1))
+    return int(found[-1]) if found.size else None
+
+
+def new_rows(name: str, rows, previous_tail, newest: float):
+    """The rows of a buffer that are new samples, in order.
+
+    A buffer holds the machine's last samples, oldest first. Its new rows are those after
+    the previous buffer's last row (``previous_tail``), when that row is still in it. A new
+    row must be later than every sample taken (``newest`` [s]) and than the new rows
+    before it; one that is not went back in time and is dropped (the machine's clock
+    stepped back; where to put it on the 1 s grid is unknown). Without the previous last
+    row (the first buffer, a reconnection, more new rows than the buffer holds) the rows up
+    to the first later one are taken as the overlap with what was read before.
+    All-NaN rows (a buffer's unfilled slots) are skipped; a row without a finite time is
+    reported.
+
+    Returns
+    -------
+    taken : (k, SAMPLE_WIDTH) the new samples' rows, times increasing
+    tail : the buffer's last row (for the next buffer)
+    dropped : (j,) times [s] of the rows that went back in time
+    after : the time [s] the first of them should have followed (NaN: none dropped)
+    problems : log lines for rows without a time
+
+    Examples
+    --------
+    >>> row = lambda t: [t, 375, 23, 50, 70, 8, 5800, 5780, 1e-8]
+    >>> taken, tail, dropped, after, _ = new_rows(
+    ...     "m", np.array([row(4), row(5), row(2), row(6)]), np.array(row(4)), 4.0)
+    >>> taken[:, 0].tolist(), dropped.tolist(), after
+    ([5.0, 6.0], [2.0], 5.0)
+    """
+    rows = np.asarray(rows, dtype=float)
+    filled = ~np.isnan(rows).all(axis=1)
+    tail = rows[filled][-1].copy() if filled.any() else previous_tail
+    start = None if previous_tail is None else _last_index_of(rows, previous_tail)
+    known = start is not None  # the rows after the previous tail are all new
+    later = float(newest)
+    after = np.nan
+    keep, dropped, problems = [], [], []
+    for i in range(0 if start is None else start + 1, len(rows)):
+        if not filled[i]:
+            continue
+        t = rows[i, 0]
+        if not np.isfinite(t):
+            problems.append(f"{name}: SampleBuffer row with time {t!r}; dropped")
+        elif t > later:
+            keep.append(i)
+            later, known = float(t), True
+        elif known:
+            after = later if not dropped else after
+            dropped.append(float(t))
+    taken = rows[keep] if keep else np.empty((0, SAMPLE_WIDTH))
+    return taken, tail, np.asarray(dropped, dtype=float), after, problems
+
+
+def _times_text(times) -> str:
+    """``"97, 94 … 13"``: the first two and the last of a list of times."""
+    shown = [f"{t:g}" for t in times[:2]]
+    if len(times) > 3:
+        shown.append("…")
+    if len(times) > 2:
+        shown.append(f"{times[-1]:g}")
+    return ", ".join(shown)
+
+
+def print_state(name: str, value, current: str) -> str:
+    """A ``PrintState`` value: one of :data:`PRINT_STATES`, or logged and ignored (the
+    machine keeps ``current``): a number (3.14), an empty or unknown text."""
+    text = value.strip().lower() if isinstance(value, str) else None
+    if text in PRINT_STATES:
+        return text
+    log.warning(
+        "%s: PrintState = %r is not a print state (%s); ignored, the print stays %s",
+        name,
+        value,
+        " or ".join(PRINT_STATES),
+        current,
+    )
+    return current
+
+
+def fault_text(exc: BaseException, url: str, timeout_s: float) -> str:
+    """A connection fault in words (the log line and the dashboard's link state): an empty
+    TimeoutError said only "TimeoutError: "."""
+    if isinstance(exc, TimeoutError):
+        return (
+            f"no answer from {url} within {timeout_s:g} s (TimeoutError): the server accepts "
+            "the connection but does not answer OPC UA, or it is hung"
+        )
+    if isinstance(exc, ConnectionRefusedError):
+        return f"nothing listens at {url} (connection refused): is the server running?"
+    text = str(exc) or getattr(exc, "strerror", None) or ""
+    return f"{type(exc).__name__}: {text}" if text else f"{type(exc).__name__} (no details)"
 
 
 def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, list[str]]:
@@ -487,4 +697,4 @@ async def follow_csv(
     return None
 
 
-__all__ = ["LinkRefused", "OpcUaLink", "Sample", "follow_csv"]
+__all__ = ["LinkRefused", "OpcUaLink", "RowQueue", "Sample", "follow_csv", "new_rows"]

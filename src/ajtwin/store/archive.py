@@ -39,6 +39,7 @@ import tempfile
 from pathlib import Path
 
 from ajtwin import __version__
+from ajtwin.store.connection import rollback_if_open
 from ajtwin.store.registry import (
     LIVE_SESSION_TABLES,
     MACHINE_TABLES,
@@ -46,7 +47,7 @@ from ajtwin.store.registry import (
     SCHEMA_VERSION,
     Registry,
     RegistryError,
-    clean_name,
+    check_new_name,
     printable,
 )
 
@@ -177,7 +178,7 @@ def _copy_machine(src, dst, name, new_name) -> dict:
                         _insert(dst, table, s_row, table_columns)
         dst.execute("COMMIT")
     except BaseException:
-        dst.execute("ROLLBACK")
+        rollback_if_open(dst)
         raise
     return {"prints": len(print_ids), "live_sessions": n_sessions, "open_live_sessions": n_open}
 
@@ -308,7 +309,7 @@ def import_machine(
         source_name = manifest.get("machine")
         if not isinstance(source_name, str):
             raise _bad(archive, "manifest has no machine name")
-        new_name = clean_name(as_name if as_name is not None else source_name)
+        new_name = check_new_name(as_name if as_name is not None else source_name)
         try:
             part = Registry(db_path, create=False, end_state_check=end_state_check)
         except RegistryError as exc:

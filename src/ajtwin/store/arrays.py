@@ -160,28 +160,51 @@ def decode(blob, codec: str = ZSHUF) -> np.ndarray:
     return np.ascontiguousarray(table).view(dtype).reshape(shape).copy()
 
 
-def keyframe_steps(n_steps: int, time_s, every_s: float, alarm_times=()) -> np.ndarray:
+def keyframe_steps(
+    n_steps: int,
+    time_s,
+    every_s: float,
+    alarm_times=(),
+    *,
+    origin_s: float | None = None,
+    after_s: float | None = None,
+    keep_last: bool = True,
+) -> np.ndarray:
     """Steps whose full covariance is kept: every ``every_s``, the last, and alarms.
 
-    ``every_s`` ≤ 0 keeps only the last step and the alarm steps.
+    ``every_s`` ≤ 0 keeps only the last step and the alarm steps. A part of a print (steps
+    written as they are produced) passes the print's start ``origin_s``, the time of the
+    step before the part ``after_s`` and ``keep_last`` only for the print's last part: the
+    steps kept are then the ones the whole print would keep (the first step at or after
+    each mark) that lie in the part.
     """
     t = np.arange(n_steps, dtype=float) if time_s is None else np.asarray(time_s, float)
-    keep = {n_steps - 1} if n_steps else set()
+    keep = {n_steps - 1} if n_steps and keep_last else set()
+    lower = -np.inf if after_s is None else float(after_s)
     if every_s > 0 and n_steps:
         # the first step at or after each multiple of every_s from the print's start
-        marks = t[0] + np.arange(0.0, t[-1] - t[0] + every_s, every_s)
+        origin = t[0] if origin_s is None else float(origin_s)
+        first = max(np.ceil((max(t[0], lower) - origin) / every_s), 0.0)
+        marks = origin + every_s * np.arange(first, np.floor((t[-1] - origin) / every_s) + 2)
+        marks = marks[marks > lower]
         keep.update(np.searchsorted(t, marks).tolist())
     for when in alarm_times:
-        if np.isfinite(when):
+        if np.isfinite(when) and when > lower:
             keep.add(int(np.searchsorted(t, when)))
     return np.array(sorted(k for k in keep if 0 <= k < n_steps), dtype=np.int64)
 
 
-def encode_all(arrays: dict, policy: StoragePolicy, alarm_times=(), every_s=None) -> dict:
+def encode_all(
+    arrays: dict, policy: StoragePolicy, alarm_times=(), every_s=None, *, part=None
+) -> dict:
     """{name: (codec, blob)} of a print's arrays under ``policy``.
 
     ``every_s`` overrides the policy's key-frame spacing (≤ 0: only the last step and
-    the alarms, what ``machine compact`` keeps of old prints).
+    the alarms, what ``machine compact`` keeps of old prints). ``part``: the arrays are a
+    part of a print, a dict with ``first_step`` (its first step's index in the print),
+    ``origin_s`` (the print's start), ``after_s`` (the time of the step before it; None
+    for the first part) and ``last`` (the print's last part): key frames are chosen as for
+    the whole print (:func:`keyframe_steps`) and stored with their index in the print.
     """
     arrays = dict(arrays)
     if "means" in arrays and "predicted_means" in arrays:
@@ -190,8 +213,11 @@ def encode_all(arrays: dict, policy: StoragePolicy, alarm_times=(), every_s=None
     if "covariances" in arrays and (every_s is not None or policy.covariance_every_s > 0):
         covs = np.asarray(arrays.pop("covariances"), dtype=float)
         every = policy.covariance_every_s if every_s is None else every_s
-        steps = keyframe_steps(len(covs), arrays.get("time_s"), every, alarm_times)
-        arrays["covariance_steps"] = steps
+        where = {} if part is None else {
+            "origin_s": part["origin_s"], "after_s": part["after_s"], "keep_last": part["last"]
+        }  # fmt: skip
+        steps = keyframe_steps(len(covs), arrays.get("time_s"), every, alarm_times, **where)
+        arrays["covariance_steps"] = steps + (0 if part is None else int(part["first_step"]))
         arrays["covariance_keyframes"] = covs[steps]
     out = {}
     for name, value in arrays.items():
@@ -206,6 +232,26 @@ def encode_all(arrays: dict, policy: StoragePolicy, alarm_times=(), every_s=None
 def _fits_float32(value: np.ndarray) -> bool:
     finite = np.abs(value[np.isfinite(value)])
     return not finite.size or float(finite.max()) <= float(np.finfo(np.float32).max)
+
+
+def join_parts(parts: dict) -> dict:
+    """{name: array} of a print stored in parts ({name: [decoded part, ...]} in part order):
+    each array's parts joined along the steps; the covariance key frames sorted by step,
+    each step once (a later part may add the key frame of an alarm whose onset lay in an
+    earlier part).
+
+    >>> joined = join_parts({"time_s": [np.arange(2.0), np.arange(2.0, 4.0)],
+    ...                      "covariance_steps": [np.array([3]), np.array([0, 3])],
+    ...                      "covariance_keyframes": [np.ones((1, 1)), np.zeros((2, 1))]})
+    >>> joined["time_s"].tolist(), joined["covariance_steps"].tolist()
+    ([0.0, 1.0, 2.0, 3.0], [0, 3])
+    """
+    out = {name: np.concatenate(chunks, axis=0) for name, chunks in parts.items()}
+    if "covariance_steps" in out and "covariance_keyframes" in out:
+        steps, first = np.unique(out["covariance_steps"], return_index=True)
+        out["covariance_steps"] = steps
+        out["covariance_keyframes"] = out["covariance_keyframes"][first]
+    return out
 
 
 def expand(stored: dict) -> dict:

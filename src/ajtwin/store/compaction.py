@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.store import arrays as _arrays
+from ajtwin.store.connection import rollback_if_open
 from ajtwin.store.registry import Registry, RegistryError, printable
 
 
@@ -82,7 +83,9 @@ def compact(
         (machine["id"],),
     ).fetchall()
     reencoded = thinned = 0
+    registry.discard_stale_drafts()
     for row in prints:
+        _merge_parts(registry, row["id"], row["seq"])
         stored = conn.execute(
             "SELECT name, npy, codec FROM print_arrays WHERE print_id = ?", (row["id"],)
         ).fetchall()
@@ -162,6 +165,40 @@ def compact(
         "thinned": thinned,
         "live_steps_dropped": live_steps_dropped,
     }
+
+
+def _merge_parts(registry: Registry, print_id: int, seq: int) -> None:
+    """A print stored in parts (written as it ran) gets one row per array, the parts joined
+    exactly (each array keeps its stored type), in one transaction; then the retention
+    below treats it as any other print."""
+    conn = registry._conn
+    rows = conn.execute(
+        "SELECT name, codec, blob FROM print_array_parts WHERE print_id = ? ORDER BY name, part",
+        (print_id,),
+    ).fetchall()
+    if not rows:
+        return
+    parts: dict[str, list] = {}
+    for r in rows:
+        try:
+            parts.setdefault(r["name"], []).append(_arrays.decode(r["blob"], r["codec"]))
+        except ValueError as exc:
+            raise RegistryError(
+                f"{registry.path}: registry damaged at print {seq}, array "
+                f"{printable(r['name'])}: {exc}; nothing compacted from there on"
+            ) from None
+    joined = _arrays.join_parts(parts)
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        conn.executemany(
+            "INSERT OR REPLACE INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
+            [(print_id, key, *reversed(_arrays.encode(value))) for key, value in joined.items()],
+        )
+        conn.execute("DELETE FROM print_array_parts WHERE print_id = ?", (print_id,))
+        conn.execute("COMMIT")
+    except BaseException:
+        rollback_if_open(conn)
+        raise
 
 
 def _drop_closed_live_steps(conn, name: str, machine_id: int) -> int:

@@ -30,12 +30,12 @@ Examples
 from __future__ import annotations
 
 import json
-import sqlite3
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ajtwin.store.connection import connect, rollback_if_open
 from ajtwin.store.registry import Registry, from_npy, to_npy
 
 
@@ -53,10 +53,7 @@ class LiveLog:
         # the tables are the registry's (migration 3): opening it creates or migrates them,
         # and a file that is not an ajtwin registry is refused, never taken over
         Registry(self.path, timeout_s).close()
-        self._conn = sqlite3.connect(
-            str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
-        )
-        self._conn.row_factory = sqlite3.Row
+        self._conn = connect(self.path, timeout_s)
         self._conn.execute("PRAGMA synchronous=NORMAL")
 
     def close(self):
@@ -139,7 +136,7 @@ class LiveLog:
             )
             conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            rollback_if_open(conn)
             raise
 
     def n_steps(self, session_id: int) -> int:
@@ -163,6 +160,28 @@ class LiveLog:
         u = np.array([from_npy(r["inputs"]) for r in rows], dtype=float).reshape(-1, 3)
         y = np.array([from_npy(r["outputs"]) for r in rows], dtype=float).reshape(-1, 5)
         return t, u, y
+
+    def iter_samples(self, session_id: int, batch: int = 3600):
+        """(time_s, inputs, outputs) of a session ``batch`` steps at a time, in step order:
+        a replay that holds one batch, not the whole print (:meth:`samples`)."""
+        first = 0
+        while True:
+            rows = self._conn.execute(
+                "SELECT step, time_s, inputs, outputs FROM live_samples WHERE session_id = ? "
+                "AND step >= ? ORDER BY step LIMIT ?",
+                (session_id, first, int(batch)),
+            ).fetchall()
+            if not rows:
+                return
+            steps = [r["step"] for r in rows]
+            if steps != list(range(first, first + len(steps))):
+                raise RuntimeError(f"live session {session_id}: stored steps are not contiguous")
+            yield (
+                np.array([r["time_s"] for r in rows], dtype=float),
+                np.array([from_npy(r["inputs"]) for r in rows], dtype=float).reshape(-1, 3),
+                np.array([from_npy(r["outputs"]) for r in rows], dtype=float).reshape(-1, 5),
+            )
+            first += len(rows)
 
     def states(self, session_id: int) -> list[dict]:
         """The published messages of a session's committed steps, in step order."""

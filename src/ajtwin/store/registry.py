@@ -63,6 +63,7 @@ import hashlib
 import io
 import json
 import os
+import socket
 import sqlite3
 import stat
 import time
@@ -75,6 +76,14 @@ import pandas as pd
 
 from ajtwin.model.names import STATE_NAMES
 from ajtwin.store import arrays as _arrays
+from ajtwin.store.connection import (
+    RegistryError,
+    check_integrity,
+    check_writable,
+    connect,
+    repair_journal_modes,
+    rollback_if_open,
+)
 
 #: environment variable: seconds to sleep inside the ingest transaction (crash tests only)
 TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
@@ -296,9 +305,40 @@ CREATE TABLE IF NOT EXISTS print_jobs (
 """
 
 
+#: A print's per-second arrays written while the print runs (a long ingest, a live print):
+#: parts of consecutive steps, each encoded as ``print_arrays`` are (ajtwin.store.arrays).
+#: Until the print is stored they belong to a draft (``print_id`` = −draft id: no foreign
+#: key), and the transaction that stores the print moves them to it. A draft whose process
+#: died is removed by the next ingest, live start or ``machine compact``. Never edit: add
+#: a migration.
+_PARTS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS array_drafts (
+    id INTEGER PRIMARY KEY,
+    machine TEXT NOT NULL,
+    label TEXT NOT NULL,
+    created_unix REAL NOT NULL,
+    pid INTEGER NOT NULL,
+    host TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS print_array_parts (
+    print_id INTEGER NOT NULL,
+    name TEXT NOT NULL,
+    part INTEGER NOT NULL,
+    codec TEXT NOT NULL,
+    blob BLOB NOT NULL,
+    PRIMARY KEY (print_id, name, part)
+)
+"""
+
+
 def _migrate_to_6(conn):
     """The job a print ran (``print_jobs``); older prints have none (no row)."""
     _execute_all(conn, _PRINT_JOB_SCHEMA)
+
+
+def _migrate_to_7(conn):
+    """Print arrays written in parts while a print runs (array_drafts, print_array_parts)."""
+    _execute_all(conn, _PARTS_SCHEMA)
 
 
 #: (version, what it adds, function(conn)); append only (see the module docstring).
@@ -308,21 +348,18 @@ MIGRATIONS: list[tuple[int, str, object]] = [
     (4, "per-machine calibrations and maintenance events", _migrate_to_4),
     (5, "the detectors' long-run noise statistics per print and calibration", _migrate_to_5),
     (6, "the job (machine program) each print ran: print_jobs", _migrate_to_6),
+    (7, "print arrays written in parts while a print runs", _migrate_to_7),
 ]
 SCHEMA_VERSION = MIGRATIONS[-1][0] if MIGRATIONS else 1
 
 #: Tables with a ``machine_id`` column / a ``print_id`` column (export, import, delete).
 #: Copied in this order, each in its ``id`` order (the newest calibration stays active).
 MACHINE_TABLES = ["prints", "calibrations", "maintenance_events"]
-PRINT_TABLES = ["print_arrays", "anomalies", "print_jobs"]
+PRINT_TABLES = ["print_arrays", "print_array_parts", "anomalies", "print_jobs"]
 #: Tables with a ``session_id`` column (rows of one ``live_sessions`` row). The sessions
 #: themselves are found by ``live_sessions.machine`` (a name) and copied, renamed and with
 #: ``print_id`` renumbered, by :func:`ajtwin.store.archive.copy_machine`.
 LIVE_SESSION_TABLES = ["live_samples", "live_states", "live_events"]
-
-
-class RegistryError(RuntimeError):
-    """A registry operation that cannot be done (unknown machine, duplicate, ...)."""
 
 
 def default_store_path() -> Path:
@@ -385,6 +422,35 @@ def clean_name(name: str) -> str:
     return name
 
 
+#: characters a new machine name may not hold: it is one segment of its pages' addresses
+#: (/machine/NAME; a web server splits paths at '/', and browsers read '\\' as '/') and of
+#: file names derived from it
+NAME_FORBIDDEN = "/\\"
+
+
+def check_new_name(name: str) -> str:
+    """A name for a new machine (:func:`clean_name`), one that can name its pages.
+
+    Refused with the rule named: ``/`` or ``\\`` anywhere (the dashboard's page of
+    ``a/b`` would be ``/machine/a/b``, which no route can serve), or the names ``.`` and
+    ``..`` (browsers resolve them away in a path). Other characters are fine: the pages
+    percent-encode names in their links.
+
+    >>> check_new_name("aj300 lab-1")
+    'aj300 lab-1'
+    """
+    name = clean_name(name)
+    bad = sorted({c for c in name if c in NAME_FORBIDDEN})
+    if bad or name in (".", ".."):
+        what = f"contains {' and '.join(repr(c) for c in bad)}" if bad else "is a path step"
+        raise RegistryError(
+            f"machine name {printable(name)!r} {what}: a machine's name is one part of its "
+            "pages' addresses (/machine/NAME), so it may not contain '/' or '\\' nor be "
+            "'.' or '..'; use e.g. letters, digits, '-', '_', '.' and spaces"
+        )
+    return name
+
+
 def printable(text) -> str:
     """``text`` with control/format characters escaped (``\\x1b``), safe for a terminal."""
     out = []
@@ -401,6 +467,17 @@ def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
+def _process_alive(pid) -> bool:
+    """Whether process ``pid`` of this computer runs (a draft's writer)."""
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True  # another user's process, or no way to tell: keep its draft
+    return True
+
+
 class Registry:
     """A SQLite machine registry (see module docstring).
 
@@ -415,6 +492,10 @@ class Registry:
         False and get a :class:`RegistryError` instead.
     policy : arrays.StoragePolicy, optional
         How per-second arrays are stored (default :class:`ajtwin.store.arrays.StoragePolicy`).
+    write : bool
+        The caller will write: refuse at once (:class:`~ajtwin.store.connection.StoreError`)
+        when this process cannot write the file, its journal or its folder
+        (:func:`~ajtwin.store.connection.check_writable`), before any work is done.
     end_state_check : callable, optional
         ``end_state_check(end_mean (5,)) -> list of problems``: when a version-1 registry is
         migrated, its prints whose end state this rejects are excluded from the chain
@@ -436,6 +517,7 @@ class Registry:
         create: bool = True,
         policy=None,
         end_state_check=None,
+        write: bool = False,
     ):
         self.path = Path(path) if path is not None else default_store_path()
         self.policy = policy or _arrays.StoragePolicy()
@@ -459,23 +541,28 @@ class Registry:
                 f"no registry at {self.path}; create one with `ajtwin machine add NAME "
                 f"--store {self.path}` (read-only commands never create it)"
             )
-        else:
+        if write or (create and not exists):
+            check_writable(self.path)
+        if not exists:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise RegistryError(f"{self.path}: cannot create its folder ({exc})") from None
         try:
-            self._conn = sqlite3.connect(
-                str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False
-            )
-            self._conn.row_factory = sqlite3.Row
+            self._conn = connect(self.path, timeout_s)
+            check_integrity(self._conn, self.path)
             self._open(create)
-        except sqlite3.Error as exc:
-            self.close()
-            raise RegistryError(f"{self.path}: not a usable ajtwin registry ({exc})") from None
+            if write:  # the lock a write takes (a read-only mount, another writer's hold)
+                self._conn.execute("BEGIN IMMEDIATE")
+                self._conn.execute("ROLLBACK")
         except RegistryError:
             self.close()
             raise
+        except sqlite3.Error as exc:
+            self.close()
+            raise RegistryError(f"{self.path}: not a usable ajtwin registry ({exc})") from None
+        finally:
+            repair_journal_modes(self.path)
 
     # ------------------------------------------------------------------ opening
     def _tables(self) -> set[str]:
@@ -581,7 +668,7 @@ class Registry:
                     )
             self._conn.execute("COMMIT")
         except BaseException:
-            self._conn.execute("ROLLBACK")
+            rollback_if_open(self._conn)
             self.migrated = []
             raise
 
@@ -590,6 +677,7 @@ class Registry:
         if self._conn is not None:
             self._conn.close()
             self._conn = None
+            repair_journal_modes(self.path)
 
     def __enter__(self):
         return self
@@ -599,8 +687,10 @@ class Registry:
 
     # ------------------------------------------------------------------ machines
     def add_machine(self, name: str, limits: dict | None = None, notes: str = "") -> dict:
-        """Register a machine; ``limits`` maps input names to [low, high] (display units)."""
-        name = clean_name(name)
+        """Register a machine; ``limits`` maps input names to [low, high] (display units).
+
+        The name follows :func:`check_new_name` (no ``/`` or ``\\``)."""
+        name = check_new_name(name)
         merged = {k: list(v) for k, v in DEFAULT_LIMITS.items()}
         for key, value in (limits or {}).items():
             if key not in DEFAULT_LIMITS:
@@ -750,19 +840,105 @@ class Registry:
         rows = self._conn.execute(
             "SELECT name, npy, codec FROM print_arrays WHERE print_id = ?", (print_id,)
         ).fetchall()
-        out = {}
-        for r in rows:
-            try:
-                out[r["name"]] = _arrays.decode(r["npy"], r["codec"])
-            except ValueError as exc:
-                seq = self._conn.execute(
-                    "SELECT seq FROM prints WHERE id = ?", (print_id,)
-                ).fetchone()
-                raise RegistryError(
-                    f"{self.path}: registry damaged at print {seq[0] if seq else '?'} "
-                    f"(id {print_id}), array {printable(r['name'])}: {exc}"
-                ) from None
+        out = {r["name"]: self._decoded(print_id, r["name"], r["npy"], r["codec"]) for r in rows}
+        parts: dict[str, list] = {}
+        for r in self._conn.execute(
+            "SELECT name, codec, blob FROM print_array_parts WHERE print_id = ? "
+            "ORDER BY name, part",
+            (print_id,),
+        ).fetchall():
+            decoded = self._decoded(print_id, r["name"], r["blob"], r["codec"])
+            parts.setdefault(r["name"], []).append(decoded)
+        out.update(_arrays.join_parts(parts))
         return _arrays.expand(out)
+
+    def _decoded(self, print_id: int, name: str, blob, codec: str) -> np.ndarray:
+        """A stored array decoded (RegistryError naming the print and array if damaged)."""
+        try:
+            return _arrays.decode(blob, codec)
+        except ValueError as exc:
+            seq = self._conn.execute("SELECT seq FROM prints WHERE id = ?", (print_id,)).fetchone()
+            raise RegistryError(
+                f"{self.path}: registry damaged at print {seq[0] if seq else '?'} "
+                f"(id {print_id}), array {printable(name)}: {exc}"
+            ) from None
+
+    # ------------------------------------------------------------------ drafts
+    def open_draft(self, machine: str, label: str) -> int:
+        """A draft for the arrays of a print of ``machine`` still running (``label`` says
+        which: "ingest of FILE", "live session 12"); its id for :meth:`append_draft` and
+        :meth:`save_print`. Drafts of processes that died are removed first."""
+        self.discard_stale_drafts()
+        cur = self._conn.execute(
+            "INSERT INTO array_drafts (machine, label, created_unix, pid, host) "
+            "VALUES (?, ?, ?, ?, ?)",
+            (str(machine), str(label), time.time(), os.getpid(), socket.gethostname()),
+        )
+        return int(cur.lastrowid)
+
+    def append_draft(self, draft: int, arrays: dict, part: dict, alarm_times=()) -> int:
+        """Write one part of a running print's arrays (consecutive steps) to ``draft``, in
+        its own short transaction; the bytes written.
+
+        ``part``: ``first_step``, ``origin_s``, ``after_s``, ``last`` as
+        :func:`ajtwin.store.arrays.encode_all` takes them; the arrays are stored by
+        :attr:`policy` (key frames of the covariances as the whole print would have them).
+        """
+        encoded = _arrays.encode_all(arrays, self.policy, alarm_times, part=part)
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            if conn.execute("SELECT 1 FROM array_drafts WHERE id = ?", (draft,)).fetchone() is None:
+                raise RegistryError(f"draft {draft} is not open (stored or discarded)")
+            row = conn.execute(
+                "SELECT COALESCE(MAX(part), -1) + 1 FROM print_array_parts WHERE print_id = ?",
+                (-int(draft),),
+            ).fetchone()
+            conn.executemany(
+                "INSERT INTO print_array_parts (print_id, name, part, codec, blob) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [(-int(draft), key, row[0], c, b) for key, (c, b) in encoded.items()],
+            )
+            conn.execute("COMMIT")
+        except BaseException:
+            rollback_if_open(conn)
+            raise
+        return sum(len(b) for _, b in encoded.values())
+
+    def discard_draft(self, draft: int) -> None:
+        """Remove a draft and its parts (a print that failed or was refused)."""
+        conn = self._conn
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            conn.execute("DELETE FROM print_array_parts WHERE print_id = ?", (-int(draft),))
+            conn.execute("DELETE FROM array_drafts WHERE id = ?", (int(draft),))
+            conn.execute("COMMIT")
+        except BaseException:
+            rollback_if_open(conn)
+            raise
+
+    def discard_drafts(self, machine: str, label: str) -> int:
+        """Remove the drafts of ``machine`` with ``label`` (a live session replayed from its
+        samples writes its parts again); how many."""
+        rows = self._conn.execute(
+            "SELECT id FROM array_drafts WHERE machine = ? AND label = ?", (machine, label)
+        ).fetchall()
+        for (draft,) in rows:
+            self.discard_draft(draft)
+        return len(rows)
+
+    def discard_stale_drafts(self) -> int:
+        """Remove the drafts of processes of this computer that no longer run (a killed
+        ingest: its print was never stored); how many."""
+        host = socket.gethostname()
+        stale = [
+            r["id"]
+            for r in self._conn.execute("SELECT id, pid, host FROM array_drafts").fetchall()
+            if r["host"] == host and not _process_alive(r["pid"])
+        ]
+        for draft in stale:
+            self.discard_draft(draft)
+        return len(stale)
 
     def long_run_history(self, name: str) -> tuple[int, dict] | None:
         """(seq, statistics) of the detectors' long-run statistics stored with the newest
@@ -867,11 +1043,14 @@ class Registry:
         live_session: int | None = None,
         keep_live_steps: bool = False,
         long_run_history: dict | None = None,
+        draft: int | None = None,
         job: dict | None = None,
     ) -> int:
         """Write one print, its arrays and anomalies in ONE transaction; returns its id.
 
-        ``job``: the machine program the print ran, kept with it (``print_jobs``):
+        ``draft``: the print's per-step arrays written in parts as it ran (:meth:`open_draft`,
+        :meth:`append_draft`), made this print's in the same transaction (``arrays``: the
+        rest, the θ history). ``job``: the machine program the print ran (``print_jobs``):
         ``program`` (file name), ``program_bytes`` (the file's bytes) and ``settings`` (a
         JSON-ready dict: speeds used, looping, tolerance); read back by :meth:`print_job`.
 
@@ -943,6 +1122,8 @@ class Registry:
                 "long_run_json": json.dumps(long_run_history),
             }
             print_id = self._insert_print(row, encoded, anomalies)
+            if draft is not None:
+                self._adopt_draft(draft, print_id)
             if job is not None:
                 self._insert_job(print_id, job)
             dropped = 0
@@ -953,9 +1134,9 @@ class Registry:
                 time.sleep(delay)
             conn.execute("COMMIT")
         except BaseException:
-            conn.execute("ROLLBACK")
+            rollback_if_open(conn)
             raise
-        if dropped:
+        if dropped or draft is not None:  # the draft's parts were moved: their old pages
             self.release_free_pages()
         return int(print_id)
 
@@ -989,6 +1170,15 @@ class Registry:
             ],
         )
         return int(print_id)
+
+    def _adopt_draft(self, draft: int, print_id: int) -> None:
+        """Inside save_print's transaction: the draft's parts become the print's."""
+        gone = self._conn.execute("DELETE FROM array_drafts WHERE id = ?", (int(draft),))
+        if gone.rowcount != 1:
+            raise RegistryError(f"draft {draft} is not open (stored or discarded); nothing stored")
+        self._conn.execute(
+            "UPDATE print_array_parts SET print_id = ? WHERE print_id = ?", (print_id, -int(draft))
+        )
 
     def _insert_job(self, print_id: int, job: dict) -> None:
         """Inside save_print's transaction: the job the print ran (compressed program)."""

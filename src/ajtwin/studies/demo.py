@@ -234,14 +234,19 @@ def ingest_prints(run: DemoRun) -> Registry:
     step, close = _twin_bar("twin, print 1")
     try:
         run.first = ingest_record(
-            reg, MACHINE, run.clean, source="print1_clean.parquet", progress=step
+            reg, MACHINE, run.clean, source="print1_clean.parquet", progress=step, keep_run=True
         )
     finally:
         close()
     step, close = _twin_bar("twin, print 2")
     try:
         run.second = ingest_record(
-            reg, MACHINE, run.faulty_video, source="print2_from_video.parquet", progress=step
+            reg,
+            MACHINE,
+            run.faulty_video,
+            source="print2_from_video.parquet",
+            progress=step,
+            keep_run=True,
         )
     finally:
         close()

@@ -20,13 +20,17 @@ Access: with a ``token`` every request must carry it (``Authorization: Bearer T`
 ``ajtwin_token`` cookie, or ``?token=T`` once — the server then sets the cookie) or gets
 401; the websocket is refused the same way (HTTP 403), and also when a browser opens it
 from a page of another origin (``Origin`` not this server's: any site could otherwise
-read the live stream of a dashboard served without a token). The websocket only pushes:
+read the live stream of a dashboard served without a token). A request that is not a
+GET/HEAD/OPTIONS (the what-if forecast and advice, which start minutes of work) is refused
+with HTTP 403 when a browser made it from a page of another site (:func:`cross_site_origin`:
+``Origin``, else ``Referer``, else ``Sec-Fetch-Site``). The websocket only pushes:
 a page that sends a message is closed with code 1003; at most :data:`MAX_WEBSOCKETS` are
 open at once (more: 403); events go out as strict JSON whatever a publisher put in them
 (:func:`ajtwin.web.publisher.event_text`). Nothing in the application changes a machine
 (forecasts and advice are computations; the registry is opened read-only in spirit: no
 write is ever issued). Bad what-if input gets HTTP 422 with a sentence saying what is
-wrong, never a server error.
+wrong, never a server error; so does a yes/no field that is not a JSON boolean (the text
+``"false"`` would otherwise count as true).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ import json
 import logging
 import math
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 from fastapi import FastAPI, Request, Response, WebSocket, WebSocketDisconnect
@@ -115,6 +120,20 @@ def _number(text, what: str) -> float:
     return value
 
 
+def _flag(body: dict, key: str, what: str) -> bool:
+    """A yes/no field of a form: a JSON ``true``/``false`` (absent or null: false).
+
+    Anything else is refused: Python's ``bool("false")`` is True, so a client that sent the
+    text ``"false"`` (or 0, or "no") would silently get the opposite of what it asked for.
+    """
+    value = body.get(key)
+    if value is None:
+        return False
+    if isinstance(value, bool):
+        return value
+    raise InputError(f"{what}: expected true or false (a JSON boolean), got {value!r}")
+
+
 def _duration(text, what: str) -> float:
 
     try:
@@ -175,8 +194,8 @@ def parse_forecast_request(body: dict, limits: dict, u_now) -> tuple:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     options = {
-        "nominal_theta": bool(body.get("nominal_theta", False)),
-        "with_sensor_noise": bool(body.get("with_sensor_noise", False)),
+        "nominal_theta": _flag(body, "nominal_theta", "nominal θ"),
+        "with_sensor_noise": _flag(body, "with_sensor_noise", "with sensor noise"),
     }
     return schedule, changes, horizon_s, options
 
@@ -205,7 +224,7 @@ def parse_advise_request(body: dict) -> dict:
         "target": target,
         "max_overspray": max_overspray,
         "settle_s": int(round(settle_s)),
-        "nominal_theta": bool(body.get("nominal_theta", False)),
+        "nominal_theta": _flag(body, "nominal_theta", "nominal θ"),
     }
 
 
@@ -302,6 +321,14 @@ def _add_access_control(app: FastAPI, token: str | None, loopback_only: bool) ->
             response.set_cookie(COOKIE, token, httponly=True, samesite="strict")
         return response
 
+    @app.middleware("http")
+    async def refuse_cross_site(request: Request, call_next):
+        if request.method not in SAFE_METHODS:
+            foreign = cross_site_origin(request.headers)
+            if foreign is not None:
+                return JSONResponse({"error": cross_site_refusal(foreign)}, status_code=403)
+        return await call_next(request)
+
     @app.exception_handler(InputError)
     async def input_error(request: Request, exc: InputError):
         return JSONResponse({"error": str(exc)}, status_code=422)
@@ -311,6 +338,51 @@ def _add_access_control(app: FastAPI, token: str | None, loopback_only: bool) ->
         if request.url.path.startswith("/api/"):
             return JSONResponse({"error": str(exc)}, status_code=404)
         return HTMLResponse(pages.message_page("Not found", str(exc)), status_code=404)
+
+
+#: request methods that change nothing and start no work; every other one (POST: a forecast,
+#: advice) is served only to the dashboard's own pages and to clients that are no browser
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+def _origin_of(url: str) -> str:
+    """``scheme://host[:port]`` of a URL (lower case; "" when it has none)."""
+    parts = urlsplit(url.strip())
+    return f"{parts.scheme}://{parts.netloc}".lower() if parts.scheme and parts.netloc else ""
+
+
+def cross_site_origin(headers) -> str | None:
+    """The page of another site that made this request, or None (the dashboard's own page, or
+    a client that is no browser: a script sends no ``Origin``, and is judged by the token).
+
+    A browser names the page behind every POST in ``Origin`` (older ones at least in
+    ``Referer``), and ``Sec-Fetch-Site`` says whether it was another site. Without this check
+    any web page the operator opens could make their browser start forecasts and advice on
+    a dashboard served on 127.0.0.1 without a token (a ``text/plain`` POST needs no CORS
+    preflight). ``Origin: null`` (a sandboxed frame, a local file) is another site too.
+    """
+    host = headers.get("host", "").lower()
+    own = {f"http://{host}", f"https://{host}"} if host else set()
+    origins = headers.getlist("origin")
+    for origin in origins:
+        if origin.strip().lower() not in own:
+            return origin
+    if origins:
+        return None
+    referer = headers.get("referer")
+    if referer and _origin_of(referer) not in own:
+        return _origin_of(referer) or referer
+    if headers.get("sec-fetch-site", "").lower() == "cross-site":
+        return "another site (Sec-Fetch-Site: cross-site)"
+    return None
+
+
+def cross_site_refusal(origin: str) -> str:
+    """The sentence a cross-site request gets with its HTTP 403."""
+    return (
+        f"refused: this request came from a page of another site ({origin!r}), not from the "
+        "dashboard's own pages; open the dashboard itself to run a forecast or advice"
+    )
 
 
 def _add_static_routes(app: FastAPI) -> None:

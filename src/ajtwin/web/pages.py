@@ -12,6 +12,7 @@ import datetime as _dt
 from html import escape
 from pathlib import Path
 from string import Template
+from urllib.parse import quote
 
 import numpy as np
 
@@ -47,6 +48,16 @@ def _page(title: str, body: str, page: str, machine: str = "", plots: bool = Tru
 {body}
 </main>
 </body></html>"""
+
+
+def machine_path(name: str) -> str:
+    """A machine name as one URL path segment: percent-encoded (``/``, ``?``, ``#``, ``%``,
+    spaces ...), then HTML-escaped for an attribute.
+
+    >>> machine_path("aj 300/α?")
+    'aj%20300%2F%CE%B1%3F'
+    """
+    return escape(quote(str(name), safe=""))
 
 
 def sparkline(trend: dict | None, width: int = 96, height: int = 22) -> str:
@@ -182,7 +193,7 @@ def fleet_rows(machines: list[dict]) -> str:
                 f'<span class="dim">{band}</span><br>{sparkline(s.get("trend"))}</td>'
             )
         # what-if needs a registered machine with a print (its state and limits)
-        whatif = f'<a href="/whatif/{name}">what-if</a>' if last else ""
+        whatif = f'<a href="/whatif/{machine_path(m["name"])}">what-if</a>' if last else ""
         care = []
         for key, label in (
             ("commissioned_at", "last commissioned"),
@@ -193,7 +204,7 @@ def fleet_rows(machines: list[dict]) -> str:
         care_cell = "<br>".join(care) if care else '<span class="dim">not recorded</span>'
         rows.append(
             f'<tr data-machine="{name}" data-status="{escape(status)}">'
-            f'<td><a href="/machine/{name}">{name}</a></td><td>{badge}</td>'
+            f'<td><a href="/machine/{machine_path(m["name"])}">{name}</a></td><td>{badge}</td>'
             f"<td>{last_cell}</td><td>{alarm_cell}</td>{''.join(state_cells)}"
             f"<td>{care_cell}</td><td>{whatif}</td></tr>"
         )
@@ -231,7 +242,7 @@ profilometer-calibrated CNN or the weighed vial): the machine page says which.</
 def machine_page(name: str) -> str:
     """A machine's page (its plots are drawn from ``/api/machine/NAME``)."""
     n = escape(name)
-    body = _template("machine.html").substitute(name=n)
+    body = _template("machine.html").substitute(name=n, path=machine_path(name))
     return _page(name, body, "machine", name)
 
 
@@ -257,6 +268,7 @@ def whatif_page(name: str, limits: dict, inputs_now, last_seq: int | None) -> st
     start = f"the end of print #{last_seq}" if last_seq else "— (no prints yet)"
     body = _template("whatif.html").substitute(
         name=n,
+        path=machine_path(name),
         start=escape(start),
         now=escape(now),
         lim_current=escape(rng("atomizer_current_mA", "mA")),

@@ -26,7 +26,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-from ajtwin.web.access import check_access
+from ajtwin.web.access import TOKEN_ENV, check_access
 from ajtwin.web.app import create_app
 from ajtwin.web.websocket import SERVER_OPTIONS
 
@@ -56,7 +56,7 @@ class DashboardProcess:
     Parameters
     ----------
     store : registry path
-    token : str, optional, passed as ``--token``
+    token : str, optional, passed in ``$AJTWIN_DASHBOARD_TOKEN`` (never on the command line)
     extra_args : list of str, more ``ajtwin dashboard`` options
     startup_timeout_s : float, bound on the wait for the first answer
     log_path : where the server's output goes (default: a temporary file)
@@ -85,9 +85,10 @@ class DashboardProcess:
         """Start ``ajtwin dashboard`` as a child process and wait (bounded) until it answers."""
         cmd = [sys.executable, "-m", "ajtwin.cli", "dashboard", "--store", self.store]
         cmd += ["--host", self.host, "--port", str(self.port), *self.extra_args]
-        if self.token:
-            cmd += ["--token", self.token]
         env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONUNBUFFERED="1")
+        env.pop(TOKEN_ENV, None)
+        if self.token:  # in the environment: a command line is visible to every user
+            env[TOKEN_ENV] = self.token
         self._log = open(self.log_path, "wb")  # noqa: SIM115 (closed in stop)
         self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + self.startup_timeout_s

@@ -18,6 +18,11 @@ CAUSES = {
     "atomizer": "atomizer trouble (Q_m and φ_A falling)",
     "ink_low": "ink running out (V_l low or falling towards it; vial observer)",
     "unexplained": "unexplained deviation",
+    # set by AnomalyDetector when the nozzle deposit leaves the output model's range
+    "nozzle_cleaning": (
+        "nozzle needs cleaning (its deposit is beyond the range the output model was built "
+        "for; the print's later alarms are part of this event)"
+    ),
     # set by ajtwin.apps.detection.mismatch.relabel_events: the model does not fit the machine
     "model_machine_mismatch": "model–machine mismatch, not a fault (commission the machine)",
 }

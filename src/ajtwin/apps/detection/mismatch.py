@@ -401,7 +401,7 @@ def first_em_update_s(run) -> float | None:
     return float(history["time_s"].iloc[0])
 
 
-def data_share(filtered) -> np.ndarray:
+def data_share(filtered, carry: dict | None = None) -> np.ndarray:
     """(T, 5) how much of each state's information came from this print's data.
 
     share_k = 1 − P_{k|k} / Π_k per state, where Π_k is the variance the start prior
@@ -413,6 +413,8 @@ def data_share(filtered) -> np.ndarray:
     0: the band is the prior's, carried by the model (ΔR_T: ≤ 1e-3 µm of deposit moves
     P_c by < 1 Pa; V_l, a consider state that only follows the fill and the draw).
     Computed in the filter's scaled coordinates (the states span 15 orders of magnitude).
+    ``carry`` (a dict, empty at a print's start): a run taken in chunks, ``filtered`` one of
+    them; the recursion goes on from the previous chunk's last step and is kept for the next.
 
     >>> from types import SimpleNamespace
     >>> one = np.eye(5)[None].repeat(2, 0)
@@ -430,6 +432,9 @@ def data_share(filtered) -> np.ndarray:
     n = len(post)
     share = np.zeros((n, post.shape[1]))
     prior = pred[0].copy()
+    if carry:  # the previous chunk's last step: Π_0 = F Π F^T + (P_{0|−1} − F P F^T)
+        f = carry["jac"]
+        prior = f @ carry["prior"] @ f.T + (pred[0] - f @ carry["post"] @ f.T)
     for k in range(n):
         with np.errstate(invalid="ignore", divide="ignore"):
             share[k] = 1.0 - np.diag(post[k]) / np.diag(prior)
@@ -437,6 +442,8 @@ def data_share(filtered) -> np.ndarray:
             f = jac[k]
             q = pred[k + 1] - f @ post[k] @ f.T
             prior = f @ prior @ f.T + q
+    if carry is not None and n:
+        carry.update(prior=prior, post=post[-1], jac=jac[-1])
     return np.clip(np.nan_to_num(share, nan=0.0), 0.0, 1.0)
 
 

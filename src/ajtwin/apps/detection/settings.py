@@ -58,6 +58,19 @@ def load_detector_settings() -> dict:
         "long_run_reference_pressure_sum": lr["reference_pressure_sum"],
         "deposit_window_s": dp["window_s"],
         "deposit_push_nm": dp["push_nm"],
+        **_gap_and_range_settings(data),
+    }
+
+
+def _gap_and_range_settings(data: dict) -> dict:
+    """The settings of ``[gaps]`` (detectors after a data gap), ``[nozzle_cleaning]`` (a
+    deposit beyond the output model's range) and ``[nis] long_run_scaled`` in
+    ``data/detectors.toml``."""
+    gaps, cleaning = data["gaps"], data["nozzle_cleaning"]
+    return {
+        "gap_restart_s": gaps["restart_after_s"],
+        "cleaning_deposit_um": cleaning["deposit_um"],
+        "nis_long_run_scaled": bool(data["nis"]["long_run_scaled"]),
     }
 
 
@@ -105,6 +118,14 @@ class DetectorSettings:
     # [s] above ``deposit_push_nm`` [nm] = the data keep adding deposit the model does not
     deposit_window_s: int = _D["deposit_window_s"]
     deposit_push_nm: float = _D["deposit_push_nm"]
+    # a run of this many seconds without any measurement (a link outage, a gap in a log)
+    # restarts the detectors' warm-up at the next measured second
+    gap_restart_s: float = _D["gap_restart_s"]
+    # the nozzle deposit [µm] beyond which the output model extrapolates: one event
+    # "nozzle needs cleaning", and the later alarms of the print join it
+    cleaning_deposit_um: float = _D["cleaning_deposit_um"]
+    # the windowed NIS from innovations divided by their long-run σ (as the CUSUMs')
+    nis_long_run_scaled: bool = _D["nis_long_run_scaled"]
 
 
 def cusum_thresholds(settings: DetectorSettings) -> np.ndarray:

@@ -32,6 +32,7 @@ from ajtwin.apps.detection.statistics import (
     nis_tail_probability,
     normalised_innovations,
 )
+from ajtwin.apps.detection.steplog import StepLog
 from ajtwin.estimation.vial import VialObserver
 
 
@@ -76,6 +77,13 @@ class DetectorStep:
     raised: list  # AnomalyEvent opened at this step (label from the evidence so far)
     finalised: list  # AnomalyEvent whose evidence window closed at this step (final label)
 
+
+#: steps the detectors keep of their per-step values: an event's evidence (evidence_s) and
+#: its onset (a CUSUM's change point) lie within this many seconds of the present
+HISTORY_S = 3600
+
+#: the detector label of the event a deposit beyond the output model's range raises
+CLEANING_DETECTOR = "ΔR_N beyond the model's range"
 
 #: channel families for event grouping (AnomalyDetector._joins)
 _FAMILIES = {"L_w": "line", "L_o": "line", "P_c": "pressure", "P_s": "pressure", "Q_m": "material"}
@@ -129,21 +137,27 @@ class AnomalyDetector:
         self.k = -1
         self.start = None  # first step past the warm-up
         self.t0 = None
-        self.time: list[float] = []
-        self.e: list[np.ndarray] = []
-        self.corrections: list[np.ndarray] = []
-        self.stds: list[np.ndarray] = []
-        self.vial: list[float] = []
-        self.nozzle: list[float] = []  # the twin's ΔR_N per step [µm]
+        # per-step values of the last HISTORY_S steps (an event's evidence and onset)
+        self.time = StepLog(HISTORY_S)
+        self.e = StepLog(HISTORY_S)
+        self.corrections = StepLog(HISTORY_S)
+        self.stds = StepLog(HISTORY_S)
+        self.vial = StepLog(HISTORY_S)
+        self.nozzle = StepLog(HISTORY_S)  # the twin's ΔR_N per step [µm]
+        self.opened_deposit: dict[int, float] = {}  # ΔR_N at each event's first alarm [µm]
         self.groups: list[list] = []  # raw alarms (step, change_step, label) per event
         self.events: list[AnomalyEvent] = []  # one per group
         self.final: list[bool] = []
         self._crossing = False
         self._vial_low = False
         self.vial_observer = None  # started at the first step that brings the inputs
-        self.vial_running_low: list[bool | None] = []
-        self._observer_vial: list[float] = []
+        self.vial_running_low = StepLog(HISTORY_S)
+        self._observer_vial = StepLog(HISTORY_S)
         self.vial_status = None  # the observer's latest VialStatus (None: no observer)
+        self._unmeasured_since: float | None = None  # start of the current run without data
+        self.restarts: list[float] = []  # times the warm-up restarted after a data gap
+        self._beyond_since: int | None = None  # first step of the deposit beyond the range
+        self._cleaning: int | None = None  # the 'nozzle needs cleaning' event (its index)
 
     def update(
         self,
@@ -171,6 +185,7 @@ class AnomalyDetector:
         t = float(time_s)
         if self.t0 is None:
             self.t0 = t
+        self._restart_after_gap(t, n_measured)
         if self.start is None and t >= self.t0 + s.warmup_s:
             self.start = k
         e = normalised_innovations(
@@ -192,10 +207,7 @@ class AnomalyDetector:
         # Huber-clipped innovations: a heavy-tailed outlier counts as a ±clip σ one
         c = s.innovation_clip_sigma
         e_clip = np.clip(e, -c, c)
-        nis_robust = float(nis)
-        if np.isfinite(nis_robust) and np.nansum(e**2) > 0:
-            nis_robust *= np.nansum(e_clip**2) / np.nansum(e**2)
-        _, _, p_win = self.window.update(nis_robust, n_measured)
+        _, _, p_win = self.window.update(self._scaled_nis(nis, e, e_clip), n_measured)
         raw = self._cusum_alarms(k, e_clip)
         crossing = (
             self.start is not None and p_win < s.nis_alpha and k >= self.start + self.window_steps
@@ -209,8 +221,10 @@ class AnomalyDetector:
             self._vial_low = True
             raw.append((k, k, "V_l low"))
         raw.sort()
+        raw, cleaning = self._nozzle_cleaning(k, float(mean[3]), raw)
 
         raised, finalised = self._group_alarms(raw, t)
+        raised = cleaning + raised
         return DetectorStep(
             k,
             t,
@@ -223,6 +237,67 @@ class AnomalyDetector:
             [self.events[i] for i in raised],
             [self.events[i] for i in finalised],
         )
+
+    def _scaled_nis(self, nis, e, e_clip) -> float:
+        """The step's NIS for the windowed test: each output's innovation Huber-clipped and
+        divided by its long-run σ (the CUSUMs' :class:`MultiScaleLongRun`, ≥ 1), so the
+        window tests what the CUSUMs test. Why the scale: the pressures' noise grows with
+        the nozzle deposit (the flow controllers' jitter through a narrower nozzle; the
+        filter's σ_w is constant): on a clean 24-h print their innovation variance rose
+        from 1.08 to 1.55 and the unscaled window raised 7 events after hour 17."""
+        nis = float(nis)
+        total = np.nansum(e**2)
+        if not np.isfinite(nis) or total <= 0:
+            return nis
+        scale = self.long_run.scale[: len(e)] if self.settings.nis_long_run_scaled else 1.0
+        return nis * np.nansum((e_clip / scale) ** 2) / total
+
+    def _nozzle_cleaning(self, k: int, deposit_um: float, raw: list) -> tuple[list, list]:
+        """The 'nozzle needs cleaning' event: raised once, after the warm-up, when the twin's
+        nozzle deposit is beyond ``cleaning_deposit_um`` (its onset the first step beyond);
+        from then on every alarm of the print joins it instead of raising an event (beyond
+        the output model's range the innovations grow with the deposit and a label would mean
+        nothing). Returns (the alarms left to group, [its index] when raised at this step)."""
+        if np.isfinite(deposit_um) and deposit_um > self.settings.cleaning_deposit_um:
+            if self._beyond_since is None:
+                self._beyond_since = k
+        elif self._cleaning is None:
+            self._beyond_since = None
+        raised = []
+        if self._cleaning is None:
+            if self.start is None or self._beyond_since is None:
+                return raw, []
+            self.groups.append([(k, self._beyond_since, CLEANING_DETECTOR)])
+            self.events.append(None)
+            self.final.append(False)
+            self._cleaning = len(self.groups) - 1
+            raised = [self._cleaning]
+        self.groups[self._cleaning].extend(raw)
+        return [], raised
+
+    def _restart_after_gap(self, t: float, n_measured) -> None:
+        """After ``gap_restart_s`` seconds or more without any measurement, the first measured
+        second restarts the warm-up (``warmup_s``) with fresh CUSUM, windowed-NIS and
+        deposit-push sums: over a gap the twin's states follow the model alone, and the
+        filter pulling them back once data return is the twin re-acquiring, not a fault
+        (the transient the warm-up skips at a print's start; ``data/detectors.toml``
+        [gaps]). The long-run noise scale and Q_m's reference level are kept."""
+        measured = np.isfinite(n_measured) and float(n_measured) > 0
+        if not measured:
+            if self._unmeasured_since is None:
+                self._unmeasured_since = t
+            return
+        since, self._unmeasured_since = self._unmeasured_since, None
+        if since is None or t - since < self.settings.gap_restart_s:
+            return
+        s = self.settings
+        self.t0, self.start = t, None
+        self.cusum = Cusum(self.cusum.drift, self.cusum.threshold, len(CUSUM_CHANNELS))
+        self.window = WindowedNIS(s.nis_window_s)
+        self._crossing = False
+        self._deposit_push.clear()
+        self._deposit_crossing = False
+        self.restarts.append(t)
 
     def _observe_vial(self, inputs, measurement, mean, covariance) -> bool | None:
         """The vial observer's step (started from the twin's V_l ± σ at the first step
@@ -275,11 +350,12 @@ class AnomalyDetector:
         for alarm in raw:
             last = self.groups[-1][-1][0] if self.groups else None
             clog = self._clog_it_follows(alarm)
-            if last is not None and t - self.time[last] <= s.merge_s and self._joins(alarm):
+            if last is not None and t - self._time_of(last) <= s.merge_s and self._joins(alarm):
                 self.groups[-1].append(alarm)
             elif clog is not None:
                 self.groups[clog].append(alarm)  # the twin catching up with that clog
             else:
+                self.opened_deposit[len(self.groups)] = self.nozzle[alarm[0]]
                 self.groups.append([alarm])
                 self.events.append(None)
                 self.final.append(False)
@@ -318,8 +394,8 @@ class AnomalyDetector:
         for i in range(len(self.events) - 1, -1, -1):
             event = self.events[i]
             if event is not None and event.cause == "nozzle_clog":
-                detected = self.groups[i][0][0]
-                return i if self.nozzle[alarm[0]] >= self.nozzle[detected] else None
+                opened = self.opened_deposit.get(i, -np.inf)
+                return i if self.nozzle[alarm[0]] >= opened else None
         return None
 
     def _window_needs(self, k: int) -> set:
@@ -402,7 +478,11 @@ class AnomalyDetector:
         if family is None or family in {_family(name) for _, _, name in group}:
             return True
         last = max(step for step, _, _ in group)
-        return self.time[alarm[0]] - self.time[last] <= self.settings.merge_other_family_s
+        return self.time[alarm[0]] - self._time_of(last) <= self.settings.merge_other_family_s
+
+    def _time_of(self, k: int) -> float:
+        """The time of step k [s]; −inf for a step no longer kept (older than HISTORY_S)."""
+        return self.time[k] if k >= self.time.first else -np.inf
 
     def long_run_history(self) -> dict:
         """The long-run statistics to carry to the machine's next print (JSON-able): the
@@ -422,7 +502,7 @@ class AnomalyDetector:
         target = self.time[k_det] + self.settings.evidence_s
         if self.time[-1] < target:
             return None
-        return int(np.searchsorted(np.asarray(self.time), target))
+        return self.time.search(target)
 
     def _event(self, group: list, k_end: int | None) -> AnomalyEvent:
         """The event of a group of alarms, from the evidence up to ``k_end`` (None: so far)."""
@@ -431,8 +511,9 @@ class AnomalyDetector:
         if k_end is None:
             k_end = n
         k_det = group[0][0]
-        # the first alarm's own change point: later alarms may have found older drifts
-        k_on = min(k for step, k, _ in group if step == k_det)
+        # the first alarm's own change point: later alarms may have found older drifts (an
+        # onset more than HISTORY_S before its detection is put at the oldest step kept)
+        k_on = max(min(k for step, k, _ in group if step == k_det), self.time.first)
         span = slice(max(k_on, 0), min(max(k_end, k_det + 1), n))
         seg = np.asarray(self.e[span])
         counts = np.isfinite(seg).sum(axis=0)
@@ -442,6 +523,8 @@ class AnomalyDetector:
         vial = self.vial[span.stop - 1]
         running_low = self.vial_running_low[span.stop - 1]
         cause = label_cause(mean_e, counts, shift, vial, s, running_low)
+        if group[0][2] == CLEANING_DETECTOR:
+            cause = "nozzle_cleaning"
         detectors = []
         for step, _, name in group:
             if step <= k_end and name not in detectors:

@@ -1,0 +1,117 @@
+"""Memory against print length: peak RSS of `ajtwin estimate`, `ajtwin ingest` and the live
+engine, for clean exp1 prints of several lengths, and the slope in MB per print-hour.
+
+Each command runs in its own process on a fresh registry; its peak resident set (the
+kernel's ``ru_maxrss`` of that process, from ``os.wait4``) is the figure. The live engine
+is fed the record's samples as fast as it takes them (``LiveEngine.feed_many``, as the OPC
+UA link feeds it, without the wire) and closed at the end (the print stored). The slope is
+(peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
+flat in print length. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7 days.
+
+    python benchmarks/bench_memory.py [--hours 1 4] [--commands estimate ingest live]
+
+The default (1 h and 4 h) takes ~3 min on 2 cores; ``--hours 1 24 168`` gives the 7-day
+figure (~30 min). To measure another tree (e.g. the code before a change), put its ``src``
+first on PYTHONPATH: the children import ``ajtwin`` from there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ajtwin.io.records import write_record
+from ajtwin.simulation import simulate
+
+COMMANDS = ("estimate", "ingest", "live")
+#: run by the child process for the live engine (argv: record, store)
+LIVE_CHILD = """
+import sys
+import numpy as np
+from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.samples import Sample
+from ajtwin.io.records import read_record
+from ajtwin.store.registry import Registry
+record = read_record(sys.argv[1])
+engine = LiveEngine(Registry(sys.argv[2]))
+u, y, t = record.inputs, record.outputs, record.time_s
+for first in range(0, len(t), 60):
+    stop = min(first + 60, len(t))
+    engine.feed_many([("M", Sample(float(t[k]), u[k], y[k])) for k in range(first, stop)])
+engine.close("M")
+engine.shutdown()
+"""
+
+
+def peak_mb(argv: list[str], env: dict) -> tuple[float, float]:
+    """(peak RSS [MB], wall [s]) of ``argv`` run to its end (it must succeed)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    err = proc.stderr.read().decode(errors="replace")
+    proc.stderr.close()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{argv[2:5]} failed ({proc.returncode}): {err[-1500:]}")
+    return usage.ru_maxrss / 1024.0, wall
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-c", "from ajtwin.cli import main; main()", *args]
+
+
+def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, float]:
+    """Peak RSS [MB] and wall [s] of one command over ``record`` on a fresh registry."""
+    store = work / f"{command}.sqlite"
+    store.unlink(missing_ok=True)
+    if command == "estimate":
+        return peak_mb(_cli("estimate", str(record), "--out", str(work / "s.csv")), env)
+    subprocess.run(_cli("machine", "add", "M", "--store", str(store)), env=env, check=True,
+                   capture_output=True)  # fmt: skip
+    if command == "ingest":
+        argv = _cli("ingest", "--machine", "M", "--store", str(store), "--no-progress")
+        return peak_mb([*argv, str(record)], env)
+    return peak_mb([sys.executable, "-c", LIVE_CHILD, str(record), str(store)], env)
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hours", type=float, nargs="+", default=[1.0, 4.0])
+    parser.add_argument("--commands", nargs="+", default=list(COMMANDS), choices=COMMANDS)
+    parser.add_argument("--seed", type=int, default=5)
+    args = parser.parse_args()
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    figures: dict = {}
+    hours = sorted(args.hours)
+    with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp:
+        work = Path(tmp)
+        peaks = {c: [] for c in args.commands}
+        for h in hours:
+            record = work / f"p{h:g}h.parquet"
+            write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+            for command in args.commands:
+                mb, wall = measure(command, record, work, env)
+                peaks[command].append(mb)
+                figures[f"{command}_{h:g}h_peak_MB"] = round(mb, 1)
+                figures[f"{command}_{h:g}h_wall_s"] = round(wall, 1)
+            record.unlink()
+        if len(hours) > 1:
+            for command, values in peaks.items():
+                slope = (values[-1] - values[0]) / (hours[-1] - hours[0])
+                figures[f"{command}_MB_per_print_hour"] = round(slope, 2)
+    figures["note"] = (
+        f"peak RSS of each command on exp1 seed {args.seed} prints of {hours} h; slope between "
+        "the shortest and the longest"
+    )
+    return figures
+
+
+if __name__ == "__main__":
+    for key, value in main().items():
+        print(f"{key}: {value}")

@@ -1,0 +1,83 @@
+"""A clean 24-h print through `ajtwin ingest`: memory that barely grows with print length,
+and the detectors' false-alarm aim (< 1 event per 10 print-hours) with the nozzle-cleaning
+note said at most once.
+
+The peak resident set of the ingest process (``ru_maxrss``) of a 24-h print is compared with
+a 2-h one's. The twin's run is taken a chunk at a time and written to the registry as it is
+produced; what still grows is the record, the mismatch guard's per-second inputs and its
+pass over them at the end: 24 h needed ~100 MB more than 2 h (~4.6 MB per print-hour; RSS
+varies by ±20 MB between runs). A store that kept the run whole grew ~15.5 MB per
+print-hour: 340 MB more. (At shorter lengths the growth is within that noise: the default
+suite pins the mechanism instead, tests/test_print_parts.py.)
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ajtwin.io.records import write_record
+from ajtwin.simulation import simulate
+
+SRC = str(Path(__file__).resolve().parent.parent / "src")
+#: the CLI in a child that says its own peak resident set as it exits
+CLI = (
+    "import atexit, resource, sys\n"
+    "atexit.register(lambda: print(f'peak_rss_kb={resource.getrusage(resource.RUSAGE_SELF)"
+    ".ru_maxrss}', file=sys.stderr))\n"
+    "from ajtwin.cli import main\n"
+    "main()"
+)
+
+
+def _ingest(tmp_path: Path, minutes: float, seed: int = 5) -> tuple[float, str]:
+    """Ingest a clean exp1 print of ``minutes`` into a fresh store in a child process;
+    (its peak RSS [MB], what it said)."""
+    record = tmp_path / f"p{minutes:g}.parquet"
+    write_record(simulate("exp1", seed=seed, duration_min=minutes), record)
+    store = tmp_path / f"r{minutes:g}.sqlite"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env["PYTHONPATH"] = SRC + os.pathsep + env.get("PYTHONPATH", "")
+    cli = [sys.executable, "-c", CLI]
+    subprocess.run([*cli, "machine", "add", "M", "--store", str(store)], env=env, check=True,
+                   capture_output=True, timeout=300)  # fmt: skip
+    argv = [*cli, "ingest", "--machine", "M", "--store", str(store), "--no-progress", str(record)]
+    done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=3600)
+    said = done.stdout + done.stderr
+    assert done.returncode == 0, said[-3000:]
+    record.unlink()
+    peak = re.findall(r"peak_rss_kb=(\d+)", done.stderr)
+    return int(peak[-1]) / 1024.0, said
+
+
+def _n_events(said: str) -> int:
+    """How many anomaly events ingest said it stored."""
+    if "  no anomalies" in said:
+        return 0
+    found = re.search(r"(\d+) anomaly event\(s\)", said)
+    assert found is not None, said[-2000:]
+    return int(found.group(1))
+
+
+@pytest.fixture(scope="module")
+def day(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("day")
+    return _ingest(tmp, 120), _ingest(tmp, 1440)
+
+
+@pytest.mark.slow
+def test_ingest_of_a_24_hour_print_needs_little_more_memory_than_of_a_2_hour_one(day):
+    (short_mb, _), (long_mb, _) = day
+    assert long_mb - short_mb < 150.0, (short_mb, long_mb)
+
+
+@pytest.mark.slow
+def test_a_clean_24_hour_print_raises_under_one_event_per_10_hours(day):
+    _, (_, said) = day
+    assert _n_events(said) <= 2, said[-3000:]
+    assert said.count("nozzle needs cleaning") <= 1, said[-3000:]

@@ -74,6 +74,10 @@ def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
     for name in whole:
         np.testing.assert_allclose(parts[name], whole[name], rtol=1e-12, atol=0, err_msg=name)
     assert len(parts["time_s"]) == len(record)
+    # one array alone (the fleet page's trends, the reported band) reads the parts too
+    for name in ("means", "stds", "time_s"):
+        np.testing.assert_array_equal(reg.print_array(done.print_id, name), parts[name])
+    assert reg.print_array(done.print_id, "no such array") is None
 
 
 def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, record, monkeypatch):

@@ -12,8 +12,6 @@ import json
 
 import numpy as np
 
-from ajtwin.store import arrays as _arrays
-
 
 def change_marker(registry) -> tuple[int, int, int]:
     """(``PRAGMA data_version``, last print id, last machine id): changes on any commit."""
@@ -47,12 +45,9 @@ def prints_after(registry, print_id: int) -> list[dict]:
 
 
 def print_array(registry, print_id: int, name: str) -> np.ndarray | None:
-    """One stored array of a print, decoded without loading the others (None: not stored)."""
-    row = registry._conn.execute(
-        "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
-        (print_id, name),
-    ).fetchone()
-    return None if row is None else _arrays.decode(row[0], row[1])
+    """One stored array of a print, decoded without loading the others (None: not stored;
+    :meth:`ajtwin.store.registry.Registry.print_array`)."""
+    return registry.print_array(print_id, name)
 
 
 def reported_end_std(registry, stored_print: dict) -> np.ndarray:

@@ -852,6 +852,25 @@ class Registry:
         out.update(_arrays.join_parts(parts))
         return _arrays.expand(out)
 
+    def print_array(self, print_id: int, name: str) -> np.ndarray | None:
+        """One stored array of a print, decoded without loading the others, whether it was
+        written whole or in parts (None: not stored)."""
+        row = self._conn.execute(
+            "SELECT npy, codec FROM print_arrays WHERE print_id = ? AND name = ?",
+            (print_id, name),
+        ).fetchone()
+        if row is not None:
+            return self._decoded(print_id, name, row["npy"], row["codec"])
+        parts = [
+            self._decoded(print_id, name, r["blob"], r["codec"])
+            for r in self._conn.execute(
+                "SELECT codec, blob FROM print_array_parts WHERE print_id = ? AND name = ? "
+                "ORDER BY part",
+                (print_id, name),
+            ).fetchall()
+        ]
+        return _arrays.join_parts({name: parts})[name] if parts else None
+
     def _decoded(self, print_id: int, name: str, blob, codec: str) -> np.ndarray:
         """A stored array decoded (RegistryError naming the print and array if damaged)."""
         try:

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.batch import DETECTOR_ARRAYS, detect_run
 from ajtwin.apps.detection.mismatch import (
     assess,
     assess_run,
@@ -435,19 +435,7 @@ def _joined(chunks, name):
 
 def _detector_steps(detector, arrays):
     """The detectors' steps over a chunk's arrays (run_arrays names)."""
-    columns = [
-        arrays[k]
-        for k in (
-            "measurements",
-            "predicted_outputs",
-            "innovation_variances",
-            "nis",
-            "n_measured",
-            "means",
-            "predicted_means",
-            "covariances",
-        )
-    ]
+    columns = [arrays[k] for k in DETECTOR_ARRAYS[1:]]  # all but the time
     for k, t in enumerate(arrays["time_s"]):
         yield detector.update(t, *(c[k] for c in columns), inputs=arrays["inputs"][k])
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.apps.detection.batch import DetectionResult, detect_anomalies
+from ajtwin.apps.detection.batch import DETECTOR_ARRAYS, DetectionResult, detect_anomalies
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.estimation import Twin
 from ajtwin.model.droplet_dynamics import default_transition
@@ -43,17 +43,7 @@ EXPECTED_CAUSE = {
     "atomizer_dropout": "atomizer",
     "ink_running_low": "ink_low",
 }
-KEYS = (
-    "time_s",
-    "measurements",
-    "predicted_outputs",
-    "innovation_variances",
-    "nis",
-    "n_measured",
-    "means",
-    "predicted_means",
-    "covariances",
-)
+KEYS = DETECTOR_ARRAYS
 
 
 #: where the twin runs over the scenarios are cached (delete it to re-measure)

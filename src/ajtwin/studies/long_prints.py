@@ -19,23 +19,12 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.batch import DETECTOR_ARRAYS, detect_anomalies
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.estimation import Twin
 from ajtwin.simulation import simulate
 
-KEYS = (
-    "time_s",
-    "measurements",
-    "predicted_outputs",
-    "innovation_variances",
-    "nis",
-    "n_measured",
-    "means",
-    "predicted_means",
-    "covariances",
-    "inputs",
-)
+KEYS = (*DETECTOR_ARRAYS, "inputs")
 
 
 def twin_arrays(seed: int, minutes: float, cache: Path) -> dict:

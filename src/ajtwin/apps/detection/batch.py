@@ -48,6 +48,21 @@ class DetectionResult:
         )
 
 
+#: The arrays of a twin run the detectors read each step, in the order
+#: :func:`detect_anomalies` takes them.
+DETECTOR_ARRAYS = (
+    "time_s",
+    "measurements",
+    "predicted_outputs",
+    "innovation_variances",
+    "nis",
+    "n_measured",
+    "means",
+    "predicted_means",
+    "covariances",
+)
+
+
 def detect_anomalies(
     time_s,
     measurements,

@@ -1,10 +1,13 @@
 """Memory against print length: peak RSS of `ajtwin estimate`, `ajtwin ingest` and the live
 engine, for clean exp1 prints of several lengths, and the slope in MB per print-hour.
 
-Each command runs in its own process on a fresh registry; its peak resident set (the
-kernel's ``ru_maxrss`` of that process, from ``os.wait4``) is the figure. The live engine
-is fed the record's samples as fast as it takes them (``LiveEngine.feed_many``, as the OPC
-UA link feeds it, without the wire) and closed at the end (the print stored). The slope is
+Each command runs in its own process on a fresh registry; its peak resident set is the
+figure: the process's own ``VmHWM`` (``/proc/self/status``) as it exits. Not ``ru_maxrss``
+from ``wait4``: Linux carries the parent's peak into a forked child's, so under ``make bench``
+(one process that ran the other benchmarks first) every command read the runner's 2.9 GB.
+The live engine is fed the record's samples as fast as it takes them
+(``LiveEngine.feed_many``, as the OPC UA link feeds it, without the wire) and closed at the
+end (the print stored). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
 flat in print length. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7 days.
 
@@ -48,18 +51,37 @@ engine.shutdown()
 """
 
 
+#: prepended to each child's code: at exit it writes its own peak RSS (VmHWM, kB) to the
+#: file named by AJTWIN_BENCH_HWM
+HWM_AT_EXIT = """
+import atexit, os
+def _write_hwm():
+    with open("/proc/self/status") as status:
+        kb = next(line.split()[1] for line in status if line.startswith("VmHWM:"))
+    with open(os.environ["AJTWIN_BENCH_HWM"], "w") as out:
+        out.write(kb)
+atexit.register(_write_hwm)
+"""
+
+
 def peak_mb(argv: list[str], env: dict) -> tuple[float, float]:
-    """(peak RSS [MB], wall [s]) of ``argv`` run to its end (it must succeed)."""
+    """(peak RSS [MB], wall [s]) of ``argv`` (``python -c CODE …``) run to its end (it must
+    succeed)."""
+    with tempfile.NamedTemporaryFile(suffix=".hwm", delete=False) as handle:
+        hwm = Path(handle.name)
+    argv = [argv[0], "-c", HWM_AT_EXIT + argv[2], *argv[3:]]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run(
+        argv, env={**env, "AJTWIN_BENCH_HWM": str(hwm)}, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, check=False,
+    )  # fmt: skip
     wall = time.perf_counter() - t0
-    err = proc.stderr.read().decode(errors="replace")
-    proc.stderr.close()
-    proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
-        raise RuntimeError(f"{argv[2:5]} failed ({proc.returncode}): {err[-1500:]}")
-    return usage.ru_maxrss / 1024.0, wall
+        err = proc.stderr.decode(errors="replace")
+        raise RuntimeError(f"{argv[3:6]} failed ({proc.returncode}): {err[-1500:]}")
+    kb = float(hwm.read_text())
+    hwm.unlink()
+    return kb / 1024.0, wall
 
 
 def _cli(*args: str) -> list[str]:

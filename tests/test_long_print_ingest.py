@@ -2,7 +2,7 @@
 and the detectors' false-alarm aim (< 1 event per 10 print-hours) with the nozzle-cleaning
 note said at most once.
 
-The peak resident set of the ingest process (``ru_maxrss``) of a 24-h print is compared with
+The peak resident set of the ingest process (its own ``VmHWM``) of a 24-h print is compared with
 a 2-h one's. The twin's run is taken a chunk at a time and written to the registry as it is
 produced; what still grows is the record, the mismatch guard's per-second inputs and its
 pass over them at the end: 24 h needed ~100 MB more than 2 h (~4.6 MB per print-hour; RSS
@@ -25,11 +25,15 @@ from ajtwin.io.records import write_record
 from ajtwin.simulation import simulate
 
 SRC = str(Path(__file__).resolve().parent.parent / "src")
-#: the CLI in a child that says its own peak resident set as it exits
+#: the CLI in a child that says its own peak resident set as it exits: VmHWM of its own
+#: memory (ru_maxrss would carry the pytest process's peak over the exec into the child's)
 CLI = (
-    "import atexit, resource, sys\n"
-    "atexit.register(lambda: print(f'peak_rss_kb={resource.getrusage(resource.RUSAGE_SELF)"
-    ".ru_maxrss}', file=sys.stderr))\n"
+    "import atexit, sys\n"
+    "def _hwm():\n"
+    "    with open('/proc/self/status') as status:\n"
+    "        kb = next(l.split()[1] for l in status if l.startswith('VmHWM:'))\n"
+    "    print(f'peak_rss_kb={kb}', file=sys.stderr)\n"
+    "atexit.register(_hwm)\n"
     "from ajtwin.cli import main\n"
     "main()"
 )

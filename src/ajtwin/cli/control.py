@@ -21,6 +21,7 @@ from ajtwin.cli.options import (
     ProcessSpeed,
     ToleranceType,
     parse_seeds,
+    process_speed_option,
     store_option,
 )
 from ajtwin.store.registry import Registry, RegistryError
@@ -380,13 +381,7 @@ def _job_engine(machine, job: dict, store):
     help="Print this machine program (.prg), looped to each print's length: the shutter, the "
     "speeds and a camera on the part (docs/howto/closed-loop-control.md).",
 )
-@click.option(
-    "--process-speed",
-    type=ProcessSpeed(),
-    default=None,
-    help="With --job: the process speed [mm/s], or speeds per layer, e.g. 2,4,3 (successive "
-    "layers, repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
-)
+@process_speed_option
 @click.option(
     "--camera",
     "camera_mode",

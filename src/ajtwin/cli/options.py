@@ -232,6 +232,18 @@ class ProcessSpeed(click.ParamType):
             self.fail(str(exc), param, ctx)
 
 
+def process_speed_option(command):
+    """``--process-speed`` beside ``--job``: one speed, or speeds per layer, stroke or
+    feature (:class:`ProcessSpeed`)."""
+    return click.option(
+        "--process-speed",
+        type=ProcessSpeed(),
+        default=None,
+        help="With --job: the process speed [mm/s], or speeds per layer, e.g. 2,4,3 (successive "
+        "layers, repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
+    )(command)
+
+
 def job_speeds(process_speed) -> dict:
     """``--process-speed``'s value as keywords of the job readers: ``process_speed_mm_s``
     (one speed) or ``speed_schedule`` (speeds per layer, stroke or feature)."""

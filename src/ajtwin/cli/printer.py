@@ -9,7 +9,7 @@ from urllib.parse import urlparse
 
 import click
 
-from ajtwin.cli.options import ProcessSpeed, configure_logging, job_speeds
+from ajtwin.cli.options import configure_logging, job_speeds, process_speed_option
 
 
 def _users(username, password, user_list) -> dict:
@@ -66,13 +66,7 @@ def printer():
     help="A machine program (.prg) every printer runs, looped to the print's length "
     "(the camera trails the nozzle: no line while nothing is printed or seen).",
 )
-@click.option(
-    "--process-speed",
-    type=ProcessSpeed(),
-    default=None,
-    help="With --job: the process speed [mm/s], or speeds per layer, e.g. 2,4,3 (successive "
-    "layers, repeating), stroke:2,4,3, feature:… or a schedule file speeds.toml.",
-)
+@process_speed_option
 @click.option("--verbose", is_flag=True)
 def serve(
     scenario,

@@ -41,8 +41,12 @@ chromium:
 demo: $(STAMP)
 	$(VENV)/bin/ajtwin demo
 
+# one worker per core (the suite is mostly one-threaded); a test file stays on one worker, so
+# its module fixtures (simulated prints, servers) are made once
+TEST_WORKERS ?= auto
+
 test: $(STAMP) openfoam chromium
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
 
 test-all: $(STAMP) openfoam chromium
 	$(PY) -m pytest -q

@@ -44,6 +44,13 @@ WIRE_PROFILES = [
     pytest.param("fuzz", id="fuzz"),
     pytest.param("fuzz-long-wire", id="fuzz-long", marks=pytest.mark.slow),
 ]
+# a stream-intake input steps the filter over every second of its gaps (up to 50 s each,
+# ~360 steps an input): the default suite takes 20 of them, the slow run its 3,400
+settings.register_profile("fuzz-stream", parent=settings.get_profile("fuzz"), max_examples=20)
+STREAM_PROFILES = [
+    pytest.param("fuzz-stream", id="fuzz"),
+    pytest.param("fuzz-long-wire", id="fuzz-long", marks=pytest.mark.slow),
+]
 
 
 # --------------------------------------------------------------------------- #
@@ -527,7 +534,7 @@ def fitted_start():
     return stream.start_mean, stream.start_cov
 
 
-@pytest.mark.parametrize("profile", WIRE_PROFILES)
+@pytest.mark.parametrize("profile", STREAM_PROFILES)
 def test_fuzz_stream_intake(profile, fitted_start):
     """Wire samples → clean_sample → TwinStream.feed, in any time order."""
     from ajtwin.engine.samples import MAX_GAP_S, clean_sample

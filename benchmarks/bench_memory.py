@@ -10,11 +10,15 @@ The live engine is fed the record's samples as fast as it takes them
 end (the print stored). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
 flat in print length. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7 days.
+Each command first runs once, unmeasured, on the shortest print: a first run with an
+empty JAX cache compiles, and the compiler's peak (~150 MB more) is not the print's.
 
     python benchmarks/bench_memory.py [--hours 1 4] [--commands estimate ingest live]
+                                      [--records DIR]
 
 The default (1 h and 4 h) takes ~3 min on 2 cores; ``--hours 1 24 168`` gives the 7-day
-figure (~30 min). To measure another tree (e.g. the code before a change), put its ``src``
+figure (~30 min, most of it simulating the week; ``--records DIR`` keeps the prints there
+and reuses them). To measure another tree (e.g. the code before a change), put its ``src``
 first on PYTHONPATH: the children import ``ajtwin`` from there.
 """
 
@@ -107,6 +111,7 @@ def main() -> dict:
     parser.add_argument("--hours", type=float, nargs="+", default=[1.0, 4.0])
     parser.add_argument("--commands", nargs="+", default=list(COMMANDS), choices=COMMANDS)
     parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--records", type=Path, help="keep the simulated prints here, reuse them")
     args = parser.parse_args()
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     figures: dict = {}
@@ -114,15 +119,20 @@ def main() -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp:
         work = Path(tmp)
         peaks = {c: [] for c in args.commands}
-        for h in hours:
-            record = work / f"p{h:g}h.parquet"
-            write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+        for i, h in enumerate(hours):
+            record = (args.records or work) / f"exp1-seed{args.seed}-{h:g}h.parquet"
+            if not record.exists():
+                record.parent.mkdir(parents=True, exist_ok=True)
+                write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+            for command in args.commands if i == 0 else ():
+                measure(command, record, work, env)  # fills the JAX cache
             for command in args.commands:
                 mb, wall = measure(command, record, work, env)
                 peaks[command].append(mb)
                 figures[f"{command}_{h:g}h_peak_MB"] = round(mb, 1)
                 figures[f"{command}_{h:g}h_wall_s"] = round(wall, 1)
-            record.unlink()
+            if args.records is None:
+                record.unlink()
         if len(hours) > 1:
             for command, values in peaks.items():
                 slope = (values[-1] - values[0]) / (hours[-1] - hours[0])

@@ -20,7 +20,7 @@ Example
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +92,8 @@ def estimate_to_csv(
         rows = _Rows(Path(spill))
         run = twin.run(record, progress=progress, sink=rows, job=job)
         mismatch = rows.guard_verdict(run)
+        # the vial observer once the guard's inputs are let go: the two never held together
+        run = replace(run, vial=twin.observe_vial(run))
         rows.write(out, run, mismatch.flags)
     return EstimateResult(
         run,

@@ -345,8 +345,6 @@ class IngestSink:
     def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
         self.writer = writer
         self.record = record
-        # once: a record makes a new (T, n) array at each access of these
-        self._outputs, self._inputs = record.outputs, record.inputs
         # a job print's shutter, speed and print times (stored with the arrays)
         self._job = record.data[list(JOB_COLUMNS)] if record.has_job else None
         self.settings, self.long_run_history = settings, long_run_history
@@ -361,9 +359,10 @@ class IngestSink:
     def __call__(self, first: int, chunk) -> None:
         """Take the chunk of steps [first, first + n) (a TwinRun of them)."""
         stop = first + len(chunk.time_s)
+        # the chunk's own inputs and measurements (the run's, not a copy of the record's)
         part = SimpleNamespace(
-            outputs=self._outputs[first:stop],
-            inputs=self._inputs[first:stop],
+            outputs=chunk.measurements,
+            inputs=chunk.inputs,
             has_job=self._job is not None,
             data=None if self._job is None else self._job.iloc[first:stop],
         )

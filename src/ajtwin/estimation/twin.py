@@ -734,8 +734,9 @@ class Twin:
             steps: the filter's results, θ, the calibration's share, the prior floor, what
             was seen), so that nothing keeps the whole print's results: the run returned
             then has the print's start, end, θ history, initial fit, vial observer and
-            ``seen``, ``filtered`` holds only the last chunks and ``theta_per_step`` is None
-            (each chunk had its own). Not with ``smooth``.
+            ``seen``, ``filtered`` holds only the last chunks, ``theta_per_step`` is None
+            (each chunk had its own) and so is ``vial`` (:meth:`observe_vial` runs it when
+            wanted). Not with ``smooth``.
         """
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
@@ -803,7 +804,8 @@ class Twin:
             else self._calibration_covariances(filtered, model_inputs, line),
             seen=seen,
             prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
-            vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
+            # a run taken in chunks leaves it to the caller (observe_vial): it holds (T, 4, 4)
+            vial=None if sink else self._observe_vial(inputs, measurements, start_mean, start_cov),
             measurements=measurements,
             inputs=inputs,
             line_factors=line,
@@ -1021,6 +1023,12 @@ class Twin:
             )
 
         return emit
+
+    def observe_vial(self, run):
+        """The vial observer over a run's print (:class:`~ajtwin.estimation.vial.
+        VialEstimate`; None when Q_m was never measured): what :meth:`run` gives as ``vial``,
+        for a run taken in chunks (which leaves it out)."""
+        return self._observe_vial(run.inputs, run.measurements, run.start_mean, run.start_cov)
 
     def _observe_vial(self, inputs, measurements, start_mean, start_cov):
         """The vial observer over the print's Q_m (None when Q_m was never measured)."""

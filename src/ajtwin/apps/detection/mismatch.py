@@ -291,12 +291,14 @@ def _output_bias(t: np.ndarray, e: np.ndarray, g: dict, learned: float | None) -
     the level is off the same way.
     """
     window = int(g["bias_window_s"])
-    e_bias = e.copy()
     if learned is None:
-        return _rolling_mean(e_bias, window)
+        return _rolling_mean(e, window)
     level_columns = [OUTPUT_NAMES.index(name) for name in g.get("level_learned_outputs", [])]
-    e_bias[np.ix_(t < learned, level_columns)] = np.nan
-    bias = _rolling_mean(e_bias, window)
+    # a column at a time (no copy of the whole e), the level's before EM's first θ as NaN
+    bias = np.empty(e.shape)
+    for j in range(e.shape[1]):
+        column = np.where(t < learned, np.nan, e[:, j]) if j in level_columns else e[:, j]
+        bias[:, j] = _rolling_mean(column, window)
     unlearned = t < learned + float(g["bias_window_s"])
     bias[np.ix_(unlearned, level_columns)] = np.nan
     level = _rolling_mean(e[:, OUTPUT_NAMES.index("material_flow_mL_s")], window)
@@ -370,8 +372,10 @@ def _start_surprise_findings(found: _Findings, means, start_mean, start_cov, g: 
     """
     floor = np.array([float(g.get("start_floor", {}).get(name, 0.0)) for name in STATE_NAMES])
     var = np.maximum(np.diag(np.asarray(start_cov, float)), 1e-300) + floor**2
-    z = np.abs(means - np.asarray(start_mean, float)) / np.sqrt(var)
     window = found.t <= float(g["start_window_s"])
+    # z over the start window's seconds only (beyond it no finding is looked for)
+    z = np.zeros(means.shape)
+    z[window] = np.abs(means[window] - np.asarray(start_mean, float)) / np.sqrt(var)
     start_only = set()
     for name in g["start_states"]:
         i = STATE_NAMES.index(name)

@@ -8,7 +8,9 @@ columns). Filtered states are taken from the twin a chunk at a time
 Jacobians of a chunk are dropped once its rows are made, and the rows wait in a temporary
 folder beside the output until the guard's verdict and the vial observer (which need the
 whole print) give their columns; what stays in memory is the guard's per-second inputs
-(18 numbers a second). The smoother (``smooth``) and a plot need the whole run and hold it.
+(18 numbers a second), and the observer runs only once the guard has let them go (the two
+are never held together). The smoother (``smooth``) and a plot need
+the whole run and hold it.
 
 Example
 -------

@@ -593,3 +593,16 @@ def test_ink_alarm_is_left_to_the_ink_rule(control_settings):
     assert strategy.safety() == []
     strategy.stream.status = lambda: ("alarm", "atomizer")
     assert any("alarm the controller cannot act on" in r for r in strategy.safety())
+
+
+def test_stop_time_that_has_passed_today_means_tomorrow():
+    """``--stop-at 01:00`` given at 22:00 stops after midnight, not at once; a later time
+    today stays today."""
+    from datetime import UTC, datetime
+
+    from ajtwin.studies.control import next_utc_time
+
+    now = datetime(2026, 3, 1, 22, 0, tzinfo=UTC)
+    assert next_utc_time("01:00", now) == datetime(2026, 3, 2, 1, 0, tzinfo=UTC).timestamp()
+    assert next_utc_time("23:15", now) == datetime(2026, 3, 1, 23, 15, tzinfo=UTC).timestamp()
+    assert next_utc_time("22:00", now) == datetime(2026, 3, 2, 22, 0, tzinfo=UTC).timestamp()

@@ -16,6 +16,8 @@ Examples
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ajtwin.apps.detection.causes import CAUSES
@@ -82,7 +84,9 @@ class MPCTwin(MPCStrategy):
         self.stream = stream or TwinStream(
             "virtual", self.twin, asynchronous=False, print_context=print_context
         )
-        self._feed = feed or self.stream.feed
+        # its own stream re-runs the provisional steps once per period, when it plans
+        self._own_stream = feed is None
+        self._feed = feed or functools.partial(self.stream.feed, provisional=False)
         self.holding = False
         # the ink balance starts from the fill the twin was told (weighed at the refill)
         self.vial_fill_ml = float(self.twin.config.vial_fill_ml)
@@ -107,6 +111,8 @@ class MPCTwin(MPCStrategy):
                     printed_at_s=float(chunk.printed_at_s[k]),
                 )
             self._feed(Sample(float(t), u, y, **extra))
+        if self._own_stream:
+            self.stream.refresh_provisional()
         self.material_flow.append(np.asarray(chunk.outputs, dtype=float)[:, 4])
 
     def state_now(self):

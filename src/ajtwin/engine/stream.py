@@ -280,8 +280,14 @@ class TwinStream:
         """Whether an EM update runs in a worker thread now."""
         return self._em_future is not None
 
-    def feed(self, sample: Sample) -> list[dict]:
-        """Take one sample; returns the messages it produced (committed and provisional)."""
+    def feed(self, sample: Sample, provisional: bool = True) -> list[dict]:
+        """Take one sample; returns the messages it produced (committed and provisional).
+
+        ``provisional=False``: a job print's provisional re-run is left for a later
+        :meth:`refresh_provisional` (a controller that plans once per period needs the
+        state at the period's end only; the re-run then starts at the oldest step changed
+        since the last one, so the result is the same as re-running after every sample).
+        """
         out: list[dict] = []
         out += self.poll()
         t = float(sample.time_s)
@@ -326,9 +332,16 @@ class TwinStream:
             grid.append(dataclasses.replace(sample, time_s=self.last_time + n))
         for s in grid:
             out += self._accept(s)
-        if self._bins is not None and grid:
+        if provisional and self._bins is not None and grid:
             out += self._provisional_now()
         return out
+
+    def refresh_provisional(self) -> list[dict]:
+        """A job print's provisional message of the newest row now (:attr:`provisional`
+        updated); [] when the print has no job or no row yet."""
+        if self._bins is None or self.last_time is None:
+            return []
+        return self._provisional_now()
 
     def take_plain(self, sample: Sample) -> Sample | None:
         """If ``sample`` is an ordinary next step (no gap, boundary, EM or start), book it

@@ -14,7 +14,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -733,11 +733,18 @@ def parse_seed_list(text: str) -> list[int]:
     return seeds
 
 
-def _utc_today(text: str) -> float:
-    """``HH:MM`` UTC today as a :func:`time.time`."""
+def next_utc_time(text: str, now: datetime | None = None) -> float:
+    """``HH:MM`` UTC as a :func:`time.time`: the next such moment, today or, when it has
+    passed, tomorrow (a run started at 22:00 with ``--stop-at 01:00`` stops after midnight).
+
+    >>> now = datetime(2026, 1, 1, 22, 0, tzinfo=UTC)
+    >>> datetime.fromtimestamp(next_utc_time("01:30", now), UTC).isoformat()
+    '2026-01-02T01:30:00+00:00'
+    """
     hours, minutes = (int(v) for v in text.split(":"))
-    now = datetime.now(UTC)
-    return now.replace(hour=hours, minute=minutes, second=0, microsecond=0).timestamp()
+    now = datetime.now(UTC) if now is None else now
+    moment = now.replace(hour=hours, minute=minutes, second=0, microsecond=0)
+    return (moment if moment > now else moment + timedelta(days=1)).timestamp()
 
 
 def main(argv=None) -> None:
@@ -793,7 +800,7 @@ def main(argv=None) -> None:
                 if args.core_offsets is None
                 else list(cameras_from_offsets(args.core_offsets, args.job, speed, pitch))
             ),
-            stop_at=None if args.stop_at is None else _utc_today(args.stop_at),
+            stop_at=None if args.stop_at is None else next_utc_time(args.stop_at),
             records_dir=args.records,
             resume=args.resume,
         )

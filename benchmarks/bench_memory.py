@@ -7,14 +7,20 @@ from ``wait4``: Linux carries the parent's peak into a forked child's, so under 
 (one process that ran the other benchmarks first) every command read the runner's 2.9 GB.
 The live engine is fed the record's samples as fast as it takes them
 (``LiveEngine.feed_many``, as the OPC UA link feeds it, without the wire) and closed at the
-end (the print stored). The slope is
+end (the print stored): ``live`` a minute's samples a call (a burst), ``live-1hz`` one
+sample a call with each step written to the live log as it commits (what a machine at 1 Hz
+does in real time, without waiting the print's hours). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
 flat in print length. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7 days.
+Each command first runs once, unmeasured, on the shortest print: a first run with an
+empty JAX cache compiles, and the compiler's peak (~150 MB more) is not the print's.
 
-    python benchmarks/bench_memory.py [--hours 1 4] [--commands estimate ingest live]
+    python benchmarks/bench_memory.py [--hours 1 4] [--commands estimate ingest live live-1hz]
+                                      [--records DIR]
 
 The default (1 h and 4 h) takes ~3 min on 2 cores; ``--hours 1 24 168`` gives the 7-day
-figure (~30 min). To measure another tree (e.g. the code before a change), put its ``src``
+figure (~30 min, most of it simulating the week; ``--records DIR`` keeps the prints there
+and reuses them). To measure another tree (e.g. the code before a change), put its ``src``
 first on PYTHONPATH: the children import ``ajtwin`` from there.
 """
 
@@ -31,8 +37,9 @@ from pathlib import Path
 from ajtwin.io.records import write_record
 from ajtwin.simulation import simulate
 
-COMMANDS = ("estimate", "ingest", "live")
-#: run by the child process for the live engine (argv: record, store)
+COMMANDS = ("estimate", "ingest", "live", "live-1hz")
+#: run by the child process for the live engine (argv: record, store, samples per call,
+#: seconds between the live log's commits)
 LIVE_CHILD = """
 import sys
 import numpy as np
@@ -41,14 +48,19 @@ from ajtwin.engine.samples import Sample
 from ajtwin.io.records import read_record
 from ajtwin.store.registry import Registry
 record = read_record(sys.argv[1])
-engine = LiveEngine(Registry(sys.argv[2]))
+per_call, commit_every_s = int(sys.argv[3]), float(sys.argv[4])
+engine = LiveEngine(Registry(sys.argv[2]), commit_every_s=commit_every_s)
 u, y, t = record.inputs, record.outputs, record.time_s
-for first in range(0, len(t), 60):
-    stop = min(first + 60, len(t))
+for first in range(0, len(t), per_call):
+    stop = min(first + per_call, len(t))
     engine.feed_many([("M", Sample(float(t[k]), u[k], y[k])) for k in range(first, stop)])
 engine.close("M")
 engine.shutdown()
 """
+#: the live engine's feeds (samples per call, seconds between commits): bursts of a minute's
+#: samples as fast as it takes them; one sample a call with each step written as it commits,
+#: which is what a 1 Hz machine does in real time
+LIVE_FEEDS = {"live": ("60", "1.0"), "live-1hz": ("1", "0.0")}
 
 
 #: prepended to each child's code: at exit it writes its own peak RSS (VmHWM, kB) to the
@@ -99,7 +111,8 @@ def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, f
     if command == "ingest":
         argv = _cli("ingest", "--machine", "M", "--store", str(store), "--no-progress")
         return peak_mb([*argv, str(record)], env)
-    return peak_mb([sys.executable, "-c", LIVE_CHILD, str(record), str(store)], env)
+    feed = LIVE_FEEDS[command]
+    return peak_mb([sys.executable, "-c", LIVE_CHILD, str(record), str(store), *feed], env)
 
 
 def main() -> dict:
@@ -107,6 +120,7 @@ def main() -> dict:
     parser.add_argument("--hours", type=float, nargs="+", default=[1.0, 4.0])
     parser.add_argument("--commands", nargs="+", default=list(COMMANDS), choices=COMMANDS)
     parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--records", type=Path, help="keep the simulated prints here, reuse them")
     args = parser.parse_args()
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     figures: dict = {}
@@ -114,15 +128,20 @@ def main() -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp:
         work = Path(tmp)
         peaks = {c: [] for c in args.commands}
-        for h in hours:
-            record = work / f"p{h:g}h.parquet"
-            write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+        for i, h in enumerate(hours):
+            record = (args.records or work) / f"exp1-seed{args.seed}-{h:g}h.parquet"
+            if not record.exists():
+                record.parent.mkdir(parents=True, exist_ok=True)
+                write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+            for command in args.commands if i == 0 else ():
+                measure(command, record, work, env)  # fills the JAX cache
             for command in args.commands:
                 mb, wall = measure(command, record, work, env)
                 peaks[command].append(mb)
                 figures[f"{command}_{h:g}h_peak_MB"] = round(mb, 1)
                 figures[f"{command}_{h:g}h_wall_s"] = round(wall, 1)
-            record.unlink()
+            if args.records is None:
+                record.unlink()
         if len(hours) > 1:
             for command, values in peaks.items():
                 slope = (values[-1] - values[0]) / (hours[-1] - hours[0])

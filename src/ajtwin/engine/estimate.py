@@ -8,7 +8,9 @@ columns). Filtered states are taken from the twin a chunk at a time
 Jacobians of a chunk are dropped once its rows are made, and the rows wait in a temporary
 folder beside the output until the guard's verdict and the vial observer (which need the
 whole print) give their columns; what stays in memory is the guard's per-second inputs
-(18 numbers a second). The smoother (``smooth``) and a plot need the whole run and hold it.
+(18 numbers a second), and the observer runs only once the guard has let them go (the two
+are never held together). The smoother (``smooth``) and a plot need
+the whole run and hold it.
 
 Example
 -------
@@ -20,14 +22,14 @@ Example
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from ajtwin.apps.detection.mismatch import (
-    assess,
+    GuardInputs,
     assess_run,
     data_share,
     determined_states,
@@ -89,9 +91,11 @@ def estimate_to_csv(
     if smooth or whole:
         return _whole(twin, record, out, smooth, progress, job)
     with tempfile.TemporaryDirectory(prefix=".ajtwin-rows-", dir=out.parent) as spill:
-        rows = _Rows(record, Path(spill))
+        rows = _Rows(Path(spill))
         run = twin.run(record, progress=progress, sink=rows, job=job)
         mismatch = rows.guard_verdict(run)
+        # the vial observer once the guard's inputs are let go: the two never held together
+        run = replace(run, vial=twin.observe_vial(run))
         rows.write(out, run, mismatch.flags)
     return EstimateResult(
         run,
@@ -143,12 +147,11 @@ class _Rows:
     what the guard needs of them; written once the run has ended (the guard's flags and
     the vial observer come with the end)."""
 
-    def __init__(self, record, spill: Path):
-        self.outputs = record.outputs  # once: a record makes a new array at each access
+    def __init__(self, spill: Path):
         # each chunk's rows wait on disk for the end (a week's rows held were ~0.25 GB)
         self.spill = spill
         self.frames: list[Path] = []
-        self.guard: dict[str, list] = {k: [] for k in ("t", "means", "e", "nis", "n", "stds")}
+        self.guard = GuardInputs()
         self.carry: dict = {}
         self.share_end = None
         self.n = 0
@@ -162,20 +165,14 @@ class _Rows:
         self.frames.append(self.spill / f"{len(self.frames)}.pkl")
         _with_share(frame, share).to_pickle(self.frames[-1])
         f = chunk.filtered
-        # the measurements the filter used (on a job print: the camera's filed at print times)
-        y = chunk.measurements
-        if y is None:
-            y = self.outputs[first : first + len(frame)]
+        # the measurements the filter used (on a job print: the camera's filed at print
+        # times), which the run gives with each chunk
         e = normalised_innovations(
-            y, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
+            chunk.measurements, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
         )
-        for key, value in zip(
-            self.guard,
-            (chunk.time_s, chunk.means, e, np.asarray(f.nis), np.asarray(f.n_measured),
-             chunk.stds),
-            strict=True,
-        ):  # fmt: skip
-            self.guard[key].append(np.asarray(value, dtype=float))
+        self.guard.add(
+            chunk.time_s, chunk.means, e, np.asarray(f.nis), np.asarray(f.n_measured), chunk.stds
+        )
         per_output = frame["nis"].to_numpy() / np.maximum(frame["n_measured"].to_numpy(), 1)
         self.nis_sum += float(np.nansum(per_output))
         self.nis_n += int(np.isfinite(per_output).sum())
@@ -184,18 +181,10 @@ class _Rows:
 
     def guard_verdict(self, run):
         """The mismatch guard over the whole print, from the kept per-second inputs."""
-        g = {k: np.concatenate(v) for k, v in self.guard.items()}
-        self.guard = {}
-        return assess(
-            g["t"],
-            g["means"],
-            g["e"],
-            g["nis"],
-            g["n"],
+        return self.guard.assess(
             start_mean=run.start_mean,
             start_cov=run.start_cov,
             level_learned_s=first_em_update_s(run),
-            stds=g["stds"],
         )
 
     def write(self, out: Path, run, flags) -> None:

@@ -59,6 +59,20 @@ class _Session:
     written: int = 0  # committed steps given to the writer
 
 
+def _rounds(items) -> list[list]:
+    """``items`` [(machine, Sample)] cut, in order, into runs in which each machine comes at
+    most once (a machine seen again starts the next run)."""
+    rounds: list[list] = [[]]
+    names: set = set()
+    for machine, sample in items:
+        if machine in names:
+            rounds.append([])
+            names = set()
+        rounds[-1].append((machine, sample))
+        names.add(machine)
+    return [r for r in rounds if r]
+
+
 class LiveEngine:
     """Live twins of many machines in one process: samples in, messages out.
 
@@ -270,17 +284,24 @@ class LiveEngine:
         return self.feed_many([(machine, sample)])
 
     def feed_many(self, items) -> list[dict]:
-        """Samples of several machines [(machine, Sample)]; ordinary steps run batched."""
+        """Samples of several machines [(machine, Sample)]; ordinary steps run batched.
+
+        A machine's samples are taken in order, one per batched round: a machine's next
+        step starts from the carry its previous step left (several of its samples in one
+        batch would all start from the same one), and a batch is never larger than the
+        fleet (each new batch size is one more compiled step kept for the process's life).
+        """
         messages: list[dict] = []
-        plain = []
-        for machine, sample in items:
-            stream = self.open(machine)
-            taken = stream.take_plain(sample)
-            if taken is None:
-                messages += stream.feed(sample)
-            else:
-                plain.append((stream, taken))
-        messages += step_together(plain)
+        for batch in _rounds(items):
+            plain = []
+            for machine, sample in batch:
+                stream = self.open(machine)
+                taken = stream.take_plain(sample)
+                if taken is None:
+                    messages += stream.feed(sample)
+                else:
+                    plain.append((stream, taken))
+            messages += step_together(plain)
         messages += self.poll()
         self._record(messages)
         self._publish(messages)

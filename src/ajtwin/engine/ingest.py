@@ -20,7 +20,7 @@ import numpy as np
 
 from ajtwin.apps.detection.batch import DETECTOR_ARRAYS, detect_run
 from ajtwin.apps.detection.mismatch import (
-    assess,
+    GuardInputs,
     assess_run,
     data_share,
     determined_states,
@@ -345,8 +345,6 @@ class IngestSink:
     def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
         self.writer = writer
         self.record = record
-        # once: a record makes a new (T, n) array at each access of these
-        self._outputs, self._inputs = record.outputs, record.inputs
         # a job print's shutter, speed and print times (stored with the arrays)
         self._job = record.data[list(JOB_COLUMNS)] if record.has_job else None
         self.settings, self.long_run_history = settings, long_run_history
@@ -355,15 +353,16 @@ class IngestSink:
         self.chunks: list = []
         self.share = None  # (1, 5) the data share at the last step so far
         self._share_carry: dict = {}
-        self._guard: dict[str, list] = {k: [] for k in _GUARD_KEYS}
+        self._guard = GuardInputs()
         self.status = ("ok", "")
 
     def __call__(self, first: int, chunk) -> None:
         """Take the chunk of steps [first, first + n) (a TwinRun of them)."""
         stop = first + len(chunk.time_s)
+        # the chunk's own inputs and measurements (the run's, not a copy of the record's)
         part = SimpleNamespace(
-            outputs=self._outputs[first:stop],
-            inputs=self._inputs[first:stop],
+            outputs=chunk.measurements,
+            inputs=chunk.inputs,
             has_job=self._job is not None,
             data=None if self._job is None else self._job.iloc[first:stop],
         )
@@ -376,13 +375,10 @@ class IngestSink:
         e = normalised_innovations(
             arrays["measurements"], arrays["predicted_outputs"], arrays["innovation_variances"]
         )
-        for key, value in zip(
-            _GUARD_KEYS,
-            (arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
-             arrays["stds"]),
-            strict=True,
-        ):  # fmt: skip
-            self._guard[key].append(np.asarray(value, dtype=float))
+        self._guard.add(
+            arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
+            arrays["stds"],
+        )  # fmt: skip
         if self.keep:
             self.chunks.append(chunk)
 
@@ -390,17 +386,10 @@ class IngestSink:
         """(the print's events, the mismatch guard's verdict) once the run is done; the
         events a mismatch explains relabelled, the print judged (:attr:`status`)."""
         events = self.detector.finish()
-        guard = {k: np.concatenate(v) for k, v in self._guard.items()}
-        mismatch = assess(
-            guard["time_s"],
-            guard["means"],
-            guard["e"],
-            guard["nis"],
-            guard["n_measured"],
+        mismatch = self._guard.assess(
             start_mean=run.start_mean,
             start_cov=run.start_cov,
             level_learned_s=first_em_update_s(run),
-            stds=guard["stds"],
         )
         # a model that does not fit the machine is reported as such, never as a fault
         events = relabel_events(events, mismatch)
@@ -422,10 +411,6 @@ class IngestSink:
         detection = detect_run(whole, self.record, self.settings, self.long_run_history)
         detection.events = relabel_events(detection.events, assess_run(whole, self.record))
         return whole, detection
-
-
-#: the mismatch guard's per-second inputs an ingest keeps (:func:`assess`)
-_GUARD_KEYS = ("time_s", "means", "e", "nis", "n_measured", "stds")
 
 
 def _joined(chunks, name):

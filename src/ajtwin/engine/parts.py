@@ -62,6 +62,7 @@ class PrintWriter:
         self._after_s: float | None = None  # time of the last step written
         self._alarm_times: list[float] = []
         self._ring: deque = deque()  # (first step, times, covariances) of the latest chunks
+        self._ring_steps = 0  # steps in the ring
         self._extra: dict[int, np.ndarray] = {}  # key frames of alarms in written parts
         self._nis_sum, self._nis_count, self._reinitialised = 0.0, 0, 0
         self.last_time: float | None = None
@@ -85,8 +86,10 @@ class PrintWriter:
             self._origin_s = float(t[0])
         covs = np.asarray(arrays["covariances"], dtype=float)
         self._ring.append((self.n_steps, t, covs))
-        while sum(len(c[1]) for c in self._ring) - len(self._ring[0][1]) >= RING_STEPS:
-            self._ring.popleft()
+        self._ring_steps += n
+        # a live print adds a step at a time: the count is kept, not summed over the ring
+        while self._ring_steps - len(self._ring[0][1]) >= RING_STEPS:
+            self._ring_steps -= len(self._ring.popleft()[1])
         nis = np.asarray(arrays["nis"], dtype=float)
         self._nis_sum += float(np.nansum(nis))
         self._nis_count += int(np.isfinite(nis).sum())

@@ -189,7 +189,7 @@ class TwinRun:
     time_s: np.ndarray
     filtered: FilterResult
     smoothed: SmootherResult | None
-    theta_per_step: np.ndarray  # (T, 5) θ in force at each step
+    theta_per_step: np.ndarray  # (T, 5) θ in force at each step (None: a run taken in chunks)
     theta_history: pd.DataFrame  # one row per EM update
     initial: InitialFit | None
     start_mean: np.ndarray
@@ -734,7 +734,9 @@ class Twin:
             steps: the filter's results, θ, the calibration's share, the prior floor, what
             was seen), so that nothing keeps the whole print's results: the run returned
             then has the print's start, end, θ history, initial fit, vial observer and
-            ``seen``, and ``filtered`` holds only the last chunks. Not with ``smooth``.
+            ``seen``, ``filtered`` holds only the last chunks, ``theta_per_step`` is None
+            (each chunk had its own) and so is ``vial`` (:meth:`observe_vial` runs it when
+            wanted). Not with ``smooth``.
         """
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
@@ -802,7 +804,8 @@ class Twin:
             else self._calibration_covariances(filtered, model_inputs, line),
             seen=seen,
             prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
-            vial=self._observe_vial(inputs, measurements, start_mean, start_cov),
+            # a run taken in chunks leaves it to the caller (observe_vial): it holds (T, 4, 4)
+            vial=None if sink else self._observe_vial(inputs, measurements, start_mean, start_cov),
             measurements=measurements,
             inputs=inputs,
             line_factors=line,
@@ -855,7 +858,8 @@ class Twin:
         boundary, its θ and re-filtered end state taking effect from there (the module's
         chunking). ``line``: a job print's (T, 4) line factors. ``emit(first_step, chunk,
         θ per step)`` takes each chunk as it is done, and only the chunks EM still needs are
-        kept. Returns (filter result, θ at the end, θ per step (T, 5), EM history)."""
+        kept. Returns (filter result, θ at the end, θ per step (T, 5) or None with ``emit``,
+        EM history)."""
         c = self.config
         n = len(model_inputs)
         every, window = int(c.every_s), int(c.window_s)
@@ -863,7 +867,8 @@ class Twin:
             raise ValueError("EM needs every_s >= 1 and window_s >= 2")
         early = em_early_steps(c)
         theta = self.theta.copy()
-        thetas = np.zeros((n, 5))
+        # θ per step of the whole print; with ``emit`` each chunk's goes with it instead
+        thetas = None if emit is not None else np.zeros((n, 5))
         pieces, starts, history = [], [], []
         pos = 0
         while pos < n:
@@ -879,9 +884,10 @@ class Twin:
             seg = _slice(seg, end - pos)
             pieces.append(seg)
             starts.append(pos)
-            thetas[pos:end] = theta
+            if thetas is not None:
+                thetas[pos:end] = theta
             if emit is not None:
-                emit(pos, seg, thetas[pos:end])
+                emit(pos, seg, np.tile(theta, (end - pos, 1)))
                 _keep_from(pieces, starts, end - window)
             last_mean = np.asarray(seg.means[-1])
             last_cov = np.asarray(seg.covariances[-1])
@@ -1017,6 +1023,12 @@ class Twin:
             )
 
         return emit
+
+    def observe_vial(self, run):
+        """The vial observer over a run's print (:class:`~ajtwin.estimation.vial.
+        VialEstimate`; None when Q_m was never measured): what :meth:`run` gives as ``vial``,
+        for a run taken in chunks (which leaves it out)."""
+        return self._observe_vial(run.inputs, run.measurements, run.start_mean, run.start_cov)
 
     def _observe_vial(self, inputs, measurements, start_mean, start_cov):
         """The vial observer over the print's Q_m (None when Q_m was never measured)."""

@@ -10,7 +10,7 @@ the last ``keep`` steps; asking for an older one is an IndexError that says so.
 >>> for k in range(10):
 ...     log.append(k * 10)
 >>> len(log), log[9], log[7:9], log.first
-(10, 90, [70, 80], 6)
+(10, 90, [70, 80], 7)
 """
 
 from __future__ import annotations
@@ -24,11 +24,14 @@ class StepLog:
     Parameters
     ----------
     keep : int or None
-        Steps kept at least (storage is trimmed in blocks, so up to twice as many).
+        Steps kept at least (storage is trimmed in blocks of an eighth of ``keep``, so up
+        to an eighth more: the log is full, and stops growing, after 1.125 ``keep`` steps).
     """
 
     def __init__(self, keep: int | None = None):
         self.keep = None if keep is None else max(int(keep), 1)
+        # a trim moves the kept items: once every block, not at each step
+        self._block = None if keep is None else max(self.keep // 8, 1)
         self._items: list = []
         self._offset = 0  # step number of self._items[0]
 
@@ -40,7 +43,7 @@ class StepLog:
     def append(self, value) -> None:
         """Add the next step's value."""
         self._items.append(value)
-        if self.keep is not None and len(self._items) >= 2 * self.keep:
+        if self.keep is not None and len(self._items) >= self.keep + self._block:
             drop = len(self._items) - self.keep
             del self._items[:drop]
             self._offset += drop

@@ -5,7 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ajtwin.apps.detection.mismatch import ChunkedGuard, assess, load_guard_settings
+from ajtwin.apps.detection.mismatch import (
+    ChunkedGuard,
+    assess,
+    assess_run,
+    load_guard_settings,
+)
+from ajtwin.engine.ingest import ingest_record
+from ajtwin.simulation.machine import MachineDeviation
+from ajtwin.simulation.printer import simulate
+from ajtwin.store.registry import Registry
 
 NOMINAL = np.array([3.5, 1.0, 0.0, 0.01, 4.6e-7])
 
@@ -79,3 +88,16 @@ def test_chunked_guard_judges_a_short_print_nis_at_its_end():
     assert whole.mismatch and "nis" in whole.message.lower()
     assert chunked.to_dict() == whole.to_dict()
     np.testing.assert_array_equal(chunked.flags, whole.flags)
+
+
+def test_ingest_stores_the_whole_run_guard_verdict(tmp_path):
+    """Ingest judges each chunk as the twin gives it (EM's boundaries, its first update
+    known before the run): the stored verdict is the whole run's."""
+    gauges = MachineDeviation(name="gauge+8%", carrier_gauge_gain=1.08, sheath_gauge_gain=1.08)
+    record = simulate("exp1", seed=303, duration_min=16.0, machine=gauges)
+    reg = Registry(tmp_path / "r.sqlite")
+    reg.add_machine("m")
+    result = ingest_record(reg, "m", record, keep_run=True)
+    whole = assess_run(result.run, record).to_dict()
+    assert whole["mismatch"]
+    assert result.summary["mismatch"] == whole

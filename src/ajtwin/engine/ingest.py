@@ -212,8 +212,7 @@ def ingest_record(
 
     The run is taken a chunk at a time (:class:`IngestSink`), each chunk's arrays written as
     produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the final transaction
-    adopts), the mismatch guard judging each chunk as it comes (:class:`~ajtwin.apps.
-    detection.mismatch.ChunkedGuard`): memory grows only by the record.
+    adopts), the guard judging each chunk (:class:`ChunkedGuard`): memory grows by the record.
 
     Parameters
     ----------
@@ -253,14 +252,7 @@ def ingest_record(
     writer = PrintWriter(registry, machine, f"ingest of {source or 'a record'}")
     try:
         carried = carried_long_run_history(registry, machine, chain)
-        sink = IngestSink(
-            writer,
-            record,
-            detector_settings,
-            carried,
-            keep=keep_run,
-            level_learned_s=first_em_update_time(twin.config, record.time_s),
-        )
+        sink = IngestSink(writer, record, detector_settings, carried, keep_run, twin.config)
         job_run = _printed_job(job, record)
         run = twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
         events, mismatch = sink.finish(run)
@@ -349,15 +341,15 @@ class IngestSink:
         The detectors' carried long-run statistics (:class:`AnomalyDetector`).
     keep : bool
         Keep the chunks too (:meth:`whole_run`).
-    level_learned_s : float, optional
-        When the run's first EM update takes effect (:func:`~ajtwin.estimation.twin.
-        first_em_update_time`; None: never), which the guard needs from the first chunk.
+    twin_config : TwinConfig, optional
+        The twin's configuration: when its first EM update takes effect (:func:`~ajtwin.
+        estimation.twin.first_em_update_time`), which the guard needs from the first chunk.
+        None: a twin without EM.
     """
 
     def __init__(
-        self, writer, record, settings=None, long_run_history=None, keep=False,
-        level_learned_s=None,
-    ):  # fmt: skip
+        self, writer, record, settings=None, long_run_history=None, keep=False, twin_config=None
+    ):
         self.writer = writer
         self.record = record
         # a job print's shutter, speed and print times (stored with the arrays)
@@ -369,7 +361,9 @@ class IngestSink:
         self.share = None  # (1, 5) the data share at the last step so far
         self._share_carry: dict = {}
         self._guard = None  # made at the first chunk, which brings the start prior
-        self._level_learned_s = level_learned_s
+        self._level_learned_s = None
+        if twin_config is not None:
+            self._level_learned_s = first_em_update_time(twin_config, record.time_s)
         self.status = ("ok", "")
 
     def __call__(self, first: int, chunk) -> None:

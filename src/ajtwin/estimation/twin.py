@@ -785,15 +785,8 @@ class Twin:
         model_inputs = self.model_inputs(inputs)
         emit = None
         if sink is not None:
-            emit = self._chunk_emitter(
-                sink,
-                time_s,
-                initial,
-                seen,
-                model_inputs,
-                (inputs, measurements, line, filed),
-                start=(start_mean, start_cov),
-            )
+            data = (inputs, measurements, line, filed, (start_mean, start_cov))
+            emit = self._chunk_emitter(sink, time_s, initial, seen, model_inputs, data)
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
             filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
@@ -1005,14 +998,15 @@ class Twin:
             out = level if out is None else out + level
         return out
 
-    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data, start=(None, None)):
+    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data):
         """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each
         chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
         calibration's share, with the vial's drain carried over; the prior floor, with
         what was seen before the chunk; the inputs, the measurements the filter used and a
-        job print's line factors and camera frames; the print's start prior ``start``).
-        ``data``: (inputs, measurements, line factors or None, the filed print or None)."""
-        inputs, measurements, line, filed = data
+        job print's line factors and camera frames; the print's start prior). ``data``:
+        (inputs, measurements, line factors or None, the filed print or None, the start
+        (mean, cov))."""
+        inputs, measurements, line, filed, start = data
         carry: dict = {}
         seen_before = np.zeros(seen.shape[1], dtype=bool)
 

@@ -5,9 +5,10 @@ note said at most once.
 The peak resident set of the ingest process (its own ``VmHWM``) of a 24-h print is compared with
 a 2-h one's. The twin's run is taken a chunk at a time and written to the registry as it is
 produced, the detectors keep their last steps only, and the vial observer of the whole print is
-not run (the detectors have their own); what still grows is the record and the mismatch guard's
-per-second inputs with its pass over them at the end: 24 h needed ~63 MB more than 2 h
-(534 → 597 MB, ~2.9 MB per print-hour; RSS varies by ±20 MB between runs). Before, 108 MB more
+not run (the detectors have their own), the mismatch guard judges each chunk as it comes; what
+still grows is the record, read whole (4 h → 24 h: 529 → 587 MB). Before the chunked guard, 24 h
+needed ~63 MB more than 2 h (534 → 597 MB, ~2.9 MB per print-hour; RSS varies by ±20 MB between
+runs); earlier still, 108 MB more
 (517 → 625 MB); a store that kept the run whole grew ~15.5 MB per print-hour: 340 MB more.
 (At shorter lengths the growth is within that noise: the default suite pins the mechanism
 instead, tests/test_print_parts.py, tests/test_step_log.py.)

@@ -141,6 +141,7 @@ class OpcUaLink:
         # samples taken from the queues and not fed yet, by time: [(machine, Sample), ...]
         self._unfed: deque[list] = deque()
         self.longest_slice_s = 0.0  # the longest the feeding held the event loop
+        self.slices_cut = 0  # slices that gave the event loop back with rows still queued
         self.first_published: float | None = None
         self.reconnects = 0
         self.link: dict = {}  # the last published link state (engine.publish_link)
@@ -406,6 +407,7 @@ class OpcUaLink:
             while self._unfed and time.monotonic() - start < FEED_BUDGET_S:
                 messages += self.engine.feed_many(self._unfed.popleft())
             if time.monotonic() - start >= FEED_BUDGET_S:
+                self.slices_cut += bool(self._unfed or any(self.queues.values()))
                 break
         self.longest_slice_s = max(self.longest_slice_s, time.monotonic() - start)
         return messages

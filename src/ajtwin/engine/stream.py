@@ -235,6 +235,10 @@ class TwinStream:
         self._bins = None if print_context is None else print_context.bins(twin.speed_law)
         self._tail_priors: dict[int, tuple] = {}
         self._tail_key = None
+        # the transition's input and r after it of each step not final yet (kept: a step's
+        # inputs never change), and the end of that run of steps
+        self._tail_inputs: dict[int, tuple] = {}
+        self._tail_inputs_end = 0
         self._restarts = 0  # chunk restarts so far: a kept provisional re-run is stale after one
         self._tail_start: EKFCarry | None = None  # provisional start before the filter's own
         #: a job print's state now: (time [s], mean (5,), covariance (5, 5)) of the newest
@@ -593,18 +597,33 @@ class TwinStream:
 
     def _tail_model_inputs(self, pending: list, skipped: int) -> np.ndarray:
         """The transition's inputs of the steps not final yet (the input response r carried
-        on from the committed steps and those held while EM runs)."""
+        on from the committed steps and those held while EM runs).
+
+        A step's inputs never change once filed and the committed r follows the same
+        sequence, so each step's (input, r after it) is computed once and kept until the
+        step is final: a re-run costs the new steps only, not every step since the last
+        final one (an inspection pass: the whole print).
+        """
         if self._dynamics is None:
             return np.array([step.inputs for step in pending], dtype=float)
-        response = self._response
-        before = [*self._pending, *self._replay]  # held, in order, before the pending bins
-        held = [s.inputs for s in before] + [s.inputs for s in self._bins.pending()]
-        rows = []
-        for i, inputs in enumerate(held):
-            u, response = self.model_input(inputs, response)
-            if i >= len(before) + skipped:
-                rows.append(u)
-        return np.array(rows, dtype=float)
+        first = self._bins.first_open
+        steps = self._bins.pending()
+        kept = self._tail_inputs
+        if self._tail_inputs_end <= first:  # nothing kept that is not final yet
+            kept.clear()
+            end, response = first, self._response
+            for held in [*self._pending, *self._replay]:  # in order, before the pending bins
+                _, response = self.model_input(held.inputs, response)
+        else:
+            for j in [j for j in kept if j < first]:
+                del kept[j]
+            end = self._tail_inputs_end
+            response = kept[end - 1][1]
+        for j in range(end, first + len(steps)):
+            kept[j] = self.model_input(steps[j - first].inputs, response)
+            response = kept[j][1]
+        self._tail_inputs_end = first + len(steps)
+        return np.array([kept[j][0] for j in range(first + skipped, first + len(steps))])
 
     def _restart_chunk(self, pos: int, theta, last=None):
         """Filter restart at a chunk boundary: prior = prediction from step pos − 1."""

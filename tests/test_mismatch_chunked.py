@@ -9,9 +9,11 @@ from ajtwin.apps.detection.mismatch import (
     ChunkedGuard,
     assess,
     assess_run,
+    first_em_update_s,
     load_guard_settings,
 )
 from ajtwin.engine.ingest import ingest_record
+from ajtwin.estimation.twin import Twin, first_em_update_time
 from ajtwin.simulation.machine import MachineDeviation
 from ajtwin.simulation.printer import simulate
 from ajtwin.store.registry import Registry
@@ -101,3 +103,22 @@ def test_ingest_stores_the_whole_run_guard_verdict(tmp_path):
     whole = assess_run(result.run, record).to_dict()
     assert whole["mismatch"]
     assert result.summary["mismatch"] == whole
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        {},  # the default schedule: an early update at 120 s
+        {"early_em_s": ()},  # the first update at window_s
+        {"early_em_s": (45, 200), "every_s": 150, "window_s": 300},
+    ],
+)
+def test_ems_first_update_is_known_before_the_run_as_the_run_makes_it(config):
+    """The chunked guard is told before the run when EM's first update takes effect: the
+    time predicted from the twin's config is the one the run's θ history then shows."""
+    record = simulate("exp1", seed=11, duration_min=12.0)
+    twin = Twin.default(**config)
+    predicted = first_em_update_time(twin.config, record.time_s)
+    run = twin.run(record)
+    assert predicted is not None
+    assert predicted == first_em_update_s(run)

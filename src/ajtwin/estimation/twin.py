@@ -751,11 +751,11 @@ class Twin:
         sink : callable(first_step, TwinRun), optional
             Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
             steps: the filter's results, θ, the calibration's share, the prior floor, what
-            was seen, the print's start prior), so that nothing keeps the whole print's results: the run returned
-            then has the print's start, end, θ history, initial fit, vial observer and
-            ``seen``, ``filtered`` holds only the last chunks, ``theta_per_step`` is None
-            (each chunk had its own) and so is ``vial`` (:meth:`observe_vial` runs it when
-            wanted). Not with ``smooth``.
+            was seen, the print's start prior), so that nothing keeps the whole print's
+            results: the run returned then has the print's start, end, θ history, initial
+            fit, vial observer and ``seen``, ``filtered`` holds only the last chunks,
+            ``theta_per_step`` is None (each chunk had its own) and so is ``vial``
+            (:meth:`observe_vial` runs it when wanted). Not with ``smooth``.
         """
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")

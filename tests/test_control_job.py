@@ -281,6 +281,25 @@ def test_cli_control_simulate_a_job_print(tmp_path):
     assert m["printed_length_mm"] == pytest.approx(expected, rel=1e-9)
 
 
+def test_cli_says_what_an_inspection_pass_only_leaves_the_controllers(tmp_path):
+    from ajtwin.cli import main
+
+    program = tmp_path / "serpentine.prg"
+    program.write_text(serpentine(12))
+    args = ["control", "simulate", "--scenario", "exp1", "--target-linewidth", "55"]
+    args += ["--out", str(tmp_path / "ctl"), "--duration-min", "1", "--strategies", "open_loop"]
+    args += ["--job", str(program), "--camera", "inspection", "--no-progress"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "inspection pass after the print only" in result.output
+    assert "nominal MPC" in result.output
+    trailing = [a if a != "inspection" else "trailing" for a in args]
+    trailing[trailing.index("--out") + 1] = str(tmp_path / "trailing")
+    result = CliRunner().invoke(main, trailing)
+    assert result.exit_code == 0, result.output
+    assert "inspection pass" not in result.output
+
+
 def test_cli_job_options_need_a_job(tmp_path):
     from ajtwin.cli import main
 

@@ -170,9 +170,9 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
     seen = []
 
     class Spy(ingest.IngestSink):  # the detectors of an ingest start with what it carries
-        def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
+        def __init__(self, writer, record, settings=None, long_run_history=None, *args):
             seen.append(long_run_history)
-            super().__init__(writer, record, settings, long_run_history, keep)
+            super().__init__(writer, record, settings, long_run_history, *args)
 
     monkeypatch.setattr(ingest, "IngestSink", Spy)
     first = ingest.ingest_record(reg, "m", two_prints[0], keep_run=True)

@@ -46,6 +46,15 @@ def _parse_horizon(text) -> int | None:
     return int(seconds)
 
 
+#: What an inspection pass only leaves the controllers (said before such a comparison runs)
+INSPECTION_NOTE = (
+    "note: an inspection pass after the print only: no line is measured while it prints, so "
+    "PI has nothing to act on (it runs open loop) and the twin's MPC steers on the model and "
+    "the pressures alone, which see the nozzle and the tube but not the droplet size or the "
+    "aerosol density: expect it to do what the nominal MPC does"
+)
+
+
 @click.group(invoke_without_command=True)
 @click.option(
     "--machine",
@@ -461,6 +470,8 @@ def simulate(
             job = JobSetup.read(
                 program, process_speed, camera_mode, camera_offset_mm, repeat_pitch_mm
             )
+            if job.camera.meta()["mode"] == "inspection":
+                click.echo(INSPECTION_NOTE, err=True)
         settings = ControlSettings.load(settings_path)
         total = 0
         for name in scenarios:

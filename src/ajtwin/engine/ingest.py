@@ -20,7 +20,7 @@ import numpy as np
 
 from ajtwin.apps.detection.batch import DETECTOR_ARRAYS, detect_run
 from ajtwin.apps.detection.mismatch import (
-    GuardInputs,
+    ChunkedGuard,
     assess_run,
     data_share,
     determined_states,
@@ -35,7 +35,7 @@ from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
 from ajtwin.estimation.print_time import is_job_record, record_duration_s
-from ajtwin.estimation.twin import Twin
+from ajtwin.estimation.twin import Twin, first_em_update_time
 from ajtwin.io.records import JOB_COLUMNS, read_record
 from ajtwin.model import STATE_NAMES
 from ajtwin.store.registry import RegistryError, record_hash
@@ -212,7 +212,7 @@ def ingest_record(
 
     The run is taken a chunk at a time (:class:`IngestSink`), each chunk's arrays written as
     produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the final transaction
-    adopts): memory grows only by the guard's inputs (18 numbers a second) and the record.
+    adopts), the guard judging each chunk (:class:`ChunkedGuard`): memory grows by the record.
 
     Parameters
     ----------
@@ -252,7 +252,7 @@ def ingest_record(
     writer = PrintWriter(registry, machine, f"ingest of {source or 'a record'}")
     try:
         carried = carried_long_run_history(registry, machine, chain)
-        sink = IngestSink(writer, record, detector_settings, carried, keep=keep_run)
+        sink = IngestSink(writer, record, detector_settings, carried, keep_run, twin.config)
         job_run = _printed_job(job, record)
         run = twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
         events, mismatch = sink.finish(run)
@@ -328,7 +328,8 @@ def _stored_before(machine: str, existing: dict, digest: str, t0: float) -> Inge
 class IngestSink:
     """The twin's run over a print taken a chunk at a time (:meth:`Twin.run`'s ``sink``):
     each chunk's arrays to the :class:`~ajtwin.engine.parts.PrintWriter`, its steps through
-    the detectors, its data share and the mismatch guard's per-second inputs kept.
+    the detectors, its data share and the mismatch guard (:class:`~ajtwin.apps.detection.
+    mismatch.ChunkedGuard`, which keeps only its windows' last rows).
 
     Parameters
     ----------
@@ -340,9 +341,15 @@ class IngestSink:
         The detectors' carried long-run statistics (:class:`AnomalyDetector`).
     keep : bool
         Keep the chunks too (:meth:`whole_run`).
+    twin_config : TwinConfig, optional
+        The twin's configuration: when its first EM update takes effect (:func:`~ajtwin.
+        estimation.twin.first_em_update_time`), which the guard needs from the first chunk.
+        None: a twin without EM.
     """
 
-    def __init__(self, writer, record, settings=None, long_run_history=None, keep=False):
+    def __init__(
+        self, writer, record, settings=None, long_run_history=None, keep=False, twin_config=None
+    ):
         self.writer = writer
         self.record = record
         # a job print's shutter, speed and print times (stored with the arrays)
@@ -353,7 +360,10 @@ class IngestSink:
         self.chunks: list = []
         self.share = None  # (1, 5) the data share at the last step so far
         self._share_carry: dict = {}
-        self._guard = GuardInputs()
+        self._guard = None  # made at the first chunk, which brings the start prior
+        self._level_learned_s = None
+        if twin_config is not None:
+            self._level_learned_s = first_em_update_time(twin_config, record.time_s)
         self.status = ("ok", "")
 
     def __call__(self, first: int, chunk) -> None:
@@ -375,6 +385,12 @@ class IngestSink:
         e = normalised_innovations(
             arrays["measurements"], arrays["predicted_outputs"], arrays["innovation_variances"]
         )
+        if self._guard is None:
+            self._guard = ChunkedGuard(
+                start_mean=chunk.start_mean,
+                start_cov=chunk.start_cov,
+                level_learned_s=self._level_learned_s,
+            )
         self._guard.add(
             arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
             arrays["stds"],
@@ -386,11 +402,13 @@ class IngestSink:
         """(the print's events, the mismatch guard's verdict) once the run is done; the
         events a mismatch explains relabelled, the print judged (:attr:`status`)."""
         events = self.detector.finish()
-        mismatch = self._guard.assess(
-            start_mean=run.start_mean,
-            start_cov=run.start_cov,
-            level_learned_s=first_em_update_s(run),
-        )
+        if first_em_update_s(run) != self._level_learned_s:
+            raise RuntimeError(
+                f"the twin's first EM update came at {first_em_update_s(run)} s, not at "
+                f"{self._level_learned_s} s as the mismatch guard was told: its Q_m level "
+                "test would be wrong"
+            )
+        mismatch = self._guard.finish()
         # a model that does not fit the machine is reported as such, never as a fault
         events = relabel_events(events, mismatch)
         for event in events:

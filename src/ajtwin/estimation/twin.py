@@ -458,6 +458,25 @@ def em_due(pos: int, every: int, window: int, early: tuple) -> bool:
     return (pos >= window and pos % every == 0) or pos in early
 
 
+def first_em_update_time(config: TwinConfig, time_s) -> float | None:
+    """When :meth:`Twin.run` will make its first EM update over a print of times ``time_s``
+    (the time of the last step before that boundary; None: EM off or never due), known
+    before the run: the chunk boundaries and :func:`em_due` are the run's own."""
+    n = len(time_s)
+    if not config.em or n == 0:
+        return None
+    every, window = int(config.every_s), int(config.window_s)
+    if every < 1 or window < 2:
+        return None  # the run refuses such a config itself
+    early = em_early_steps(config)
+    pos = 0
+    while pos < n:
+        pos = min(next_em_boundary(pos, every, early), n)
+        if em_due(pos, every, window, early) and pos < n:
+            return float(time_s[pos - 1])
+    return None
+
+
 # NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
 def _concat(results: list[FilterResult]) -> FilterResult:
     return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
@@ -732,11 +751,11 @@ class Twin:
         sink : callable(first_step, TwinRun), optional
             Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
             steps: the filter's results, θ, the calibration's share, the prior floor, what
-            was seen), so that nothing keeps the whole print's results: the run returned
-            then has the print's start, end, θ history, initial fit, vial observer and
-            ``seen``, ``filtered`` holds only the last chunks, ``theta_per_step`` is None
-            (each chunk had its own) and so is ``vial`` (:meth:`observe_vial` runs it when
-            wanted). Not with ``smooth``.
+            was seen, the print's start prior), so that nothing keeps the whole print's
+            results: the run returned then has the print's start, end, θ history, initial
+            fit, vial observer and ``seen``, ``filtered`` holds only the last chunks,
+            ``theta_per_step`` is None (each chunk had its own) and so is ``vial``
+            (:meth:`observe_vial` runs it when wanted). Not with ``smooth``.
         """
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
@@ -766,9 +785,8 @@ class Twin:
         model_inputs = self.model_inputs(inputs)
         emit = None
         if sink is not None:
-            emit = self._chunk_emitter(
-                sink, time_s, initial, seen, model_inputs, (inputs, measurements, line, filed)
-            )
+            data = (inputs, measurements, line, filed, (start_mean, start_cov))
+            emit = self._chunk_emitter(sink, time_s, initial, seen, model_inputs, data)
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
             filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
@@ -985,9 +1003,10 @@ class Twin:
         chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
         calibration's share, with the vial's drain carried over; the prior floor, with
         what was seen before the chunk; the inputs, the measurements the filter used and a
-        job print's line factors and camera frames). ``data``: (inputs, measurements, line
-        factors or None, the filed print or None)."""
-        inputs, measurements, line, filed = data
+        job print's line factors and camera frames; the print's start prior). ``data``:
+        (inputs, measurements, line factors or None, the filed print or None, the start
+        (mean, cov))."""
+        inputs, measurements, line, filed, start = data
         carry: dict = {}
         seen_before = np.zeros(seen.shape[1], dtype=bool)
 
@@ -1005,8 +1024,8 @@ class Twin:
                     theta_per_step=np.asarray(thetas),
                     theta_history=_theta_history_frame([]),
                     initial=None,
-                    start_mean=None,
-                    start_cov=None,
+                    start_mean=start[0],
+                    start_cov=start[1],
                     calibration_covariances=self._calibration_covariances(
                         chunk,
                         model_inputs[first:stop],

@@ -360,20 +360,27 @@ class TableBuilder:
         if not self.pieces:
             raise RecordError(f"{self.where}: the record has no rows")
         first = self.pieces[0][0]
-        values = np.concatenate([p[1] for p in self.pieces])
-        counts = np.concatenate([p[2] for p in self.pieces])
-        texts = np.concatenate([p[3] for p in self.pieces])
-        self.pieces = []
-        n = len(values)
+        n = sum(len(p[1]) for p in self.pieces)
+        numbers = [TIME_COLUMN, *self.known] + [c for c in self.extras if not self.extra_text[c]]
+        # one column-major block the table holds without a copy, filled as the pieces go
+        # (concatenating them, then the frame's own block, held the table three times)
+        block = np.empty((n, len(numbers)), order="F")
+        block[:, 0] = first + np.arange(n, dtype=float)
+        wanted = [j for j, c in enumerate([*self.known, *self.extras]) if c in numbers]
+        counts = np.empty(n, np.int64)
+        texts = {c: np.empty(n, dtype=object) for c in self.extras if self.extra_text[c]}
+        text_at = [self.extras.index(c) for c in texts]
+        row = 0
+        while self.pieces:
+            _, values, piece_counts, piece_texts = self.pieces.pop(0)
+            stop = row + len(values)
+            block[row:stop, 1:] = values[:, wanted]
+            counts[row:stop] = piece_counts
+            for column, j in zip(texts.values(), text_at, strict=True):
+                column[row:stop] = piece_texts[:, j]
+            row = stop
         resampled = n != self.rows or bool((counts != 1).any())
-        columns = {TIME_COLUMN: first + np.arange(n, dtype=float)}
-        for j, name in enumerate(self.known):
-            columns[name] = values[:, j]
-        for j, name in enumerate(self.extras):
-            if self.extra_text[name]:
-                columns[name] = texts[:, j]  # an operator's note: kept as text
-            else:
-                columns[name] = values[:, len(self.known) + j]
+        columns = {name: block[:, j] for j, name in enumerate(numbers)}
         self._median_floors(columns)
         verdict = judge(self.quality, self.where)
         for name in settings()["outputs"]["refuse_when_unusable"]:
@@ -385,10 +392,14 @@ class TableBuilder:
         if verdict.refused:
             raise RecordError("\n".join(verdict.refused))
         for name, reason in verdict.missing.items():
-            columns[name] = np.full(n, np.nan)
+            columns[name][:] = np.nan
             self.notes.append(
                 f"{self.where}: column {name!r} treated as missing (no measurement): {reason}"
             )
+        frame = pd.DataFrame(block, columns=numbers, copy=False)
+        del block, columns
+        for name, values in texts.items():  # an operator's note: kept as text, in its place
+            frame.insert(1 + len(self.known) + self.extras.index(name), name, values)
         if resampled:
             empty = int((counts == 0).sum())
             low, high = self.step_range
@@ -399,10 +410,7 @@ class TableBuilder:
                 f"samples within ±0.5 s; {self.binner.merged} samples shared a second, {empty} "
                 f"second(s) had none and are missing); column {SAMPLES_COLUMN!r} counts them"
             )
-            columns[SAMPLES_COLUMN] = counts.astype(float)
-        # one block, no copy: the table is the largest thing the reader holds
-        frame = pd.DataFrame(columns, copy=False)
-        del values, columns
+            frame[SAMPLES_COLUMN] = counts.astype(float)
         return self._hold_inputs(frame)
 
     def _median_floors(self, columns: dict) -> None:

@@ -15,6 +15,7 @@ http://127.0.0.1:40123/
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -199,15 +200,25 @@ class BackgroundServer:
 def launch_chromium(playwright, user_data_dir=None):
     """A headless Debian chromium (persistent context in a fresh user-data folder).
 
-    Returns the Playwright BrowserContext; close it when done.
+    Returns the Playwright BrowserContext; close it when done. A user-data folder this call
+    made is removed when the context closes (or when the browser fails to start).
     """
     if not Path(CHROMIUM).exists():
         raise FileNotFoundError(f"{CHROMIUM} not found: run `make chromium`")
-    data_dir = user_data_dir or tempfile.mkdtemp(prefix="ajtwin-chromium-")
-    return playwright.chromium.launch_persistent_context(
-        str(data_dir),
-        executable_path=CHROMIUM,
-        args=CHROMIUM_ARGS,
-        headless=True,
-        viewport={"width": 1400, "height": 900},
-    )
+    made = None if user_data_dir else tempfile.mkdtemp(prefix="ajtwin-chromium-")
+    try:
+        context = playwright.chromium.launch_persistent_context(
+            str(user_data_dir or made),
+            executable_path=CHROMIUM,
+            args=CHROMIUM_ARGS,
+            headless=True,
+            viewport={"width": 1400, "height": 900},
+        )
+    except BaseException:
+        if made:
+            shutil.rmtree(made, ignore_errors=True)
+        raise
+    if made:
+        # a profile is ~1 MB of files: every browser test left one behind
+        context.on("close", lambda _context: shutil.rmtree(made, ignore_errors=True))
+    return context

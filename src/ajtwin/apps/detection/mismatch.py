@@ -138,20 +138,26 @@ class GuardInputs:
 
     def add(self, time_s, means, e, nis, n_measured, stds) -> None:
         """A chunk's steps: times (n,), filtered means (n, 5), normalised innovations
-        (n, 5), NIS (n,), outputs measured (n,), the states' σ (n, 5)."""
+        (n, 5), NIS (n,), outputs measured (n,), the states' σ (n, 5) or None (not known)."""
         for key, value in zip(self.KEYS, (time_s, means, e, nis, n_measured, stds), strict=True):
-            self._parts[key].append(np.asarray(value, dtype=float))
+            self._parts[key].append(None if value is None else np.asarray(value, dtype=float))
         self.n += len(time_s)
 
-    def assess(self, **kwargs) -> MismatchStatus:
-        """:func:`assess` over the steps added (``kwargs``: its keywords); the chunks are
-        joined one input at a time and let go (the inputs are not held twice)."""
+    def take(self) -> dict:
+        """The steps added, each input joined over the chunks (None: not given), and let go;
+        the chunks are joined one input at a time (the inputs are not held twice)."""
         whole = {}
         for key in self.KEYS:
             parts = self._parts.pop(key)
-            whole[key] = np.concatenate(parts)
+            whole[key] = None if any(p is None for p in parts) else np.concatenate(parts)
             parts.clear()
         self._parts = {k: [] for k in self.KEYS}
+        self.n = 0
+        return whole
+
+    def assess(self, **kwargs) -> MismatchStatus:
+        """:func:`assess` over the steps added (``kwargs``: its keywords), which are let go."""
+        whole = self.take()
         n_measured = whole.pop("n_measured")
         return assess(
             whole.pop("time_s"),
@@ -201,22 +207,119 @@ def assess(
     """
     g = settings or load_guard_settings()
     t = np.asarray(time_s, dtype=float)
+    learned = None if level_learned_s is None else float(level_learned_s) - float(t[0])
     t = t - t[0]
-    means = np.asarray(means, dtype=float)
-    e = np.asarray(normalised_innovations, dtype=float)
     found = _Findings(t, t >= float(g["warmup_s"]))
+    inputs = (means, normalised_innovations, nis, n_measured, stds)
+    start_only = _all_findings(found, inputs, g, limits, learned, (start_mean, start_cov))
+    return _verdict(found, start_only)
+
+
+def _all_findings(found, inputs, g: dict, limits, learned, start) -> set:
+    """The guard's tests over the rows of ``found`` (means, e, NIS, outputs measured, σ or
+    None); the names the start surprise alone found."""
+    means, e, nis, n_measured, stds = inputs
+    means = np.asarray(means, dtype=float)
+    e = np.asarray(e, dtype=float)
     _state_range_findings(found, means, limits or StateLimits.load(load_parameters()))
     if stds is not None:
         _negative_deposit_findings(found, means, np.asarray(stds, dtype=float), g)
-    learned = None
-    if level_learned_s is not None:
-        learned = float(level_learned_s) - float(np.asarray(time_s, dtype=float)[0])
-    _output_bias_findings(found, _output_bias(t, e, g, learned), np.isfinite(e), g)
+    _output_bias_findings(found, _output_bias(found.t, e, g, learned), np.isfinite(e), g)
     _nis_findings(found, nis, n_measured, g)
-    start_only = set()
-    if start_mean is not None and start_cov is not None:
-        start_only = _start_surprise_findings(found, means, start_mean, start_cov, g)
-    return _verdict(found, start_only)
+    if start[0] is not None and start[1] is not None:
+        return _start_surprise_findings(found, means, start[0], start[1], g)
+    return set()
+
+
+class ChunkedGuard:
+    """The guard (:func:`assess`) over a print taken a chunk at a time, with the same
+    verdict as over the whole print and memory flat in its length.
+
+    Each test is a trailing window of ``bias_window_s`` or ``nis_window_s`` rows or a test
+    of one row, so a chunk is judged with the last ``max(bias_window_s, nis_window_s)`` rows
+    before it carried over (the windows then see what they would see over the whole print);
+    a finding keeps its first second over all chunks. Rows wait (unjudged) until the print
+    has run ``nis_window_s``: a shorter print's NIS is judged at its end (:func:`assess`'s
+    short-print rule). ``level_learned_s`` must be known from the start (the time of EM's
+    first update, :func:`assess`); the ``flags`` of the verdict are 1 byte a second.
+
+    Examples
+    --------
+    >>> e = np.zeros((400, 5)); e[:, 2] = 1.5
+    >>> guard = ChunkedGuard()
+    >>> for k in range(0, 400, 150):
+    ...     guard.add(np.arange(k, min(k + 150, 400.0)), np.tile([3.5, 1, 0, 0.01, 4.6e-7],
+    ...               (len(e[k:k + 150]), 1)), e[k:k + 150], np.full(len(e[k:k + 150]), 5.0),
+    ...               np.full(len(e[k:k + 150]), 5))
+    >>> guard.finish().outputs
+    ['carrier_pressure_Pa']
+    """
+
+    def __init__(
+        self,
+        *,
+        start_mean=None,
+        start_cov=None,
+        limits=None,
+        settings: dict | None = None,
+        level_learned_s: float | None = None,
+    ):
+        self._g = settings or load_guard_settings()
+        self._limits = limits or StateLimits.load(load_parameters())
+        self._start = (start_mean, start_cov)
+        self._level_learned_s = level_learned_s
+        self._lookback = max(int(self._g["bias_window_s"]), int(self._g["nis_window_s"]))
+        self._tail: dict | None = None  # the last judged rows, carried over
+        self._pending = GuardInputs()
+        self._t0: float | None = None
+        self._judged = 0  # rows judged so far
+        self._items: dict = {}  # a test's place in the run → its first finding
+        self._start_only: set = set()
+        self._flags: list = []
+
+    def add(self, time_s, means, e, nis, n_measured, stds=None) -> None:
+        """A chunk's steps (as :meth:`GuardInputs.add`; ``stds`` None: no deposit test)."""
+        if len(time_s) == 0:
+            return
+        if self._t0 is None:
+            self._t0 = float(time_s[0])
+        self._pending.add(time_s, means, e, nis, n_measured, stds)
+        if float(time_s[-1]) - self._t0 >= float(self._g["nis_window_s"]):
+            self._judge()
+
+    def _judge(self) -> None:
+        """Judge the waiting rows with the carried-over ones before them."""
+        new = self._pending.take()
+        carried = 0 if self._tail is None else len(self._tail["time_s"])
+        rows = new if self._tail is None else {
+            k: None if new[k] is None else np.concatenate([self._tail[k], new[k]])
+            for k in new
+        }  # fmt: skip
+        t = rows["time_s"] - self._t0
+        owned = np.arange(len(t)) >= carried
+        found = _Findings(t, owned & (t >= float(self._g["warmup_s"])))
+        learned = self._level_learned_s
+        learned = None if learned is None else float(learned) - self._t0
+        inputs = tuple(rows[k] for k in GuardInputs.KEYS[1:])
+        self._start_only |= _all_findings(found, inputs, self._g, self._limits, learned,
+                                          self._start)  # fmt: skip
+        offset = self._judged - carried
+        for place, (k, kind, name, sentence, t_k) in zip(found.places, found.items, strict=True):
+            self._items.setdefault(place, (k + offset, kind, name, sentence, t_k))
+        self._flags.append(found.flags[carried:])
+        self._judged += len(t) - carried
+        self._tail = {
+            k: None if v is None else v[-self._lookback :] for k, v in rows.items()
+        }  # fmt: skip
+
+    def finish(self) -> MismatchStatus:
+        """The verdict over all the steps added (as :func:`assess` over the whole print)."""
+        if self._pending.n:
+            self._judge()
+        found = _Findings(np.zeros(0), np.zeros(0, dtype=bool))
+        found.items = list(self._items.values())
+        found.flags = np.concatenate(self._flags) if self._flags else np.zeros(0, dtype=bool)
+        return _verdict(found, self._start_only)
 
 
 class _Findings:
@@ -227,7 +330,9 @@ class _Findings:
         self.t = t
         self.active = active
         self.flags = np.zeros(len(t), dtype=bool)
-        self.items: list[tuple[int, str, str, str]] = []
+        self.items: list[tuple[int, str, str, str, float]] = []
+        self.places: list[int] = []  # each finding's test: its place in the run of tests
+        self._calls = 0
 
     def first(self, mask) -> int | None:
         """The first active index where ``mask`` holds (None: nowhere)."""
@@ -237,9 +342,11 @@ class _Findings:
     def add(self, mask, kind: str, name: str, sentence) -> int | None:
         """Record a finding where ``mask`` holds; ``sentence(k)`` says it at its first index."""
         k = self.first(mask)
+        self._calls += 1
         if k is not None:
             self.flags |= mask & self.active
-            self.items.append((k, kind, name, sentence(k)))
+            self.items.append((k, kind, name, sentence(k), float(self.t[k])))
+            self.places.append(self._calls)
         return k
 
 
@@ -415,7 +522,7 @@ def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
     start_states = sorted(start_only - out_of_range, key=STATE_NAMES.index)
     return MismatchStatus(
         True,
-        float(found.t[findings[0][0]]),
+        findings[0][4],
         outputs,
         states,
         reasons,

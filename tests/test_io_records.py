@@ -313,3 +313,20 @@ def test_time_in_milliseconds_is_rejected(tmp_path):
     df.to_csv(path, index=False)
     with pytest.raises(RecordError, match="milliseconds"):
         read_record(path)
+
+
+def test_overspray_that_is_often_zero_but_reaches_micrometres_is_read_as_micrometres(tmp_path):
+    """A line held with almost no overspray (the closed loop's own prints: 0 for half the print,
+    1–3 µm otherwise; median 0.13 µm) is in µm, not refused as mm; a column of zeros is the
+    quality check's (constant), not a unit."""
+    df = make_table(400)
+    df["overspray_um"] = np.where(np.arange(400) < 220, 0.0, 1.0 + (np.arange(400) % 7) * 0.3)
+    path = tmp_path / "low.csv"
+    df.to_csv(path, index=False)
+    record = read_record(path)
+    assert np.nanmax(record.data["overspray_um"]) == pytest.approx(2.8)
+    df["overspray_um"] = 0.0
+    df.to_csv(path, index=False)
+    with pytest.warns(UserWarning, match="'overspray_um' treated as missing"):
+        record = read_record(path)
+    assert record.data["overspray_um"].isna().all()

@@ -136,9 +136,11 @@ PLAUSIBLE_RANGES = {
     "true_linewidth_um": (1.0, 5000.0, "mm or m (expected µm)", "nm (expected µm)"),
     "true_overspray_um": (0.0, 5000.0, None, "nm (expected µm)"),
 }
-# Columns with a lower bound of 0 can still reveal a unit slip through their median:
-# overspray of a real line is micrometres, not 0.03 (mm).
-MEDIAN_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
+# Columns with a lower bound of 0 can still reveal a unit slip through their scale: overspray
+# of a real line is micrometres, not 0.03 (mm). Refused when 95 % of the values are below the
+# floor and some are above 0: a print whose overspray is often 0 but reaches a micrometre or
+# two is in µm, and a column of zeros is the quality check's (constant: treated as missing).
+SCALE_FLOORS = {"overspray_um": (0.5, "mm (expected µm; 29 µm = 0.029 mm)")}
 
 #: Largest record file read and most rows (samples) it may hold: a CSV is read in chunks
 #: of CHUNK_ROWS rows, so rows cost reading time (~1.5 s per million), not memory; 10 M

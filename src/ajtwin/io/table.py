@@ -37,12 +37,12 @@ from ajtwin.io.schema import (
     LINE_TRUTH_COLUMNS,
     MAX_GAP_S,
     MAX_RECORD_SECONDS,
-    MEDIAN_FLOORS,
     OUTPUT_COLUMNS,
     PLAUSIBLE_RANGES,
     RECORD_COLUMNS,
     REQUIRED_COLUMNS,
     SAMPLES_COLUMN,
+    SCALE_FLOORS,
     TIME_COLUMN,
     TRUTH_COLUMNS,
     UNITS,
@@ -381,7 +381,7 @@ class TableBuilder:
             row = stop
         resampled = n != self.rows or bool((counts != 1).any())
         columns = {name: block[:, j] for j, name in enumerate(numbers)}
-        self._median_floors(columns)
+        self._scale_floors(columns)
         verdict = judge(self.quality, self.where)
         for name in settings()["outputs"]["refuse_when_unusable"]:
             if name in verdict.missing:
@@ -413,18 +413,21 @@ class TableBuilder:
             frame[SAMPLES_COLUMN] = counts.astype(float)
         return self._hold_inputs(frame)
 
-    def _median_floors(self, columns: dict) -> None:
-        for name, (floor, hint) in MEDIAN_FLOORS.items():
+    def _scale_floors(self, columns: dict) -> None:
+        for name, (floor, hint) in SCALE_FLOORS.items():
             if name not in columns or name in self.added:
                 continue
             values = columns[name]
             finite = np.isfinite(values)
-            if finite.any() and np.median(values[finite]) < floor:
-                position = int(np.flatnonzero(finite & (values < floor))[0])
+            if not (finite & (values > 0)).any():
+                continue  # no overspray at all, or none measured: not a unit
+            high = float(np.percentile(values[finite], 95))
+            if high < floor:
+                position = int(np.flatnonzero(finite & (values > 0))[0])
                 raise RecordError(
-                    f"{self.where}: {self._label(position)}, column {name!r}: median "
-                    f"{np.median(values[finite]):g} {UNITS[name]} is below {floor:g}; the "
-                    f"values look like {hint}"
+                    f"{self.where}: {self._label(position)}, column {name!r}: 95 % of its "
+                    f"values are at most {high:g} {UNITS[name]}, below {floor:g} (the largest "
+                    f"{np.max(values[finite]):g}); the values look like {hint}"
                 )
 
     def _hold_inputs(self, frame: pd.DataFrame) -> pd.DataFrame:

@@ -6,8 +6,9 @@ figure: the process's own ``VmHWM`` (``/proc/self/status``) as it exits. Not ``r
 from ``wait4``: Linux carries the parent's peak into a forked child's, so under ``make bench``
 (one process that ran the other benchmarks first) every command read the runner's 2.9 GB.
 The live engine is fed the record's samples as fast as it takes them
-(``LiveEngine.feed_many``, as the OPC UA link feeds it, without the wire) and closed at the
-end (the print stored): ``live`` a minute's samples a call (a burst), ``live-1hz`` one
+(``LiveEngine.feed_many``, as the OPC UA link feeds it, without the wire; the file read a
+piece at a time, so the feeder holds no copy of the print) and closed at the end (the print
+stored): ``live`` a minute's samples a call (a burst), ``live-1hz`` one
 sample a call with each step written to the live log as it commits (what a machine at 1 Hz
 does in real time, without waiting the print's hours). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
@@ -42,18 +43,25 @@ COMMANDS = ("estimate", "ingest", "live", "live-1hz")
 #: seconds between the live log's commits)
 LIVE_CHILD = """
 import sys
-import numpy as np
+import pyarrow.parquet as pq
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.engine.samples import Sample
-from ajtwin.io.records import read_record
+from ajtwin.io.schema import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 from ajtwin.store.registry import Registry
-record = read_record(sys.argv[1])
 per_call, commit_every_s = int(sys.argv[3]), float(sys.argv[4])
 engine = LiveEngine(Registry(sys.argv[2]), commit_every_s=commit_every_s)
-u, y, t = record.inputs, record.outputs, record.time_s
-for first in range(0, len(t), per_call):
-    stop = min(first + per_call, len(t))
-    engine.feed_many([("M", Sample(float(t[k]), u[k], y[k])) for k in range(first, stop)])
+# the print is read a piece at a time, as a machine hands it over: the figure is the engine's,
+# not a copy of the whole print held by the feeder
+record = pq.ParquetFile(sys.argv[1])
+columns = [TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS]
+for batch in record.iter_batches(batch_size=60 * per_call, columns=columns):
+    rows = batch.to_pandas()
+    t = rows[TIME_COLUMN].to_numpy(float)
+    u = rows[list(INPUT_COLUMNS)].to_numpy(float)
+    y = rows[list(OUTPUT_COLUMNS)].to_numpy(float)
+    for first in range(0, len(t), per_call):
+        stop = min(first + per_call, len(t))
+        engine.feed_many([("M", Sample(float(t[k]), u[k], y[k])) for k in range(first, stop)])
 engine.close("M")
 engine.shutdown()
 """

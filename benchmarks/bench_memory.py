@@ -12,7 +12,10 @@ stored): ``live`` a minute's samples a call (a burst), ``live-1hz`` one
 sample a call with each step written to the live log as it commits (what a machine at 1 Hz
 does in real time, without waiting the print's hours). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
-flat in print length. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7 days.
+flat in print length. The live engine also says its resident memory every 4 print-hours
+(``live_<h>h_rss_MB_by_hour``): one process's course, without the ±10 MB between runs that
+blurs a slope over a few hours. The aims: `ingest` and live flat, `estimate` ≤ 1 GB for 7
+days.
 Each command first runs once, unmeasured, on the shortest print: a first run with an
 empty JAX cache compiles, and the compiler's peak (~150 MB more) is not the print's.
 
@@ -54,6 +57,7 @@ engine = LiveEngine(Registry(sys.argv[2]), commit_every_s=commit_every_s)
 # not a copy of the whole print held by the feeder
 record = pq.ParquetFile(sys.argv[1])
 columns = [TIME_COLUMN, *INPUT_COLUMNS, *OUTPUT_COLUMNS]
+done = 0
 for batch in record.iter_batches(batch_size=60 * per_call, columns=columns):
     rows = batch.to_pandas()
     t = rows[TIME_COLUMN].to_numpy(float)
@@ -62,6 +66,11 @@ for batch in record.iter_batches(batch_size=60 * per_call, columns=columns):
     for first in range(0, len(t), per_call):
         stop = min(first + per_call, len(t))
         engine.feed_many([("M", Sample(float(t[k]), u[k], y[k])) for k in range(first, stop)])
+    done += len(t)
+    if done % (4 * 3600) < len(t):  # resident memory every 4 print-hours, in this one process
+        with open("/proc/self/status") as status:
+            kb = next(line.split()[1] for line in status if line.startswith("VmRSS:"))
+        print(f"rss_MB_at_h {done // 3600} {int(kb) / 1024:.1f}", flush=True)
 engine.close("M")
 engine.shutdown()
 """
@@ -84,16 +93,15 @@ atexit.register(_write_hwm)
 """
 
 
-def peak_mb(argv: list[str], env: dict) -> tuple[float, float]:
-    """(peak RSS [MB], wall [s]) of ``argv`` (``python -c CODE …``) run to its end (it must
-    succeed)."""
+def peak_mb(argv: list[str], env: dict) -> tuple[float, float, str]:
+    """(peak RSS [MB], wall [s], what it printed) of ``argv`` (``python -c CODE …``) run to
+    its end (it must succeed)."""
     with tempfile.NamedTemporaryFile(suffix=".hwm", delete=False) as handle:
         hwm = Path(handle.name)
     argv = [argv[0], "-c", HWM_AT_EXIT + argv[2], *argv[3:]]
     t0 = time.perf_counter()
     proc = subprocess.run(
-        argv, env={**env, "AJTWIN_BENCH_HWM": str(hwm)}, stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE, check=False,
+        argv, env={**env, "AJTWIN_BENCH_HWM": str(hwm)}, capture_output=True, check=False,
     )  # fmt: skip
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
@@ -101,15 +109,16 @@ def peak_mb(argv: list[str], env: dict) -> tuple[float, float]:
         raise RuntimeError(f"{argv[3:6]} failed ({proc.returncode}): {err[-1500:]}")
     kb = float(hwm.read_text())
     hwm.unlink()
-    return kb / 1024.0, wall
+    return kb / 1024.0, wall, proc.stdout.decode(errors="replace")
 
 
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-c", "from ajtwin.cli import main; main()", *args]
 
 
-def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, float]:
-    """Peak RSS [MB] and wall [s] of one command over ``record`` on a fresh registry."""
+def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, float, str]:
+    """Peak RSS [MB], wall [s] and what it printed (the live engine: its resident memory
+    every 4 print-hours) of one command over ``record`` on a fresh registry."""
     store = work / f"{command}.sqlite"
     store.unlink(missing_ok=True)
     if command == "estimate":
@@ -144,10 +153,16 @@ def main() -> dict:
             for command in args.commands if i == 0 else ():
                 measure(command, record, work, env)  # fills the JAX cache
             for command in args.commands:
-                mb, wall = measure(command, record, work, env)
+                mb, wall, said = measure(command, record, work, env)
                 peaks[command].append(mb)
                 figures[f"{command}_{h:g}h_peak_MB"] = round(mb, 1)
                 figures[f"{command}_{h:g}h_wall_s"] = round(wall, 1)
+                # a live print's resident memory as it goes: flat once the step logs are full
+                trace = [line.split()[1:] for line in said.splitlines() if line.startswith("rss_")]
+                if trace:
+                    figures[f"{command}_{h:g}h_rss_MB_by_hour"] = {
+                        int(hour): float(mb) for hour, mb in trace
+                    }
             if args.records is None:
                 record.unlink()
         if len(hours) > 1:

@@ -37,10 +37,8 @@ def _log(path, n_rows: int, step_s: float) -> int:
     return n_rows * 9 * 8  # bytes of the rows as float64
 
 
-def test_reader_memory_follows_the_seconds_not_the_rows(tmp_path, monkeypatch):
-    monkeypatch.setattr(records, "CHUNK_ROWS", 5_000, raising=False)
-    path = tmp_path / "hz10.csv"
-    raw_bytes = _log(path, 300_000, 0.1)  # 30,000 s at 10 Hz
+def _traced_read(path):
+    """(the record, the peak of the memory tracemalloc saw while it was read [bytes])."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         tracemalloc.start()
@@ -49,6 +47,14 @@ def test_reader_memory_follows_the_seconds_not_the_rows(tmp_path, monkeypatch):
             _, peak = tracemalloc.get_traced_memory()
         finally:
             tracemalloc.stop()
+    return record, peak
+
+
+def test_reader_memory_follows_the_seconds_not_the_rows(tmp_path, monkeypatch):
+    monkeypatch.setattr(records, "CHUNK_ROWS", 5_000, raising=False)
+    path = tmp_path / "hz10.csv"
+    raw_bytes = _log(path, 300_000, 0.1)  # 30,000 s at 10 Hz
+    record, peak = _traced_read(path)
     # e8d5de7 held the whole table and its copies: 34 MB for 14 MB of rows (2.4×)
     assert peak < 0.5 * raw_bytes, f"peak {peak / 1e6:.1f} MB for {raw_bytes / 1e6:.1f} MB of rows"
     assert len(record) == 30_001  # 10 rows per second averaged: seconds 0 … 30,000
@@ -81,14 +87,7 @@ def test_a_parquet_record_is_held_about_twice_at_most_while_it_is_read(tmp_path)
     csv = tmp_path / "rows.csv"
     _log(csv, 40_000, 1.0)
     pd.read_csv(csv).to_parquet(path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        tracemalloc.start()
-        try:
-            record = records.read_record(path)
-            _, peak = tracemalloc.get_traced_memory()
-        finally:
-            tracemalloc.stop()
+    record, peak = _traced_read(path)
     table = record.data.memory_usage(index=False).sum()
     assert len(record) == 40_000
     assert peak < 2.75 * table, f"peak {peak / 1e6:.1f} MB for a {table / 1e6:.1f} MB table"

@@ -23,6 +23,9 @@ class _Context:
     def close(self):
         for handler in self._on_close:
             handler(self)
+        # chromium writes its preferences as it exits, after the "close" event
+        Path(self.folder, "Default").mkdir(parents=True, exist_ok=True)
+        Path(self.folder, "Default", "Preferences").write_text("{}")
 
 
 class _Chromium:

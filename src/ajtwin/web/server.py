@@ -219,6 +219,17 @@ def launch_chromium(playwright, user_data_dir=None):
             shutil.rmtree(made, ignore_errors=True)
         raise
     if made:
-        # a profile is ~1 MB of files: every browser test left one behind
+        # a profile is ~1 MB of files: every browser test left one behind. Removed once
+        # close() has returned (chromium writes its preferences as it exits, after the
+        # context's "close" event), and on that event too if the browser went by itself.
+        close = context.close
+
+        def close_and_remove(*args, **kwargs):
+            try:
+                return close(*args, **kwargs)
+            finally:
+                shutil.rmtree(made, ignore_errors=True)
+
+        context.close = close_and_remove
         context.on("close", lambda _context: shutil.rmtree(made, ignore_errors=True))
     return context

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -51,6 +52,8 @@ def chromium_binary(tmp_path, monkeypatch):
     binary = tmp_path / "chromium"
     binary.write_text("")
     monkeypatch.setattr(server, "CHROMIUM", str(binary))
+    # the folders it makes go under the test's own folder, even when a test fails
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
 
 
 def test_the_profile_folder_it_made_goes_when_the_browser_closes(chromium_binary):

@@ -458,22 +458,30 @@ def em_due(pos: int, every: int, window: int, early: tuple) -> bool:
     return (pos >= window and pos % every == 0) or pos in early
 
 
+def em_schedule(n: int, every: int, window: int, early: tuple):
+    """The run's chunks over ``n`` steps: (first step, end, whether EM updates θ at the end),
+    boundaries at multiples of ``every`` and the ``early`` steps (:meth:`Twin.run`'s
+    chunking; an update needs a full ``window`` or an early step, and a step after it)."""
+    pos = 0
+    while pos < n:
+        end = min(next_em_boundary(pos, every, early), n)
+        yield pos, end, em_due(end, every, window, early) and end < n
+        pos = end
+
+
 def first_em_update_time(config: TwinConfig, time_s) -> float | None:
     """When :meth:`Twin.run` will make its first EM update over a print of times ``time_s``
     (the time of the last step before that boundary; None: EM off or never due), known
-    before the run: the chunk boundaries and :func:`em_due` are the run's own."""
+    before the run from the run's own schedule (:func:`em_schedule`)."""
     n = len(time_s)
     if not config.em or n == 0:
         return None
     every, window = int(config.every_s), int(config.window_s)
     if every < 1 or window < 2:
         return None  # the run refuses such a config itself
-    early = em_early_steps(config)
-    pos = 0
-    while pos < n:
-        pos = min(next_em_boundary(pos, every, early), n)
-        if em_due(pos, every, window, early) and pos < n:
-            return float(time_s[pos - 1])
+    for _, end, update in em_schedule(n, every, window, em_early_steps(config)):
+        if update:
+            return float(time_s[end - 1])
     return None
 
 
@@ -888,9 +896,7 @@ class Twin:
         # θ per step of the whole print; with ``emit`` each chunk's goes with it instead
         thetas = None if emit is not None else np.zeros((n, 5))
         pieces, starts, history = [], [], []
-        pos = 0
-        while pos < n:
-            end = min(next_em_boundary(pos, every, early), n)
+        for pos, end, update in em_schedule(n, every, window, early):
             seg = self._filter(
                 mean,
                 cov,
@@ -909,18 +915,17 @@ class Twin:
                 _keep_from(pieces, starts, end - window)
             last_mean = np.asarray(seg.means[-1])
             last_cov = np.asarray(seg.covariances[-1])
-            pos = end
-            if em_due(pos, every, window, early) and pos < n:
-                w0 = max(pos - window, 0)
+            if update:
+                w0 = max(end - window, 0)
                 em, learned = self._em_over_window(
-                    pieces, starts, w0, pos, model_inputs, measurements, theta, line
+                    pieces, starts, w0, end, model_inputs, measurements, theta, line
                 )
                 theta = em.theta
                 last_mean = np.asarray(em.filtered.means)[-1]
                 last_cov = np.asarray(em.filtered.covariances)[-1]
                 history.append(
                     {
-                        "time_s": float(time_s[pos - 1]),
+                        "time_s": float(time_s[end - 1]),
                         "window_start_s": float(time_s[w0]),
                         "iterations": em.iterations,
                         "converged": em.converged,
@@ -929,10 +934,10 @@ class Twin:
                         **learned,
                     }
                 )
-            if pos < n:
-                mean, cov = self._predict(last_mean, last_cov, model_inputs[pos - 1], theta)
+            if end < n:
+                mean, cov = self._predict(last_mean, last_cov, model_inputs[end - 1], theta)
             if progress:
-                progress(pos)
+                progress(end)
         return _concat(pieces), theta, thetas, history
 
     def _em_over_window(

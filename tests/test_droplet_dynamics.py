@@ -16,6 +16,7 @@ from ajtwin.estimation.twin import Twin, twin_functions
 from ajtwin.model import euler_step, load_parameters
 from ajtwin.model.droplet_dynamics import (
     DropletStep,
+    _response_scan,
     augment_inputs,
     load_droplet_dynamics,
     model_input,
@@ -111,6 +112,28 @@ def test_model_input_sample_by_sample_gives_augment_inputs_rows():
     # a variant that does not follow the inputs passes them through
     same, r = model_input(inputs[0], None, load_droplet_dynamics("mean_reverting"))
     assert r is None and np.array_equal(same, inputs[0])
+
+
+def test_input_response_in_pieces_is_the_whole_and_compiled_once_per_length():
+    """A print read in pieces (ajtwin ingest) carries r from piece to piece (next_response):
+    the same rows bit for bit; and each piece's start value is an argument, not a constant
+    compiled into the scan (that compiled a new function, ~1.7 MB, for every piece)."""
+    dyn = load_droplet_dynamics("input_following")
+    rng = np.random.default_rng(5)
+    inputs = np.column_stack(
+        [350 + 40 * rng.random(400), 20 + 6 * rng.random(400), np.full(400, 60.0)]
+    )
+    whole = augment_inputs(inputs, dyn)
+    pieces, response = [], None
+    for first in range(0, 400, 100):
+        piece = augment_inputs(inputs[first : first + 100], dyn, response)
+        response = next_response(float(piece[-1, -1]), inputs[first + 99], dyn)
+        pieces.append(piece)
+    np.testing.assert_array_equal(np.concatenate(pieces), whole)
+    compiled = _response_scan._cache_size()
+    for start in (0.1, 0.2, 0.3):
+        augment_inputs(inputs[:100], dyn, start)
+    assert _response_scan._cache_size() == compiled
 
 
 def test_input_response_is_a_first_order_lag_of_the_step():

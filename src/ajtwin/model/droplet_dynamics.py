@@ -167,6 +167,13 @@ def input_response(inputs, dynamics: DropletDynamics, response0=None, dt=1.0):
     target = jnp.asarray(dynamics.input_shift_um(inputs))
     gain = dt / dynamics.response_time_s
     r0 = target[0] if response0 is None else jnp.asarray(response0, dtype=target.dtype)
+    return _response_scan(target, r0, jnp.asarray(gain, dtype=target.dtype))
+
+
+@jax.jit
+def _response_scan(target, r0, gain):
+    """r_k for k = 0 … T−1 from r_0 (one compiled scan per length: a start value baked
+    into an unjitted scan compiled it anew for every piece of a print read in pieces)."""
 
     def step(r, target_k):
         return response_step(r, target_k, gain), r

@@ -36,7 +36,7 @@ from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
 from ajtwin.estimation.print_time import is_job_record, record_duration_s
 from ajtwin.estimation.twin import Twin, first_em_update_time
-from ajtwin.io.records import JOB_COLUMNS, read_record
+from ajtwin.io.records import JOB_COLUMNS, SpooledRecord, open_record
 from ajtwin.model import STATE_NAMES
 from ajtwin.store.registry import RegistryError, record_hash
 
@@ -204,23 +204,22 @@ def ingest_record(
     """Run the machine's twin over one finished print and store the result.
 
     Hash the print (duplicate → stop before any work), start from the machine's chain
-    (:func:`ajtwin.engine.chain.chain_start`: the newest good print's end state and θ; the
-    initial-state fit for its first print), run the twin (EKF + EM, :meth:`Twin.run`) and
-    the detectors (:class:`~ajtwin.apps.detection.streaming.AnomalyDetector`, the live
-    detectors, over each chunk of the run), judge the run
-    (:func:`ajtwin.engine.chain.judge_run`) and store everything in one transaction.
-
-    The run is taken a chunk at a time (:class:`IngestSink`), each chunk's arrays written as
-    produced (:class:`~ajtwin.engine.parts.PrintWriter`, a draft the final transaction
-    adopts), the guard judging each chunk (:class:`ChunkedGuard`): memory grows by the record.
+    (:func:`ajtwin.engine.chain.chain_start`), run the twin (EKF + EM) and the live
+    detectors over each chunk of the run, judge it (:func:`ajtwin.engine.chain.judge_run`)
+    and store everything in one transaction. Each chunk's arrays are written as produced
+    (:class:`IngestSink`, :class:`~ajtwin.engine.parts.PrintWriter`: a draft the final
+    transaction adopts), the guard judging each chunk (:class:`ChunkedGuard`).
 
     Parameters
     ----------
     registry : Registry
     machine : str
         A registered machine name.
-    record : PrintRecord
-        The print (display units; NaN = not measured).
+    record : PrintRecord or SpooledRecord
+        The print (display units; NaN = not measured). Held on disk
+        (:func:`ajtwin.io.records.open_record`), it is read a piece at a time
+        (:meth:`~ajtwin.estimation.twin.Twin.run_streamed`) unless it is a job print or
+        ``keep_run`` asks for the whole run: memory then does not grow with the print.
     source : str
         Where the print came from (file path), stored for the history.
     progress : callable(int), optional
@@ -238,6 +237,8 @@ def ingest_record(
     IngestResult (``duplicate=True`` and the existing print when it was ingested before).
     """
     t0 = time.perf_counter()
+    if isinstance(record, SpooledRecord) and (keep_run or job is not None or not record.streamable):
+        record = record.load()  # the whole run, or a job print filed at its print times
     digest = record_hash(record)
     existing = registry.find_print(machine, digest)
     if existing is not None:
@@ -253,8 +254,7 @@ def ingest_record(
     try:
         carried = carried_long_run_history(registry, machine, chain)
         sink = IngestSink(writer, record, detector_settings, carried, keep_run, twin.config)
-        job_run = _printed_job(job, record)
-        run = twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
+        run = _run_twin(twin, record, start, progress, sink, job)
         events, mismatch = sink.finish(run)
         print_id, summary = save_print(
             registry,
@@ -311,6 +311,15 @@ def ingest_record(
     )
 
 
+def _run_twin(twin, record, start, progress, sink, job):
+    """The twin's run over the print into ``sink``: a piece at a time from a record held on
+    disk, else over the record in memory (a job print's frames filed at its print times)."""
+    if isinstance(record, SpooledRecord):
+        return twin.run_streamed(record, start=start, progress=progress, sink=sink)
+    job_run = _printed_job(job, record)
+    return twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
+
+
 def _stored_before(machine: str, existing: dict, digest: str, t0: float) -> IngestResult:
     """The result of ingesting a print the machine has already (nothing changed)."""
     return IngestResult(
@@ -352,8 +361,11 @@ class IngestSink:
     ):
         self.writer = writer
         self.record = record
-        # a job print's shutter, speed and print times (stored with the arrays)
-        self._job = record.data[list(JOB_COLUMNS)] if record.has_job else None
+        # a job print's shutter, speed and print times (stored with the arrays); a record
+        # held on disk gives each chunk's rows as they come
+        self._job = None
+        if record.has_job:
+            self._job = record if isinstance(record, SpooledRecord) else record.data
         self.settings, self.long_run_history = settings, long_run_history
         self.detector = AnomalyDetector(settings, long_run_history)
         self.keep = keep
@@ -374,7 +386,7 @@ class IngestSink:
             outputs=chunk.measurements,
             inputs=chunk.inputs,
             has_job=self._job is not None,
-            data=None if self._job is None else self._job.iloc[first:stop],
+            data=None if self._job is None else self._job_rows(first, stop),
         )
         arrays = run_arrays(chunk, part)
         for step in _detector_steps(self.detector, arrays):
@@ -397,6 +409,11 @@ class IngestSink:
         )  # fmt: skip
         if self.keep:
             self.chunks.append(chunk)
+
+    def _job_rows(self, first: int, stop: int):
+        if isinstance(self._job, SpooledRecord):
+            return self._job.piece(first, stop).data[list(JOB_COLUMNS)]
+        return self._job[list(JOB_COLUMNS)].iloc[first:stop]
 
     def finish(self, run) -> tuple[list, object]:
         """(the print's events, the mismatch guard's verdict) once the run is done; the
@@ -515,7 +532,11 @@ def ingest_file(
     read and checked against the record before the twin runs.
     """
     path = Path(path)
-    record = read_record(path, aliases=aliases, dialect=dialect)
+    with open_record(path, aliases=aliases, dialect=dialect) as spooled:
+        if program is None and video is None and spooled.streamable:
+            # read a piece at a time by the twin: memory does not grow with the print
+            return ingest_record(registry, machine, spooled, source=str(path), progress=progress)
+        record = spooled.load()
     job = None if program is None else job_entry(program, record, **(job_options or {}))
     source = str(path)
     if video is not None:

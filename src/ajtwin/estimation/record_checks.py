@@ -48,10 +48,10 @@ MAX_SCALE_RATIO = 30.0
 SEEN_SENSITIVITY = 1.0
 
 
-def _when(time_s, position: int) -> str:
+def _when(time_s, position: int, first_row: int = 0) -> str:
     if time_s is None:
-        return f"row {position + 1}"
-    return f"row {position + 1} (t = {float(time_s[position]):g} s)"
+        return f"row {first_row + position + 1}"
+    return f"row {first_row + position + 1} (t = {float(time_s[position]):g} s)"
 
 
 def check_model_inputs(inputs, where: str = "<record>", time_s=None) -> np.ndarray:
@@ -65,26 +65,39 @@ def check_model_inputs(inputs, where: str = "<record>", time_s=None) -> np.ndarr
     u = np.asarray(inputs, dtype=float)
     if u.ndim != 2 or u.shape[1] != len(INPUT_NAMES):
         raise RecordError(f"{where}: inputs must be a (T, 3) table; got shape {u.shape}")
-    if len(u) < 2:
+    check_print_length(len(u), where)
+    return check_input_rows(u, where, time_s)
+
+
+def check_print_length(n: int, where: str = "<record>") -> None:
+    """A print needs at least 2 samples (:class:`RecordError` otherwise)."""
+    if n < 2:
         raise RecordError(
-            f"{where}: the record has {len(u)} row(s); a print needs at least 2 samples (1 s apart)"
+            f"{where}: the record has {n} row(s); a print needs at least 2 samples (1 s apart)"
         )
+
+
+def check_input_rows(u, where: str = "<record>", time_s=None, first_row: int = 0) -> np.ndarray:
+    """Rows of inputs (m, 3), the print's rows ``first_row`` on: complete and inside the
+    model's range (:func:`check_model_inputs` without the print's length; a piece of a
+    print at a time)."""
+    u = np.asarray(u, dtype=float)
     for i, name in enumerate(INPUT_NAMES):
         column = u[:, i]
         missing = ~np.isfinite(column)
         if missing.any():
             position = int(np.flatnonzero(missing)[0])
             raise RecordError(
-                f"{where}: {_when(time_s, position)}, column {name!r}: input is missing "
-                f"({column[position]!r}); the model needs all three inputs every second — "
-                f"fill them (e.g. hold the last set-point)"
+                f"{where}: {_when(time_s, position, first_row)}, column {name!r}: input is "
+                f"missing ({column[position]!r}); the model needs all three inputs every "
+                "second — fill them (e.g. hold the last set-point)"
             )
         low, high = INPUT_LIMITS[name]
         outside = (column <= low) | (column > high)
         if outside.any():
             position = int(np.flatnonzero(outside)[0])
             raise RecordError(
-                f"{where}: {_when(time_s, position)}, column {name!r}: input "
+                f"{where}: {_when(time_s, position, first_row)}, column {name!r}: input "
                 f"{column[position]:g} is outside the model's range ({low:g}, {high:g}]"
             )
     return u
@@ -106,15 +119,27 @@ def check_output_scales(
     """
     y = np.asarray(measurements, dtype=float)
     u_med = np.median(np.asarray(inputs, dtype=float), axis=0)
+    medians = {}
+    for j in SCALE_CHECKED_OUTPUTS:
+        finite = y[:, j][np.isfinite(y[:, j])]
+        medians[j] = float(np.median(finite)) if finite.size else None
+    check_output_medians(params, coefficients, u_med, medians, vial_fill_ml, where)
+
+
+def check_output_medians(
+    params, coefficients, u_med, medians: dict, vial_fill_ml: float, where: str = "<record>"
+) -> None:
+    """:func:`check_output_scales` from the medians: the inputs' ``u_med`` (3,) and each
+    output's of :data:`SCALE_CHECKED_OUTPUTS` over its finite values (``medians``: output
+    index → median, None when never measured); what a print read a column at a time gives."""
+    u_med = np.asarray(u_med, dtype=float)
     phi = float(steady_aerosol_fraction(jnp.asarray(u_med), vial_fill_ml, params))
     x_nom = jnp.array([3.5, vial_fill_ml, 0.0, 0.0, phi])
     expected = np.asarray(output_function(x_nom, jnp.asarray(u_med), params, coefficients))
     for j in SCALE_CHECKED_OUTPUTS:
-        values = y[:, j]
-        finite = values[np.isfinite(values)]
-        if finite.size == 0 or not expected[j] > 0:
+        median = medians.get(j)
+        if median is None or not expected[j] > 0:
             continue
-        median = float(np.median(finite))
         if median <= 0:
             continue  # the reader's ranges refuse negatives; an all-zero column is a dropout
         ratio = median / float(expected[j])
@@ -136,7 +161,7 @@ _output_jacobian = jax.jit(_output_jacobian)
 
 
 def observed_states(
-    params, coefficients, mean, state_range, inputs, measurements, measurement_std
+    params, coefficients, mean, state_range, inputs, measurements, measurement_std, u_med=None
 ) -> np.ndarray:
     """Which states a measured output responds to, per second: bool (T, 5).
 
@@ -144,9 +169,11 @@ def observed_states(
     |∂g_j/∂x_i| Δx_i ≥ :data:`SEEN_SENSITIVITY` σ_y,j, with Δx_i the state's physical
     range (``state_range``, upper − lower of StateLimits), at the start state ``mean`` and
     the median inputs (the output map is smooth over a print, so one Jacobian tells the
-    structure).
+    structure). ``u_med``: the print's median inputs (3,), given when ``inputs`` are a
+    piece of it.
     """
-    u_med = np.median(np.asarray(inputs, dtype=float), axis=0)
+    if u_med is None:
+        u_med = np.median(np.asarray(inputs, dtype=float), axis=0)
     jac = np.asarray(
         _output_jacobian(jnp.asarray(mean, float), jnp.asarray(u_med), params, coefficients)
     )

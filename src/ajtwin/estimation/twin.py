@@ -18,7 +18,7 @@ Examples
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import pandas as pd
@@ -49,11 +49,17 @@ from ajtwin.estimation.print_time import (
     print_context,
 )
 from ajtwin.estimation.record_checks import (
+    SCALE_CHECKED_OUTPUTS,
+    check_input_rows,
     check_model_inputs,
+    check_output_medians,
     check_output_scales,
+    check_print_length,
     observed_states,
 )
 from ajtwin.estimation.vial import load_vial_settings, observe_vial
+from ajtwin.io import spool
+from ajtwin.io.schema import INPUT_COLUMNS, OUTPUT_COLUMNS
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel, load_noise
 from ajtwin.model.calibration import CalibratedCoefficients, Calibration
 from ajtwin.model.droplet_dynamics import (
@@ -61,6 +67,7 @@ from ajtwin.model.droplet_dynamics import (
     augment_inputs,
     default_transition,
     load_droplet_dynamics,
+    next_response,
 )
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.line_speed import load_line_speed_law
@@ -220,13 +227,17 @@ class TwinRun:
     camera_counts: dict = field(default_factory=dict)
     #: the twin's output model and speed law (for :meth:`line_at`)
     line_model: object | None = None
+    #: a run over a record held on disk (:meth:`Twin.run_streamed`), which keeps no (T, …)
+    #: array: its steps, and per state the seconds no measured output saw it
+    n_steps: int | None = None
+    unseen_counts: np.ndarray | None = None
 
     def visibility_notes(self) -> list[str]:
         """Plain-language lines on what the data could not see (for the CLIs); [] if all seen."""
         notes = []
         if self.initial is not None and self.initial.states_from_prior:
             notes.append(f"warning: {self.initial.message}")
-        n = len(self.time_s)
+        n = len(self.time_s) if self.time_s is not None else int(self.n_steps)
         unseen = self.unseen_summary()
         never = [name for name, count in unseen.items() if count == n]
         sometimes = {name: count for name, count in unseen.items() if count < n}
@@ -252,9 +263,12 @@ class TwinRun:
 
     def unseen_summary(self) -> dict[str, int]:
         """State → seconds in which no measured output saw it (V_l, never measured, left out)."""
-        if self.seen is None:
+        if self.seen is not None:
+            counts = (~np.asarray(self.seen)).sum(axis=0)
+        elif self.unseen_counts is not None:
+            counts = np.asarray(self.unseen_counts)
+        else:
             return {}
-        counts = (~np.asarray(self.seen)).sum(axis=0)
         return {
             name: int(counts[i])
             for i, name in enumerate(STATE_NAMES)
@@ -509,6 +523,107 @@ def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
         array[-1:] if fill is None else np.full_like(array[-1:], fill), length - len(array), axis=0
     )
     return np.concatenate([array, pad], axis=0)
+
+
+#: Steps a run over a record held on disk reads at a time (:class:`SpooledSteps`).
+STREAM_READ_ROWS = 4096
+
+
+@dataclass
+class StepRows:
+    """Rows [first, first + m) of a print as the filter, EM and a run's chunks read them."""
+
+    time_s: np.ndarray  # (m,)
+    inputs: np.ndarray  # (m, 3) u_k
+    measurements: np.ndarray  # (m, 5) what the filter uses (a job print's: filed)
+    model_inputs: np.ndarray  # (m, 3 or 4) as the transition reads them
+    line: np.ndarray | None  # (m, 4) a job print's line factors
+    seen: np.ndarray  # (m, 5) bool (record_checks.observed_states)
+    n_camera: np.ndarray | None  # (m, 2) a job print's camera frames per step
+
+
+class HeldSteps:
+    """A print's steps held whole in memory: :class:`StepRows` are slices of its arrays."""
+
+    def __init__(self, time_s, inputs, measurements, model_inputs, line, seen, n_camera=None):
+        self.arrays = (time_s, inputs, measurements, model_inputs, line, seen, n_camera)
+        self.n = len(time_s)
+
+    def rows(self, first: int, stop: int) -> StepRows:
+        """Steps [first, stop)."""
+        return StepRows(*(None if a is None else a[first:stop] for a in self.arrays))
+
+    def time(self, k: int) -> float:
+        """The time [s] of step ``k``."""
+        return float(self.arrays[0][k])
+
+
+class SpooledSteps:
+    """A print's steps read from a record held on disk (:class:`~ajtwin.io.records.
+    SpooledRecord`) as the run reaches them; only the last ``keep`` steps before the
+    furthest asked for stay (what EM's trailing window reads again).
+
+    The model inputs' input response is carried from piece to piece
+    (:func:`~ajtwin.model.droplet_dynamics.next_response`), what each step's outputs see
+    from the print's median inputs (``u_med``, :func:`observed_states`).
+    """
+
+    def __init__(self, twin, source, u_med, start_mean, keep: int, read_rows: int | None = None):
+        self.twin, self.source, self.u_med, self.start_mean = twin, source, u_med, start_mean
+        self.n, self.keep = len(source), int(keep)
+        self.read_rows = int(read_rows or STREAM_READ_ROWS)
+        self._follows = twin.config.transition != "paper" and twin.droplet_dynamics.follows_inputs
+        self.first = 0  # the step the held rows start at
+        self.held: StepRows | None = None
+        self._response = None  # the input response at the next step to read
+
+    def _read(self, first: int, stop: int) -> StepRows:
+        twin = self.twin
+        piece = self.source.piece(first, stop)
+        inputs = check_input_rows(piece.inputs, self.source.where, piece.time_s, first)
+        inputs = check_input(inputs)
+        measurements = np.asarray(piece.outputs, dtype=float)
+        model_inputs = twin.model_inputs(inputs, self._response)
+        if self._follows:
+            self._response = next_response(
+                float(model_inputs[-1, -1]), inputs[-1], twin.droplet_dynamics, twin.spec.dt
+            )
+        seen = twin.observed_states(self.start_mean, inputs, measurements, self.u_med)
+        return StepRows(piece.time_s, inputs, measurements, model_inputs, None, seen, None)
+
+    def rows(self, first: int, stop: int) -> StepRows:
+        """Steps [first, stop): ``first`` no earlier than ``keep`` steps before the furthest
+        step asked for so far."""
+        held_to = self.first + (0 if self.held is None else len(self.held.time_s))
+        if stop > held_to:
+            new = self._read(held_to, min(max(stop, held_to + self.read_rows), self.n))
+            self.held = new if self.held is None else _join_rows(self.held, new)
+        if first < self.first:
+            raise ValueError(f"step {first} was let go (held from {self.first})")
+        out = StepRows(
+            *(None if a is None else a[first - self.first : stop - self.first]
+              for a in _fields(self.held))
+        )  # fmt: skip
+        drop = max(stop - self.keep - self.first, 0)
+        if drop:
+            self.held = StepRows(*(None if a is None else a[drop:].copy()
+                                   for a in _fields(self.held)))  # fmt: skip
+            self.first += drop
+        return out
+
+    def time(self, k: int) -> float:
+        """The time [s] of step ``k``."""
+        return self.source.time_at(k)
+
+
+def _fields(rows: StepRows) -> tuple:
+    return tuple(getattr(rows, f.name) for f in fields(StepRows))
+
+
+def _join_rows(a: StepRows, b: StepRows) -> StepRows:
+    return StepRows(
+        *(None if x is None else np.concatenate([x, y]) for x, y in zip(_fields(a), _fields(b)))
+    )
 
 
 class Twin:
@@ -780,21 +895,16 @@ class Twin:
         else:
             mean, cov = (np.asarray(a, dtype=float) for a in start)
         start_mean, start_cov = mean.copy(), cov.copy()
-        seen = observed_states(
-            self.model.params,
-            self.spec.coefficients,
-            start_mean,
-            self.limits.upper - self.limits.lower,
-            inputs,
-            measurements,
-            self.config.measurement_std,
-        )
+        seen = self.observed_states(start_mean, inputs, measurements)
         # the transition variant's extra input column (input response), if it has one
         model_inputs = self.model_inputs(inputs)
+        steps = HeldSteps(
+            time_s, inputs, measurements, model_inputs, line, seen,
+            None if filed is None else filed.n_camera,
+        )  # fmt: skip
         emit = None
         if sink is not None:
-            data = (inputs, measurements, line, filed, (start_mean, start_cov))
-            emit = self._chunk_emitter(sink, time_s, initial, seen, model_inputs, data)
+            emit, _ = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
         if not self.config.em:
             thetas = np.tile(self.theta, (n, 1))
             filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
@@ -805,7 +915,7 @@ class Twin:
                 progress(n)
         else:
             filtered, theta, thetas, history = self._filter_with_em(
-                mean, cov, model_inputs, measurements, time_s, progress, line, emit
+                mean, cov, steps, progress, emit
             )
         smoothed = None
         if smooth:
@@ -877,17 +987,16 @@ class Twin:
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
         return inputs, measurements, time_s
 
-    def _filter_with_em(
-        self, mean, cov, model_inputs, measurements, time_s, progress, line=None, emit=None
-    ):
+    def _filter_with_em(self, mean, cov, steps, progress, emit=None, learn: bool = True):
         """The filter in chunks between EM boundaries; EM over the trailing window at each
         boundary, its θ and re-filtered end state taking effect from there (the module's
-        chunking). ``line``: a job print's (T, 4) line factors. ``emit(first_step, chunk,
-        θ per step)`` takes each chunk as it is done, and only the chunks EM still needs are
-        kept. Returns (filter result, θ at the end, θ per step (T, 5) or None with ``emit``,
-        EM history)."""
+        chunking). ``steps``: the print's steps (:class:`HeldSteps` or :class:`SpooledSteps`).
+        ``emit(first_step, chunk, θ per step)`` takes each chunk as it is done, and only the
+        chunks EM still needs are kept. ``learn=False``: the same chunks, θ held (a run
+        without EM taken in chunks). Returns (filter result, θ at the end, θ per step (T, 5)
+        or None with ``emit``, EM history)."""
         c = self.config
-        n = len(model_inputs)
+        n = steps.n
         every, window = int(c.every_s), int(c.window_s)
         if every < 1 or window < 2:
             raise ValueError("EM needs every_s >= 1 and window_s >= 2")
@@ -897,13 +1006,14 @@ class Twin:
         thetas = None if emit is not None else np.zeros((n, 5))
         pieces, starts, history = [], [], []
         for pos, end, update in em_schedule(n, every, window, early):
+            rows = steps.rows(pos, end)
             seg = self._filter(
                 mean,
                 cov,
-                _pad(model_inputs[pos:end], every, None),
-                _pad(measurements[pos:end], every, np.nan),
+                _pad(rows.model_inputs, every, None),
+                _pad(rows.measurements, every, np.nan),
                 theta,
-                None if line is None else _pad(line[pos:end], every, None),
+                None if rows.line is None else _pad(rows.line, every, None),
             )
             seg = _slice(seg, end - pos)
             pieces.append(seg)
@@ -915,18 +1025,16 @@ class Twin:
                 _keep_from(pieces, starts, end - window)
             last_mean = np.asarray(seg.means[-1])
             last_cov = np.asarray(seg.covariances[-1])
-            if update:
+            if update and learn:
                 w0 = max(end - window, 0)
-                em, learned = self._em_over_window(
-                    pieces, starts, w0, end, model_inputs, measurements, theta, line
-                )
+                em, learned = self._em_over_window(pieces, starts, w0, steps.rows(w0, end), theta)
                 theta = em.theta
                 last_mean = np.asarray(em.filtered.means)[-1]
                 last_cov = np.asarray(em.filtered.covariances)[-1]
                 history.append(
                     {
-                        "time_s": float(time_s[end - 1]),
-                        "window_start_s": float(time_s[w0]),
+                        "time_s": steps.time(end - 1),
+                        "window_start_s": steps.time(w0),
                         "iterations": em.iterations,
                         "converged": em.converged,
                         "log_likelihood": em.log_likelihood,
@@ -935,17 +1043,15 @@ class Twin:
                     }
                 )
             if end < n:
-                mean, cov = self._predict(last_mean, last_cov, model_inputs[end - 1], theta)
+                mean, cov = self._predict(last_mean, last_cov, rows.model_inputs[-1], theta)
             if progress:
                 progress(end)
         return _concat(pieces), theta, thetas, history
 
-    def _em_over_window(
-        self, pieces, starts, w0, pos, model_inputs, measurements, theta, line=None
-    ):
-        """EM over steps [w0, pos) from the filter's prediction of step w0 (in the chunk that
-        holds it); with ``learn_line_offsets``/``learn_output_noise`` also the output EM.
-        Returns (EM result, the learned output parameters as a dict)."""
+    def _em_over_window(self, pieces, starts, w0, window: StepRows, theta):
+        """EM over the steps ``window`` (from step w0) from the filter's prediction of step
+        w0 (in the chunk that holds it); with ``learn_line_offsets``/``learn_output_noise``
+        also the output EM. Returns (EM result, the learned output parameters as a dict)."""
         c = self.config
         piece = int(np.searchsorted(starts, w0, side="right")) - 1
         offset = w0 - starts[piece]
@@ -953,8 +1059,8 @@ class Twin:
             self.spec,
             pieces[piece].predicted_means[offset],
             pieces[piece].predicted_covariances[offset],
-            model_inputs[w0:pos],
-            measurements[w0:pos],
+            window.model_inputs,
+            window.measurements,
             theta,
             self.process_cov,
             self.measurement_var,
@@ -963,16 +1069,16 @@ class Twin:
             tolerance=c.em_tolerance,
             gate=c.gate_sigma,
             functions=self.functions,
-            line_factors=None if line is None else line[w0:pos],
+            line_factors=window.line,
         )
         learned = {}
         if c.learn_line_offsets or c.learn_output_noise:
-            if line is not None:
+            if window.line is not None:
                 raise ValueError(
                     "learning line offsets or output noise online is not available on a job "
                     "print (the line's speed factors are not in that M-step)"
                 )
-            learned = self._output_em(em.smoothed, model_inputs[w0:pos], measurements[w0:pos])
+            learned = self._output_em(em.smoothed, window.model_inputs, window.measurements)
         return em, learned
 
     def _calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
@@ -1003,27 +1109,28 @@ class Twin:
             out = level if out is None else out + level
         return out
 
-    def _chunk_emitter(self, sink, time_s, initial, seen, model_inputs, data):
-        """``emit(first_step, filtered chunk, θ per step)`` for :meth:`run`'s ``sink``: each
-        chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole print (the
-        calibration's share, with the vial's drain carried over; the prior floor, with
-        what was seen before the chunk; the inputs, the measurements the filter used and a
-        job print's line factors and camera frames; the print's start prior). ``data``:
-        (inputs, measurements, line factors or None, the filed print or None, the start
-        (mean, cov))."""
-        inputs, measurements, line, filed, start = data
+    def _chunk_emitter(self, sink, steps, initial, start):
+        """``(emit, tally)``: ``emit(first_step, filtered chunk, θ per step)`` for the runs'
+        ``sink``: each chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole
+        print (the calibration's share, with the vial's drain carried over; the prior floor,
+        with what was seen before the chunk; the inputs, the measurements the filter used
+        and a job print's line factors and camera frames; the print's start (mean, cov)).
+        ``tally["unseen"]``: per state, the seconds emitted so far that no output saw it."""
         carry: dict = {}
-        seen_before = np.zeros(seen.shape[1], dtype=bool)
+        tally = {"unseen": np.zeros(len(STATE_NAMES), np.int64)}
+        seen_before = np.zeros(len(STATE_NAMES), dtype=bool)
 
         def emit(first: int, chunk, thetas) -> None:
             nonlocal seen_before
             stop = first + len(chunk.means)
-            seen_chunk = np.asarray(seen[first:stop]) | seen_before
+            rows = steps.rows(first, stop)
+            seen_chunk = np.asarray(rows.seen) | seen_before
             seen_before = seen_before | seen_chunk.any(axis=0)
+            tally["unseen"] += (~np.asarray(rows.seen)).sum(axis=0)
             sink(
                 first,
                 TwinRun(
-                    time_s=time_s[first:stop],
+                    time_s=rows.time_s,
                     filtered=chunk,
                     smoothed=None,
                     theta_per_step=np.asarray(thetas),
@@ -1032,21 +1139,91 @@ class Twin:
                     start_mean=start[0],
                     start_cov=start[1],
                     calibration_covariances=self._calibration_covariances(
-                        chunk,
-                        model_inputs[first:stop],
-                        None if line is None else line[first:stop],
-                        carry,
+                        chunk, rows.model_inputs, rows.line, carry
                     ),
-                    seen=seen[first:stop],
+                    seen=rows.seen,
                     prior_floor=never_seen_variance_floor(initial, seen_chunk, chunk.means),
-                    measurements=measurements[first:stop],
-                    inputs=inputs[first:stop],
-                    line_factors=None if line is None else line[first:stop],
-                    n_camera=None if filed is None else filed.n_camera[first:stop],
+                    measurements=rows.measurements,
+                    inputs=rows.inputs,
+                    line_factors=rows.line,
+                    n_camera=rows.n_camera,
                 ),
             )
 
-        return emit
+        return emit, tally
+
+    def observed_states(self, mean, inputs, measurements, u_med=None) -> np.ndarray:
+        """(T, 5) bool: which states an output measured at each step responds to
+        (:func:`~ajtwin.estimation.record_checks.observed_states` with the twin's model)."""
+        return observed_states(
+            self.model.params,
+            self.spec.coefficients,
+            mean,
+            self.limits.upper - self.limits.lower,
+            inputs,
+            measurements,
+            self.config.measurement_std,
+            u_med,
+        )
+
+    def run_streamed(self, source, *, start=None, progress=None, sink) -> TwinRun:
+        """:meth:`run` with ``sink`` over a record held on disk, read a piece at a time.
+
+        ``source``: a :class:`~ajtwin.io.records.SpooledRecord` that is not a job print
+        (``streamable``). The same checks as :meth:`run` on a record (the medians a column
+        at a time), the same chunks, filter and EM (:meth:`_filter_with_em` over
+        :class:`SpooledSteps`): memory does not grow with the print. The run returned has
+        no per-step arrays: its start, end, θ history, initial fit, ``n_steps`` and
+        ``unseen_counts``.
+        """
+        if not source.streamable:
+            raise ValueError(f"{source.where}: a job print is run from the record loaded whole")
+        where, n = source.where, len(source)
+        check_print_length(n, where)
+        block = spool.SPOOL_BLOCK_ROWS
+        for first in range(0, n, block):  # every input checked before any work, as run's
+            piece = source.piece(first, first + block)
+            check_input_rows(piece.inputs, where, piece.time_s, first)
+        u_med = np.array([np.median(source.column(c)) for c in INPUT_COLUMNS])
+        medians = {}
+        for j in SCALE_CHECKED_OUTPUTS:
+            values = source.column(OUTPUT_COLUMNS[j])
+            finite = values[np.isfinite(values)]
+            medians[j] = float(np.median(finite)) if finite.size else None
+        del values, finite
+        c = self.config
+        check_output_medians(
+            self.model.params, self.spec.coefficients, u_med, medians, c.vial_fill_ml, where
+        )
+        initial = None
+        if start is None:
+            head = source.piece(0, int(c.initial_samples))
+            initial = self.initial_state(head.inputs, head.outputs)
+            mean, cov = initial.mean, initial.covariance
+        else:
+            mean, cov = (np.asarray(a, dtype=float) for a in start)
+        start_mean, start_cov = mean.copy(), cov.copy()
+        steps = SpooledSteps(self, source, u_med, start_mean, keep=int(c.window_s))
+        emit, tally = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
+        filtered, theta, _, history = self._filter_with_em(
+            mean, cov, steps, progress, emit, learn=c.em
+        )
+        self.theta = theta
+        return TwinRun(
+            time_s=None,
+            filtered=filtered,
+            smoothed=None,
+            theta_per_step=None,
+            theta_history=_theta_history_frame(history),
+            initial=initial,
+            start_mean=start_mean,
+            start_cov=start_cov,
+            end_mean=np.asarray(filtered.means[-1]),
+            end_cov=np.asarray(filtered.covariances[-1]),
+            line_model=self.line_model,
+            n_steps=n,
+            unseen_counts=tally["unseen"],
+        )
 
     def observe_vial(self, run):
         """The vial observer over a run's print (:class:`~ajtwin.estimation.vial.

@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.config import InputFileError, check_regular_file
+from ajtwin.io import spool
 from ajtwin.io.columns import name_tables
 from ajtwin.io.dialect import SNIFF_LINES, CsvDialect, dialect_from_name, sniff_dialect
 from ajtwin.io.schema import (  # noqa: F401 (re-exported: the format's names live in schema)
@@ -76,10 +77,26 @@ from ajtwin.io.schema import (  # noqa: F401 (re-exported: the format's names li
     UNITS,
     RecordError,
 )
+from ajtwin.io.spool import SpooledTable
 from ajtwin.io.table import TableBuilder
 
 #: The page that documents the format (named in every CSV a record is written to).
 RECORD_FORMAT_PAGE = "docs/reference/record-format.md"
+
+
+def with_defaults(meta: dict) -> dict:
+    """A record's metadata with the keys it lacks filled from :data:`DEFAULT_META` (those
+    filled listed in ``assumed_defaults``)."""
+    meta = dict(meta)
+    assumed = list(meta.get("assumed_defaults", []))
+    for key, value in DEFAULT_META.items():
+        if key not in meta:
+            meta[key] = copy.deepcopy(value)
+            if key != "format_version":
+                assumed.append(key)
+    if assumed:
+        meta["assumed_defaults"] = sorted(set(assumed))
+    return meta
 
 
 @dataclass
@@ -102,16 +119,7 @@ class PrintRecord:
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        meta = dict(self.meta)
-        assumed = list(meta.get("assumed_defaults", []))
-        for key, value in DEFAULT_META.items():
-            if key not in meta:
-                meta[key] = copy.deepcopy(value)
-                if key != "format_version":
-                    assumed.append(key)
-        if assumed:
-            meta["assumed_defaults"] = sorted(set(assumed))
-        self.meta = meta
+        self.meta = with_defaults(self.meta)
 
     # -- convenient array views (display units) ----------------------------------
     @property
@@ -225,7 +233,11 @@ def validate_table(
         df.columns, where, aliases=aliases, dialect=dialect, line_offset=row_offset
     )
     builder.push(df, 0)
-    table = builder.finish()
+    spooled = builder.finish()
+    try:
+        table = spooled.frame()
+    finally:
+        spooled.close()
     _warn(builder.notes)
     return table
 
@@ -418,8 +430,8 @@ def _check_duplicate_names(columns, where: str) -> None:
 
 def _read_csv(
     path: Path, aliases=None, dialect: CsvDialect | None = None
-) -> tuple[pd.DataFrame, dict, list[str]]:
-    """A delimited text file → (record table, metadata, notes), read in chunks."""
+) -> tuple[SpooledTable, dict, list[str]]:
+    """A delimited text file → (record table on disk, metadata, notes), read in chunks."""
     size = check_regular_file(path, "print record", MAX_RECORD_BYTES)
     if dialect is None:
         with path.open("rb") as raw:
@@ -433,7 +445,7 @@ def _read_csv(
                     f"{path}: read as {dialect.describe()} (detected from the first {judged} "
                     f"lines{'; ' + assumed if assumed else ''}); --csv-dialect sets it"
                 ],
-                stacklevel=4,
+                stacklevel=5,
             )
     meta, header_lines, columns, rows, _ = _csv_structure(path, size, dialect)
     if rows > MAX_RECORD_ROWS:
@@ -496,14 +508,14 @@ def _parquet_meta(path: Path, schema) -> dict:
 PARQUET_BATCH_ROWS = 16_384
 
 
-def _read_parquet(path: Path, aliases=None) -> tuple[pd.DataFrame, dict, list[str]]:
-    """A Parquet file → (record table, metadata, notes), read in row batches."""
+def _read_parquet(path: Path, aliases=None) -> tuple[SpooledTable, dict, list[str]]:
+    """A Parquet file → (record table on disk, metadata, notes), read in row batches."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     check_regular_file(path, "print record", MAX_RECORD_BYTES)
     try:
-        parquet = pq.ParquetFile(path)
+        parquet = pq.ParquetFile(path, buffer_size=1 << 20, pre_buffer=False)
         n_rows = parquet.metadata.num_rows
         if n_rows > MAX_RECORD_ROWS:
             raise RecordError(
@@ -661,6 +673,23 @@ def read_record(
     >>> rec.meta["scenario"], rec.inputs.shape      # doctest: +SKIP
     ('exp1', (5400, 3))
     """
+    with open_record(path, aliases, dialect, _stacklevel=4) as source:
+        return source.load()
+
+
+def open_record(
+    path: str | Path,
+    aliases: str | Path | None = None,
+    dialect: str | CsvDialect | None = None,
+    *,
+    _stacklevel: int = 3,
+) -> SpooledRecord:
+    """Read a print record as :func:`read_record` does, its table kept on disk.
+
+    What a pass over a long print uses (``ajtwin ingest``): memory does not grow with the
+    print. The same checks, notes and errors as :func:`read_record`, which is this and
+    :meth:`SpooledRecord.load`. Close it (or use it in a ``with``) to let its file go.
+    """
     path = Path(path)
     try:
         check_regular_file(path, "print record", MAX_RECORD_BYTES)
@@ -671,16 +700,134 @@ def read_record(
         raise RecordError(f"{path}: {exc}") from None
     suffix = path.suffix.lower()
     if suffix in (".parquet", ".pq"):
-        data, meta, notes = _read_parquet(path, aliases)
+        table, meta, notes = _read_parquet(path, aliases)
     elif suffix in TEXT_SUFFIXES:
-        data, meta, notes = _read_csv(path, aliases, chosen)
+        table, meta, notes = _read_csv(path, aliases, chosen)
     else:
         raise RecordError(f"{path}: unknown record format {suffix!r}; use .parquet, .csv or .tsv")
-    meta = validate_meta(dict(meta), str(path))
-    _warn(notes)
-    data = job_columns(data, meta, str(path))
+    try:
+        meta = validate_meta(dict(meta), str(path))
+    except BaseException:
+        table.close()
+        raise
+    _warn(notes, stacklevel=_stacklevel)
     meta["source_file"] = str(path)
-    return PrintRecord(data, meta)
+    return SpooledRecord(table, meta)
+
+
+class SecondsAxis:
+    """The times of a 1 Hz grid of ``n`` consecutive seconds from ``start_s``, as a read-only
+    sequence (``len``, ``axis[k]``) that holds nothing per step."""
+
+    def __init__(self, start_s: float, n: int):
+        self.start_s, self.n = float(start_s), int(n)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: int) -> float:
+        k = int(k)
+        if k < 0:
+            k += self.n
+        if not 0 <= k < self.n:
+            raise IndexError(f"second {k} of {self.n}")
+        return self.start_s + k
+
+
+class SpooledRecord:
+    """A print record read from a file, its table held on disk (:func:`open_record`).
+
+    Gives the print a piece at a time (:meth:`piece`: the rows of :meth:`load`'s record,
+    as a PrintRecord of their own), one numeric column whole (:meth:`column`), or the
+    whole record (:meth:`load`). A job print (format 2 with job columns) is checked over
+    its whole table: it is only :meth:`load`-ed (:attr:`streamable` is False).
+
+    Parameters
+    ----------
+    table : SpooledTable
+    meta : dict
+        Checked metadata (:func:`validate_meta`), with ``source_file``.
+    """
+
+    def __init__(self, table: SpooledTable, meta: dict):
+        self.table = table
+        self.meta = with_defaults(meta)
+        self.where = str(meta.get("source_file", "<record>"))
+        # a 1 Hz grid of consecutive seconds: row k is at start_s + k
+        self.start_s = float(table.spool.read(0, 1)[0, 0])
+        self._columns: list[str] | None = None
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def __enter__(self) -> SpooledRecord:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Let the table's file go."""
+        self.table.close()
+
+    @property
+    def streamable(self) -> bool:
+        """Whether :meth:`piece` may be used: not a format-2 record with job columns (those
+        are checked over the whole table, :func:`job_columns`)."""
+        version = int(self.meta.get("format_version", FORMAT_VERSION))
+        return version < 2 or not any(c in self.table.columns for c in JOB_COLUMNS)
+
+    @property
+    def duration_s(self) -> float:
+        """Time from the first to the last sample [s]."""
+        return float(len(self) - 1)
+
+    def time_at(self, k: int) -> float:
+        """The time [s] of row ``k``."""
+        return self.start_s + int(k)
+
+    @property
+    def time_s(self) -> SecondsAxis:
+        """Sample times [s] (T,), as a sequence computed on demand (not held)."""
+        return SecondsAxis(self.start_s, len(self))
+
+    @property
+    def has_job(self) -> bool:
+        """:meth:`load`'s record carries the job columns (:attr:`PrintRecord.has_job`)."""
+        return all(c in self.columns for c in JOB_COLUMNS)
+
+    def column(self, name: str) -> np.ndarray:
+        """A numeric column of the table over the whole print (n,) (before :func:`job_columns`:
+        the record's own columns)."""
+        return self.table.column(name)
+
+    def piece(self, start: int, stop: int) -> PrintRecord:
+        """Rows [start, stop) of :meth:`load`'s record, as a record of their own (same meta)."""
+        if not self.streamable:
+            raise ValueError(f"{self.where}: a job print is read whole (load), not in pieces")
+        data = job_columns(self.table.frame(start, stop), self.meta, self.where)
+        return PrintRecord(data, self.meta)
+
+    @property
+    def columns(self) -> list[str]:
+        """The columns of :meth:`load`'s record, in order."""
+        if self._columns is None:
+            self._columns = list(self.piece(0, min(2, len(self))).data.columns)
+        return self._columns
+
+    def column_pieces(self, name: str, rows: int | None = None):
+        """A column of :meth:`load`'s record as float64 (text that is no number: NaN), a
+        block of rows (:data:`~ajtwin.io.spool.SPOOL_BLOCK_ROWS`) at a time (what
+        :func:`ajtwin.store.registry.record_hash` reads)."""
+        rows = rows or spool.SPOOL_BLOCK_ROWS
+        for start in range(0, len(self), rows):
+            values = self.piece(start, start + rows).data[name]
+            yield pd.to_numeric(values, errors="coerce").to_numpy(dtype=np.float64)
+
+    def load(self) -> PrintRecord:
+        """The whole record in memory (the job columns checked, :func:`job_columns`)."""
+        data = job_columns(self.table.frame(), self.meta, self.where)
+        return PrintRecord(data, dict(self.meta))
 
 
 def write_record(record: PrintRecord, path: str | Path) -> Path:

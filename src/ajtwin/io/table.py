@@ -48,6 +48,7 @@ from ajtwin.io.schema import (
     UNITS,
     RecordError,
 )
+from ajtwin.io.spool import RowSpool, SpooledTable
 from ajtwin.io.timebase import SecondBinner, TimeError, hold_missing_inputs, time_base
 
 #: Cells read as "no value" (after pandas' own NA spellings such as #N/A).
@@ -139,7 +140,10 @@ class TableBuilder:
         self.last_t: float | None = None
         self.first_t: float | None = None
         self.step_range = [np.inf, -np.inf]
-        self.pieces: list[tuple] = []  # (seconds, values, counts, texts) of emitted steps
+        # the emitted steps: values and sample counts on disk, texts of other columns here
+        self.spool: RowSpool | None = None
+        self.text_pieces: list[np.ndarray] = []
+        self.first_step: int | None = None
         self.next_step: int | None = None
 
     # ------------------------------------------------------------------ #
@@ -340,48 +344,46 @@ class TableBuilder:
         if not len(bins):
             return
         if self.next_step is None:
-            self.next_step = int(bins.seconds[0])
+            self.first_step = self.next_step = int(bins.seconds[0])
+            self.spool = RowSpool(len(self.known) + len(self.extras) + 1, self.where)
         span = int(bins.seconds[-1]) - self.next_step + 1
         position = bins.seconds - self.next_step
-        values = np.full((span, bins.means.shape[1]), np.nan)
-        values[position] = bins.means
-        counts = np.zeros(span, np.int64)
-        counts[position] = bins.counts
-        texts = np.full((span, bins.texts.shape[1]), "", dtype=object)
-        texts[position] = bins.texts
-        self.pieces.append((self.next_step, values, counts, texts))
+        # one row per second: the columns' means, then the number of samples averaged
+        rows = np.full((span, bins.means.shape[1] + 1), np.nan)
+        rows[position, :-1] = bins.means
+        rows[:, -1] = 0.0
+        rows[position, -1] = bins.counts
+        self.spool.append(rows)
+        if self.extras:
+            texts = np.full((span, bins.texts.shape[1]), "", dtype=object)
+            texts[position] = bins.texts
+            self.text_pieces.append(texts)
         self.next_step += span
 
     # ------------------------------------------------------------------ #
-    def finish(self) -> pd.DataFrame:
-        """The record's table (see the module doc); the notes to report are in ``notes``."""
+    def finish(self) -> SpooledTable:
+        """The record's table, held on disk (see the module doc); the notes to report are
+        in ``notes``."""
         if self.binner is not None:
             self._emit(self.binner.finish())
-        if not self.pieces:
+        if self.spool is None or not self.spool.rows:
             raise RecordError(f"{self.where}: the record has no rows")
-        first = self.pieces[0][0]
-        n = sum(len(p[1]) for p in self.pieces)
-        numbers = [TIME_COLUMN, *self.known] + [c for c in self.extras if not self.extra_text[c]]
-        # one column-major block the table holds without a copy, filled as the pieces go
-        # (concatenating them, then the frame's own block, held the table three times)
-        block = np.empty((n, len(numbers)), order="F")
-        block[:, 0] = first + np.arange(n, dtype=float)
-        wanted = [j for j, c in enumerate([*self.known, *self.extras]) if c in numbers]
-        counts = np.empty(n, np.int64)
-        texts = {c: np.empty(n, dtype=object) for c in self.extras if self.extra_text[c]}
-        text_at = [self.extras.index(c) for c in texts]
-        row = 0
-        while self.pieces:
-            _, values, piece_counts, piece_texts = self.pieces.pop(0)
-            stop = row + len(values)
-            block[row:stop, 1:] = values[:, wanted]
-            counts[row:stop] = piece_counts
-            for column, j in zip(texts.values(), text_at, strict=True):
-                column[row:stop] = piece_texts[:, j]
-            row = stop
+        try:
+            return self._finished()
+        except BaseException:
+            self.spool.close()
+            raise
+
+    def _finished(self) -> SpooledTable:
+        raw = self.spool
+        n = raw.rows
+        texts = {c for c in self.extras if self.extra_text[c]}
+        counts_column = raw.width - 1
+        counts = raw.column(counts_column)
         resampled = n != self.rows or bool((counts != 1).any())
-        columns = {name: block[:, j] for j, name in enumerate(numbers)}
-        self._scale_floors(columns)
+        empty = int((counts == 0).sum())
+        del counts
+        self._scale_floors(raw)
         verdict = judge(self.quality, self.where)
         for name in settings()["outputs"]["refuse_when_unusable"]:
             if name in verdict.missing:
@@ -392,16 +394,10 @@ class TableBuilder:
         if verdict.refused:
             raise RecordError("\n".join(verdict.refused))
         for name, reason in verdict.missing.items():
-            columns[name][:] = np.nan
             self.notes.append(
                 f"{self.where}: column {name!r} treated as missing (no measurement): {reason}"
             )
-        frame = pd.DataFrame(block, columns=numbers, copy=False)
-        del block, columns
-        for name, values in texts.items():  # an operator's note: kept as text, in its place
-            frame.insert(1 + len(self.known) + self.extras.index(name), name, values)
         if resampled:
-            empty = int((counts == 0).sum())
             low, high = self.step_range
             steps = f"steps {low:g}–{high:g} s" if np.isfinite(low) else "one row"
             self.notes.append(
@@ -410,14 +406,73 @@ class TableBuilder:
                 f"samples within ±0.5 s; {self.binner.merged} samples shared a second, {empty} "
                 f"second(s) had none and are missing); column {SAMPLES_COLUMN!r} counts them"
             )
-            frame[SAMPLES_COLUMN] = counts.astype(float)
-        return self._hold_inputs(frame)
+        table = self._final_table(raw, set(verdict.missing), texts, resampled)
+        raw.close()
+        return table
 
-    def _scale_floors(self, columns: dict) -> None:
-        for name, (floor, hint) in SCALE_FLOORS.items():
-            if name not in columns or name in self.added:
+    def _final_table(self, raw, missing: set, texts: set, resampled: bool) -> SpooledTable:
+        """The table from the raw spool, a block at a time: the time column, the columns
+        the verdict found unusable as NaN, the live twin's rule for seconds without
+        complete inputs (:func:`~ajtwin.io.timebase.hold_missing_inputs`, carried over the
+        blocks), the sample counts when the log was resampled."""
+        layout = [*self.known, *self.extras]
+        numbers = [TIME_COLUMN, *self.known] + [c for c in self.extras if c not in texts]
+        wanted = [layout.index(c) for c in numbers[1:]]
+        cleared = [layout.index(c) for c in missing]
+        u_at = [layout.index(c) for c in INPUT_COLUMNS]
+        y_at = [layout.index(c) for c in OUTPUT_COLUMNS]
+        names = numbers + ([SAMPLES_COLUMN] if resampled else [])
+        out = RowSpool(len(names), self.where)
+        hold = _InputHold(len(INPUT_COLUMNS))
+        for start, rows in raw.blocks():
+            rows[:, cleared] = np.nan
+            kept, u, y = hold.push(rows[:, u_at], rows[:, y_at])
+            if not len(kept):
                 continue
-            values = columns[name]
+            rows = rows[kept]
+            rows[:, u_at], rows[:, y_at] = u, y
+            block = [self.first_step + start + kept[:, None], rows[:, wanted]]
+            if resampled:
+                block.append(rows[:, -1:])
+            out.append(np.concatenate(block, axis=1))
+        if hold.first >= raw.rows:
+            out.close()
+            raise RecordError(
+                f"{self.where}: no second has all three inputs "
+                f"({', '.join(INPUT_COLUMNS)}); the model needs them every second"
+            )
+        if hold.any_missing:
+            self._note_held(hold)
+        text_columns = {}
+        for name in (c for c in self.extras if c in texts):  # an operator's note, in its place
+            j = self.extras.index(name)
+            values = np.concatenate([p[:, j] for p in self.text_pieces])[hold.first :]
+            text_columns[name] = (1 + len(self.known) + j, values)
+        self.text_pieces = []
+        return SpooledTable(out, names, text_columns)
+
+    def _note_held(self, hold) -> None:
+        counts = dict(zip(INPUT_COLUMNS, hold.missing_counts.tolist(), strict=True))
+        per_column = ", ".join(f"{c}: {k}" for c, k in counts.items() if k)
+        if hold.held:
+            start_s = self.first_step + hold.first + hold.longest_start
+            text = (
+                f"{self.where}: {hold.held} second(s) without complete inputs ({per_column}; "
+                f"the longest run {hold.longest} s from t = {start_s:g} s): inputs held at "
+                "their last value and the outputs missing there, as the live twin does"
+            )
+        else:
+            text = f"{self.where}: inputs missing ({per_column})"
+        if hold.first:
+            text += f"; the first {hold.first} second(s), before any complete inputs, dropped"
+        self.notes.append(text)
+
+    def _scale_floors(self, raw) -> None:
+        layout = [*self.known, *self.extras]
+        for name, (floor, hint) in SCALE_FLOORS.items():
+            if name not in layout or name in self.added:
+                continue
+            values = raw.column(layout.index(name))
             finite = np.isfinite(values)
             if not (finite & (values > 0)).any():
                 continue  # no overspray at all, or none measured: not a unit
@@ -430,36 +485,58 @@ class TableBuilder:
                     f"{np.max(values[finite]):g}); the values look like {hint}"
                 )
 
-    def _hold_inputs(self, frame: pd.DataFrame) -> pd.DataFrame:
-        inputs = frame[list(INPUT_COLUMNS)].to_numpy(dtype=float)
-        outputs = frame[list(OUTPUT_COLUMNS)].to_numpy(dtype=float)
-        missing = ~np.isfinite(inputs)
-        if not missing.any():
-            return frame
-        counts = {c: int(missing[:, i].sum()) for i, c in enumerate(INPUT_COLUMNS)}
-        held_u, held_y, first, held = hold_missing_inputs(inputs, outputs)
-        if first >= len(frame):
-            raise RecordError(
-                f"{self.where}: no second has all three inputs "
-                f"({', '.join(INPUT_COLUMNS)}); the model needs them every second"
-            )
-        frame = frame.iloc[first:].reset_index(drop=True)
-        frame[list(INPUT_COLUMNS)] = held_u
-        frame[list(OUTPUT_COLUMNS)] = held_y
-        rows = ~np.isfinite(inputs).all(axis=1)[first:]
-        longest, start = _longest_run(rows)
-        per_column = ", ".join(f"{c}: {k}" for c, k in counts.items() if k)
-        text = (
-            f"{self.where}: {held} second(s) without complete inputs ({per_column}; the longest "
-            f"run {longest} s from t = {frame[TIME_COLUMN].iloc[start]:g} s): inputs held at "
-            "their last value and the outputs missing there, as the live twin does"
-            if held
-            else f"{self.where}: inputs missing ({per_column})"
-        )
-        if first:
-            text += f"; the first {first} second(s), before any complete inputs, dropped"
-        self.notes.append(text)
-        return frame
+
+class _InputHold:
+    """:func:`~ajtwin.io.timebase.hold_missing_inputs` over a table a block at a time: the
+    last complete inputs carried from block to block, and what the note says (seconds
+    held, per column missing, the longest run without inputs after the first complete
+    second and where it starts)."""
+
+    def __init__(self, n_inputs: int):
+        self.carry: np.ndarray | None = None  # (1, n_inputs) the last complete inputs
+        self.first = 0  # seconds before the first with complete inputs (dropped)
+        self.held = 0
+        self.missing_counts = np.zeros(n_inputs, np.int64)
+        self.any_missing = False
+        self.longest, self.longest_start = 0, 0
+        self._run, self._run_start, self._kept = 0, 0, 0  # the run still open at the end
+
+    def push(self, u: np.ndarray, y: np.ndarray):
+        """(rows kept, their inputs held, their outputs) of the next block."""
+        missing = ~np.isfinite(u)
+        self.missing_counts += missing.sum(axis=0)
+        self.any_missing = self.any_missing or bool(missing.any())
+        if self.carry is None:
+            held_u, held_y, first, held = hold_missing_inputs(u, y)
+            self.first += first
+            kept = np.arange(first, len(u))
+        else:
+            joined_u = np.concatenate([self.carry, u])
+            joined_y = np.concatenate([np.full((1, y.shape[1]), np.nan), y])
+            held_u, held_y, _, held = hold_missing_inputs(joined_u, joined_y)
+            held_u, held_y = held_u[1:], held_y[1:]
+            kept = np.arange(len(u))
+        self.held += held
+        if len(kept):
+            self.carry = held_u[-1:].copy()
+            self._track_runs(missing[kept].any(axis=1))
+        return kept, held_u, held_y
+
+    def _track_runs(self, rows: np.ndarray) -> None:
+        """The longest run of seconds without complete inputs (the first of the longest),
+        a run carried on from the block before when it reaches this one's first row."""
+        edges = np.flatnonzero(np.diff(np.r_[False, rows, False].astype(np.int8)))
+        carried = self._run
+        self._run = 0
+        for begin, end in zip(edges[0::2], edges[1::2], strict=True):
+            length, start = int(end - begin), self._kept + int(begin)
+            if begin == 0 and carried:
+                length, start = carried + length, self._run_start
+            if length > self.longest:
+                self.longest, self.longest_start = length, start
+            if end == len(rows):
+                self._run, self._run_start = length, start
+        self._kept += len(rows)
 
 
 def time_cells(column: pd.Series, dialect: CsvDialect) -> pd.Series:
@@ -478,17 +555,6 @@ def time_cells(column: pd.Series, dialect: CsvDialect) -> pd.Series:
     if (numbers.notna() | blank).all():
         return numbers
     return column
-
-
-def _longest_run(mask: np.ndarray) -> tuple[int, int]:
-    """Length and start of the longest run of True."""
-    if not mask.any():
-        return 0, 0
-    padded = np.r_[False, mask, False].astype(np.int8)
-    edges = np.flatnonzero(np.diff(padded))
-    starts, ends = edges[0::2], edges[1::2]
-    k = int(np.argmax(ends - starts))
-    return int(ends[k] - starts[k]), int(starts[k])
 
 
 def _as_text(series: pd.Series, where: str, column) -> pd.Series:

@@ -387,15 +387,22 @@ def from_npy(blob: bytes) -> np.ndarray:
 def record_hash(record) -> str:
     """SHA-256 of a print's table (column names and float64 values) and metadata.
 
-    The same print read from Parquet or CSV gives the same hash; any changed value,
-    column or metadata key gives another.
+    The same print read from Parquet or CSV, or held on disk, gives the same hash; any
+    changed value, column or metadata key gives another.
     """
     h = hashlib.sha256()
-    data = record.data
-    for column in sorted(data.columns):
+    # a record held on disk (ajtwin.io.records.SpooledRecord) gives its columns in pieces:
+    # the same bytes in the same order, so the same hash as the record loaded whole
+    pieces = getattr(record, "column_pieces", None)
+    columns = record.columns if pieces is not None else record.data.columns
+    for column in sorted(columns):
         h.update(column.encode())
-        values = pd.to_numeric(data[column], errors="coerce").to_numpy(dtype=np.float64)
-        h.update(np.ascontiguousarray(values).tobytes())
+        if pieces is None:
+            parts = [pd.to_numeric(record.data[column], errors="coerce").to_numpy(np.float64)]
+        else:
+            parts = pieces(column)
+        for values in parts:
+            h.update(np.ascontiguousarray(values, dtype=np.float64).tobytes())
     # where the file was read from is not part of the print
     meta = {k: v for k, v in record.meta.items() if k not in ("assumed_defaults", "source_file")}
     meta = json.loads(json.dumps(meta, default=str))  # numpy scalars and tuples as in a file

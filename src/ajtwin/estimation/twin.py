@@ -924,17 +924,14 @@ class Twin:
             )
             smoothed = rts_smoother(self.spec, consistent)
         self.theta = theta
-        return TwinRun(
+        return _ended_run(
+            filtered,
+            history,
+            initial,
+            (start_mean, start_cov),
             time_s=time_s,
-            filtered=filtered,
             smoothed=smoothed,
             theta_per_step=thetas,
-            theta_history=_theta_history_frame(history),
-            initial=initial,
-            start_mean=start_mean,
-            start_cov=start_cov,
-            end_mean=np.asarray(filtered.means[-1]),
-            end_cov=np.asarray(filtered.covariances[-1]),
             calibration_covariances=None
             if sink
             else self._calibration_covariances(filtered, model_inputs, line),
@@ -1205,25 +1202,13 @@ class Twin:
         start_mean, start_cov = mean.copy(), cov.copy()
         steps = SpooledSteps(self, source, u_med, start_mean, keep=int(c.window_s))
         emit, tally = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
-        filtered, theta, _, history = self._filter_with_em(
+        filtered, self.theta, _, history = self._filter_with_em(
             mean, cov, steps, progress, emit, learn=c.em
         )
-        self.theta = theta
-        return TwinRun(
-            time_s=None,
-            filtered=filtered,
-            smoothed=None,
-            theta_per_step=None,
-            theta_history=_theta_history_frame(history),
-            initial=initial,
-            start_mean=start_mean,
-            start_cov=start_cov,
-            end_mean=np.asarray(filtered.means[-1]),
-            end_cov=np.asarray(filtered.covariances[-1]),
-            line_model=self.line_model,
-            n_steps=n,
-            unseen_counts=tally["unseen"],
-        )
+        # no per-step arrays: each chunk went to the sink with its own
+        kept = {"time_s": None, "smoothed": None, "theta_per_step": None, "n_steps": n}
+        kept.update(line_model=self.line_model, unseen_counts=tally["unseen"])
+        return _ended_run(filtered, history, initial, (start_mean, start_cov), **kept)
 
     def observe_vial(self, run):
         """The vial observer over a run's print (:class:`~ajtwin.estimation.vial.
@@ -1244,6 +1229,21 @@ class Twin:
             material_flow_gain=abs(gain),
             params=self.model.params,
         )
+
+
+def _ended_run(filtered, history: list, initial, start: tuple, **fields) -> TwinRun:
+    """A run's TwinRun: the filter's result, EM's history, the initial fit, the start
+    (mean, cov) and the end state (the filter's last), with the run's own ``fields``."""
+    return TwinRun(
+        filtered=filtered,
+        theta_history=_theta_history_frame(history),
+        initial=initial,
+        start_mean=start[0],
+        start_cov=start[1],
+        end_mean=np.asarray(filtered.means[-1]),
+        end_cov=np.asarray(filtered.covariances[-1]),
+        **fields,
+    )
 
 
 def _theta_history_frame(history: list) -> pd.DataFrame:

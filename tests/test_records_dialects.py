@@ -39,12 +39,14 @@ PROFILES = [
 ]
 
 #: Decimals a column may be printed with, fine enough that no column is judged too coarse
-#: (io/resolution.toml): ('f', n) fixed, ('e', n) scientific.
+#: (io/resolution.toml): ('f', n) fixed, ('e', n) scientific. The flows have two decimals at
+#: least: at one (0.1 sccm, the limit 0.15) the 12–40 values of a drawn table can all fall on
+#: even tenths, and the reader then rightly sees a 0.2 sccm step and refuses the column.
 PRINTED = {
     "time_s": [("f", 0), ("f", 1), ("f", 3)],
     "atomizer_current_mA": [("f", 0), ("f", 2), ("f", 6)],
-    "carrier_flow_sccm": [("f", 1), ("f", 3), ("f", 6)],
-    "sheath_flow_sccm": [("f", 1), ("f", 3), ("e", 6)],
+    "carrier_flow_sccm": [("f", 2), ("f", 3), ("f", 6)],
+    "sheath_flow_sccm": [("f", 2), ("f", 3), ("e", 6)],
     "carrier_pressure_Pa": [("f", 0), ("f", 1), ("f", 4)],
     "sheath_pressure_Pa": [("f", 0), ("f", 2), ("e", 8)],
     "linewidth_um": [("f", 1), ("f", 2), ("f", 5)],

@@ -4,7 +4,8 @@
 piece at a time; ``ingest`` runs the twin over those pieces so that its memory does not
 grow with the print. Everything it gives must be what the whole table gives: the table
 (pieces of 5 rows against one block), the reader's notes, the content hash (duplicates
-must be found across both ways), the twin's run chunk by chunk and the stored print.
+must be found across both ways), the twin's run chunk by chunk and the stored print — on a
+job print too, its camera filed at print times through one delay line as the rows are read.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import errno
 import tempfile
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -20,6 +22,8 @@ import pytest
 import ajtwin.estimation.twin as twin_module
 import ajtwin.io.spool as spool_module
 from ajtwin.engine.ingest import ingest_file, ingest_record
+from ajtwin.engine.print_job import job_entry
+from ajtwin.estimation.print_time import program_for_record
 from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import (
     CSV_META_PREFIX,
@@ -30,6 +34,7 @@ from ajtwin.io.records import (
     write_record,
 )
 from ajtwin.simulation import simulate
+from ajtwin.simulation.job_print import simulate_job
 from ajtwin.store.registry import Registry, record_hash
 
 #: the atomizer's dropout 20 min into the print (an event for the detectors to raise)
@@ -242,3 +247,77 @@ def test_ingest_of_a_file_in_pieces_stores_what_a_whole_read_stores(tmp_path, mo
     # one print, read either way, is found again
     again = ingest_record(reg_a, "M", read_record(path), source=str(path))
     assert again.duplicate and again.print_id == a.print_id
+
+
+PROGRAM = Path(__file__).parent / "data" / "prg" / "prg2svg" / "4-naf 654321.prg"
+
+
+@pytest.fixture(scope="module")
+def job_print(tmp_path_factory):
+    """A 25-min print of a public program with the camera 5 mm behind the nozzle (its
+    frames filed up to 126 s after they were taken)."""
+    record = simulate_job(PROGRAM, "exp1", seed=2, duration_min=25.0)
+    return write_record(record, tmp_path_factory.mktemp("job") / "job.parquet")
+
+
+@pytest.mark.parametrize("read_rows", [50, 4096])
+def test_a_job_print_read_in_pieces_is_filed_and_run_as_read_whole(
+    job_print, monkeypatch, read_rows
+):
+    monkeypatch.setattr(twin_module, "STREAM_READ_ROWS", read_rows)
+    loaded = read_record(job_print)
+    job = program_for_record(loaded, PROGRAM)
+    whole, pieces = [], []
+    run = Twin.default().run(loaded, job=job, sink=_chunks(whole))
+    with open_record(job_print) as held:
+        streamed = Twin.default().run_streamed(held, job=job, sink=_chunks(pieces))
+    assert len(whole) == len(pieces) == 6
+    for (a, x), (b, y) in zip(whole, pieces, strict=True):
+        assert a == b
+        for name in ("means", "covariances", "nis"):
+            np.testing.assert_array_equal(getattr(x.filtered, name), getattr(y.filtered, name))
+        for name in ("measurements", "line_factors", "n_camera", "seen", "inputs"):
+            np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
+    pd.testing.assert_frame_equal(run.theta_history, streamed.theta_history)
+    np.testing.assert_array_equal(run.end_mean, streamed.end_mean)
+    assert streamed.camera_counts == run.camera_counts
+    assert run.camera_counts["horizon_s"] == 126.0 and run.camera_counts["filed"] > 1000
+
+
+def test_ingest_of_a_job_print_in_pieces_stores_what_a_whole_read_stores(job_print, tmp_path):
+    stored = {}
+    for way in ("pieces", "whole"):
+        registry = Registry(tmp_path / f"{way}.sqlite")
+        registry.add_machine("M")
+        if way == "pieces":
+            result = ingest_file(registry, "M", job_print, program=PROGRAM)
+        else:
+            record = read_record(job_print)
+            entry = job_entry(PROGRAM, record)
+            result = ingest_record(registry, "M", record, source=str(job_print), job=entry)
+        stored[way] = (registry, result)
+    (reg_a, a), (reg_b, b) = stored["pieces"], stored["whole"]
+    assert a.summary == b.summary and a.content_hash == b.content_hash
+    arrays_a, arrays_b = reg_a.print_arrays(a.print_id), reg_b.print_arrays(b.print_id)
+    assert sorted(arrays_a) == sorted(arrays_b) and "line_factors" in arrays_a
+    for name, values in arrays_a.items():
+        np.testing.assert_array_equal(values, arrays_b[name], err_msg=name)
+    assert reg_a.print_job(a.print_id)["sha256"] == reg_b.print_job(b.print_id)["sha256"]
+
+
+def test_job_columns_are_checked_over_the_whole_file_when_it_is_opened(tmp_path, monkeypatch):
+    record = simulate_job(PROGRAM, "exp1", seed=3, duration_min=1.0)
+    monkeypatch.setattr(spool_module, "SPOOL_BLOCK_ROWS", 7)
+    rounded = record.data.copy()
+    rounded.loc[[3, 40], "shutter_open"] = 0.3
+    path = write_record(PrintRecord(rounded, record.meta), tmp_path / "rounded.parquet")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_record(path)
+    said = [str(w.message) for w in caught if "shutter_open" in str(w.message)]
+    assert len(said) == 1 and "holds 2 values between 0 and 1" in said[0], said
+    broken = record.data.copy()
+    broken.loc[30, "shutter_open"] = 2.0
+    path = write_record(PrintRecord(broken, record.meta), tmp_path / "broken.parquet")
+    with pytest.raises(RecordError, match=r"row 31 \(t = 30 s\), column 'shutter_open'"):
+        open_record(path)

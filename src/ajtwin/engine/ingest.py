@@ -218,8 +218,8 @@ def ingest_record(
     record : PrintRecord or SpooledRecord
         The print (display units; NaN = not measured). Held on disk
         (:func:`ajtwin.io.records.open_record`), it is read a piece at a time
-        (:meth:`~ajtwin.estimation.twin.Twin.run_streamed`) unless it is a job print or
-        ``keep_run`` asks for the whole run: memory then does not grow with the print.
+        (:meth:`~ajtwin.estimation.twin.Twin.run_streamed`) unless ``keep_run`` asks for
+        the whole run: memory then does not grow with the print.
     source : str
         Where the print came from (file path), stored for the history.
     progress : callable(int), optional
@@ -237,8 +237,8 @@ def ingest_record(
     IngestResult (``duplicate=True`` and the existing print when it was ingested before).
     """
     t0 = time.perf_counter()
-    if isinstance(record, SpooledRecord) and (keep_run or job is not None or not record.streamable):
-        record = record.load()  # the whole run, or a job print filed at its print times
+    if isinstance(record, SpooledRecord) and keep_run:
+        record = record.load()  # the whole run is returned: it is held anyway
     digest = record_hash(record)
     existing = registry.find_print(machine, digest)
     if existing is not None:
@@ -312,11 +312,11 @@ def ingest_record(
 
 
 def _run_twin(twin, record, start, progress, sink, job):
-    """The twin's run over the print into ``sink``: a piece at a time from a record held on
-    disk, else over the record in memory (a job print's frames filed at its print times)."""
-    if isinstance(record, SpooledRecord):
-        return twin.run_streamed(record, start=start, progress=progress, sink=sink)
+    """The twin's run over the print into ``sink`` (a job print's frames filed at their print
+    times): a piece at a time from a record held on disk, else over the record in memory."""
     job_run = _printed_job(job, record)
+    if isinstance(record, SpooledRecord):
+        return twin.run_streamed(record, start=start, progress=progress, sink=sink, job=job_run)
     return twin.run(record, start=start, progress=progress, sink=sink, job=job_run)
 
 
@@ -533,11 +533,13 @@ def ingest_file(
     """
     path = Path(path)
     with open_record(path, aliases=aliases, dialect=dialect) as spooled:
-        if program is None and video is None and spooled.streamable:
+        job = None if program is None else job_entry(program, spooled, **(job_options or {}))
+        if video is None:
             # read a piece at a time by the twin: memory does not grow with the print
-            return ingest_record(registry, machine, spooled, source=str(path), progress=progress)
+            return ingest_record(
+                registry, machine, spooled, source=str(path), progress=progress, job=job
+            )
         record = spooled.load()
-    job = None if program is None else job_entry(program, record, **(job_options or {}))
     source = str(path)
     if video is not None:
         if um_per_px is None:

@@ -564,32 +564,64 @@ class SpooledSteps:
     furthest asked for stay (what EM's trailing window reads again).
 
     The model inputs' input response is carried from piece to piece
-    (:func:`~ajtwin.model.droplet_dynamics.next_response`), what each step's outputs see
-    from the print's median inputs (``u_med``, :func:`observed_states`).
+    (:func:`~ajtwin.model.droplet_dynamics.next_response`); what each step's outputs see
+    comes from the print's median inputs (``u_med``, :func:`observed_states`) once the start
+    state is known (``start_mean``). A job print's rows go through one delay line
+    (``bins``: :class:`~ajtwin.estimation.print_time.PrintTimeBins`, as
+    :func:`~ajtwin.estimation.print_time.file_record` feeds it) and its steps are the filed
+    ones: one per row, final ``horizon_s`` rows later.
     """
 
-    def __init__(self, twin, source, u_med, start_mean, keep: int, read_rows: int | None = None):
-        self.twin, self.source, self.u_med, self.start_mean = twin, source, u_med, start_mean
+    def __init__(self, twin, source, u_med, keep: int, bins=None, read_rows: int | None = None):
+        self.twin, self.source, self.u_med, self.bins = twin, source, u_med, bins
+        self.start_mean = None  # set once the start is known: what the steps see needs it
         self.n, self.keep = len(source), int(keep)
         self.read_rows = int(read_rows or STREAM_READ_ROWS)
         self._follows = twin.config.transition != "paper" and twin.droplet_dynamics.follows_inputs
         self.first = 0  # the step the held rows start at
         self.held: StepRows | None = None
         self._response = None  # the input response at the next step to read
+        self._rows_read = 0
+        self._filed: list = []  # a job print's steps filed but not yet held
 
     def _read(self, first: int, stop: int) -> StepRows:
+        """Steps [first, stop) (``first``: the first not held yet)."""
         twin = self.twin
-        piece = self.source.piece(first, stop)
-        inputs = check_input_rows(piece.inputs, self.source.where, piece.time_s, first)
-        inputs = check_input(inputs)
-        measurements = np.asarray(piece.outputs, dtype=float)
+        if self.bins is None:
+            piece = self.source.piece(first, stop)
+            time_s, inputs, measurements = piece.time_s, piece.inputs, piece.outputs
+            line = n_camera = None
+        else:
+            time_s, inputs, measurements, line, n_camera = self._file(stop - first)
+        inputs = check_input(inputs)  # its rows named in the run's check before any work
         model_inputs = twin.model_inputs(inputs, self._response)
         if self._follows:
             self._response = next_response(
                 float(model_inputs[-1, -1]), inputs[-1], twin.droplet_dynamics, twin.spec.dt
             )
-        seen = twin.observed_states(self.start_mean, inputs, measurements, self.u_med)
-        return StepRows(piece.time_s, inputs, measurements, model_inputs, None, seen, None)
+        measurements = np.asarray(measurements, dtype=float)
+        return StepRows(time_s, inputs, measurements, model_inputs, line, None, n_camera)
+
+    def _file(self, count: int):
+        """The next ``count`` filed steps of a job print: rows fed to the delay line until
+        it has given them (all that are left at the print's end)."""
+        while len(self._filed) < count and self._rows_read < self.n:
+            stop = min(self._rows_read + self.read_rows, self.n)
+            piece = self.source.piece(self._rows_read, stop)
+            for row in zip(piece.time_s, piece.inputs, piece.outputs, piece.shutter_open,
+                           piece.platen_speed, piece.printed_at):  # fmt: skip
+                self._filed += self.bins.add(*row)
+            self._rows_read = stop
+            if stop == self.n:
+                self._filed += self.bins.finish()
+        steps, self._filed = self._filed[:count], self._filed[count:]
+        return (
+            np.array([s.time_s for s in steps], dtype=float),
+            np.array([s.inputs for s in steps]).reshape(-1, 3),
+            np.array([s.outputs for s in steps]).reshape(-1, 5),
+            np.array([s.line for s in steps]).reshape(-1, 4),
+            np.array([s.n_camera for s in steps]).reshape(-1, 2),
+        )
 
     def rows(self, first: int, stop: int) -> StepRows:
         """Steps [first, stop): ``first`` no earlier than ``keep`` steps before the furthest
@@ -609,6 +641,10 @@ class SpooledSteps:
             self.held = StepRows(*(None if a is None else a[drop:].copy()
                                    for a in _fields(self.held)))  # fmt: skip
             self.first += drop
+        if self.start_mean is not None:
+            out.seen = self.twin.observed_states(
+                self.start_mean, out.inputs, out.measurements, self.u_med
+            )
         return out
 
     def time(self, k: int) -> float:
@@ -1163,18 +1199,17 @@ class Twin:
             u_med,
         )
 
-    def run_streamed(self, source, *, start=None, progress=None, sink) -> TwinRun:
+    def run_streamed(self, source, *, start=None, progress=None, sink, job=None) -> TwinRun:
         """:meth:`run` with ``sink`` over a record held on disk, read a piece at a time.
 
-        ``source``: a :class:`~ajtwin.io.records.SpooledRecord` that is not a job print
-        (``streamable``). The same checks as :meth:`run` on a record (the medians a column
-        at a time), the same chunks, filter and EM (:meth:`_filter_with_em` over
+        ``source``: a :class:`~ajtwin.io.records.SpooledRecord`; ``job``: as for :meth:`run`
+        (a job print's rows are filed at their print times through one delay line as they
+        are read). The same checks as :meth:`run` on a record (the medians a column at a
+        time), the same chunks, filter and EM (:meth:`_filter_with_em` over
         :class:`SpooledSteps`): memory does not grow with the print. The run returned has
-        no per-step arrays: its start, end, θ history, initial fit, ``n_steps`` and
-        ``unseen_counts``.
+        no per-step arrays: its start, end, θ history, initial fit, a job print's camera
+        counts, ``n_steps`` and ``unseen_counts``.
         """
-        if not source.streamable:
-            raise ValueError(f"{source.where}: a job print is run from the record loaded whole")
         where, n = source.where, len(source)
         check_print_length(n, where)
         block = spool.SPOOL_BLOCK_ROWS
@@ -1192,15 +1227,22 @@ class Twin:
         check_output_medians(
             self.model.params, self.spec.coefficients, u_med, medians, c.vial_fill_ml, where
         )
+        context = None
+        if is_job_record(source):
+            context = print_context(source, job, c.camera_horizon_s)
+        elif job is not None:
+            self._filed(source, job)  # refused as run refuses it
+        bins = None if context is None else context.bins(self.speed_law)
+        steps = SpooledSteps(self, source, u_med, keep=int(c.window_s), bins=bins)
         initial = None
         if start is None:
-            head = source.piece(0, int(c.initial_samples))
-            initial = self.initial_state(head.inputs, head.outputs)
+            head = steps.rows(0, min(n, int(c.initial_samples)))
+            initial = self.initial_state(head.inputs, head.measurements, head.line)
             mean, cov = initial.mean, initial.covariance
         else:
             mean, cov = (np.asarray(a, dtype=float) for a in start)
         start_mean, start_cov = mean.copy(), cov.copy()
-        steps = SpooledSteps(self, source, u_med, start_mean, keep=int(c.window_s))
+        steps.start_mean = start_mean
         emit, tally = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
         filtered, self.theta, _, history = self._filter_with_em(
             mean, cov, steps, progress, emit, learn=c.em
@@ -1208,6 +1250,8 @@ class Twin:
         # no per-step arrays: each chunk went to the sink with its own
         kept = {"time_s": None, "smoothed": None, "theta_per_step": None, "n_steps": n}
         kept.update(line_model=self.line_model, unseen_counts=tally["unseen"])
+        if bins is not None:
+            kept["camera_counts"] = {**bins.counts, "horizon_s": context.horizon_s}
         return _ended_run(filtered, history, initial, (start_mean, start_cov), **kept)
 
     def observe_vial(self, run):

@@ -17,6 +17,9 @@ handled in the open: column aliases (``aliases.toml``), NaN kept, irregular time
 stamps resampled to 1 s with a warning; a wrong unit scale, non-monotonic time, a
 missing required column or a non-numeric cell is rejected with an error naming the
 file, row and column. The schema is documented in ``docs/reference/record-format.md``.
+:func:`open_record` reads the same way but keeps the table in a temporary file
+(:class:`SpooledRecord`: a piece of rows at a time, for a pass over a long print that must
+not hold it); :func:`read_record` is it, loaded.
 
 Examples
 --------
@@ -712,7 +715,15 @@ def open_record(
         raise
     _warn(notes, stacklevel=_stacklevel)
     meta["source_file"] = str(path)
-    return SpooledRecord(table, meta)
+    record = SpooledRecord(table, meta)
+    try:
+        rounded = record.check_job_columns()
+    except BaseException:
+        record.close()
+        raise
+    if rounded:
+        _warn([_rounded_shutter(str(path), rounded)], stacklevel=_stacklevel)
+    return record
 
 
 class SecondsAxis:
@@ -739,8 +750,7 @@ class SpooledRecord:
 
     Gives the print a piece at a time (:meth:`piece`: the rows of :meth:`load`'s record,
     as a PrintRecord of their own), one numeric column whole (:meth:`column`), or the
-    whole record (:meth:`load`). A job print (format 2 with job columns) is checked over
-    its whole table: it is only :meth:`load`-ed (:attr:`streamable` is False).
+    whole record (:meth:`load`).
 
     Parameters
     ----------
@@ -770,12 +780,17 @@ class SpooledRecord:
         """Let the table's file go."""
         self.table.close()
 
-    @property
-    def streamable(self) -> bool:
-        """Whether :meth:`piece` may be used: not a format-2 record with job columns (those
-        are checked over the whole table, :func:`job_columns`)."""
+    def check_job_columns(self) -> int:
+        """Check a format-2 record's job columns over the whole table a block at a time
+        (:func:`job_rows`; errors name the row); how many shutter values were rounded."""
         version = int(self.meta.get("format_version", FORMAT_VERSION))
-        return version < 2 or not any(c in self.table.columns for c in JOB_COLUMNS)
+        if version < 2 or not any(c in self.table.columns for c in JOB_COLUMNS):
+            return 0
+        rounded = 0
+        for start in range(0, len(self), spool.SPOOL_BLOCK_ROWS):
+            stop = start + spool.SPOOL_BLOCK_ROWS
+            rounded += job_rows(self.table.frame(start, stop), self.meta, self.where, start)[1]
+        return rounded
 
     @property
     def duration_s(self) -> float:
@@ -803,9 +818,7 @@ class SpooledRecord:
 
     def piece(self, start: int, stop: int) -> PrintRecord:
         """Rows [start, stop) of :meth:`load`'s record, as a record of their own (same meta)."""
-        if not self.streamable:
-            raise ValueError(f"{self.where}: a job print is read whole (load), not in pieces")
-        data = job_columns(self.table.frame(start, stop), self.meta, self.where)
+        data, _ = job_rows(self.table.frame(start, stop), self.meta, self.where, start)
         return PrintRecord(data, self.meta)
 
     @property
@@ -825,8 +838,9 @@ class SpooledRecord:
             yield pd.to_numeric(values, errors="coerce").to_numpy(dtype=np.float64)
 
     def load(self) -> PrintRecord:
-        """The whole record in memory (the job columns checked, :func:`job_columns`)."""
-        data = job_columns(self.table.frame(), self.meta, self.where)
+        """The whole record in memory (its job columns as :func:`job_columns` gives them;
+        checked, and a rounding said, when it was opened)."""
+        data, _ = job_rows(self.table.frame(), self.meta, self.where)
         return PrintRecord(data, dict(self.meta))
 
 
@@ -886,6 +900,24 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str) -> pd.DataFrame:
     are rounded with a warning), the speed in [0, MAX_PLATEN_SPEED_MM_S] mm/s, a print
     time no later than its row, and every camera measurement with its print time.
     """
+    data, rounded = job_rows(data, meta, where)
+    if rounded:
+        warnings.warn(_rounded_shutter(where, rounded), stacklevel=3)
+    return data
+
+
+def _rounded_shutter(where: str, n: int) -> str:
+    return (
+        f"{where}: 'shutter_open' holds {n} values between 0 and 1 (a resampled log); rounded "
+        "(0.5 and above: open)"
+    )
+
+
+def job_rows(
+    data: pd.DataFrame, meta: dict, where: str, first_row: int = 0
+) -> tuple[pd.DataFrame, int]:
+    """:func:`job_columns` over rows of a table from its row ``first_row`` on (errors name
+    the table's row); (the rows, how many shutter values between 0 and 1 were rounded)."""
     if int(meta.get("format_version", FORMAT_VERSION)) < 2:
         defaults = {
             "shutter_open": np.ones(len(data)),
@@ -897,18 +929,18 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str) -> pd.DataFrame:
         data = data.assign(**{c: v for c, v in defaults.items() if c not in data.columns})
         order = (*RECORD_COLUMNS, *JOB_COLUMNS, *TRUTH_COLUMNS, *LINE_TRUTH_COLUMNS)
         known = [c for c in order if c in data.columns]
-        return data[known + [c for c in data.columns if c not in known]]
+        return data[known + [c for c in data.columns if c not in known]], 0
 
     def refuse(bad, column, text):
         """Refuse the first row where ``bad``; ``text(position)`` says why."""
         if bad.any():
             position = int(np.flatnonzero(bad)[0])
             raise RecordError(
-                f"{where}: row {position + 1} (t = {data[TIME_COLUMN].iloc[position]:g} s), "
-                f"column {column!r}: "
-                f"{text(position)}"
+                f"{where}: row {first_row + position + 1} (t = "
+                f"{data[TIME_COLUMN].iloc[position]:g} s), column {column!r}: {text(position)}"
             )
 
+    rounded = 0
     if "shutter_open" in data.columns:
         shutter = data["shutter_open"].to_numpy(dtype=float)
         refuse(
@@ -918,11 +950,7 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str) -> pd.DataFrame:
         )
         between = (shutter != 0) & (shutter != 1)
         if between.any():
-            warnings.warn(
-                f"{where}: 'shutter_open' holds {int(between.sum())} values between 0 and 1 "
-                "(a resampled log); rounded (0.5 and above: open)",
-                stacklevel=3,
-            )
+            rounded = int(between.sum())
             data = data.assign(shutter_open=np.floor(shutter + 0.5))
     if "platen_speed_mm_s" in data.columns:
         speed = data["platen_speed_mm_s"].to_numpy(dtype=float)
@@ -955,7 +983,7 @@ def job_columns(data: pd.DataFrame, meta: dict, where: str) -> pd.DataFrame:
                 "time of its trace"
             ),
         )
-    return data
+    return data, rounded
 
 
 def _check_job_meta(meta: dict, where: str) -> None:

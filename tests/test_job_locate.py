@@ -163,3 +163,32 @@ def test_between_the_fill_lines_the_nearest_line_wins(fill_job):
     hits = job.locate(np.array([2.14194 + 0.005]), np.array([2.0]), radius_mm=0.05)
     assert hits.found[0] and hits.distance_mm[0] == pytest.approx(0.005, abs=1e-6)
     assert hits.x_mm[0] == pytest.approx(2.14194, abs=1e-6)
+
+
+def test_a_job_looped_over_its_part_is_queried_in_batches_that_fit(monkeypatch):
+    """Where the traces pile up (the program looped over its own part: every run adds its
+    traces to the same cells), a batch sized by the mean density held millions of pairs
+    (1.4 GB for a 4-h print's camera horizon). Each batch now holds at most _BATCH_PAIRS
+    pairs, and the hits are those of one unbounded batch."""
+    import ajtwin.job.locate as locate
+
+    job = read_program(DATA / "4-naf 654321.prg").repeat(4 * 3600.0)
+    t = np.arange(0.0, 4 * 3600.0, 7.0)
+    state = job.state_at(t)
+    x, y = state.x_mm - 5.0, state.y_mm
+
+    monkeypatch.setattr(locate, "_BATCH_PAIRS", 10**12)
+    whole = job.trace_index().query(x, y, 0.3, before_s=t)
+    sizes = []
+    closest = locate.closest_point
+
+    def counted(px, *args):
+        sizes.append(len(px))
+        return closest(px, *args)
+
+    monkeypatch.setattr(locate, "closest_point", counted)
+    monkeypatch.setattr(locate, "_BATCH_PAIRS", 100_000)
+    batched = job.trace_index().query(x, y, 0.3, before_s=t)
+    assert max(sizes) <= 100_000 and len(sizes) > 1
+    for name in ("found", "print_time_s", "distance_mm"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(batched, name))

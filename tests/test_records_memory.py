@@ -81,8 +81,9 @@ def test_a_print_longer_than_the_limit_is_refused_where_it_crosses_it(tmp_path, 
 
 def test_a_parquet_record_is_held_about_twice_at_most_while_it_is_read(tmp_path):
     """The reader's own arrays (what tracemalloc sees; Arrow's buffers are its pool's): the
-    table's block is filled as the file's pieces go, not concatenated and then copied into
-    the frame (that held a 24-h record 3.3 times, 32 MB for 9.7 MB; now 2.4 times)."""
+    seconds go to disk as the file's pieces come and the table's block is filled from there,
+    not concatenated and then copied into the frame (that held a 24-h record 3.3 times, 32 MB
+    for 9.7 MB; it is 2.2 times)."""
     path = tmp_path / "day.parquet"
     csv = tmp_path / "rows.csv"
     _log(csv, 40_000, 1.0)

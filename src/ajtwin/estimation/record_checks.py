@@ -119,11 +119,15 @@ def check_output_scales(
     """
     y = np.asarray(measurements, dtype=float)
     u_med = np.median(np.asarray(inputs, dtype=float), axis=0)
-    medians = {}
-    for j in SCALE_CHECKED_OUTPUTS:
-        finite = y[:, j][np.isfinite(y[:, j])]
-        medians[j] = float(np.median(finite)) if finite.size else None
+    medians = {j: finite_median(y[:, j]) for j in SCALE_CHECKED_OUTPUTS}
     check_output_medians(params, coefficients, u_med, medians, vial_fill_ml, where)
+
+
+def finite_median(values) -> float | None:
+    """The median of a column's finite values (None: none measured)."""
+    values = np.asarray(values, dtype=float)
+    finite = values[np.isfinite(values)]
+    return float(np.median(finite)) if finite.size else None
 
 
 def check_output_medians(

@@ -55,6 +55,7 @@ from ajtwin.estimation.record_checks import (
     check_output_medians,
     check_output_scales,
     check_print_length,
+    finite_median,
     observed_states,
 )
 from ajtwin.estimation.vial import load_vial_settings, observe_vial
@@ -600,7 +601,18 @@ class SpooledSteps:
                 float(model_inputs[-1, -1]), inputs[-1], twin.droplet_dynamics, twin.spec.dt
             )
         measurements = np.asarray(measurements, dtype=float)
-        return StepRows(time_s, inputs, measurements, model_inputs, line, None, n_camera)
+        return self._seen(
+            StepRows(time_s, inputs, measurements, model_inputs, line, None, n_camera)
+        )
+
+    def _seen(self, rows: StepRows | None) -> StepRows | None:
+        """``rows`` with what their outputs see, once the start state is known (rows read
+        before it, for the initial fit, get it when first asked for after)."""
+        if rows is not None and rows.seen is None and self.start_mean is not None:
+            rows.seen = self.twin.observed_states(
+                self.start_mean, rows.inputs, rows.measurements, self.u_med
+            )
+        return rows
 
     def _file(self, count: int):
         """The next ``count`` filed steps of a job print: rows fed to the delay line until
@@ -627,6 +639,7 @@ class SpooledSteps:
         """Steps [first, stop): ``first`` no earlier than ``keep`` steps before the furthest
         step asked for so far."""
         held_to = self.first + (0 if self.held is None else len(self.held.time_s))
+        self._seen(self.held)
         if stop > held_to:
             new = self._read(held_to, min(max(stop, held_to + self.read_rows), self.n))
             self.held = new if self.held is None else _join_rows(self.held, new)
@@ -641,10 +654,6 @@ class SpooledSteps:
             self.held = StepRows(*(None if a is None else a[drop:].copy()
                                    for a in _fields(self.held)))  # fmt: skip
             self.first += drop
-        if self.start_mean is not None:
-            out.seen = self.twin.observed_states(
-                self.start_mean, out.inputs, out.measurements, self.u_med
-            )
         return out
 
     def time(self, k: int) -> float:
@@ -1217,12 +1226,10 @@ class Twin:
             piece = source.piece(first, first + block)
             check_input_rows(piece.inputs, where, piece.time_s, first)
         u_med = np.array([np.median(source.column(c)) for c in INPUT_COLUMNS])
-        medians = {}
-        for j in SCALE_CHECKED_OUTPUTS:
-            values = source.column(OUTPUT_COLUMNS[j])
-            finite = values[np.isfinite(values)]
-            medians[j] = float(np.median(finite)) if finite.size else None
-        del values, finite
+        # one column at a time: a week's column is 4.8 MB
+        medians = {
+            j: finite_median(source.column(OUTPUT_COLUMNS[j])) for j in SCALE_CHECKED_OUTPUTS
+        }
         c = self.config
         check_output_medians(
             self.model.params, self.spec.coefficients, u_med, medians, c.vial_fill_ml, where

@@ -30,9 +30,9 @@ __all__ = ["TraceIndex", "TraceHits"]
 
 _MIN_CELL_MM = 0.02
 _MAX_CHUNKS = 400_000
-# (point, trace) pairs weighed at once: ~120 bytes each in the temporaries. 500,000 keeps a
-# query's peak near 60 MB (4,000,000 took ~500 MB, and was slower: 1.4 s against 0.9 s for
-# the camera horizon of a 4-h looped public program)
+# (point, trace) pairs weighed at once: ~120 bytes each in the temporaries, so a query's
+# peak stays near 60 MB; larger batches only cost memory (the camera horizon of a 4-h looped
+# public program runs fastest at this size)
 _BATCH_PAIRS = 500_000
 _TIE_MM = 1e-9
 

@@ -43,6 +43,7 @@ from ajtwin.job.job import (
     read_timeline,
 )
 from ajtwin.job.locate import TraceHits, TraceIndex
+from ajtwin.job.loop import LoopedJob, loop_job
 from ajtwin.job.program import (
     KIND_ARC,
     KIND_DWELL,
@@ -60,6 +61,8 @@ __all__ = [
     "read_program_text",
     "Job",
     "JobState",
+    "LoopedJob",
+    "loop_job",
     "StrokePoints",
     "TraceIndex",
     "TraceHits",

@@ -52,7 +52,16 @@ from ajtwin.job.program import (
 )
 from ajtwin.job.settings import ReaderSettings, Stage
 
-__all__ = ["Job", "JobState", "StrokePoints", "TIMELINE_COLUMNS", "SEGMENT_FIELDS", "read_timeline"]
+__all__ = [
+    "Job",
+    "JobState",
+    "LoopPlan",
+    "stage_state",
+    "StrokePoints",
+    "TIMELINE_COLUMNS",
+    "SEGMENT_FIELDS",
+    "read_timeline",
+]
 
 # Arrays of Job.segments (all of length n_segments).
 SEGMENT_FIELDS = (
@@ -272,6 +281,87 @@ def _number_strokes(seg: dict) -> dict:
         s0[is_open] = (before - before[first][np.maximum(stroke, 0)])[is_open]
     seg["stroke"], seg["s0_mm"] = stroke, s0
     return seg
+
+
+@dataclass(frozen=True)
+class LoopPlan:
+    """When and where each run of a looped job starts (:meth:`Job.loop_plan`).
+
+    Attributes
+    ----------
+    duration_s, gap_s : float
+        The loop's length and the wait between runs [s].
+    offsets_s : ndarray (runs,)
+        Run k's program times are shifted by ``offsets_s[k]`` [s].
+    places_mm : ndarray (runs, 2)
+        Where run k sits on the substrate relative to the program [mm].
+    pitch_mm : (float, float) or None
+        The runs' pitch side by side (None: every run prints over the first).
+    period_s : float or None
+        Program, wait and return move [s] when every run prints over the first (None:
+        runs side by side).
+    program_duration_s : float
+        One run of the program [s].
+    program_end_xy, program_start_xy : (float, float)
+        Where the program ends and starts [mm].
+    program_end_shutter_open : bool
+        The shutter as the program leaves it (it stays so between runs).
+    return_speed_mm_s : float
+        Speed of the move to the next run's start.
+    return_source : int
+        Where that speed came from (index into the job's ``speed_sources``).
+    note : str
+        What the looping did, in words.
+    """
+
+    duration_s: float
+    gap_s: float
+    offsets_s: np.ndarray
+    places_mm: np.ndarray
+    pitch_mm: tuple | None
+    period_s: float | None
+    program_duration_s: float
+    program_end_xy: tuple
+    program_start_xy: tuple
+    program_end_shutter_open: bool
+    return_speed_mm_s: float
+    return_source: int
+    note: str
+
+    @property
+    def runs(self) -> int:
+        """How many runs the loop starts."""
+        return int(self.offsets_s.size)
+
+    def spans_before(self, k: int) -> list[tuple]:
+        """The wait and the move before run ``k`` as (kind, t0, t1, from, to, length) [s, mm]:
+        the wait when it lasts, the move when the parts' end and start differ."""
+        if k == 0:
+            return []
+        D, previous = self.program_duration_s, float(self.offsets_s[k - 1])
+        end = (self.program_end_xy[0] + self.places_mm[k - 1, 0],
+               self.program_end_xy[1] + self.places_mm[k - 1, 1])  # fmt: skip
+        start = (self.program_start_xy[0] + self.places_mm[k, 0],
+                 self.program_start_xy[1] + self.places_mm[k, 1])  # fmt: skip
+        if self.period_s is not None:  # the times as the unpitched loop has always made them
+            t_end, t_wait, t_move = (D + previous, (D + self.gap_s) + previous,
+                                     self.period_s + previous)  # fmt: skip
+        else:
+            t_end, t_wait, t_move = previous + D, previous + D + self.gap_s, self.offsets_s[k]
+        distance = math.hypot(start[0] - end[0], start[1] - end[1])
+        spans = []
+        if t_wait > t_end:
+            spans.append((KIND_DWELL, t_end, t_wait, end, end, 0.0))
+        if distance > 0:
+            spans.append((KIND_LINE, t_wait, float(t_move), end, start, distance))
+        return spans
+
+    def end_shutter_open(self, last_segment_open: bool) -> bool:
+        """The looped job's shutter after its end: the last segment's when the loop cuts a
+        run short, else as the program leaves it."""
+        last = self.offsets_s[-1] + self.program_duration_s
+        truncated = self.duration_s < last - 1e-9
+        return bool(last_segment_open) if truncated else self.program_end_shutter_open
 
 
 class Job:
@@ -667,14 +757,6 @@ class Job:
 
     # -- the stage at given times ----------------------------------------------------------
 
-    def _locate_times(self, t):
-        s = self._seg
-        t = np.asarray(t, dtype=float)
-        index = np.clip(np.searchsorted(s["t0_s"], t, side="right") - 1, 0, self.n_segments - 1)
-        dt = s["t1_s"][index] - s["t0_s"][index]
-        f = np.clip((t - s["t0_s"][index]) / dt, 0.0, 1.0)
-        return t, index, f
-
     def state_at(self, t) -> JobState:
         """Position, velocity and shutter state at times ``t`` [s] (any shape, exact arcs).
 
@@ -690,39 +772,7 @@ class Job:
         >>> state.x_mm.tolist(), state.shutter_open.tolist()
         ([2.0, 4.0], [True, False])
         """
-        s = self._seg
-        t, index, f = self._locate_times(t)
-        g = {k: s[k][index] for k in GEOMETRY_FIELDS}
-        x, y = point_at(*g.values(), f)
-        ux, uy = tangent_at(
-            g["kind"],
-            g["x0_mm"],
-            g["y0_mm"],
-            g["x1_mm"],
-            g["y1_mm"],
-            g["a0_rad"],
-            g["sweep_rad"],
-            s["length_mm"][index],
-            f,
-        )
-        before, after = t < 0.0, t >= self.duration_s
-        outside = before | after
-        speed = np.where(outside, 0.0, s["speed_mm_s"][index])
-        shutter = np.where(
-            outside, np.where(after, self.end_shutter_open, False), s["shutter_open"][index]
-        )
-        stroke = np.where(outside & ~(after & self.end_shutter_open), -1, s["stroke"][index])
-        return JobState(
-            x_mm=x,
-            y_mm=y,
-            vx_mm_s=speed * ux,
-            vy_mm_s=speed * uy,
-            speed_mm_s=speed,
-            shutter_open=shutter.astype(bool),
-            stroke=stroke.astype(np.int64),
-            feature=s["feature"][index].astype(np.int64),
-            segment=np.where(outside, -1, index).astype(np.int64),
-        )
+        return stage_state(self._seg, t, self.duration_s, self.end_shutter_open)
 
     # -- the 1 Hz record -------------------------------------------------------------------
 
@@ -923,7 +973,9 @@ class Job:
         program left it), then moves to the next run's start at the speed of the program's
         first move (in the public programs, the rapid speed), as the controller does when the
         program is started again from where it ended. Run k's program times are shifted by
-        ``repetition_offsets_s[k]``.
+        ``repetition_offsets_s[k]``. Every run's segments are held: for a long loop that is
+        asked only where the stage is and what lies under a point (a print's camera filing),
+        :func:`ajtwin.job.loop_job` answers the same from the program alone.
 
         Parameters
         ----------
@@ -945,6 +997,31 @@ class Job:
             every segment and stroke, ``repetition_offsets_mm`` (runs, 2) where each run sits;
             strokes are numbered anew across runs.
         """
+        plan = self.loop_plan(duration_s, gap_s, pitch_mm)
+        seg = _concat([part for k in range(plan.runs) for part in self.loop_block(plan, k)])
+        seg = _cut_at_times(seg, np.array([plan.duration_s]))
+        seg = _take(seg, seg["t0_s"] < plan.duration_s)
+        return Job(
+            seg,
+            path=self.path,
+            n_lines=self.n_lines,
+            speed_sources=self.speed_sources,
+            feature_names=self.feature_names,
+            notes=list(self.notes) + [plan.note],
+            warnings=self.warnings,
+            stage=self.stage,
+            settings=self.settings,
+            return_source=self.return_source,
+            end_shutter_open=plan.end_shutter_open(seg["shutter_open"][-1]),
+            repetition_offsets_s=plan.offsets_s,
+            program_duration_s=plan.program_duration_s,
+            repetition_offsets_mm=plan.places_mm,
+            speed_schedule=self.speed_schedule,
+        )
+
+    def loop_plan(self, duration_s: float, gap_s: float = 0.0, pitch_mm=None) -> LoopPlan:
+        """When and where each run of :meth:`repeat` starts (its arguments), without its
+        segments."""
         if self.repetitions > 1:
             raise ValueError("this job is already repeated: repeat the job read from the program")
         if not (duration_s > 0 and math.isfinite(duration_s)) or not (
@@ -953,70 +1030,56 @@ class Job:
             raise ValueError(
                 f"duration_s must be positive and gap_s non-negative, got {duration_s}, {gap_s}"
             )
-        s = {name: np.asarray(self._seg[name], dtype=float) for name in SEGMENT_FIELDS}
-        s["shutter_open"] = self._seg["shutter_open"].copy()
+        s = self._seg
         D = self.duration_s
-        end = (s["x1_mm"][-1], s["y1_mm"][-1])
-        start = (s["x0_mm"][0], s["y0_mm"][0])
+        end = (float(s["x1_mm"][-1]), float(s["y1_mm"][-1]))
+        start = (float(s["x0_mm"][0]), float(s["y0_mm"][0]))
         source = self.speed_sources[self.return_source]
         if pitch_mm is None:
             distance = math.hypot(start[0] - end[0], start[1] - end[1])
             back = distance / source.value_mm_s
             period = D + gap_s + back
             runs = 1 if duration_s <= D else 1 + math.ceil((duration_s - D) / period - 1e-12)
-            offsets = np.arange(runs) * period
-            places = np.zeros((runs, 2))
+            offsets, places = np.arange(runs) * period, np.zeros((runs, 2))
             note = (
                 f"{gap_s:g} s wait and {back:.3f} s return ({distance:.3f} mm at "
                 f"{source.value_mm_s:g} mm/s) between runs"
             )
         else:
             offsets, places = self._array_schedule(duration_s, gap_s, pitch_mm)
-            runs = offsets.size
+            runs, period = offsets.size, None
             note = (
                 f"side by side at a pitch of ({float(pitch_mm[0]):g}, {float(pitch_mm[1]):g}) "
                 f"mm, {gap_s:g} s wait and a move at {source.value_mm_s:g} mm/s to the next "
                 "part between runs"
             )
-        parts = []
-        for k, offset in enumerate(offsets):
-            if k > 0:
-                previous = offsets[k - 1]
-                moved_end = (end[0] + places[k - 1, 0], end[1] + places[k - 1, 1])
-                moved_start = (start[0] + places[k, 0], start[1] + places[k, 1])
-                if pitch_mm is None:  # the times as the unpitched loop has always made them
-                    times = (D + previous, (D + gap_s) + previous, period + previous)
-                else:
-                    times = (previous + D, previous + D + gap_s, offset)
-                parts += _between_runs(moved_end, moved_start, times, self, k)
-            run = _translated({name: s[name].copy() for name in SEGMENT_FIELDS}, *places[k])
-            run["t0_s"] = run["t0_s"] + offset
-            run["t1_s"] = run["t1_s"] + offset
-            run["repetition"] = np.full(run["t0_s"].size, float(k))
-            parts.append(run)
-        seg = _concat(parts)
-        # contiguity: each run starts exactly where the return move ends
-        seg = _cut_at_times(seg, np.array([duration_s]))
-        seg = _take(seg, seg["t0_s"] < duration_s)
-        truncated = seg["t1_s"][-1] < offsets[-1] + D - 1e-9
-        notes = list(self.notes) + [f"repeated {runs} time(s) to {duration_s:g} s: {note}"]
-        return Job(
-            seg,
-            path=self.path,
-            n_lines=self.n_lines,
-            speed_sources=self.speed_sources,
-            feature_names=self.feature_names,
-            notes=notes,
-            warnings=self.warnings,
-            stage=self.stage,
-            settings=self.settings,
-            return_source=self.return_source,
-            end_shutter_open=bool(seg["shutter_open"][-1]) if truncated else self.end_shutter_open,
-            repetition_offsets_s=offsets,
+        return LoopPlan(
+            duration_s=float(duration_s),
+            gap_s=float(gap_s),
+            offsets_s=offsets,
+            places_mm=places,
+            pitch_mm=None if pitch_mm is None else tuple(float(v) for v in pitch_mm),
+            period_s=period,
             program_duration_s=D,
-            repetition_offsets_mm=places,
-            speed_schedule=self.speed_schedule,
+            program_end_xy=end,
+            program_start_xy=start,
+            program_end_shutter_open=self.end_shutter_open,
+            return_speed_mm_s=float(source.value_mm_s),
+            return_source=int(self.return_source),
+            note=f"repeated {runs} time(s) to {duration_s:g} s: {note}",
         )
+
+    def loop_block(self, plan: LoopPlan, k: int) -> list[dict]:
+        """Run ``k`` of the loop ``plan`` as segment arrays: the wait and the move that lead
+        to it (none before run 0), then the program moved to its place and time."""
+        parts = [_between_piece(plan, span, k) for span in plan.spans_before(k)]
+        run = {name: np.asarray(self._seg[name], dtype=float) for name in SEGMENT_FIELDS}
+        run["shutter_open"] = self._seg["shutter_open"].copy()
+        run = _translated(run, *plan.places_mm[k])
+        run["t0_s"] = run["t0_s"] + plan.offsets_s[k]
+        run["t1_s"] = run["t1_s"] + plan.offsets_s[k]
+        run["repetition"] = np.full(run["t0_s"].size, float(k))
+        return parts + [run]
 
     def _array_schedule(self, duration_s: float, gap_s: float, pitch_mm):
         """Start times (runs,) and places (runs, 2) [mm] of runs side by side (:meth:`repeat`).
@@ -1057,6 +1120,50 @@ class Job:
         return np.array(offsets), np.array(places, dtype=float).reshape(-1, 2)
 
 
+def stage_state(seg: dict, t, duration_s: float, end_shutter_open: bool) -> JobState:
+    """The stage at times ``t`` over the segments ``seg`` (:meth:`Job.state_at`).
+
+    ``seg`` covers ``[seg["t0_s"][0], duration_s]`` in time order; ``segment`` counts from
+    its first entry. Before 0 the stage is at its start, still, shutter closed; from
+    ``duration_s`` on at the end of the last segment, still, shutter ``end_shutter_open``.
+    """
+    s = seg
+    t = np.asarray(t, dtype=float)
+    n = s["t0_s"].size
+    index = np.clip(np.searchsorted(s["t0_s"], t, side="right") - 1, 0, n - 1)
+    dt = s["t1_s"][index] - s["t0_s"][index]
+    f = np.clip((t - s["t0_s"][index]) / dt, 0.0, 1.0)
+    g = {k: s[k][index] for k in GEOMETRY_FIELDS}
+    x, y = point_at(*g.values(), f)
+    ux, uy = tangent_at(
+        g["kind"],
+        g["x0_mm"],
+        g["y0_mm"],
+        g["x1_mm"],
+        g["y1_mm"],
+        g["a0_rad"],
+        g["sweep_rad"],
+        s["length_mm"][index],
+        f,
+    )
+    before, after = t < 0.0, t >= duration_s
+    outside = before | after
+    speed = np.where(outside, 0.0, s["speed_mm_s"][index])
+    shutter = np.where(outside, np.where(after, end_shutter_open, False), s["shutter_open"][index])
+    stroke = np.where(outside & ~(after & end_shutter_open), -1, s["stroke"][index])
+    return JobState(
+        x_mm=x,
+        y_mm=y,
+        vx_mm_s=speed * ux,
+        vy_mm_s=speed * uy,
+        speed_mm_s=speed,
+        shutter_open=shutter.astype(bool),
+        stroke=stroke.astype(np.int64),
+        feature=s["feature"][index].astype(np.int64),
+        segment=np.where(outside, -1, index).astype(np.int64),
+    )
+
+
 def _translated(seg: dict, dx: float, dy: float) -> dict:
     """Segments moved by (dx, dy) mm (positions and arc centres; angles unchanged)."""
     if dx == 0 and dy == 0:
@@ -1068,55 +1175,33 @@ def _translated(seg: dict, dx: float, dy: float) -> dict:
     return seg
 
 
-def _between_runs(end, start, times, job: Job, k: int) -> list:
-    """The segments before run ``k``: a wait at ``end`` over [t0, t1] (when t1 > t0), then the
-    move to ``start`` over [t1, t2] (when they differ); ``times`` = (t0, t1, t2). Shutter as
-    the program left it; the speed of the program's first move."""
-    source = job.speed_sources[job.return_source]
-    distance = math.hypot(start[0] - end[0], start[1] - end[1])
-    t_end, t_wait, move_t1 = times
-    pieces = []
-
-    def piece(kind, t0, t1, a, b, length, speed, speed_source):
-        p = _empty_like_fields(1)
-        p.update(
-            kind=np.array([kind]),
-            t0_s=np.array([t0]),
-            t1_s=np.array([t1]),
-            x0_mm=np.array([a[0]]),
-            y0_mm=np.array([a[1]]),
-            x1_mm=np.array([b[0]]),
-            y1_mm=np.array([b[1]]),
-            cx_mm=np.array([np.nan]),
-            cy_mm=np.array([np.nan]),
-            radius_mm=np.array([np.nan]),
-            a0_rad=np.array([np.nan]),
-            length_mm=np.array([length]),
-            speed_mm_s=np.array([speed]),
-            speed_source=np.array([speed_source]),
-            feature=np.array([-1.0]),
-            base_stroke=np.array([-1.0]),
-            repetition=np.array([float(k)]),
-        )
-        p["shutter_open"] = np.array([job.end_shutter_open])
-        return p
-
-    if t_wait > t_end:
-        pieces.append(piece(KIND_DWELL, t_end, t_wait, end, end, 0.0, 0.0, -1.0))
-    if distance > 0:
-        pieces.append(
-            piece(
-                KIND_LINE,
-                t_wait,
-                move_t1,
-                end,
-                start,
-                distance,
-                source.value_mm_s,
-                float(job.return_source),
-            )
-        )
-    return pieces
+def _between_piece(plan: LoopPlan, span: tuple, k: int) -> dict:
+    """One segment before run ``k`` (a :meth:`LoopPlan.spans_before` span): shutter as the
+    program left it, no stroke or feature."""
+    kind, t0, t1, a, b, length = span
+    moving = kind == KIND_LINE
+    p = _empty_like_fields(1)
+    p.update(
+        kind=np.array([kind]),
+        t0_s=np.array([t0]),
+        t1_s=np.array([t1]),
+        x0_mm=np.array([a[0]]),
+        y0_mm=np.array([a[1]]),
+        x1_mm=np.array([b[0]]),
+        y1_mm=np.array([b[1]]),
+        cx_mm=np.array([np.nan]),
+        cy_mm=np.array([np.nan]),
+        radius_mm=np.array([np.nan]),
+        a0_rad=np.array([np.nan]),
+        length_mm=np.array([length]),
+        speed_mm_s=np.array([plan.return_speed_mm_s if moving else 0.0]),
+        speed_source=np.array([float(plan.return_source) if moving else -1.0]),
+        feature=np.array([-1.0]),
+        base_stroke=np.array([-1.0]),
+        repetition=np.array([float(k)]),
+    )
+    p["shutter_open"] = np.array([plan.program_end_shutter_open])
+    return p
 
 
 def read_timeline(path: str | Path) -> tuple[pd.DataFrame, dict]:

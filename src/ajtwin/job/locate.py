@@ -25,7 +25,7 @@ import pandas as pd
 from ajtwin.job.geometry import GEOMETRY_FIELDS, closest_point, point_at, segment_bbox, tangent_at
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 
-__all__ = ["TraceIndex", "TraceHits"]
+__all__ = ["TraceIndex", "TraceHits", "nearest_then_latest"]
 
 
 _MIN_CELL_MM = 0.02
@@ -283,26 +283,12 @@ class TraceIndex:
         parent = self.parent[chunk]
         f_parent = self.f_start[chunk] + f * (self.f_end[chunk] - self.f_start[chunk])
         t = s["t0_s"][parent] + f_parent * (s["t1_s"][parent] - s["t0_s"][parent])
-        # pairs are grouped by point (in order). The nearest trace wins; traces through the
-        # same place (within _TIE_MM in distance and position: a part printed again on
-        # itself) are told apart by time, the latest print winning.
-        starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
-        sizes = np.diff(np.r_[starts, point.size])
-        d_min = np.repeat(np.minimum.reduceat(d, starts), sizes)
-        is_min = np.flatnonzero(d == d_min)
-        reference = is_min[np.r_[True, point[is_min][1:] != point[is_min][:-1]]]
-        near = np.flatnonzero(d <= d_min + _TIE_MM)
-        g = {k: s[k][parent[near]] for k in GEOMETRY_FIELDS}
-        px, py = point_at(*g.values(), f_parent[near])
-        ref_of = np.repeat(np.arange(starts.size), sizes)[near]
-        ref_x, ref_y = px[np.searchsorted(near, reference)], py[np.searchsorted(near, reference)]
-        same = np.hypot(px - ref_x[ref_of], py - ref_y[ref_of]) <= _TIE_MM
-        tied = near[same]
-        t_tied = np.full(point.size, -np.inf)
-        t_tied[tied] = t[tied]
-        t_max = np.repeat(np.maximum.reduceat(t_tied, starts), sizes)
-        chosen = np.flatnonzero(t_tied == t_max)
-        first = chosen[np.r_[True, point[chosen][1:] != point[chosen][:-1]]]
+
+        def position(pairs):
+            g = {k: s[k][parent[pairs]] for k in GEOMETRY_FIELDS}
+            return point_at(*g.values(), f_parent[pairs])
+
+        first = nearest_then_latest(point, d, t, position)
         p = point[first]
         best_chunk[p], best_d[p], best_f[p] = chunk[first], d[first], f[first]
 
@@ -354,3 +340,43 @@ class TraceIndex:
             x_mm=pick(px, np.nan),
             y_mm=pick(py, np.nan),
         )
+
+
+def nearest_then_latest(point, d, t, position) -> np.ndarray:
+    """The pair chosen for each point among (point, trace) pairs grouped by point, in order.
+
+    The nearest trace wins; traces through the same place (within ``_TIE_MM`` in distance
+    and position: a part printed again on itself) are told apart by time, the latest print
+    winning.
+
+    Parameters
+    ----------
+    point : ndarray of int (m,)
+        The point of each pair, grouped (equal values next to each other).
+    d, t : ndarray (m,)
+        Distance [mm] from the point to the trace and when the trace was printed [s].
+    position : callable
+        ``position(pairs) -> (x_mm, y_mm)`` of the traces' closest points for the pairs
+        given (asked only of the pairs as near as the nearest).
+
+    Returns
+    -------
+    ndarray of int
+        One pair index per distinct point, in the points' order.
+    """
+    starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
+    sizes = np.diff(np.r_[starts, point.size])
+    d_min = np.repeat(np.minimum.reduceat(d, starts), sizes)
+    is_min = np.flatnonzero(d == d_min)
+    reference = is_min[np.r_[True, point[is_min][1:] != point[is_min][:-1]]]
+    near = np.flatnonzero(d <= d_min + _TIE_MM)
+    px, py = position(near)
+    ref_of = np.repeat(np.arange(starts.size), sizes)[near]
+    at = np.searchsorted(near, reference)
+    same = np.hypot(px - px[at][ref_of], py - py[at][ref_of]) <= _TIE_MM
+    tied = near[same]
+    t_tied = np.full(point.size, -np.inf)
+    t_tied[tied] = t[tied]
+    t_max = np.repeat(np.maximum.reduceat(t_tied, starts), sizes)
+    chosen = np.flatnonzero(t_tied == t_max)
+    return chosen[np.r_[True, point[chosen][1:] != point[chosen][:-1]]]

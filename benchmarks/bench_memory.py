@@ -10,7 +10,9 @@ The live engine is fed the record's samples as fast as it takes them
 piece at a time, so the feeder holds no copy of the print) and closed at the end (the print
 stored): ``live`` a minute's samples a call (a burst), ``live-1hz`` one
 sample a call with each step written to the live log as it commits (what a machine at 1 Hz
-does in real time, without waiting the print's hours). The slope is
+does in real time, without waiting the print's hours). ``ingest-job`` is `ajtwin ingest --job`
+of a job print: the public seven-layer program looped to the print's length, the camera
+5 mm behind the nozzle (its frames filed at their print times). The slope is
 (peak at the longest − peak at the shortest) / their difference in hours: ~0 when memory is
 flat in print length. The live engine also says its resident memory every 4 print-hours
 (``live_<h>h_rss_MB_by_hour``): one process's course, without the ±10 MB between runs that
@@ -19,7 +21,8 @@ days.
 Each command first runs once, unmeasured, on the shortest print: a first run with an
 empty JAX cache compiles, and the compiler's peak (~150 MB more) is not the print's.
 
-    python benchmarks/bench_memory.py [--hours 1 4] [--commands estimate ingest live live-1hz]
+    python benchmarks/bench_memory.py [--hours 1 4]
+        [--commands estimate ingest ingest-job live live-1hz]
                                       [--records DIR]
 
 The default (1 h and 4 h) takes ~3 min on 2 cores; ``--hours 1 24 168`` gives the 7-day
@@ -40,8 +43,12 @@ from pathlib import Path
 
 from ajtwin.io.records import write_record
 from ajtwin.simulation import simulate
+from ajtwin.simulation.job_print import simulate_job
 
-COMMANDS = ("estimate", "ingest", "live", "live-1hz")
+COMMANDS = ("estimate", "ingest", "ingest-job", "live", "live-1hz")
+#: the job print of ``ingest-job``: the public seven-layer program looped to the print's
+#: length over its own part, the camera trailing 5 mm behind the nozzle (``simulate_job``'s)
+PROGRAM = Path(__file__).resolve().parents[1] / "tests/data/prg/prg2svg/4-naf 654321.prg"
 #: run by the child process for the live engine (argv: record, store, samples per call,
 #: seconds between the live log's commits)
 LIVE_CHILD = """
@@ -125,11 +132,27 @@ def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, f
         return peak_mb(_cli("estimate", str(record), "--out", str(work / "s.csv")), env)
     subprocess.run(_cli("machine", "add", "M", "--store", str(store)), env=env, check=True,
                    capture_output=True)  # fmt: skip
-    if command == "ingest":
+    if command.startswith("ingest"):
         argv = _cli("ingest", "--machine", "M", "--store", str(store), "--no-progress")
+        if command == "ingest-job":
+            argv += ["--job", str(PROGRAM)]
         return peak_mb([*argv, str(record)], env)
     feed = LIVE_FEEDS[command]
     return peak_mb([sys.executable, "-c", LIVE_CHILD, str(record), str(store), *feed], env)
+
+
+def _record(command: str, hours: float, seed: int, folder: Path) -> Path:
+    """The exp1 print ``command`` reads (a job print for ``ingest-job``), simulated once."""
+    kind = "job-" if command == "ingest-job" else ""
+    record = folder / f"{kind}exp1-seed{seed}-{hours:g}h.parquet"
+    if not record.exists():
+        record.parent.mkdir(parents=True, exist_ok=True)
+        if kind:
+            printed = simulate_job(PROGRAM, "exp1", seed=seed, duration_min=60.0 * hours)
+        else:
+            printed = simulate("exp1", seed=seed, duration_min=60.0 * hours)
+        write_record(printed, record)
+    return record
 
 
 def main() -> dict:
@@ -146,14 +169,11 @@ def main() -> dict:
         work = Path(tmp)
         peaks = {c: [] for c in args.commands}
         for i, h in enumerate(hours):
-            record = (args.records or work) / f"exp1-seed{args.seed}-{h:g}h.parquet"
-            if not record.exists():
-                record.parent.mkdir(parents=True, exist_ok=True)
-                write_record(simulate("exp1", seed=args.seed, duration_min=60.0 * h), record)
+            records = {c: _record(c, h, args.seed, args.records or work) for c in args.commands}
             for command in args.commands if i == 0 else ():
-                measure(command, record, work, env)  # fills the JAX cache
+                measure(command, records[command], work, env)  # fills the JAX cache
             for command in args.commands:
-                mb, wall, said = measure(command, record, work, env)
+                mb, wall, said = measure(command, records[command], work, env)
                 peaks[command].append(mb)
                 figures[f"{command}_{h:g}h_peak_MB"] = round(mb, 1)
                 figures[f"{command}_{h:g}h_wall_s"] = round(wall, 1)
@@ -164,7 +184,8 @@ def main() -> dict:
                         int(hour): float(mb) for hour, mb in trace
                     }
             if args.records is None:
-                record.unlink()
+                for record in set(records.values()):
+                    record.unlink()
         if len(hours) > 1:
             for command, values in peaks.items():
                 slope = (values[-1] - values[0]) / (hours[-1] - hours[0])

@@ -299,7 +299,8 @@ def _read_job(record, job_program, camera_horizon):
             "platen_speed_mm_s, printed_at_s) — it is not a job print"
         )
     try:
-        return program_for_record(record, job_program)
+        # the twin asks a looped program only where the stage is and what the camera sees
+        return program_for_record(record, job_program, held=False)
     except (ProgramError, ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
 

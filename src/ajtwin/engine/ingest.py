@@ -471,10 +471,12 @@ def theta_history_arrays(run) -> dict:
 
 def _printed_job(entry: dict | None, record):
     """The job a job record's print ran (from the entry kept with it), for the twin to file
-    the camera's frames with; None without an entry or for a record without job columns."""
+    the camera's frames with; None without an entry or for a record without job columns.
+    A looped program is answered run by run (:class:`ajtwin.job.LoopedJob`): the filing asks
+    only where the stage is and what lies under the camera, and the print may last days."""
     if entry is None or not is_job_record(record):
         return None
-    return entry_job(entry, print_duration_s=record_duration_s(record))
+    return entry_job(entry, print_duration_s=record_duration_s(record), held=False)
 
 
 def run_arrays(run, record) -> dict:

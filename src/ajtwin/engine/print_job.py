@@ -32,6 +32,7 @@ from ajtwin.engine.part_map import (
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
+from ajtwin.job import LoopedJob
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
@@ -73,8 +74,10 @@ def job_entry(
     given = {"process_speed_mm_s": process_speed_mm_s, "rapid_speed_mm_s": rapid_speed_mm_s,
              "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm,
              "process_speed_schedule": speed_schedule}  # fmt: skip
-    job = job_as_printed(raw, from_record, name=path.name, **given)
-    summary = job.summary()
+    # read and looped as printed (a loop that does not fit the stage is refused); the speeds
+    # kept are the program's, whatever the loop's length
+    job = job_as_printed(raw, from_record, name=path.name, held=False, **given)
+    summary = (job.program if isinstance(job, LoopedJob) else job).summary()
     loop = repeat_to_s if repeat_to_s is not None else from_record.get("repeat_to_s")
     pitch = repeat_pitch_mm if repeat_pitch_mm is not None else from_record.get("repeat_pitch_mm")
     return {

@@ -75,8 +75,19 @@ import numpy as np
 
 from ajtwin.config import packaged_toml
 from ajtwin.io.records import PrintRecord
-from ajtwin.job import Job, ProgramError, SpeedSchedule, decode_program, read_program_text
+from ajtwin.job import (
+    Job,
+    LoopedJob,
+    ProgramError,
+    SpeedSchedule,
+    decode_program,
+    loop_job,
+    read_program_text,
+)
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
+
+# seconds of a camera's delays asked of the job at once (the trace query's arrays)
+_DELAY_SECONDS = 20_000
 
 #: Row times within this of the 1 s grid count as on it [s].
 GRID_TOLERANCE_S = 1e-6
@@ -384,8 +395,9 @@ def job_as_printed(
     *,
     name: str | None = None,
     print_duration_s: float | None = None,
+    held: bool = True,
     **overrides,
-) -> Job:
+) -> Job | LoopedJob:
     """The job as a print ran it: the program read at the print's speeds and looped as the
     print looped it (side by side when it was). The one place a program is read "as
     printed": from a record's metadata (:func:`program_for_record`), from what the registry
@@ -406,6 +418,11 @@ def job_as_printed(
     print_duration_s : float, optional
         How long the print ran [s]: when nothing says how it looped and it outlasted the
         program, the program ran again over the same part (as the live map assumes).
+    held : bool
+        A looped job as :meth:`ajtwin.job.Job.repeat` holds it (every run's segments), for
+        what asks the whole part; False: a :class:`ajtwin.job.LoopedJob`, which answers
+        where the stage is and what lies under a point without growing with the loop (a
+        print's camera filing).
     **overrides
         Any of :data:`PRINTED_AS` given by the user instead of ``settings`` (None: not given).
         Without either the program runs at the GUI's default speeds (``stage.toml``), once.
@@ -456,18 +473,23 @@ def job_as_printed(
         loop = print_duration_s
     if loop is not None and float(loop) > 0:
         pitch = None if pitch is None else tuple(float(v) for v in pitch)
-        job = job.repeat(float(loop), pitch_mm=pitch)
+        job = (
+            job.repeat(float(loop), pitch_mm=pitch)
+            if held
+            else loop_job(job, float(loop), pitch_mm=pitch)
+        )
     return job
 
 
-def program_for_record(record: PrintRecord, program, **overrides) -> Job:
+def program_for_record(record: PrintRecord, program, **overrides) -> Job | LoopedJob:
     """The program ``program`` (a ``.prg`` path) read and looped as ``record``'s print ran
     it (:func:`job_as_printed` with the record's ``job`` metadata and its length).
 
     A format-2 record names the program's SHA-256 (another file is refused with a
     ValueError naming both), the speeds and the looping; ``overrides`` (any of
-    :data:`PRINTED_AS`) replace them. A bare machine log names nothing: the GUI's speeds,
-    time 0 = the program's start, the program run again whenever the log outlasts it.
+    :data:`PRINTED_AS`) replace them, and ``held`` is :func:`job_as_printed`'s. A bare
+    machine log names nothing: the GUI's speeds, time 0 = the program's start, the program
+    run again whenever the log outlasts it.
     """
     info = record.meta.get("job")
     return job_as_printed(
@@ -484,7 +506,7 @@ def record_duration_s(record: PrintRecord) -> float:
     return float(record.duration_s + 1.0)
 
 
-def trailing_delays(job: Job, offset_mm, duration_s: float) -> np.ndarray:
+def trailing_delays(job: Job | LoopedJob, offset_mm, duration_s: float) -> np.ndarray:
     """Delays t − τ [s] of a camera trailing at ``offset_mm`` over whole seconds of ``job``.
 
     The frame at t sees the trace printed last before t within the view's field
@@ -493,15 +515,21 @@ def trailing_delays(job: Job, offset_mm, duration_s: float) -> np.ndarray:
     nothing are left out.
     """
     radius = load_print_time_settings()["field_radius_mm"]
-    t = np.arange(int(math.ceil(min(duration_s, job.duration_s))), dtype=float)
-    state = job.state_at(t)
-    hits = job.locate(
-        state.x_mm + float(offset_mm[0]), state.y_mm + float(offset_mm[1]), radius, before_s=t
-    )
-    return (t - hits.print_time_s)[hits.found]
+    seconds = int(math.ceil(min(duration_s, job.duration_s)))
+    delays = []
+    for first in range(0, max(seconds, 1), _DELAY_SECONDS):  # a week's seconds in pieces
+        t = np.arange(first, min(first + _DELAY_SECONDS, seconds), dtype=float)
+        state = job.state_at(t)
+        hits = job.locate(
+            state.x_mm + float(offset_mm[0]), state.y_mm + float(offset_mm[1]), radius, before_s=t
+        )
+        delays.append((t - hits.print_time_s)[hits.found])
+    return np.concatenate(delays)
 
 
-def camera_horizon_s(camera: dict | None, job: Job | None = None, duration_s=None) -> float:
+def camera_horizon_s(
+    camera: dict | None, job: Job | LoopedJob | None = None, duration_s=None
+) -> float:
     """The horizon H [s] for a job print whose camera is ``camera`` (the record's metadata).
 
     * ``at_nozzle``: 0 (the camera sees the line as it is printed);

@@ -17,6 +17,7 @@ __all__ = [
     "GEOMETRY_FIELDS",
     "point_at",
     "tangent_at",
+    "point_and_tangent",
     "closest_point",
     "segment_bbox",
     "arc_steps",
@@ -82,6 +83,26 @@ def tangent_at(kind, x0, y0, x1, y1, a0, sweep, length, f):
         uy = np.where(arc, sign * np.cos(angle), uy)
     still = kind == KIND_DWELL
     return np.where(still, 0.0, ux), np.where(still, 0.0, uy)
+
+
+def point_and_tangent(seg: dict, index, f):
+    """Point and unit direction of travel at fraction ``f`` of the segments ``index`` of
+    ``seg`` (arrays by :data:`GEOMETRY_FIELDS` and ``length_mm``): :func:`point_at` and
+    :func:`tangent_at` together. Returns (x, y, ux, uy) [mm, mm, 1, 1]."""
+    g = {k: seg[k][index] for k in GEOMETRY_FIELDS}
+    x, y = point_at(*g.values(), f)
+    ux, uy = tangent_at(
+        g["kind"],
+        g["x0_mm"],
+        g["y0_mm"],
+        g["x1_mm"],
+        g["y1_mm"],
+        g["a0_rad"],
+        g["sweep_rad"],
+        seg["length_mm"][index],
+        f,
+    )
+    return x, y, ux, uy
 
 
 def closest_point(px, py, kind, x0, y0, x1, y1, cx, cy, r, a0, sweep, length):

@@ -23,7 +23,13 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.job.errors import ProgramError
-from ajtwin.job.geometry import GEOMETRY_FIELDS, arc_steps, point_at, segment_bbox, tangent_at
+from ajtwin.job.geometry import (
+    GEOMETRY_FIELDS,
+    arc_steps,
+    point_and_tangent,
+    point_at,
+    segment_bbox,
+)
 from ajtwin.job.locate import TraceIndex
 from ajtwin.job.program import (
     KIND_ARC,
@@ -888,19 +894,7 @@ class Job:
             ),
             0.0,
         )
-        g = {k: s[k][seg] for k in GEOMETRY_FIELDS}
-        x, y = point_at(*g.values(), f)
-        ux, uy = tangent_at(
-            g["kind"],
-            g["x0_mm"],
-            g["y0_mm"],
-            g["x1_mm"],
-            g["y1_mm"],
-            g["a0_rad"],
-            g["sweep_rad"],
-            seg_len,
-            f,
-        )
+        x, y, ux, uy = point_and_tangent(s, seg, f)
         t = s["t0_s"][seg] + f * (s["t1_s"][seg] - s["t0_s"][seg])
         t = np.where(has_motion, t, self._stroke_t[0][stroke])
         return StrokePoints(x_mm=x, y_mm=y, time_s=t, ux=ux, uy=uy, segment=seg.astype(np.int64))
@@ -1133,19 +1127,7 @@ def stage_state(seg: dict, t, duration_s: float, end_shutter_open: bool) -> JobS
     index = np.clip(np.searchsorted(s["t0_s"], t, side="right") - 1, 0, n - 1)
     dt = s["t1_s"][index] - s["t0_s"][index]
     f = np.clip((t - s["t0_s"][index]) / dt, 0.0, 1.0)
-    g = {k: s[k][index] for k in GEOMETRY_FIELDS}
-    x, y = point_at(*g.values(), f)
-    ux, uy = tangent_at(
-        g["kind"],
-        g["x0_mm"],
-        g["y0_mm"],
-        g["x1_mm"],
-        g["y1_mm"],
-        g["a0_rad"],
-        g["sweep_rad"],
-        s["length_mm"][index],
-        f,
-    )
+    x, y, ux, uy = point_and_tangent(s, index, f)
     before, after = t < 0.0, t >= duration_s
     outside = before | after
     speed = np.where(outside, 0.0, s["speed_mm_s"][index])

@@ -22,7 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from ajtwin.job.geometry import GEOMETRY_FIELDS, closest_point, point_at, segment_bbox, tangent_at
+from ajtwin.job.geometry import (
+    GEOMETRY_FIELDS,
+    closest_point,
+    point_and_tangent,
+    point_at,
+    segment_bbox,
+)
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 
 __all__ = ["TraceIndex", "TraceHits", "nearest_then_latest"]
@@ -306,19 +312,7 @@ class TraceIndex:
             )
         parent = self.parent[chunk]
         f = self.f_start[chunk] + best_f * (self.f_end[chunk] - self.f_start[chunk])
-        g = {k: s[k][parent] for k in GEOMETRY_FIELDS}
-        px, py = point_at(*g.values(), f)
-        ux, uy = tangent_at(
-            g["kind"],
-            g["x0_mm"],
-            g["y0_mm"],
-            g["x1_mm"],
-            g["y1_mm"],
-            g["a0_rad"],
-            g["sweep_rad"],
-            s["length_mm"][parent],
-            f,
-        )
+        px, py, ux, uy = point_and_tangent(s, parent, f)
         t = s["t0_s"][parent] + f * (s["t1_s"][parent] - s["t0_s"][parent])
         along = s["s0_mm"][parent] + f * s["length_mm"][parent]
 

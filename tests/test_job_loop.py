@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ajtwin.estimation.print_time import trailing_delays
+from ajtwin.estimation.print_time import program_for_record, trailing_delays
+from ajtwin.estimation.twin import Twin
 from ajtwin.job import LoopedJob, loop_job, read_program, read_program_text
+from ajtwin.simulation.job_print import simulate_job
 
 DATA = Path(__file__).parent / "data" / "prg" / "prg2svg"
 
@@ -112,3 +114,30 @@ def test_a_loop_asked_over_two_days_holds_what_it_holds_over_half_a_day(layers):
     assert runs_long > 3 * runs_short
     assert held_long - held_short < 2e6, figures
     assert peak_long - peak_short < 8e6, figures
+
+
+def test_a_looped_job_print_is_filed_and_run_as_with_every_run_held(tmp_path):
+    """A 12-min print of a 166-s public program (four runs and a part), the camera 5 mm
+    behind: the twin over the loop answered run by run is the twin over the repeated job."""
+    program = DATA / "1-nafbot.prg"
+    record = simulate_job(program, "exp1", seed=4, duration_min=12.0)
+    runs = {}
+    for held in (True, False):
+        job = program_for_record(record, program, held=held)
+        chunks = []
+        run = Twin.default().run(record, job=job, sink=_collect(chunks))
+        runs[held] = (job, run, chunks)
+    (whole, a, chunks_a), (looped, b, chunks_b) = runs[True], runs[False]
+    assert isinstance(looped, LoopedJob) and looped.repetitions == whole.repetitions == 5
+    assert a.camera_counts == b.camera_counts and a.camera_counts["filed"] > 300
+    assert len(chunks_a) == len(chunks_b) > 1
+    for x, y in zip(chunks_a, chunks_b, strict=True):
+        np.testing.assert_array_equal(x.filtered.means, y.filtered.means)
+        for name in ("measurements", "line_factors", "n_camera"):
+            np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
+    np.testing.assert_array_equal(a.end_mean, b.end_mean)
+
+
+def _collect(chunks: list):
+    """A twin's sink that keeps its chunks."""
+    return lambda first, chunk: chunks.append(chunk)

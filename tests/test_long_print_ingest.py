@@ -6,7 +6,8 @@ The peak resident set of the ingest process (its own ``VmHWM``) of a 24-h print 
 with a 2-h one's, and a week's with the day's. The record is read into a temporary file and
 the twin reads it from there a piece at a time; the twin's run is taken a chunk at a time and
 written to the registry as it is produced, the detectors keep their last steps only and the
-mismatch guard judges each chunk as it comes. What is left is the start-up's growth: 2 h → 24 h
+mismatch guard judges each chunk as it comes; a job print's looped program is answered run by
+run (``loop_job``). What is left is the start-up's growth: 2 h → 24 h
 about 15–20 MB, 24 h → 7 days ~15 MB (RSS varies by ±10 MB between runs); a reader and twin
 that held the record grew 1.2 MB per print-hour, 150 MB from a day to a week. (At shorter
 lengths the growth is within that noise: the default suite pins the mechanism instead,
@@ -26,8 +27,10 @@ import pytest
 
 from ajtwin.io.records import write_record
 from ajtwin.simulation import simulate
+from ajtwin.simulation.job_print import simulate_job
 
 SRC = str(Path(__file__).resolve().parent.parent / "src")
+PROGRAM = Path(__file__).resolve().parent / "data" / "prg" / "prg2svg" / "4-naf 654321.prg"
 #: the CLI in a child that says its own peak resident set as it exits: VmHWM of its own
 #: memory (ru_maxrss would carry the pytest process's peak over the exec into the child's)
 CLI = (
@@ -42,11 +45,16 @@ CLI = (
 )
 
 
-def _ingest(tmp_path: Path, minutes: float, seed: int = 5) -> tuple[float, str]:
-    """Ingest a clean exp1 print of ``minutes`` into a fresh store in a child process;
-    (its peak RSS [MB], what it said)."""
-    record = tmp_path / f"p{minutes:g}.parquet"
-    write_record(simulate("exp1", seed=seed, duration_min=minutes), record)
+def _ingest(tmp_path: Path, minutes: float, seed: int = 5, job: bool = False) -> tuple[float, str]:
+    """Ingest a clean exp1 print of ``minutes`` into a fresh store in a child process (with
+    ``job``: the public seven-layer program looped to its length, ``--job``); (its peak RSS
+    [MB], what it said)."""
+    record = tmp_path / f"p{minutes:g}{'-job' if job else ''}.parquet"
+    if job:
+        printed = simulate_job(PROGRAM, "exp1", seed=seed, duration_min=minutes)
+    else:
+        printed = simulate("exp1", seed=seed, duration_min=minutes)
+    write_record(printed, record)
     store = tmp_path / f"r{minutes:g}.sqlite"
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env["PYTHONPATH"] = SRC + os.pathsep + env.get("PYTHONPATH", "")
@@ -54,6 +62,8 @@ def _ingest(tmp_path: Path, minutes: float, seed: int = 5) -> tuple[float, str]:
     subprocess.run([*cli, "machine", "add", "M", "--store", str(store)], env=env, check=True,
                    capture_output=True, timeout=300)  # fmt: skip
     argv = [*cli, "ingest", "--machine", "M", "--store", str(store), "--no-progress", str(record)]
+    if job:
+        argv[-1:-1] = ["--job", str(PROGRAM)]
     done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=3600)
     said = done.stdout + done.stderr
     assert done.returncode == 0, said[-3000:]
@@ -103,3 +113,14 @@ def test_a_clean_24_hour_print_raises_under_one_event_per_10_hours(day):
     _, (_, said) = day
     assert _n_events(said) <= 2, said[-3000:]
     assert said.count("nozzle needs cleaning") <= 1, said[-3000:]
+
+
+@pytest.mark.slow
+def test_ingest_of_a_24_hour_job_print_needs_little_more_memory_than_of_a_6_hour_one(tmp_path):
+    # from 6 h on the camera's delays are asked in passes of the same size (the horizon)
+    short_mb, _ = _ingest(tmp_path, 360, job=True)
+    long_mb, said = _ingest(tmp_path, 1440, job=True)
+    # ~5 MB measured (4 h → 24 h); every run of the program held: ~60 MB more at 24 h
+    assert long_mb - short_mb < 30.0, (short_mb, long_mb)
+    print(f"job print ingest peak RSS: {short_mb:.1f} MB at 6 h, {long_mb:.1f} MB at 24 h")
+    assert f"job {PROGRAM.name} kept with the print" in said, said[-2000:]

@@ -8,8 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ajtwin.apps.planning.job_preview import JobPreview
+from ajtwin.engine.job_samples import JobColumns, live_loop
 from ajtwin.estimation.print_time import program_for_record, trailing_delays
 from ajtwin.estimation.twin import Twin
+from ajtwin.io.schema import MAX_RECORD_SECONDS
 from ajtwin.job import LoopedJob, loop_job, read_program, read_program_text
 from ajtwin.simulation.job_print import simulate_job
 
@@ -141,3 +144,52 @@ def test_a_looped_job_print_is_filed_and_run_as_with_every_run_held(tmp_path):
 def _collect(chunks: list):
     """A twin's sink that keeps its chunks."""
     return lambda first, chunk: chunks.append(chunk)
+
+
+@pytest.mark.parametrize("runs, gap, pitch", LOOPS)
+def test_the_seconds_of_a_loop_are_those_of_the_repeated_job(layers, runs, gap, pitch):
+    whole, looped = loops(layers, runs, gap, pitch)
+    D = layers.duration_s
+    # windows inside a run, across a run's end and the move to the next, and over the end
+    for start, seconds in (
+        (0.0, 50),
+        (D - 20.0, 60),
+        (2 * D - 7.0, 400),
+        (whole.duration_s - 30, 90),
+    ):
+        a = whole.per_second(seconds, start)
+        b = looped.per_second(seconds, start)
+        assert list(a.columns) == list(b.columns)
+        for name in ("stroke_first", "stroke_last", "strokes"):
+            assert a[name].tolist() == b[name].tolist(), (start, name)
+        for name in ("shutter_open_fraction", "printing_speed_mm_s", "printed_length_mm",
+                     "platen_speed_mm_s", "time_s"):  # fmt: skip
+            np.testing.assert_allclose(b[name], a[name], atol=1e-9, err_msg=f"{start} {name}")
+
+
+def test_the_mpc_reads_the_seconds_ahead_of_a_loop_over_days_as_of_the_repeated_job(layers):
+    """Three days of the seven-layer program: the preview of the loop answered run by run is
+    the repeated job's, late in the print too (it is worked out an hour at a time)."""
+    whole, looped = loops(layers, 3 * 86400.0 / layers.duration_s, 0.0, None)
+    a, b = JobPreview(whole, horizon_s=60), JobPreview(looped, horizon_s=60)
+    for t in (0.0, 3590.0, 2.5 * 86400.0, whole.duration_s - 20.0, whole.duration_s + 5.0):
+        np.testing.assert_allclose(b.line(t), a.line(t), atol=1e-9, err_msg=str(t))
+    assert b.line(2.5 * 86400.0)[:, 0].sum() > 10  # it prints then
+
+
+def test_a_live_job_print_past_a_day_still_follows_the_program(layers):
+    """The live twin's loop spans the longest record (14 days) without holding it: the
+    columns it fills 30 h in are those of the program repeated to then (a loop of one day
+    left the stage still at its end)."""
+    looped = live_loop(layers)
+    assert isinstance(looped, LoopedJob) and looped.duration_s == MAX_RECORD_SECONDS
+    t = 30 * 3600.0 + np.arange(0.0, 600.0)
+    whole = layers.repeat(31 * 3600.0)
+    y = np.full((t.size, 5), np.nan)
+    y[:, :2] = 50.0
+    a = JobColumns(whole, "trailing", (-5.0, 0.0)).fill(t, y)
+    b = JobColumns(looped, "trailing", (-5.0, 0.0)).fill(t, y)
+    assert b["shutter_open"].mean() > 0.5
+    for name in ("shutter_open", "platen_speed_mm_s"):
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    assert np.isfinite(b["printed_at_s"]).sum() > 100

@@ -32,18 +32,22 @@ import math
 import numpy as np
 
 from ajtwin.estimation.print_time import load_print_time_settings
+from ajtwin.io.schema import MAX_RECORD_SECONDS
+from ajtwin.job import loop_job
 
 #: A live job print is looped to this length [s] (the program again over the same part when
-#: it ends): one day, longer than any print; the trace index covers it once, at the start.
-LIVE_LOOP_S = 24 * 3600.0
+#: it ends): the longest print a record may span. The loop is answered run by run
+#: (:class:`ajtwin.job.LoopedJob`), so its length costs nothing until it is reached.
+LIVE_LOOP_S = float(MAX_RECORD_SECONDS)
 
 
 def live_loop(job, duration_s: float = LIVE_LOOP_S):
-    """The program run again and again over the same part to ``duration_s`` (the job as it is
-    when it lasts that long already)."""
+    """The program run again and again over the same part to ``duration_s``
+    (:func:`ajtwin.job.loop_job`; the job as it is when it is looped already or lasts that
+    long)."""
     if job.repetitions > 1 or job.duration_s >= duration_s:
         return job
-    return job.repeat(float(duration_s))
+    return loop_job(job, float(duration_s))
 
 
 class JobColumns:
@@ -51,7 +55,7 @@ class JobColumns:
 
     Parameters
     ----------
-    job : ajtwin.job.Job
+    job : ajtwin.job.Job or ajtwin.job.LoopedJob
         The job as the machine runs it (looped: :func:`live_loop`).
     camera_mode : {"trailing", "at_nozzle", "inspection"}
     offset_mm : (float, float)

@@ -30,9 +30,11 @@ Examples
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 
 import numpy as np
+import pandas as pd
 
 from ajtwin.job.job import (
     Job,
@@ -185,6 +187,41 @@ class LoopedJob:
                     value = np.where(value >= 0, value + self._block_offset[k], -1)
                 out.setdefault(name, np.empty(flat.size, dtype=value.dtype))[sel] = value
         return JobState(**{name: value.reshape(t.shape) for name, value in out.items()})
+
+    def per_second(self, duration_s: float | None = None, start_s: float = 0.0) -> pd.DataFrame:
+        """The loop over 1-s bins ``[start_s + k, start_s + k + 1)``:
+        :meth:`ajtwin.job.Job.per_second` of the repeated job, from the runs those seconds
+        reach (strokes numbered as the repeated job numbers them)."""
+        if self._whole is not None:
+            return self._whole.per_second(duration_s, start_s)
+        if duration_s is None:
+            duration_s = math.ceil(self.duration_s - start_s - 1e-9)
+        end = start_s + max(float(duration_s), 0.0)
+        first, last = np.searchsorted(self._block_start, [start_s, end], side="right") - 1
+        first = max(int(first), 0)
+        runs = [self.run_segments(k) for k in range(first, max(int(last), first) + 1)]
+        program = self.program
+        window = Job(
+            _concat(runs),
+            path=program.path,
+            n_lines=program.n_lines,
+            speed_sources=program.speed_sources,
+            feature_names=program.feature_names,
+            notes=[],
+            warnings=[],
+            stage=program.stage,
+            settings=program.settings,
+            return_source=program.return_source,
+            end_shutter_open=self.end_shutter_open,
+            repetition_offsets_s=self.plan.offsets_s[first : max(int(last), first) + 1],
+        )
+        table = window.per_second(duration_s, start_s)
+        # the window numbers its strokes from its first run's
+        shift = first * program.n_strokes
+        for name in ("stroke_first", "stroke_last"):
+            table[name] = np.where(table[name] >= 0, table[name] + shift, -1)
+        table["strokes"] = [tuple(k + shift for k in ks) for ks in table["strokes"]]
+        return table
 
     def locate(self, x_mm, y_mm, radius_mm: float, before_s=None) -> TraceHits:
         """Which printed trace passes within ``radius_mm`` of each point (before

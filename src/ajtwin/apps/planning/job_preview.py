@@ -33,42 +33,54 @@ import numpy as np
 
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
+#: seconds of the job worked out at once (a block kept, the next made when asked)
+_BLOCK_S = 3600
+
 
 class JobPreview:
     """Per second of a job: printed length relative to ν_ref and the speed law's factors.
 
+    The seconds are worked out a block of an hour at a time, as :meth:`line` reaches them,
+    so a job looped over days (:class:`ajtwin.job.LoopedJob`) costs no more than an hour's.
+
     Parameters
     ----------
-    job : ajtwin.job.Job
+    job : ajtwin.job.Job or ajtwin.job.LoopedJob
         The job as the machine prints it (looped to the print's length).
     horizon_s : int
         The MPC's horizon H [s]: :meth:`line` returns H rows.
     speed_law : LineSpeedLaw, optional
         The twin's speed law (default ``data/line_speed.toml``).
-
-    Attributes
-    ----------
-    length : ndarray (T,)
-        ℓ_k for the seconds k = 0 … T − 1 of the job (and H seconds after its end, 0).
-    factors : ndarray (T, 2)
-        f_w, f_o of the line printed in each second (1 where nothing is).
     """
 
     def __init__(self, job, horizon_s: int, speed_law: LineSpeedLaw | None = None):
         self.horizon_s = int(horizon_s)
         if self.horizon_s < 1:
             raise ValueError(f"horizon_s = {horizon_s!r} must be ≥ 1")
-        law = speed_law or load_line_speed_law()
-        n = int(math.ceil(job.duration_s - 1e-9)) + self.horizon_s
-        table = job.per_second(duration_s=n)
-        length = np.nan_to_num(table["printed_length_mm"].to_numpy(dtype=float))
-        speed = table["printing_speed_mm_s"].to_numpy(dtype=float)
-        printing = length > 0
-        nu = np.where(printing & np.isfinite(speed), speed, law.reference_speed_mm_s)
-        f_w, f_o = line_speed_factors(nu, law)
-        self.length = length / law.reference_speed_mm_s
-        self.factors = np.stack([np.asarray(f_w), np.asarray(f_o)], axis=1)
-        self.factors[~printing] = 1.0
+        self.job = job
+        self.law = speed_law or load_line_speed_law()
+        #: seconds of the job (those after print nothing)
+        self.n_seconds = int(math.ceil(job.duration_s - 1e-9))
+        self._blocks: dict[int, np.ndarray] = {}
+
+    def _block(self, b: int) -> np.ndarray:
+        """(_BLOCK_S, 3): ℓ, f_w, f_o of the seconds b·_BLOCK_S … (kept: this block and the
+        one before)."""
+        if b not in self._blocks:
+            law = self.law
+            start = b * _BLOCK_S
+            table = self.job.per_second(duration_s=_BLOCK_S, start_s=float(start))
+            length = np.nan_to_num(table["printed_length_mm"].to_numpy(dtype=float))
+            length[max(self.n_seconds - start, 0) :] = 0.0
+            speed = table["printing_speed_mm_s"].to_numpy(dtype=float)
+            printing = length > 0
+            nu = np.where(printing & np.isfinite(speed), speed, law.reference_speed_mm_s)
+            f_w, f_o = line_speed_factors(nu, law)
+            block = np.stack([length / law.reference_speed_mm_s, f_w, f_o], axis=1)
+            block[~printing, 1:] = 1.0
+            self._blocks = {k: v for k, v in self._blocks.items() if k == b - 1}
+            self._blocks[b] = block
+        return self._blocks[b]
 
     def line(self, time_s: float) -> np.ndarray:
         """(H, 3): ℓ, f_w, f_o of the seconds time_s, time_s + 1, … (the MPC's ``line``).
@@ -78,10 +90,12 @@ class JobPreview:
         k0 = int(round(float(time_s)))
         out = np.zeros((self.horizon_s, 3))
         out[:, 1:] = 1.0
-        lo, hi = max(k0, 0), min(k0 + self.horizon_s, self.length.size)
-        if hi > lo:
-            out[lo - k0 : hi - k0, 0] = self.length[lo:hi]
-            out[lo - k0 : hi - k0, 1:] = self.factors[lo:hi]
+        k = max(k0, 0)
+        while k < min(k0 + self.horizon_s, self.n_seconds):
+            b, within = divmod(k, _BLOCK_S)
+            take = min(_BLOCK_S - within, k0 + self.horizon_s - k, self.n_seconds - k)
+            out[k - k0 : k - k0 + take] = self._block(b)[within : within + take]
+            k += take
         return out
 
 

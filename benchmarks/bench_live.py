@@ -30,7 +30,7 @@ def step_latency(pace_s: float = 0.02) -> dict:
     """Samples fed every ``pace_s`` (×50 real time): arrival → first published state
     (provisional while EM runs) and → committed state."""
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
+    from ajtwin.estimation.samples import Sample
     from ajtwin.simulation import simulate
 
     rec = simulate("exp1", seed=3, duration_min=20)
@@ -82,7 +82,7 @@ def step_latency(pace_s: float = 0.02) -> dict:
 
 def fleet_cost() -> dict:
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
+    from ajtwin.estimation.samples import Sample
     from ajtwin.estimation import Twin
     from ajtwin.estimation.em import run_em
     from ajtwin.simulation import simulate

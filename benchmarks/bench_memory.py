@@ -55,7 +55,7 @@ LIVE_CHILD = """
 import sys
 import pyarrow.parquet as pq
 from ajtwin.engine.fleet import LiveEngine
-from ajtwin.engine.samples import Sample
+from ajtwin.estimation.samples import Sample
 from ajtwin.io.schema import INPUT_COLUMNS, OUTPUT_COLUMNS, TIME_COLUMN
 from ajtwin.store.registry import Registry
 per_call, commit_every_s = int(sys.argv[3]), float(sys.argv[4])

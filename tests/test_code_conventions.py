@@ -40,7 +40,6 @@ SESSION_FILES = {
     "src/ajtwin/engine/fleet.py",
     "src/ajtwin/engine/ingest.py",
     "src/ajtwin/engine/parts.py",
-    "src/ajtwin/engine/samples.py",
     "src/ajtwin/live/control_link.py",
     "src/ajtwin/live/link.py",
     "src/ajtwin/live/printer_server.py",

@@ -217,18 +217,18 @@ def test_the_delayed_camera_is_used_at_its_print_time(step_job):
     times = np.concatenate([c.time_s for c in rows])
     late = times - printed_at
     assert np.nanmedian(late) > 1.5  # the camera sees the line late
-    history = controller.stream.history
+    committed = controller.stream.arrays()
     # every committed step holds the frames printed in its second (here one each)
-    filed = np.asarray(history.measurements)[:, 0]
+    filed = committed["measurements"][:, 0]
     step_of = np.floor(printed_at + 0.5)
-    for k, t in enumerate(history.time_s):
+    for k, t in enumerate(committed["time_s"]):
         frames = measured[(step_of == t) & np.isfinite(measured)]
         if frames.size == 1:
             assert filed[k] == pytest.approx(frames[0], rel=1e-12)
         elif frames.size == 0:
             assert np.isnan(filed[k])
     # committed steps lag the newest row by the horizon; the MPC plans from the newest
-    assert history.time_s[-1] == pytest.approx(times[-1] - context.horizon_s)
+    assert committed["time_s"][-1] == pytest.approx(times[-1] - context.horizon_s)
     mean, _ = controller.state_now()
     assert controller.stream.provisional[0] == times[-1]
     np.testing.assert_array_equal(mean, controller.stream.provisional[1])

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from ajtwin.apps.detection.batch import detect_run
-from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.engine.messages import StepMessage
 from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin
+from ajtwin.estimation.samples import Sample, clean_sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 
@@ -62,10 +63,10 @@ def test_stream_equals_batch(clog_record, asynchronous):
     assert events == [e.to_dict() for e in detection.events]
     assert any(e["cause"] == "nozzle_clog" for e in events)
     # every committed step published once, in order
-    steps = [m["step"] for m in messages if "step" in m and not m["provisional"]]
+    steps = [m.step for m in messages if isinstance(m, StepMessage) and not m.provisional]
     assert steps == list(range(len(rec)))
     if asynchronous:
-        raised = [e for m in messages for e in m.get("events", []) if e["state"] == "raised"]
+        raised = [e for m in messages if isinstance(m, StepMessage) for e in m.raised()]
         assert raised and raised[0]["detected_s"] == detection.events[0].detected_s
 
 
@@ -122,7 +123,7 @@ def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchro
         stream.feed(Sample(t, uk, yk))
     stream.finish()
     arrays = stream.arrays()
-    assert np.array_equal(np.asarray(stream.history.model_inputs)[:, 3], r)
+    assert np.array_equal(stream.model_inputs()[:, 3], r)
     assert _relative(arrays["means"], run.means) < 1e-9
     assert _relative(arrays["covariances"], np.asarray(run.filtered.covariances)) < 1e-9
     assert _relative(arrays["theta_per_step"] + 1e-30, run.theta_per_step + 1e-30) < 1e-9
@@ -193,7 +194,7 @@ def test_engine_many_machines_batched_equals_single(clog_record, transition):
         length = len(arrays["means"])
         assert length == len(rec) - (n == "c")
         assert _relative(arrays["means"], single.arrays()["means"][:length]) < 1e-9
-    assert {m["machine"] for m in got} == set(names)
+    assert {m.machine for m in got} == set(names)
     engine.shutdown()
 
 
@@ -221,8 +222,8 @@ def test_a_machines_several_samples_in_one_feed_many_step_one_after_another(clog
 
 
 def test_the_steps_a_live_stream_keeps_own_their_numbers(clog_record):
-    """No kept step holds a view of the device buffer it came from (each held ~1.7 kB of
-    buffer for 40-200 bytes of numbers: ~17 kB a step over the hours a stream keeps)."""
+    """No kept step holds a view of the buffer it came from (a device buffer held ~1.7 kB
+    for 40-200 bytes of numbers: ~17 kB a step over the hours a stream keeps)."""
     from ajtwin.engine.fleet import LiveEngine
 
     rec = clog_record.window(0, 120)
@@ -233,12 +234,11 @@ def test_the_steps_a_live_stream_keeps_own_their_numbers(clog_record):
     single = TwinStream.new("s", twin_overrides=FAST_EM, asynchronous=False)
     _feed_all(single, rec)  # the single step
     for stream in (engine.sessions["a"].stream, single):
-        history = stream.history
-        for name in ("means", "covariances", "predicted_means", "predicted_outputs",
-                     "innovation_variances"):  # fmt: skip
-            kept = getattr(history, name).kept()
-            assert len(kept) == len(rec)
-            assert all(np.asarray(x).base is None for x in kept), name
+        blocks = list(stream._blocks)
+        assert sum(len(b) for b in blocks) == len(rec)
+        for block in blocks:
+            for name, x in zip(block.filtered._fields, block.filtered):
+                assert np.asarray(x).base is None, name
     engine.shutdown()
 
 
@@ -266,7 +266,7 @@ def test_kill_and_resume_from_registry(clog_record, tmp_path):
     logged = log.states(sid)  # what the killed process committed
     engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
     published = []
-    engine.subscribe(published.append)
+    engine.subscribe(lambda m: published.append(m.to_dict()))
     stream = engine.open("m1")
     assert stream.n_committed == committed
     for k in range(100, len(rec)):  # a re-read from before the kill: old samples dropped
@@ -315,7 +315,7 @@ def test_follow_growing_csv(clog_record, tmp_path, caplog):
     registry = Registry(tmp_path / "r.sqlite")
     engine = LiveEngine(registry, asynchronous=False, commit_every_s=0)
     published = []
-    engine.subscribe(published.append)
+    engine.subscribe(lambda m: published.append(m.to_dict()))
 
     async def main():
         async def grow():
@@ -374,7 +374,7 @@ def test_machine_show_during_a_live_print_shows_the_live_twin_and_its_alarm(clog
     registry.add_machine("m1")
     engine = LiveEngine(registry, twin_overrides=FAST_EM, asynchronous=False, commit_every_s=0)
     published = []
-    engine.subscribe(published.append)
+    engine.subscribe(lambda m: published.append(m.to_dict()))
     try:
         for k in range(300):  # the clog starts at 180 s; the print goes on
             engine.feed("m1", Sample(clog_record.time_s[k], clog_record.inputs[k],

@@ -25,8 +25,10 @@ import pytest
 pytest.importorskip("asyncua")
 
 from ajtwin.engine.fleet import LiveEngine  # noqa: E402
-from ajtwin.engine.samples import Sample  # noqa: E402
+from ajtwin.engine.messages import StepMessage
 from ajtwin.engine.stream import TwinStream  # noqa: E402
+from ajtwin.estimation.online import OnlineTwin  # noqa: E402
+from ajtwin.estimation.samples import Sample  # noqa: E402
 from ajtwin.live.link import (  # noqa: E402
     OpcUaLink,
     RowQueue,
@@ -263,21 +265,22 @@ def test_samples_held_while_em_ran_are_committed_a_slice_per_poll_in_order():
     rows = list(zip(record.time_s, record.inputs, record.outputs, strict=True))
     stream = TwinStream.new("m", twin_overrides={"window_s": 60, "every_s": 30})
     messages, k = [], 0
-    while stream._em_future is None:  # up to the first EM, launched in a worker
+    core = stream.core
+    while core._em_future is None:  # up to the first EM, launched in a worker
         messages += stream.feed(Sample(*rows[k]))
         k += 1
     for row in rows[k : k + 300]:  # a burst while EM runs: held, provisional
         messages += stream.feed(Sample(*row))
     k += 300
-    if stream._em_future is not None:
-        stream._em_future.result()
+    if core._em_future is not None:
+        core._em_future.result()
     before = stream.n_committed
     messages += stream.poll()
-    assert stream.n_committed - before <= TwinStream.REPLAY_STEPS
-    while stream._replay or stream._em_future is not None:
+    assert 0 < stream.n_committed - before <= OnlineTwin.REPLAY_STEPS
+    while core._held or core._em_future is not None:
         messages += stream.poll(wait=True)
     for row in rows[k:]:
         messages += stream.feed(Sample(*row))
     messages += stream.finish()
-    steps = [m["step"] for m in messages if "step" in m and not m["provisional"]]
+    steps = [m.step for m in messages if isinstance(m, StepMessage) and not m.provisional]
     assert steps == list(range(len(rows)))

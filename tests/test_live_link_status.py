@@ -13,6 +13,7 @@ import pytest
 asyncua = pytest.importorskip("asyncua")
 
 from ajtwin.engine.fleet import LiveEngine  # noqa: E402
+from ajtwin.engine.messages import LinkMessage, LinkState  # noqa: E402
 from ajtwin.live.link import OpcUaLink  # noqa: E402
 from ajtwin.web.pages import fleet_rows  # noqa: E402
 from ajtwin.web.publisher import LivePublisher  # noqa: E402
@@ -39,7 +40,7 @@ def test_unreachable_server_is_published_as_reconnecting_with_attempts():
     engine = LiveEngine(twin_overrides=NO_STEPS)
     publisher = LivePublisher()
     messages: list[dict] = []
-    engine.subscribe(messages.append)
+    engine.subscribe(lambda m: messages.append(m.to_dict()))
     engine.subscribe(publisher.publish_engine)
     link = OpcUaLink(url, ["m1", "m2"], engine, max_backoff_s=1.5, timeout_s=2.0)
 
@@ -47,7 +48,7 @@ def test_unreachable_server_is_published_as_reconnecting_with_attempts():
         stop = asyncio.Event()
         task = asyncio.create_task(link.run(stop))
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and link.link.get("attempt", 0) < 3:
+        while time.monotonic() < deadline and (link.link.attempt if link.link else 0) < 3:
             await asyncio.sleep(0.05)
         stop.set()
         await asyncio.wait_for(task, 15)
@@ -71,7 +72,7 @@ def test_unreachable_server_is_published_as_reconnecting_with_attempts():
     # the dashboard's side: the publisher keeps the last state and renders it
     shown = publisher.link("m1")
     assert shown["state"] == "ended" and shown["text"] == "link closed (prints finished)"
-    publisher.publish_engine({"machine": "m1", "link": lost[2]})
+    publisher.publish_engine(LinkMessage("m1", LinkState(**lost[2])))
     text = publisher.link("m1")["text"]
     since = time.strftime("%H:%M:%S UTC", time.gmtime(lost[2]["since"]))
     assert text.startswith(f"link lost since {since} — reconnecting (attempt 3")
@@ -93,7 +94,7 @@ def test_server_gone_and_back_reconnected_with_gap_and_health_linkstatus():
     machine = VirtualMachine("m1", "exp1", seed=1, speed=1.0, duration_min=2)
     engine = LiveEngine(twin_overrides=NO_STEPS)
     messages: list[dict] = []
-    engine.subscribe(messages.append)
+    engine.subscribe(lambda m: messages.append(m.to_dict()))
     link = OpcUaLink(url, ["m1"], engine, max_backoff_s=0.3, timeout_s=2.0)
 
     async def wait_for(predicate, timeout_s, what):
@@ -122,7 +123,9 @@ def test_server_gone_and_back_reconnected_with_gap_and_health_linkstatus():
             t_gone = time.time()
             server_stop.set()
             await asyncio.wait_for(server, 30)
-            await wait_for(lambda: link.link.get("attempt", 0) >= 2, 30, "two failed attempts")
+            await wait_for(
+                lambda: (link.link.attempt if link.link else 0) >= 2, 30, "two failed attempts"
+            )
             server_stop, server = await serve()
             await wait_for(lambda: states().count("connected") >= 2, 30, "the reconnection")
             async with Client(url, timeout=4) as client:

@@ -296,7 +296,7 @@ def test_live_engine_stores_and_carries_the_history(tmp_path, two_prints):
     """`ajtwin live`: a closed live print stores its detectors' statistics; the machine's
     next live print starts its detectors with them."""
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
+    from ajtwin.estimation.samples import Sample
 
     first, second = two_prints
     reg = Registry(tmp_path / "r.sqlite")

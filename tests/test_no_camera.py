@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.engine.messages import StepMessage
 from ajtwin.estimation import Twin
 from ajtwin.io.records import PrintRecord, write_record
 from ajtwin.model.parameters import load_noise
@@ -190,8 +191,8 @@ def test_camera_less_aerosol_band_holds_the_truth(truth_generator):
 
 def test_live_stream_reports_the_same_camera_less_bands_as_the_batch_twin(clog_print):
     """One math path: the live twin's published σ and stored arrays carry the same floor."""
-    from ajtwin.engine.samples import Sample
     from ajtwin.engine.stream import TwinStream
+    from ajtwin.estimation.samples import Sample
 
     record = _blind(clog_print.window(0, 180), LINE_COLUMNS)
     run = Twin.default(em=False).run(record)
@@ -202,7 +203,7 @@ def test_live_stream_reports_the_same_camera_less_bands_as_the_batch_twin(clog_p
     messages += stream.finish()
     stds = stream.arrays()["stds"]
     np.testing.assert_allclose(stds, run.stds, rtol=1e-9)
-    published = [m for m in messages if "step" in m and not m["provisional"]]
+    published = [m.to_dict() for m in messages if isinstance(m, StepMessage) and not m.provisional]
     phi = np.array([m["stds"]["aerosol_fraction"] for m in published])
     np.testing.assert_allclose(phi, run.stds[:, PHI], rtol=1e-9)
     assert np.all(stds[:, PHI] >= 0.49 * stream.arrays()["means"][:, PHI])

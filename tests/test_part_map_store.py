@@ -185,9 +185,9 @@ def test_the_live_twin_maps_the_final_part_as_the_batch_filter_does_and_stores_t
     batch), evaluated by the twin's own line evaluation; the finished print is stored with
     its job and the speed-law factors of its filed steps."""
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
     from ajtwin.estimation import Twin
     from ajtwin.estimation.print_time import print_context
+    from ajtwin.estimation.samples import Sample
 
     job_print = run_job_print(PROGRAM, "exp1", 2, duration_min=3.0)
     record = job_print.record

@@ -336,9 +336,9 @@ def test_operator_note_column_is_kept(tmp_path, table):
 def test_logger_outage_is_predicted_through_as_the_live_twin_does(tmp_path):
     """10 minutes of rows missing from a clean print: the inputs are held and the outputs
     missing, and the batch twin gives the live twin's states, sample for sample."""
-    from ajtwin.engine.samples import Sample
     from ajtwin.engine.stream import TwinStream
     from ajtwin.estimation import Twin
+    from ajtwin.estimation.samples import Sample
 
     full = simulate("exp1", seed=1, duration_min=14.0)
     table = full.data.iloc[:, COLUMNS9]

@@ -10,7 +10,7 @@ import pytest
 
 from ajtwin.engine.fleet import LiveEngine
 from ajtwin.engine.ingest import detector_inputs
-from ajtwin.engine.samples import Sample
+from ajtwin.estimation.samples import Sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 from ajtwin.store import registry as R

@@ -17,15 +17,17 @@ import pytest
 
 from ajtwin._jax import jax, jnp
 from ajtwin.apps.detection.batch import detect_run
-from ajtwin.engine.samples import Sample
+from ajtwin.engine.messages import StepMessage
 from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin
 from ajtwin.estimation.filters import ekf_init, ekf_step
+from ajtwin.estimation.online import OnlineTwin
 from ajtwin.estimation.print_time import (
     PrintTimeBins,
     is_job_record,
     print_context,
 )
+from ajtwin.estimation.samples import Sample
 from ajtwin.io.records import (
     INPUT_COLUMNS,
     OUTPUT_COLUMNS,
@@ -296,17 +298,17 @@ def test_a_steps_transition_input_is_computed_once_while_it_stays_provisional(
     last final step each time (quadratic in the print's length: 45,000 walks for 300 s)."""
     record = job_prints["inspection"]
     calls = [0]
-    original = TwinStream.model_input
+    original = OnlineTwin._model_inputs
 
-    def counting(self, *args, **kwargs):
-        calls[0] += 1
-        return original(self, *args, **kwargs)
+    def counting(self, inputs, *args, **kwargs):
+        calls[0] += len(inputs)
+        return original(self, inputs, *args, **kwargs)
 
-    monkeypatch.setattr(TwinStream, "model_input", counting)
+    monkeypatch.setattr(OnlineTwin, "_model_inputs", counting)
     stream = TwinStream.new(
         "m", twin_overrides=FAST_EM, print_context=print_context(record, None, None)
     )
-    assert stream._dynamics is not None  # the default transition follows the inputs
+    assert stream.core._dynamics is not None  # the default transition follows the inputs
     for sample in _rows(record):
         stream.feed(sample)
     assert stream.n_committed == 0 and stream.provisional is not None
@@ -351,10 +353,10 @@ def test_stream_equals_batch_on_a_job_print_with_delays(job_prints, mode, horizo
     assert np.array_equal(arrays["measurements"], run.measurements, equal_nan=True)
     assert stream.camera_counts == counts
     assert [e.to_dict() for e in stream.detector.events] == [e.to_dict() for e in detection.events]
-    committed = [m for m in messages if "step" in m and not m["provisional"]]
-    assert [m["step"] for m in committed] == list(range(len(record)))
+    committed = [m for m in messages if isinstance(m, StepMessage) and not m.provisional]
+    assert [m.step for m in committed] == list(range(len(record)))
     # the newest row is published at once (provisional), its step committed H rows later
-    now = {m["step"] for m in messages if m.get("provisional")}
+    now = {m.step for m in messages if isinstance(m, StepMessage) and m.provisional}
     assert now >= set(range(len(record)))
     if mode == "trailing":
         assert stream.n_pending == 0

@@ -12,8 +12,9 @@ from click.testing import CliRunner
 
 from ajtwin.cli import main
 from ajtwin.engine.fleet import LiveEngine
-from ajtwin.engine.samples import Sample
+from ajtwin.engine.messages import StepMessage
 from ajtwin.estimation.print_time import camera_horizon_s, print_context, program_for_record
+from ajtwin.estimation.samples import Sample
 from ajtwin.io.records import write_record
 from ajtwin.job import read_program
 from ajtwin.simulation.job_print import CameraSettings, run_job_print
@@ -136,9 +137,10 @@ def test_the_live_engine_runs_a_job_print_with_its_context(job_print_file):
         row = (record.time_s[k], record.inputs[k], record.outputs[k])
         job_columns = (record.shutter_open[k], record.platen_speed[k], record.printed_at[k])
         messages += engine.feed_many([("aj-1", Sample(*row, *job_columns)), ("aj-2", Sample(*row))])
-    committed = {m["machine"]: m["step"] for m in messages if "step" in m and not m["provisional"]}
+    steps = [m for m in messages if isinstance(m, StepMessage)]
+    committed = {m.machine: m.step for m in steps if not m.provisional}
     assert committed == {"aj-1": 119 - 40, "aj-2": 119}  # final 40 s later
-    now = [m for m in messages if m["machine"] == "aj-1" and m["provisional"]]
+    now = [m.to_dict() for m in steps if m.machine == "aj-1" and m.provisional]
     assert now[-1]["step"] == 119
     engine.shutdown()
 

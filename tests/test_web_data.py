@@ -376,27 +376,32 @@ def click_usage_error():
 
 
 def test_engine_messages_become_samples():
-    """The live engine's message format (dicts by name, raised events) → dashboard samples."""
+    """The live engine's step message (values by name, raised events) → dashboard samples."""
+    import dataclasses
+
+    from ajtwin.engine.messages import StepMessage
     from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
     from ajtwin.web.publisher import sample_from_engine
 
     states = dict(zip(STATE_NAMES, [3.5, 0.99, 1e-4, 0.05, 4.6e-7]))
-    message = {
-        "machine": "aj1", "step": 200, "time_s": 200.0, "provisional": False,
-        "states": states, "stds": dict(zip(STATE_NAMES, [0.03, 0.003, 1e-3, 6e-4, 1e-8])),
-        "predicted_outputs": dict(zip(OUTPUT_NAMES, [75.0, 8.0, 5800.0, 5750.0, 1.5e-8])),
-        "measured_outputs": dict(zip(OUTPUT_NAMES, [76.0, 8.1, 5810.0, float("nan"), 1.4e-8])),
-        "inputs": dict(zip(INPUT_NAMES, [375.0, 23.0, 50.0])), "nis": 4.2,
-        "theta": dict(zip(STATE_NAMES, [0.0] * 5)), "window_nis_p": 1e-12,
-        "cusum": {"L_w": 1.0, "L_o": 0.5, "P_c": 17.0, "P_s": 12.0, "Q_m": 3.0, "P_c+P_s": 20.0},
-        "status": "alarm",
-        "events": [
+    message = StepMessage(
+        machine="aj1", step=200, time_s=200.0, provisional=False,
+        states=states, stds=dict(zip(STATE_NAMES, [0.03, 0.003, 1e-3, 6e-4, 1e-8])),
+        covariance=np.diag([0.03, 0.003, 1e-3, 6e-4, 1e-8]) ** 2,
+        predicted_outputs=dict(zip(OUTPUT_NAMES, [75.0, 8.0, 5800.0, 5750.0, 1.5e-8])),
+        measured_outputs=dict(zip(OUTPUT_NAMES, [76.0, 8.1, 5810.0, float("nan"), 1.4e-8])),
+        inputs=dict(zip(INPUT_NAMES, [375.0, 23.0, 50.0])), nis=4.2, n_measured=4,
+        reinitialised=False, theta=dict(zip(STATE_NAMES, [0.0] * 5)), em_running=False,
+        nis_p=1e-3, window_nis_p=1e-12,
+        cusum={"L_w": 1.0, "L_o": 0.5, "P_c": 17.0, "P_s": 12.0, "Q_m": 3.0, "P_c+P_s": 20.0},
+        status="alarm", cause="nozzle_clog",
+        events=(
             {"state": "raised", "detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
              "description": "nozzle clog", "detectors": ["cusum+ P_c", "cusum+ P_c+P_s"]},
             {"state": "final", "detected_s": 90.0, "onset_s": 80.0, "cause": "unexplained",
              "description": "old", "detectors": []},
-        ],
-    }  # fmt: skip
+        ),
+    )  # fmt: skip
     s = sample_from_engine(message)
     assert s["states"] == [3.5, 0.99, 1e-4, 0.05, 4.6e-7] and s["state_stds"][3] == 6e-4
     assert s["predicted"][2] == 5800.0 and s["inputs"] == [375.0, 23.0, 50.0]
@@ -409,7 +414,7 @@ def test_engine_messages_become_samples():
         {"detected_s": 200.0, "onset_s": 181.0, "cause": "nozzle_clog",
          "description": "nozzle clog", "detectors": "cusum+ P_c, cusum+ P_c+P_s"}
     ]  # fmt: skip
-    assert sample_from_engine({**message, "provisional": True}) is None
+    assert sample_from_engine(dataclasses.replace(message, provisional=True)) is None
     pub = LivePublisher()
     pub.publish_engine(message)
     assert pub.latest("aj1")["measured"][3] is None  # NaN → None for JSON
@@ -424,6 +429,7 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
 
     from websockets.sync.client import connect
 
+    from ajtwin.engine.messages import LinkMessage, LinkState
     from ajtwin.web.server import BackgroundServer
 
     pub = LivePublisher()
@@ -434,8 +440,8 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
     try:
         with connect(server.url.replace("http", "ws") + "ws?machine=alpha", open_timeout=10) as ws:
             assert json.loads(ws.recv(timeout=10))["type"] == "hello"
-            pub.publish_engine({"machine": "beta", "link": {**lost, "attempt": 1}})  # filtered
-            pub.publish_engine({"machine": "alpha", "link": lost})
+            pub.publish_engine(LinkMessage("beta", LinkState(**{**lost, "attempt": 1})))
+            pub.publish_engine(LinkMessage("alpha", LinkState(**lost)))  # the one followed
             event = json.loads(ws.recv(timeout=10))
         assert event["type"] == "link" and event["machine"] == "alpha"
         assert event["link"]["attempt"] == 3 and event["link"]["since"] == 3600.0
@@ -452,8 +458,8 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
         assert text in alpha
         gamma = next(r for r in rows.split("<tr") if 'data-machine="gamma"' in r)
         assert 'class="link' not in gamma  # no live link for gamma
-        pub.publish_engine({"machine": "alpha", "link": {**lost, "state": "connected",
-                                                         "attempt": 0, "gap_s": 12.4}})  # fmt: skip
+        up = LinkState(**{**lost, "state": "connected", "attempt": 0, "gap_s": 12.4})
+        pub.publish_engine(LinkMessage("alpha", up))
         with urllib.request.urlopen(server.url + "fragment/fleet-rows", timeout=10) as r:
             rows = r.read().decode()
         alpha = next(r for r in rows.split("<tr") if 'data-machine="alpha"' in r)

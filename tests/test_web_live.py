@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from ajtwin.engine.fleet import LiveEngine
-from ajtwin.engine.samples import Sample
+from ajtwin.estimation.samples import Sample
 from ajtwin.model import STATE_NAMES
 from ajtwin.simulation import simulate
 from ajtwin.web.publisher import LivePublisher
@@ -30,7 +30,7 @@ def test_engine_messages_reach_the_publisher(clog_record):
     engine = LiveEngine(None, asynchronous=False)
     publisher = LivePublisher()
     messages = []
-    engine.subscribe(messages.append)
+    engine.subscribe(lambda m: messages.append(m.to_dict()))
     engine.subscribe(publisher.publish_engine)
     for t, u, y in zip(clog_record.time_s, clog_record.inputs, clog_record.outputs):
         engine.feed("aj1", Sample(t, u, y))
@@ -85,7 +85,7 @@ def test_live_demo_serves_the_dashboard_and_keeps_it_open(clog_record, tmp_path,
 
     import ajtwin.cli.demo as demo_cli
     import ajtwin.studies.live_demo as live_demo
-    from ajtwin.engine.samples import Sample
+    from ajtwin.estimation.samples import Sample
 
     def print_without_opcua(out, url, seed, engine, echo):
         for k in range(20):

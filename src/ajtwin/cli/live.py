@@ -116,7 +116,9 @@ def live(
     out = None
     if messages is not None:
         out = messages.open("a", encoding="utf-8")
-        engine.subscribe(lambda m: out.write(json.dumps(m, default=str) + "\n") or out.flush())
+        engine.subscribe(
+            lambda m: out.write(json.dumps(m.to_dict(), default=str) + "\n") or out.flush()
+        )
     dashboard = None
     if dashboard_port is not None:
         # the dashboard in a thread of this process; every engine message is pushed to it

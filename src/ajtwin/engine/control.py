@@ -44,10 +44,10 @@ from ajtwin.apps.planning.strategies import (
     linewidth_variance,
     start_inputs,
 )
-from ajtwin.engine.samples import Sample
 from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import print_time
 from ajtwin.estimation.print_time import PrintContext
+from ajtwin.estimation.samples import Sample
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.stepper import SteppedPrinter
 
@@ -119,13 +119,15 @@ class MPCTwin(MPCStrategy):
         """(mean, cov) the MPC plans from: the committed step's, or on a job print the
         provisional state of the newest row (the steps after the last final one re-run with
         what the camera has filed so far); None before the twin has a state."""
-        h = self.stream.history
+        core = self.stream.core
         provisional = self.stream.provisional
-        if provisional is not None and (not len(h) or provisional[0] > h.time_s[-1]):
+        if provisional is not None and (
+            core.n_committed == 0 or provisional[0] > core.last_time_committed
+        ):
             return provisional[1], provisional[2]
-        if not len(h):
+        if core.n_committed == 0:
             return None
-        return np.asarray(h.means[-1]), np.asarray(h.covariances[-1])
+        return core.last_mean, core.last_cov
 
     def ink_supply(self):
         """The ink supply now (:func:`ajtwin.apps.planning.mpc.ink_supply_status`)."""
@@ -141,16 +143,17 @@ class MPCTwin(MPCStrategy):
         """Reasons not to act now (empty: act). ``mean``: the state the MPC plans from
         (default the committed one); before the first final step of a job print only its
         physical range can be checked (the detectors see steps H s after they are printed)."""
-        h = self.stream.history
-        if not len(h):
+        core = self.stream.core
+        if core.n_committed == 0:
             if mean is None:
                 return ["the twin has not started (initial fit pending)"]
             return self.state_limits.violations(np.asarray(mean))
-        mean = np.asarray(h.means[-1]) if mean is None else np.asarray(mean)
+        mean = core.last_mean if mean is None else np.asarray(mean)
+        window = self.settings.nis_window_s
         reasons = mismatch_reasons(
             mean,
-            h.nis[-self.settings.nis_window_s :],
-            h.n_measured[-self.settings.nis_window_s :],
+            core.recent("nis", window),
+            core.recent("n_measured", window),
             limits=self.state_limits,
             settings=self.settings,
             status=getattr(self.stream, "mismatch_status", None),

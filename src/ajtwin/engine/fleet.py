@@ -7,19 +7,12 @@ as an ordinary registry print.
 
 Publish/subscribe
 -----------------
-Each committed (and provisional) step becomes a plain dict (:meth:`TwinStream.feed`
-returns them; :class:`LiveEngine` hands them to subscribers): ``machine``, ``step``,
-``time_s``, ``provisional``, ``states`` {name: value}, ``stds``, ``predicted_outputs``,
-``measured_outputs``, ``inputs``, ``nis``, ``n_measured``, ``nis_p``, ``window_nis_p``,
-``cusum`` {channel: max(g⁺, g⁻)}, ``status`` ("ok" / "alarm" / "warming up" …),
-``cause``, ``alarms`` (detector labels fired at this step), ``events`` (raised/finalised
-events as dicts with ``state`` "raised"/"final"), ``theta``.
-
-A machine link also publishes its connection state on the same path
-(:meth:`LiveEngine.publish_link`): ``{"machine", "link": {"state", "url", "since",
-"attempt", "retry_in_s", "reason", "gap_s"}}`` — no ``step``; ``state`` is
-``connecting``, ``connected``, ``reconnecting`` (the server is gone since ``since``,
-Unix time; ``attempt`` reconnections tried), ``refused`` or ``ended``.
+Every committed (and provisional) step is a :class:`~ajtwin.engine.messages.StepMessage`
+(:meth:`TwinStream.feed` returns them; :class:`LiveEngine` hands them to subscribers), the
+end of a print a :class:`~ajtwin.engine.messages.FinishedMessage`; a machine link's
+connection state comes on the same path as a :class:`~ajtwin.engine.messages.LinkMessage`
+(:meth:`LiveEngine.publish_link`). ``to_dict()`` gives each as JSON
+(docs/reference/live-messages.md).
 """
 
 from __future__ import annotations
@@ -36,10 +29,11 @@ import numpy as np
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.engine.chain import chain_start
 from ajtwin.engine.ingest import save_print
+from ajtwin.engine.messages import FinishedMessage, LinkMessage, LinkState, StepMessage
 from ajtwin.engine.parts import WHOLE_PRINT_ARRAYS, PrintWriter
-from ajtwin.engine.samples import Sample
 from ajtwin.engine.start import carried_long_run_history, machine_start
-from ajtwin.engine.stream import TwinStream, step_together, warm_up_streams
+from ajtwin.engine.stream import TwinStream, step_streams_together, warm_up_streams
+from ajtwin.estimation.samples import Sample
 from ajtwin.store.live_log import LiveLog
 
 log = logging.getLogger("ajtwin.live")
@@ -161,9 +155,9 @@ class LiveEngine:
         self.subscribe(put)
         return q
 
-    def publish_link(self, machines, link: dict) -> None:
+    def publish_link(self, machines, link: LinkState) -> None:
         """Tell subscribers the state of the link that feeds ``machines`` (module docstring)."""
-        self._publish([{"machine": name, "link": dict(link)} for name in machines])
+        self._publish([LinkMessage(name, link) for name in machines])
 
     def _publish(self, messages: list[dict]) -> None:
         for message in messages:
@@ -301,7 +295,7 @@ class LiveEngine:
                     messages += stream.feed(sample)
                 else:
                     plain.append((stream, taken))
-            messages += step_together(plain)
+            messages += step_streams_together(plain)
         messages += self.poll()
         self._record(messages)
         self._publish(messages)
@@ -322,20 +316,18 @@ class LiveEngine:
         return messages
 
     # ------------------------------------------------------------------ #
-    def _record(self, messages: list[dict]) -> None:
+    def _record(self, messages: list) -> None:
         if self.log is None:
             return
         now = time.monotonic()
         for m in messages:
-            session = self.sessions.get(m.get("machine"))
-            if session is None or m.get("provisional") or "step" not in m:
+            session = self.sessions.get(m.machine)
+            if session is None or not isinstance(m, StepMessage) or m.provisional:
                 continue
-            u = np.array(list(m["inputs"].values()), dtype=float)
-            y = np.array(list(m["measured_outputs"].values()), dtype=float)
-            session.unsaved.append((m["step"], m["time_s"], u, y, m))
-            session.unsaved_events += m.get("events", [])
+            session.unsaved.append((m.step, m.time_s, m.input_values, m.output_values, m.to_dict()))
+            session.unsaved_events += list(m.events)
             if session.writer is not None:
-                for event in m.get("events", []):
+                for event in m.events:
                     session.writer.note_alarm(event["detected_s"], event["onset_s"])
         for session in self.sessions.values():
             if session.unsaved and now - session.last_flush >= self.commit_every_s:
@@ -376,7 +368,7 @@ class LiveEngine:
         status, reason = writer.judgement(stream.start_mean)
         theta_history = {
             k: v
-            for k, v in stream.arrays(since=len(stream.history)).items()
+            for k, v in stream.arrays(since=stream.n_committed).items()
             if k in WHOLE_PRINT_ARRAYS
         }
         print_id, _ = save_print(
@@ -404,13 +396,14 @@ class LiveEngine:
         )
         return print_id
 
-    def _record_into(self, session: _Session, messages: list[dict]) -> None:
+    def _record_into(self, session: _Session, messages: list) -> None:
         for m in messages:
-            if "step" in m and not m.get("provisional"):
-                u = np.array(list(m["inputs"].values()), dtype=float)
-                y = np.array(list(m["measured_outputs"].values()), dtype=float)
-                session.unsaved.append((m["step"], m["time_s"], u, y, m))
-            session.unsaved_events += m.get("events", [])
+            if isinstance(m, StepMessage) and not m.provisional:
+                session.unsaved.append(
+                    (m.step, m.time_s, m.input_values, m.output_values, m.to_dict())
+                )
+            if isinstance(m, StepMessage | FinishedMessage):
+                session.unsaved_events += list(m.events)
 
     def shutdown(self) -> None:
         """Write what is committed and stop the EM workers (sessions stay open: resumable)."""

@@ -29,6 +29,7 @@ from collections import deque
 import numpy as np
 import pandas as pd
 
+from ajtwin.engine.messages import StepMessage
 from ajtwin.engine.part_map import (
     FLAG_PROBABILITY,
     PORTION_MM,
@@ -273,50 +274,28 @@ class LivePartMap:
         return alarm_payload(place_alarms(self.job, events), self.layout)
 
 
-def reported_covariance(covariance, prior_floor=None) -> np.ndarray:
-    """P_k as the twin reports it: its diagonal raised to the floor of states no data has
-    seen yet (:func:`ajtwin.estimation.twin.never_seen_variance_floor`; None: none)."""
-    cov = np.array(covariance, dtype=float)
-    if prior_floor is not None:
-        diagonal = np.einsum("ii->i", cov)
-        np.maximum(diagonal, np.asarray(prior_floor, dtype=float), out=diagonal)
-    return cov
-
-
 def follow_engine(engine, machine: str, part: LivePartMap, publish) -> callable:
     """Feed ``part`` from a live engine's committed steps of ``machine``; each chunk goes to
     ``publish(machine, chunk)``. Returns the function that stops it.
 
     Only committed steps are used (on a job print: final ones, H seconds after they were
-    printed; provisional messages are skipped). The step's covariance is read from the
-    machine's stream (the message carries σ only): the P_k the twin stores, with the floor
-    of never-seen states as the engine reports σ. The stream is kept once seen, so the
-    steps a finishing print commits last still reach the map.
+    printed; provisional messages are skipped), each with the covariance the twin reports
+    (:attr:`~ajtwin.engine.messages.StepMessage.covariance`). The line model is the
+    machine's own twin's (its calibration), taken from its stream at the first step.
     """
-    streams = {}
 
     def on_message(message):
-        if message.get("machine") != machine or message.get("provisional"):
+        if not isinstance(message, StepMessage) or message.machine != machine:
             return
-        if "step" not in message:
+        if message.provisional:
             return
-        if "stream" not in streams or engine.stream(machine) not in (None, streams["stream"]):
-            streams["stream"] = engine.stream(machine)
-        if streams["stream"] is None:
-            return
-        if part.line_model is None:  # the machine's own twin (its calibration)
-            part.line_model = streams["stream"].twin.line_model
-        history = streams["stream"].history
-        k = int(message["step"])
-        if k >= len(history):
-            return
-        chunk = part.step(
-            float(history.time_s[k]),
-            history.means[k],
-            reported_covariance(history.covariances[k], history.prior_floor[k]),
-            history.inputs[k],
-        )
-        alarms = [ev for ev in message.get("events", ()) if ev.get("state") == "raised"]
+        if part.line_model is None:
+            stream = engine.stream(machine)
+            if stream is None:
+                return
+            part.line_model = stream.twin.line_model
+        chunk = part.step(message.time_s, message.mean, message.covariance, message.input_values)
+        alarms = message.raised()
         if alarms:
             chunk = dict(chunk or {})
             chunk["alarms"] = part.alarms(alarms)

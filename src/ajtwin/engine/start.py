@@ -17,7 +17,6 @@ from ajtwin.engine.chain import carry_over, chain_start
 from ajtwin.engine.commissioning import aerosol_level, calibration_twin_kwargs
 from ajtwin.estimation.commission import load_commissioning_settings
 from ajtwin.estimation.twin import Twin
-from ajtwin.model.droplet_dynamics import next_response
 from ajtwin.store.calibration import active_calibration, pending_maintenance
 from ajtwin.store.registry import RegistryError
 
@@ -181,10 +180,7 @@ def input_response_at_end(twin, reg, last):
     None when the twin's droplet row does not follow the inputs (equilibrium), or the
     print kept no inputs.
     """
-    if not twin.droplet_dynamics.follows_inputs:
-        return None
     inputs = reg.print_arrays(last["id"]).get("inputs")
     if inputs is None or not np.isfinite(inputs).all():
         return None
-    response = float(twin.model_inputs(inputs)[-1, 3])
-    return next_response(response, inputs[-1], twin.droplet_dynamics)
+    return twin.response_after(inputs)

@@ -442,10 +442,9 @@ def ekf_step(
     return carry, to_display_units(spec, out)
 
 
-def ekf(
+def ekf_continue(
     spec: ModelSpec,
-    prior_mean,
-    prior_cov,
+    carry: EKFCarry,
     inputs,
     measurements,
     thetas,
@@ -454,16 +453,24 @@ def ekf(
     gate: float = jnp.inf,
     functions: ModelFunctions = AJ_EULER,
     line_factors=None,
-) -> FilterResult:
-    """Run the EKF over a print: ``lax.scan`` of :func:`ekf_step_in_loop`.
+    n_steps=None,
+) -> tuple[EKFCarry, FilterResult]:
+    """The EKF over T steps from ``carry``: ``lax.scan`` of :func:`ekf_step_in_loop`.
+
+    What :func:`ekf` runs from a prior, and what the twin's core
+    (:mod:`ajtwin.estimation.online`) runs on each block of a print as it comes: the carry
+    returned continues the filter exactly where it stopped (its divergence-guard pair
+    included), so a print filtered in blocks is the print filtered whole.
+
+    Only the first ``n_steps`` of the T rows are steps (None: all): the rest pad the
+    arrays to a length already compiled, and the carry returned is the one after step
+    ``n_steps − 1`` (the padding's results are to be dropped).
 
     Parameters
     ----------
     spec : ModelSpec
-    prior_mean : array (5,)
-        x̂ at k = 0 before the first measurement, display units.
-    prior_cov : array (5, 5)
-        Its covariance, display units.
+    carry : EKFCarry
+        From :func:`ekf_init` or the previous block.
     inputs : array (T, 3)
         u_k [mA, sccm, sccm]; u_k drives the step k → k+1.
     measurements : array (T, 5)
@@ -480,27 +487,75 @@ def ekf(
         The model (default: the AJ model, Euler steps).
     line_factors : array (T, 4), optional
         A job print's per-step (F_w, F_o, v_w, v_o) (:func:`ekf_step`); None: no job.
+    n_steps : int, optional
+        The real steps among the T rows (a traced value: one compiled program for every
+        count).
+
+    Returns
+    -------
+    (EKFCarry, FilterResult)
+        The carry after the last real step and the T steps' results (display units).
+    """
+    inputs = jnp.asarray(inputs, dtype=float)
+    measurements = jnp.asarray(measurements, dtype=float)
+    n_rows = inputs.shape[0]
+    n_theta = jnp.asarray(thetas).shape[-1]
+    thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_rows, n_theta))
+    constants = step_constants(spec, process_cov, measurement_cov, gate)
+    real = jnp.arange(n_rows) < (n_rows if n_steps is None else n_steps)
+
+    def body(carry, inp):
+        u, eta, theta, line, is_step = inp
+        new, out = ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions, line)
+        # a padding row leaves the carry as the last real step left it
+        kept = jax.tree_util.tree_map(lambda a, b: jnp.where(is_step, a, b), new, carry)
+        return kept, out
+
+    eta = measurements / spec.scaling.output
+    lines = None if line_factors is None else jnp.asarray(line_factors, dtype=float)
+    carry, out = jax.lax.scan(body, carry, (inputs, eta, thetas, lines, real))
+    return carry, FilterResult(*to_display_units(spec, out))
+
+
+ekf_continue = exported_jit(
+    ekf_continue, static_argnames=("functions",), constant_fields=(("spec", "params"),)
+)
+
+
+def ekf(
+    spec: ModelSpec,
+    prior_mean,
+    prior_cov,
+    inputs,
+    measurements,
+    thetas,
+    process_cov,
+    measurement_cov,
+    gate: float = jnp.inf,
+    functions: ModelFunctions = AJ_EULER,
+    line_factors=None,
+) -> FilterResult:
+    """Run the EKF over a print from a prior: :func:`ekf_continue` from :func:`ekf_init`.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    prior_mean : array (5,)
+        x̂ at k = 0 before the first measurement, display units.
+    prior_cov : array (5, 5)
+        Its covariance, display units.
+    inputs, measurements, thetas, process_cov, measurement_cov, gate, functions, line_factors
+        As for :func:`ekf_continue`.
 
     Returns
     -------
     FilterResult
     """
-    inputs = jnp.asarray(inputs, dtype=float)
-    measurements = jnp.asarray(measurements, dtype=float)
-    n_steps = inputs.shape[0]
-    n_theta = jnp.asarray(thetas).shape[-1]
-    thetas = jnp.broadcast_to(jnp.asarray(thetas, dtype=float), (n_steps, n_theta))
-    constants = step_constants(spec, process_cov, measurement_cov, gate)
-
-    def body(carry, inp):
-        u, eta, theta, line = inp
-        return ekf_step_in_loop(spec, carry, u, eta, theta, constants, functions, line)
-
     carry = ekf_init(spec, prior_mean, prior_cov)
-    eta = measurements / spec.scaling.output
-    lines = None if line_factors is None else jnp.asarray(line_factors, dtype=float)
-    _, out = jax.lax.scan(body, carry, (inputs, eta, thetas, lines))
-    return FilterResult(*to_display_units(spec, out))
+    return ekf_continue.__wrapped__(
+        spec, carry, inputs, measurements, thetas, process_cov, measurement_cov, gate,
+        functions, line_factors,
+    )[1]  # fmt: skip
 
 
 ekf = exported_jit(ekf, static_argnames=("functions",), constant_fields=(("spec", "params"),))

@@ -11,7 +11,7 @@ produce and what the filter needs:
   :data:`MAX_SCALE_RATIO` of the model's value at the record's inputs. A unit slip is a
   factor 60–1000 (Q_m in µL/s is ×1000 and passes any fixed range that admits every
   real printer); a real machine's spread, deposits included, stays well inside ×30.
-* :func:`observed_states` — per second, which states some measured output responds to
+* :func:`output_responds` — which states each output responds to (what a measured output sees)
   (the output Jacobian, scaled by the state's physical range from
   :class:`~ajtwin.model.limits.StateLimits` and the output's noise σ). A
   machine without a camera logs no L_w/L_o/Q_m: d_a and φ_A are then seen by nothing and
@@ -164,24 +164,17 @@ def _output_jacobian(x, u, params, coefficients):
 _output_jacobian = jax.jit(_output_jacobian)
 
 
-def observed_states(
-    params, coefficients, mean, state_range, inputs, measurements, measurement_std, u_med=None
-) -> np.ndarray:
-    """Which states a measured output responds to, per second: bool (T, 5).
+def output_responds(params, coefficients, mean, state_range, u, measurement_std) -> np.ndarray:
+    """Which state each output responds to: bool (5 outputs, 5 states).
 
-    ``seen[k, i]`` is true when some output j measured at second k has
-    |∂g_j/∂x_i| Δx_i ≥ :data:`SEEN_SENSITIVITY` σ_y,j, with Δx_i the state's physical
-    range (``state_range``, upper − lower of StateLimits), at the start state ``mean`` and
-    the median inputs (the output map is smooth over a print, so one Jacobian tells the
-    structure). ``u_med``: the print's median inputs (3,), given when ``inputs`` are a
-    piece of it.
+    Output j responds to state i when |∂g_j/∂x_i| Δx_i ≥ :data:`SEEN_SENSITIVITY` σ_y,j,
+    with Δx_i the state's physical range (``state_range``, upper − lower of StateLimits), at
+    the state ``mean`` and inputs ``u`` (3,) (the output map is smooth over a print, so one
+    Jacobian tells the structure). A state is *seen* at a second when some output measured
+    then responds to it.
     """
-    if u_med is None:
-        u_med = np.median(np.asarray(inputs, dtype=float), axis=0)
     jac = np.asarray(
-        _output_jacobian(jnp.asarray(mean, float), jnp.asarray(u_med), params, coefficients)
+        _output_jacobian(jnp.asarray(mean, float), jnp.asarray(u, float), params, coefficients)
     )
     sensitivity = np.abs(jac) * np.asarray(state_range, float)[None, :]
-    responds = sensitivity >= SEEN_SENSITIVITY * np.asarray(measurement_std, float)[:, None]
-    measured = np.isfinite(np.asarray(measurements, dtype=float))
-    return (measured[:, :, None] & responds[None, :, :]).any(axis=1)
+    return sensitivity >= SEEN_SENSITIVITY * np.asarray(measurement_std, float)[:, None]

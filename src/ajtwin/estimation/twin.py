@@ -18,17 +18,16 @@ Examples
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 
-from ajtwin._jax import jax, jnp
+from ajtwin._jax import jnp
 from ajtwin.estimation.calibration_uncertainty import (
     aerosol_level_covariance,
     calibration_state_covariance,
 )
-from ajtwin.estimation.em import run_em
 from ajtwin.estimation.em_calibration import output_m_step
 from ajtwin.estimation.filters import (
     DEFAULT_SCALING,
@@ -41,13 +40,17 @@ from ajtwin.estimation.filters import (
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, fit_initial_state
-from ajtwin.estimation.part_line import LineEstimate, line_at, line_model
-from ajtwin.estimation.print_time import (
-    FiledPrint,
-    file_record,
-    is_job_record,
-    print_context,
+from ajtwin.estimation.online import (  # noqa: F401 — the schedule and predict, re-exported
+    OnlineTwin,
+    StepBlock,
+    em_due,
+    em_early_steps,
+    first_em_update_time,
+    next_em_boundary,
+    predict,
 )
+from ajtwin.estimation.part_line import LineEstimate, line_at, line_model
+from ajtwin.estimation.print_time import is_job_record, print_context
 from ajtwin.estimation.record_checks import (
     SCALE_CHECKED_OUTPUTS,
     check_input_rows,
@@ -56,7 +59,7 @@ from ajtwin.estimation.record_checks import (
     check_output_scales,
     check_print_length,
     finite_median,
-    observed_states,
+    output_responds,
 )
 from ajtwin.estimation.vial import load_vial_settings, observe_vial
 from ajtwin.io import spool
@@ -392,33 +395,6 @@ class TwinRun:
         return frame
 
 
-def never_seen_variance_floor(initial, seen, means) -> np.ndarray | None:
-    """Variance floor (T, 5) of the states the initial fit took from their priors
-    (``initial.states_from_prior``: a machine without a camera), up to the first second
-    an output sees them (``seen``):
-
-        floor_k,i = (σ₀,ᵢ / |x̂₀,ᵢ| · |x̂_k,i|)²   while state i has not been seen by step k,
-
-    i.e. such a state keeps the prior's *relative* width. Without it the reported band
-    is the model's: φ_A relaxes to the generation model's steady state within seconds,
-    which contracts its variance to the process noise's (≈ 2.6 % against the prior's
-    50 %), and on the virtual printer the truth's generation wander then lies outside
-    ±2σ a third of the time. The offset of a real atomizer's generation from the model
-    is what no pressure can see (docs/validation.md, "A machine without a camera").
-    Returns None when every state was fitted from data.
-    """
-    if initial is None or not initial.states_from_prior or seen is None:
-        return None
-    means = np.asarray(means, dtype=float)
-    floor = np.zeros_like(means)
-    not_yet = ~np.logical_or.accumulate(np.asarray(seen, dtype=bool), axis=0)
-    for name in initial.states_from_prior:
-        i = STATE_NAMES.index(name)
-        relative = np.sqrt(initial.covariance[i, i]) / abs(initial.mean[i])
-        floor[:, i] = np.where(not_yet[:, i], (relative * means[:, i]) ** 2, 0.0)
-    return floor
-
-
 def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFunctions:
     """The model the estimators run: discretisation ``method`` and a ``transition`` variant.
 
@@ -435,240 +411,9 @@ def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFun
     return ModelFunctions(DropletStep(dynamics, method), functions.output)
 
 
-def predict(spec, mean, cov, u, theta, process_cov, functions: ModelFunctions = None):
-    """One EKF prediction x̂_{k+1|k}, P_{k+1|k} in display units."""
-    step = (functions or model_functions("euler")).step
-    s = spec.scaling.state
-
-    def f_scaled(z):
-        return step(z * s, u, theta, spec.params, spec.dt) / s
-
-    z = mean / s
-    jac = jax.jacfwd(f_scaled)(z)
-    p = jac @ (cov / jnp.outer(s, s)) @ jac.T
-    return f_scaled(z) * s, p * jnp.outer(s, s) + process_cov
-
-
-predict = jax.jit(predict, static_argnames=("functions",))
-
-
-def em_early_steps(config: TwinConfig) -> tuple:
-    """The early EM steps of ``config`` (:attr:`TwinConfig.early_em_s`), sorted; those at or
-    beyond ``window_s`` are dropped (the full-window schedule runs from there)."""
-    early = tuple(sorted({int(t) for t in config.early_em_s}))
-    if any(t < 2 for t in early):
-        raise ValueError(f"early_em_s {config.early_em_s}: an EM window needs >= 2 steps")
-    return tuple(t for t in early if t < int(config.window_s))
-
-
-def next_em_boundary(pos: int, every: int, early: tuple) -> int:
-    """The chunk boundary after step ``pos``: the next multiple of ``every`` or early step."""
-    following = (pos // every + 1) * every
-    return min([t for t in early if t > pos] + [following])
-
-
-def em_due(pos: int, every: int, window: int, early: tuple) -> bool:
-    """EM runs at chunk boundary ``pos``: every ``every`` steps once a window is full, and at
-    the early steps (over the print so far). One rule for the batch twin and the live engine."""
-    return (pos >= window and pos % every == 0) or pos in early
-
-
-def em_schedule(n: int, every: int, window: int, early: tuple):
-    """The run's chunks over ``n`` steps: (first step, end, whether EM updates θ at the end),
-    boundaries at multiples of ``every`` and the ``early`` steps (:meth:`Twin.run`'s
-    chunking; an update needs a full ``window`` or an early step, and a step after it)."""
-    pos = 0
-    while pos < n:
-        end = min(next_em_boundary(pos, every, early), n)
-        yield pos, end, em_due(end, every, window, early) and end < n
-        pos = end
-
-
-def first_em_update_time(config: TwinConfig, time_s) -> float | None:
-    """When :meth:`Twin.run` will make its first EM update over a print of times ``time_s``
-    (the time of the last step before that boundary; None: EM off or never due), known
-    before the run from the run's own schedule (:func:`em_schedule`)."""
-    n = len(time_s)
-    if not config.em or n == 0:
-        return None
-    every, window = int(config.every_s), int(config.window_s)
-    if every < 1 or window < 2:
-        return None  # the run refuses such a config itself
-    for _, end, update in em_schedule(n, every, window, em_early_steps(config)):
-        if update:
-            return float(time_s[end - 1])
-    return None
-
-
-# NumPy, not jnp: a jnp concatenate/slice of each new length is one more compiled function
-def _concat(results: list[FilterResult]) -> FilterResult:
-    return FilterResult(*[np.concatenate(parts, axis=0) for parts in zip(*results)])
-
-
-def _slice(result: FilterResult, stop: int) -> FilterResult:
-    return FilterResult(*[np.asarray(part)[:stop] for part in result])
-
-
-def _keep_from(pieces: list, starts: list, step: int) -> None:
-    """Drop the filter chunks that end before ``step`` (an EM window starts there at the
-    earliest); the chunk that holds it stays."""
-    while len(starts) > 1 and starts[1] <= step:
-        pieces.pop(0)
-        starts.pop(0)
-
-
-def _pad(array: np.ndarray, length: int, fill) -> np.ndarray:
-    if len(array) == length:
-        return array
-    pad = np.repeat(
-        array[-1:] if fill is None else np.full_like(array[-1:], fill), length - len(array), axis=0
-    )
-    return np.concatenate([array, pad], axis=0)
-
-
-#: Steps a run over a record held on disk reads at a time (:class:`SpooledSteps`).
+#: rows a run over a record held on disk reads at a time (:meth:`Twin.run_streamed`), and a
+#: run over a record in memory feeds the core at a time (its progress steps)
 STREAM_READ_ROWS = 4096
-
-
-@dataclass
-class StepRows:
-    """Rows [first, first + m) of a print as the filter, EM and a run's chunks read them."""
-
-    time_s: np.ndarray  # (m,)
-    inputs: np.ndarray  # (m, 3) u_k
-    measurements: np.ndarray  # (m, 5) what the filter uses (a job print's: filed)
-    model_inputs: np.ndarray  # (m, 3 or 4) as the transition reads them
-    line: np.ndarray | None  # (m, 4) a job print's line factors
-    seen: np.ndarray  # (m, 5) bool (record_checks.observed_states)
-    n_camera: np.ndarray | None  # (m, 2) a job print's camera frames per step
-
-
-class HeldSteps:
-    """A print's steps held whole in memory: :class:`StepRows` are slices of its arrays."""
-
-    def __init__(self, time_s, inputs, measurements, model_inputs, line, seen, n_camera=None):
-        self.arrays = (time_s, inputs, measurements, model_inputs, line, seen, n_camera)
-        self.n = len(time_s)
-
-    def rows(self, first: int, stop: int) -> StepRows:
-        """Steps [first, stop)."""
-        return StepRows(*(None if a is None else a[first:stop] for a in self.arrays))
-
-    def time(self, k: int) -> float:
-        """The time [s] of step ``k``."""
-        return float(self.arrays[0][k])
-
-
-class SpooledSteps:
-    """A print's steps read from a record held on disk (:class:`~ajtwin.io.records.
-    SpooledRecord`) as the run reaches them; only the last ``keep`` steps before the
-    furthest asked for stay (what EM's trailing window reads again).
-
-    The model inputs' input response is carried from piece to piece
-    (:func:`~ajtwin.model.droplet_dynamics.next_response`); what each step's outputs see
-    comes from the print's median inputs (``u_med``, :func:`observed_states`) once the start
-    state is known (``start_mean``). A job print's rows go through one delay line
-    (``bins``: :class:`~ajtwin.estimation.print_time.PrintTimeBins`, as
-    :func:`~ajtwin.estimation.print_time.file_record` feeds it) and its steps are the filed
-    ones: one per row, final ``horizon_s`` rows later.
-    """
-
-    def __init__(self, twin, source, u_med, keep: int, bins=None, read_rows: int | None = None):
-        self.twin, self.source, self.u_med, self.bins = twin, source, u_med, bins
-        self.start_mean = None  # set once the start is known: what the steps see needs it
-        self.n, self.keep = len(source), int(keep)
-        self.read_rows = int(read_rows or STREAM_READ_ROWS)
-        self._follows = twin.config.transition != "paper" and twin.droplet_dynamics.follows_inputs
-        self.first = 0  # the step the held rows start at
-        self.held: StepRows | None = None
-        self._response = None  # the input response at the next step to read
-        self._rows_read = 0
-        self._filed: list = []  # a job print's steps filed but not yet held
-
-    def _read(self, first: int, stop: int) -> StepRows:
-        """Steps [first, stop) (``first``: the first not held yet)."""
-        twin = self.twin
-        if self.bins is None:
-            piece = self.source.piece(first, stop)
-            time_s, inputs, measurements = piece.time_s, piece.inputs, piece.outputs
-            line = n_camera = None
-        else:
-            time_s, inputs, measurements, line, n_camera = self._file(stop - first)
-        inputs = check_input(inputs)  # its rows named in the run's check before any work
-        model_inputs = twin.model_inputs(inputs, self._response)
-        if self._follows:
-            self._response = next_response(
-                float(model_inputs[-1, -1]), inputs[-1], twin.droplet_dynamics, twin.spec.dt
-            )
-        measurements = np.asarray(measurements, dtype=float)
-        return self._seen(
-            StepRows(time_s, inputs, measurements, model_inputs, line, None, n_camera)
-        )
-
-    def _seen(self, rows: StepRows | None) -> StepRows | None:
-        """``rows`` with what their outputs see, once the start state is known (rows read
-        before it, for the initial fit, get it when first asked for after)."""
-        if rows is not None and rows.seen is None and self.start_mean is not None:
-            rows.seen = self.twin.observed_states(
-                self.start_mean, rows.inputs, rows.measurements, self.u_med
-            )
-        return rows
-
-    def _file(self, count: int):
-        """The next ``count`` filed steps of a job print: rows fed to the delay line until
-        it has given them (all that are left at the print's end)."""
-        while len(self._filed) < count and self._rows_read < self.n:
-            stop = min(self._rows_read + self.read_rows, self.n)
-            piece = self.source.piece(self._rows_read, stop)
-            for row in zip(piece.time_s, piece.inputs, piece.outputs, piece.shutter_open,
-                           piece.platen_speed, piece.printed_at):  # fmt: skip
-                self._filed += self.bins.add(*row)
-            self._rows_read = stop
-            if stop == self.n:
-                self._filed += self.bins.finish()
-        steps, self._filed = self._filed[:count], self._filed[count:]
-        return (
-            np.array([s.time_s for s in steps], dtype=float),
-            np.array([s.inputs for s in steps]).reshape(-1, 3),
-            np.array([s.outputs for s in steps]).reshape(-1, 5),
-            np.array([s.line for s in steps]).reshape(-1, 4),
-            np.array([s.n_camera for s in steps]).reshape(-1, 2),
-        )
-
-    def rows(self, first: int, stop: int) -> StepRows:
-        """Steps [first, stop): ``first`` no earlier than ``keep`` steps before the furthest
-        step asked for so far."""
-        held_to = self.first + (0 if self.held is None else len(self.held.time_s))
-        self._seen(self.held)
-        if stop > held_to:
-            new = self._read(held_to, min(max(stop, held_to + self.read_rows), self.n))
-            self.held = new if self.held is None else _join_rows(self.held, new)
-        if first < self.first:
-            raise ValueError(f"step {first} was let go (held from {self.first})")
-        out = StepRows(
-            *(None if a is None else a[first - self.first : stop - self.first]
-              for a in _fields(self.held))
-        )  # fmt: skip
-        drop = max(stop - self.keep - self.first, 0)
-        if drop:
-            self.held = StepRows(*(None if a is None else a[drop:].copy()
-                                   for a in _fields(self.held)))  # fmt: skip
-            self.first += drop
-        return out
-
-    def time(self, k: int) -> float:
-        """The time [s] of step ``k``."""
-        return self.source.time_at(k)
-
-
-def _fields(rows: StepRows) -> tuple:
-    return tuple(getattr(rows, f.name) for f in fields(StepRows))
-
-
-def _join_rows(a: StepRows, b: StepRows) -> StepRows:
-    return StepRows(
-        *(None if x is None else np.concatenate([x, y]) for x, y in zip(_fields(a), _fields(b)))
-    )
 
 
 class Twin:
@@ -753,10 +498,28 @@ class Twin:
     def model_inputs(self, inputs, response0: float | None = None) -> np.ndarray:
         """Inputs (T, 3) as the transition reads them: with the input-response column
         (T, 4) for an ``input_following`` variant, unchanged otherwise."""
-        if self.config.transition == "paper":
-            return np.asarray(inputs, dtype=float)
+        return self.model_inputs_from(inputs, response0)[0]
 
-        return augment_inputs(inputs, self.droplet_dynamics, response0, self.spec.dt)
+    def model_inputs_from(self, inputs, response0: float | None = None, pad_to=None):
+        """(inputs (T, 3 or 4) as the transition reads them, the input response r after the
+        last row; None when the variant does not follow the inputs), from the response
+        ``response0`` before the first row (default: the first row's equilibrium).
+
+        ``pad_to``: compute over the rows padded to that length (a length already compiled;
+        r is causal, so the padding changes nothing of the rows).
+        """
+        inputs = np.asarray(inputs, dtype=float)
+        dynamics = self.droplet_dynamics if self.config.transition != "paper" else None
+        if dynamics is None or not dynamics.follows_inputs:
+            return inputs, None
+        m = len(inputs)
+        padded = inputs
+        if pad_to is not None and pad_to > m:
+            padded = np.concatenate([inputs, np.repeat(inputs[-1:], pad_to - m, axis=0)])
+        augmented = augment_inputs(padded, dynamics, response0, self.spec.dt)[:m]
+        return augmented, next_response(
+            float(augmented[-1, -1]), inputs[-1], dynamics, self.spec.dt
+        )
 
     @property
     def line_model(self):
@@ -792,8 +555,9 @@ class Twin:
             return self._learned_var
         return self.measurement_std**2
 
-    def _output_em(self, smoothed, inputs, measurements) -> dict:
-        """Line offsets and output noise by EM over a window (pressures never)."""
+    def learn_outputs(self, smoothed, inputs, measurements) -> dict:
+        """Line offsets and output noise by EM over a window (pressures never), in force from
+        now on (``config.learn_line_offsets`` / ``learn_output_noise``); what was learned."""
 
         c = self.config
         commissioned = self.commissioned_calibration or Calibration.identity()
@@ -862,24 +626,45 @@ class Twin:
             line_factors=line_factors,
         )
 
-    def _predict(self, mean, cov, u, theta):
-        m, p = predict(self.spec, mean, cov, u, theta, self.process_cov, self.functions)
-        return np.asarray(m), np.asarray(p)
-
-    def _filter(self, mean, cov, inputs, measurements, thetas, line=None):
-        return ekf(
-            self.spec,
+    def output_responds(self, mean, u) -> np.ndarray:
+        """(5 outputs, 5 states) bool: which state each output responds to, at the state
+        ``mean`` and inputs ``u`` (:func:`~ajtwin.estimation.record_checks.output_responds`)."""
+        return output_responds(
+            self.model.params,
+            self.spec.coefficients,
             mean,
-            cov,
-            inputs,
-            measurements,
-            thetas,
-            self.process_cov,
-            self.measurement_var,
-            self.config.gate_sigma,
-            functions=self.functions,
-            line_factors=line,
+            self.limits.upper - self.limits.lower,
+            u,
+            self.config.measurement_std,
         )
+
+    def calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
+        """The states' covariance from the calibration's uncertainty and φ_A's unknown level
+        (None: neither given). ``line``: a job print's per-step line factors; ``carry``: a
+        dict kept from block to block of a run (what the vial drained before it,
+        :func:`calibration_state_covariance` and :func:`aerosol_level_covariance`)."""
+        out = None
+        if self.calibration is not None and self.calibration_cov is not None:
+            out = calibration_state_covariance(
+                self.spec,
+                filtered,
+                model_inputs,
+                self.measurement_var,
+                self.calibration_cov,
+                self.functions,
+                line_factors=line,
+                carry=carry,
+            )
+        if self.config.aerosol_level_std > 0:
+            level = aerosol_level_covariance(
+                filtered.means,
+                model_inputs,
+                self.config.aerosol_level_std,
+                self.spec.dt,
+                carry=carry,
+            )
+            out = level if out is None else out + level
+        return None if out is None else np.asarray(out)
 
     # ------------------------------------------------------------------ #
     def run(
@@ -896,7 +681,8 @@ class Twin:
         line_factors=None,
         sink=None,
     ) -> TwinRun:
-        """Estimate the states over a print (and learn θ if ``config.em``).
+        """Estimate the states over a print (and learn θ if ``config.em``): the print fed to
+        the twin's core (:class:`~ajtwin.estimation.online.OnlineTwin`).
 
         Parameters
         ----------
@@ -910,90 +696,84 @@ class Twin:
         smooth : bool
             Also run the RTS smoother over the whole print.
         progress : callable(int), optional
-            Called with the number of steps done (for a progress bar).
+            Called with the number of rows fed so far (for a progress bar).
         job : ajtwin.job.Job, optional
             The program of a job record, as printed (:func:`~ajtwin.estimation.print_time.
             program_for_record`): speeds at print times come from it, not the record's rows.
         line_factors : array (T, 4), optional
             With ``inputs``/``measurements`` already filed: each step's (F_w, F_o, v_w, v_o).
         sink : callable(first_step, TwinRun), optional
-            Takes the run a chunk at a time as the filter finishes it (a TwinRun of those
+            Takes the run a block at a time as the core commits it (a TwinRun of those
             steps: the filter's results, θ, the calibration's share, the prior floor, what
             was seen, the print's start prior), so that nothing keeps the whole print's
             results: the run returned then has the print's start, end, θ history, initial
-            fit, vial observer and ``seen``, ``filtered`` holds only the last chunks,
-            ``theta_per_step`` is None (each chunk had its own) and so is ``vial``
-            (:meth:`observe_vial` runs it when wanted). Not with ``smooth``.
+            fit and ``seen``, ``filtered`` holds only the last ``window_s`` steps' blocks,
+            ``theta_per_step`` is
+            None and so is ``vial`` (:meth:`observe_vial` runs it when wanted). Not with
+            ``smooth``.
         """
         if sink is not None and smooth:
             raise ValueError("a run taken in chunks (sink) cannot be smoothed: RTS needs it whole")
         inputs, measurements, time_s = self._checked_arrays(record, inputs, measurements, time_s)
-        filed = self._filed(record, job)
-        if filed is not None:
-            measurements, line_factors = filed.measurements, filed.line_factors
-        line = None if line_factors is None else np.asarray(line_factors, dtype=float)
+        context = self._print_context(record, job)
+        core = OnlineTwin(self, start, print_context=context)
+        taker = _Blocks(sink, keep_steps=int(self.config.window_s))
         n = len(inputs)
-        initial = None
-        if start is None:
-            initial = self.initial_state(inputs, measurements, line)
-            mean, cov = initial.mean, initial.covariance
-        else:
-            mean, cov = (np.asarray(a, dtype=float) for a in start)
-        start_mean, start_cov = mean.copy(), cov.copy()
-        seen = self.observed_states(start_mean, inputs, measurements)
-        # the transition variant's extra input column (input response), if it has one
-        model_inputs = self.model_inputs(inputs)
-        steps = HeldSteps(
-            time_s, inputs, measurements, model_inputs, line, seen,
-            None if filed is None else filed.n_camera,
-        )  # fmt: skip
-        emit = None
-        if sink is not None:
-            emit, _ = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
-        if not self.config.em:
-            thetas = np.tile(self.theta, (n, 1))
-            filtered = self._filter(mean, cov, model_inputs, measurements, self.theta, line)
-            theta, history = self.theta.copy(), []
-            if emit is not None:
-                emit(0, filtered, thetas)
-            if progress:
-                progress(n)
-        else:
-            filtered, theta, thetas, history = self._filter_with_em(
-                mean, cov, steps, progress, emit
+        line = None if line_factors is None else np.asarray(line_factors, dtype=float)
+        columns = None
+        if context is not None:
+            columns = (record.shutter_open, record.platen_speed, record.printed_at)
+        for first in range(0, n, STREAM_READ_ROWS):
+            stop = min(first + STREAM_READ_ROWS, n)
+            taker.take(
+                core,
+                core.feed(
+                    time_s[first:stop],
+                    inputs[first:stop],
+                    measurements[first:stop],
+                    None if columns is None else tuple(c[first:stop] for c in columns),
+                    line=None if line is None else line[first:stop],
+                ),
             )
+            if progress:
+                progress(stop)
+        taker.take(core, core.finish())
+        self.theta = core.theta.copy()
+        if sink is not None:
+            light = taker.light()  # what a run in memory gives besides the sink's blocks
+            return self._ended(core, taker.recent(), camera_counts=core.camera_counts, **light)
+        whole = taker.whole()
         smoothed = None
         if smooth:
-            consistent = self._filter(
-                start_mean, start_cov, model_inputs, measurements, thetas, line
-            )
+            consistent = ekf(
+                self.spec, core.start_mean, core.start_cov, whole.model_inputs,
+                whole.measurements, whole.theta_per_step, self.process_cov,
+                self.measurement_var, self.config.gate_sigma, functions=self.functions,
+                line_factors=whole.line,
+            )  # fmt: skip
             smoothed = rts_smoother(self.spec, consistent)
-        self.theta = theta
-        return _ended_run(
-            filtered,
-            history,
-            initial,
-            (start_mean, start_cov),
-            time_s=time_s,
+        return self._ended(
+            core,
+            whole.filtered,
+            time_s=whole.time_s,
             smoothed=smoothed,
-            theta_per_step=thetas,
-            calibration_covariances=None
-            if sink
-            else self._calibration_covariances(filtered, model_inputs, line),
-            seen=seen,
-            prior_floor=None if sink else never_seen_variance_floor(initial, seen, filtered.means),
-            # a run taken in chunks leaves it to the caller (observe_vial): it holds (T, 4, 4)
-            vial=None if sink else self._observe_vial(inputs, measurements, start_mean, start_cov),
-            measurements=measurements,
-            inputs=inputs,
-            line_factors=line,
-            n_camera=None if filed is None else filed.n_camera,
-            camera_counts={} if filed is None else dict(filed.counts),
-            line_model=self.line_model,
+            theta_per_step=whole.theta_per_step,
+            calibration_covariances=whole.calibration_covariances,
+            seen=whole.seen,
+            prior_floor=whole.prior_floor if whole.prior_floor.any() else None,
+            vial=self._observe_vial(
+                whole.inputs, whole.measurements, core.start_mean, core.start_cov
+            ),
+            measurements=whole.measurements,
+            inputs=whole.inputs,
+            line_factors=whole.line,
+            n_camera=whole.n_camera,
+            camera_counts=core.camera_counts,
         )
 
-    def _filed(self, record, job) -> FiledPrint | None:
-        """A job record's rows filed at their print times (None: not a job print)."""
+    def _print_context(self, record, job):
+        """A job record's print context (None: not a job print); a program given for a
+        record without job columns is refused."""
         if record is None or not is_job_record(record):
             if job is not None:
                 raise ValueError(
@@ -1001,8 +781,7 @@ class Twin:
                     "platen_speed_mm_s, printed_at_s): it is not a job print"
                 )
             return None
-        context = print_context(record, job, self.config.camera_horizon_s)
-        return file_record(record, context, self.speed_law)
+        return print_context(record, job, self.config.camera_horizon_s)
 
     def _checked_arrays(self, record, inputs, measurements, time_s):
         """Inputs (T, 3), measurements (T, 5) and times (T,) of a print, checked against the
@@ -1029,195 +808,14 @@ class Twin:
         time_s = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
         return inputs, measurements, time_s
 
-    def _filter_with_em(self, mean, cov, steps, progress, emit=None, learn: bool = True):
-        """The filter in chunks between EM boundaries; EM over the trailing window at each
-        boundary, its θ and re-filtered end state taking effect from there (the module's
-        chunking). ``steps``: the print's steps (:class:`HeldSteps` or :class:`SpooledSteps`).
-        ``emit(first_step, chunk, θ per step)`` takes each chunk as it is done, and only the
-        chunks EM still needs are kept. ``learn=False``: the same chunks, θ held (a run
-        without EM taken in chunks). Returns (filter result, θ at the end, θ per step (T, 5)
-        or None with ``emit``, EM history)."""
-        c = self.config
-        n = steps.n
-        every, window = int(c.every_s), int(c.window_s)
-        if every < 1 or window < 2:
-            raise ValueError("EM needs every_s >= 1 and window_s >= 2")
-        early = em_early_steps(c)
-        theta = self.theta.copy()
-        # θ per step of the whole print; with ``emit`` each chunk's goes with it instead
-        thetas = None if emit is not None else np.zeros((n, 5))
-        pieces, starts, history = [], [], []
-        for pos, end, update in em_schedule(n, every, window, early):
-            rows = steps.rows(pos, end)
-            seg = self._filter(
-                mean,
-                cov,
-                _pad(rows.model_inputs, every, None),
-                _pad(rows.measurements, every, np.nan),
-                theta,
-                None if rows.line is None else _pad(rows.line, every, None),
-            )
-            seg = _slice(seg, end - pos)
-            pieces.append(seg)
-            starts.append(pos)
-            if thetas is not None:
-                thetas[pos:end] = theta
-            if emit is not None:
-                emit(pos, seg, np.tile(theta, (end - pos, 1)))
-                _keep_from(pieces, starts, end - window)
-            last_mean = np.asarray(seg.means[-1])
-            last_cov = np.asarray(seg.covariances[-1])
-            if update and learn:
-                w0 = max(end - window, 0)
-                em, learned = self._em_over_window(pieces, starts, w0, steps.rows(w0, end), theta)
-                theta = em.theta
-                last_mean = np.asarray(em.filtered.means)[-1]
-                last_cov = np.asarray(em.filtered.covariances)[-1]
-                history.append(
-                    {
-                        "time_s": steps.time(end - 1),
-                        "window_start_s": steps.time(w0),
-                        "iterations": em.iterations,
-                        "converged": em.converged,
-                        "log_likelihood": em.log_likelihood,
-                        **{f"theta_{name}": float(v) for name, v in zip(STATE_NAMES, theta)},
-                        **learned,
-                    }
-                )
-            if end < n:
-                mean, cov = self._predict(last_mean, last_cov, rows.model_inputs[-1], theta)
-            if progress:
-                progress(end)
-        return _concat(pieces), theta, thetas, history
-
-    def _em_over_window(self, pieces, starts, w0, window: StepRows, theta):
-        """EM over the steps ``window`` (from step w0) from the filter's prediction of step
-        w0 (in the chunk that holds it); with ``learn_line_offsets``/``learn_output_noise``
-        also the output EM. Returns (EM result, the learned output parameters as a dict)."""
-        c = self.config
-        piece = int(np.searchsorted(starts, w0, side="right")) - 1
-        offset = w0 - starts[piece]
-        em = run_em(
-            self.spec,
-            pieces[piece].predicted_means[offset],
-            pieces[piece].predicted_covariances[offset],
-            window.model_inputs,
-            window.measurements,
-            theta,
-            self.process_cov,
-            self.measurement_var,
-            theta_prior_precision=self.theta_prior_precision,
-            max_iterations=c.em_max_iterations,
-            tolerance=c.em_tolerance,
-            gate=c.gate_sigma,
-            functions=self.functions,
-            line_factors=window.line,
-        )
-        learned = {}
-        if c.learn_line_offsets or c.learn_output_noise:
-            if window.line is not None:
-                raise ValueError(
-                    "learning line offsets or output noise online is not available on a job "
-                    "print (the line's speed factors are not in that M-step)"
-                )
-            learned = self._output_em(em.smoothed, window.model_inputs, window.measurements)
-        return em, learned
-
-    def _calibration_covariances(self, filtered, model_inputs, line=None, carry=None):
-        """The states' covariance from the calibration's uncertainty and φ_A's unknown level
-        (None: neither given). ``line``: a job print's per-step line factors; ``carry``: a
-        chunk of a run (what the vial drained before it, :func:`calibration_state_covariance`
-        and :func:`aerosol_level_covariance`)."""
-        out = None
-        if self.calibration is not None and self.calibration_cov is not None:
-            out = calibration_state_covariance(
-                self.spec,
-                filtered,
-                model_inputs,
-                self.measurement_var,
-                self.calibration_cov,
-                self.functions,
-                line_factors=line,
-                carry=carry,
-            )
-        if self.config.aerosol_level_std > 0:
-            level = aerosol_level_covariance(
-                filtered.means,
-                model_inputs,
-                self.config.aerosol_level_std,
-                self.spec.dt,
-                carry=carry,
-            )
-            out = level if out is None else out + level
-        return out
-
-    def _chunk_emitter(self, sink, steps, initial, start):
-        """``(emit, tally)``: ``emit(first_step, filtered chunk, θ per step)`` for the runs'
-        ``sink``: each chunk as a TwinRun of its steps, with what :meth:`run` adds to a whole
-        print (the calibration's share, with the vial's drain carried over; the prior floor,
-        with what was seen before the chunk; the inputs, the measurements the filter used
-        and a job print's line factors and camera frames; the print's start (mean, cov)).
-        ``tally["unseen"]``: per state, the seconds emitted so far that no output saw it."""
-        carry: dict = {}
-        tally = {"unseen": np.zeros(len(STATE_NAMES), np.int64)}
-        seen_before = np.zeros(len(STATE_NAMES), dtype=bool)
-
-        def emit(first: int, chunk, thetas) -> None:
-            nonlocal seen_before
-            stop = first + len(chunk.means)
-            rows = steps.rows(first, stop)
-            seen_chunk = np.asarray(rows.seen) | seen_before
-            seen_before = seen_before | seen_chunk.any(axis=0)
-            tally["unseen"] += (~np.asarray(rows.seen)).sum(axis=0)
-            sink(
-                first,
-                TwinRun(
-                    time_s=rows.time_s,
-                    filtered=chunk,
-                    smoothed=None,
-                    theta_per_step=np.asarray(thetas),
-                    theta_history=_theta_history_frame([]),
-                    initial=None,
-                    start_mean=start[0],
-                    start_cov=start[1],
-                    calibration_covariances=self._calibration_covariances(
-                        chunk, rows.model_inputs, rows.line, carry
-                    ),
-                    seen=rows.seen,
-                    prior_floor=never_seen_variance_floor(initial, seen_chunk, chunk.means),
-                    measurements=rows.measurements,
-                    inputs=rows.inputs,
-                    line_factors=rows.line,
-                    n_camera=rows.n_camera,
-                ),
-            )
-
-        return emit, tally
-
-    def observed_states(self, mean, inputs, measurements, u_med=None) -> np.ndarray:
-        """(T, 5) bool: which states an output measured at each step responds to
-        (:func:`~ajtwin.estimation.record_checks.observed_states` with the twin's model)."""
-        return observed_states(
-            self.model.params,
-            self.spec.coefficients,
-            mean,
-            self.limits.upper - self.limits.lower,
-            inputs,
-            measurements,
-            self.config.measurement_std,
-            u_med,
-        )
-
     def run_streamed(self, source, *, start=None, progress=None, sink, job=None) -> TwinRun:
         """:meth:`run` with ``sink`` over a record held on disk, read a piece at a time.
 
-        ``source``: a :class:`~ajtwin.io.records.SpooledRecord`; ``job``: as for :meth:`run`
-        (a job print's rows are filed at their print times through one delay line as they
-        are read). The same checks as :meth:`run` on a record (the medians a column at a
-        time), the same chunks, filter and EM (:meth:`_filter_with_em` over
-        :class:`SpooledSteps`): memory does not grow with the print. The run returned has
-        no per-step arrays: its start, end, θ history, initial fit, a job print's camera
-        counts, ``n_steps`` and ``unseen_counts``.
+        ``source``: a :class:`~ajtwin.io.records.SpooledRecord`; ``job``: as for :meth:`run`.
+        The same checks as :meth:`run` on a record (the medians a column at a time), the
+        same core fed the pieces as they are read: memory does not grow with the print. The
+        run returned has no per-step arrays: its start, end, θ history, initial fit, a job
+        print's camera counts, ``n_steps`` and ``unseen_counts``.
         """
         where, n = source.where, len(source)
         check_print_length(n, where)
@@ -1234,32 +832,54 @@ class Twin:
         check_output_medians(
             self.model.params, self.spec.coefficients, u_med, medians, c.vial_fill_ml, where
         )
-        context = None
-        if is_job_record(source):
-            context = print_context(source, job, c.camera_horizon_s)
-        elif job is not None:
-            self._filed(source, job)  # refused as run refuses it
-        bins = None if context is None else context.bins(self.speed_law)
-        steps = SpooledSteps(self, source, u_med, keep=int(c.window_s), bins=bins)
-        initial = None
-        if start is None:
-            head = steps.rows(0, min(n, int(c.initial_samples)))
-            initial = self.initial_state(head.inputs, head.measurements, head.line)
-            mean, cov = initial.mean, initial.covariance
-        else:
-            mean, cov = (np.asarray(a, dtype=float) for a in start)
-        start_mean, start_cov = mean.copy(), cov.copy()
-        steps.start_mean = start_mean
-        emit, tally = self._chunk_emitter(sink, steps, initial, (start_mean, start_cov))
-        filtered, self.theta, _, history = self._filter_with_em(
-            mean, cov, steps, progress, emit, learn=c.em
+        context = self._print_context(source, job) if is_job_record(source) else None
+        if context is None and job is not None:
+            self._print_context(None, job)  # refused as run refuses it
+        core = OnlineTwin(self, start, print_context=context)
+        taker = _Blocks(sink, keep_light=False, keep_steps=int(c.window_s))
+        for first in range(0, n, STREAM_READ_ROWS):
+            piece = source.piece(first, min(first + STREAM_READ_ROWS, n))
+            columns = None
+            if context is not None:
+                columns = (piece.shutter_open, piece.platen_speed, piece.printed_at)
+            inputs = check_input(piece.inputs)
+            taker.take(core, core.feed(piece.time_s, inputs, piece.outputs, columns))
+            if progress:
+                progress(min(first + STREAM_READ_ROWS, n))
+        taker.take(core, core.finish())
+        self.theta = core.theta.copy()
+        return self._ended(
+            core,
+            taker.recent(),
+            n_steps=n,
+            unseen_counts=core.unseen_counts.copy(),
+            camera_counts=core.camera_counts,
         )
-        # no per-step arrays: each chunk went to the sink with its own
-        kept = {"time_s": None, "smoothed": None, "theta_per_step": None, "n_steps": n}
-        kept.update(line_model=self.line_model, unseen_counts=tally["unseen"])
-        if bins is not None:
-            kept["camera_counts"] = {**bins.counts, "horizon_s": context.horizon_s}
-        return _ended_run(filtered, history, initial, (start_mean, start_cov), **kept)
+
+    def _ended(self, core, filtered, **fields) -> TwinRun:
+        """The TwinRun of a finished core: its start, end, θ history and initial fit, with
+        the run's own ``fields``."""
+        fields.setdefault("time_s", None)
+        fields.setdefault("smoothed", None)
+        fields.setdefault("theta_per_step", None)
+        fields.setdefault("line_model", self.line_model)
+        if core.carry is None:
+            raise ValueError("a print needs at least 2 samples")
+        return TwinRun(
+            filtered=filtered,
+            theta_history=_theta_history_frame(core.theta_history),
+            initial=core.initial,
+            start_mean=core.start_mean,
+            start_cov=core.start_cov,
+            end_mean=np.asarray(filtered.means[-1]),
+            end_cov=np.asarray(filtered.covariances[-1]),
+            **fields,
+        )
+
+    def response_after(self, inputs) -> float | None:
+        """The droplet size's input response r after a print of inputs (T, 3) (what the
+        next print starts from); None when the variant does not follow the inputs."""
+        return self.model_inputs_from(inputs)[1]
 
     def observe_vial(self, run):
         """The vial observer over a run's print (:class:`~ajtwin.estimation.vial.
@@ -1282,18 +902,95 @@ class Twin:
         )
 
 
-def _ended_run(filtered, history: list, initial, start: tuple, **fields) -> TwinRun:
-    """A run's TwinRun: the filter's result, EM's history, the initial fit, the start
-    (mean, cov) and the end state (the filter's last), with the run's own ``fields``."""
+class _Blocks:
+    """The committed blocks of a run: handed to a ``sink`` as TwinRun chunks, or kept and
+    joined into the whole print."""
+
+    #: the per-step arrays a run in memory keeps besides its sink (a few numbers a step)
+    LIGHT = ("time_s", "inputs", "measurements", "seen", "line", "n_camera")
+
+    def __init__(self, sink=None, keep_light: bool = True, keep_steps: int = 0):
+        self.sink = sink
+        self.blocks: list[StepBlock] = []
+        self._light: list[tuple] | None = [] if keep_light else None
+        self._keep_steps = int(keep_steps)  # with a sink: the last steps' blocks are kept
+
+    def take(self, core, items) -> None:
+        for block in items:
+            if not isinstance(block, StepBlock):
+                continue  # a provisional step: a run wants its final ones
+            self.blocks.append(block)
+            if self.sink is None:
+                continue
+            self.sink(block.first, _chunk_run(block, core))
+            if self._light is not None:
+                self._light.append(tuple(getattr(block, name) for name in self.LIGHT))
+            while len(self.blocks) > 1 and self.blocks[1].first <= block.stop - self._keep_steps:
+                self.blocks.pop(0)
+
+    def recent(self) -> FilterResult:
+        """The filter's results of the blocks kept (with a sink: the last steps')."""
+        return FilterResult(
+            *(np.concatenate(parts, axis=0) for parts in zip(*[b.filtered for b in self.blocks]))
+        )
+
+    def light(self) -> dict:
+        """TwinRun fields of the light arrays kept (with a sink): the whole print's."""
+        out = {}
+        for name, parts in zip(self.LIGHT, zip(*self._light)):
+            joined = None if any(p is None for p in parts) else np.concatenate(parts, axis=0)
+            out["line_factors" if name == "line" else name] = joined
+        return out
+
+    def whole(self) -> StepBlock:
+        """The blocks joined into one."""
+        blocks = self.blocks
+        if not blocks:
+            raise ValueError("a print needs at least 2 samples")
+
+        def joined(name):
+            parts = [getattr(b, name) for b in blocks]
+            return None if any(p is None for p in parts) else np.concatenate(parts, axis=0)
+
+        filtered = FilterResult(
+            *(np.concatenate(parts, axis=0) for parts in zip(*[b.filtered for b in blocks]))
+        )
+        out = StepBlock(
+            first=0,
+            time_s=joined("time_s"),
+            inputs=joined("inputs"),
+            model_inputs=joined("model_inputs"),
+            measurements=joined("measurements"),
+            filtered=filtered,
+            theta=blocks[-1].theta,
+            seen=joined("seen"),
+            prior_floor=joined("prior_floor"),
+            calibration_covariances=joined("calibration_covariances"),
+            line=joined("line"),
+            n_camera=joined("n_camera"),
+        )
+        out.thetas = np.concatenate([b.theta_per_step for b in blocks])
+        return out
+
+
+def _chunk_run(block: StepBlock, core) -> TwinRun:
+    """A committed block as the TwinRun a run's ``sink`` takes."""
     return TwinRun(
-        filtered=filtered,
-        theta_history=_theta_history_frame(history),
-        initial=initial,
-        start_mean=start[0],
-        start_cov=start[1],
-        end_mean=np.asarray(filtered.means[-1]),
-        end_cov=np.asarray(filtered.covariances[-1]),
-        **fields,
+        time_s=block.time_s,
+        filtered=block.filtered,
+        smoothed=None,
+        theta_per_step=block.theta_per_step,
+        theta_history=_theta_history_frame([]),
+        initial=None,
+        start_mean=core.start_mean,
+        start_cov=core.start_cov,
+        calibration_covariances=block.calibration_covariances,
+        seen=block.seen,
+        prior_floor=block.prior_floor if block.prior_floor.any() else None,
+        measurements=block.measurements,
+        inputs=block.inputs,
+        line_factors=block.line,
+        n_camera=block.n_camera,
     )
 
 

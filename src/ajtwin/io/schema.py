@@ -156,7 +156,7 @@ MAX_RECORD_SECONDS = 14 * 86400
 #: Fastest platen a record's metadata may state [mm/s]: AJ stages move ≤ ~200 mm/s.
 MAX_PLATEN_SPEED_MM_S = 1000.0
 #: Longest gap between two rows [s]: a longer one is a clock jump or a time stamp in another
-#: unit, not an outage (the live twin drops a sample this far ahead, ajtwin.engine.samples).
+#: unit, not an outage (the live twin drops a sample this far ahead, ajtwin.estimation.samples).
 MAX_GAP_S = 6 * 3600
 #: Column of a resampled record: how many of the log's samples each second averages.
 SAMPLES_COLUMN = "samples_per_s"

@@ -28,7 +28,7 @@ keeping only the samples of the second still open.
 
 Gaps
 ----
-:func:`hold_missing_inputs` is the live twin's rule (:mod:`ajtwin.engine.samples`, "Late,
+:func:`hold_missing_inputs` is the live twin's rule (:mod:`ajtwin.estimation.samples`, "Late,
 missing, duplicated and out-of-order samples") for a second without complete inputs: the
 inputs are held at their last value and the outputs are missing, so the twin predicts
 through the gap; seconds before the first complete inputs are dropped (nothing to hold).

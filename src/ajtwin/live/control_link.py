@@ -431,9 +431,9 @@ class ControlLink:
             return
         self._next_decision_s = self.last_time + s.period_s
         u = await self._read_setpoints(setpoints)
-        history = self.controller.stream.history
-        if not self._reach_checked and len(history):
-            self.check_reachable(np.asarray(history.means[-1]), np.asarray(history.covariances[-1]))
+        core = self.controller.stream.core
+        if not self._reach_checked and core.n_committed:
+            self.check_reachable(core.last_mean, core.last_cov)
         if t < s.warmup_s:
             decision = Decision(u.copy(), "warm-up", f"first {s.warmup_s} s of print")
         else:

@@ -40,7 +40,8 @@ import numpy as np
 from asyncua import Client, ua
 
 from ajtwin.engine.fleet import LiveEngine
-from ajtwin.engine.samples import Sample, clean_sample
+from ajtwin.engine.messages import LinkState, StepMessage
+from ajtwin.estimation.samples import Sample, clean_sample
 from ajtwin.io.follow import CsvFollower
 from ajtwin.live.opcua import (
     HEALTH_STATES,
@@ -144,7 +145,7 @@ class OpcUaLink:
         self.slices_cut = 0  # slices that gave the event loop back with rows still queued
         self.first_published: float | None = None
         self.reconnects = 0
-        self.link: dict = {}  # the last published link state (engine.publish_link)
+        self.link: LinkState | None = None  # the last published link state
         self._lost_at: float | None = None  # Unix time the current outage began
         self._attempt = 0  # failed attempts in the current outage
 
@@ -157,15 +158,7 @@ class OpcUaLink:
         """Publish the link state to the engine's subscribers (machines still followed)."""
         now = time.time()
         since = self._lost_at if state == "reconnecting" else now
-        self.link = {
-            "state": state,
-            "url": self.url,
-            "since": since,
-            "attempt": self._attempt,
-            "retry_in_s": retry_in_s,
-            "reason": reason,
-            "gap_s": gap_s,
-        }
+        self.link = LinkState(state, self.url, since, self._attempt, retry_in_s, reason, gap_s)
         followed = [m for m in self.machines if m not in self.finished or state == "ended"]
         self.engine.publish_link(followed, self.link)
 
@@ -385,7 +378,7 @@ class OpcUaLink:
             queue.append(taken)
             self.last_time[name] = float(taken[-1, 0])
 
-    def _feed_slice(self) -> list[dict]:
+    def _feed_slice(self) -> list:
         """Feed queued rows to the engine for about :data:`FEED_BUDGET_S` (at least one
         round), machines merged in time order so that their ordinary steps run batched."""
         messages = []
@@ -416,8 +409,8 @@ class OpcUaLink:
 
         latest = {}
         for m in messages:
-            if "step" in m:
-                latest[m["machine"]] = m
+            if isinstance(m, StepMessage):
+                latest[m.machine] = m
         for name, m in latest.items():
             if name not in nodes:
                 continue
@@ -425,29 +418,29 @@ class OpcUaLink:
             targets, values = [], []
             for key, (state, *_) in HEALTH_STATES.items():
                 targets += [h[key], h[key + "Std"]]
-                values += [m["states"][state], m["stds"][state]]
+                values += [m.states[state], m.stds[state]]
             targets += [h["NIS"], h["TwinTime"]]
-            values += [m["nis"], m["time_s"]]
+            values += [m.nis, m.time_s]
             variants = [ua.Variant(float(v), ua.VariantType.Double) for v in values]
             targets += [h["Status"], h["Cause"], h["Theta"]]
             variants += [
-                ua.Variant(m["status"], ua.VariantType.String),
-                ua.Variant(m["cause"], ua.VariantType.String),
-                ua.Variant(list(m["theta"].values()), ua.VariantType.Double),
+                ua.Variant(m.status, ua.VariantType.String),
+                ua.Variant(m.cause, ua.VariantType.String),
+                ua.Variant(list(m.theta.values()), ua.VariantType.Double),
             ]
             await client.write_values(targets, [ua.DataValue(v) for v in variants])
             if self.first_published is None:
                 self.first_published = time.monotonic()
         for m in messages:
-            for event in m.get("events", []):
-                if m["machine"] not in nodes:
+            for event in getattr(m, "events", ()):
+                if m.machine not in nodes:
                     continue
-                await nodes[m["machine"]]["alarm"].write_value(
+                await nodes[m.machine]["alarm"].write_value(
                     ua.Variant(json.dumps(event, default=str), ua.VariantType.String)
                 )
                 log.warning(
                     "%s: ALARM %s at t = %g s (onset %g s): %s",
-                    m["machine"],
+                    m.machine,
                     event["state"],
                     event["detected_s"],
                     event["onset_s"],
@@ -612,7 +605,7 @@ def buffer_samples(name: str, value, last: float) -> tuple[list[Sample], float, 
 
     Returns
     -------
-    samples : cleaned samples (:func:`~ajtwin.engine.samples.clean_sample`), in buffer order
+    samples : cleaned samples (:func:`~ajtwin.estimation.samples.clean_sample`), in buffer order
     last : the newest time taken (unchanged if none)
     problems : log lines for everything refused, treated as missing or dropped
     """

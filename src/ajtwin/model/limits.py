@@ -31,6 +31,14 @@ from ajtwin.model.parameters import PhysicalParameters
 _DISPLAY_UNIT = ("µm", "mL", "µm", "µm", "")
 
 
+#: Allowed ranges of the inputs, display units; outside them the model refuses the call.
+INPUT_LIMITS = {
+    "atomizer_current_mA": (50.0, 1000.0),
+    "carrier_flow_sccm": (0.0, 200.0),
+    "sheath_flow_sccm": (0.0, 500.0),
+}
+
+
 @dataclass(frozen=True)
 class StateLimits:
     """Lower and upper physical bounds of each state (display units), from the data file.

@@ -29,6 +29,7 @@ from ajtwin.model.atomizer import aerosol_fraction_rate, net_droplet_generation,
 from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
 from ajtwin.model.droplets import QUADRATURE_ORDER
 from ajtwin.model.fluidics import carrier_pressure, sheath_pressure
+from ajtwin.model.limits import INPUT_LIMITS
 from ajtwin.model.line_output import line_feature, material_flow
 from ajtwin.model.line_speed import apply_line_speed, load_line_speed_law
 from ajtwin.model.names import (
@@ -271,13 +272,6 @@ def ink_flows(x, u, params):
 # --------------------------------------------------------------------------- #
 # Input checking (the public API speaks display units and fails loudly)
 # --------------------------------------------------------------------------- #
-
-#: Allowed ranges of the inputs, display units; outside them the call fails.
-INPUT_LIMITS = {
-    "atomizer_current_mA": (50.0, 1000.0),
-    "carrier_flow_sccm": (0.0, 200.0),
-    "sheath_flow_sccm": (0.0, 500.0),
-}
 
 
 def _as_array(value, name, trailing):

@@ -25,6 +25,7 @@ from pathlib import Path
 from asyncua import Client, ua
 
 from ajtwin.engine.fleet import LiveEngine
+from ajtwin.engine.messages import StepMessage
 from ajtwin.live.link import OpcUaLink
 from ajtwin.store.registry import Registry
 from ajtwin.web.publisher import LivePublisher
@@ -134,9 +135,7 @@ def _serve_and_follow(out: Path, url: str, seed: int, engine, echo) -> dict:
     )
     received: list = []
     raised: list = []
-    engine.subscribe(
-        lambda m: raised.extend(e for e in m.get("events", []) if e.get("state") == "raised")
-    )
+    engine.subscribe(lambda m: raised.extend(m.raised()) if isinstance(m, StepMessage) else None)
     t0 = time.monotonic()
 
     async def listen(done: asyncio.Event):

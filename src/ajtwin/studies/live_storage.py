@@ -14,7 +14,7 @@ import sys
 import time
 
 from ajtwin.engine.fleet import LiveEngine
-from ajtwin.engine.samples import Sample
+from ajtwin.estimation.samples import Sample
 from ajtwin.simulation import simulate
 from ajtwin.store.compaction import checkpointed_bytes
 from ajtwin.store.registry import Registry

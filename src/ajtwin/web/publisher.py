@@ -58,6 +58,7 @@ import time
 from collections import deque
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.engine.messages import FinishedMessage, LinkMessage, Message, StepMessage
 from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
 from ajtwin.web.data import detector_thresholds
 
@@ -108,43 +109,34 @@ def _number(value) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def sample_from_engine(message: dict) -> dict | None:
-    """A live-engine message (``ajtwin.engine.stream``: states etc. as {name: value} dicts,
-    ``cusum`` {channel: g}, ``window_nis_p``, ``events`` with ``state`` "raised"/"final")
-    as a dashboard sample (module docstring). Provisional steps give None: the committed
-    step for the same time follows and is the one drawn.
+def sample_from_engine(message: StepMessage) -> dict | None:
+    """A live-engine step (:class:`~ajtwin.engine.messages.StepMessage`) as a dashboard
+    sample (module docstring). Provisional steps give None: the committed step for the
+    same time follows and is the one drawn.
     """
+    if message.provisional:
+        return None
 
-    if not isinstance(message, dict):
-        raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")
-    if message.get("provisional") or "time_s" not in message:
-        return None  # (a link-state message has no sample: publish_engine handles it)
-    if "machine" not in message:
-        raise ValueError("a live-engine message with a time_s needs a 'machine'")
-
-    def ordered(key, names):
-        value = message.get(key)
-        if isinstance(value, dict):
-            return [value.get(n) for n in names]
-        return value
+    def ordered(values: dict, names):
+        return [values.get(n) for n in names]
 
     sample = {
-        "machine": message["machine"],
-        "time_s": message["time_s"],
-        "states": ordered("states", STATE_NAMES),
-        "state_stds": ordered("stds", STATE_NAMES),
-        "predicted": ordered("predicted_outputs", OUTPUT_NAMES),
-        "measured": ordered("measured_outputs", OUTPUT_NAMES),
-        "inputs": ordered("inputs", INPUT_NAMES),
-        "theta": ordered("theta", STATE_NAMES),
-        "nis": message.get("nis"),
-        "engine_status": message.get("status"),
+        "machine": message.machine,
+        "time_s": message.time_s,
+        "states": ordered(message.states, STATE_NAMES),
+        "state_stds": ordered(message.stds, STATE_NAMES),
+        "predicted": ordered(message.predicted_outputs, OUTPUT_NAMES),
+        "measured": ordered(message.measured_outputs, OUTPUT_NAMES),
+        "inputs": ordered(message.inputs, INPUT_NAMES),
+        "theta": ordered(message.theta, STATE_NAMES),
+        "nis": message.nis,
+        "engine_status": message.status,
     }
-    if isinstance(message.get("cusum"), dict):
+    if message.cusum is not None:
         settings = DetectorSettings()
-        p = _number(message.get("window_nis_p"))
+        p = _number(message.window_nis_p)
         sample["detectors"] = {
-            "cusum": [message["cusum"].get(c) for c in CUSUM_CHANNELS],
+            "cusum": [message.cusum.get(c) for c in CUSUM_CHANNELS],
             "cusum_thresholds": detector_thresholds(settings),
             "window_nis_log10p": None if p is None else -math.log10(max(p, 1e-300)),
             "window_nis_threshold": -math.log10(settings.nis_alpha),
@@ -157,8 +149,7 @@ def sample_from_engine(message: dict) -> dict | None:
             "description": ev.get("description"),
             "detectors": _detector_names(ev.get("detectors")),
         }
-        for ev in _as_list(message.get("events"))
-        if isinstance(ev, dict) and ev.get("state", "raised") == "raised"
+        for ev in message.raised()
     ]
     return sample
 
@@ -346,13 +337,18 @@ class LivePublisher:
         with self._lock:
             return self._links.get(machine)
 
-    def publish_engine(self, message: dict) -> None:
+    def publish_engine(self, message: Message) -> None:
         """Publish a message of the live engine (:func:`sample_from_engine`); thread-safe."""
-        if not isinstance(message, dict):
-            raise ValueError(f"a live-engine message is a dict, got {type(message).__name__}")
-        if "link" in message and "step" not in message:
-            self.publish_link(str(message.get("machine")), message["link"])
+        if isinstance(message, LinkMessage):
+            self.publish_link(message.machine, message.link.to_dict())
             return
+        if isinstance(message, FinishedMessage):
+            return  # the end of a print: the link's "ended" and the page's own timeout say it
+        if not isinstance(message, StepMessage):
+            raise ValueError(
+                "a live-engine message is a StepMessage, LinkMessage or FinishedMessage "
+                f"(ajtwin.engine.messages), got {type(message).__name__}"
+            )
         sample = sample_from_engine(message)
         if sample is not None:
             self.publish(sample)

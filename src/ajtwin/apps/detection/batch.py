@@ -8,6 +8,7 @@ over a finished run's arrays, so a live twin and a finished print give the same 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -101,22 +102,17 @@ def detect_anomalies(
     """
     detector = AnomalyDetector(settings, long_run_history)
     t = np.asarray(time_s, dtype=float)
-    columns = (
-        measurements,
-        predicted_outputs,
-        innovation_variances,
-        nis,
-        n_measured,
-        means,
-        predicted_means,
-        covariances,
+    filtered = SimpleNamespace(
+        predicted_outputs=predicted_outputs,
+        innovation_variances=innovation_variances,
+        nis=nis,
+        n_measured=n_measured,
+        means=means,
+        predicted_means=predicted_means,
+        covariances=covariances,
     )
-    columns = [np.asarray(c, dtype=float) for c in columns]
-    u = None if inputs is None else np.asarray(inputs, dtype=float)
-    rows = [
-        detector.update(t[k], *(c[k] for c in columns), inputs=None if u is None else u[k])
-        for k in range(len(t))
-    ]
+    block = SimpleNamespace(time_s=t, measurements=measurements, inputs=inputs, filtered=filtered)
+    rows = detector.update_block(block)
     events = detector.finish()
     n_channels = len(CUSUM_CHANNELS)
 

@@ -159,6 +159,37 @@ class AnomalyDetector:
         self._beyond_since: int | None = None  # first step of the deposit beyond the range
         self._cleaning: int | None = None  # the 'nozzle needs cleaning' event (its index)
 
+    def update_block(self, block, each=None) -> list[DetectorStep]:
+        """The steps of a block of the twin's run, one after the other: ``block`` has
+        ``time_s`` (m,), ``measurements`` (m, 5) (those the filter used), ``inputs`` (m, 3)
+        and ``filtered`` (the filter's results of the m steps), as a committed
+        :class:`~ajtwin.estimation.online.StepBlock` or a run's chunk has them.
+        ``each(i, step)`` is called after each step (what the detectors say then)."""
+        f = block.filtered
+        columns = [
+            np.asarray(c, dtype=float)
+            for c in (
+                block.measurements,
+                f.predicted_outputs,
+                f.innovation_variances,
+                f.nis,
+                f.n_measured,
+                f.means,
+                f.predicted_means,
+                f.covariances,
+            )
+        ]
+        t = np.asarray(block.time_s, dtype=float)
+        u = None if block.inputs is None else np.asarray(block.inputs, dtype=float)
+        steps = []
+        for k in range(len(t)):
+            steps.append(
+                self.update(t[k], *(c[k] for c in columns), inputs=None if u is None else u[k])
+            )
+            if each is not None:
+                each(k, steps[-1])
+        return steps
+
     def update(
         self,
         time_s,

@@ -1,49 +1,44 @@
 """A sample of a machine: one second of inputs and outputs, checked before the twin sees it.
 
 :func:`clean_sample` is what every source of samples (an OPC UA link, a growing CSV, a
-replayed live session) passes its values through: non-finite or implausible values
+replayed live print) passes its values through: non-finite or implausible values
 become missing, a time that is no clock reading drops the sample.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, PLAUSIBLE_RANGES
+from ajtwin.model.limits import INPUT_LIMITS
 from ajtwin.model.names import INPUT_NAMES
-from ajtwin.model.system import INPUT_LIMITS
 
 
-@dataclass
-class Sample:
+class Sample(NamedTuple):
     """One 1 Hz sample: time [s], inputs (3,) [mA, sccm, sccm], outputs (5,) (NaN = missing).
 
     A job print's row also carries the record's job columns (model reference §12; None for
     a print without a job): ``shutter_open`` (0/1 at t), ``platen_speed_mm_s`` (at t) and
-    ``printed_at_s`` (τ of the trace the camera measured in this row). ``line`` is what the
-    twin makes of a filed step (:class:`ajtwin.estimation.print_time.FiledStep`): its
-    (F_w, F_o, v_w, v_o).
+    ``printed_at_s`` (τ of the trace the camera measured in this row).
     """
 
     time_s: float
-    inputs: np.ndarray
+    inputs: np.ndarray | None
     outputs: np.ndarray
     shutter_open: float | None = None
     platen_speed_mm_s: float | None = None
     printed_at_s: float | None = None
-    line: np.ndarray | None = None
-
-
-#: |time| beyond this [s] (≈ 31,700 years) is no clock reading: the sample is dropped (far
-#: below 2**53 s, where float64 could no longer hold the 1 s grid)
-MAX_ABS_TIME_S = 1e12
 
 
 #: a gap ahead of the last step longer than this [s] is not filled with missing samples
 #: (a clock jump or a stale/wrong time stamp, not an outage): the sample is dropped
 MAX_GAP_S = 6 * 3600
+
+#: |time| beyond this [s] (≈ 31,700 years) is no clock reading: the sample is dropped (far
+#: below 2**53 s, where float64 could no longer hold the 1 s grid)
+MAX_ABS_TIME_S = 1e12
 
 
 def clean_sample(time_s, inputs, outputs, where: str = "") -> tuple[Sample | None, list[str]]:

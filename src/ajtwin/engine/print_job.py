@@ -32,7 +32,7 @@ from ajtwin.engine.part_map import (
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
-from ajtwin.job import LoopedJob
+from ajtwin.job import LoopedJob, read_program_bytes
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
@@ -69,7 +69,7 @@ def job_entry(
         :func:`~ajtwin.estimation.print_time.job_as_printed` reads back.
     """
     path = Path(program)
-    raw = path.read_bytes()
+    raw = read_program_bytes(path)  # a FIFO or device refused before a byte is read
     from_record = dict(((None if record is None else record.meta) or {}).get("job") or {})
     given = {"process_speed_mm_s": process_speed_mm_s, "rapid_speed_mm_s": rapid_speed_mm_s,
              "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm,

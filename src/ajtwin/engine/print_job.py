@@ -32,7 +32,7 @@ from ajtwin.engine.part_map import (
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
-from ajtwin.job import LoopedJob, read_program_bytes
+from ajtwin.job import LoopedJob, ProgramError, read_program_bytes
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
@@ -164,14 +164,19 @@ def load_stored_print(registry, machine: str, seq: int | None = None, program=No
     entry = registry.print_job(row["id"])
     time_s = np.asarray(arrays["time_s"], dtype=float)
     duration = float(time_s[-1] - time_s[0] + 1.0)
-    if program is not None:
-        info = (row.get("meta") or {}).get("job")
-        job = job_as_printed(
-            program, info if isinstance(info, dict) else None, print_duration_s=duration
-        )
-    elif entry is not None:
-        job = entry_job(entry, print_duration_s=duration)
-    else:
+    try:
+        if program is not None:
+            info = (row.get("meta") or {}).get("job")
+            job = job_as_printed(
+                program, info if isinstance(info, dict) else None, print_duration_s=duration
+            )
+        elif entry is not None:
+            job = entry_job(entry, print_duration_s=duration)
+    except ProgramError as exc:  # e.g. a program that prints nothing, stored before it was refused
+        raise RegistryError(
+            f"print {row['seq']} of {machine!r}: its part cannot be mapped: {exc}"
+        ) from None
+    if program is None and entry is None:
         raise RegistryError(
             f"print {row['seq']} of {machine!r} was stored without its job: give the program "
             f"(--job PROGRAM.prg), or ingest prints with `ajtwin ingest --job`"

@@ -72,6 +72,10 @@ _MM_PER_MIN = 60.0
 _AT_CLOSE_S = 1e-6
 
 
+# the fields of JobEvidence that hold one value per row
+_ROWS = ("time_s", "row", "shutter_open", "platen_speed_mm_s", "printed_at_s")
+
+
 class RecordMismatch(ValueError):
     """A job print's record contradicts the program (or the speeds) it is given."""
 
@@ -175,8 +179,11 @@ def check_record_agrees(
         against = None
     else:
         program = getattr(job, "program", job)  # a LoopedJob: the program it loops
-        states = _states_around(job, evidence.time_s, settings.timing_tolerance_s)
-        speed_rows, speed_problem = _platen_speed(evidence, job, states, settings)
+        # rows after the job's end (an inspection pass, the machine idling) are not its evidence
+        mask = evidence.time_s <= job.duration_s
+        during = evidence._replace(**{name: getattr(evidence, name)[mask] for name in _ROWS})
+        states = _states_around(job, during.time_s, settings.timing_tolerance_s)
+        speed_rows, speed_problem = _platen_speed(during, job, states, settings)
         problems = [
             speed_problem,
             # the logged speeds are the direct evidence: the metadata's speed decides only
@@ -184,7 +191,7 @@ def check_record_agrees(
             None
             if speed_rows >= settings.min_rows
             else _metadata_speed(evidence, program, settings),
-            _shutter(evidence, job, states, settings),
+            _shutter(during, job, states, settings),
             _print_times(evidence, job, settings),
         ]
         against = program.path

@@ -974,6 +974,47 @@ class Job:
         :meth:`ajtwin.job.locate.TraceIndex.query`."""
         return self.trace_index().query(x_mm, y_mm, radius_mm, before_s=before_s)
 
+    def until(self, time_s: float) -> Job:
+        """The job up to ``time_s``, the stroke printing then kept whole: what a camera can
+        have seen by then. Strokes keep their numbers, lengths and times (a window cut along
+        a stroke depends on its whole length); nothing printed later is held.
+
+        Examples
+        --------
+        >>> from ajtwin.job import read_program_text
+        >>> prg = "ptp/e (X,Y),0,0\nOUT0.0=1\nptp/e (X,Y),4,0\nOUT0.0=0\nptp/e (X,Y),4,3"
+        >>> job = read_program_text(prg, process_speed_mm_s=2)
+        >>> cut = job.until(1.0)
+        >>> cut.n_strokes, cut.duration_s
+        (1, 2.0)
+        """
+        t = float(time_s)
+        if t >= self.duration_s:
+            return self
+        stroke = int(self.state_at(t).stroke)
+        if stroke >= 0:
+            t = max(t, float(self._stroke_t[1][stroke]))
+        seg = _cut_at_times(self._seg, np.array([t]))
+        seg = _take(seg, seg["t0_s"] < t)
+        runs = int(np.searchsorted(self.repetition_offsets_s, t, side="left")) or 1
+        return Job(
+            dict(seg),
+            path=self.path,
+            n_lines=self.n_lines,
+            speed_sources=self.speed_sources,
+            feature_names=self.feature_names,
+            notes=self.notes,
+            warnings=self.warnings,
+            stage=self.stage,
+            settings=self.settings,
+            return_source=self.return_source,
+            end_shutter_open=bool(seg["shutter_open"][-1]),
+            repetition_offsets_s=self.repetition_offsets_s[:runs],
+            program_duration_s=self.program_duration_s,
+            repetition_offsets_mm=self.repetition_offsets_mm[:runs],
+            speed_schedule=self.speed_schedule,
+        )
+
     # -- looping ---------------------------------------------------------------------------
 
     def repeat(self, duration_s: float, gap_s: float = 0.0, pitch_mm=None) -> Job:

@@ -368,7 +368,7 @@ def report(
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_map import part_map_of_record
     from ajtwin.engine.part_report import write_report
-    from ajtwin.engine.print_job import next_print_twin, stored_part_map
+    from ajtwin.engine.print_job import load_stored_print, map_stored_print, next_print_twin
     from ajtwin.estimation.print_time import program_for_record
     from ajtwin.io.records import RecordError, read_record
     from ajtwin.job import ProgramError
@@ -385,9 +385,9 @@ def report(
                "twin_progress": twin_step, "line_progress": line_step}  # fmt: skip
     try:
         if record is None:
-            part = stored_part_map(
-                open_registry(store), machine, seq, program=program, tolerance=tolerance, **options
-            )
+            stored = load_stored_print(open_registry(store), machine, seq, program)
+            stored.job.check_portions(portion_mm)  # refused before the twin's work
+            part = map_stored_print(stored, tolerance, **options)
         else:
             rec = read_record(record, aliases=aliases, dialect=csv_dialect)
             the_job = program_for_record(
@@ -398,6 +398,7 @@ def report(
                 repeat_to_s=repeat_to,
                 repeat_pitch_mm=repeat_pitch,
             )
+            the_job.check_portions(portion_mm)  # refused before the twin's work
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start
                 twin, start = next_print_twin(open_registry(store), machine)

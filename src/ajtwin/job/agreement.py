@@ -41,9 +41,9 @@ Examples
 Traceback (most recent call last):
 ...
 ajtwin.job.agreement.RecordMismatch: print.csv does not agree with <text>: column \
-'platen_speed_mm_s' is 4 mm/s at t = 0 s (row 1) where the program moves at 2 mm/s (line 3, \
-the GUI's process speed (given)); 10 of 10 printing rows disagree (median ratio 2). Nothing \
-was estimated or stored.
+'platen_speed_mm_s' is 4 mm/s at t = 1 s (row 2) where the program moves at 2 mm/s (line 3, \
+the GUI's process speed (given)); 8 of 8 printing rows disagree (median ratio 2): give \
+--process-speed 4 if the column is right. Nothing was estimated or stored.
 """
 
 from __future__ import annotations

@@ -907,6 +907,26 @@ class Job:
         t = np.where(has_motion, t, self._stroke_t[0][stroke])
         return StrokePoints(x_mm=x, y_mm=y, time_s=t, ux=ux, uy=uy, segment=seg.astype(np.int64))
 
+    def _portion_counts(self, max_length_mm: float) -> np.ndarray:
+        """Portions per stroke (:meth:`portions`), refused beyond ``max_portions``."""
+        if not (max_length_mm > 0 and math.isfinite(max_length_mm)):
+            raise ValueError(f"max_length_mm must be a positive length, got {max_length_mm}")
+        length = self._stroke_length
+        count = np.maximum(1, np.ceil(length / max_length_mm - 1e-9))
+        limit = self.settings.max_portions
+        if count.sum() > limit:
+            raise ValueError(
+                f"{self.path}: {length.sum():.1f} mm of strokes cut into portions of at most "
+                f"{max_length_mm:g} mm make {count.sum():,.0f} portions, more than the "
+                f"{limit:,} a part map holds (job.toml max_portions): longer portions"
+            )
+        return count
+
+    def check_portions(self, max_length_mm: float) -> int:
+        """How many portions :meth:`portions` would cut (ValueError beyond ``max_portions``
+        of ``job.toml``): asked before a part map's work."""
+        return int(self._portion_counts(max_length_mm).sum())
+
     def portions(self, max_length_mm: float = 1.0) -> pd.DataFrame:
         """Each stroke cut into equal portions of at most ``max_length_mm``.
 
@@ -920,18 +940,8 @@ class Job:
             first portion starts when the shutter opens, the last ends when it closes).
             A stroke of zero length (the shutter opened over a still stage) is one portion.
         """
-        if not (max_length_mm > 0 and math.isfinite(max_length_mm)):
-            raise ValueError(f"max_length_mm must be a positive length, got {max_length_mm}")
+        count = self._portion_counts(max_length_mm).astype(np.int64)
         length = self._stroke_length
-        count = np.maximum(1, np.ceil(length / max_length_mm - 1e-9))
-        limit = self.settings.max_portions
-        if count.sum() > limit:
-            raise ValueError(
-                f"{self.path}: {length.sum():.1f} mm of strokes cut into portions of at most "
-                f"{max_length_mm:g} mm make {count.sum():,.0f} portions, more than the "
-                f"{limit:,} a part map holds (job.toml max_portions): longer portions"
-            )
-        count = count.astype(np.int64)
         stroke = np.repeat(np.arange(self.n_strokes), count)
         portion = np.arange(stroke.size) - np.repeat(np.cumsum(count) - count, count)
         step = length[stroke] / count[stroke]
@@ -982,7 +992,7 @@ class Job:
         Examples
         --------
         >>> from ajtwin.job import read_program_text
-        >>> prg = "ptp/e (X,Y),0,0\nOUT0.0=1\nptp/e (X,Y),4,0\nOUT0.0=0\nptp/e (X,Y),4,3"
+        >>> prg = "ptp/e (X,Y),0,0\\nOUT0.0=1\\nptp/e (X,Y),4,0\\nOUT0.0=0\\nptp/e (X,Y),4,3"
         >>> job = read_program_text(prg, process_speed_mm_s=2)
         >>> cut = job.until(1.0)
         >>> cut.n_strokes, cut.duration_s

@@ -39,7 +39,13 @@ from ajtwin.vision.part_extract import (
 )
 from ajtwin.vision.video_features import AnnotatedOutput
 
-__all__ = ["PartVideoExtraction", "ReadingsWriter", "check_video_duration", "extract_part_video"]
+__all__ = [
+    "PartVideoExtraction",
+    "ReadingsWriter",
+    "check_video_duration",
+    "check_window_count",
+    "extract_part_video",
+]
 
 #: what a window measured without a reading means for the user
 FAIL_HINTS = {
@@ -219,10 +225,12 @@ def check_video_duration(frames, start_offset_s: float, job, source, program_nam
         )
 
 
-def check_window_count(job, camera, settings: PartSettings, source, program_name: str) -> None:
-    """Refuse, before building them, more measurement windows than ``max_windows``
-    (``vision/part.toml [bounds]``): the strokes the video can see, cut into windows of
-    ``batch`` pixels.
+def check_window_count(
+    job, camera, settings: PartSettings, source, program_name: str, limit: int | None = None
+) -> None:
+    """Refuse, before building them, more measurement windows than ``limit`` (default
+    ``max_windows`` of ``vision/part.toml [bounds]``): the strokes the video can see, cut
+    into windows of ``batch`` pixels.
 
     Raises
     ------
@@ -231,7 +239,8 @@ def check_window_count(job, camera, settings: PartSettings, source, program_name
     window_mm = settings.batch * camera.um_per_px * 1e-3
     lengths = job.strokes["length_mm"].to_numpy(dtype=float)
     count = int(np.floor(lengths / window_mm + 1e-9).sum())
-    limit = int(packaged_toml("vision/part.toml")["bounds"]["max_windows"])
+    if limit is None:
+        limit = int(packaged_toml("vision/part.toml")["bounds"]["max_windows"])
     if count > limit:
         raise VisionInputError(
             f"{source}: up to its last frame {program_name} prints {lengths.sum():.0f} mm of "

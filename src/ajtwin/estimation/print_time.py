@@ -80,9 +80,9 @@ from ajtwin.job import (
     SpeedSchedule,
     decode_program,
     loop_job,
+    read_printing,
     read_program_bytes,
     read_program_text,
-    require_printing,
 )
 from ajtwin.job.agreement import JobEvidence, check_record_agrees, sample_rows
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
@@ -454,14 +454,16 @@ def job_as_printed(
     schedule = value["process_speed_schedule"]
     if not isinstance(schedule, SpeedSchedule):
         schedule = SpeedSchedule.from_meta(schedule)
-    job = read_program_text(
-        decode_program(raw, name),
-        None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
-        None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
-        path=name,
-        speed_schedule=schedule,
+    # a job that prints nothing has no part, no camera, no map: refused
+    job = read_printing(
+        lambda: read_program_text(
+            decode_program(raw, name),
+            None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
+            None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
+            path=name,
+            speed_schedule=schedule,
+        )
     )
-    require_printing(job)  # a job that prints nothing has no part, no camera, no map
     loop, pitch = value["repeat_to_s"], value["repeat_pitch_mm"]
     if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
         loop = print_duration_s

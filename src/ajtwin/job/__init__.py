@@ -60,6 +60,7 @@ __all__ = [
     "read_program",
     "read_program_bytes",
     "decode_program",
+    "read_printing",
     "require_printing",
     "read_program_text",
     "Job",
@@ -217,6 +218,19 @@ def decode_program(raw: bytes, path: str = "<program>") -> str:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         return raw.decode("latin-1")
+
+
+def read_printing(read):
+    """``read()`` — a call of a program reader — refused when the job prints nothing
+    (:func:`require_printing`); its warnings are passed on only for a job that prints (the
+    refusal says what the "prints nothing" warning would)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        job = read()
+    require_printing(job)
+    for warning in caught:
+        warnings.warn(warning.message, warning.category, stacklevel=3)
+    return job
 
 
 def require_printing(job) -> None:

@@ -105,3 +105,37 @@ def test_more_windows_than_the_bound_are_refused_before_they_are_built():
     check_window_count(job, SMALL, settings, "v.avi", "p.prg", limit=80)
     with pytest.raises(VisionInputError, match="80 measurement windows .* more than the 79"):
         check_window_count(job, SMALL, settings, "v.avi", "p.prg", limit=79)
+
+
+@pytest.mark.slow
+def test_extract_on_a_24h_loop_holds_only_what_its_video_shows(tmp_path):
+    """The public 1-nafbot looped to 24 h under a 1-s video: `extract --job --repeat-to 86400`
+    ran out of memory at 6 GB; now it gives the readings of the program unlooped, in bounded
+    memory (run as its own process, its peak RSS read back)."""
+    import resource
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    ajtwin = str(Path(sys.executable).parent / "ajtwin")
+    program = Path(__file__).resolve().parent / "data" / "prg" / "prg2svg" / "1-nafbot.prg"
+    camera = tmp_path / "camera.toml"
+    camera.write_text(CAMERA.format(0.0))
+    video = tmp_path / "v.avi"
+    common = ["--job", str(program), "--camera", str(camera)]
+    subprocess.run(
+        [ajtwin, "render", *common, "--fps", "5", "--start", "30", "--duration", "1",
+         "--out", str(video)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    for name, loop in (("once.csv", []), ("day.csv", ["--repeat-to", "86400"])):
+        subprocess.run(
+            [ajtwin, "extract", str(video), *common, "--start-offset", "30", "--no-progress",
+             *loop, "--out", str(tmp_path / name)],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    once = (tmp_path / "once.csv").read_text()
+    assert once.count("\n") > 5 and once == (tmp_path / "day.csv").read_text()
+    assert max(peak_kb, before) < 2_000_000  # kB: the whole loop's windows took over 6 GB

@@ -25,6 +25,7 @@ from ajtwin.job import (
 )
 from ajtwin.simulation.job_print import read_job
 from test_bad_inputs import _no_hang
+from test_job_errors import line_of, refused
 
 OPEN = "Start gIntSubBuffer,ShutterOpen;TILL PST(gIntSubBuffer).#RUN = 0"
 CLOSE = "Start gIntSubBuffer,ShutterClose;TILL PST(gIntSubBuffer).#RUN = 0"
@@ -44,16 +45,6 @@ def program(body: str) -> str:
 
 
 GOOD = program(stroke(0, 0, 5, 0) + stroke(5, 1, 0, 1))
-
-
-def refused(text: str, **kwargs) -> ProgramError:
-    with pytest.raises(ProgramError) as caught:
-        read_program_text(text, path="part.prg", **kwargs)
-    return caught.value
-
-
-def line_of(text: str, needle: str) -> int:
-    return next(i for i, line in enumerate(text.splitlines(), 1) if needle in line)
 
 
 # --------------------------------------------------------------------------- #

@@ -72,6 +72,11 @@ _MM_PER_MIN = 60.0
 _AT_CLOSE_S = 1e-6
 
 
+# the shift of a clock is estimated from this many camera rows, each asked the trace printed
+# last under the view's centre within this radius [mm] (a trace the camera sees there, as the
+# virtual printer's camera finds it: data/print_time.toml field_radius_mm)
+_SHIFT_ROWS = 500
+_SHIFT_RADIUS_MM = 0.05
 # the fields of JobEvidence that hold one value per row
 _ROWS = ("time_s", "row", "shutter_open", "platen_speed_mm_s", "printed_at_s")
 
@@ -359,9 +364,11 @@ def _clock_shift(ev: JobEvidence, job, t, tau, settings) -> float | None:
     explains most rows (None otherwise, or for a camera that does not trail the nozzle)."""
     if ev.camera_mode != "trailing":
         return None
+    pick = sample_rows(t.size, _SHIFT_ROWS)  # a hint: a few hundred rows tell a shift
+    t, tau = t[pick], tau[pick]
     dx, dy = ev.camera_offset_mm
     view = job.state_at(t)
-    hits = job.locate(view.x_mm + dx, view.y_mm + dy, settings.view_radius_mm, before_s=t)
+    hits = job.locate(view.x_mm + dx, view.y_mm + dy, _SHIFT_RADIUS_MM, before_s=t)
     if hits.found.sum() < settings.min_rows:
         return None
     delta = tau[hits.found] - hits.print_time_s[hits.found]

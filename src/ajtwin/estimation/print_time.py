@@ -583,8 +583,7 @@ def job_evidence(record) -> JobEvidence:
     """What a job record (a :class:`PrintRecord` or a spooled one, read a column at a time)
     says of its program: its job columns over at most ``max_rows`` rows spread over the print,
     every camera row up to that many too, and its ``camera`` and ``job`` metadata."""
-    n = len(record)
-    rows = sample_rows(n)
+    rows = sample_rows(len(record))
     camera_rows = None
     columns = {}
     for name in ("shutter_open", "platen_speed_mm_s", "printed_at_s"):
@@ -597,14 +596,17 @@ def job_evidence(record) -> JobEvidence:
             camera_rows = seen[sample_rows(seen.size)]
         columns[name] = values
     keep = np.union1d(rows, camera_rows)
-    start = float(record.time_s[0]) if n else 0.0
+    if hasattr(record, "data"):
+        time_s = record.time_s[keep]
+    else:  # spooled: a 1 Hz grid from its first row
+        time_s = record.start_s + keep.astype(float)
     shutter = columns["shutter_open"][keep]
     camera = record.meta.get("camera") if isinstance(record.meta.get("camera"), dict) else {}
     info = record.meta.get("job") if isinstance(record.meta.get("job"), dict) else {}
     speed = info.get("process_speed_mm_s")
     return JobEvidence(
         where=str(record.meta.get("source_file", "the record")),
-        time_s=start + keep.astype(float),
+        time_s=time_s,
         row=keep + 1,
         shutter_open=np.where(np.isfinite(shutter), np.floor(shutter + 0.5), np.nan),
         platen_speed_mm_s=columns["platen_speed_mm_s"][keep],

@@ -19,7 +19,7 @@ from ajtwin.simulation.job_print import simulate_job
 DATA = Path(__file__).parent / "data" / "prg" / "prg2svg"
 
 # (loop length in program runs, wait between runs [s], pitch [mm])
-LOOPS = [(3.2, 0.0, None), (2.5, 3.0, None), (3.5, 1.0, (12.0, 9.0))]
+LOOPS = [(3.2, 0.0, None), (2.5, 3.0, None), (3.5, 1.0, (35.0, 10.0))]
 
 
 @pytest.fixture(scope="module")

@@ -89,15 +89,17 @@ def test_a_job_looped_side_by_side_is_kept_and_read_back_as_the_print_ran_it(tmp
     the same places — because one function reads both."""
     from ajtwin.estimation.print_time import program_for_record
 
-    record = run_job_print(PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(12.0, 9.0)).record
-    assert record.meta["job"]["repeat_pitch_mm"] == [12.0, 9.0]
+    record = run_job_print(
+        PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(35.0, 10.0)
+    ).record
+    assert record.meta["job"]["repeat_pitch_mm"] == [35.0, 10.0]
     from_record = program_for_record(record, PROGRAM)
     assert from_record.repetitions > 1 and np.ptp(from_record.repetition_offsets_mm[:, 0]) > 0
     reg = Registry(tmp_path / "r.sqlite")
     reg.add_machine("lab")
     result = ingest_record(reg, "lab", record, job=job_entry(PROGRAM, record))
     entry = reg.print_job(result.print_id)
-    assert entry["settings"]["repeat_pitch_mm"] == [12.0, 9.0]
+    assert entry["settings"]["repeat_pitch_mm"] == [35.0, 10.0]
     from_store = entry_job(entry)
     np.testing.assert_array_equal(
         from_store.repetition_offsets_mm, from_record.repetition_offsets_mm
@@ -114,7 +116,9 @@ def test_job_report_of_a_log_that_names_no_job_takes_the_looping_from_the_option
     --repeat-pitch-mm, is mapped as the same print whose record says so."""
     from ajtwin.io.records import PrintRecord
 
-    record = run_job_print(PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(12.0, 9.0)).record
+    record = run_job_print(
+        PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(35.0, 10.0)
+    ).record
     named = tmp_path / "named.parquet"
     write_record(record, named)
     meta = {k: v for k, v in record.meta.items() if k != "job"}
@@ -122,7 +126,7 @@ def test_job_report_of_a_log_that_names_no_job_takes_the_looping_from_the_option
     write_record(PrintRecord(record.data, meta), bare)
     common = ["--job", PROGRAM, "--tolerance", "74+-2", "--no-progress"]
     a = run(job_group, "report", named, "--out", tmp_path / "a", *common)
-    looping = ["--repeat-to", record.meta["job"]["repeat_to_s"], "--repeat-pitch-mm", "12,9"]
+    looping = ["--repeat-to", record.meta["job"]["repeat_to_s"], "--repeat-pitch-mm", "35,10"]
     b = run(job_group, "report", bare, "--out", tmp_path / "b", *common, *looping)
     assert a.exit_code == 0 and b.exit_code == 0, (a.output, b.output)
     first = pd.read_csv(tmp_path / "a" / "strokes.csv")

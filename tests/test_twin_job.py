@@ -23,7 +23,9 @@ from ajtwin.estimation import Twin
 from ajtwin.estimation.filters import ekf_init, ekf_step
 from ajtwin.estimation.online import OnlineTwin
 from ajtwin.estimation.print_time import (
+    PrintContext,
     PrintTimeBins,
+    file_record,
     is_job_record,
     print_context,
 )
@@ -36,6 +38,7 @@ from ajtwin.io.records import (
     write_record,
 )
 from ajtwin.job import read_program_text
+from ajtwin.job.agreement import RecordMismatch
 from ajtwin.model.system import output_function
 from ajtwin.simulation import simulate
 from ajtwin.simulation.job_print import CameraSettings, run_job_print
@@ -197,12 +200,22 @@ def test_shutter_closed_spans_carry_no_line_measurement(straight):
     tau = straight.time_s - 1.2
     tau[0] = 0.0
     record = job_record(straight, straight.outputs, tau, state.speed_mm_s, state.shutter_open)
-    run = Twin.default(em=False, camera_horizon_s=5.0).run(record, job=job)
+    # made-up print times: the twin refuses the record (its camera rows do not fit the
+    # program); the filing rules are shown on the rows filed as the twin files them
+    with pytest.raises(RecordMismatch, match="printed_at_s"):
+        Twin.default(em=False, camera_horizon_s=5.0).run(record, job=job)
+    by_print_time = file_record(record, PrintContext(5.0, "trailing", job))
+    run = Twin.default(em=False).run(
+        inputs=record.inputs,
+        measurements=by_print_time.measurements,
+        time_s=record.time_s,
+        line_factors=by_print_time.line_factors,
+    )
     filed = run.measurements
     printed = job.state_at(tau).shutter_open  # τ < 0 (row 1): before the job, nothing printed
     assert np.isnan(filed[closed, 4]).all() and np.isfinite(filed[~closed, 4]).all()
-    assert run.camera_counts["material_flow_shutter_closed"] == closed.sum()
-    assert run.camera_counts["dropped_not_printed"] == (~printed).sum() > 0
+    assert by_print_time.counts["material_flow_shutter_closed"] == closed.sum()
+    assert by_print_time.counts["dropped_not_printed"] == (~printed).sum() > 0
     # no line measurement at a step whose second [t − ½, t + ½) the shutter was closed in
     # (a trace printed 0.2 s before the shutter closed is filed at the next whole second)
     t = straight.time_s

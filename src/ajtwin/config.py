@@ -147,10 +147,16 @@ def parse_toml(data: bytes | str, where, what: str = "configuration") -> dict:
                 f"{where}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x}); "
                 f"a {what} file must be a UTF-8 TOML text file"
             ) from None
+    # a byte-order mark (Windows Notepad writes one) is no TOML, but nothing is lost without it
+    data = data.removeprefix("\ufeff")
     try:
         return tomllib.loads(data)
     except tomllib.TOMLDecodeError as exc:
         raise InputFileError(f"{where}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per nested [ or {
+        raise InputFileError(
+            f"{where}: not a {what} file: its arrays or tables are nested too deeply to read"
+        ) from None
 
 
 def packaged_toml(name: str) -> dict:

@@ -79,6 +79,8 @@ _SI_FACTORS: dict[str, float] = {
     "Torr": 101325.0 / 760.0,
     "mL/min": ML_IN_M3 / 60.0,  # gas flows: standard mL/min = sccm (what MFCs report)
     "L/min": 1e-3 / 60.0,  # slm: standard litres per minute
+    "mm/min": 1e-3 / 60.0,  # stage speeds as CNC and stage GUIs show them
+    "m/min": 1.0 / 60.0,
     "uL/s": 1e-3 * ML_IN_M3,
     "nL/s": 1e-6 * ML_IN_M3,
     "pL/s": 1e-9 * ML_IN_M3,
@@ -95,7 +97,7 @@ _DIMENSIONS: dict[str, str] = {
         ("sccm", "mL/s", "mL/min", "L/min", "uL/s", "nL/s", "pL/s", "m3/s"), "volume flow"
     ),
     **dict.fromkeys(("mL", "m3"), "volume"),
-    **dict.fromkeys(("mm/s", "um/s", "m/s"), "speed"),
+    **dict.fromkeys(("mm/s", "um/s", "m/s", "mm/min", "m/min"), "speed"),
     **dict.fromkeys(("1", "-", "%"), "fraction"),
 }
 

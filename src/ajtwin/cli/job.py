@@ -17,10 +17,13 @@ from ajtwin.cli.options import (
     record_options,
     store_option,
 )
+from ajtwin.io.schema import MAX_PLATEN_SPEED_MM_S, MAX_RECORD_SECONDS
 
 __all__ = ["job"]
 
-_SPEED = BoundedFloat(0.0, 10_000.0)
+_SPEED = BoundedFloat(0.0, MAX_PLATEN_SPEED_MM_S, closed=True)
+#: What `job show --plot` draws (matplotlib's vector and raster formats used in the docs).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -144,9 +147,10 @@ def _format_summary(summary: dict) -> str:
 @click.option(
     "--repeat-to",
     "repeat_to",
-    type=BoundedFloat(0.0, math.inf),
+    type=BoundedFloat(0.0, MAX_RECORD_SECONDS, closed=True),
     default=None,
-    help="Loop the program to this many seconds (the timeline and plot then cover every run).",
+    help="Loop the program to this many seconds (the timeline and plot then cover every run; "
+    "at most 14 days, a print record's limit).",
 )
 @click.option(
     "--machine",
@@ -160,6 +164,11 @@ def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, 
 
     if out is not None and out.suffix.lower() not in (".parquet", ".pq", ".csv"):
         raise click.BadParameter("the timeline is written as .parquet or .csv", param_hint="--out")
+    if plot is not None and plot.suffix.lower() not in PLOT_SUFFIXES:
+        raise click.BadParameter(
+            f"the part is drawn as {', '.join(PLOT_SUFFIXES)}, not {plot.suffix or 'no suffix'!r}",
+            param_hint="--plot",
+        )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -171,8 +180,14 @@ def show(program, process_speed, rapid_speed, out, plot, as_json, skip_unknown, 
     for warning in caught:
         click.echo(f"warning: {warning.message}", err=True)
     if repeat_to is not None:
-        the_job = the_job.repeat(repeat_to)
+        try:
+            the_job = the_job.repeat(repeat_to)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
     summary = the_job.summary()
+    for path in (out, plot):  # as simulate, estimate and extract do: the folder is made
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
     if out is not None:
         the_job.write_timeline(out)
     if plot is not None:
@@ -353,7 +368,7 @@ def report(
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.part_map import part_map_of_record
     from ajtwin.engine.part_report import write_report
-    from ajtwin.engine.print_job import next_print_twin, stored_part_map
+    from ajtwin.engine.print_job import load_stored_print, map_stored_print, next_print_twin
     from ajtwin.estimation.print_time import program_for_record
     from ajtwin.io.records import RecordError, read_record
     from ajtwin.job import ProgramError
@@ -370,9 +385,9 @@ def report(
                "twin_progress": twin_step, "line_progress": line_step}  # fmt: skip
     try:
         if record is None:
-            part = stored_part_map(
-                open_registry(store), machine, seq, program=program, tolerance=tolerance, **options
-            )
+            stored = load_stored_print(open_registry(store), machine, seq, program)
+            stored.job.check_portions(portion_mm)  # refused before the twin's work
+            part = map_stored_print(stored, tolerance, **options)
         else:
             rec = read_record(record, aliases=aliases, dialect=csv_dialect)
             the_job = program_for_record(
@@ -383,6 +398,7 @@ def report(
                 repeat_to_s=repeat_to,
                 repeat_pitch_mm=repeat_pitch,
             )
+            the_job.check_portions(portion_mm)  # refused before the twin's work
             twin, start = None, None
             if machine is not None:  # the machine's twin, where its next print would start
                 twin, start = next_print_twin(open_registry(store), machine)

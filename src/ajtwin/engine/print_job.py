@@ -32,7 +32,7 @@ from ajtwin.engine.part_map import (
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
-from ajtwin.job import LoopedJob
+from ajtwin.job import LoopedJob, ProgramError, read_program_bytes
 from ajtwin.store.calibration import calibration_by_id
 from ajtwin.store.registry import RegistryError
 
@@ -69,7 +69,7 @@ def job_entry(
         :func:`~ajtwin.estimation.print_time.job_as_printed` reads back.
     """
     path = Path(program)
-    raw = path.read_bytes()
+    raw = read_program_bytes(path)  # a FIFO or device refused before a byte is read
     from_record = dict(((None if record is None else record.meta) or {}).get("job") or {})
     given = {"process_speed_mm_s": process_speed_mm_s, "rapid_speed_mm_s": rapid_speed_mm_s,
              "repeat_to_s": repeat_to_s, "repeat_pitch_mm": repeat_pitch_mm,
@@ -164,14 +164,19 @@ def load_stored_print(registry, machine: str, seq: int | None = None, program=No
     entry = registry.print_job(row["id"])
     time_s = np.asarray(arrays["time_s"], dtype=float)
     duration = float(time_s[-1] - time_s[0] + 1.0)
-    if program is not None:
-        info = (row.get("meta") or {}).get("job")
-        job = job_as_printed(
-            program, info if isinstance(info, dict) else None, print_duration_s=duration
-        )
-    elif entry is not None:
-        job = entry_job(entry, print_duration_s=duration)
-    else:
+    try:
+        if program is not None:
+            info = (row.get("meta") or {}).get("job")
+            job = job_as_printed(
+                program, info if isinstance(info, dict) else None, print_duration_s=duration
+            )
+        elif entry is not None:
+            job = entry_job(entry, print_duration_s=duration)
+    except ProgramError as exc:  # e.g. a program that prints nothing, stored before it was refused
+        raise RegistryError(
+            f"print {row['seq']} of {machine!r}: its part cannot be mapped: {exc}"
+        ) from None
+    if program is None and entry is None:
         raise RegistryError(
             f"print {row['seq']} of {machine!r} was stored without its job: give the program "
             f"(--job PROGRAM.prg), or ingest prints with `ajtwin ingest --job`"

@@ -68,7 +68,6 @@ import functools
 import hashlib
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -78,12 +77,14 @@ from ajtwin.io.records import PrintRecord
 from ajtwin.job import (
     Job,
     LoopedJob,
-    ProgramError,
     SpeedSchedule,
     decode_program,
     loop_job,
+    read_printing,
+    read_program_bytes,
     read_program_text,
 )
+from ajtwin.job.agreement import JobEvidence, check_record_agrees, sample_rows
 from ajtwin.model.line_speed import LineSpeedLaw, line_speed_factors, load_line_speed_law
 
 # seconds of a camera's delays asked of the job at once (the trace query's arrays)
@@ -438,15 +439,7 @@ def job_as_printed(
     unknown = set(overrides) - set(PRINTED_AS)
     if unknown:
         raise TypeError(f"job_as_printed: unknown settings {sorted(unknown)}")
-    if isinstance(program, bytes):
-        raw = program
-    else:
-        try:
-            raw = Path(program).read_bytes()
-        except OSError as exc:
-            raise ProgramError(
-                str(program), None, "", f"cannot read the program: {exc.strerror}"
-            ) from None
+    raw = program if isinstance(program, bytes) else read_program_bytes(program)
     name = name if name is not None else str(program)
     given = dict(settings or {})
     expected = given.get("sha256")
@@ -461,12 +454,15 @@ def job_as_printed(
     schedule = value["process_speed_schedule"]
     if not isinstance(schedule, SpeedSchedule):
         schedule = SpeedSchedule.from_meta(schedule)
-    job = read_program_text(
-        decode_program(raw),
-        None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
-        None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
-        path=name,
-        speed_schedule=schedule,
+    # a job that prints nothing has no part, no camera, no map: refused
+    job = read_printing(
+        lambda: read_program_text(
+            decode_program(raw, name),
+            None if value["process_speed_mm_s"] is None else float(value["process_speed_mm_s"]),
+            None if value["rapid_speed_mm_s"] is None else float(value["rapid_speed_mm_s"]),
+            path=name,
+            speed_schedule=schedule,
+        )
     )
     loop, pitch = value["repeat_to_s"], value["repeat_pitch_mm"]
     if loop is None and print_duration_s is not None and print_duration_s > job.duration_s:
@@ -583,8 +579,61 @@ class PrintContext:
         return PrintTimeBins(self.horizon_s, speed_law, self.job, self.process_speed_mm_s)
 
 
+def job_evidence(record) -> JobEvidence:
+    """What a job record (a :class:`PrintRecord` or a spooled one, read a column at a time)
+    says of its program: its job columns over at most ``max_rows`` rows spread over the print,
+    every camera row up to that many too, and its ``camera`` and ``job`` metadata."""
+    rows = sample_rows(len(record))
+    camera_rows = None
+    columns = {}
+    for name in ("shutter_open", "platen_speed_mm_s", "printed_at_s"):
+        if hasattr(record, "data"):
+            values = record.data[name].to_numpy(dtype=float)
+        else:  # spooled: the raw column (a resampled shutter rounded as the reader does)
+            values = np.asarray(record.column(name), dtype=float)
+        if name == "printed_at_s":  # the camera's rows are few: keep them (up to the bound)
+            seen = np.flatnonzero(np.isfinite(values))
+            camera_rows = seen[sample_rows(seen.size)]
+        columns[name] = values
+    keep = np.union1d(rows, camera_rows)
+    if hasattr(record, "data"):
+        time_s = record.time_s[keep]
+    else:  # spooled: a 1 Hz grid from its first row
+        time_s = record.start_s + keep.astype(float)
+    shutter = columns["shutter_open"][keep]
+    camera = record.meta.get("camera") if isinstance(record.meta.get("camera"), dict) else {}
+    info = record.meta.get("job") if isinstance(record.meta.get("job"), dict) else {}
+    speed = info.get("process_speed_mm_s")
+    return JobEvidence(
+        where=str(record.meta.get("source_file", "the record")),
+        time_s=time_s,
+        row=keep + 1,
+        shutter_open=np.where(np.isfinite(shutter), np.floor(shutter + 0.5), np.nan),
+        platen_speed_mm_s=columns["platen_speed_mm_s"][keep],
+        printed_at_s=columns["printed_at_s"][keep],
+        camera_mode=camera.get("mode"),
+        camera_offset_mm=tuple(float(v) for v in camera.get("offset_mm", (0.0, 0.0))),
+        process_speed_mm_s=None if speed is None else float(speed),
+    )
+
+
+def check_job_record(record, job: Job | LoopedJob | None = None) -> None:
+    """Refuse a job record that contradicts its program ``job`` (with the program: its
+    speeds, shutter and print times; without: its speeds in the speed law's range),
+    before anything is computed (:func:`ajtwin.job.agreement.check_record_agrees`)."""
+    law = load_line_speed_law()
+    check_record_agrees(
+        job_evidence(record),
+        job,
+        speed_range_mm_s=(law.min_speed_mm_s, law.max_speed_mm_s),
+    )
+
+
 def print_context(record: PrintRecord, job: Job | None = None, horizon_s=None) -> PrintContext:
-    """The :class:`PrintContext` of a job record (``horizon_s`` overrides the rule)."""
+    """The :class:`PrintContext` of a job record (``horizon_s`` overrides the rule), once the
+    record is found to agree with its program (:func:`check_job_record`: a record that
+    contradicts it is refused here, where the batch and the spooled twin both start)."""
+    check_job_record(record, job)
     camera = record.meta.get("camera")
     if horizon_s is None:
         horizon_s = camera_horizon_s(camera, job, len(record))

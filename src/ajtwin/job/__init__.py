@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin.config import InputFileError, read_bounded_bytes
 from ajtwin.job.errors import ProgramError, ProgramWarning
 from ajtwin.job.geometry import GEOMETRY_FIELDS, segment_bbox
 from ajtwin.job.job import (
@@ -57,7 +58,10 @@ from ajtwin.job.speeds import SpeedSchedule, apply_speed_schedule, stroke_layers
 
 __all__ = [
     "read_program",
+    "read_program_bytes",
     "decode_program",
+    "read_printing",
+    "require_printing",
     "read_program_text",
     "Job",
     "JobState",
@@ -150,7 +154,7 @@ def read_program(
     """
     path = Path(path)
     return read_program_text(
-        decode_program(path.read_bytes()),
+        decode_program(read_program_bytes(path), str(path)),
         process_speed_mm_s,
         rapid_speed_mm_s,
         path=str(path),
@@ -164,13 +168,88 @@ def read_program(
     )
 
 
-def decode_program(raw: bytes) -> str:
-    """A program file's bytes as text: UTF-8 (with or without a byte-order mark), else
-    Latin-1 (controllers' editors write either)."""
+def read_program_bytes(path: str | Path) -> bytes:
+    """The bytes of a program file, refused (ProgramError naming it) when it is missing, not
+    a regular file (a FIFO would block, ``/dev/zero`` never ends) or larger than
+    ``max_program_bytes`` of ``job.toml``; nothing is read from a file refused."""
+    limit = load_reader_settings().max_program_bytes
+    try:
+        return read_bounded_bytes(path, "program", limit)
+    except (InputFileError, FileNotFoundError) as exc:
+        raise ProgramError(str(path), None, "", str(exc).removeprefix(f"{path}: ")) from None
+
+
+_UTF16_MARKS = {b"\xff\xfe": "utf-16-le", b"\xfe\xff": "utf-16-be"}
+
+
+def decode_program(raw: bytes, path: str = "<program>") -> str:
+    """A program file's bytes as text: UTF-8 (with or without a byte-order mark), UTF-16
+    with its byte-order mark (a Windows editor's "Unicode"), else Latin-1 (controllers'
+    editors write either).
+
+    Raises
+    ------
+    ProgramError
+        Bytes that are no text: a NUL byte outside UTF-16 (a binary file, or UTF-16 saved
+        without its byte-order mark).
+    """
+    encoding = _UTF16_MARKS.get(raw[:2])
+    if encoding is not None:
+        try:
+            return raw[2:].decode(encoding)
+        except UnicodeDecodeError as exc:
+            raise ProgramError(
+                path,
+                None,
+                "",
+                f"starts with a UTF-16 byte-order mark but byte {exc.start + 2} is not UTF-16 text",
+            ) from None
+    nul = raw.find(b"\0")
+    if nul >= 0:
+        line = raw[:nul].count(b"\n") + 1
+        raise ProgramError(
+            path,
+            None,
+            "",
+            f"byte {nul} (line {line}) is a NUL: this is not a text program (a binary file, "
+            "or UTF-16 saved without its byte-order mark: save it as UTF-8)",
+        )
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         return raw.decode("latin-1")
+
+
+def read_printing(read):
+    """``read()`` — a call of a program reader — refused when the job prints nothing
+    (:func:`require_printing`); its warnings are passed on only for a job that prints (the
+    refusal says what the "prints nothing" warning would)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        job = read()
+    require_printing(job)
+    for warning in caught:
+        warnings.warn(warning.message, warning.category, stacklevel=3)
+    return job
+
+
+def require_printing(job) -> None:
+    """Refuse a job that prints nothing (no stroke: its shutter never opens), with the
+    reader's reason (the shutter output, the outputs it switches instead).
+
+    Raises
+    ------
+    ProgramError
+    """
+    program = getattr(job, "program", job)  # a LoopedJob: its program
+    if program.n_strokes == 0:
+        reason = next(
+            (w for w in program.warnings if w.startswith("prints nothing")),
+            "prints nothing: the program never opens the shutter",
+        )
+        raise ProgramError(
+            program.path, None, "", f"{reason}; there is no part to print, map or follow"
+        )
 
 
 def read_program_text(

@@ -5,6 +5,10 @@ from __future__ import annotations
 __all__ = ["ProgramError", "ProgramWarning"]
 
 
+# characters of the offending line shown in a message (a 30 000-character line is cut)
+_SHOWN = 200
+
+
 class ProgramError(ValueError):
     """A program the reader refuses: unknown command, unreadable number, bad geometry.
 
@@ -32,7 +36,8 @@ class ProgramError(ValueError):
     def _message(self) -> str:
         if self.line is None:
             return f"{self.path}: {self.reason}"
-        return f"{self.path}:{self.line}: {self.reason}\n    {self.line} | {self.text}"
+        text = self.text if len(self.text) <= _SHOWN else self.text[:_SHOWN] + " …"
+        return f"{self.path}:{self.line}: {self.reason}\n    {self.line} | {text}"
 
 
 class ProgramWarning(UserWarning):

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.io.schema import MAX_RECORD_SECONDS
 from ajtwin.job.errors import ProgramError
 from ajtwin.job.geometry import (
     GEOMETRY_FIELDS,
@@ -124,6 +125,9 @@ class JobState:
     stroke, feature, segment : ndarray of int
         Stroke being printed (-1: shutter closed), feature (-1: none), segment index
         (-1 before the start and after the end).
+    line, speed_source : ndarray of int
+        The program line of that segment (0: a loop's wait or move between runs) and where
+        its speed came from (index into the job's ``speed_sources``; -1: a dwell).
     """
 
     x_mm: np.ndarray
@@ -135,6 +139,8 @@ class JobState:
     stroke: np.ndarray
     feature: np.ndarray
     segment: np.ndarray
+    line: np.ndarray
+    speed_source: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -458,11 +464,13 @@ class Job:
     def from_program(cls, parsed: ParsedProgram, *, stage: Stage, settings: ReaderSettings) -> Job:
         """Assemble a job from one pass of the reader (see :func:`ajtwin.job.read_program`)."""
         if len(parsed.pieces) == 0:
+            # what the reader noted (another buffer not read, blocks skipped) says why
+            why = "".join(f"; {note}" for note in parsed.notes)
             raise ProgramError(
                 parsed.path,
                 None,
                 "",
-                "the program moves nothing in X-Y: there is no timeline to build",
+                f"the program moves nothing in X-Y: there is no timeline to build{why}",
             )
         bad = ~np.isfinite(parsed.pieces[:, [P_X0, P_Y0, P_X1, P_Y1, P_T1]]).all(axis=1)
         if bad.any():
@@ -899,6 +907,26 @@ class Job:
         t = np.where(has_motion, t, self._stroke_t[0][stroke])
         return StrokePoints(x_mm=x, y_mm=y, time_s=t, ux=ux, uy=uy, segment=seg.astype(np.int64))
 
+    def _portion_counts(self, max_length_mm: float) -> np.ndarray:
+        """Portions per stroke (:meth:`portions`), refused beyond ``max_portions``."""
+        if not (max_length_mm > 0 and math.isfinite(max_length_mm)):
+            raise ValueError(f"max_length_mm must be a positive length, got {max_length_mm}")
+        length = self._stroke_length
+        count = np.maximum(1, np.ceil(length / max_length_mm - 1e-9))
+        limit = self.settings.max_portions
+        if count.sum() > limit:
+            raise ValueError(
+                f"{self.path}: {length.sum():.1f} mm of strokes cut into portions of at most "
+                f"{max_length_mm:g} mm make {count.sum():,.0f} portions, more than the "
+                f"{limit:,} a part map holds (job.toml max_portions): longer portions"
+            )
+        return count
+
+    def check_portions(self, max_length_mm: float) -> int:
+        """How many portions :meth:`portions` would cut (ValueError beyond ``max_portions``
+        of ``job.toml``): asked before a part map's work."""
+        return int(self._portion_counts(max_length_mm).sum())
+
     def portions(self, max_length_mm: float = 1.0) -> pd.DataFrame:
         """Each stroke cut into equal portions of at most ``max_length_mm``.
 
@@ -912,10 +940,8 @@ class Job:
             first portion starts when the shutter opens, the last ends when it closes).
             A stroke of zero length (the shutter opened over a still stage) is one portion.
         """
-        if not (max_length_mm > 0 and math.isfinite(max_length_mm)):
-            raise ValueError(f"max_length_mm must be a positive length, got {max_length_mm}")
+        count = self._portion_counts(max_length_mm).astype(np.int64)
         length = self._stroke_length
-        count = np.maximum(1, np.ceil(length / max_length_mm - 1e-9)).astype(np.int64)
         stroke = np.repeat(np.arange(self.n_strokes), count)
         portion = np.arange(stroke.size) - np.repeat(np.cumsum(count) - count, count)
         step = length[stroke] / count[stroke]
@@ -958,6 +984,47 @@ class Job:
         :meth:`ajtwin.job.locate.TraceIndex.query`."""
         return self.trace_index().query(x_mm, y_mm, radius_mm, before_s=before_s)
 
+    def until(self, time_s: float) -> Job:
+        """The job up to ``time_s``, the stroke printing then kept whole: what a camera can
+        have seen by then. Strokes keep their numbers, lengths and times (a window cut along
+        a stroke depends on its whole length); nothing printed later is held.
+
+        Examples
+        --------
+        >>> from ajtwin.job import read_program_text
+        >>> prg = "ptp/e (X,Y),0,0\\nOUT0.0=1\\nptp/e (X,Y),4,0\\nOUT0.0=0\\nptp/e (X,Y),4,3"
+        >>> job = read_program_text(prg, process_speed_mm_s=2)
+        >>> cut = job.until(1.0)
+        >>> cut.n_strokes, cut.duration_s
+        (1, 2.0)
+        """
+        t = float(time_s)
+        if t >= self.duration_s:
+            return self
+        stroke = int(self.state_at(t).stroke)
+        if stroke >= 0:
+            t = max(t, float(self._stroke_t[1][stroke]))
+        seg = _cut_at_times(self._seg, np.array([t]))
+        seg = _take(seg, seg["t0_s"] < t)
+        runs = int(np.searchsorted(self.repetition_offsets_s, t, side="left")) or 1
+        return Job(
+            dict(seg),
+            path=self.path,
+            n_lines=self.n_lines,
+            speed_sources=self.speed_sources,
+            feature_names=self.feature_names,
+            notes=self.notes,
+            warnings=self.warnings,
+            stage=self.stage,
+            settings=self.settings,
+            return_source=self.return_source,
+            end_shutter_open=bool(seg["shutter_open"][-1]),
+            repetition_offsets_s=self.repetition_offsets_s[:runs],
+            program_duration_s=self.program_duration_s,
+            repetition_offsets_mm=self.repetition_offsets_mm[:runs],
+            speed_schedule=self.speed_schedule,
+        )
+
     # -- looping ---------------------------------------------------------------------------
 
     def repeat(self, duration_s: float, gap_s: float = 0.0, pitch_mm=None) -> Job:
@@ -992,6 +1059,14 @@ class Job:
             strokes are numbered anew across runs.
         """
         plan = self.loop_plan(duration_s, gap_s, pitch_mm)
+        held = plan.runs * (self.n_segments + 2)
+        limit = self.settings.max_held_segments
+        if held > limit:
+            raise ValueError(
+                f"{self.path}: looped to {duration_s:g} s the job holds {held:,} segments "
+                f"({plan.runs:,} runs of {self.n_segments:,}), more than the {limit:,} a job "
+                "held whole may hold (job.toml max_held_segments): loop it to a shorter time"
+            )
         seg = _concat([part for k in range(plan.runs) for part in self.loop_block(plan, k)])
         seg = _cut_at_times(seg, np.array([plan.duration_s]))
         seg = _take(seg, seg["t0_s"] < plan.duration_s)
@@ -1024,6 +1099,11 @@ class Job:
             raise ValueError(
                 f"duration_s must be positive and gap_s non-negative, got {duration_s}, {gap_s}"
             )
+        if duration_s > MAX_RECORD_SECONDS:
+            raise ValueError(
+                f"{self.path}: a loop of {duration_s:g} s is longer than the "
+                f"{MAX_RECORD_SECONDS / 86400:g} days a print record may last"
+            )
         s = self._seg
         D = self.duration_s
         end = (float(s["x1_mm"][-1]), float(s["y1_mm"][-1]))
@@ -1034,6 +1114,7 @@ class Job:
             back = distance / source.value_mm_s
             period = D + gap_s + back
             runs = 1 if duration_s <= D else 1 + math.ceil((duration_s - D) / period - 1e-12)
+            self._check_runs(runs, duration_s)
             offsets, places = np.arange(runs) * period, np.zeros((runs, 2))
             note = (
                 f"{gap_s:g} s wait and {back:.3f} s return ({distance:.3f} mm at "
@@ -1063,6 +1144,16 @@ class Job:
             note=f"repeated {runs} time(s) to {duration_s:g} s: {note}",
         )
 
+    def _check_runs(self, runs: int, duration_s: float) -> None:
+        """Refuse a loop of more runs than ``max_loop_runs`` (``job.toml``)."""
+        limit = self.settings.max_loop_runs
+        if runs > limit:
+            raise ValueError(
+                f"{self.path}: one run lasts {self.duration_s:.4g} s, so a loop to "
+                f"{duration_s:g} s starts {runs:,} runs, more than the {limit:,} a loop may "
+                "start (job.toml max_loop_runs): is this the program the print looped?"
+            )
+
     def loop_block(self, plan: LoopPlan, k: int) -> list[dict]:
         """Run ``k`` of the loop ``plan`` as segment arrays: the wait and the move that lead
         to it (none before run 0), then the program moved to its place and time."""
@@ -1089,6 +1180,16 @@ class Job:
             raise ValueError(f"pitch_mm = {pitch_mm!r}: a finite, non-zero (dx, dy) in mm")
         x0, y0, x1, y1 = self._bbox(np.ones(self.n_segments, dtype=bool))
         width, height = x1 - x0, y1 - y0
+        if duration_s > self.duration_s:  # parts side by side must not print over each other
+            printed = self._bbox(self._seg["shutter_open"] & (self._seg["kind"] != KIND_DWELL))
+            part_w, part_h = (0.0, 0.0) if printed is None else (
+                printed[2] - printed[0], printed[3] - printed[1])  # fmt: skip
+            if (dx != 0 and abs(dx) < part_w) or (dy != 0 and abs(dy) < part_h):
+                raise ValueError(
+                    f"{self.path}: parts {part_w:.4g} x {part_h:.4g} mm (printed) at a pitch "
+                    f"of ({dx:g}, {dy:g}) mm would print over each other: give a pitch of at "
+                    "least the part's size in each direction it steps"
+                )
         travel_x, travel_y = self.stage.travel_x_mm, self.stage.travel_y_mm
         columns = 1 if dx == 0 else 1 + int(math.floor((travel_x - width) / abs(dx) + 1e-9))
         rows = 1 if dy == 0 else 1 + int(math.floor((travel_y - height) / abs(dy) + 1e-9))
@@ -1100,6 +1201,7 @@ class Job:
         offsets, places = [0.0], [(0.0, 0.0)]
         while offsets[-1] + D < duration_s - 1e-12 * max(D, 1.0):
             k = len(offsets)
+            self._check_runs(k + 1, duration_s)
             if k >= columns * rows or columns < 1 or rows < 1:
                 raise ValueError(
                     f"{self.path}: {k + 1} parts of {width:.2f} x {height:.2f} mm at a pitch of "
@@ -1143,6 +1245,8 @@ def stage_state(seg: dict, t, duration_s: float, end_shutter_open: bool) -> JobS
         stroke=stroke.astype(np.int64),
         feature=s["feature"][index].astype(np.int64),
         segment=np.where(outside, -1, index).astype(np.int64),
+        line=s["line"][index].astype(np.int64),
+        speed_source=np.where(outside, -1, s["speed_source"][index]).astype(np.int64),
     )
 
 

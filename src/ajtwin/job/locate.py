@@ -210,11 +210,14 @@ class TraceIndex:
         if self.order.size:
             # the cells under each point's square [x - r, x + r] x [y - r, y + r]
             c, (ox, oy) = self.cell_mm, self.origin
-            lo_x = np.floor((x - radius_mm - ox) / c).astype(np.int64)
-            hi_x = np.floor((x + radius_mm - ox) / c).astype(np.int64)
-            lo_y = np.floor((y - radius_mm - oy) / c).astype(np.int64)
-            hi_y = np.floor((y + radius_mm - oy) / c).astype(np.int64)
-            span = int(math.ceil(2 * radius_mm / c)) + 1
+            # the cells under the square, cut to the grid: a radius wider than the part asks
+            # every cell once, not cells (and arrays) the size of the radius
+            lo_x = np.clip(np.floor((x - radius_mm - ox) / c), -1, nx).astype(np.int64)
+            hi_x = np.clip(np.floor((x + radius_mm - ox) / c), -1, nx).astype(np.int64)
+            lo_y = np.clip(np.floor((y - radius_mm - oy) / c), -1, ny).astype(np.int64)
+            hi_y = np.clip(np.floor((y + radius_mm - oy) / c), -1, ny).astype(np.int64)
+            lo_x, lo_y = np.maximum(lo_x, 0), np.maximum(lo_y, 0)
+            span = int(min(math.ceil(2 * radius_mm / c) + 1, max(nx, ny)))
             per_point = span * span * max(1, int(4 * self.order.size / max(nx * ny, 1)) + 1)
             batch = max(1, _BATCH_PAIRS // per_point)
             for lo in range(0, x.size, batch):

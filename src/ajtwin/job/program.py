@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ajtwin.io.schema import MAX_PLATEN_SPEED_MM_S
 from ajtwin.job.errors import ProgramError
 from ajtwin.job.settings import ReaderSettings, Stage
 
@@ -105,6 +106,19 @@ _MOTION_WORDS = {
     "kill",
     *_UNSUPPORTED_MOTION,
 }
+
+# G-code's motion words (G0 rapid, G1 line, G2/G3 arcs): they move the stage, so a G-code line
+# in an ACSPL+ program is never skipped as a command "that does not move the stage"
+_GCODE_MOTION = re.compile(r"g0*[0-3]")
+# a number as written in a program: Python's float() also reads "1_0" as 10, which no
+# controller does; a literal token with an underscore is refused
+_LITERAL = re.compile(r"(?<![\w.])\d[\w.]*")
+# An arc1 end this close to its start is the start (a full turn written as such, rounding
+# of the coordinates aside); further, up to the join tolerance, a warning says it was read
+# as a full turn [mm]
+_SAME_POINT_MM = 1e-6
+#: Largest feature number of a ``!Feature`` comment (an int32: controllers' integers).
+MAX_FEATURE_NUMBER = 2**31 - 1
 
 _HEAD = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*(?:/\s*([A-Za-z]+))?\s*(.*)", re.S)
 _FEATURE = re.compile(r"feature\s*[:#=]?\s*(-?\d+)\s*[:\-]?\s*(.*)", re.I)
@@ -209,6 +223,7 @@ class _Reader:
         self.tol = settings.join_tolerance_mm
         self.min_r = settings.min_arc_radius_mm
         self.cos_turn = math.cos(math.radians(settings.max_arc_turn_deg))
+        self.max_time = settings.max_program_time_s
         self.skip_unknown = skip_unknown
         self.shutter_output = tuple(int(v) for v in shutter_output)
         self.x_axis, self.y_axis = (_axis_number(a) for a in axes)
@@ -274,6 +289,10 @@ class _Reader:
         self.skip_start = 0
         self.skip_text = ""
         self.skip_motion = 0
+        # Else branches being run (the If before each was skipped): (line, text)
+        self.else_open: list[tuple[int, str]] = []
+        # arc1s whose end lies within the join tolerance of their start: read as full turns
+        self.full_turns: list = []
 
         self.axes_cache: dict[str, tuple] = {}
         self.handlers = self._command_handlers()
@@ -298,7 +317,7 @@ class _Reader:
             "stop": self._stop,
             "halt": self._halt,
             "kill": self._halt,
-            "end": self._end_unmatched,
+            "end": self._end,
             "else": self._end_unmatched,
             "elseif": self._end_unmatched,
         }
@@ -319,9 +338,8 @@ class _Reader:
     # -- numbers and expressions -----------------------------------------------------------
 
     def _num(self, text: str, ln: int, raw: str, what: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
+        value = _plain_float(text)
+        if value is None:
             value = self._expr(text, ln, raw, what)[0]
         if value - value != 0.0:  # NaN or infinite
             raise self.error(ln, raw, f"{what} is not a finite number: {text.strip()!r}")
@@ -338,11 +356,23 @@ class _Reader:
             entry = self.env.get(self._index_key(key, ln, raw))
         if entry is not None:
             return self._entry_value(entry, src, ln, raw), entry[1], entry[2]
+        for literal in _LITERAL.findall(src):
+            if "_" in literal:
+                raise self.error(ln, raw, f"unreadable number {literal!r} in {what}")
         try:
             tree = ast.parse(src, mode="eval")
-        except SyntaxError:
+            value = self._eval(tree.body, src, ln, raw, what)
+        except (SyntaxError, ValueError) as exc:  # ValueError: an integer of > 4300 digits
+            if isinstance(exc, ProgramError):
+                raise
             raise self.error(ln, raw, f"unreadable number in {what}: {src!r}") from None
-        value = self._eval(tree.body, src, ln, raw, what)
+        except (RecursionError, MemoryError):
+            raise self.error(
+                ln,
+                raw,
+                f"{what} is an expression nested too deeply to read ({len(src)} characters); "
+                "write its value",
+            ) from None
         return value, f"line {ln}: {src}", "program"
 
     def _entry_value(self, entry: tuple, name: str, ln: int, raw: str) -> float:
@@ -355,7 +385,12 @@ class _Reader:
 
     def _eval(self, node, src: str, ln: int, raw: str, what: str) -> float:
         if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
-            return float(node.value)
+            try:
+                return float(node.value)
+            except OverflowError:  # an integer beyond any float
+                raise self.error(
+                    ln, raw, f"a number in {what} is too large ({len(str(node.value))} digits)"
+                ) from None
         if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
             value = self._eval(node.operand, src, ln, raw, what)
             return -value if isinstance(node.op, ast.USub) else value
@@ -405,6 +440,8 @@ class _Reader:
         if isinstance(node, ast.Name) and node.id.lower() in AXIS_NUMBERS:
             return str(AXIS_NUMBERS[node.id.lower()])
         value = self._eval(node, src, ln, raw, what)
+        if not math.isfinite(value):
+            raise self.error(ln, raw, f"index {value} is not a finite number in {what}: {src!r}")
         if value != int(value):
             raise self.error(ln, raw, f"index {value} is not an integer in {what}: {src!r}")
         return str(int(value))
@@ -415,10 +452,11 @@ class _Reader:
         name, index = m.group(1), m.group(2)
         if index in AXIS_NUMBERS:
             return f"{name}({AXIS_NUMBERS[index]})"
-        try:
-            number = float(index)
-        except ValueError:
+        number = _plain_float(index)
+        if number is None:
             number = self._expr(index, ln, raw, f"the index of {name}")[0]
+        if not math.isfinite(number):
+            raise self.error(ln, raw, f"the index of {name} is not a finite number: {index!r}")
         return f"{name}({int(number)})" if number == int(number) else f"{name}({index})"
 
     def _axis_position(self, axis: int) -> float | None:
@@ -448,13 +486,21 @@ class _Reader:
             if kind == "program":
                 origin = f"VEL({lead_axis}) from {origin}"
         else:
-            try:
-                value, origin, kind = float(arg), f"line {ln}: {arg.strip()}", "program"
-            except ValueError:
+            value = _plain_float(arg)
+            if value is not None:
+                origin, kind = f"line {ln}: {arg.strip()}", "program"
+            else:
                 value, origin, kind = self._expr(arg, ln, raw, "the speed")
         if not (value > 0.0 and math.isfinite(value)):
             raise self.error(
                 ln, raw, f"speed {value} mm/s ({origin}) is not a positive finite speed"
+            )
+        if value > MAX_PLATEN_SPEED_MM_S:
+            raise self.error(
+                ln,
+                raw,
+                f"speed {value:g} mm/s ({origin}) is faster than any Aerosol Jet stage moves "
+                f"(at most {MAX_PLATEN_SPEED_MM_S:g} mm/s): is it in another unit?",
             )
         return value, self._source(value, kind, origin)
 
@@ -501,6 +547,9 @@ class _Reader:
                 try:
                     if handler is not None:
                         handler(m.group(2) or "", m.group(3), ln, s)
+                    elif word in _UNSUPPORTED_MOTION and not m.group(3).startswith("="):
+                        # WHILE x = 1: ACSPL+ compares with "=", this is no assignment
+                        self._unknown(word, stmt, ln, s)
                     elif "=" in stmt:
                         self._assign(stmt, ln, s)
                     elif stmt.endswith(":") and " " not in stmt:
@@ -525,6 +574,9 @@ class _Reader:
     def _finish_checks(self, last_line: int) -> None:
         if self.skip_depth:
             raise self.error(self.skip_start, self.skip_text, "this block has no End")
+        if self.else_open:
+            line, text = self.else_open[-1]
+            raise self.error(line, text, "this Else branch has no End")
         if self.seg_open:
             raise self.error(self.seg_line, "MSEG", "this segmented path is never closed by ENDS")
         for kind, (line, count) in self.skipped_kinds.items():
@@ -542,6 +594,17 @@ class _Reader:
             self.notes.append(
                 f"line {line}: assignments to {target} do not change the timeline and are ignored"
             )
+        if self.full_turns:
+            line, chord, radius = self.full_turns[0]
+            self.warnings.append(
+                f"{len(self.full_turns)} arc1(s) end within the {_distance(self.tol)} join "
+                f"tolerance of their start but not on it (first at line {line}: "
+                f"{_distance(chord)} apart on a {radius:.4g} mm radius): read as full turns "
+                f"({TWO_PI * radius:.4g} mm); write the end point equal to the start for a "
+                "full turn, or use arc2 with the sweep for a short arc"
+            )
+        if not any(self.ev_open):
+            self.warnings.append(self._nothing_printed())
         if self.dynamics:
             where = ", ".join(f"{name} (line {line})" for name, line in self.dynamics.items())
             self.notes.append(
@@ -550,12 +613,30 @@ class _Reader:
                 "machine"
             )
 
+    def _nothing_printed(self) -> str:
+        """Why the program prints nothing: the shutter output it never opens, and the other
+        outputs it switches (a shutter wired to another port)."""
+        port, bit = self.shutter_output
+        text = (
+            f"prints nothing: the program never opens the shutter (OUT{port}.{bit} or ShutterOpen)"
+        )
+        if self.ev_line:
+            text += f"; it only closes it (line {self.ev_line[0]})"
+        others = [f"{name.removeprefix('digital output ')} (line {line})"
+                  for name, line in self.ignored_targets.items()
+                  if name.startswith("digital output")]  # fmt: skip
+        if others:
+            text += (
+                f"; it switches {', '.join(others)}: ajtwin reads OUT{port}.{bit} as the shutter"
+            )
+        return text
+
     # -- statements ------------------------------------------------------------------------
 
     def _skipping(self, word: str, ln: int) -> None:
         if word in _BLOCK_OPENERS:
             self.skip_depth += 1
-        elif word == "end":
+        elif word == "end" or (word == "else" and self.skip_depth == 1):
             self.skip_depth -= 1
             if self.skip_depth == 0:
                 moved = self.skip_motion
@@ -563,6 +644,13 @@ class _Reader:
                     f"lines {self.skip_start}-{ln}: block '{self.skip_text}' skipped "
                     "(alignment/fiducial block, run only on the GUI's request)"
                 )
+                if word == "else":  # its condition taken as false: the Else branch runs
+                    text = (
+                        f"lines {self.skip_start}-{ln}: the If branch of '{self.skip_text}' "
+                        "skipped (its condition taken as false: alignment/fiducial blocks run "
+                        f"only on the GUI's request); its Else branch from line {ln} is run"
+                    )
+                    self.else_open.append((ln, self.skip_text))
                 if moved:
                     self.warnings.append(
                         f"{text}; it holds {moved} motion command(s) that are not in the timeline"
@@ -575,6 +663,12 @@ class _Reader:
     def _if(self, sw, rest, ln, raw):
         self.skip_depth, self.skip_start, self.skip_text, self.skip_motion = 1, ln, raw, 0
 
+    def _end(self, sw, rest, ln, raw):
+        if self.else_open:
+            self.else_open.pop()  # the End of an Else branch that was run
+            return
+        self._end_unmatched(sw, rest, ln, raw)
+
     def _end_unmatched(self, sw, rest, ln, raw):
         raise self.error(ln, raw, "End/Else without a matching If")
 
@@ -583,6 +677,13 @@ class _Reader:
         if m is None:
             self.notes.append(f"line {ln}: feature comment without a number ignored: {raw}")
             return
+        if len(m.group(1).lstrip("-")) > 10 or abs(int(m.group(1))) > MAX_FEATURE_NUMBER:
+            raise self.error(
+                ln,
+                raw,
+                f"feature number {m.group(1)} is too large (features are numbered up to "
+                f"{MAX_FEATURE_NUMBER})",
+            )
         number = int(m.group(1))
         self.feature = number
         self.feat_t.append(self.tp)
@@ -591,6 +692,13 @@ class _Reader:
         self.feature_names.setdefault(number, name)
 
     def _unknown(self, word: str, stmt: str, ln: int, raw: str) -> None:
+        if _GCODE_MOTION.fullmatch(word):
+            raise self.error(
+                ln,
+                raw,
+                f"{word.upper()} is a G-code motion command: it moves the stage, and this "
+                "reader reads ACSPL+ programs (.prg), not G-code",
+            )
         if word in _UNSUPPORTED_MOTION:
             raise self.error(
                 ln,
@@ -637,9 +745,8 @@ class _Reader:
         elif not target.isidentifier():
             raise self.error(ln, raw, f"unreadable assignment target {lhs.strip()!r}")
         text = rhs.strip()
-        try:
-            value = float(text)
-        except ValueError:
+        value = _plain_float(text)
+        if value is None:
             try:
                 value = self._expr(text, ln, raw, f"the value of {lhs.strip()}")[0]
             except ProgramError:
@@ -681,7 +788,7 @@ class _Reader:
             raise self.error(ln, raw, f"negative wait time {ms} ms")
         self.mark_t.append(self.tp)
         self.mark_line.append(ln)
-        self.tp += ms * 1e-3
+        self.tp = self._clock(self.tp + ms * 1e-3, ln, raw)
 
     def _till(self, sw, rest, ln, raw):
         condition = rest.lower()
@@ -697,6 +804,18 @@ class _Reader:
 
     def _stop(self, sw, rest, ln, raw):
         raise _Stop
+
+    def _clock(self, t: float, ln: int, raw: str) -> float:
+        """``t``, a time the program reaches at line ``ln``, refused beyond the clock's bound."""
+        if not t <= self.max_time:
+            raise self.error(
+                ln,
+                raw,
+                f"the program's clock reaches {t:.4g} s here, beyond the {self.max_time:.4g} s "
+                "(job.toml max_program_time_s) a program may last: a wait or a move far too "
+                "long (is it in the right unit?)",
+            )
+        return t
 
     def _halt(self, sw, rest, ln, raw):
         """HALT/KILL: the motion stops where it is at the program time."""
@@ -820,13 +939,15 @@ class _Reader:
         if y0 is None:
             y0 = y1
         start = self.tp if self.tp > self.tm else self.tm
-        end = self._move_line(x0, y0, x1, y1, other_sq, speed, source, ln, start)
+        end = self._move_line(x0, y0, x1, y1, other_sq, speed, source, (ln, raw), start)
         self.tm = end
         if "e" in sw:
             self.tp = end
 
-    def _move_line(self, x0, y0, x1, y1, other_sq, speed, source, ln, start) -> float:
-        """Queue a straight move; returns its end time. Unknown X or Y stays unknown."""
+    def _move_line(self, x0, y0, x1, y1, other_sq, speed, source, where, start) -> float:
+        """Queue a straight move (``where``: its line and text); returns its end time.
+        Unknown X or Y stays unknown."""
+        ln, raw = where
         self.x, self.y = x1, y1
         if x0 is None or y0 is None or x1 is None or y1 is None:
             dxy = 0.0
@@ -836,6 +957,13 @@ class _Reader:
         if total == 0.0:
             return start
         duration = total / speed
+        if not duration > 0.0:  # a move of a few 1e-300 mm at speed: no time a float holds
+            raise self.error(
+                ln,
+                raw,
+                f"a move of {total:.3g} mm at {speed:g} mm/s takes no time this clock can hold",
+            )
+        self._clock(start + duration, ln, raw)
         if dxy > 0.0:
             self.pieces.append(
                 (
@@ -964,6 +1092,11 @@ class _Reader:
                     "the wrong "
                     "direction (arc1 +/-) or sweep sign (arc2)",
                 )
+        if not piece[P_T1] > piece[P_T0]:  # a length that takes no time at this speed
+            raise self.error(
+                ln, raw, f"a move of {piece[P_LEN]:.3g} mm takes no time this clock can hold"
+            )
+        self._clock(piece[P_T1], ln, raw)
         self.pieces.append(piece)
         self.last_motion_line = ln
         self.seg_t = piece[P_T1]
@@ -1083,7 +1216,10 @@ class _Reader:
             )
         a0 = math.atan2(y0 - cy, x0 - cx)
         a1 = math.atan2(ye - cy, xe - cx)
-        full = math.hypot(xe - x0, ye - y0) <= self.tol
+        chord = math.hypot(xe - x0, ye - y0)
+        full = chord <= self.tol
+        if full and chord > _SAME_POINT_MM:  # a short arc or a full turn: both could be meant
+            self.full_turns.append((ln, chord, r0))
         if direction == "+":
             sweep = TWO_PI if full else (a1 - a0) % TWO_PI
         else:
@@ -1130,7 +1266,23 @@ def _positive_speed(value, name: str) -> float:
     value = float(value)
     if not (value > 0.0 and math.isfinite(value)):
         raise ValueError(f"{name} must be a positive finite speed in mm/s, got {value}")
+    if value > MAX_PLATEN_SPEED_MM_S:
+        raise ValueError(
+            f"{name} = {value:g} mm/s is faster than any Aerosol Jet stage moves (at most "
+            f"{MAX_PLATEN_SPEED_MM_S:g} mm/s)"
+        )
     return value
+
+
+def _plain_float(text: str) -> float | None:
+    """``text`` as a plain number (None: not one). Python's float() reads ``1_0`` as 10;
+    a program's number has no underscore."""
+    if "_" in text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        return None
 
 
 def _cut_piece(piece: tuple, fraction: float) -> tuple:

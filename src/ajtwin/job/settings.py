@@ -42,13 +42,19 @@ class Stage:
 
 @dataclass(frozen=True)
 class ReaderSettings:
-    """Tolerances of the program checks and the timeline's arc sampling (``job.toml``)."""
+    """Tolerances of the program checks, the timeline's arc sampling and the bounds on the
+    work a program may ask (``job.toml``)."""
 
     join_tolerance_mm: float
     min_arc_radius_mm: float
     max_arc_turn_deg: float
     max_arc_step_deg: float
     chord_tolerance_mm: float
+    max_program_time_s: float
+    max_program_bytes: int
+    max_held_segments: int
+    max_loop_runs: int
+    max_portions: int
 
 
 def _read(name: str, path: str | Path | None) -> dict:
@@ -109,10 +115,16 @@ def load_reader_settings(path: str | None = None) -> ReaderSettings:
     data = _read("job.toml", path)
     where = path or "job.toml"
     checks, timeline = data.get("checks", {}), data.get("timeline", {})
+    bounds = data.get("bounds", {})
     return ReaderSettings(
         join_tolerance_mm=_positive(checks, "join_tolerance_mm", where),
         min_arc_radius_mm=_positive(checks, "min_arc_radius_mm", where),
         max_arc_turn_deg=_positive(checks, "max_arc_turn_deg", where),
         max_arc_step_deg=_positive(timeline, "max_arc_step_deg", where),
         chord_tolerance_mm=_positive(timeline, "chord_tolerance_mm", where),
+        max_program_time_s=_positive(checks, "max_program_time_s", where),
+        max_program_bytes=int(_positive(bounds, "max_program_bytes", where)),
+        max_held_segments=int(_positive(bounds, "max_held_segments", where)),
+        max_loop_runs=int(_positive(bounds, "max_loop_runs", where)),
+        max_portions=int(_positive(bounds, "max_portions", where)),
     )

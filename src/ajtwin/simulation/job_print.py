@@ -59,7 +59,7 @@ from ajtwin.io.records import (
     TRUTH_COLUMNS,
     PrintRecord,
 )
-from ajtwin.job import Job, read_program
+from ajtwin.job import Job, read_printing, read_program
 from ajtwin.model import load_parameters
 from ajtwin.model.line_speed import (
     LineSpeedLaw,
@@ -522,7 +522,12 @@ def read_job(program, process_speed_mm_s=None, rapid_speed_mm_s=None, speed_sche
 
     if isinstance(program, Job):
         return program, None
-    job = read_program(program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule=speed_schedule)
+    # nothing to print: refused before the machine runs
+    job = read_printing(
+        lambda: read_program(
+            program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule=speed_schedule
+        )
+    )
     return job, Path(program)
 
 

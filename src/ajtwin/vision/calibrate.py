@@ -253,6 +253,15 @@ def calibrate_camera(
     CalibrationError
         Naming why the frames cannot determine the geometry.
     """
+    box = getattr(job, "program", job).summary()["bbox_mm"]
+    extent_um = 0.0 if box is None else 1e3 * math.hypot(box[2] - box[0], box[3] - box[1])
+    if not 0 < gate_um <= max(extent_um, reach_um):
+        # a gate wider than the whole part admits every trace: it gates nothing, and asks
+        # the trace index for cells the size of the gate
+        raise CalibrationError(
+            f"gate_um = {gate_um:g} µm is wider than the whole printed part ({extent_um:.0f} µm "
+            "corner to corner): give the starting offset to within a gate smaller than the part"
+        )
     cols, rows, times, nozzles = [], [], [], []
     for time_s, gray in frames:
         if gray.shape != (initial.height_px, initial.width_px):

@@ -48,6 +48,8 @@ __all__ = ["Camera", "CameraFileError", "load_camera", "save_camera"]
 MAX_FRAME_PX = 20_000
 #: A view centre further than this from the nozzle is no alignment camera on a stage.
 MAX_OFFSET_MM = 1000.0
+#: A camera's rotation lies within one turn either way [deg]; calibrate writes -180 to 180.
+MAX_ROTATION_DEG = 360.0
 #: µm per pixel outside this range is no optical microscope camera over an AJ part.
 UM_PER_PX_RANGE = (0.01, 100.0)
 
@@ -117,6 +119,12 @@ class Camera:
             )
         if not math.isfinite(self.rotation_deg):
             raise CameraFileError(f"{where}: rotation_deg must be finite, got {self.rotation_deg}")
+        if abs(self.rotation_deg) > MAX_ROTATION_DEG:
+            # 1e300° is some angle, but no one meant it: the digits say nothing of the camera
+            raise CameraFileError(
+                f"{where}: rotation_deg = {self.rotation_deg:g}° is not a camera's angle "
+                f"(expected -{MAX_ROTATION_DEG:g} to {MAX_ROTATION_DEG:g}°)"
+            )
         if len(self.offset_mm) != 2 or not all(
             math.isfinite(v) and abs(v) <= MAX_OFFSET_MM for v in self.offset_mm
         ):

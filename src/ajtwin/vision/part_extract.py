@@ -580,6 +580,15 @@ class PartExtractor:
         self.settings.validate()
         cfg = self.settings
         px = camera.um_per_px
+        frame_um = 1e3 * camera.half_diagonal_mm
+        if cfg.half_length_um > frame_um:
+            # the cross-sections (and their arrays) would reach far beyond what any frame shows
+            raise VisionInputError(
+                f"reach_um + background_um = {cfg.half_length_um:g} µm either side of a trace is "
+                f"more than the camera's frame shows ({camera.width_px} x {camera.height_px} px "
+                f"at {px:g} µm/px: {frame_um:.0f} µm from its centre to a corner); give a "
+                "reach within the frame"
+            )
         self.half_samples = int(math.ceil(cfg.half_length_um / px))
         self.n_across = 2 * self.half_samples + 1
         self.zone = max(3, int(round(cfg.background_um / px)))

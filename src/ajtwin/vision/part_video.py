@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from ajtwin.config import packaged_toml
 from ajtwin.vision.errors import VisionInputError
 from ajtwin.vision.extract import open_source
 from ajtwin.vision.part_extract import (
@@ -38,7 +39,13 @@ from ajtwin.vision.part_extract import (
 )
 from ajtwin.vision.video_features import AnnotatedOutput
 
-__all__ = ["PartVideoExtraction", "ReadingsWriter", "check_video_duration", "extract_part_video"]
+__all__ = [
+    "PartVideoExtraction",
+    "ReadingsWriter",
+    "check_video_duration",
+    "check_window_count",
+    "extract_part_video",
+]
 
 #: what a window measured without a reading means for the user
 FAIL_HINTS = {
@@ -218,6 +225,31 @@ def check_video_duration(frames, start_offset_s: float, job, source, program_nam
         )
 
 
+def check_window_count(
+    job, camera, settings: PartSettings, source, program_name: str, limit: int | None = None
+) -> None:
+    """Refuse, before building them, more measurement windows than ``limit`` (default
+    ``max_windows`` of ``vision/part.toml [bounds]``): the strokes the video can see, cut
+    into windows of ``batch`` pixels.
+
+    Raises
+    ------
+    VisionInputError
+    """
+    window_mm = settings.batch * camera.um_per_px * 1e-3
+    lengths = job.strokes["length_mm"].to_numpy(dtype=float)
+    count = int(np.floor(lengths / window_mm + 1e-9).sum())
+    if limit is None:
+        limit = int(packaged_toml("vision/part.toml")["bounds"]["max_windows"])
+    if count > limit:
+        raise VisionInputError(
+            f"{source}: up to its last frame {program_name} prints {lengths.sum():.0f} mm of "
+            f"strokes, {count:,} measurement windows of {1e3 * window_mm:.1f} µm, more than the "
+            f"{limit:,} extract holds (vision/part.toml max_windows): extract the video in "
+            "shorter stretches, each with its own --start-offset"
+        )
+
+
 def _format(value):
     if isinstance(value, (float, np.floating)):
         return f"{float(value):.6g}" if abs(value) < 1e5 else f"{float(value):.10g}"
@@ -282,11 +314,16 @@ def extract_part_video(
     settings = settings or PartSettings.from_defaults()
     frames = open_source(source, fps)
     check_video_duration(frames, start_offset_s, job, source, program_name)
+    limit = job.duration_s + 1.0 / frames.fps
+    if frames.count and hasattr(job, "until"):
+        # nothing printed after the last frame can be seen: a 24-h loop under a short video
+        # holds only what the video can show
+        job = job.until(start_offset_s + frames.count / frames.fps)
+    check_window_count(job, camera, settings, source, program_name)
     extractor = PartExtractor(job, camera, settings, fiducials=fiducials)
     done = PartVideoExtraction(frames_path=out.with_name(out.stem + "_frames.csv"))
     out.parent.mkdir(parents=True, exist_ok=True)
     annotated = None if annotate_to is None else AnnotatedOutput(annotate_to, frames.fps)
-    limit = job.duration_s + 1.0 / frames.fps
     try:
         with (
             frames.prefetched() as decoded,

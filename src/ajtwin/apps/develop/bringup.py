@@ -17,7 +17,7 @@ operator's steps (``ajtwin develop``). :meth:`BringUp.decide` answers with one o
     For a test at z the posterior after the reading is predicted (preposterior): its mean
     μ' ~ N(μ, σ⁴/(σ² + s²)), its σ'² = σ²s²/(σ² + s²) (s the reading's σ); the test ends the
     bring-up if |μ'_w − target| ≤ tolerance − 1.64 σ'_w and μ'_o ≤ max − 1.64 σ'_o (each at
-    √p ≈ 0.95). The next test maximises that probability over a Sobol set of the box refined
+    √p ≈ 0.95). The next test maximises that probability over a quasi-random set of the box refined
     around its best points: far from the goal it is ~0, near it but uncertain the reading's
     spread carries it, and once the line is known the target's neighbourhood wins.
     Among near-equals the one least moved by a ±5 % change of droplet size and aerosol
@@ -41,9 +41,14 @@ from pathlib import Path
 
 import numpy as np
 from scipy.special import ndtr
-from scipy.stats import qmc
 
-from ajtwin.apps.develop.prior import InkPrior, InputBox, MachineLine, load_ink_prior
+from ajtwin.apps.develop.prior import (
+    InkPrior,
+    InputBox,
+    MachineLine,
+    load_ink_prior,
+    quasi_random,
+)
 from ajtwin.apps.develop.surrogate import (
     LINEWIDTH,
     MATERIAL_FLOW,
@@ -318,8 +323,7 @@ class BringUp:
         return self._test(self._choose(post, candidates, pred, p_feasible), window, best_p)
 
     def _candidates(self, n: int) -> np.ndarray:
-        z = qmc.Sobol(self.box.dimension, scramble=True, seed=4242).random(n)
-        return self.box.inputs(z)
+        return self.box.inputs(quasi_random(n, self.box.dimension, 4242))
 
     def _choose(self, post, candidates, pred, p_feasible) -> np.ndarray:
         """The next test's inputs: the highest finishing probability, refined locally."""
@@ -393,7 +397,7 @@ class BringUp:
 
     def _test(self, inputs, window, best_p) -> Decision:
         settle, line = self.timing(float(inputs[3]))
-        test = {n: float(v) for n, v in zip(TEST_INPUTS, inputs)}
+        test = {n: round(float(v), 6) for n, v in zip(TEST_INPUTS, inputs)}
         test.update(settle_s=settle, print_s=line)
         self.suggested = test
         n = len(self.tests) + 1
@@ -441,3 +445,47 @@ def _predicted(pred, index) -> dict:
     w, w2 = pred.in_units(LINEWIDTH, index)
     o, o2 = pred.in_units(OVERSPRAY, index)
     return {"linewidth_um": w, "linewidth_2sd_um": w2, "overspray_um": o, "overspray_2sd_um": o2}
+
+
+def reading_from_record(record, settle_s: int, speed_mm_s: float) -> dict:
+    """A test line's reading from its print record (camera and MFCs, 1 Hz).
+
+    The held part is the record's last stretch whose measured inputs stay within 2 mA and
+    0.5 sccm of their final median; its first ``settle_s`` seconds are dropped (the line
+    settling). Returns the inputs (4,) [mA, sccm, sccm, mm/s] (the held medians), the mean
+    L_w, L_o with their standard errors, the mean Q_m and pressures where measured, and the
+    number of camera frames used. ValueError when fewer than 5 frames remain.
+    """
+    u = record.inputs
+    y = record.outputs
+    final = np.median(u[-min(len(u), 10) :], axis=0)
+    off = (np.abs(u[:, 0] - final[0]) > 2.0) | (np.abs(u[:, 1:] - final[1:]) > 0.5).any(axis=1)
+    start = int(np.flatnonzero(off)[-1]) + 1 if off.any() else 0
+    if len(u) - start > settle_s + 5:
+        start += int(settle_s)
+    held = slice(start, len(u))
+    frames = np.isfinite(y[held, 0]) & np.isfinite(y[held, 1])
+    if frames.sum() < 5:
+        raise ValueError(
+            f"the record's held part (rows {start}-{len(u) - 1}) has {int(frames.sum())} camera "
+            "readings of the line; at least 5 are needed"
+        )
+    w, o = y[held, 0][frames], y[held, 1][frames]
+    out = {
+        "inputs": np.append(np.median(u[held], axis=0), speed_mm_s),
+        "linewidth_um": float(w.mean()),
+        "linewidth_std_um": float(w.std(ddof=1) / np.sqrt(len(w))),
+        "overspray_um": float(o.mean()),
+        "overspray_std_um": float(o.std(ddof=1) / np.sqrt(len(o))),
+        "frames": int(len(w)),
+    }
+    extra = {"frames": int(len(w)), "held_rows": [start, len(u) - 1]}
+    q = y[held, 4][np.isfinite(y[held, 4])]
+    if len(q) >= 5:
+        extra["material_flow_ml_s"] = float(q.mean())
+        extra["material_flow_std_ml_s"] = float(q.std(ddof=1) / np.sqrt(len(q)))
+    pressures = y[held, 2:4]
+    if np.isfinite(pressures).any():
+        extra["pressures_pa"] = [float(v) for v in np.nanmean(pressures, axis=0)]
+    out["extra"] = extra
+    return out

@@ -39,7 +39,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from ajtwin.apps.develop.prior import INK_VALUES
 
@@ -157,12 +156,12 @@ class LinePosterior:
                     score = fit[2] + np.log(p_lw * p_lo * p_ls)
                     if best is None or score > best[0]:
                         best = (score, shares, self.base_lengthscale * ls, fit, (lw, lo))
-        _, self.shares, self.lengthscale, (self._chol, self._alpha, _), self.multipliers = best
+        _, self.shares, self.lengthscale, (self._cov, self._alpha, _), self.multipliers = best
         # the weights' posterior mean E[w | tests] = A_oᵀ C⁻¹ (y − μ_o)
         self._weights = self._a_o.T @ self._alpha
 
     def _factor(self, shares, lengthscale):
-        """(Cholesky of C, C⁻¹(y − μ_o), log marginal likelihood) for residual amplitudes
+        """(C, C⁻¹(y − μ_o), log marginal likelihood) for residual amplitudes
         ``shares`` (per kind, log units) and a lengthscale."""
         kinds = self.tests.kinds
         scale = shares[kinds]
@@ -170,13 +169,10 @@ class LinePosterior:
         k_r = self._kernel(self._z_o, self._z_o, lengthscale) * np.outer(scale, scale) * same
         c = self._a_o @ self._a_o.T + k_r + np.diag(self._noise**2)
         c = c + 1e-10 * np.mean(np.diag(c)) * np.eye(len(c))
-        chol = cho_factor(c, lower=True)
         r = self._y - self._mean_o
-        alpha = cho_solve(chol, r)
-        log_ml = (
-            -0.5 * r @ alpha - np.log(np.diag(chol[0])).sum() - 0.5 * len(r) * np.log(2 * np.pi)
-        )
-        return chol, alpha, log_ml
+        alpha = np.linalg.solve(c, r)
+        log_ml = -0.5 * (r @ alpha + np.linalg.slogdet(c)[1] + len(r) * np.log(2 * np.pi))
+        return c, alpha, log_ml
 
     def _kernel(self, z1, z2, lengthscale=None) -> np.ndarray:
         d2 = ((z1[:, None, :] - z2[None, :, :]) ** 2).sum(axis=-1)
@@ -196,7 +192,7 @@ class LinePosterior:
                 obs_scale = self.shares[self.tests.kinds] * same
                 q = self._a_o @ a + self._kernel(self._z_o, z) * np.outer(obs_scale, scale)
                 mean = mean + q.T @ self._alpha
-                var = var - (q * cho_solve(self._chol, q)).sum(axis=0)
+                var = var - (q * np.linalg.solve(self._cov, q)).sum(axis=0)
             moments += [mean, np.sqrt(np.maximum(var, 1e-12))]
         sensitivities = []
         for field in (ensemble.droplet_sensitivity, ensemble.aerosol_sensitivity):

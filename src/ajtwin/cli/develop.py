@@ -132,7 +132,8 @@ def start(
     )
     speeds = box.speed_mm_s
     click.echo(
-        f"wrote {out_path}: L_w {target_linewidth:g} ± {tolerance:g} µm, L_o ≤ {max_overspray:g} µm; "
+        f"wrote {out_path}: L_w {target_linewidth:g} ± {tolerance:g} µm, L_o ≤ "
+        f"{max_overspray:g} µm; "
         f"{bounds}, ν {speeds[0]:g}"
         + (f"–{speeds[1]:g}" if speeds[1] > speeds[0] else "")
         + " mm/s"
@@ -179,7 +180,8 @@ def next_step(path, as_json, plot_path):
         t = decision.test
         click.echo(f"test line {len(bringup.tests) + 1}: {_inputs_text(t)}")
         click.echo(
-            f"  settle {t['settle_s']} s after setting the inputs, then print {t['print_s']} s of line"
+            f"  settle {t['settle_s']} s after setting the inputs, then print "
+            f"{t['print_s']} s of line"
         )
         click.echo(f"  then: ajtwin develop add {path} --linewidth-um L_W --overspray-um L_O")
     elif decision.kind == "done":
@@ -195,7 +197,8 @@ def next_step(path, as_json, plot_path):
         _draw(bringup, [r[n] for n, _, _ in INPUT_LABELS], plot_path)
         answer["window_plot"] = str(plot_path)
         click.echo(
-            f"  window: {100 * decision.window['share']:.1f} % of the input box; drawn in {plot_path}"
+            f"  window: {100 * decision.window['share']:.1f} % of the input box; drawn in "
+            f"{plot_path}"
         )
     else:
         c = decision.closest
@@ -257,7 +260,8 @@ def add(path, linewidth_um, overspray_um, std_um, record_path, inputs_text):
     bringup.save(path)
     click.echo(
         f"test {len(bringup.tests)}: {_inputs_text(test)} → L_w {test['linewidth_um']:.2f} ± "
-        f"{test['linewidth_std_um']:.2f} µm, L_o {test['overspray_um']:.2f} ± {test['overspray_std_um']:.2f} µm"
+        f"{test['linewidth_std_um']:.2f} µm, L_o {test['overspray_um']:.2f} ± "
+        f"{test['overspray_std_um']:.2f} µm"
     )
     click.echo(f"next: ajtwin develop next {path}")
 
@@ -381,7 +385,8 @@ def simulate(ink_seed, truth, target_linewidth, max_overspray, seed, out_path):
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
-        f"virtual ink {ink_seed} ({truth}): L_w {goal.target_linewidth_um:g} ± 2 µm, L_o ≤ {goal.max_overspray_um:g} µm"
+        f"virtual ink {ink_seed} ({truth}): L_w {goal.target_linewidth_um:g} ± 2 µm, L_o ≤ "
+        f"{goal.max_overspray_um:g} µm"
     )
     lab = VirtualLab(
         ink,
@@ -391,14 +396,17 @@ def simulate(ink_seed, truth, target_linewidth, max_overspray, seed, out_path):
     outcome = evaluate(ink, goal, run_twin(lab), len(lab.bringup.tests))
     for k, t in enumerate(lab.bringup.tests, 1):
         click.echo(
-            f"  test {k}: {_inputs_text(t)} → L_w {t['linewidth_um']:.1f} µm (true {t['true_linewidth_um']:.1f}), "
+            f"  test {k}: {_inputs_text(t)} → L_w {t['linewidth_um']:.1f} µm (true "
+            f"{t['true_linewidth_um']:.1f}), "
             f"L_o {t['overspray_um']:.1f} µm"
         )
     if outcome["kind"] == "done":
         verdict = "holds" if outcome["holds"] else "DOES NOT HOLD"
         click.echo(
-            f"done after {outcome['tests']} test lines: the recipe's true L_w {outcome['true_linewidth_um']:.1f} µm, "
-            f"L_o {outcome['true_overspray_um']:.1f} µm: {verdict}; after ±5 % droplet size / aerosol density "
+            f"done after {outcome['tests']} test lines: the recipe's true L_w "
+            f"{outcome['true_linewidth_um']:.1f} µm, "
+            f"L_o {outcome['true_overspray_um']:.1f} µm: {verdict}; after ±5 % droplet size "
+            "/ aerosol density "
             f"the worst miss is {outcome['robust_worst_miss_um']:.1f} µm"
         )
     else:

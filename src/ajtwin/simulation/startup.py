@@ -17,7 +17,8 @@ Examples
 >>> cfg = {"settling_min_low": 5.0, "settling_min_high": 15.0, "initial_output_low": 0.2,
 ...        "initial_output_high": 0.6, "droplet_offset_um": 0.3}
 >>> gen, shift, draws = startup_transient(cfg, np.random.default_rng(0), np.arange(3600.0))
->>> bool(abs(gen[int(draws["startup_settling_s"])] - 0.98) < 1e-3), 5 * 60 <= draws["startup_settling_s"] <= 900
+>>> settle = draws["startup_settling_s"]
+>>> bool(abs(gen[int(settle)] - 0.98) < 1e-3), 5 * 60 <= settle <= 15 * 60
 (True, True)
 """
 

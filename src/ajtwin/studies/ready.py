@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.apps.detection.settling import SettlingSettings, settling_time
+from ajtwin.apps.detection.settling import settling_time
 from ajtwin.estimation.twin import Twin
 from ajtwin.simulation.printer import run_virtual_print
 
@@ -100,11 +100,15 @@ def markdown(results: dict, command: str) -> str:
     s = results["summary"]
     return (
         f"Command: `{command}` ({results['wall_s']:.0f} s)\n\n"
-        f"| truth | start-ups | false ready | never ready | delay after true settling (median / 90th pct) | "
-        f"true settling (median) | settled machine: ready after (median) |\n|---|---|---|---|---|---|---|\n"
+        "| truth | start-ups | false ready | never ready | delay after true settling "
+        "(median / 90th pct) | "
+        "true settling (median) | settled machine: ready after (median) "
+        "|\n|---|---|---|---|---|---|---|\n"
         f"| {s['truth']} | {s['startups']} | {s['false_ready']} | {s['never_ready']} | "
-        f"{s['delay_median_s']:.0f} s / {s['delay_p90_s']:.0f} s | {s['true_settling_median_s']:.0f} s | "
-        f"{s['settled_machine_ready_median_s']:.0f} s ({s['settled_machine_never_ready']} never) |\n"
+        f"{s['delay_median_s']:.0f} s / {s['delay_p90_s']:.0f} s | "
+        f"{s['true_settling_median_s']:.0f} s | "
+        f"{s['settled_machine_ready_median_s']:.0f} s ({s['settled_machine_never_ready']} "
+        "never) |\n"
     )
 
 

@@ -85,7 +85,8 @@ def _evidence_text(evidence: dict) -> str:
     if not evidence:
         return "too few samples"
     return "; ".join(
-        f"{name} trend {e['trend_per_min']:+.3g}/min, {e['projected']:.3g} to come (≤ {e['tolerance']:g})"
+        f"{name} trend {e['trend_per_min']:+.3g}/min, {e['projected']:.3g} to come (≤ "
+        f"{e['tolerance']:g})"
         for name, e in evidence.items()
     )
 

@@ -70,7 +70,8 @@ def window_figure(bringup, posterior, centre, path, title: str = "") -> Path:
     g = bringup.goal
     fig.suptitle(
         title
-        or f"process window: L_w {g.target_linewidth_um:g} ± {g.tolerance_um:g} µm, L_o ≤ {g.max_overspray_um:g} µm "
+        or f"process window: L_w {g.target_linewidth_um:g} ± {g.tolerance_um:g} µm, L_o ≤ "
+        f"{g.max_overspray_um:g} µm "
         f"(line: P = {g.probability:g})"
     )
     path = Path(path)

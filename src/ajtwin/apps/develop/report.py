@@ -76,7 +76,8 @@ def write_report(bringup: BringUp, out_dir) -> list[Path]:
                     "linewidth": posterior.multipliers[0],
                     "overspray": posterior.multipliers[1],
                 },
-                "note": "ink values at the posterior mean of the prior's ensemble (a linearisation); "
+                "note": "ink values at the posterior mean of the prior's ensemble (a "
+                "linearisation); "
                 "the residual multipliers > 1 say the line follows another law than the model's",
             },
             fh,
@@ -100,7 +101,8 @@ def _markdown(bringup, decision, ink, calibration) -> str:
     lines = [
         "# Bring-up of a new ink",
         "",
-        f"Goal: L_w {g.target_linewidth_um:g} ± {g.tolerance_um:g} µm, L_o ≤ {g.max_overspray_um:g} µm, "
+        f"Goal: L_w {g.target_linewidth_um:g} ± {g.tolerance_um:g} µm, L_o ≤ "
+        f"{g.max_overspray_um:g} µm, "
         f"P ≥ {g.probability:g}. Machine: {bringup.machine.name or 'nominal'}.",
         "",
         f"**{decision.kind.replace('_', ' ')}**: {decision.message}",
@@ -110,7 +112,8 @@ def _markdown(bringup, decision, ink, calibration) -> str:
     ]
     for k, t in enumerate(bringup.tests, 1):
         lines.append(
-            f"| {k} | {t['atomizer_current_mA']:g} | {t['carrier_flow_sccm']:g} | {t['sheath_flow_sccm']:g} | "
+            f"| {k} | {t['atomizer_current_mA']:g} | {t['carrier_flow_sccm']:g} | "
+            f"{t['sheath_flow_sccm']:g} | "
             f"{t['speed_mm_s']:g} | {t['linewidth_um']:.2f} ± {t['linewidth_std_um']:.2f} | "
             f"{t['overspray_um']:.2f} ± {t['overspray_std_um']:.2f} |"
         )
@@ -119,8 +122,10 @@ def _markdown(bringup, decision, ink, calibration) -> str:
         lines += [
             "",
             f"Recipe: I_A {r['atomizer_current_mA']:g} mA, Q_c {r['carrier_flow_sccm']:g} sccm, "
-            f"Q_s {r['sheath_flow_sccm']:g} sccm, ν {r['speed_mm_s']:g} mm/s: L_w {r['linewidth_um']:.1f} ± "
-            f"{r['linewidth_2sd_um']:.1f} µm, L_o {r['overspray_um']:.1f} ± {r['overspray_2sd_um']:.1f} µm (2σ).",
+            f"Q_s {r['sheath_flow_sccm']:g} sccm, ν {r['speed_mm_s']:g} mm/s: L_w "
+            f"{r['linewidth_um']:.1f} ± "
+            f"{r['linewidth_2sd_um']:.1f} µm, L_o {r['overspray_um']:.1f} ± "
+            f"{r['overspray_2sd_um']:.1f} µm (2σ).",
         ]
     lines += ["", "Fitted ink (posterior mean):", ""]
     lines += [f"- {k}: {v:.3g}" for k, v in ink.items()]
@@ -132,7 +137,8 @@ def _markdown(bringup, decision, ink, calibration) -> str:
         "```",
         f"ajtwin machine commission NAME RECORD --known linewidth_gain={w['gain']:.3f}±0.1 "
         f"--known linewidth_offset_um={w['offset_um']:.1f}±{max(3 * w['rms_um'], 2.0):.1f} "
-        f"--known overspray_gain={o['gain']:.3f}±0.2 --known overspray_offset_um={o['offset_um']:.1f}±"
+        f"--known overspray_gain={o['gain']:.3f}±0.2 --known "
+        f"overspray_offset_um={o['offset_um']:.1f}±"
         f"{max(3 * o['rms_um'], 1.0):.1f}",
         "```",
         "",

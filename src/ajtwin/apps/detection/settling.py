@@ -49,9 +49,9 @@ class SettlingSettings:
     """The detector's window, horizon, hold [s] and per-signal tolerances."""
 
     window_s: int = 120
-    horizon_s: float = 120.0
+    horizon_s: float = 300.0
     hold_s: int = 30
-    tolerances: tuple = (1.0, 1.0, 0.04, 0.06)
+    tolerances: tuple = (1.5, 1.5, 0.10, 0.06)
 
     @classmethod
     def load(cls) -> SettlingSettings:

@@ -290,6 +290,7 @@ def _readiness(table_path):
     # lazy CLI loading: imported when the command runs, not for --help
     import pandas as pd
 
+    # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.detection.settling import settling_from_table
 
     columns = ["time_s", *STATE_NAMES, *("pred_" + name for name in OUTPUT_NAMES)]

@@ -54,7 +54,7 @@ from ajtwin.apps.develop.surrogate import (
     MATERIAL_FLOW,
     OVERSPRAY,
     LinePosterior,
-    Tests,
+    Observations,
     to_log,
 )
 from ajtwin.model.droplet_dynamics import load_droplet_dynamics
@@ -255,7 +255,7 @@ class BringUp:
         self.suggested = None
         return test
 
-    def observations(self) -> Tests:
+    def observations(self) -> Observations:
         """The tests as the posterior's observations (σ with the line's repeatability)."""
         rep = float(self.settings["test_line"]["repeatability_relative"])
         kinds, inputs, values, sd = [], [], [], []
@@ -272,8 +272,9 @@ class BringUp:
                 values.append(t["material_flow_ml_s"])
                 sd.append(max(t.get("material_flow_std_ml_s", 0.0), 0.15 * t["material_flow_ml_s"]))
         if not kinds:
-            return Tests.empty()
-        return Tests(np.array(kinds), np.array(inputs, float), np.array(values), np.array(sd))
+            return Observations.empty()
+        arrays = (np.array(kinds), np.array(inputs, float), np.array(values), np.array(sd))
+        return Observations(*arrays)
 
     def posterior(self, prior: InkPrior | None = None) -> LinePosterior:
         """The ink's line given the tests."""

@@ -27,7 +27,7 @@ Examples
 >>> from ajtwin.apps.develop.prior import InkPrior, InputBox
 >>> prior = InkPrior.load()
 >>> box = InputBox.from_limits(None, speed_mm_s=2.0)
->>> tests = Tests.empty()
+>>> tests = Observations.empty()
 >>> post = LinePosterior(prior, box, tests)
 >>> p = post.predict(box.inputs(np.array([[0.5, 0.4, 0.4]])))
 >>> bool(p.linewidth_sd[0] > 5.0)          # the prior alone: wide
@@ -57,7 +57,7 @@ def to_log(values, kinds) -> np.ndarray:
 
 
 @dataclass
-class Tests:
+class Observations:
     """Observations of the ink: (n,) kinds, (n, 4) inputs, (n,) values and their σ."""
 
     kinds: np.ndarray
@@ -66,7 +66,7 @@ class Tests:
     sd: np.ndarray
 
     @classmethod
-    def empty(cls) -> Tests:
+    def empty(cls) -> Observations:
         """No tests yet."""
         return cls(np.zeros(0, int), np.zeros((0, 4)), np.zeros(0), np.zeros(0))
 
@@ -109,10 +109,10 @@ class LinePosterior:
     prior : InkPrior
     box : InputBox
         Scales the inputs for the residual's kernel.
-    tests : Tests
+    tests : Observations
     """
 
-    def __init__(self, prior, box, tests: Tests):
+    def __init__(self, prior, box, tests: Observations):
         self.prior, self.box, self.tests = prior, box, tests
         residual = prior.settings["residual"]
         self.base_lengthscale = float(residual["lengthscale"])

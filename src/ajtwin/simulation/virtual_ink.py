@@ -173,7 +173,9 @@ def ink_line(ink: VirtualInk, droplet_um, aerosol, inputs, speed_mm_s, params=No
         y = np.asarray(
             output_function(x, u, params, _model_coefficients(ink, params), speed_mm_s, law)
         )
-        return y[..., 0], np.maximum(y[..., 1], 0.0)
+        # the linear output model runs below zero at some corners of the box for a narrow
+        # ink: no line is printed there (the camera reads 0)
+        return np.maximum(y[..., 0], 0.0), np.maximum(y[..., 1], 0.0)
     ratio = u[..., 1] / (u[..., 1] + u[..., 2])
     ratio_ref = REFERENCE_INPUT[1] / REFERENCE_INPUT[1:].sum()
     aerosol_ref = (

@@ -303,7 +303,7 @@ def summarise(rows: list, methods) -> dict:
 
 def run_study(
     inks: int = 20,
-    first: int = 1000,
+    first: int = 2000,
     methods=("twin", "bo", "grid"),
     out_of_reach: int = 5,
     progress=print,
@@ -351,7 +351,7 @@ def _argument(name: str, default):
 
 if __name__ == "__main__":
     n_inks = _argument("--inks", 20)
-    first_seed = _argument("--first", 1000)
+    first_seed = _argument("--first", 2000)
     chosen = tuple(_argument("--methods", "twin,bo,grid").split(","))
     n_beyond = _argument("--out-of-reach", 5)
     OUT.mkdir(parents=True, exist_ok=True)

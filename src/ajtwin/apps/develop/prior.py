@@ -345,7 +345,8 @@ def _settled_lines(draws, inputs, reference, coefficients, params, law, droplet,
     flow = material_flow(
         m * aerosol, sccm_to_ml_per_s(u[:, 1])[None, :], params.silver_volume_fraction
     )
-    return lines[0], jnp.maximum(lines[1], 0.0), flow * gains[2], *sensitivity
+    # the linear output model runs below zero at some corners for a narrow ink: no line
+    return jnp.maximum(lines[0], 0.0), jnp.maximum(lines[1], 0.0), flow * gains[2], *sensitivity
 
 
 settled_lines = exported_jit(_settled_lines)

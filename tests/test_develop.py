@@ -8,12 +8,14 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy.special import ndtr
 
 from ajtwin.apps.develop.bringup import (
     BringUp,
     Goal,
     feasibility,
     finishing_probability,
+    reading_feasibility,
 )
 from ajtwin.apps.develop.prior import (
     INK_VALUES,
@@ -222,3 +224,17 @@ def test_study_twin_needs_fewer_tests_than_generic_bo():
     rows = [run_ink(seed, "model", ("twin", "bo")) for seed in range(1000, 1004)]
     s = summarise(rows, ("twin", "bo"))["model/twin"], summarise(rows, ("twin", "bo"))["model/bo"]
     assert s[0]["median_tests"] * 2 <= s[1]["median_tests"]
+
+
+def test_a_reading_alone_is_judged_by_the_same_window_probability():
+    goal = Goal(45.0, 8.0)
+    test = {
+        "linewidth_um": 46.5,
+        "overspray_um": 7.5,
+        "linewidth_std_um": 0.5,
+        "overspray_std_um": 0.4,
+    }
+    sd_w, sd_o = np.hypot(0.5 / 47.5, 0.02), np.hypot(0.4 / 8.5, 0.02)
+    window = ndtr(np.log(48 / 47.5) / sd_w) - ndtr(np.log(44 / 47.5) / sd_w)
+    by_hand = window * ndtr(np.log(9 / 8.5) / sd_o)
+    assert reading_feasibility(test, goal, 0.02) == pytest.approx(by_hand, rel=1e-12)

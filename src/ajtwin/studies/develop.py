@@ -43,10 +43,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtr
 from scipy.stats import qmc
 
-from ajtwin.apps.develop.bringup import TEST_INPUTS, BringUp, Goal
+from ajtwin.apps.develop.bringup import TEST_INPUTS, BringUp, Goal, reading_feasibility
 from ajtwin.apps.develop.prior import InputBox
 from ajtwin.simulation.virtual_ink import InkPrinter, draw_ink, load_ink_settings, settled_line
 
@@ -72,25 +71,6 @@ def goal_for(ink, out_of_reach: bool = False, settings: dict | None = None) -> G
     else:
         target = float(np.quantile(w[keep], rng.uniform(*cfg["linewidth_quantile_range"])))
     return Goal(round(float(target), 1), round(limit, 1))
-
-
-def reading_probability(test: dict, goal: Goal, repeatability: float) -> float:
-    """P(feasible) from one reading alone: its σ with the line's repeatability, in logs."""
-    p = 1.0
-    for key, low, high in (
-        (
-            "linewidth",
-            goal.target_linewidth_um - goal.tolerance_um,
-            goal.target_linewidth_um + goal.tolerance_um,
-        ),
-        ("overspray", None, goal.max_overspray_um),
-    ):
-        value = test[f"{key}_um"] + 1.0
-        sd = np.hypot(test[f"{key}_std_um"] / value, repeatability)
-        upper = ndtr((np.log(high + 1.0) - np.log(value)) / sd)
-        lower = 0.0 if low is None else ndtr((np.log(low + 1.0) - np.log(value)) / sd)
-        p *= upper - lower
-    return float(p)
 
 
 class VirtualLab:
@@ -138,7 +118,7 @@ def _confirmed(lab: VirtualLab) -> dict | None:
     b = lab.bringup
     rep = float(b.settings["test_line"]["repeatability_relative"])
     t = b.tests[-1]
-    if reading_probability(t, b.goal, rep) >= b.goal.probability:
+    if reading_feasibility(t, b.goal, rep) >= b.goal.probability:
         return {"kind": "done", "recipe": [t[n] for n in TEST_INPUTS[:3]]}
     return None
 

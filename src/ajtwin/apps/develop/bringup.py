@@ -55,6 +55,7 @@ from ajtwin.apps.develop.surrogate import (
     OVERSPRAY,
     LinePosterior,
     Observations,
+    Prediction,
     to_log,
 )
 from ajtwin.model.droplet_dynamics import load_droplet_dynamics
@@ -150,6 +151,20 @@ def finishing_probability(pred, goal: Goal, reading_sd: tuple) -> np.ndarray:
             p = ndtr((limit - Z_HALF * after_sd - mean) / spread)
         prob = prob * p
     return prob
+
+
+def reading_feasibility(test: dict, goal: Goal, repeatability: float) -> float:
+    """P(feasible) from one test's reading alone, with no model: the reading as the line's
+    value, its σ with the line's repeatability (the rule a model-free method stops by)."""
+    values = {}
+    for kind, key in ((LINEWIDTH, "linewidth"), (OVERSPRAY, "overspray")):
+        value = test[f"{key}_um"]
+        values[key] = (
+            np.atleast_1d(to_log(value, kind)),
+            np.atleast_1d(np.hypot(test[f"{key}_std_um"] / (value + 1.0), repeatability)),
+        )
+    reading = Prediction(*values["linewidth"], *values["overspray"], *([np.zeros(1)] * 4))
+    return float(feasibility(reading, goal)[0])
 
 
 @dataclass

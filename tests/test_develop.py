@@ -27,6 +27,7 @@ from ajtwin.apps.develop.prior import (
 from ajtwin.apps.develop.surrogate import LOG_OFFSET, LinePosterior, Observations, to_log
 from ajtwin.cli import main
 from ajtwin.model import DigitalModel
+from ajtwin.simulation.printer import run_virtual_print
 from ajtwin.studies.develop import run_ink, summarise
 
 BOX = InputBox.from_limits(None, speed_mm_s=2.0)
@@ -238,3 +239,19 @@ def test_a_reading_alone_is_judged_by_the_same_window_probability():
     window = ndtr(np.log(48 / 47.5) / sd_w) - ndtr(np.log(44 / 47.5) / sd_w)
     by_hand = window * ndtr(np.log(9 / 8.5) / sd_o)
     assert reading_feasibility(test, goal, 0.02) == pytest.approx(by_hand, rel=1e-12)
+
+
+def test_add_a_test_line_from_its_print_record(tmp_path):
+    rec = run_virtual_print("exp1", seed=2, duration_min=6.0).record
+    path = tmp_path / "line.parquet"
+    rec.data.to_parquet(path)
+    (tmp_path / "line.meta.json").write_text(json.dumps(rec.meta, default=str))
+    f = tmp_path / "ink.json"
+    BringUp.create(Goal(45.0, 8.0), BOX).save(f)
+    r = CliRunner().invoke(main, ["develop", "add", str(f), "--record", str(path)])
+    assert r.exit_code == 0, r.output
+    test = BringUp.load(f).tests[0]
+    held = rec.data.iloc[270:]  # the settle time dropped
+    assert test["linewidth_um"] == pytest.approx(held["linewidth_um"].mean())
+    assert test["carrier_flow_sccm"] == pytest.approx(23.0, abs=0.2)
+    assert test["frames"] == len(held) and test["material_flow_ml_s"] > 0

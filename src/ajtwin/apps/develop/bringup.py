@@ -466,16 +466,21 @@ def _predicted(pred, index) -> dict:
 def reading_from_record(record, settle_s: int, speed_mm_s: float) -> dict:
     """A test line's reading from its print record (camera and MFCs, 1 Hz).
 
-    The held part is the record's last stretch whose measured inputs stay within 2 mA and
-    0.5 sccm of their final median; its first ``settle_s`` seconds are dropped (the line
-    settling). Returns the inputs (4,) [mA, sccm, sccm, mm/s] (the held medians), the mean
+    The held part is the record's last stretch whose measured inputs (a 9-s running
+    median) stay within 5 mA and 0.5 sccm of their final median; its first ``settle_s``
+    seconds are dropped (the line settling). Returns the inputs (4,) [mA, sccm, sccm, mm/s] (the held medians), the mean
     L_w, L_o with their standard errors, the mean Q_m and pressures where measured, and the
     number of camera frames used. ValueError when fewer than 5 frames remain.
     """
     u = record.inputs
     y = record.outputs
     final = np.median(u[-min(len(u), 10) :], axis=0)
-    off = (np.abs(u[:, 0] - final[0]) > 2.0) | (np.abs(u[:, 1:] - final[1:]) > 0.5).any(axis=1)
+    # the inputs' set-point, not their jitter: a 9-s running median of the measured inputs
+    padded = np.concatenate([np.repeat(u[:1], 4, axis=0), u, np.repeat(u[-1:], 4, axis=0)])
+    smooth = np.median(np.lib.stride_tricks.sliding_window_view(padded, 9, axis=0), axis=-1)
+    off = (np.abs(smooth[:, 0] - final[0]) > 5.0) | (np.abs(smooth[:, 1:] - final[1:]) > 0.5).any(
+        axis=1
+    )
     start = int(np.flatnonzero(off)[-1]) + 1 if off.any() else 0
     if len(u) - start > settle_s + 5:
         start += int(settle_s)

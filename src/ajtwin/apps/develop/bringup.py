@@ -470,7 +470,8 @@ def reading_from_record(record, settle_s: int, speed_mm_s: float) -> dict:
     median) stay within 5 mA and 0.5 sccm of their final median; its first ``settle_s``
     seconds are dropped (the line settling). Returns the inputs (4,) [mA, sccm, sccm, mm/s]
     (the held medians), the mean L_w, L_o with their standard errors, the mean Q_m and
-    pressures where measured, and the number of camera frames used. ValueError when fewer than 5 frames remain.
+    pressures where measured, and the number of camera frames used. ValueError when fewer
+    than 5 frames remain.
     """
     u = record.inputs
     y = record.outputs

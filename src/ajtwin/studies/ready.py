@@ -57,11 +57,14 @@ def one_startup(seed: int, truth: str, startup: bool, settings=None) -> dict:
     }
     if startup:
         base = run_virtual_print("exp1", seed, DURATION_MIN, truth_generator=truth)
+        difference = np.abs(vp.outputs_true[:, 0] - base.outputs_true[:, 0])
         out["true_settling_s"] = true_settling_s(vp.outputs_true[:, 0], base.outputs_true[:, 0])
         out["drawn_settling_s"] = vp.processes.draws["startup_settling_s"]
         if verdict.ready:
             out["delay_s"] = verdict.ready_at_s - out["true_settling_s"]
             out["false_ready"] = bool(verdict.ready_at_s < out["true_settling_s"])
+            # how far the line still was from its settled path when called ready [µm]
+            out["remaining_um"] = float(difference[int(verdict.ready_at_s) :].max())
     return out
 
 
@@ -82,6 +85,7 @@ def run_study(seeds, truth: str, progress=print) -> dict:
         "startups": len(ups),
         "never_ready": int(sum(not r["ready"] for r in ups)),
         "false_ready": int(sum(r.get("false_ready", False) for r in ups)),
+        "remaining_um_max": float(max((r.get("remaining_um", 0.0) for r in ups), default=0.0)),
         "delay_median_s": float(np.median(delays)) if len(delays) else None,
         "delay_p90_s": float(np.percentile(delays, 90)) if len(delays) else None,
         "true_settling_median_s": float(np.median([r["true_settling_s"] for r in ups])),
@@ -104,7 +108,8 @@ def markdown(results: dict, command: str) -> str:
         "(median / 90th pct) | "
         "true settling (median) | settled machine: ready after (median) "
         "|\n|---|---|---|---|---|---|---|\n"
-        f"| {s['truth']} | {s['startups']} | {s['false_ready']} | {s['never_ready']} | "
+        f"| {s['truth']} | {s['startups']} | {s['false_ready']} ({s['remaining_um_max']:.2f} µm) | "
+        f"{s['never_ready']} | "
         f"{s['delay_median_s']:.0f} s / {s['delay_p90_s']:.0f} s | "
         f"{s['true_settling_median_s']:.0f} s | "
         f"{s['settled_machine_ready_median_s']:.0f} s ({s['settled_machine_never_ready']} "

@@ -48,7 +48,14 @@ TEST_WORKERS ?= auto
 test: $(STAMP) openfoam chromium
 	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
 
-test-all: $(STAMP) openfoam chromium
+# the slow tests include the develop study's generic Bayesian optimisation (the [study] extra)
+STUDY_STAMP := $(VENV)/.installed-study
+
+$(STUDY_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install --quiet -e '.[dev,study]'
+	touch $(STUDY_STAMP)
+
+test-all: $(STUDY_STAMP) openfoam chromium
 	$(PY) -m pytest -q
 
 BENCH_STAMP := $(VENV)/.installed-bench

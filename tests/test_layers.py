@@ -58,6 +58,7 @@ LAZY_ALLOWED = {
     "torch": "PyTorch (~2 s): only the height-profile CNN",
     "playwright": "a browser: only the dashboard's screenshots",
     "ajtwin.vision.extract": "loads OpenCV: only a print that comes with a video needs it",
+    "skopt": "the develop study's generic Bayesian optimisation: an optional extra ([study])",
 }
 
 

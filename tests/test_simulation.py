@@ -21,6 +21,7 @@ PACKAGED = [
     "ink_running_low",
     "clean_long",
     "commissioning",
+    "startup",
 ]
 
 # Every mismatch and noise switched off: the truth must collapse onto the nominal model.
@@ -67,7 +68,9 @@ def test_packaged_scenarios_load_and_are_listed():
     durations = {name: load_scenario(name).duration_s for name in PACKAGED}
     assert durations["clean_long"] == 8 * 3600
     assert durations["commissioning"] == 20 * 60  # model reference §11: a short print
-    assert all(d == 5400 for n, d in durations.items() if n not in ("clean_long", "commissioning"))
+    assert durations["startup"] == 30 * 60
+    short = ("clean_long", "commissioning", "startup")
+    assert all(d == 5400 for n, d in durations.items() if n not in short)
 
 
 def test_schedules_match_spec_section_10():

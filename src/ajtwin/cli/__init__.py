@@ -37,6 +37,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("ajtwin.cli.ingest:ingest", "Ingest a print into a machine's twin."),
     "forecast": ("ajtwin.cli.forecast:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.cli.advise:advise", "Input settings that hold a target linewidth."),
+    "develop": (
+        "ajtwin.cli.develop:develop",
+        "Bring up a new ink: the test lines to print, then the recipe.",
+    ),
     "control": (
         "ajtwin.cli.control:control",
         "Closed-loop MPC of linewidth: a live machine over OPC UA, or simulate.",

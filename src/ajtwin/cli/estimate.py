@@ -237,6 +237,7 @@ def estimate(
     run.theta_history.to_csv(theta_path, index=False)
     click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
     _echo_summary(run, done, mismatch, level, has_job=job is not None)
+    click.echo(f"start-up: {_readiness(out).sentence()}")
     if plot_path:
         # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.estimation.plotting import estimate_figure
@@ -281,6 +282,20 @@ def _echo_summary(run, done, mismatch, level, has_job: bool) -> None:
             "= False)",
             err=True,
         )
+
+
+def _readiness(table_path):
+    """Whether and when the print's states and line settled after start-up, read from the
+    states table a chunk at a time (:mod:`ajtwin.apps.detection.settling`)."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    import pandas as pd
+
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.settling import settling_from_table
+
+    columns = ["time_s", *STATE_NAMES, *("pred_" + name for name in OUTPUT_NAMES)]
+    with pd.read_csv(table_path, usecols=columns, chunksize=3600) as chunks:
+        return settling_from_table(chunks)
 
 
 def _read_job(record, job_program, camera_horizon):

@@ -43,6 +43,7 @@ from ajtwin.model import coefficient_matrix, load_output_coefficients, load_para
 from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
+from ajtwin.simulation.startup import apply_startup
 from ajtwin.simulation.truth import integrate_truth, true_generation
 from ajtwin.simulation.truth_alt import (
     alt_measure,
@@ -70,6 +71,7 @@ STREAMS = (
     "missing",
     "vial_weighing",
     "nozzle_residue",
+    "startup",
 )
 
 # Reference operating point where the true line model equals the nominal one.
@@ -181,7 +183,8 @@ def draw_processes(scenario: Scenario, streams: dict, setpoints=None) -> Process
         hours = np.clip(t - onset_s, 0.0, None) / 3600.0
         drift[:, 0] = fault["carrier_pressure_drift_Pa_per_h"] * hours
         drift[:, 1] = fault["sheath_pressure_drift_Pa_per_h"] * hours
-    return Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+    processes = Processes(setpoints, mfc_inputs, head_inputs, droplet, drivers, leak, drift, draws)
+    return apply_startup(processes, cfg["startup"], streams["startup"])
 
 
 def _mfc_inputs(streams: dict, meas: dict, setpoints: np.ndarray) -> np.ndarray:

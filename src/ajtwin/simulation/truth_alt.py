@@ -48,6 +48,7 @@ from ajtwin.config import packaged_toml
 from ajtwin.model.line_speed import load_line_speed_law
 from ajtwin.model.system import output_function
 from ajtwin.simulation.machine import draw_machine
+from ajtwin.simulation.startup import apply_startup
 from ajtwin.simulation.truth import truth_rates
 
 CHUNK_S = 600
@@ -116,7 +117,9 @@ def alt_processes(scenario, processes, seed: int, settings: dict | None = None):
         "alt_generation_trend_per_h": float(trend),
         "alt_droplet_jumps": int(jumps.sum()),
     }
-    return processes
+    # the start-up again on the replaced droplet size and generation (its own stream)
+    startup_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7005]))
+    return apply_startup(processes, scenario.config["startup"], startup_rng)
 
 
 def off_model_atomizer_machine(machine_seed: int, machine=None, settings: dict | None = None):

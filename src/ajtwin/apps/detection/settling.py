@@ -1,0 +1,213 @@
+"""Ready to print: when the twin's states and the printed line have settled after start-up.
+
+At switch-on the atomizer's mist builds up and its droplets settle over minutes (5–15 min
+is the run-in commonly reported for AJ systems); a line printed before then drifts. Per
+second the twin gives its states (mean, σ) and its predicted outputs; the detector watches
+four signals — the predicted L_w and L_o, d_a and φ_A (relative) — and over a trailing
+window of ``window_s`` seconds fits each one's linear trend b (least squares). The change
+still to come is judged as |b|·``horizon_s``: for an exponential settling with time constant
+τ ≤ horizon, the rest of the way is b·τ ≤ |b|·horizon. *Ready* when every signal's projected
+change is within its tolerance (``data/settling.toml``) for ``hold_s`` seconds in a row; the
+evidence is each signal's trend and projected change then.
+
+:class:`SettlingDetector` takes a run a chunk (or a step) at a time — the live twin feeds it
+each chunk it publishes — and :func:`settling_time` a whole run at once; the two give the
+same answer (the online one keeps the last window of samples between chunks).
+
+Examples
+--------
+>>> t = np.arange(900.0)
+>>> level = 40.0 + 8.0 * (1 - np.exp(-t / 120.0))          # a line settling, τ = 2 min
+>>> means = np.column_stack([np.full(900, 3.5), np.ones(900), np.zeros(900), np.zeros(900),
+...                          4.6e-7 * (1 - 0.5 * np.exp(-t / 120.0))])
+>>> outputs = np.column_stack([level, level / 5, np.zeros(900), np.zeros(900), np.zeros(900)])
+>>> r = settling_time(t, means, outputs)
+>>> r.ready, 500 < r.ready_at_s < 800
+(True, True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ajtwin.config import packaged_toml
+from ajtwin.model.names import OUTPUT_NAMES, STATE_NAMES
+
+#: The watched signals: (name, source, column, relative)
+SIGNALS = (
+    ("linewidth_um", "outputs", 0, False),
+    ("overspray_um", "outputs", 1, False),
+    ("droplet_diameter_um", "states", 0, False),
+    ("aerosol_relative", "states", 4, True),
+)
+
+
+@dataclass(frozen=True)
+class SettlingSettings:
+    """The detector's window, horizon, hold [s] and per-signal tolerances."""
+
+    window_s: int = 120
+    horizon_s: float = 300.0
+    hold_s: int = 30
+    tolerances: tuple = (1.5, 1.5, 0.10, 0.06)
+
+    @classmethod
+    def load(cls) -> SettlingSettings:
+        """``data/settling.toml``."""
+        s = packaged_toml("data/settling.toml")["settling"]
+        return cls(
+            int(s["window_s"]),
+            float(s["horizon_s"]),
+            int(s["hold_s"]),
+            tuple(float(s[name]) for name, *_ in SIGNALS),
+        )
+
+
+@dataclass
+class Readiness:
+    """The verdict: ready (and since when [s]), with the evidence per signal at that time
+    (trend per minute and projected change over the horizon, in the signal's units)."""
+
+    ready: bool
+    ready_at_s: float | None = None
+    evidence: dict = field(default_factory=dict)
+
+    def sentence(self) -> str:
+        """One line for a user."""
+        if not self.ready:
+            return "not settled yet: " + _evidence_text(self.evidence)
+        return f"ready at t = {self.ready_at_s:.0f} s: " + _evidence_text(self.evidence)
+
+
+def _evidence_text(evidence: dict) -> str:
+    if not evidence:
+        return "too few samples"
+    return "; ".join(
+        f"{name} trend {e['trend_per_min']:+.3g}/min, {e['projected']:.3g} to come (≤ "
+        f"{e['tolerance']:g})"
+        for name, e in evidence.items()
+    )
+
+
+def rolling_trends(time_s, values, window: int) -> np.ndarray:
+    """Least-squares slope of ``values`` (T, K) over each trailing window of ``window``
+    samples (NaN before a full window or where a value is missing), per second (T, K)."""
+    t = np.asarray(time_s, dtype=float)
+    y = np.asarray(values, dtype=float)
+    n = len(t)
+    out = np.full(y.shape, np.nan)
+    if n < window:
+        return out
+    t0 = t - t[0]  # keep the sums well conditioned
+
+    def windowed(a):
+        c = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(a, axis=0)])
+        return c[window:] - c[:-window]
+
+    st, stt = windowed(t0), windowed(t0 * t0)
+    sy, sty = windowed(y), windowed(t0[:, None] * y)
+    missing = windowed(np.isnan(y).astype(float))
+    denominator = window * stt - st**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = (window * sty - st[:, None] * sy) / denominator[:, None]
+    slope[missing > 0] = np.nan
+    out[window - 1 :] = slope
+    return out
+
+
+class SettlingDetector:
+    """The online detector (module docstring); feed it with :meth:`update`."""
+
+    def __init__(self, settings: SettlingSettings | None = None):
+        self.settings = settings or SettlingSettings.load()
+        self._time = np.zeros(0)
+        self._signals = np.zeros((0, len(SIGNALS)))
+        self._reference_aerosol = None
+        self._run = 0
+        self.readiness = Readiness(False)
+
+    def _signal_columns(self, means, outputs) -> np.ndarray:
+        means = np.atleast_2d(np.asarray(means, dtype=float))
+        outputs = np.atleast_2d(np.asarray(outputs, dtype=float))
+        if self._reference_aerosol is None:
+            finite = means[np.isfinite(means[:, 4]), 4]
+            self._reference_aerosol = float(np.abs(finite[0])) if len(finite) else 1.0
+        cols = []
+        for _, source, column, relative in SIGNALS:
+            values = (outputs if source == "outputs" else means)[:, column]
+            cols.append(values / max(self._reference_aerosol, 1e-30) if relative else values)
+        return np.column_stack(cols)
+
+    def update(self, time_s, means, outputs) -> Readiness:
+        """Take the next steps: times (n,) [s], state means (n, 5), the twin's predicted
+        outputs (n, 5); returns the verdict so far (once ready, it stays ready)."""
+        if self.readiness.ready:
+            return self.readiness
+        s = self.settings
+        time_s = np.atleast_1d(np.asarray(time_s, dtype=float))
+        signals = self._signal_columns(means, outputs)
+        keep = s.window_s - 1
+        t = np.concatenate([self._time[-keep:] if keep else self._time[:0], time_s])
+        y = np.concatenate([self._signals[-keep:] if keep else self._signals[:0], signals])
+        first_new = len(t) - len(time_s)
+        trends = rolling_trends(t, y, s.window_s)
+        projected = np.abs(trends) * s.horizon_s
+        within = np.all(projected <= np.array(s.tolerances), axis=1)  # NaN → False
+        for k in range(first_new, len(t)):
+            self._run = self._run + 1 if within[k] else 0
+            if self._run >= s.hold_s:
+                self.readiness = Readiness(
+                    True, float(t[k]), self._evidence(trends[k], projected[k])
+                )
+                break
+        else:
+            if len(t):
+                self.readiness = Readiness(False, None, self._evidence(trends[-1], projected[-1]))
+        self._time, self._signals = t, y
+        return self.readiness
+
+    def _evidence(self, trend, projected) -> dict:
+        if not np.all(np.isfinite(trend)):
+            return {}
+        return {
+            name: {
+                "trend_per_min": float(trend[i] * 60.0),
+                "projected": float(projected[i]),
+                "tolerance": self.settings.tolerances[i],
+            }
+            for i, (name, *_) in enumerate(SIGNALS)
+        }
+
+    def status(self) -> dict:
+        """JSON-ready: ready, since when, the evidence."""
+        r = self.readiness
+        return {
+            "ready": r.ready,
+            "ready_at_s": r.ready_at_s,
+            "evidence": r.evidence,
+            "text": r.sentence(),
+        }
+
+
+def settling_time(time_s, means, outputs, settings: SettlingSettings | None = None) -> Readiness:
+    """The batch verdict over a whole run (the same as feeding :class:`SettlingDetector`)."""
+    return SettlingDetector(settings).update(time_s, means, outputs)
+
+
+def settling_from_table(frames, settings: SettlingSettings | None = None) -> Readiness:
+    """The verdict from ``ajtwin estimate``'s table read in chunks (DataFrames with
+    ``time_s``, the state columns and the ``pred_`` columns); stops reading once ready."""
+    states = list(STATE_NAMES)
+    outputs = ["pred_" + name for name in OUTPUT_NAMES]
+    detector = SettlingDetector(settings)
+    for frame in frames:
+        r = detector.update(
+            frame["time_s"].to_numpy(float),
+            frame[states].to_numpy(float),
+            frame[outputs].to_numpy(float),
+        )
+        if r.ready:
+            break
+    return detector.readiness

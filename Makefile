@@ -58,8 +58,13 @@ $(BENCH_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
+# asv (asv.conf.json) in this environment; the results are filed under the current commit
+# (.asv/results; `asv show`, `asv compare A B`, `asv publish`). BENCH_ARGS: more options,
+# e.g. BENCH_ARGS='--bench bench_startup' or '--quick'.
+BENCH_ARGS ?=
 bench: $(BENCH_STAMP) chromium
-	$(PY) benchmarks/run_all.py
+	$(VENV)/bin/asv machine --yes >/dev/null
+	$(VENV)/bin/asv run --python=same --set-commit-hash=$$(git rev-parse HEAD) --show-stderr $(BENCH_ARGS)
 
 # The documentation site in site/ (open site/index.html; search needs it served: make docs-serve).
 # Strict: a broken link or anchor, a page left out of the navigation or a docstring that does

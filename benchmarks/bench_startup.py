@@ -8,7 +8,8 @@ without (JAX, SciPy's optimisers, pandas, pyarrow's Parquet). It is ajtwin's own
 change can move, so ``track_*_to_import_floor`` is the figure to compare between commits: the
 floor and the command are timed one after the other, several times, and the ratio of their
 fastest runs is taken, which cancels most of a shared machine's speed of the day (a bare
-wall time on it varies 2-3 x).
+wall time on it varies 2-3 x). ``…_cpu_…`` is the same in CPU seconds (user + system, all
+threads), which other processes on the machine disturb less than a wall clock.
 
 The commands run as ``python -c "from ajtwin.cli import main; main()" …`` so that whichever
 ajtwin is first on the path is the one timed (``scripts/asv_at_commit.py`` puts an older
@@ -18,6 +19,7 @@ commit's source there).
 from __future__ import annotations
 
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -36,22 +38,34 @@ def _env(work: str) -> dict:
     return env
 
 
-def _wall(args: list[str], work: str) -> float:
-    """Seconds from launching ``args`` (in ``work``) to its exit; a failure raises."""
+def _run(args: list[str], work: str) -> tuple[float, float]:
+    """(wall seconds from launch to exit, CPU seconds — user + system, all its threads) of
+    ``args`` run in ``work``; a failure raises."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run(args, cwd=work, env=_env(work), capture_output=True, timeout=600)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         out = (done.stdout + done.stderr).decode(errors="replace")[-2000:]
         raise RuntimeError(f"{args[3:]} exited {done.returncode}: {out}")
-    return time.perf_counter() - t0
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu
 
 
-def _ratio_to_floor(args: list[str], work: str) -> float:
-    """Fastest of :data:`PAIRS` runs of ``args`` over the fastest of the import floor's."""
+def _wall(args: list[str], work: str) -> float:
+    """Seconds from launching ``args`` (in ``work``) to its exit."""
+    return _run(args, work)[0]
+
+
+def _ratio_to_floor(args: list[str], work: str, cpu: bool = False) -> float:
+    """Fastest of :data:`PAIRS` runs of ``args`` over the fastest of the import floor's, wall
+    time or (``cpu``) CPU time: the CPU time a process is given does not shrink when other
+    processes share the cores, so it is the steadier of the two on a busy machine."""
     floor, command = [], []
     for _ in range(PAIRS):
-        floor.append(_wall(FLOOR, work))
-        command.append(_wall(args, work))
+        floor.append(_run(FLOOR, work)[cpu])
+        command.append(_run(args, work)[cpu])
     return min(command) / min(floor)
 
 
@@ -119,6 +133,17 @@ class EstimateStart:
     @_ratio_unit
     def track_estimate_to_import_floor(self, work):
         return _ratio_to_floor(ESTIMATE, work)
+
+    @_ratio_unit
+    def track_estimate_cpu_to_import_floor(self, work):
+        """The same ratio in CPU seconds."""
+        return _ratio_to_floor(ESTIMATE, work, cpu=True)
+
+    def track_estimate_cpu_s(self, work):
+        """CPU seconds of the fastest of :data:`PAIRS` runs."""
+        return min(_run(ESTIMATE, work)[1] for _ in range(PAIRS))
+
+    track_estimate_cpu_s.unit = "s"
 
 
 class MachineCommandStart:

@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench lint openfoam chromium clean
+.PHONY: demo test test-all bench docs docs-serve lint openfoam chromium clean
 
 $(VENV): $(STAMP)
 
@@ -14,7 +14,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch first, from the exact pin (local CPU wheel), so nothing pulls a CUDA build
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	# docs too: the suite builds the documentation site (tests/test_docs_site.py)
+	$(PY) -m pip install --quiet -e '.[dev,docs]'
 	touch $(STAMP)
 
 .venv: $(STAMP)
@@ -64,12 +65,28 @@ $(BENCH_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
+# asv (asv.conf.json) in this environment; the results are filed under the current commit
+# (.asv/results; `asv show`, `asv compare A B`, `asv publish`). BENCH_ARGS: more options,
+# e.g. BENCH_ARGS='--bench bench_startup' or '--quick'.
+BENCH_ARGS ?=
 bench: $(BENCH_STAMP) chromium
-	$(PY) benchmarks/run_all.py
+	$(VENV)/bin/asv machine --yes >/dev/null
+	$(VENV)/bin/asv run --python=same --set-commit-hash=$$(git rev-parse HEAD) --show-stderr $(BENCH_ARGS)
+
+# The documentation site in site/ (open site/index.html; search needs it served: make docs-serve).
+# Strict: a broken link or anchor, a page left out of the navigation or a docstring that does
+# not render fails the build.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(VENV)/bin/mkdocs build --strict
+
+DOCS_PORT ?= 8000
+docs-serve: docs
+	@echo "the documentation: http://127.0.0.1:$(DOCS_PORT)/index.html (Ctrl-C to stop)"
+	$(PY) -m http.server --bind 127.0.0.1 --directory site $(DOCS_PORT)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks scripts
 	$(VENV)/bin/ruff format --check src tests benchmarks scripts
 
 clean:
-	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache demo-output
+	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache demo-output site

@@ -1,6 +1,6 @@
-"""Figures of the browser dashboard (Debian chromium through Playwright).
+"""Figures of the browser dashboard (Debian chromium through Playwright; ~5 min).
 
-    .venv/bin/python benchmarks/bench_dashboard.py        # ~5 min; needs /usr/bin/chromium
+    .venv/bin/asv run --python=same --bench bench_dashboard
 
 * **Fleet page with 50 machines**: a registry of 50 machines, each with one 30-min print
   (the arrays of one real twin run, stored 50 times: the same bytes per print as real
@@ -19,13 +19,13 @@ twin before replaying; the live engine's step time is measured by its own benchm
 
 from __future__ import annotations
 
-import os
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from ._figures import tracked
 
 
 def make_fleet(store: Path, n_machines: int = 50) -> None:
@@ -135,31 +135,51 @@ def live_figures(
     return out
 
 
-def main() -> dict:
-    from playwright.sync_api import sync_playwright
+FLEET = {
+    "fleet_50_machines_page_load_ms_first": "ms",
+    "fleet_50_machines_page_load_ms_median_next5": "ms",
+    "fleet_50_machines_dom_ready_ms_median": "ms",
+    "fleet_50_machines_server_html_ms_median": "ms",
+}
+LIVE = {
+    f"live_{label}_{figure}": "ms"
+    for label in ("1Hz", "10Hz")
+    for figure in (
+        "sample_to_page_ms_median",
+        "sample_to_page_ms_p95",
+        "sample_to_page_ms_max",
+        "sample_to_browser_ms_median",
+        "alarm_to_page_ms",
+    )
+    if not (label == "1Hz" and figure == "alarm_to_page_ms")  # exp1 at 1 Hz has no alarm
+}
 
-    from ajtwin.web.server import launch_chromium
 
-    out = {"load_average_1min_at_start": round(os.getloadavg()[0], 2)}
-    with tempfile.TemporaryDirectory() as tmp:
-        store = Path(tmp) / "fleet50.sqlite"
-        t0 = time.perf_counter()
+@tracked({**FLEET, **LIVE})
+class Dashboard:
+    """The fleet page of 50 machines, and the live page of a replayed print (1 Hz real time,
+    and 10 Hz with a nozzle clog), in Debian's chromium."""
+
+    timeout = 1800
+
+    def setup_cache(self):
+        from playwright.sync_api import sync_playwright
+
+        from ajtwin.web.server import CHROMIUM, launch_chromium
+
+        if not Path(CHROMIUM).exists():
+            raise NotImplementedError("no chromium: make chromium")
+        folder = Path.cwd()
+        store = folder / "fleet50.sqlite"
         make_fleet(store)
-        out["make_50_machine_registry_s"] = round(time.perf_counter() - t0, 1)
-        out["registry_MB"] = round(store.stat().st_size / 1e6, 1)
+        figures = {}
         with sync_playwright() as p:
-            context = launch_chromium(p, user_data_dir=Path(tmp) / "profile")
+            context = launch_chromium(p, user_data_dir=folder / "profile")
             try:
-                out.update(fleet_figures(store, context))
+                figures.update(fleet_figures(store, context))
                 # real time (1 sample/s, as a printer logs) and 10x faster (the clog alarm)
-                out.update(live_figures(store, context, 1.0, 1.0, "1Hz", "exp1"))
-                out.update(live_figures(store, context, 10.0, 5.0, "10Hz", "nozzle_clog"))
+                figures.update(live_figures(store, context, 1.0, 1.0, "1Hz", "exp1"))
+                figures.update(live_figures(store, context, 10.0, 5.0, "10Hz", "nozzle_clog"))
             finally:
                 context.close()
-    out["load_average_1min_at_end"] = round(os.getloadavg()[0], 2)
-    return out
-
-
-if __name__ == "__main__":
-    for key, value in main().items():
-        print(f"{key}: {value}")
+        return figures

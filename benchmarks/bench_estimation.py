@@ -1,42 +1,29 @@
-"""Speed of the estimators on a 5,400-step (90 min) virtual print, beside their peers.
+"""The estimators on a 5,400-step (90-min) virtual print, after compilation, beside peers.
 
-Figures (wall time, best of several runs, after compilation):
+* :class:`Filter`: our EKF, its floor (the same filter with the model replaced by a linear
+  one: what a step costs when f, g and their Jacobians are free), RTS, one EM iteration,
+  the whole print's EKF + RTS + 10 EM iterations, the online twin run.
+* :class:`Peers`: dynamax's ``extended_kalman_filter`` / ``extended_kalman_smoother`` and
+  filterpy's ``ExtendedKalmanFilter`` on the same model (our f_d and g in the filter's
+  scaled coordinates, jitted), same noise, same print: how many times faster ours is. The
+  filtered (and smoothed) means must agree to 1e-8 relative, or the benchmark fails.
+* :class:`Fleet`: machines filtered together: ``vmap``, ``ekf_fleet`` (one after the
+  other, each scan one kernel), ``ekf_fleet_threaded`` (a block per core).
 
-* our EKF (steps/s) and the floor: the same filter with the model replaced by
-  a linear one (what a step costs when f, g and their Jacobians are free);
-* dynamax's ``extended_kalman_filter`` / ``extended_kalman_smoother`` and
-  filterpy's ``ExtendedKalmanFilter`` on the same model (our f_d and g in the
-  filter's scaled coordinates, jitted), same noise, same print; the filtered
-  (and smoothed) means must agree to 1e-8 relative or the bench fails;
-* RTS, one EM iteration, whole-print EKF + RTS + 10 EM iterations, the online
-  twin run, and a vmap fleet of machines filtered together.
-
-dynamax's convention differs from ours in one place: its step t → t+1 uses the
-input at t+1. Ours uses u_t, so dynamax is given inputs [u_t, u_{t−1}] and its
-dynamics read the second half. dynamax and filterpy are bench-only.
+dynamax's convention differs from ours in one place: its step t → t+1 uses the input at t+1.
+Ours uses u_t, so dynamax is given inputs [u_t, u_{t−1}] and its dynamics read the second
+half. dynamax and filterpy are benchmark-only (``pip install -e '.[bench]'``).
 """
 
-import os
+from __future__ import annotations
+
 import time
 import warnings
 
 import numpy as np
 
-from ajtwin._jax import jax, jnp
-from ajtwin.estimation import (
-    DEFAULT_SCALING,
-    ModelSpec,
-    Twin,
-    ekf,
-    ekf_fleet,
-    ekf_fleet_threaded,
-    rts_smoother,
-)
-from ajtwin.estimation.em import e_step, m_step, run_em
-from ajtwin.estimation.filters import AJ_EULER, ModelFunctions, _scaled_functions
-from ajtwin.simulation import simulate
-
 AGREEMENT = 1e-8  # relative, filtered/smoothed means against each peer
+FLEET_STEPS = 60
 
 
 def _best(fn, repeats=5):
@@ -56,230 +43,280 @@ def _relative(a, b):
 def _check(name, err):
     if not err <= AGREEMENT:
         raise AssertionError(f"{name}: relative difference {err:.2e} > {AGREEMENT:g}")
-    return float(f"{err:.2e}")
 
 
-def main() -> dict:
-    record = simulate("exp1", 1)
-    twin = Twin.default()
-    spec = ModelSpec(twin.model.params, jnp.asarray(twin.model.coefficient_matrix), DEFAULT_SCALING)
-    u, y = jnp.asarray(record.inputs), jnp.asarray(record.outputs)
-    start = twin.initial_state(record.inputs, record.outputs)
-    theta = np.zeros(5)
-    q, r = twin.process_cov, twin.measurement_var
-    n = len(u)
-    s = np.asarray(DEFAULT_SCALING.state)
-    out = {"print_steps": n, "load_average_1min": round(os.getloadavg()[0], 2)}
+class _Print:
+    """The twin, its model spec and a 90-min exp1 print (seed 1), with the filter run."""
 
-    # ---- our EKF, RTS, and the floor --------------------------------------------------
-    def run_ekf(functions=AJ_EULER):
-        result = ekf(spec, start.mean, start.covariance, u, y, theta, q, r, functions=functions)
-        return jax.block_until_ready(result)
+    def __init__(self):
+        from ajtwin._jax import jax, jnp
+        from ajtwin.estimation import DEFAULT_SCALING, ModelSpec, Twin, ekf, rts_smoother
+        from ajtwin.simulation import simulate
 
-    filt = run_ekf()
-    t_ekf = _best(run_ekf, 7)
-    smooth = jax.block_until_ready(rts_smoother(spec, filt))
-    t_rts = _best(lambda: jax.block_until_ready(rts_smoother(spec, filt)), 7)
-    a_lin = jnp.asarray(np.eye(5) * 0.999 + 1e-4)
-    c_lin = jnp.asarray(np.diag(1.0 / np.asarray(DEFAULT_SCALING.output)))
-    linear = ModelFunctions(
-        lambda x, uk, th, params, dt: (a_lin @ (x / s)) * s + th * x + 0.0 * uk[0],
-        lambda x, uk, params, coefficients: c_lin @ (x / s) + 0.0 * uk[0],
-    )
-    run_ekf(linear)
-    t_floor = _best(lambda: run_ekf(linear), 7)
-    out.update(
-        ekf_steps_per_s=round(n / t_ekf),
-        ekf_step_us=round(t_ekf / n * 1e6, 2),
-        ekf_whole_print_ms=round(t_ekf * 1e3, 1),
-        ekf_floor_step_us_model_free=round(t_floor / n * 1e6, 2),
-        rts_whole_print_ms=round(t_rts * 1e3, 1),
-        ekf_plus_rts_whole_print_ms=round((t_ekf + t_rts) * 1e3, 1),
-    )
+        self.jax, self.jnp = jax, jnp
+        self.record = simulate("exp1", 1)
+        self.twin = Twin.default()
+        model = self.twin.model
+        self.spec = ModelSpec(model.params, jnp.asarray(model.coefficient_matrix), DEFAULT_SCALING)
+        self.u, self.y = jnp.asarray(self.record.inputs), jnp.asarray(self.record.outputs)
+        self.start = self.twin.initial_state(self.record.inputs, self.record.outputs)
+        self.theta = np.zeros(5)
+        self.q, self.r = self.twin.process_cov, self.twin.measurement_var
+        self.scale = np.asarray(DEFAULT_SCALING.state)
+        self.ekf, self.rts = ekf, rts_smoother
+        self.filtered = self.run_ekf()
+        self.smoothed = jax.block_until_ready(rts_smoother(self.spec, self.filtered))
 
-    # ---- the same model for the peers: scaled coordinates, jitted ----------------------
-    f_s, g_s = _scaled_functions(spec, AJ_EULER)
-    z0 = jnp.asarray(start.mean) / s
-    p0 = jnp.asarray(start.covariance) / np.outer(s, s)
-    q_s = jnp.asarray(q) / np.outer(s, s)
-    r_s = jnp.diag(jnp.asarray(r) / np.asarray(DEFAULT_SCALING.output) ** 2)
-    eta = y / np.asarray(DEFAULT_SCALING.output)
-    theta_j = jnp.zeros(5)
+    def run_ekf(self, functions=None):
+        from ajtwin.estimation.filters import AJ_EULER
 
-    # ---- dynamax -------------------------------------------------------------------------
-    from dynamax.nonlinear_gaussian_ssm import (
-        ParamsNLGSSM,
-        extended_kalman_filter,
-        extended_kalman_smoother,
-    )
-
-    shifted = jnp.concatenate([u, jnp.concatenate([u[:1], u[:-1]])], axis=1)  # [u_t, u_{t−1}]
-    # dynamax's smoother solves with P_{t+1|t} + 1e-9 I (psd_solve's diagonal boost); in our
-    # scaled coordinates some predicted variances are ~1e-8, so the boost would bias its
-    # gains. It runs on w = z / c instead, with c putting every predicted variance ≥ 1e8.
-    c = jnp.asarray(1e-4 * np.sqrt(np.min(np.diagonal(filt.predicted_covariances, 0, 1, 2), 0)) / s)
-    params_dx = ParamsNLGSSM(
-        initial_mean=z0 / c,
-        initial_covariance=p0 / jnp.outer(c, c),
-        dynamics_function=lambda w, inp: f_s(w * c, inp[3:], theta_j) / c,
-        dynamics_covariance=q_s / jnp.outer(c, c),
-        emission_function=lambda w, inp: g_s(w * c, inp[:3]),
-        emission_covariance=r_s,
-    )
-    dx_filter = jax.jit(
-        lambda e, i: extended_kalman_filter(params_dx, e, inputs=i).filtered_means * c
-    )
-    dx_smoother = jax.jit(
-        lambda e, i: extended_kalman_smoother(params_dx, e, inputs=i).smoothed_means * c
-    )
-    dx_means = jax.block_until_ready(dx_filter(eta, shifted))
-    t_dx = _best(lambda: jax.block_until_ready(dx_filter(eta, shifted)), 7)
-    dx_smoothed = jax.block_until_ready(dx_smoother(eta, shifted))
-    t_dx_smooth = _best(lambda: jax.block_until_ready(dx_smoother(eta, shifted)), 5)
-    out.update(
-        dynamax_ekf_steps_per_s=round(n / t_dx),
-        ekf_speed_vs_dynamax=round(t_dx / t_ekf, 2),
-        dynamax_filtered_means_max_rel_diff=_check(
-            "dynamax filtered means", _relative(np.asarray(filt.means) / s, dx_means)
-        ),
-        dynamax_ekf_plus_smoother_ms=round(t_dx_smooth * 1e3, 1),
-        ekf_plus_rts_speed_vs_dynamax_smoother=round(t_dx_smooth / (t_ekf + t_rts), 2),
-        dynamax_smoothed_means_max_rel_diff=_check(
-            "dynamax smoothed means", _relative(np.asarray(smooth.means) / s, dx_smoothed)
-        ),
-    )
-
-    # ---- filterpy (first 500 steps: it is slow) --------------------------------------------
-    from filterpy.kalman import ExtendedKalmanFilter
-
-    f_j = jax.jit(lambda z, uk: f_s(z, uk, theta_j))
-    jf_j = jax.jit(jax.jacfwd(lambda z, uk: f_s(z, uk, theta_j)))
-    g_j = jax.jit(g_s)
-    jg_j = jax.jit(jax.jacfwd(g_s))
-    m_fp = 500
-    u_np, eta_np = np.asarray(u), np.asarray(eta)
-
-    def run_filterpy():
-        kf = ExtendedKalmanFilter(5, 5)
-        kf.x, kf.P = np.asarray(z0).copy(), np.asarray(p0).copy()
-        kf.Q, kf.R = np.asarray(q_s), np.asarray(r_s)
-        means = []
-        for k in range(m_fp):
-            kf.update(
-                eta_np[k],
-                lambda z, uk: np.asarray(jg_j(z, uk)),
-                lambda z, uk: np.asarray(g_j(z, uk)),
-                args=(u_np[k],),
-                hx_args=(u_np[k],),
-            )
-            means.append(kf.x.copy())
-            fk = np.asarray(jf_j(kf.x, u_np[k]))
-            kf.x = np.asarray(f_j(kf.x, u_np[k]))
-            kf.P = fk @ kf.P @ fk.T + kf.Q
-        return np.array(means)
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fp_means = run_filterpy()
-        t_fp = _best(run_filterpy, 2) / m_fp
-    out.update(
-        filterpy_ekf_steps_per_s=round(1 / t_fp),
-        ekf_speed_vs_filterpy=round(t_fp / (t_ekf / n), 1),
-        filterpy_filtered_means_max_rel_diff=_check(
-            "filterpy filtered means", _relative(np.asarray(filt.means)[:m_fp] / s, fp_means)
-        ),
-    )
-
-    # ---- EM --------------------------------------------------------------------------------
-    prec = jnp.asarray(twin.theta_prior_precision)
-    win = 600
-    args_w = (spec, start.mean, start.covariance, u[:win], y[:win], theta, q, r, np.inf)
-    _, sm_w, _ = e_step(*args_w)
-    jax.block_until_ready(m_step(spec, sm_w, u[:win], q, prec))
-
-    def em_iter_window():
-        _, s_, _ = e_step(*args_w)
-        jax.block_until_ready(m_step(spec, s_, u[:win], q, prec))
-
-    t_em_window = _best(em_iter_window)
-
-    def whole():
-        em = run_em(
-            spec,
-            start.mean,
-            start.covariance,
-            u,
-            y,
-            theta,
-            q,
-            r,
-            theta_prior_precision=prec,
-            max_iterations=10,
-            tolerance=0.0,
+        result = self.ekf(
+            self.spec,
+            self.start.mean,
+            self.start.covariance,
+            self.u,
+            self.y,
+            self.theta,
+            self.q,
+            self.r,
+            functions=functions or AJ_EULER,
         )
-        assert em.iterations == 10
-        return em
+        return self.jax.block_until_ready(result)
 
-    whole()
-    t_whole = _best(whole, 3)
 
-    twin.run(record)  # online EM, 600 s window every 300 s
-    t_twin = _best(lambda: twin.run(record), 2)
-    out.update(
-        em_iteration_600s_window_ms=round(t_em_window * 1e3, 1),
-        whole_print_ekf_rts_plus_10_em_iterations_s=round(t_whole, 3),
-        twin_run_online_em_whole_print_s=round(t_twin, 2),
-    )
+class Filter:
+    """Our EKF, RTS and EM on the whole print."""
 
-    # ---- fleets: machines filtered together with vmap (60 steps each) ---------------------
-    steps = 60
-    rng = np.random.default_rng(0)
-    batched = jax.jit(
-        jax.vmap(lambda m0, p0_, uu, yy: ekf(spec, m0, p0_, uu, yy, theta, q, r).means[-1])
-    )
-    for machines in (1000, 10000):
-        means0 = np.tile(start.mean, (machines, 1))
+    timeout = 600
+
+    def setup(self):
+        from ajtwin.estimation.em import e_step, m_step, run_em
+        from ajtwin.estimation.filters import ModelFunctions
+
+        p = self.p = _Print()
+        jnp, s = p.jnp, p.scale
+        a_lin = jnp.asarray(np.eye(5) * 0.999 + 1e-4)
+        c_lin = jnp.asarray(np.diag(1.0 / np.asarray(p.spec.scaling.output)))
+        self.linear = ModelFunctions(
+            lambda x, uk, th, params, dt: (a_lin @ (x / s)) * s + th * x + 0.0 * uk[0],
+            lambda x, uk, params, coefficients: c_lin @ (x / s) + 0.0 * uk[0],
+        )
+        p.run_ekf(self.linear)
+        prec = jnp.asarray(p.twin.theta_prior_precision)
+        win = 600
+        args = (p.spec, p.start.mean, p.start.covariance, p.u[:win], p.y[:win], p.theta, p.q)
+        args += (p.r, np.inf)
+
+        def em_iteration():
+            _, smoothed, _ = e_step(*args)
+            p.jax.block_until_ready(m_step(p.spec, smoothed, p.u[:win], p.q, prec))
+
+        def whole():
+            em = run_em(
+                p.spec,
+                p.start.mean,
+                p.start.covariance,
+                p.u,
+                p.y,
+                p.theta,
+                p.q,
+                p.r,
+                theta_prior_precision=prec,
+                max_iterations=10,
+                tolerance=0.0,
+            )
+            assert em.iterations == 10
+            return em
+
+        self.em_iteration, self.whole = em_iteration, whole
+        em_iteration()
+        whole()
+        p.twin.run(p.record)
+
+    def time_ekf_5400_steps(self):
+        self.p.run_ekf()
+
+    def time_ekf_floor_model_free_5400_steps(self):
+        """The same filter with f, g and their Jacobians free (linear maps)."""
+        self.p.run_ekf(self.linear)
+
+    def time_rts_5400_steps(self):
+        self.p.jax.block_until_ready(self.p.rts(self.p.spec, self.p.filtered))
+
+    def time_em_iteration_600s_window(self):
+        self.em_iteration()
+
+    def time_whole_print_ekf_rts_10_em_iterations(self):
+        self.whole()
+
+    def time_twin_run_online_em(self):
+        """``Twin.run``: EM over a 600-s window every 300 s, the whole print."""
+        self.p.twin.run(self.p.record)
+
+    def track_ekf_steps_per_s(self):
+        return len(self.p.u) / _best(self.p.run_ekf, 7)
+
+    track_ekf_steps_per_s.unit = "steps/s"
+
+
+class Peers:
+    """How many times faster our filter (and filter + smoother) is than dynamax's and
+    filterpy's on the same model and print; their means checked against ours."""
+
+    timeout = 900
+    FILTERPY_STEPS = 500  # filterpy is slow: the first 500 steps
+
+    def setup_cache(self):
+        p = _Print()
+        jax, jnp, s = p.jax, p.jnp, p.scale
+        from ajtwin.estimation.filters import AJ_EULER, _scaled_functions
+
+        t_ekf = _best(p.run_ekf, 7)
+        t_rts = _best(lambda: jax.block_until_ready(p.rts(p.spec, p.filtered)), 7)
+        f_s, g_s = _scaled_functions(p.spec, AJ_EULER)
+        output_scale = np.asarray(p.spec.scaling.output)
+        z0 = jnp.asarray(p.start.mean) / s
+        p0 = jnp.asarray(p.start.covariance) / np.outer(s, s)
+        q_s = jnp.asarray(p.q) / np.outer(s, s)
+        r_s = jnp.diag(jnp.asarray(p.r) / output_scale**2)
+        eta = p.y / output_scale
+        theta_j = jnp.zeros(5)
+        figures = {}
+
+        from dynamax.nonlinear_gaussian_ssm import (
+            ParamsNLGSSM,
+            extended_kalman_filter,
+            extended_kalman_smoother,
+        )
+
+        shifted = jnp.concatenate([p.u, jnp.concatenate([p.u[:1], p.u[:-1]])], axis=1)
+        # dynamax's smoother solves with P_{t+1|t} + 1e-9 I (psd_solve's diagonal boost); in
+        # our scaled coordinates some predicted variances are ~1e-8, so the boost would bias
+        # its gains. It runs on w = z / c instead, c putting every predicted variance ≥ 1e8.
+        predicted = np.diagonal(p.filtered.predicted_covariances, 0, 1, 2)
+        c = jnp.asarray(1e-4 * np.sqrt(np.min(predicted, 0)) / s)
+        params = ParamsNLGSSM(
+            initial_mean=z0 / c,
+            initial_covariance=p0 / jnp.outer(c, c),
+            dynamics_function=lambda w, inp: f_s(w * c, inp[3:], theta_j) / c,
+            dynamics_covariance=q_s / jnp.outer(c, c),
+            emission_function=lambda w, inp: g_s(w * c, inp[:3]),
+            emission_covariance=r_s,
+        )
+        dx_filter = jax.jit(
+            lambda e, i: extended_kalman_filter(params, e, inputs=i).filtered_means * c
+        )
+        dx_smoother = jax.jit(
+            lambda e, i: extended_kalman_smoother(params, e, inputs=i).smoothed_means * c
+        )
+        means = jax.block_until_ready(dx_filter(eta, shifted))
+        _check("dynamax filtered means", _relative(np.asarray(p.filtered.means) / s, means))
+        smoothed = jax.block_until_ready(dx_smoother(eta, shifted))
+        _check("dynamax smoothed means", _relative(np.asarray(p.smoothed.means) / s, smoothed))
+        t_dx = _best(lambda: jax.block_until_ready(dx_filter(eta, shifted)), 7)
+        t_dx_smooth = _best(lambda: jax.block_until_ready(dx_smoother(eta, shifted)), 5)
+        figures["dynamax_filter"] = t_dx / t_ekf
+        figures["dynamax_smoother"] = t_dx_smooth / (t_ekf + t_rts)
+
+        from filterpy.kalman import ExtendedKalmanFilter
+
+        f_j = jax.jit(lambda z, uk: f_s(z, uk, theta_j))
+        jf_j = jax.jit(jax.jacfwd(lambda z, uk: f_s(z, uk, theta_j)))
+        g_j = jax.jit(g_s)
+        jg_j = jax.jit(jax.jacfwd(g_s))
+        u_np, eta_np = np.asarray(p.u), np.asarray(eta)
+
+        def run_filterpy():
+            kf = ExtendedKalmanFilter(5, 5)
+            kf.x, kf.P = np.asarray(z0).copy(), np.asarray(p0).copy()
+            kf.Q, kf.R = np.asarray(q_s), np.asarray(r_s)
+            out = []
+            for k in range(self.FILTERPY_STEPS):
+                kf.update(
+                    eta_np[k],
+                    lambda z, uk: np.asarray(jg_j(z, uk)),
+                    lambda z, uk: np.asarray(g_j(z, uk)),
+                    args=(u_np[k],),
+                    hx_args=(u_np[k],),
+                )
+                out.append(kf.x.copy())
+                fk = np.asarray(jf_j(kf.x, u_np[k]))
+                kf.x = np.asarray(f_j(kf.x, u_np[k]))
+                kf.P = fk @ kf.P @ fk.T + kf.Q
+            return np.array(out)
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fp_means = run_filterpy()
+            t_fp = _best(run_filterpy, 2) / self.FILTERPY_STEPS
+        ours = np.asarray(p.filtered.means)[: self.FILTERPY_STEPS] / s
+        _check("filterpy filtered means", _relative(ours, fp_means))
+        figures["filterpy_filter"] = t_fp / (t_ekf / len(p.u))
+        return figures
+
+    def track_ekf_speed_vs_dynamax(self, figures):
+        return figures["dynamax_filter"]
+
+    def track_ekf_rts_speed_vs_dynamax_smoother(self, figures):
+        return figures["dynamax_smoother"]
+
+    def track_ekf_speed_vs_filterpy(self, figures):
+        return figures["filterpy_filter"]
+
+    for _method in (
+        track_ekf_speed_vs_dynamax,
+        track_ekf_rts_speed_vs_dynamax_smoother,
+        track_ekf_speed_vs_filterpy,
+    ):
+        _method.unit = "x faster"
+    del _method
+
+
+class Fleet:
+    """1,000 and 10,000 machines × 60 steps: vmap, ``ekf_fleet``, ``ekf_fleet_threaded``."""
+
+    params = [1000, 10000]
+    param_names = ["machines"]
+    timeout = 600
+
+    def setup(self, machines):
+        from ajtwin.estimation import ekf, ekf_fleet, ekf_fleet_threaded
+
+        p = _Print()
+        jax = p.jax
+        rng = np.random.default_rng(0)
+        means0 = np.tile(p.start.mean, (machines, 1))
         means0[:, 0] += rng.normal(0, 0.1, machines)
-        covs0 = np.tile(start.covariance, (machines, 1, 1))
-        us = np.tile(np.asarray(u[:steps]), (machines, 1, 1))
-        noise = rng.normal(0, 0.5, (machines, steps, 5)) * [1, 1, 1, 1, 0]
-        ys = np.tile(np.asarray(y[:steps]), (machines, 1, 1)) + noise
-        fleet = (means0, covs0, us, ys)
-        jax.block_until_ready(batched(*fleet))
-        t_batch = _best(lambda fleet=fleet: jax.block_until_ready(batched(*fleet)), 3)
-        out[f"vmap_{machines}_machines_machine_steps_per_s"] = round(machines * steps / t_batch)
-        # ekf_fleet: the machines one after the other, each scan one XLA kernel
-        thetas = np.zeros((machines, 5))
-
-        def run_fleet(fleet=fleet, thetas=thetas):
-            return jax.block_until_ready(ekf_fleet(spec, *fleet, thetas, q, r).means[:, -1])
-
+        covs0 = np.tile(p.start.covariance, (machines, 1, 1))
+        us = np.tile(np.asarray(p.u[:FLEET_STEPS]), (machines, 1, 1))
+        noise = rng.normal(0, 0.5, (machines, FLEET_STEPS, 5)) * [1, 1, 1, 1, 0]
+        ys = np.tile(np.asarray(p.y[:FLEET_STEPS]), (machines, 1, 1)) + noise
+        fleet, thetas = (means0, covs0, us, ys), np.zeros((machines, 5))
+        theta, q, r, spec = p.theta, p.q, p.r, p.spec
+        batched = jax.jit(
+            jax.vmap(lambda m0, p0_, uu, yy: ekf(spec, m0, p0_, uu, yy, theta, q, r).means[-1])
+        )
+        self.vmap = lambda: jax.block_until_ready(batched(*fleet))
+        self.fleet = lambda: jax.block_until_ready(
+            ekf_fleet(spec, *fleet, thetas, q, r).means[:, -1]
+        )
+        self.threaded = lambda: ekf_fleet_threaded(spec, *fleet, thetas, q, r).means[:, -1]
         if machines == 1000:
-            out["ekf_fleet_vs_vmap_max_rel_diff"] = _check(
-                "ekf_fleet vs vmap", _relative(run_fleet(), batched(*fleet))
-            )
-        run_fleet()
-        t_fleet = _best(run_fleet, 3)
-        key = f"ekf_fleet_{machines}_machines_machine_steps_per_s"
-        out[key] = round(machines * steps / t_fleet)
+            _check("ekf_fleet vs vmap", _relative(self.fleet(), self.vmap()))
+            assert np.array_equal(self.threaded(), np.asarray(self.fleet()))
+        for run in (self.vmap, self.fleet, self.threaded):
+            run()
 
-        # the same on every core: blocks of machines, one thread each
-        def run_threaded(fleet=fleet, thetas=thetas):
-            return ekf_fleet_threaded(spec, *fleet, thetas, q, r).means[:, -1]
+    def time_vmap(self, machines):
+        self.vmap()
 
-        if machines == 1000:
-            out["ekf_fleet_threaded_vs_ekf_fleet_max_abs_diff"] = float(
-                np.max(np.abs(run_threaded() - np.asarray(run_fleet())))
-            )
-        run_threaded()
-        t_threaded = _best(run_threaded, 3)
-        key = f"ekf_fleet_threaded_{machines}_machines_machine_steps_per_s"
-        out[key] = round(machines * steps / t_threaded)
-    out["cpu_count"] = os.cpu_count()
-    out["load_average_1min_end"] = round(os.getloadavg()[0], 2)
-    return out
+    def time_ekf_fleet(self, machines):
+        self.fleet()
 
+    def time_ekf_fleet_threaded(self, machines):
+        self.threaded()
 
-if __name__ == "__main__":
-    for key, value in main().items():
-        print(f"{key}: {value}")
+    def track_ekf_fleet_threaded_machine_steps_per_s(self, machines):
+        return machines * FLEET_STEPS / _best(self.threaded, 3)
+
+    track_ekf_fleet_threaded_machine_steps_per_s.unit = "machine-steps/s"

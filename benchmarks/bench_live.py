@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -22,6 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from ._figures import tracked
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -137,7 +138,8 @@ def _free_port() -> int:
 
 
 def startup(tmp: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # the ajtwin this process runs (an older commit's under scripts/asv_at_commit.py)
+    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH") or SRC)
     url = f"opc.tcp://127.0.0.1:{_free_port()}"
     server = subprocess.Popen(
         [
@@ -197,22 +199,36 @@ def startup(tmp: Path) -> dict:
                 p.wait(timeout=30)
 
 
-def main() -> dict:
-    import tempfile
+@tracked(
+    {
+        "step_latency_p50_us": "µs",
+        "step_latency_p99_us": "µs",
+        "committed_latency_p50_us": "µs",
+        "committed_latency_p99_ms": "ms",
+        "cpu_per_step_incl_em_us": "µs",
+        "step_cpu_per_machine_us_n1": "µs",
+        "step_cpu_per_machine_us_n16": "µs",
+        "step_cpu_per_machine_us_n64": "µs",
+        "em_cpu_s": "s",
+        "machines_per_process_1hz": "machines",
+    }
+)
+class LiveStep:
+    """One machine fed at ×50 (EM in a worker thread), and fleets stepping together."""
 
-    figures = {"load_1min": round(os.getloadavg()[0], 2)}
-    figures.update(step_latency())
-    figures.update(fleet_cost())
-    figures["load_1min_after"] = round(os.getloadavg()[0], 2)
-    with tempfile.TemporaryDirectory() as tmp:
-        figures.update(startup(Path(tmp)))
-    figures["note"] = (
-        "latency: sample in → first published message (provisional during EM) and → "
-        "committed message, in-process, one machine fed at x50, EM in a thread; "
-        "CPU per machine-step from vmapped fleets; machines/process = 1 s / (step + EM/300 s)"
-    )
-    return figures
+    timeout = 1800
+
+    def setup_cache(self):
+        figures = step_latency()
+        figures.update(fleet_cost())
+        return figures
 
 
-if __name__ == "__main__":
-    print(json.dumps(main(), indent=2))
+@tracked({"startup_to_first_state_s": "s"})
+class LiveStart:
+    """``ajtwin live`` launched against a serving virtual printer → first published state."""
+
+    timeout = 600
+
+    def setup_cache(self):
+        return startup(Path.cwd())

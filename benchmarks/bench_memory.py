@@ -25,10 +25,12 @@ empty JAX cache compiles, and the compiler's peak (~150 MB more) is not the prin
         [--commands estimate ingest ingest-job live live-1hz]
                                       [--records DIR]
 
-The default (1 h and 4 h) takes ~3 min on 2 cores; ``--hours 1 24 168`` gives the 7-day
-figure (~30 min, most of it simulating the week; ``--records DIR`` keeps the prints there
-and reuses them). To measure another tree (e.g. the code before a change), put its ``src``
-first on PYTHONPATH: the children import ``ajtwin`` from there.
+asv runs one figure per command on a 1-h print (:class:`PeakMemory`, ``make bench``); this
+command runs the sweep over print lengths. The default (1 h and 4 h) takes ~3 min on 2
+cores; ``--hours 1 24 168`` gives the 7-day figure (~30 min, most of it simulating the
+week; ``--records DIR`` keeps the prints there and reuses them). To measure another tree
+(e.g. the code before a change), put its ``src`` first on PYTHONPATH: the children import
+``ajtwin`` from there.
 """
 
 from __future__ import annotations
@@ -40,10 +42,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
-from ajtwin.io.records import write_record
-from ajtwin.simulation import simulate
-from ajtwin.simulation.job_print import simulate_job
 
 COMMANDS = ("estimate", "ingest", "ingest-job", "live", "live-1hz")
 #: the job print of ``ingest-job``: the public seven-layer program looped to the print's
@@ -146,6 +144,10 @@ def _record(command: str, hours: float, seed: int, folder: Path) -> Path:
     kind = "job-" if command == "ingest-job" else ""
     record = folder / f"{kind}exp1-seed{seed}-{hours:g}h.parquet"
     if not record.exists():
+        from ajtwin.io.records import write_record
+        from ajtwin.simulation import simulate
+        from ajtwin.simulation.job_print import simulate_job
+
         record.parent.mkdir(parents=True, exist_ok=True)
         if kind:
             printed = simulate_job(PROGRAM, "exp1", seed=seed, duration_min=60.0 * hours)
@@ -153,6 +155,30 @@ def _record(command: str, hours: float, seed: int, folder: Path) -> Path:
             printed = simulate("exp1", seed=seed, duration_min=60.0 * hours)
         write_record(printed, record)
     return record
+
+
+class PeakMemory:
+    """Each command's own peak resident set [MB] over a clean 1-h exp1 print (seed 5), on a
+    fresh registry; the JAX cache filled by an unmeasured run first."""
+
+    params = list(COMMANDS)
+    param_names = ["command"]
+    timeout = 900
+
+    def setup_cache(self):
+        work = Path.cwd()
+        env = dict(os.environ, JAX_PLATFORMS="cpu", AJTWIN_CACHE_DIR=str(work / "cache"))
+        figures = {}
+        for command in COMMANDS:
+            record = _record(command, 1.0, 5, work)
+            measure(command, record, work, env)  # compiles: the compiler's peak is not the print's
+            figures[command] = measure(command, record, work, env)[0]
+        return figures
+
+    def track_peak_MB_1h_print(self, figures, command):
+        return figures[command]
+
+    track_peak_MB_1h_print.unit = "MB"
 
 
 def main() -> dict:

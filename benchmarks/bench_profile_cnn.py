@@ -5,7 +5,7 @@ Figures:
 * inference columns/s of the full-width network (64–512 channels), 1 and 2 torch
   threads, batches of 512 columns;
 * training columns/s of stage 1 (profile MSE) and stage 2 (feature loss,
-  including the per-column model reference §9 walk), 1 thread, batches of 32;
+  including the per-column model reference §9 walk), 1 and 2 threads, batches of 32;
 * the implied training time of the default model
   (``ajtwin cnn train --synthetic``: 125 pairs × 100 epochs + 4000 columns × 50
   epochs) — extrapolated from the measured rates, not run here;
@@ -18,21 +18,16 @@ The machine is shared: figures vary with the load of other processes.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
-import torch
-
-from ajtwin.profile_cnn.data import ColumnDataset
-from ajtwin.profile_cnn.model import ProfileModel
-from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile
-from ajtwin.profile_cnn.train import TrainConfig, Trainer
-from ajtwin.vision.profile import brightness_from_slope, line_profile
 
 PX = 0.75
+WIDTHS = {"resnet18": 64, "resnet18_half": 32}
 
 
 def _columns(n, seed=0):
+    from ajtwin.profile_cnn.data import ColumnDataset
+    from ajtwin.vision.profile import brightness_from_slope, line_profile
+
     rng = np.random.default_rng(seed)
     r = (np.arange(200) - 99.5) * PX
     cols, profs, lws, ovs = [], [], [], []
@@ -52,48 +47,75 @@ def _columns(n, seed=0):
     )
 
 
-def _inference_rate(width, threads, n=2048):
-    torch.set_num_threads(threads)
-    model = ProfileModel(ResNet18Profile(NetworkConfig(base_channels=width)), PX, 0.5)
-    cols = np.random.default_rng(1).uniform(50, 200, (n, 200))
-    model.predict_um(cols[:512])  # warm-up
-    t0 = time.perf_counter()
-    model.predict_um(cols)
-    return n / (time.perf_counter() - t0)
+class Inference:
+    """Columns/s of the full-width network's inference, batches of 512 columns."""
+
+    params = (list(WIDTHS), [1, 2])
+    param_names = ["network", "threads"]
+    timeout = 600
+    COLUMNS = 2048
+
+    def setup(self, network, threads):
+        import torch
+
+        from ajtwin.profile_cnn.model import ProfileModel
+        from ajtwin.profile_cnn.network import NetworkConfig, ResNet18Profile
+
+        torch.set_num_threads(threads)
+        config = NetworkConfig(base_channels=WIDTHS[network])
+        self.model = ProfileModel(ResNet18Profile(config), PX, 0.5)
+        self.columns = np.random.default_rng(1).uniform(50, 200, (self.COLUMNS, 200))
+        self.model.predict_um(self.columns[:512])
+
+    def teardown(self, network, threads):
+        import torch
+
+        torch.set_num_threads(1)
+
+    def track_columns_per_s(self, network, threads):
+        import time
+
+        t0 = time.perf_counter()
+        self.model.predict_um(self.columns)
+        return self.COLUMNS / (time.perf_counter() - t0)
+
+    track_columns_per_s.unit = "columns/s"
 
 
-def _training_rates(width, data, epochs=2, threads=1):
-    cfg = TrainConfig(
-        stage1_epochs=epochs, stage2_epochs=epochs, base_channels=width, n_threads=threads
-    )
-    trainer = Trainer(cfg, data, data, progress=False)
-    trainer.run()
-    n = len(data) * epochs
-    return n / trainer.stage_seconds["1"], n / trainer.stage_seconds["2"]
+class Training:
+    """Training columns/s of stage 1 (profile MSE) and stage 2 (feature loss, with the
+    per-column model reference §9 walk), 2 epochs of 128 columns, batches of 32; and the
+    default model's training time implied by them (``ajtwin cnn train --synthetic``: 125
+    pairs × 100 epochs + 4000 columns × 50 epochs), extrapolated, not run."""
 
+    params = (list(WIDTHS), [1, 2])
+    param_names = ["network", "threads"]
+    timeout = 900
+    EPOCHS = 2
 
-def main() -> dict:
-    data = _columns(128)
-    figures = {}
-    for width, tag in ((64, "resnet18"), (32, "resnet18_half")):
-        figures[f"{tag}_parameters"] = sum(
-            p.numel() for p in ResNet18Profile(NetworkConfig(base_channels=width)).parameters()
+    def setup(self, network, threads):
+        from ajtwin.profile_cnn.train import TrainConfig, Trainer
+
+        data = _columns(128)
+        config = TrainConfig(
+            stage1_epochs=self.EPOCHS,
+            stage2_epochs=self.EPOCHS,
+            base_channels=WIDTHS[network],
+            n_threads=threads,
         )
-        figures[f"{tag}_infer_columns_per_s_1thread"] = round(_inference_rate(width, 1), 1)
-        figures[f"{tag}_infer_columns_per_s_2threads"] = round(_inference_rate(width, 2), 1)
-        s1, s2 = _training_rates(width, data)
-        figures[f"{tag}_train_stage1_columns_per_s_1thread"] = round(s1, 1)
-        figures[f"{tag}_train_stage2_columns_per_s_1thread"] = round(s2, 1)
-        figures[f"{tag}_default_model_train_time_estimate_min"] = round(
-            (125 * 100 / s1 + 4000 * 50 / s2) / 60, 1
-        )
-        s1_2, s2_2 = _training_rates(width, data, threads=2)
-        figures[f"{tag}_train_stage1_columns_per_s_2threads"] = round(s1_2, 1)
-        figures[f"{tag}_train_stage2_columns_per_s_2threads"] = round(s2_2, 1)
-    torch.set_num_threads(1)
-    return figures
+        trainer = Trainer(config, data, data, progress=False)
+        trainer.run()
+        n = len(data) * self.EPOCHS
+        self.rates = n / trainer.stage_seconds["1"], n / trainer.stage_seconds["2"]
 
+    def track_stage1_columns_per_s(self, network, threads):
+        return self.rates[0]
 
-if __name__ == "__main__":
-    for key, value in main().items():
-        print(f"{key}: {value}")
+    def track_stage2_columns_per_s(self, network, threads):
+        return self.rates[1]
+
+    def track_default_model_training_min(self, network, threads):
+        return (125 * 100 / self.rates[0] + 4000 * 50 / self.rates[1]) / 60
+
+    track_stage1_columns_per_s.unit = track_stage2_columns_per_s.unit = "columns/s"
+    track_default_model_training_min.unit = "min"

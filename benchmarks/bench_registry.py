@@ -1,15 +1,17 @@
-"""Registry: bytes per print-hour, and `machine history`/`show` time vs number of prints.
+"""The registry: bytes per print-hour, and what `machine history` / `machine show` read
+against the number of stored prints.
 
 * bytes per print-hour: a 30-min exp1 print ingested into an empty registry (file + WAL
-  growth after a checkpoint), and after `machine compact` past the covariance retention;
-* query CPU time of what `machine history` and `machine show` read, for a machine with
-  10, 100 and 1000 stored prints (synthetic 180-step prints: the queries read the print
-  rows, not the arrays, so the print length does not matter).
+  after a checkpoint), and after `machine compact` past the covariance retention;
+* CPU time of the queries of `machine history` and `machine show` for a machine with 10,
+  100 and 1000 stored prints (synthetic 180-step prints: the queries read the print rows,
+  not the arrays, so the print length does not matter).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -22,6 +24,14 @@ def _fill(reg, name, start, stop):
     rng = np.random.default_rng(start)
     end = np.array([3.5, 0.95, 1e-4, 0.03, 4.6e-7])
     n = 180
+    clog = SimpleNamespace(
+        detected_s=60.0,
+        onset_s=30.0,
+        cause="nozzle_clog",
+        description="x",
+        detectors=["x"],
+        evidence={},
+    )
     for seq in range(start, stop):
         covs = np.tile(np.diag((0.01 * end) ** 2), (n, 1, 1))
         reg.save_print(
@@ -42,41 +52,24 @@ def _fill(reg, name, start, stop):
                 "time_s": np.arange(n, dtype=float),
                 "means": end * (1 + 1e-4 * rng.normal(size=(n, 5))),
                 "covariances": covs,
-            },  # fmt: skip
-            anomalies=[
-                SimpleNamespace(
-                    detected_s=60.0,
-                    onset_s=30.0,
-                    cause="nozzle_clog",
-                    description="x",
-                    detectors=["x"],
-                    evidence={},
-                )
-            ]
-            if seq % 10 == 0
-            else [],  # fmt: skip
+            },
+            anomalies=[clog] if seq % 10 == 0 else [],
             expected_last_seq=None if seq == 1 else seq - 1,
         )
 
 
-def _cpu(fn, repeat=5):
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return best
+class StoredPrint:
+    """Registry bytes per print-hour of a 30-min print, as stored and after retention."""
 
+    timeout = 600
 
-def main() -> dict:
-    from ajtwin.engine.ingest import ingest_record
-    from ajtwin.simulation import simulate
-    from ajtwin.store.compaction import compact, file_bytes
-    from ajtwin.store.registry import Registry
+    def setup_cache(self):
+        from ajtwin.engine.ingest import ingest_record
+        from ajtwin.simulation import simulate
+        from ajtwin.store.compaction import compact, file_bytes
+        from ajtwin.store.registry import Registry
 
-    figures = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "r.sqlite"
+        path = Path("r.sqlite").resolve()
         reg = Registry(path)
         reg.add_machine("m")
         reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
@@ -85,28 +78,43 @@ def main() -> dict:
         ingest_record(reg, "m", rec)
         reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         hours = len(rec) / 3600.0
-        figures["MB_per_print_hour"] = round((file_bytes(path) - empty) / hours / 1e6, 3)
+        stored = (file_bytes(path) - empty) / hours / 1e6
         later = dt.datetime.now(dt.UTC) + dt.timedelta(days=31)
         stats = compact(reg, "m", 30, now=later)
-        figures["MB_per_print_hour_after_retention"] = round(
-            (stats["bytes_after"] - empty) / hours / 1e6, 3
-        )
+        reg.close()
+        return {"stored": stored, "retained": (stats["bytes_after"] - empty) / hours / 1e6}
 
-        reg = Registry(Path(tmp) / "q.sqlite")
-        reg.add_machine("q")
-        done = 1
-        for n in (10, 100, 1000):
-            _fill(reg, "q", done, n + 1)
-            done = n + 1
-            figures[f"history_cpu_ms_{n}_prints"] = round(_cpu(lambda: reg.history("q")) * 1e3, 2)
-            figures[f"show_cpu_ms_{n}_prints"] = round(
-                _cpu(lambda: (reg.machine("q"), reg.last_print("q"), reg.anomalies("q"))) * 1e3,
-                2,
-            )
-    figures["note"] = "CPU time (process_time), best of 5; bytes: file + WAL after checkpoint"
-    return figures
+    def track_MB_per_print_hour(self, sizes):
+        return sizes["stored"]
+
+    def track_MB_per_print_hour_after_retention(self, sizes):
+        return sizes["retained"]
+
+    track_MB_per_print_hour.unit = track_MB_per_print_hour_after_retention.unit = "MB"
 
 
-if __name__ == "__main__":
-    for key, value in main().items():
-        print(f"{key}: {value}")
+class MachineQueries:
+    """What `machine history` and `machine show` read, 10 / 100 / 1000 stored prints."""
+
+    params = [10, 100, 1000]
+    param_names = ["prints"]
+    timer = time.process_time
+    timeout = 600
+
+    def setup(self, prints):
+        from ajtwin.store.registry import Registry
+
+        self.folder = tempfile.mkdtemp(prefix="ajtwin-bench-")
+        self.reg = Registry(Path(self.folder) / "q.sqlite")
+        self.reg.add_machine("q")
+        _fill(self.reg, "q", 1, prints + 1)
+
+    def teardown(self, prints):
+        self.reg.close()
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def time_history(self, prints):
+        self.reg.history("q")
+
+    def time_show(self, prints):
+        self.reg.machine("q"), self.reg.last_print("q"), self.reg.anomalies("q")

@@ -98,7 +98,19 @@ class LazyGroup(click.Group):
                 formatter.write_dl(rows)
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+#: where ``ajtwin --help`` sends the reader (the site ``make docs`` builds from docs/)
+DOCS_EPILOG = (
+    "Documentation: `make docs` in the source folder builds the site into site/ (open "
+    "site/index.html; `make docs-serve` serves it with search). Its pages: docs/, starting "
+    "with docs/tutorial.md; the Python API: site/reference/api/ajtwin.html."
+)
+
+
+@click.group(
+    cls=LazyGroup,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    epilog=DOCS_EPILOG,
+)
 @click.version_option(__version__, prog_name="ajtwin")
 def main():
     """ajtwin — a digital twin of Aerosol Jet printers.

@@ -26,6 +26,8 @@ so the line offsets, which also see φ_A, are fitted at the true level.
 
 Examples
 --------
+Not run in the suite: a 20-min commissioning print fitted twice (~25 s).
+
 >>> from ajtwin.simulation import simulate
 >>> rec = simulate("commissioning", seed=1, machine_seed=3)        # doctest: +SKIP
 >>> result = commission(rec, known={"droplet_diameter_um": (3.4, 0.2)})  # doctest: +SKIP

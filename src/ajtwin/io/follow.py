@@ -15,10 +15,13 @@ not increase.
 
 Examples
 --------
->>> follower = CsvFollower("print.csv")            # doctest: +SKIP
->>> samples, log_lines = follower.poll()           # doctest: +SKIP
->>> samples[0]                                     # doctest: +SKIP
-(0.0, array([375. ,  23. ,  50. ]), array([43.2, 29.1, 5661.3, 5641.2, 1.5e-08]))
+>>> follower = CsvFollower("print.csv")
+>>> samples, log_lines = follower.poll()
+>>> time_s, inputs, outputs = samples[0]
+>>> time_s, inputs                                # [s]; I_A [mA], Q_c, Q_s [sccm]
+(0.0, array([375.,  23.,  50.]))
+>>> outputs                                       # L_w, L_o [µm], P_c, P_s [Pa], Q_m [mL/s]
+array([4.3200e+01, 2.9100e+01, 5.6613e+03, 5.6412e+03, 1.5000e-08])
 """
 
 from __future__ import annotations

@@ -613,9 +613,12 @@ def simulate_job(program, scenario="exp1", seed: int = 0, **kwargs) -> PrintReco
         The ``.prg`` program (or a job already read).
     scenario, seed
         As for :func:`ajtwin.simulation.simulate`: the machine's inputs, faults and truth.
+
+    Other Parameters
+    ----------------
     duration_min : float, optional
         Length of the print [min] (default: the scenario's); the job is looped to it.
-    overrides, continue_from, machine, machine_seed, truth_generator
+    overrides, continue_from, machine, machine_seed, truth_generator : optional
         As for :func:`ajtwin.simulation.simulate`.
     camera : CameraSettings, optional
         Mode and offset of the alignment camera (default ``data/virtual_camera.toml``).

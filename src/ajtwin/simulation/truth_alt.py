@@ -30,8 +30,8 @@ the output model g are shared with the first generator: a fault is the same faul
 Examples
 --------
 >>> from ajtwin.simulation.printer import run_virtual_print
->>> vp = run_virtual_print("exp1", seed=1, duration_min=1.0, truth="alt")   # doctest: +SKIP
->>> vp.record.meta["truth_generator"]                                      # doctest: +SKIP
+>>> vp = run_virtual_print("exp1", seed=1, duration_min=1.0, truth_generator="alt")
+>>> vp.record.meta["truth_generator"]
 'alt'
 """
 

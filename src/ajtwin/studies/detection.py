@@ -8,6 +8,8 @@ alarms per 10 print-hours on clean prints. The twin runs (the slow part) are cac
 
 Examples
 --------
+Not run in the suite: a 90-min print simulated and filtered per call (minutes).
+
 >>> from ajtwin.studies.detection import twin_arrays                       # doctest: +SKIP
 >>> arrays = twin_arrays("nozzle_clog", seed=0, cache_dir="/tmp/ajtwin-eval")  # doctest: +SKIP
 """

@@ -7,10 +7,12 @@ exp1/exp2 (the filter's accuracy and coverage) for the variants; writes each run
 figures and metrics.json under OUT/<experiment>_<variant>_<truth>/ and a summary table
 OUT/summary.md with the before (paper) / after figures.
 
-Run:  python -m ajtwin.studies.forecast --out docs/results/forecast
-      [--variants paper,input_following,mean_reverting] [--seeds 1-5] [--with-exp12]
-      python -m ajtwin.studies.forecast --out docs/results/forecast/seeds_1_40 \
-      --variants paper,input_following --seeds 1-40      # the pooled bands (summary.md, top table)
+Run::
+
+    python -m ajtwin.studies.forecast --out docs/results/forecast \
+        [--variants paper,input_following,mean_reverting] [--seeds 1-5] [--with-exp12]
+    python -m ajtwin.studies.forecast --out docs/results/forecast/seeds_1_40 \
+        --variants paper,input_following --seeds 1-40   # the pooled bands (summary.md, top table)
 """
 
 from __future__ import annotations

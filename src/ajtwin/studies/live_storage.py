@@ -2,8 +2,9 @@
 "Storage policy"): one exp1 print fed to the live engine sample by sample; the registry
 file (after a WAL checkpoint) while the session is open and after it closed.
 
-Usage: python -m ajtwin.studies.live_storage [MINUTES] [REGISTRY]
-(default 90 min, ./live-storage.sqlite, overwritten).
+Usage (default 90 min, ``./live-storage.sqlite``, overwritten)::
+
+    python -m ajtwin.studies.live_storage [MINUTES] [REGISTRY]
 """
 
 from __future__ import annotations

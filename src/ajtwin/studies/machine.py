@@ -25,7 +25,7 @@ commissioning print (ink used: truth + N(0, 0.01 µL), declared ±0.01 µL — a
 on a silver ink of ~2 g/mL, an assumption).
 
 ``python -m ajtwin.studies.machine [--quick]`` writes
-``docs/results/machine/results.json`` and ``summary.md``; ``main()`` (``make bench``)
+``docs/results/machine/results.json`` and ``summary.md``; ``main()`` without arguments
 runs the quick version (one machine, shorter prints).
 """
 
@@ -485,7 +485,7 @@ def _atomizer_lines(results: dict) -> str:
 
 
 def main() -> dict:
-    """Quick version for ``make bench``: one machine, 30-min prints."""
+    """The quick version: one machine, 30-min prints."""
     results = run_all(quick=True, progress=lambda _: None)
     s = results["summary"]
     return {

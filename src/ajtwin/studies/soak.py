@@ -18,6 +18,8 @@ Two soaks ("Long runs"):
 
 Example
 -------
+Not run in the suite: 12 min of print through the twin a chunk at a time (a minute or more).
+
 >>> rep = soak_print(hours=0.2, chunk_min=6)  # doctest: +SKIP
 >>> rep.healthy, rep.guard_firings  # doctest: +SKIP
 (True, 0)

@@ -20,7 +20,7 @@ The twin is told the vial's fill (the scenario's initial volume, weighed at load
 
     python -m ajtwin.studies.vial [--quick] [--cache DIR] [--out DIR]
 
-``main()`` without arguments (``make bench``) runs ``--quick`` (seed 1, 20-min prints)
+``main()`` without arguments runs ``--quick`` (seed 1, 20-min prints)
 and writes beside the cache, not into docs/.
 
 Twin runs are cached as .npz (``--cache``, default /tmp/ajtwin-bench-vial), so the
@@ -129,7 +129,7 @@ def main(argv=None) -> dict:
     if argv is None:  # called without arguments: the quick version
         argv = ["--quick"]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="1 seed, 20-min prints (make bench)")
+    ap.add_argument("--quick", action="store_true", help="1 seed, 20-min prints")
     ap.add_argument("--cache", default="/tmp/ajtwin-bench-vial")
     ap.add_argument("--out", default=None, help="default docs/results/vial (quick: the cache)")
     args = ap.parse_args(argv)

@@ -11,6 +11,9 @@ belongs to another program, its clock is off, or the program was looped.
 
 Examples
 --------
+Not run in the suite: it needs a part's video, its program and camera file (see
+``tests/test_vision_part_cli.py``).
+
 >>> done = extract_part_video("part.mp4", job, camera, "readings.csv")  # doctest: +SKIP
 >>> done.n_readings, done.skipped.most_common(1)                         # doctest: +SKIP
 (5120, [('stroke_end', 812)])

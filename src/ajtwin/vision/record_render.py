@@ -8,8 +8,11 @@ usable line hold the previous one. Without a record, a constant line is rendered
 
 Examples
 --------
->>> from ajtwin.simulation import simulate                                  # doctest: +SKIP
->>> render_record_video(simulate("exp1", seed=1, duration_min=1), "p.mp4")  # doctest: +SKIP
+>>> from ajtwin.simulation import simulate
+>>> record = simulate("exp1", seed=1, duration_min=0.1)            # 6 s: 6 frames at 1 fps
+>>> done = render_record_video(record, "p.mp4", progress=False)
+>>> done.truth_path.name, done.held_seconds                            # the truth beside it
+('p.json', 0)
 """
 
 from __future__ import annotations

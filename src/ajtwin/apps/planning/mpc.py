@@ -35,6 +35,8 @@ Safety (:func:`safety_check`, :meth:`MPC.command`)
 
 Examples
 --------
+Not run in the suite: the MPC's first solve compiles its horizon (~10-30 s).
+
 >>> from ajtwin.estimation import Twin
 >>> twin = Twin.default()
 >>> mpc = MPC(twin)                                            # doctest: +SKIP

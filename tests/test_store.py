@@ -15,8 +15,8 @@ import pytest
 from click.testing import CliRunner
 
 from ajtwin.engine.ingest import detector_inputs
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.store.registry import (
-    DEFAULT_LIMITS,
     TEST_SLEEP_ENV,
     Registry,
     RegistryError,

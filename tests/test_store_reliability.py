@@ -20,6 +20,7 @@ from click.testing import CliRunner
 from ajtwin.cli.ingest import ingest
 from ajtwin.cli.machine import machine
 from ajtwin.engine.ingest import detector_inputs
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
 from ajtwin.store.registry import Registry, RegistryError
@@ -96,7 +97,7 @@ def _write_v1(path, prints=()):
     conn.execute(
         "INSERT INTO machines (name, created_at, limits_json) VALUES ('old', "
         "'2025-01-01T00:00:00+00:00', ?)",
-        (json.dumps(R.DEFAULT_LIMITS),),
+        (json.dumps(DEFAULT_LIMITS),),
     )
     rng = np.random.default_rng(0)
     for seq, end in enumerate(prints, start=1):

@@ -74,6 +74,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.model.names import STATE_NAMES
 from ajtwin.store import arrays as _arrays
 from ajtwin.store.connection import (
@@ -89,15 +90,6 @@ from ajtwin.store.connection import (
 TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
 #: ``info.application`` of an ajtwin registry (schema ≥ 2)
 APPLICATION = "ajtwin-registry"
-
-#: Default operating limits of a machine: the validity range of H's Box–Behnken fit
-#: (Q_c 15–35 sccm, I_A 300–440 mA; model reference §4) and an assumed sheath range around the
-#: paper's 48–53 sccm.
-DEFAULT_LIMITS = {
-    "atomizer_current_mA": [300.0, 440.0],
-    "carrier_flow_sccm": [15.0, 35.0],
-    "sheath_flow_sccm": [30.0, 80.0],
-}
 
 #: Version 1 (ajtwin before the reliability work): never edit, add a migration instead.
 _SCHEMA_V1 = """

@@ -62,8 +62,8 @@ from ajtwin.live.opcua import (
     node_path,
     unece_unit_id,
 )
-from ajtwin.simulation.stepper import SteppedPrinter
 from ajtwin.model.limits import DEFAULT_LIMITS
+from ajtwin.simulation.stepper import SteppedPrinter
 
 log = logging.getLogger("ajtwin.printer")
 

@@ -71,7 +71,7 @@ def _cpu(fn, repeat=5):
 def main() -> dict:
     from ajtwin.engine.ingest import ingest_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.compaction import compact, file_bytes
+    from ajtwin.store.compaction import compact
     from ajtwin.store.registry import Registry
 
     figures = {}
@@ -79,13 +79,11 @@ def main() -> dict:
         path = Path(tmp) / "r.sqlite"
         reg = Registry(path)
         reg.add_machine("m")
-        reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        empty = file_bytes(path)
+        empty = reg.checkpointed_bytes()
         rec = simulate("exp1", seed=1, duration_min=30.0)
         ingest_record(reg, "m", rec)
-        reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         hours = len(rec) / 3600.0
-        figures["MB_per_print_hour"] = round((file_bytes(path) - empty) / hours / 1e6, 3)
+        figures["MB_per_print_hour"] = round((reg.checkpointed_bytes() - empty) / hours / 1e6, 3)
         later = dt.datetime.now(dt.UTC) + dt.timedelta(days=31)
         stats = compact(reg, "m", 30, now=later)
         figures["MB_per_print_hour_after_retention"] = round(

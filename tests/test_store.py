@@ -18,6 +18,7 @@ from ajtwin.engine.ingest import detector_inputs
 from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.store.registry import (
     TEST_SLEEP_ENV,
+    NewPrint,
     Registry,
     RegistryError,
     default_store_path,
@@ -31,20 +32,22 @@ def _fake_print(reg, name, content_hash, expected, value=1.0):
     """save_print with small hand-made arrays (no twin needed)."""
     return reg.save_print(
         name,
-        content_hash=content_hash,
-        source="test",
-        meta={"scenario": "test"},
-        summary={"note": "fake"},
-        n_samples=3,
-        duration_s=3.0,
-        start_mean=np.full(5, value),
-        start_cov=np.eye(5),
-        end_mean=np.full(5, value + 1),
-        end_cov=2 * np.eye(5),
-        theta_before=np.zeros(5),
-        theta_after=np.full(5, 1e-4),
-        arrays={"means": np.arange(15.0).reshape(3, 5)},
-        anomalies=[],
+        NewPrint(
+            content_hash=content_hash,
+            source="test",
+            meta={"scenario": "test"},
+            summary={"note": "fake"},
+            n_samples=3,
+            duration_s=3.0,
+            start_mean=np.full(5, value),
+            start_cov=np.eye(5),
+            end_mean=np.full(5, value + 1),
+            end_cov=2 * np.eye(5),
+            theta_before=np.zeros(5),
+            theta_after=np.full(5, 1e-4),
+            arrays={"means": np.arange(15.0).reshape(3, 5)},
+            anomalies=[],
+        ),
         expected_last_seq=expected,
     )
 
@@ -170,7 +173,7 @@ def test_killed_ingest_leaves_store_unchanged_and_reads_do_not_block(tmp_path):
     after = Registry(path)
     assert after.machine("m")["n_prints"] == 1
     assert after.find_print("m", "second") is None
-    n_arrays = after._conn.execute("SELECT COUNT(*) FROM print_arrays").fetchone()[0]
+    n_arrays = after._db.execute("SELECT COUNT(*) FROM print_arrays").fetchone()[0]
     assert n_arrays == 1  # only the first print's single array
     # and the store still takes the next print
     _fake_print(after, "m", "second", 1)

@@ -68,12 +68,12 @@ def _assert_same(a: dict, b: dict):
 
 def test_new_registry_has_the_tables_at_schema_4(tmp_path):
     reg = Registry(tmp_path / "r.sqlite")
-    assert CAL_TABLES <= reg._tables() and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    assert CAL_TABLES <= reg._db.tables() and reg.info("schema_version") == str(R.SCHEMA_VERSION)
     assert R.SCHEMA_VERSION >= 5
     assert {"calibrations", "maintenance_events"} <= set(R.MACHINE_TABLES)
     # schema 5: the detectors' long-run statistics per print and per calibration
     for table in ("prints", "calibrations"):
-        columns = {r[1] for r in reg._conn.execute(f"PRAGMA table_info({table})")}
+        columns = {r[1] for r in reg._db.execute(f"PRAGMA table_info({table})")}
         assert "long_run_json" in columns, table
 
 
@@ -154,7 +154,7 @@ def test_schema3_registry_without_the_tables_migrates(tmp_path):
         f"{store}: migrated registry schema 4 → 5 (the detectors' long-run noise statistics per "
         "print and calibration)",
     ]
-    assert CAL_TABLES <= reg._tables() and reg.machine("m")["name"] == "m"
+    assert CAL_TABLES <= reg._db.tables() and reg.machine("m")["name"] == "m"
     assert active_calibration(reg, "m") is None and maintenance_history(reg, "m").empty
 
 

@@ -57,7 +57,7 @@ def test_old_registry_gets_the_live_tables_by_migration(tmp_path):
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
     reg.add_machine("m")
-    assert LIVE_TABLES <= reg._tables() and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    assert LIVE_TABLES <= reg._db.tables() and reg.info("schema_version") == str(R.SCHEMA_VERSION)
     reg.close()
     # what a registry of schema 2 without a live twin looked like: no live_* tables
     conn = sqlite3.connect(store)
@@ -72,7 +72,7 @@ def test_old_registry_gets_the_live_tables_by_migration(tmp_path):
         "live_samples, live_states, live_events)"
     )
     assert len(reg.migrated) == R.SCHEMA_VERSION - 2  # and on to the newest
-    assert LIVE_TABLES <= reg._tables() and reg.machine("m")["name"] == "m"
+    assert LIVE_TABLES <= reg._db.tables() and reg.machine("m")["name"] == "m"
     reg.close()
 
 
@@ -184,7 +184,7 @@ def test_export_import_carry_finished_and_open_live_sessions(record, tmp_path):
 
 
 def _file_bytes(reg: Registry) -> int:
-    reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    reg._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
     return reg.path.stat().st_size
 
 
@@ -213,7 +213,7 @@ def test_closing_a_live_session_stores_the_print_and_drops_its_step_rows(record,
     events = log.events(sid)
     assert events  # the alarms stay with the session row
     closed_bytes = _file_bytes(reg) - empty
-    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0  # pages returned
+    assert reg._db.execute("PRAGMA freelist_count").fetchone()[0] == 0  # pages returned
     assert closed_bytes < open_bytes / 3
 
     # the same print ingested by batch into another registry costs the same file bytes
@@ -308,9 +308,9 @@ def test_an_older_registry_reuses_the_pages_and_compact_makes_it_shrink(record, 
     """A registry made before ``auto_vacuum=INCREMENTAL`` keeps a closed session's pages
     free for reuse; ``machine compact`` converts it, and later sessions give them back."""
     reg = Registry(tmp_path / "a.sqlite")
-    reg._conn.execute("PRAGMA auto_vacuum=NONE")
-    reg._conn.execute("VACUUM")  # as every registry before this policy was
-    assert reg._conn.execute("PRAGMA auto_vacuum").fetchone()[0] == 0
+    reg._db.execute("PRAGMA auto_vacuum=NONE")
+    reg._db.execute("VACUUM")  # as every registry before this policy was
+    assert reg._db.execute("PRAGMA auto_vacuum").fetchone()[0] == 0
 
     def live_print(first):
         engine = LiveEngine(reg, asynchronous=False, commit_every_s=0)
@@ -320,10 +320,10 @@ def test_an_older_registry_reuses_the_pages_and_compact_makes_it_shrink(record, 
         return print_id
 
     live_print(0)
-    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] > 0  # kept for reuse
+    assert reg._db.execute("PRAGMA freelist_count").fetchone()[0] > 0  # kept for reuse
     compact(reg, "lab")
-    assert reg._conn.execute("PRAGMA auto_vacuum").fetchone()[0] == 2
-    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0
+    assert reg._db.execute("PRAGMA auto_vacuum").fetchone()[0] == 2
+    assert reg._db.execute("PRAGMA freelist_count").fetchone()[0] == 0
     second = live_print(OPEN_STEPS)
-    assert reg._conn.execute("PRAGMA freelist_count").fetchone()[0] == 0
+    assert reg._db.execute("PRAGMA freelist_count").fetchone()[0] == 0
     assert reg.get_print(second)["seq"] == 2

@@ -23,7 +23,7 @@ from ajtwin.engine.ingest import detector_inputs
 from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
-from ajtwin.store.registry import Registry, RegistryError
+from ajtwin.store.registry import NewPrint, Registry, RegistryError
 
 #: ajtwin 0.1's registry (schema version 1), verbatim: a registry written by it must open.
 V1_STATEMENTS = """
@@ -142,40 +142,42 @@ def _fake_print(reg, name, content_hash, end, expected, status="ok", n=240, alar
     covs = np.tile(cov, (n, 1, 1)) * (1 + np.arange(n) / n)[:, None, None]
     return reg.save_print(
         name,
-        content_hash=content_hash,
-        source="test",
-        meta={"scenario": "test"},
-        summary={},
-        n_samples=n,
-        duration_s=float(n),
-        start_mean=end,
-        start_cov=cov,
-        end_mean=end,
-        end_cov=covs[-1],
-        theta_before=np.zeros(5),
-        theta_after=np.full(5, 1e-5),
-        arrays={
-            "time_s": np.arange(n, dtype=float),
-            "means": means,
-            "stds": np.sqrt(np.diagonal(covs, 0, 1, 2)),
-            "covariances": covs,
-            "predicted_means": means * (1 - 1e-7),
-            "measurements": rng.normal(40, 1, size=(n, 5)),
-            "inputs": np.tile([375.0, 23.0, 50.0], (n, 1)),
-        },
-        anomalies=[
-            SimpleNamespace(
-                detected_s=t,
-                onset_s=t - 20,
-                cause="nozzle_clog",
-                description="nozzle clog",
-                detectors=["x"],
-                evidence={},
-            )
-            for t in alarms
-        ],  # fmt: skip
+        NewPrint(
+            content_hash=content_hash,
+            source="test",
+            meta={"scenario": "test"},
+            summary={},
+            n_samples=n,
+            duration_s=float(n),
+            start_mean=end,
+            start_cov=cov,
+            end_mean=end,
+            end_cov=covs[-1],
+            theta_before=np.zeros(5),
+            theta_after=np.full(5, 1e-5),
+            arrays={
+                "time_s": np.arange(n, dtype=float),
+                "means": means,
+                "stds": np.sqrt(np.diagonal(covs, 0, 1, 2)),
+                "covariances": covs,
+                "predicted_means": means * (1 - 1e-7),
+                "measurements": rng.normal(40, 1, size=(n, 5)),
+                "inputs": np.tile([375.0, 23.0, 50.0], (n, 1)),
+            },
+            anomalies=[
+                SimpleNamespace(
+                    detected_s=t,
+                    onset_s=t - 20,
+                    cause="nozzle_clog",
+                    description="nozzle clog",
+                    detectors=["x"],
+                    evidence={},
+                )
+                for t in alarms
+            ],
+            status=status,
+        ),
         expected_last_seq=expected,
-        status=status,
     )
 
 
@@ -252,7 +254,7 @@ def test_t8_crafted_blobs_give_a_clear_error_and_never_unpickle(tmp_path, monkey
 
     buf = io.BytesIO()
     np.save(buf, np.array([Payload()], dtype=object), allow_pickle=True)
-    reg._conn.execute("UPDATE prints SET end_mean = ?", (buf.getvalue(),))
+    reg._db.execute("UPDATE prints SET end_mean = ?", (buf.getvalue(),))
     for args in (["show", "M"], ["history", "M"]):
         res = run_cli(*args, "--store", store)
         assert res.exit_code == 1, res.output
@@ -272,7 +274,7 @@ def test_t8_crafted_blobs_give_a_clear_error_and_never_unpickle(tmp_path, monkey
     for blob, why in ((evil, "not numbers"), (good[:-5], "damaged|bytes"), (bomb, "bytes")):
         with pytest.raises(ValueError, match=why):
             A.decode(blob, codec)
-        reg._conn.execute("UPDATE print_arrays SET npy = ? WHERE name = 'means'", (blob,))
+        reg._db.execute("UPDATE print_arrays SET npy = ? WHERE name = 'means'", (blob,))
         with pytest.raises(RegistryError, match="registry damaged at print 1 .* array means"):
             reg.print_arrays(1)
 
@@ -317,7 +319,7 @@ def test_names_stripped_and_control_characters_refused(tmp_path):
         assert res.exit_code == 1 and "control characters" in res.output
         assert "\x1b" not in res.output and "\u202e" not in res.output
     # a name stored by an older version is escaped when printed
-    Registry(store)._conn.execute(
+    Registry(store)._db.execute(
         "INSERT INTO machines (name, created_at, limits_json) VALUES (?, 'x', '{}')",
         ("\x1b[31mRED\x1b[0m",),
     )
@@ -338,7 +340,7 @@ def test_version1_registry_migrates_and_keeps_everything(tmp_path):
     assert "last stored print: #2" in res.output
     reg = Registry(store)
     assert reg.migrated == []  # once only
-    assert reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    assert reg.info("schema_version") == str(R.SCHEMA_VERSION)
     hist = reg.history("old")
     assert hist["status"].tolist() == ["ok", "ok", "excluded"]
     assert "vial_volume_mL" in hist["status_reason"].iloc[2]
@@ -378,10 +380,10 @@ def test_migration_list_is_appendable(tmp_path, monkeypatch):
     monkeypatch.setattr(R, "SCHEMA_VERSION", n)
     reg = Registry(store)
     assert reg.migrated == [f"{store}: migrated registry schema {n - 1} → {n} (tool_changes)"]
-    assert "tool_changes" in reg._tables() and reg.machine("m")["n_prints"] == 0
+    assert "tool_changes" in reg._db.tables() and reg.machine("m")["n_prints"] == 0
     fresh = Registry(tmp_path / "new.sqlite")
-    assert "tool_changes" in fresh._tables() and fresh.migrated == []
-    assert fresh._info("schema_version") == str(n)
+    assert "tool_changes" in fresh._db.tables() and fresh.migrated == []
+    assert fresh.info("schema_version") == str(n)
 
 
 def test_concurrent_first_open_migrates_once(tmp_path):
@@ -410,7 +412,7 @@ def test_chain_skips_excluded_and_dropped_prints(tmp_path):
     assert start.from_seq == 2 and start.latest_seq == 3
     assert np.array_equal(start.start[0], GOOD * 0.9) and "print 3: excluded" in start.description
     # a print stored 'ok' with an impossible end (older code) is never a start either
-    reg._conn.execute("UPDATE prints SET status = 'ok' WHERE seq = 3")
+    reg._db.execute("UPDATE prints SET status = 'ok' WHERE seq = 3")
     start = chain_start(reg, "m")
     assert start.from_seq == 2 and "droplet_diameter_um = 534" in start.description
     res = run_cli("drop", "m", "--print", 2, "--reason", "wrong ink", "--store", store)
@@ -502,7 +504,7 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     from ajtwin.cli.forecast import forecast
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
-    from ajtwin.store.compaction import compact, file_bytes
+    from ajtwin.store.compaction import compact
 
     rec = simulate("nozzle_clog", seed=5, duration_min=12.0,
                    overrides={"fault": {"onset_min": 4.0}})  # fmt: skip
@@ -510,13 +512,11 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path):
     store = tmp_path / "r.sqlite"
     assert run_cli("add", "M", "--store", store).exit_code == 0
     reg = Registry(store)
-    reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-    empty = file_bytes(store)
+    empty = reg.checkpointed_bytes()
     res = CliRunner().invoke(ingest, ["--machine", "M", "--no-progress", "--store", str(store),
                                       str(tmp_path / "p.parquet")])  # fmt: skip
     assert res.exit_code == 0, res.output
-    reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-    per_hour = (file_bytes(store) - empty) / (len(rec) / 3600.0)
+    per_hour = (reg.checkpointed_bytes() - empty) / (len(rec) / 3600.0)
     assert per_hour <= 0.5e6, per_hour
     p = reg.last_print("M")
     events = reg.anomalies("M")
@@ -672,9 +672,9 @@ def test_import_refuses_an_archive_with_damaged_blobs(tmp_path):
     src = Registry(tmp_path / "a.sqlite")
     src.add_machine("lab")
     _fake_print(src, "lab", "p1", GOOD, None)
-    src._conn.execute("UPDATE print_arrays SET npy = x'00' WHERE name = 'means'")
+    src._db.execute("UPDATE print_arrays SET npy = x'00' WHERE name = 'means'")
     db = tmp_path / "crafted.sqlite"
-    src._conn.execute("VACUUM INTO ?", (str(db),))
+    src._db.execute("VACUUM INTO ?", (str(db),))
     data = db.read_bytes()
     manifest = {"format": "ajtwin-machine-export", "format_version": 1, "schema_version": 2,
                 "machine": "lab", "database_sha256": hashlib.sha256(data).hexdigest()}  # fmt: skip

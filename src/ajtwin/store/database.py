@@ -429,7 +429,7 @@ class PostgresDatabase(Database):
         password = self.location.password()
         if password is not None:
             extra["password"] = password
-        lock_ms = int(self.timeout_s * 1000)
+        lock_ms = max(1, int(self.timeout_s * 1000))  # 0 would be "wait for ever"
         options = f"-c lock_timeout={lock_ms} -c idle_in_transaction_session_timeout=600000"
         extra["options"] = (given.get("options", "") + " " + options).strip()
         try:
@@ -471,15 +471,14 @@ class PostgresDatabase(Database):
         if isinstance(exc, errors.InvalidCatalogName | errors.InvalidAuthorizationSpecification):
             return StoreError(f"{where}: {words}; check the URL's database and user")
         if isinstance(exc, psycopg.OperationalError) or connecting:
-            if "password" in words.lower() and "authentication" in words.lower():
-                todo = (
-                    "give the password with --store-password-file, $PGPASSWORD or ~/.pgpass "
-                    "(never in the URL)"
+            if "password" in words.lower():
+                return StoreError(
+                    f"{where}: the server refused the login ({words}); give the password with "
+                    "--store-password-file, $PGPASSWORD or ~/.pgpass (never in the URL)"
                 )
-            else:
-                todo = "check that the server runs and is reachable; nothing of this was stored"
             return ConnectionLost(
-                f"{where}: the database server cannot be reached ({words}); {todo}"
+                f"{where}: the database server cannot be reached ({words}); check that the "
+                "server runs and is reachable; nothing of this was stored"
             )
         return None
 

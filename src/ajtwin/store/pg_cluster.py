@@ -67,7 +67,9 @@ class LocalCluster:
     Parameters
     ----------
     folder : path, optional
-        Where the cluster goes (a new temporary folder by default, removed on stop).
+        Where the cluster goes (a new temporary folder by default, removed on close). As
+        root it must be a folder the ``postgres`` user can reach (not under a private
+        folder such as pytest's ``/tmp/pytest-of-root``).
     port : int, optional
         TCP port on 127.0.0.1 (default: a free one).
     """
@@ -93,9 +95,13 @@ class LocalCluster:
         command = [str(a) for a in args]
         if self._user is not None:
             command = ["runuser", "-u", self._user, "--", *command]
-        return subprocess.run(
-            command, capture_output=True, text=True, check=check, timeout=timeout, cwd="/"
+        done = subprocess.run(
+            command, capture_output=True, text=True, check=False, timeout=timeout, cwd="/"
         )
+        if check and done.returncode != 0:
+            said = (done.stderr or done.stdout).strip()[-600:]
+            raise RuntimeError(f"{Path(str(args[0])).name} failed: {said}")
+        return done
 
     def _give_folder(self) -> None:
         if self._user is None:

@@ -1623,6 +1623,18 @@ class Registry:
         rows = self._db.execute(query, (int(print_id),)).fetchall()
         return [{**dict(r), "blob": bytes(r["blob"])} for r in rows]
 
+    def print_bytes(self, print_id: int) -> int:
+        """Bytes of a print's stored arrays (whole and in parts): what the storage policy
+        keeps of it, whatever the database adds around it (pages, indexes)."""
+        total = 0
+        for table, column in (("print_arrays", "npy"), ("print_array_parts", "blob")):
+            row = self._db.execute(
+                f"SELECT COALESCE(SUM(LENGTH({column})), 0) FROM {table} WHERE print_id = ?",
+                (int(print_id),),
+            ).fetchone()
+            total += int(row[0])
+        return total
+
     def alarm_times(self, print_id: int) -> list[float]:
         """Detection and onset times [s] of a print's anomalies."""
         rows = self._db.execute(

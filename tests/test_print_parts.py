@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import functools
 import os
-import sqlite3
 
 import numpy as np
 import pytest
@@ -50,10 +49,10 @@ def _save_whole(reg, machine, record, events=()):
 
 
 def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
-    tmp_path, record, monkeypatch
+    store, new_store, record, monkeypatch
 ):
     monkeypatch.setattr(ingest, "PrintWriter", functools.partial(PrintWriter, part_steps=250))
-    reg = Registry(tmp_path / "parts.sqlite")
+    reg = Registry(store)
     reg.add_machine("m")
     done = ingest_record(reg, "m", record, source="parts")
     n_parts = reg._db.execute(
@@ -65,7 +64,7 @@ def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
     assert reg._db.execute("SELECT COUNT(*) FROM array_drafts").fetchone()[0] == 0
     parts = reg.print_arrays(done.print_id)
 
-    whole_reg = Registry(tmp_path / "whole.sqlite")
+    whole_reg = Registry(new_store())
     whole_reg.add_machine("m")
     whole = whole_reg.print_arrays(_save_whole(whole_reg, "m", record, done.events))
     assert sorted(parts) == sorted(whole)
@@ -78,17 +77,17 @@ def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
     assert reg.print_array(done.print_id, "no such array") is None
 
 
-def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, record, monkeypatch):
-    store = tmp_path / "v6.sqlite"
+def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(
+    store, new_store, record, monkeypatch
+):
     with monkeypatch.context() as old:
         old.setattr(R, "MIGRATIONS", [m for m in R.MIGRATIONS if m[0] <= 6])
         old.setattr(R, "SCHEMA_VERSION", 6)
         reg = Registry(store)
         reg.add_machine("m")
         first = _save_whole(reg, "m", record)
+        assert not {"array_drafts", "print_array_parts"} & reg._db.tables()
         reg.close()
-    tables = {r[0] for r in sqlite3.connect(store).execute("SELECT name FROM sqlite_master")}
-    assert not {"array_drafts", "print_array_parts"} & tables
     reg = Registry(store)
     assert reg.migrated[0] == (
         f"{store}: migrated registry schema 6 → 7 (print arrays written in parts while a print "
@@ -97,7 +96,7 @@ def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, r
     assert len(reg.migrated) == R.SCHEMA_VERSION - 6
     assert reg.info("schema_version") == str(R.SCHEMA_VERSION)
     after = reg.print_arrays(first)
-    now = Registry(tmp_path / "now.sqlite")  # the same print stored whole by this schema
+    now = Registry(new_store())  # the same print stored whole by this schema
     now.add_machine("m")
     before = now.print_arrays(_save_whole(now, "m", record))
     assert sorted(after) == sorted(before)
@@ -109,8 +108,8 @@ def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, r
     assert len(reg.print_arrays(second.print_id)["time_s"]) == 300
 
 
-def test_a_draft_left_by_a_killed_process_is_removed_by_the_next_writer(tmp_path):
-    reg = Registry(tmp_path / "r.sqlite")
+def test_a_draft_left_by_a_killed_process_is_removed_by_the_next_writer(store):
+    reg = Registry(store)
     reg.add_machine("m")
     writer = PrintWriter(reg, "m", "ingest of a.csv", part_steps=10)
     n = 25

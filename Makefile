@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench lint openfoam chromium clean
+.PHONY: demo test test-all bench lint openfoam chromium postgresql clean
 
 $(VENV): $(STAMP)
 
@@ -38,6 +38,17 @@ chromium:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# Debian's PostgreSQL server, for the registry's tests on PostgreSQL (each test session starts a
+# server of its own with initdb + pg_ctl in a temporary folder, as the `postgres` user when
+# run as root: tests/conftest.py); skipped when already present.
+postgresql:
+	@if ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
+		echo "postgresql: present"; \
+	else \
+		echo "postgresql: installing Debian package (apt-get)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql >/dev/null; \
+	fi
+
 demo: $(STAMP)
 	$(VENV)/bin/ajtwin demo
 
@@ -45,10 +56,10 @@ demo: $(STAMP)
 # its module fixtures (simulated prints, servers) are made once
 TEST_WORKERS ?= auto
 
-test: $(STAMP) openfoam chromium
+test: $(STAMP) openfoam chromium postgresql
 	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
 
-test-all: $(STAMP) openfoam chromium
+test-all: $(STAMP) openfoam chromium postgresql
 	$(PY) -m pytest -q
 
 BENCH_STAMP := $(VENV)/.installed-bench
@@ -57,7 +68,7 @@ $(BENCH_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
-bench: $(BENCH_STAMP) chromium
+bench: $(BENCH_STAMP) chromium postgresql
 	$(PY) benchmarks/run_all.py
 
 lint: $(STAMP)

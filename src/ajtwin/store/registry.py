@@ -122,10 +122,6 @@ TEST_SLEEP_ENV = "AJTWIN_STORE_TEST_SLEEP_IN_TRANSACTION"
 CLAIM_STALE_S = 300.0
 #: how long a print's final write waits for an absent database server [s]
 SAVE_WAIT_S = 600.0
-#: the arrays a print's reprocessed version keeps: the twin's results, not the samples
-#: (the print's own rows keep those)
-SAMPLE_ARRAYS = ("measurements", "inputs", "line_factors", "shutter", "process_speed_mm_s",
-                 "print_time_s")  # fmt: skip
 
 
 def default_store_path():
@@ -893,14 +889,16 @@ class Registry:
             self.discard_draft(draft)
         return len(stale)
 
-    def long_run_history(self, name: str) -> tuple[int, dict] | None:
+    def long_run_history(self, name: str, below_seq: int | None = None) -> tuple[int, dict] | None:
         """(seq, statistics) of the detectors' long-run statistics stored with the newest
-        print in the chain that has them (None: no such print)."""
+        print in the chain that has them (``below_seq``: among the prints before that one;
+        None: no such print)."""
         machine = self.machine(name)
+        limit = 2**62 if below_seq is None else int(below_seq)
         row = self._db.execute(
             "SELECT id, seq, long_run_json FROM prints WHERE machine_id = ? AND status = ? "
-            "AND long_run_json != 'null' ORDER BY seq DESC LIMIT 1",
-            (machine["id"], STATUS_OK),
+            "AND long_run_json != 'null' AND seq < ? ORDER BY seq DESC LIMIT 1",
+            (machine["id"], STATUS_OK, limit),
         ).fetchone()
         if row is None:
             return None
@@ -1279,13 +1277,12 @@ class Registry:
 
     def save_print_version(self, version: int, print_id: int, result: NewPrint) -> bool:
         """Store the reprocessed result of print ``print_id`` in ``version`` (its start, end,
-        θ, summary, status, the twin's per-second arrays — not the samples, which the print
-        keeps — and anomalies) in one transaction; False when that version already holds
-        it (a resumed run: nothing is overwritten)."""
+        θ, summary, status, per-second arrays — the twin's results; the print keeps its
+        samples — and anomalies; ``result``'s identity fields are the print's) in one
+        transaction; False when that version already holds it (nothing is overwritten)."""
         _check_status(result.status)
         alarm_times = [t for ev in result.anomalies for t in (ev.detected_s, ev.onset_s)]
-        arrays = {k: v for k, v in result.arrays.items() if k not in SAMPLE_ARRAYS}
-        encoded = _arrays.encode_all(arrays, self.policy, alarm_times)
+        encoded = _arrays.encode_all(result.arrays, self.policy, alarm_times)
         with self._db.write(f"version/{int(version)}/{int(print_id)}"):
             found = self._db.execute(
                 "SELECT 1 FROM print_versions WHERE version_id = ? AND print_id = ?",
@@ -1852,22 +1849,27 @@ class Registry:
                     transaction = None if skipping else db.write(f"copy/{table}/{row['id']}")
                     if transaction is not None:
                         transaction.__enter__()
-                if skipping and table != "live_sessions":
-                    if table == "prints":
-                        counts["prints"] += 1
+                if table not in _PRINT_SCOPED:
+                    skipping = False  # the machine's other rows: copied (or already here)
+                if skipping:
+                    counts["prints"] += table == "prints"
                     continue
                 if "machine_id" in row and table != "live_sessions":
                     row["machine_id"] = ids["machines"][row["machine_id"]]
                 if table in PRINT_TABLES or table == "print_versions":
                     row["print_id"] = ids["prints"].get(row["print_id"], row["print_id"])
                 if table in VERSION_TABLES:
-                    row["print_version_id"] = ids["print_versions"][row["print_version_id"]]
+                    row["print_version_id"] = ids["print_versions"].get(
+                        row["print_version_id"], row["print_version_id"]
+                    )
                 if table in LIVE_SESSION_TABLES:
                     row["session_id"] = ids["live_sessions"][row["session_id"]]
                 if table == "live_sessions":
                     row["machine"] = new_name
                     if row.get("print_id") is not None:
-                        row["print_id"] = ids["prints"].get(row["print_id"])
+                        row["print_id"] = ids["prints"].get(
+                            row["print_id"], row["print_id"] if keep_ids else None
+                        )
                     counts["live_sessions"] += 1
                     counts["open_live_sessions"] += row["status"] == "open"
                 if table == "print_versions" and not keep_ids:
@@ -1936,6 +1938,10 @@ class Registry:
         digests.sort()
         whole = hashlib.sha256(b"".join(digests)).hexdigest()
         return len(digests), whole
+
+
+#: the tables whose rows belong to one print (copied with it, in its transaction)
+_PRINT_SCOPED = {"prints", "print_versions", *PRINT_TABLES, *VERSION_TABLES}
 
 
 def _anomaly_values(ev) -> tuple:

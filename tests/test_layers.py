@@ -53,7 +53,7 @@ LAZY_ALLOWED = {
     "matplotlib": "figures only (~0.5 s, and a backend to choose)",
     "plotly": "only to find plotly.min.js for the dashboard (~1 s to import)",
     "uvicorn": "the dashboard's server: only when it serves",
-    "dask": "the CFD sweep's scheduler: only `ajtwin cfd sweep`",
+    "dask": "the scheduler of batch work: only `ajtwin cfd sweep` and `ajtwin reprocess`",
     "pyarrow": "Parquet I/O only: a CSV record never needs it",
     "torch": "PyTorch (~2 s): only the height-profile CNN",
     "playwright": "a browser: only the dashboard's screenshots",

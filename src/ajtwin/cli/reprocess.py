@@ -56,6 +56,7 @@ def reprocess(machines, since, workers, scheduler, reason, progress, store):
     # lazy CLI loading: imported when the command runs, not for --help
     from tqdm import tqdm
 
+    # lazy CLI loading: the engine loads JAX; --help must not
     from ajtwin.engine.reprocess import reprocess as run
 
     names = None if machines is None else [m.strip() for m in machines.split(",") if m.strip()]

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from ajtwin.cli.options import open_registry, store_location, store_option
+from ajtwin.store.copy import copy_registry
 from ajtwin.store.registry import RegistryError
 
 
@@ -40,8 +41,6 @@ def copy_command(source, destination, src_password_file, dst_password_file, prog
     the end (row counts and content digests of every table on both sides)."""
     # lazy CLI loading: imported when the command runs, not for --help
     from tqdm import tqdm
-
-    from ajtwin.store.copy import copy_registry
 
     src = open_registry(store_location(source, src_password_file))
     dst = open_registry(store_location(destination, dst_password_file), create=True)

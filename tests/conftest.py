@@ -58,7 +58,7 @@ def postgres_server(tmp_path_factory):
             # a folder of its own in /tmp: as root the server runs as `postgres`, which may
             # not enter pytest's private base folder
             info["folder"] = tempfile.mkdtemp(prefix="ajtwin-test-pg-")
-        cluster = LocalCluster(info["folder"], port=info.get("port"))
+        cluster = LocalCluster(info["folder"], port=info.get("port"), durable=False)
         if cluster.pid() is None or not _alive(cluster.pid()):
             t0 = time.perf_counter()
             cluster.start()

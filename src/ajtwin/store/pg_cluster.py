@@ -4,8 +4,11 @@ the lab's fault runs).
 :class:`LocalCluster` makes a database cluster in a new folder with Debian's server
 binaries (``/usr/lib/postgresql/N/bin``, package ``postgresql``; ``make postgresql``
 installs it), starts it on 127.0.0.1 at a free port, and stops it by the PID in its
-``postmaster.pid``. It is for throwaway servers: ``fsync`` stays on (a kill must keep
-what was committed, as on a real server), nothing listens beyond the loopback.
+``postmaster.pid``. It is for throwaway servers, nothing listens beyond the loopback.
+``durable=False`` (the tests) skips the flushes to disk (``initdb -N``, ``fsync=off``):
+a killed server or client still keeps every commit (it is in the operating system's
+cache), only a crash of the computer would not; ``durable=True`` (benchmarks, the fault
+runs) flushes every commit as a production server does.
 
 PostgreSQL refuses to run as root (``initdb: cannot be run as root``). Run as root, the
 cluster's folder is given to the ``postgres`` user (made by Debian's package) and every
@@ -72,9 +75,12 @@ class LocalCluster:
         folder such as pytest's ``/tmp/pytest-of-root``).
     port : int, optional
         TCP port on 127.0.0.1 (default: a free one).
+    durable : bool
+        Flush commits to disk (module docstring).
     """
 
-    def __init__(self, folder=None, port: int | None = None):
+    def __init__(self, folder=None, port: int | None = None, durable: bool = True):
+        self.durable = bool(durable)
         self.bin = server_binaries()
         if self.bin is None:
             raise RuntimeError(
@@ -120,6 +126,7 @@ class LocalCluster:
             self._run(
                 self.bin / "initdb", "-D", self.data, "-U", "postgres", "--auth-local=trust",
                 "--auth-host=scram-sha-256", "-E", "UTF8", "--locale=C.UTF-8",
+                *([] if self.durable else ["--no-sync"]),
             )  # fmt: skip
             hba = self.data / "pg_hba.conf"
             # the secret role needs its password; the others are trusted on the loopback
@@ -149,6 +156,7 @@ class LocalCluster:
         options = (
             f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.socket_dir} "
             "-c max_connections=200 -c shared_buffers=64MB"
+            + ("" if self.durable else " -c fsync=off -c full_page_writes=off")
         )
         self._run(
             self.bin / "pg_ctl", "-D", self.data, "-l", self.log_file, "-o", options,

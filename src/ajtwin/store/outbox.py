@@ -102,20 +102,27 @@ class Outbox:
             self._thread.start()
 
     def _run(self) -> None:
+        # the lock is not held while a write is tried (a connection attempt may take the
+        # server's connect timeout): the twin keeps adding writes meanwhile, never waits
         while True:
             time.sleep(self.retry_every_s)
-            with self._lock:
-                n = 0
+            n = 0
+            while True:
+                with self._lock:
+                    if not self._items:
+                        break
+                    write = self._items[0]
                 try:
-                    while self._items:
-                        self._items[0]()
-                        self._items.popleft()
-                        n += 1
+                    write()
                 except ConnectionLost:
-                    continue
+                    break
                 except Exception:  # not the server's absence: said, and the rest go on
                     log.exception("%s: a kept write failed and is dropped", self.where)
+                with self._lock:
                     self._items.popleft()
+                    n += 1
+            with self._lock:
+                if self._items:
                     continue
                 away = 0.0 if self._lost_at is None else time.monotonic() - self._lost_at
                 log.info(

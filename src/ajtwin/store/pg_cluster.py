@@ -77,10 +77,24 @@ class LocalCluster:
         TCP port on 127.0.0.1 (default: a free one).
     durable : bool
         Flush commits to disk (module docstring).
+    host : str
+        The address it listens on (127.0.0.1; another when it runs in ``netns``).
+    netns : str, optional
+        A network namespace (``ip netns``) the server runs in: the lab's fault runs cut
+        its network (:mod:`ajtwin.studies.lab_faults`).
     """
 
-    def __init__(self, folder=None, port: int | None = None, durable: bool = True):
+    def __init__(
+        self,
+        folder=None,
+        port: int | None = None,
+        durable: bool = True,
+        host: str = "127.0.0.1",
+        netns: str | None = None,
+    ):
         self.durable = bool(durable)
+        self.host = str(host)
+        self.netns = netns
         self.bin = server_binaries()
         if self.bin is None:
             raise RuntimeError(
@@ -101,6 +115,8 @@ class LocalCluster:
         command = [str(a) for a in args]
         if self._user is not None:
             command = ["runuser", "-u", self._user, "--", *command]
+        if self.netns is not None:
+            command = ["ip", "netns", "exec", self.netns, *command]
         done = subprocess.run(
             command, capture_output=True, text=True, check=False, timeout=timeout, cwd="/"
         )
@@ -133,7 +149,9 @@ class LocalCluster:
             hba.write_text(
                 "local all all trust\n"
                 "host all ajtwin_secret 127.0.0.1/32 scram-sha-256\n"
+                "host all ajtwin_secret samenet scram-sha-256\n"
                 "host all all 127.0.0.1/32 trust\n"
+                "host all all samenet trust\n"
             )
             self._give_folder()
         self.restart()
@@ -154,7 +172,7 @@ class LocalCluster:
     def restart(self) -> None:
         """Start the server (again) on the same port and data; waits until it answers."""
         options = (
-            f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.socket_dir} "
+            f"-c listen_addresses={self.host} -p {self.port} -k {self.socket_dir} "
             "-c max_connections=200 -c shared_buffers=64MB"
             + ("" if self.durable else " -c fsync=off -c full_page_writes=off")
         )
@@ -165,7 +183,7 @@ class LocalCluster:
         self.started = True
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
-            if self._run(self.bin / "pg_isready", "-h", "127.0.0.1", "-p", self.port,
+            if self._run(self.bin / "pg_isready", "-h", self.host, "-p", self.port,
                          check=False).returncode == 0:  # fmt: skip
                 return
             time.sleep(0.1)
@@ -216,7 +234,7 @@ class LocalCluster:
     def url(self, database: str = "ajtwin", user: str = "ajtwin", **params) -> str:
         """The libpq URL of ``database`` as ``user`` over TCP (``params``: query string)."""
         query = "&".join(f"{k}={v}" for k, v in params.items())
-        return f"postgresql://{user}@127.0.0.1:{self.port}/{database}" + (
+        return f"postgresql://{user}@{self.host}:{self.port}/{database}" + (
             f"?{query}" if query else ""
         )
 

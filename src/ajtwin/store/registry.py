@@ -617,28 +617,31 @@ class Registry:
         ).fetchone()
         return None if row is None else dict(row)
 
-    def _heard(self, name: str) -> None:
-        """Inside a write: this process's claim on ``name`` was heard now; refused if
-        another process holds it now."""
+    def _heard(self, name: str) -> bool:
+        """Inside a write: renew this process's claim on ``name``; False (said in the log)
+        when another process holds it now — its writes then win, this one's are not made."""
         host, pid = socket.gethostname(), os.getpid()
         updated = self._db.execute(
             "UPDATE machine_writers SET heard_unix = ? WHERE machine = ? AND host = ? AND pid = ?",
             (time.time(), name, host, pid),
         ).rowcount
-        if updated == 0:
-            row = self.machine_writer(name)
-            if row is not None:
-                raise RegistryError(
-                    f"machine {printable(name)!r} was taken over by {row['what']} on host "
-                    f"{printable(row['host'])} (pid {row['pid']}) while this twin could not "
-                    "reach the registry; this twin's samples are not written"
-                )
-            now = time.time()
-            self._db.execute(
-                "INSERT INTO machine_writers (machine, host, pid, what, started_unix, "
-                "heard_unix) VALUES (?, ?, ?, 'ajtwin live', ?, ?) ON CONFLICT DO NOTHING",
-                (name, host, pid, now, now),
-            )
+        if updated:
+            return True
+        row = self.machine_writer(name)
+        if row is not None:
+            log.error(
+                "machine %s was taken over by %s on host %s (pid %s) while this twin could not "
+                "reach the registry; this twin's samples of it are not written",
+                printable(name), row["what"], printable(row["host"]), row["pid"],
+            )  # fmt: skip
+            return False
+        now = time.time()
+        self._db.execute(
+            "INSERT INTO machine_writers (machine, host, pid, what, started_unix, "
+            "heard_unix) VALUES (?, ?, ?, 'ajtwin live', ?, ?) ON CONFLICT DO NOTHING",
+            (name, host, pid, now, now),
+        )
+        return True
 
     # ------------------------------------------------------------------ prints
     def _damaged(self, row, column, exc) -> RegistryError:
@@ -1049,11 +1052,9 @@ class Registry:
         found by its content hash) and not made twice.
         """
         _check_status(entry.status)
-        machine = self.machine(name)
         alarm_times = [t for ev in entry.anomalies for t in (ev.detected_s, ev.onset_s)]
         encoded = _arrays.encode_all(entry.arrays, self.policy, alarm_times)
         row = {
-            "machine_id": machine["id"],
             "content_hash": entry.content_hash,
             "source": entry.source,
             "n_samples": int(entry.n_samples),
@@ -1069,16 +1070,18 @@ class Registry:
         while True:
             try:
                 self.outbox.drain(max(0.0, deadline - time.monotonic()))
+                row["machine_id"] = self.machine(name)["id"]
                 print_id, dropped = self._save_print_once(
                     name, row, entry, encoded, expected_last_seq, draft, live_session,
                     keep_live_steps,
                 )  # fmt: skip
                 break
-            except ConnectionLost:
+            except ConnectionLost as exc:
                 if time.monotonic() >= deadline:
                     raise
+                log.warning("%s; the print is stored when it answers", exc)
                 time.sleep(2.0)
-                stored = self._stored_before(machine["id"], entry.content_hash)
+                stored = self._stored_before(name, entry.content_hash)
                 if stored is not None:  # the COMMIT got through, its answer did not
                     print_id, dropped = stored, 0
                     break
@@ -1088,15 +1091,12 @@ class Registry:
             self._db.release_free_pages()
         return int(print_id)
 
-    def _stored_before(self, machine_id: int, content_hash: str) -> int | None:
+    def _stored_before(self, name: str, content_hash: str) -> int | None:
         try:
-            row = self._db.execute(
-                "SELECT id FROM prints WHERE machine_id = ? AND content_hash = ?",
-                (machine_id, content_hash),
-            ).fetchone()
+            found = self.find_print(name, content_hash)
         except ConnectionLost:
             return None
-        return None if row is None else int(row[0])
+        return None if found is None else int(found["id"])
 
     def _save_print_once(
         self, name, row, entry, encoded, expected_last_seq, draft, live_session, keep_live_steps
@@ -1512,9 +1512,8 @@ class Registry:
                 row = self._db.execute(
                     "SELECT machine, status FROM live_sessions WHERE id = ?", (sid,)
                 ).fetchone()
-                if row is None or row["status"] != "open":
+                if row is None or row["status"] != "open" or not self._heard(row["machine"]):
                     return
-                self._heard(row["machine"])
                 self._db.executemany(
                     "INSERT INTO live_samples VALUES (?, ?, ?, ?, ?) ON CONFLICT DO NOTHING",
                     samples,

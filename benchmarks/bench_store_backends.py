@@ -109,7 +109,9 @@ def measure_store_backends(burst_minutes: float = 10.0, ingest_minutes: float = 
         for kind, make in stores.items():
             seconds, steps = _live_burst(make("burst"), records)
             figures[f"live_burst_steps_per_s_{kind}"] = round(steps / seconds, 1)
-            figures[f"live_log_steps_per_s_{kind}"] = round(2000 / _log_writes(make("log"), 2000), 1)
+            figures[f"live_log_steps_per_s_{kind}"] = round(
+                2000 / _log_writes(make("log"), 2000), 1
+            )
             figures[f"ingest_90min_s_{kind}"] = round(_ingest(make("ingest"), long_print), 2)
     figures["live_burst_ratio"] = round(
         figures["live_burst_steps_per_s_sqlite"] / figures["live_burst_steps_per_s_postgresql"], 3

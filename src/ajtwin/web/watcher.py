@@ -87,17 +87,27 @@ class RegistryWatcher:
 
     async def run(self) -> None:
         """Poll until cancelled (the server's lifespan cancels it on shutdown)."""
+        away = False  # the registry's server did not answer the last look
         while True:
             try:
                 await asyncio.to_thread(self.check)
                 await asyncio.to_thread(self.check_live)
+                if away:
+                    log.info("registry watcher: the registry answers again")
+                    away = False
             except RuntimeError as exc:
                 # the interpreter is exiting under a server thread that is still up (its
                 # worker pool is gone): nothing left to watch for, and no one to tell
                 if "after shutdown" in str(exc):
                     return
                 log.exception("registry watcher: check failed")
-            except Exception:  # a locked or briefly unreadable file: try next tick
-                log.exception("registry watcher: check failed")
+            except Exception as exc:
+                if getattr(exc, "shown_as_sentence", False):  # the registry away: one line
+                    if not away:
+                        log.warning("registry watcher: %s; looking again every %g s", exc,
+                                    self.poll_s)  # fmt: skip
+                    away = True
+                else:  # a locked or briefly unreadable file: try next tick
+                    log.exception("registry watcher: check failed")
             self.ticks += 1
             await asyncio.sleep(self.poll_s)

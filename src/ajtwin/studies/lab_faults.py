@@ -223,7 +223,13 @@ def run_lab(folder, *, minutes: float = 6.0, speed: float = 10.0, faults=FAULTS,
             return all(_steps(folder / f"{m}-1.jsonl") > 0 for m in MACHINES)
 
         _wait(started, 600, "every twin's first step")
-        report["twins_started_s"] = round(time.monotonic() - t0, 1)
+        t_started = time.monotonic()
+        report["twins_started_s"] = round(t_started - t0, 1)
+        if t_started > t0 + 0.5 * t_print:
+            raise RuntimeError(
+                f"the twins took {t_started - t0:.0f} s to start, more than half the print "
+                f"({t_print:.0f} s at x{speed:g}): give longer prints (--minutes) or a lower speed"
+            )
 
         def watch(until_s):
             while time.monotonic() < until_s:
@@ -231,7 +237,8 @@ def run_lab(folder, *, minutes: float = 6.0, speed: float = 10.0, faults=FAULTS,
                 time.sleep(1.0)
 
         def at(fraction):
-            watch(t0 + fraction * t_print)
+            # the faults are spread over the part of the print the twins follow live
+            watch(t_started + fraction * (t0 + t_print - t_started))
 
         if "kill" in faults:
             at(0.2)

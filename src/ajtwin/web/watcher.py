@@ -95,13 +95,11 @@ class RegistryWatcher:
                 if away:
                     log.info("registry watcher: the registry answers again")
                     away = False
-            except RuntimeError as exc:
+            except Exception as exc:
                 # the interpreter is exiting under a server thread that is still up (its
                 # worker pool is gone): nothing left to watch for, and no one to tell
-                if "after shutdown" in str(exc):
+                if isinstance(exc, RuntimeError) and "after shutdown" in str(exc):
                     return
-                log.exception("registry watcher: check failed")
-            except Exception as exc:
                 if getattr(exc, "shown_as_sentence", False):  # the registry away: one line
                     if not away:
                         log.warning("registry watcher: %s; looking again every %g s", exc,

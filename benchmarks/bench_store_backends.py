@@ -15,7 +15,7 @@ disk as a production server does; :class:`ajtwin.store.pg_cluster.LocalCluster`)
   simulated 90-minute print (its arrays written in parts as the twin runs, then one
   transaction), wall seconds.
 
-The aims (issue 41): PostgreSQL within 1.5× of SQLite for the live burst and within 1.2×
+The aims: PostgreSQL within 1.5× of SQLite for the live burst and within 1.2×
 for the ingest; the ``*_ratio`` figures are PostgreSQL's time over SQLite's. Timings on a
 shared 2-core machine are noisy: the ratios, measured in one run, are what to read.
 

@@ -283,30 +283,11 @@ def ingest_record(
         sink = IngestSink(writer, record, detector_settings, carried, keep_run, twin.config)
         run = _run_twin(twin, record, start, progress, sink, job)
         events, mismatch = sink.finish(run)
-        outcome = TwinOutcome(
-            arrays=theta_history_arrays(run),
-            events=events,
-            start=(run.start_mean, run.start_cov),
-            end=(run.end_mean, run.end_cov),
-            theta_before=theta_before,
-            theta_after=twin.theta,
-            started_from=begin["started_from"],
-            status=sink.status[0],
-            status_reason=sink.status[1],
-            extra_summary={
-                "calibration_id": begin["calibration_id"],
-                "maintenance": begin["maintenance"],
-                "mismatch": mismatch.to_dict(),
-                # which states this print's data determined (ΔR_T: the prior's band)
-                "data_share": determined_states(sink.share),
-            },
-            long_run_history=sink.detector.long_run_history(),
-        )
         print_id, summary = save_print(
             registry,
             machine,
             record,
-            outcome,
+            _ingest_outcome(run, twin.theta, theta_before, begin, sink, events, mismatch),
             digest=digest,
             source=source,
             expected_last_seq=expected,
@@ -338,6 +319,30 @@ def ingest_record(
         seconds=time.perf_counter() - t0,
         run=whole,
         detection=detection,
+    )
+
+
+def _ingest_outcome(run, theta_after, theta_before, begin, sink, events, mismatch):
+    """What an ingest's run concluded (:class:`TwinOutcome`): the run, the machine's start
+    (:func:`~ajtwin.engine.start.machine_start`), the sink's judgement and detectors."""
+    return TwinOutcome(
+        arrays=theta_history_arrays(run),
+        events=events,
+        start=(run.start_mean, run.start_cov),
+        end=(run.end_mean, run.end_cov),
+        theta_before=theta_before,
+        theta_after=theta_after,
+        started_from=begin["started_from"],
+        status=sink.status[0],
+        status_reason=sink.status[1],
+        extra_summary={
+            "calibration_id": begin["calibration_id"],
+            "maintenance": begin["maintenance"],
+            "mismatch": mismatch.to_dict(),
+            # which states this print's data determined (ΔR_T: the prior's band)
+            "data_share": determined_states(sink.share),
+        },
+        long_run_history=sink.detector.long_run_history(),
     )
 
 

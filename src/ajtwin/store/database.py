@@ -246,12 +246,14 @@ class SqliteDatabase(Database):
         self._conn.execute("ROLLBACK")
 
     def execute(self, sql: str, params=()):
+        """Run one statement (``?`` parameters); its cursor."""
         try:
             return self._conn.execute(sql, params)
         except sqlite3.IntegrityError as exc:
             raise ConstraintError(str(exc)) from None
 
     def executemany(self, sql: str, rows) -> None:
+        """Run one statement for each parameter row of ``rows``."""
         try:
             self._conn.executemany(sql, rows)
         except sqlite3.IntegrityError as exc:
@@ -259,6 +261,7 @@ class SqliteDatabase(Database):
 
     @contextlib.contextmanager
     def write(self, key: str | None = "registry"):
+        """One write transaction (:meth:`Database.write`)."""
         self._conn.execute("BEGIN IMMEDIATE")
         try:
             yield self
@@ -269,6 +272,7 @@ class SqliteDatabase(Database):
 
     @contextlib.contextmanager
     def snapshot(self):
+        """Reads that see one committed state (:meth:`Database.snapshot`)."""
         if self._conn.in_transaction:  # inside a caller's transaction: its view already
             yield self
             return
@@ -281,18 +285,22 @@ class SqliteDatabase(Database):
 
     @property
     def in_transaction(self) -> bool:
+        """Whether a transaction is open on this connection."""
         return self._conn.in_transaction
 
     def tables(self) -> set[str]:
+        """The names of the registry's tables."""
         rows = self._conn.execute(
             "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'"
         ).fetchall()
         return {r[0] for r in rows}
 
     def columns(self, table: str) -> list[str]:
+        """The column names of ``table``, in order."""
         return [r[1] for r in self._conn.execute(f"PRAGMA table_info({table})").fetchall()]
 
     def change_token(self) -> int:
+        """A number that changes whenever any connection commits a write."""
         return int(self._conn.execute("PRAGMA data_version").fetchone()[0])
 
     def release_free_pages(self) -> None:
@@ -334,6 +342,7 @@ class SqliteDatabase(Database):
         self._conn.execute("PRAGMA journal_mode=DELETE")
 
     def close(self) -> None:
+        """Close the connection."""
         if self._conn is not None:
             self._conn.close()
             self._conn = None
@@ -507,15 +516,18 @@ class PostgresDatabase(Database):
 
     # -- statements
     def execute(self, sql: str, params=()):
+        """Run one statement (``?`` parameters); its cursor."""
         return self._run("execute", sql, tuple(params))
 
     def executemany(self, sql: str, rows) -> None:
+        """Run one statement for each parameter row of ``rows``."""
         rows = [tuple(r) for r in rows]
         if rows:
             self._run("executemany", sql, rows)
 
     @contextlib.contextmanager
     def write(self, key: str | None = "registry"):
+        """One write transaction (:meth:`Database.write`)."""
         with self._lock:
             self.execute("BEGIN")
             try:
@@ -545,6 +557,7 @@ class PostgresDatabase(Database):
 
     @contextlib.contextmanager
     def snapshot(self):
+        """Reads that see one committed state (:meth:`Database.snapshot`)."""
         with self._lock:
             if self.in_transaction:
                 yield self
@@ -557,6 +570,7 @@ class PostgresDatabase(Database):
 
     @property
     def in_transaction(self) -> bool:
+        """Whether a transaction is open on this connection."""
         from psycopg.pq import TransactionStatus
 
         if self._conn is None or self._conn.closed:
@@ -565,6 +579,7 @@ class PostgresDatabase(Database):
 
     # -- schema
     def tables(self) -> set[str]:
+        """The names of the registry's tables."""
         rows = self.execute(
             "SELECT table_name FROM information_schema.tables "
             "WHERE table_schema = current_schema() AND table_type = 'BASE TABLE'"
@@ -572,6 +587,7 @@ class PostgresDatabase(Database):
         return {r[0] for r in rows}
 
     def columns(self, table: str) -> list[str]:
+        """The column names of ``table``, in order."""
         rows = self.execute(
             "SELECT column_name FROM information_schema.columns WHERE table_schema = "
             "current_schema() AND table_name = ? ORDER BY ordinal_position",
@@ -580,6 +596,7 @@ class PostgresDatabase(Database):
         return [r[0] for r in rows]
 
     def ddl(self, script: str) -> list[str]:
+        """The statements of a schema script in PostgreSQL's words."""
         out = []
         for statement in super().ddl(script):
             for pattern, words in _PG_TYPES:
@@ -588,6 +605,7 @@ class PostgresDatabase(Database):
         return out
 
     def identity_set(self, table: str) -> None:
+        """The next identity of ``table`` follows its explicit ids."""
         self.execute(
             f"SELECT setval(pg_get_serial_sequence('{table}', 'id'), "
             f"GREATEST((SELECT COALESCE(MAX(id), 0) FROM {table}), 1), "
@@ -596,6 +614,7 @@ class PostgresDatabase(Database):
 
     # -- upkeep
     def change_token(self) -> int:
+        """A number that changes whenever any connection commits a write."""
         # any committed write took a transaction id below the snapshot's xmax
         return int(
             self.execute("SELECT pg_snapshot_xmax(pg_current_snapshot())::text").fetchone()[0]
@@ -637,6 +656,7 @@ class PostgresDatabase(Database):
         return int(self._conn.info.server_version)
 
     def close(self) -> None:
+        """Close the connection."""
         with self._lock:
             if self._conn is not None:
                 with contextlib.suppress(Exception):

@@ -1779,106 +1779,24 @@ class Registry:
         -------
         dict: ``prints``, ``live_sessions``, ``open_live_sessions`` (copied counts).
         """
-        db = self._db
-        ids: dict[str, dict] = {"machines": {}, "prints": {}, "print_versions": {},
-                                "live_sessions": {}}  # fmt: skip
-        counts = {"prints": 0, "live_sessions": 0, "open_live_sessions": 0}
-        columns = {t: db.columns(t) for t in db.tables()}
-        known_prints: set = set()
-        if keep_ids:
-            known_prints = {
-                r[0]
-                for r in db.execute(
-                    "SELECT p.id FROM prints p JOIN machines m ON m.id = p.machine_id "
-                    "WHERE m.name = ?",
-                    (new_name,),
-                ).fetchall()
-            }
-        skipping = False
-
-        def insert(table, row):
-            keys = [c for c in columns[table] if c in row]
-            if not keep_ids:
-                return db.insert(table, {k: row[k] for k in keys if k != "id"},
-                                 returning_id="id" in columns[table])  # fmt: skip
-            sql = (
-                f"INSERT INTO {table} ({', '.join(keys)}) VALUES ({', '.join('?' * len(keys))}) "
-                "ON CONFLICT DO NOTHING"
-            )
-            db.execute(sql, [row[k] for k in keys])
-            return row.get("id")
-
+        load = _MachineLoad(self._db, new_name, keep_ids)
         transaction = None
         try:
             if not keep_ids:
-                transaction = db.write("import")
+                transaction = self._db.write("import")
                 transaction.__enter__()
             for table, row in rows:
-                row = dict(row)
-                if table == "machines":
-                    old = row["id"]
-                    here = db.execute(
-                        "SELECT id, created_at FROM machines WHERE name = ?", (new_name,)
-                    ).fetchone()
-                    if here is not None and not (
-                        keep_ids and here["id"] == old and here["created_at"] == row["created_at"]
-                    ):
-                        raise RegistryError(
-                            f"machine {printable(new_name)!r} already exists; import it under "
-                            "another name with --as NAME"
-                        )
-                    open_here = db.execute(
-                        "SELECT 1 FROM live_sessions WHERE machine = ? AND status = 'open'",
-                        (new_name,),
-                    ).fetchone()
-                    if open_here is not None and not keep_ids:
-                        raise RegistryError(
-                            f"an open live session of {printable(new_name)!r} is in this "
-                            "registry; import the machine under another name with --as NAME"
-                        )
-                    row["name"] = new_name
-                    ids["machines"][old] = insert(table, row)
-                    continue
                 if keep_ids and table in ("prints", "live_sessions"):
                     if transaction is not None:  # the previous print or session is whole
                         transaction.__exit__(None, None, None)
                         if progress is not None:
                             progress(table)
-                    skipping = table == "prints" and row["id"] in known_prints
-                    transaction = None if skipping else db.write(f"copy/{table}/{row['id']}")
-                    if transaction is not None:
+                    load.skipping = table == "prints" and row["id"] in load.known_prints
+                    transaction = None
+                    if not load.skipping:
+                        transaction = self._db.write(f"copy/{table}/{row['id']}")
                         transaction.__enter__()
-                if table not in _PRINT_SCOPED:
-                    skipping = False  # the machine's other rows: copied (or already here)
-                if skipping:
-                    counts["prints"] += table == "prints"
-                    continue
-                if "machine_id" in row and table != "live_sessions":
-                    row["machine_id"] = ids["machines"][row["machine_id"]]
-                if table in PRINT_TABLES or table == "print_versions":
-                    row["print_id"] = ids["prints"].get(row["print_id"], row["print_id"])
-                if table in VERSION_TABLES:
-                    row["print_version_id"] = ids["print_versions"].get(
-                        row["print_version_id"], row["print_version_id"]
-                    )
-                if table in LIVE_SESSION_TABLES:
-                    row["session_id"] = ids["live_sessions"][row["session_id"]]
-                if table == "live_sessions":
-                    row["machine"] = new_name
-                    if row.get("print_id") is not None:
-                        row["print_id"] = ids["prints"].get(
-                            row["print_id"], row["print_id"] if keep_ids else None
-                        )
-                    counts["live_sessions"] += 1
-                    counts["open_live_sessions"] += row["status"] == "open"
-                if table == "print_versions" and not keep_ids:
-                    continue  # an export carries the prints as stored (module docstring)
-                if table in VERSION_TABLES and not keep_ids:
-                    continue
-                new_id = insert(table, row)
-                if table in ids:
-                    ids[table][row["id"]] = new_id
-                counts["prints"] += table == "prints"
+                load.add(table, dict(row))
             if transaction is not None:
                 transaction.__exit__(None, None, None)
                 transaction = None
@@ -1896,9 +1814,9 @@ class Registry:
             for table in ("machines", "prints", "anomalies", "calibrations",
                           "maintenance_events", "live_sessions", "print_versions",
                           "print_version_anomalies"):  # fmt: skip
-                if table in columns:
-                    db.identity_set(table)
-        return counts
+                if table in load.columns:
+                    self._db.identity_set(table)
+        return load.counts
 
     def version_rows(self) -> list[dict]:
         """The ``versions`` rows (what ``store copy`` carries before the machines)."""
@@ -1941,6 +1859,101 @@ class Registry:
 
 #: the tables whose rows belong to one print (copied with it, in its transaction)
 _PRINT_SCOPED = {"prints", "print_versions", *PRINT_TABLES, *VERSION_TABLES}
+
+
+class _MachineLoad:
+    """The rows of one machine going into a registry (:meth:`Registry.load_machine`): each
+    row's ids renumbered (import) or kept (copy), inserted, counted."""
+
+    def __init__(self, db, new_name: str, keep_ids: bool):
+        self.db, self.new_name, self.keep_ids = db, new_name, keep_ids
+        self.ids: dict[str, dict] = {"machines": {}, "prints": {}, "print_versions": {},
+                                     "live_sessions": {}}  # fmt: skip
+        self.counts = {"prints": 0, "live_sessions": 0, "open_live_sessions": 0}
+        self.columns = {t: db.columns(t) for t in db.tables()}
+        self.skipping = False  # the print whose rows come is here already (a resumed copy)
+        self.known_prints: set = set()
+        if keep_ids:
+            self.known_prints = {
+                r[0]
+                for r in db.execute(
+                    "SELECT p.id FROM prints p JOIN machines m ON m.id = p.machine_id "
+                    "WHERE m.name = ?",
+                    (new_name,),
+                ).fetchall()
+            }
+
+    def add(self, table: str, row: dict) -> None:
+        """One row of the source machine (in :meth:`Registry.machine_rows` order)."""
+        if table == "machines":
+            self._machine(row)
+            return
+        if table not in _PRINT_SCOPED:
+            self.skipping = False  # the machine's other rows: copied (or already here)
+        if self.skipping:
+            self.counts["prints"] += table == "prints"
+            return
+        if not self.keep_ids and table in ("print_versions", *VERSION_TABLES):
+            return  # an export carries the prints as stored (the archive's docstring)
+        self._renumber(table, row)
+        new_id = self._insert(table, row)
+        if table in self.ids:
+            self.ids[table][row["id"]] = new_id
+        self.counts["prints"] += table == "prints"
+
+    def _machine(self, row: dict) -> None:
+        old = row["id"]
+        here = self.db.execute(
+            "SELECT id, created_at FROM machines WHERE name = ?", (self.new_name,)
+        ).fetchone()
+        same = here is not None and here["id"] == old and here["created_at"] == row["created_at"]
+        if here is not None and not (self.keep_ids and same):
+            raise RegistryError(
+                f"machine {printable(self.new_name)!r} already exists; import it under "
+                "another name with --as NAME"
+            )
+        open_here = self.db.execute(
+            "SELECT 1 FROM live_sessions WHERE machine = ? AND status = 'open'", (self.new_name,)
+        ).fetchone()
+        if open_here is not None and not self.keep_ids:
+            raise RegistryError(
+                f"an open live session of {printable(self.new_name)!r} is in this registry; "
+                "import the machine under another name with --as NAME"
+            )
+        row["name"] = self.new_name
+        self.ids["machines"][old] = self._insert("machines", row)
+
+    def _renumber(self, table: str, row: dict) -> None:
+        """The row's references to the machine, its print, result or live session, as here."""
+        ids = self.ids
+        if "machine_id" in row and table != "live_sessions":
+            row["machine_id"] = ids["machines"][row["machine_id"]]
+        if table in PRINT_TABLES or table == "print_versions":
+            row["print_id"] = ids["prints"].get(row["print_id"], row["print_id"])
+        if table in VERSION_TABLES:
+            old = row["print_version_id"]
+            row["print_version_id"] = ids["print_versions"].get(old, old)
+        if table in LIVE_SESSION_TABLES:
+            row["session_id"] = ids["live_sessions"][row["session_id"]]
+        if table == "live_sessions":
+            row["machine"] = self.new_name
+            if row.get("print_id") is not None:
+                old = row["print_id"]
+                row["print_id"] = ids["prints"].get(old, old if self.keep_ids else None)
+            self.counts["live_sessions"] += 1
+            self.counts["open_live_sessions"] += row["status"] == "open"
+
+    def _insert(self, table: str, row: dict):
+        keys = [c for c in self.columns[table] if c in row]
+        if not self.keep_ids:
+            return self.db.insert(table, {k: row[k] for k in keys if k != "id"},
+                                  returning_id="id" in self.columns[table])  # fmt: skip
+        self.db.execute(
+            f"INSERT INTO {table} ({', '.join(keys)}) VALUES ({', '.join('?' * len(keys))}) "
+            "ON CONFLICT DO NOTHING",
+            [row[k] for k in keys],
+        )
+        return row.get("id")
 
 
 def _anomaly_values(ev) -> tuple:

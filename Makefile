@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench docs docs-serve lint openfoam chromium clean
+.PHONY: demo test test-all bench docs docs-serve lint openfoam chromium postgresql clean
 
 $(VENV): $(STAMP)
 
@@ -39,6 +39,17 @@ chromium:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# Debian's PostgreSQL server, for the registry's tests on PostgreSQL (each test session starts a
+# server of its own with initdb + pg_ctl in a temporary folder, as the `postgres` user when
+# run as root: tests/conftest.py); skipped when already present.
+postgresql:
+	@if ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
+		echo "postgresql: present"; \
+	else \
+		echo "postgresql: installing Debian package (apt-get)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql >/dev/null; \
+	fi
+
 demo: $(STAMP)
 	$(VENV)/bin/ajtwin demo
 
@@ -46,7 +57,7 @@ demo: $(STAMP)
 # its module fixtures (simulated prints, servers) are made once
 TEST_WORKERS ?= auto
 
-test: $(STAMP) openfoam chromium
+test: $(STAMP) openfoam chromium postgresql
 	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
 
 # the slow tests include the develop study's generic Bayesian optimisation (the [study] extra)
@@ -56,7 +67,7 @@ $(STUDY_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,study]'
 	touch $(STUDY_STAMP)
 
-test-all: $(STUDY_STAMP) openfoam chromium
+test-all: $(STUDY_STAMP) openfoam chromium postgresql
 	$(PY) -m pytest -q
 
 BENCH_STAMP := $(VENV)/.installed-bench
@@ -69,9 +80,11 @@ $(BENCH_STAMP): $(STAMP) pyproject.toml
 # (.asv/results; `asv show`, `asv compare A B`, `asv publish`). BENCH_ARGS: more options,
 # e.g. BENCH_ARGS='--bench bench_startup' or '--quick'.
 BENCH_ARGS ?=
-bench: $(BENCH_STAMP) chromium
+bench: $(BENCH_STAMP) chromium postgresql
 	$(VENV)/bin/asv machine --yes >/dev/null
 	$(VENV)/bin/asv run --python=same --set-commit-hash=$$(git rev-parse HEAD) --show-stderr $(BENCH_ARGS)
+	# SQLite against PostgreSQL side by side in one run (a lab's registry on a server)
+	$(PY) benchmarks/bench_store_backends.py
 
 # The documentation site in site/ (open site/index.html; search needs it served: make docs-serve).
 # Strict: a broken link or anchor, a page left out of the navigation or a docstring that does

@@ -66,19 +66,17 @@ class StoredPrint:
     def setup_cache(self):
         from ajtwin.engine.ingest import ingest_record
         from ajtwin.simulation import simulate
-        from ajtwin.store.compaction import compact, file_bytes
+        from ajtwin.store.compaction import compact
         from ajtwin.store.registry import Registry
 
         path = Path("r.sqlite").resolve()
         reg = Registry(path)
         reg.add_machine("m")
-        reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        empty = file_bytes(path)
+        empty = reg.checkpointed_bytes()
         rec = simulate("exp1", seed=1, duration_min=30.0)
         ingest_record(reg, "m", rec)
-        reg._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         hours = len(rec) / 3600.0
-        stored = (file_bytes(path) - empty) / hours / 1e6
+        stored = (reg.checkpointed_bytes() - empty) / hours / 1e6
         later = dt.datetime.now(dt.UTC) + dt.timedelta(days=31)
         stats = compact(reg, "m", 30, now=later)
         reg.close()

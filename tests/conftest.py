@@ -6,3 +6,138 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # `--doctest-modules` (pyproject) is for src/: this file is not a module of examples, and
 # importing it as one would clash with src/conftest.py under the same name
 collect_ignore = ["conftest.py"]
+
+import contextlib  # noqa: E402
+import fcntl  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import uuid  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+#: the registry's two databases; every store test runs on both (the ``store`` fixture)
+BACKENDS = ("sqlite", "postgresql")
+#: a superuser connection to the session's server, per worker (makes the tests' schemas)
+_ADMIN: dict = {}
+
+
+# ---------------------------------------------------------------------- PostgreSQL
+# One PostgreSQL server for the whole test session, shared by the xdist workers: the first
+# worker that needs it starts it (initdb + pg_ctl in a folder of the session's base
+# temporary folder, 127.0.0.1 on a free port; as root the server runs as the `postgres`
+# user, ajtwin.store.pg_cluster); each worker notes itself as a user under a file lock, and
+# the last one to finish stops it by its PID. Each test gets a schema of its own in it (a
+# fresh, empty registry: the URL's options=-csearch_path=...).
+def _shared_folder(tmp_path_factory) -> Path:
+    base = tmp_path_factory.getbasetemp()
+    # xdist workers' base folders are popen-gwN beside one another
+    return base.parent if base.name.startswith("popen-gw") else base
+
+
+@contextlib.contextmanager
+def _locked(folder: Path):
+    with open(folder / "postgresql.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.fixture(scope="session")
+def postgres_server(tmp_path_factory):
+    """The session's PostgreSQL server (:class:`ajtwin.store.pg_cluster.LocalCluster`)."""
+    from ajtwin.store.pg_cluster import LocalCluster, server_binaries
+
+    if server_binaries() is None:
+        pytest.fail("PostgreSQL's server is not installed: `make postgresql` installs it")
+    shared = _shared_folder(tmp_path_factory)
+    state = shared / "postgresql.json"
+    with _locked(shared):
+        info = json.loads(state.read_text()) if state.exists() else {"users": 0}
+        if "folder" not in info:
+            # a folder of its own in /tmp: as root the server runs as `postgres`, which may
+            # not enter pytest's private base folder
+            info["folder"] = tempfile.mkdtemp(prefix="ajtwin-test-pg-")
+        cluster = LocalCluster(info["folder"], port=info.get("port"), durable=False)
+        if cluster.pid() is None or not _alive(cluster.pid()):
+            t0 = time.perf_counter()
+            cluster.start()
+            info["start_s"] = round(time.perf_counter() - t0, 2)
+        cluster.started = True
+        info.update(port=cluster.port, users=info["users"] + 1)
+        state.write_text(json.dumps(info))
+    yield cluster
+    with _locked(shared):
+        info = json.loads(state.read_text())
+        info["users"] -= 1
+        if info["users"] <= 0:
+            admin = _ADMIN.pop(cluster.port, None)
+            if admin is not None:
+                admin.close()
+            cluster.stop()  # pg_ctl stop, else by the PID of its postmaster.pid
+            shutil.rmtree(info.pop("folder"), ignore_errors=True)
+            info.pop("port", None)
+        state.write_text(json.dumps(info))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def new_schema(cluster) -> str:
+    """A new empty schema in the server's ``ajtwin`` database; the URL of a registry in it."""
+    import psycopg
+
+    conn = _ADMIN.get(cluster.port)
+    if conn is None or conn.closed or conn.broken:
+        conn = _ADMIN[cluster.port] = psycopg.connect(cluster.url(), autocommit=True)
+    schema = "t_" + uuid.uuid4().hex[:16]
+    conn.execute(f"CREATE SCHEMA {schema}")
+    return cluster.url("ajtwin", options=f"-csearch_path%3D{schema}")
+
+
+@pytest.fixture(params=BACKENDS)
+def store(request, tmp_path):
+    """Where a new, empty registry is: an SQLite file's path, or a PostgreSQL URL (a schema
+    of its own on the session's server). Tests that take it run on both databases."""
+    if request.param == "sqlite":
+        return tmp_path / "registry.sqlite"
+    return new_schema(request.getfixturevalue("postgres_server"))
+
+
+@pytest.fixture
+def pg_store(request):
+    """A new, empty registry on the session's PostgreSQL server (its URL)."""
+    return new_schema(request.getfixturevalue("postgres_server"))
+
+
+def on_postgres(store) -> bool:
+    """Whether a ``store`` fixture value is a PostgreSQL URL."""
+    return str(store).startswith("postgresql://")
+
+
+@pytest.fixture
+def new_store(request, store, tmp_path):
+    """A function giving another new, empty registry on the same database as ``store``."""
+    made = [0]
+
+    def make():
+        made[0] += 1
+        if on_postgres(store):
+            return new_schema(request.getfixturevalue("postgres_server"))
+        return tmp_path / f"registry-{made[0]}.sqlite"
+
+    return make
+
+
+#: a store test whose PostgreSQL run is long (subprocesses, the twin): `make test-all`
+#: runs it; the default suite keeps its SQLite run
+SLOW_ON_POSTGRES = pytest.param("postgresql", marks=pytest.mark.slow)

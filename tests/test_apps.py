@@ -364,7 +364,7 @@ def test_advice_unreachable(twin_and_state):
 def test_forecast_and_advise_cli(tmp_path):
     from ajtwin.cli.advise import advise
     from ajtwin.cli.forecast import forecast
-    from ajtwin.store.registry import Registry
+    from ajtwin.store.registry import NewPrint, Registry
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -379,20 +379,22 @@ def test_forecast_and_advise_cli(tmp_path):
     end = np.array([3.5, 1.0, 1e-4, 0.04, phi])
     reg.save_print(
         "m",
-        content_hash="x",
-        source="t",
-        meta={},
-        summary={},
-        n_samples=2,
-        duration_s=2.0,
-        start_mean=end,
-        start_cov=np.eye(5) * 1e-6,
-        end_mean=end,
-        end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
-        theta_before=np.zeros(5),
-        theta_after=np.zeros(5),
-        arrays={"inputs": np.tile([375.0, 23.0, 50.0], (2, 1))},
-        anomalies=[],
+        NewPrint(
+            content_hash="x",
+            source="t",
+            meta={},
+            summary={},
+            n_samples=2,
+            duration_s=2.0,
+            start_mean=end,
+            start_cov=np.eye(5) * 1e-6,
+            end_mean=end,
+            end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
+            theta_before=np.zeros(5),
+            theta_after=np.zeros(5),
+            arrays={"inputs": np.tile([375.0, 23.0, 50.0], (2, 1))},
+            anomalies=[],
+        ),
         expected_last_seq=None,
     )
     out = tmp_path / "f.csv"

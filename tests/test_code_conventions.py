@@ -33,9 +33,21 @@ WORK_WORDS = re.compile(r"\b(" + "age" + "nts?|" + "hel" + r"pers?)\b", re.I)
 DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
 SESSION = re.compile(r"sess" + "ion", re.I)
 #: Where "session" is a term of the code: the live twin's sessions (a print followed live,
-#: table ``live_sessions`` of the registry) and OPC UA sessions.
+#: table ``live_sessions`` of the registry), OPC UA sessions, PostgreSQL's session settings
+#: and pytest's session scope (one PostgreSQL server a test run: tests/conftest.py).
 SESSION_FILES = {
     "src/ajtwin/cli/live.py",
+    "src/ajtwin/cli/store.py",
+    "src/ajtwin/store/copy.py",
+    "src/ajtwin/store/database.py",
+    "src/ajtwin/store/queries.py",
+    "src/ajtwin/store/schema.py",
+    "src/ajtwin/studies/lab_faults.py",
+    "src/ajtwin/web/watcher.py",
+    "tests/conftest.py",
+    "tests/test_lab_faults.py",
+    "tests/test_store_copy.py",
+    "tests/test_store_postgres.py",
     "src/ajtwin/cli/machine.py",
     "src/ajtwin/engine/fleet.py",
     "src/ajtwin/engine/ingest.py",

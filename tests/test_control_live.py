@@ -75,7 +75,7 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
     from ajtwin.apps.planning.mpc import ControlSettings
     from ajtwin.live.control_link import ControlLink
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine
-    from ajtwin.store.registry import DEFAULT_LIMITS
+    from ajtwin.model.limits import DEFAULT_LIMITS
 
     url = f"opc.tcp://127.0.0.1:{_free_port()}"
     settings = ControlSettings.load()
@@ -234,7 +234,8 @@ def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_p
     from ajtwin.job import SpeedSchedule
     from ajtwin.live.control_link import ControlLink
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine
-    from ajtwin.store.registry import DEFAULT_LIMITS, Registry
+    from ajtwin.model.limits import DEFAULT_LIMITS
+    from ajtwin.store.registry import Registry
 
     program = tmp_path / "serpentine.prg"
     lines = []

@@ -258,7 +258,7 @@ def test_forecast_cli_transition_option(tmp_path):
     from click.testing import CliRunner
 
     from ajtwin.cli.forecast import forecast
-    from ajtwin.store.registry import Registry
+    from ajtwin.store.registry import NewPrint, Registry
 
     store = tmp_path / "r.sqlite"
     reg = Registry(store)
@@ -268,20 +268,22 @@ def test_forecast_cli_transition_option(tmp_path):
     end = np.array([3.5, 1.0, 1e-4, 0.04, phi])
     reg.save_print(
         "m",
-        content_hash="x",
-        source="t",
-        meta={},
-        summary={},
-        n_samples=600,
-        duration_s=600.0,
-        start_mean=end,
-        start_cov=np.eye(5) * 1e-6,
-        end_mean=end,
-        end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
-        theta_before=np.zeros(5),
-        theta_after=np.array([3e-4, 0.0, 0.0, 0.0, 0.0]),  # a runaway θ_da learned earlier
-        arrays={"inputs": np.tile([375.0, 23.0, 50.0], (600, 1))},
-        anomalies=[],
+        NewPrint(
+            content_hash="x",
+            source="t",
+            meta={},
+            summary={},
+            n_samples=600,
+            duration_s=600.0,
+            start_mean=end,
+            start_cov=np.eye(5) * 1e-6,
+            end_mean=end,
+            end_cov=np.diag([1e-3, 1e-6, 1e-10, 1e-6, (0.02 * phi) ** 2]),
+            theta_before=np.zeros(5),
+            theta_after=np.array([3e-4, 0.0, 0.0, 0.0, 0.0]),
+            arrays={"inputs": np.tile([375.0, 23.0, 50.0], (600, 1))},
+            anomalies=[],
+        ),
         expected_last_seq=None,
     )
     runner = CliRunner()

@@ -53,12 +53,13 @@ LAZY_ALLOWED = {
     "matplotlib": "figures only (~0.5 s, and a backend to choose)",
     "plotly": "only to find plotly.min.js for the dashboard (~1 s to import)",
     "uvicorn": "the dashboard's server: only when it serves",
-    "dask": "the CFD sweep's scheduler: only `ajtwin cfd sweep`",
+    "dask": "the scheduler of batch work: only `ajtwin cfd sweep` and `ajtwin reprocess`",
     "pyarrow": "Parquet I/O only: a CSV record never needs it",
     "torch": "PyTorch (~2 s): only the height-profile CNN",
     "playwright": "a browser: only the dashboard's screenshots",
     "ajtwin.vision.extract": "loads OpenCV: only a print that comes with a video needs it",
     "skopt": "the develop study's generic Bayesian optimisation: an optional extra ([study])",
+    "psycopg": "PostgreSQL's client (~0.2 s): only a registry on a PostgreSQL server needs it",
 }
 
 
@@ -202,17 +203,26 @@ def test_no_import_inside_a_function_but_the_commented_lazy_cli_and_heavy_module
     assert not hidden, "imports inside function bodies:\n" + "\n".join(hidden)
 
 
-def test_only_the_store_touches_the_registry_connection():
+#: the store's modules that hold statements and connections: the repository (the registry),
+#: its schema and the two databases; every other module reads and writes through the
+#: registry's methods
+STATEMENT_MODULES = {
+    "ajtwin.store.registry",
+    "ajtwin.store.schema",
+    "ajtwin.store.database",
+    "ajtwin.store.connection",
+}
+
+
+def test_only_the_registry_runs_statements_on_a_connection():
     outside = [
         f"{path.relative_to(SRC)}:{n}"
         for module, path, _ in _modules()
-        if not module.startswith("ajtwin.store")
+        if module not in STATEMENT_MODULES
         for n, text in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
-        if re.search(r"\._conn\b", text)
+        if re.search(r"\._conn\b|\._db\b|\.execute\(|\bsqlite3\.connect\(|psycopg\.connect", text)
     ]
-    assert not outside, "SQL on the registry's connection outside ajtwin.store: " + ", ".join(
-        outside
-    )
+    assert not outside, "statements or connections outside the registry: " + ", ".join(outside)
 
 
 def test_the_command_list_imports_no_command():

@@ -326,7 +326,6 @@ def _wait(predicate, timeout_s: float, what: str) -> None:
 @pytest.mark.slow
 def test_client_kill_and_server_restart_lose_nothing(tmp_path):
     from ajtwin.estimation import Twin
-    from ajtwin.store.live_log import LiveLog
     from ajtwin.store.registry import Registry
 
     port = _free_port()
@@ -357,21 +356,23 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         def stored_steps():
             if not store.exists():
                 return 0
-            session = LiveLog(store).open_session_of("aj300-01")
-            return 0 if session is None else LiveLog(store).n_steps(session["id"])
+            # read through the registry: a LiveLog would claim the machine for this process
+            with Registry(store, create=False) as reader:
+                session = reader.live_session_of("aj300-01")
+                return 0 if session is None else reader.live_n_steps(session["id"])
 
         _wait(lambda: stored_steps() >= 60, 180, "first committed steps")
         os.kill(live.pid, signal.SIGKILL)  # mid-print, no goodbye
         live.wait(timeout=20)
-        log = LiveLog(store)
-        session = log.open_session_of("aj300-01")
-        committed = log.states(session["id"])
+        log = Registry(store, create=False)
+        session = log.live_session_of("aj300-01")
+        committed = log.live_states(session["id"])
         assert len(committed) >= 60
         live = start_live(2)
         procs.append(live)
         _wait(lambda: _steps_in(tmp_path / "messages2.jsonl") >= 20, 180, "resumed steps")
         # while the print runs the open session holds its rows: nothing committed changed
-        assert log.states(session["id"])[: len(committed)] == committed
+        assert log.live_states(session["id"])[: len(committed)] == committed
         # the server goes away and comes back later in the same print
         lines = (tmp_path / "messages2.jsonl").read_text().splitlines()
         t_stop = json.loads([x for x in lines if '"step"' in x][-1])["time_s"]  # not a link line
@@ -392,9 +393,9 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
     # transaction; what the second process committed is what it published (messages2)
     registry = Registry(store)
     stored = registry.last_print("aj300-01")
-    (closed,) = [s for s in log.sessions("aj300-01") if s["id"] == session["id"]]
+    (closed,) = [s for s in log.live_sessions("aj300-01") if s["id"] == session["id"]]
     assert (closed["status"], closed["print_id"]) == ("closed", stored["id"])
-    assert log.n_steps(session["id"]) == 0
+    assert log.live_n_steps(session["id"]) == 0
     lines = (tmp_path / "messages2.jsonl").read_text().splitlines()
     published = [json.loads(x) for x in lines if '"step"' in x]
     resumed = [m for m in published if not m.get("provisional")]

@@ -150,7 +150,7 @@ def test_schema4_registry_migrates_and_keeps_its_prints(tmp_path, two_prints):
         f"{store}: migrated registry schema 4 → 5 (the detectors' long-run noise statistics "
         "per print and calibration)"
     )
-    assert R.SCHEMA_VERSION >= 5 and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    assert R.SCHEMA_VERSION >= 5 and reg.info("schema_version") == str(R.SCHEMA_VERSION)
     # the old print is read as before; it has no statistics, so nothing is carried
     assert reg.get_print(old.print_id)["seq"] == 1
     assert reg.long_run_history("m") is None
@@ -179,7 +179,7 @@ def test_ingest_carries_the_previous_prints_history(tmp_path, two_prints, monkey
     ingest.ingest_record(reg, "m", two_prints[1])
     assert seen[0] is None  # a new machine: nothing to carry
     stored = json.loads(
-        reg._conn.execute(
+        reg._db.execute(
             "SELECT long_run_json FROM prints WHERE id = ?", (first.print_id,)
         ).fetchone()[0]
     )

@@ -153,7 +153,7 @@ def test_an_older_registry_opens_after_the_migration_and_keeps_its_prints(tmp_pa
     assert len(reg.migrated) == R.SCHEMA_VERSION - 5
     assert reg.migrated[0] == (f"{store}: migrated registry schema 5 → 6 (the job (machine "
                                "program) each print ran: print_jobs)")  # fmt: skip
-    assert reg._info("schema_version") == str(R.SCHEMA_VERSION)
+    assert reg.info("schema_version") == str(R.SCHEMA_VERSION)
     history = reg.history("old")
     assert len(history) == 1 and history["program"].tolist() == [""]
     assert reg.print_job(int(history["print_id"][0])) is None

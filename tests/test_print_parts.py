@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import functools
 import os
-import sqlite3
 
 import numpy as np
 import pytest
 
 from ajtwin.engine import ingest
-from ajtwin.engine.ingest import ingest_record, run_arrays, save_print
+from ajtwin.engine.ingest import TwinOutcome, ingest_record, run_arrays, save_print
 from ajtwin.engine.parts import PrintWriter
 from ajtwin.estimation import Twin
 from ajtwin.simulation import simulate
@@ -31,43 +30,41 @@ def _save_whole(reg, machine, record, events=()):
     twin = Twin.default()
     theta_before = twin.theta.copy()
     run = twin.run(record)
-    print_id, _ = save_print(
-        reg,
-        machine,
-        record,
-        digest=record_hash(record),
-        source="whole",
+    outcome = TwinOutcome(
         arrays=run_arrays(run, record),
         events=list(events),
         start=(run.start_mean, run.start_cov),
         end=(run.end_mean, run.end_cov),
         theta_before=theta_before,
         theta_after=twin.theta,
-        expected_last_seq=None,
         started_from="initial fit",
         status="ok",
         status_reason="",
     )
+    print_id, _ = save_print(
+        reg, machine, record, outcome, digest=record_hash(record), source="whole",
+        expected_last_seq=None,
+    )  # fmt: skip
     return print_id
 
 
 def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
-    tmp_path, record, monkeypatch
+    store, new_store, record, monkeypatch
 ):
     monkeypatch.setattr(ingest, "PrintWriter", functools.partial(PrintWriter, part_steps=250))
-    reg = Registry(tmp_path / "parts.sqlite")
+    reg = Registry(store)
     reg.add_machine("m")
     done = ingest_record(reg, "m", record, source="parts")
-    n_parts = reg._conn.execute(
+    n_parts = reg._db.execute(
         "SELECT COUNT(DISTINCT part) FROM print_array_parts WHERE print_id = ? AND name = 'means'",
         (done.print_id,),
     ).fetchone()[0]
     # the filter's chunks (EM at 120, 300, 600, 900 s) gathered to >= 250 steps: 4 × 300
     assert n_parts == 4
-    assert reg._conn.execute("SELECT COUNT(*) FROM array_drafts").fetchone()[0] == 0
+    assert reg._db.execute("SELECT COUNT(*) FROM array_drafts").fetchone()[0] == 0
     parts = reg.print_arrays(done.print_id)
 
-    whole_reg = Registry(tmp_path / "whole.sqlite")
+    whole_reg = Registry(new_store())
     whole_reg.add_machine("m")
     whole = whole_reg.print_arrays(_save_whole(whole_reg, "m", record, done.events))
     assert sorted(parts) == sorted(whole)
@@ -80,25 +77,26 @@ def test_a_print_written_in_parts_reads_back_as_the_print_written_whole(
     assert reg.print_array(done.print_id, "no such array") is None
 
 
-def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, record, monkeypatch):
-    store = tmp_path / "v6.sqlite"
+def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(
+    store, new_store, record, monkeypatch
+):
     with monkeypatch.context() as old:
         old.setattr(R, "MIGRATIONS", [m for m in R.MIGRATIONS if m[0] <= 6])
         old.setattr(R, "SCHEMA_VERSION", 6)
         reg = Registry(store)
         reg.add_machine("m")
         first = _save_whole(reg, "m", record)
+        assert not {"array_drafts", "print_array_parts"} & reg._db.tables()
         reg.close()
-    tables = {r[0] for r in sqlite3.connect(store).execute("SELECT name FROM sqlite_master")}
-    assert not {"array_drafts", "print_array_parts"} & tables
     reg = Registry(store)
-    assert reg.migrated == [
+    assert reg.migrated[0] == (
         f"{store}: migrated registry schema 6 → 7 (print arrays written in parts while a print "
         "runs)"
-    ]
-    assert reg._info("schema_version") == str(R.SCHEMA_VERSION) == "7"
+    )
+    assert len(reg.migrated) == R.SCHEMA_VERSION - 6
+    assert reg.info("schema_version") == str(R.SCHEMA_VERSION)
     after = reg.print_arrays(first)
-    now = Registry(tmp_path / "now.sqlite")  # the same print stored whole by this schema
+    now = Registry(new_store())  # the same print stored whole by this schema
     now.add_machine("m")
     before = now.print_arrays(_save_whole(now, "m", record))
     assert sorted(after) == sorted(before)
@@ -110,8 +108,8 @@ def test_a_registry_from_before_the_parts_opens_and_keeps_its_prints(tmp_path, r
     assert len(reg.print_arrays(second.print_id)["time_s"]) == 300
 
 
-def test_a_draft_left_by_a_killed_process_is_removed_by_the_next_writer(tmp_path):
-    reg = Registry(tmp_path / "r.sqlite")
+def test_a_draft_left_by_a_killed_process_is_removed_by_the_next_writer(store):
+    reg = Registry(store)
     reg.add_machine("m")
     writer = PrintWriter(reg, "m", "ingest of a.csv", part_steps=10)
     n = 25
@@ -126,10 +124,10 @@ def test_a_draft_left_by_a_killed_process_is_removed_by_the_next_writer(tmp_path
             "measurements": np.ones((n, 5)),
         }
     )
-    assert reg._conn.execute("SELECT COUNT(*) FROM print_array_parts").fetchone()[0] > 0
+    assert reg._db.execute("SELECT COUNT(*) FROM print_array_parts").fetchone()[0] > 0
     # the process that wrote it is gone: a pid that no process has
-    reg._conn.execute("UPDATE array_drafts SET pid = ?", (2**22 + 12345,))
+    reg._db.execute("UPDATE array_drafts SET pid = ?", (2**22 + 12345,))
     assert not os.path.exists(f"/proc/{2**22 + 12345}")
     PrintWriter(reg, "m", "ingest of b.csv").discard()
-    assert reg._conn.execute("SELECT COUNT(*) FROM print_array_parts").fetchone()[0] == 0
-    assert reg._conn.execute("SELECT COUNT(*) FROM array_drafts").fetchone()[0] == 0
+    assert reg._db.execute("SELECT COUNT(*) FROM print_array_parts").fetchone()[0] == 0
+    assert reg._db.execute("SELECT COUNT(*) FROM array_drafts").fetchone()[0] == 0

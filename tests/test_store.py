@@ -15,9 +15,10 @@ import pytest
 from click.testing import CliRunner
 
 from ajtwin.engine.ingest import detector_inputs
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.store.registry import (
-    DEFAULT_LIMITS,
     TEST_SLEEP_ENV,
+    NewPrint,
     Registry,
     RegistryError,
     default_store_path,
@@ -25,26 +26,32 @@ from ajtwin.store.registry import (
     record_hash,
     to_npy,
 )
+from conftest import on_postgres
+
+#: a store test whose PostgreSQL run is long (subprocesses, the twin): `make test-all` runs it
+_SLOW_ON_POSTGRES = pytest.param("postgresql", marks=pytest.mark.slow)
 
 
 def _fake_print(reg, name, content_hash, expected, value=1.0):
     """save_print with small hand-made arrays (no twin needed)."""
     return reg.save_print(
         name,
-        content_hash=content_hash,
-        source="test",
-        meta={"scenario": "test"},
-        summary={"note": "fake"},
-        n_samples=3,
-        duration_s=3.0,
-        start_mean=np.full(5, value),
-        start_cov=np.eye(5),
-        end_mean=np.full(5, value + 1),
-        end_cov=2 * np.eye(5),
-        theta_before=np.zeros(5),
-        theta_after=np.full(5, 1e-4),
-        arrays={"means": np.arange(15.0).reshape(3, 5)},
-        anomalies=[],
+        NewPrint(
+            content_hash=content_hash,
+            source="test",
+            meta={"scenario": "test"},
+            summary={"note": "fake"},
+            n_samples=3,
+            duration_s=3.0,
+            start_mean=np.full(5, value),
+            start_cov=np.eye(5),
+            end_mean=np.full(5, value + 1),
+            end_cov=2 * np.eye(5),
+            theta_before=np.zeros(5),
+            theta_after=np.full(5, 1e-4),
+            arrays={"means": np.arange(15.0).reshape(3, 5)},
+            anomalies=[],
+        ),
         expected_last_seq=expected,
     )
 
@@ -62,8 +69,8 @@ def test_default_path_env(monkeypatch, tmp_path):
     assert default_store_path() == tmp_path / "data" / "ajtwin" / "registry.sqlite"
 
 
-def test_machines_and_history(tmp_path):
-    reg = Registry(tmp_path / "r.sqlite")
+def test_machines_and_history(store):
+    reg = Registry(store)
     m = reg.add_machine("lab1", {"carrier_flow_sccm": [18, 30]})
     assert m["limits"]["carrier_flow_sccm"] == [18.0, 30.0]
     assert m["limits"]["sheath_flow_sccm"] == DEFAULT_LIMITS["sheath_flow_sccm"]
@@ -85,8 +92,8 @@ def test_machines_and_history(tmp_path):
     assert np.array_equal(arrays["means"], np.arange(15.0).reshape(3, 5))
 
 
-def test_duplicate_and_stale_start_rejected(tmp_path):
-    reg = Registry(tmp_path / "r.sqlite")
+def test_duplicate_and_stale_start_rejected(store):
+    reg = Registry(store)
     reg.add_machine("m")
     _fake_print(reg, "m", "same", None)
     with pytest.raises(RegistryError, match="got print 1 while this ingest ran from print None"):
@@ -121,7 +128,7 @@ WRITER = textwrap.dedent(
 )
 
 
-def _start_writer(tmp_path, path, sleep_s):
+def _start_writer(path, sleep_s):
     env = dict(os.environ, **{TEST_SLEEP_ENV: str(sleep_s)})
     script = WRITER.format(tests=os.path.dirname(__file__), path=str(path))
     return subprocess.Popen(
@@ -129,30 +136,46 @@ def _start_writer(tmp_path, path, sleep_s):
     )
 
 
+def _in_transaction(path) -> bool:
+    """Whether another process holds a write transaction open on the registry."""
+    if on_postgres(path):
+        import psycopg
+
+        with psycopg.connect(str(path), autocommit=True) as conn:
+            rows = conn.execute(
+                "SELECT 1 FROM pg_stat_activity WHERE application_name = 'ajtwin' "
+                "AND state = 'idle in transaction' AND pid != pg_backend_pid()"
+            ).fetchall()
+        return bool(rows)
+    conn = sqlite3.connect(str(path), timeout=0.0, isolation_level=None)
+    try:
+        conn.execute("BEGIN IMMEDIATE")
+        conn.execute("ROLLBACK")
+    except sqlite3.OperationalError:
+        return True
+    finally:
+        conn.close()
+    return False
+
+
 def _wait_for_write_lock(path, proc, timeout_s=60.0):
-    """Poll until the writer holds its transaction (a second writer is refused)."""
+    """Poll until the writer holds its transaction (a second writer would wait)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise AssertionError(f"writer ended early: {proc.stderr.read().decode()}")
-        conn = sqlite3.connect(str(path), timeout=0.0, isolation_level=None)
-        try:
-            conn.execute("BEGIN IMMEDIATE")
-            conn.execute("ROLLBACK")
-        except sqlite3.OperationalError:
+        if _in_transaction(path):
             return
-        finally:
-            conn.close()
         time.sleep(0.05)
     raise AssertionError("the writer never took its write lock")
 
 
-def test_killed_ingest_leaves_store_unchanged_and_reads_do_not_block(tmp_path):
-    path = tmp_path / "r.sqlite"
+def test_killed_ingest_leaves_store_unchanged_and_reads_do_not_block(store):
+    path = store
     reg = Registry(path)
     reg.add_machine("m")
     _fake_print(reg, "m", "first", None)
-    proc = _start_writer(tmp_path, path, sleep_s=60)
+    proc = _start_writer(path, sleep_s=60)
     try:
         _wait_for_write_lock(path, proc)
         # a reader that may not wait at all still sees the committed state
@@ -170,26 +193,27 @@ def test_killed_ingest_leaves_store_unchanged_and_reads_do_not_block(tmp_path):
     after = Registry(path)
     assert after.machine("m")["n_prints"] == 1
     assert after.find_print("m", "second") is None
-    n_arrays = after._conn.execute("SELECT COUNT(*) FROM print_arrays").fetchone()[0]
+    n_arrays = after._db.execute("SELECT COUNT(*) FROM print_arrays").fetchone()[0]
     assert n_arrays == 1  # only the first print's single array
     # and the store still takes the next print
     _fake_print(after, "m", "second", 1)
     assert after.last_print("m")["seq"] == 2
 
 
-def test_writer_commits_without_hook(tmp_path):
-    path = tmp_path / "r.sqlite"
+@pytest.mark.parametrize("store", ["sqlite", _SLOW_ON_POSTGRES], indirect=True)
+def test_writer_commits_without_hook(store):
+    path = store
     reg = Registry(path)
     reg.add_machine("m")
     _fake_print(reg, "m", "first", None)
-    proc = _start_writer(tmp_path, path, sleep_s=0)
+    proc = _start_writer(path, sleep_s=0)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err.decode()
     assert b"committed" in out
     assert reg.last_print("m")["seq"] == 2
 
 
-def test_ingest_chain_and_cli(tmp_path):
+def test_ingest_chain_and_cli(tmp_path, store):
     """Real twin on two short prints: the second starts from the first's end; CLI works."""
     from ajtwin.cli.ingest import ingest
     from ajtwin.cli.machine import machine
@@ -200,7 +224,7 @@ def test_ingest_chain_and_cli(tmp_path):
     second = simulate("exp1", seed=4, duration_min=3.0, continue_from=first)
     write_record(first, tmp_path / "p1.parquet")
     write_record(second, tmp_path / "p2.parquet")
-    store = str(tmp_path / "r.sqlite")
+    store = str(store)
     runner = CliRunner()
     res = runner.invoke(machine, ["add", "lab", "--carrier", "18,30", "--store", store])
     assert res.exit_code == 0, res.output

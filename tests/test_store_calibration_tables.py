@@ -3,8 +3,6 @@ export → import carries them, compact keeps them, schema-3 registries migrate.
 
 from __future__ import annotations
 
-import sqlite3
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -66,21 +64,22 @@ def _assert_same(a: dict, b: dict):
     assert np.array_equal(s["twin_kwargs"]["calibration_cov"], t["twin_kwargs"]["calibration_cov"])
 
 
-def test_new_registry_has_the_tables_at_schema_4(tmp_path):
-    reg = Registry(tmp_path / "r.sqlite")
-    assert CAL_TABLES <= reg._tables() and reg._info("schema_version") == str(R.SCHEMA_VERSION)
+def test_new_registry_has_the_tables_at_schema_4(store):
+    reg = Registry(store)
+    assert CAL_TABLES <= reg._db.tables() and reg.info("schema_version") == str(R.SCHEMA_VERSION)
     assert R.SCHEMA_VERSION >= 5
     assert {"calibrations", "maintenance_events"} <= set(R.MACHINE_TABLES)
     # schema 5: the detectors' long-run statistics per print and per calibration
     for table in ("prints", "calibrations"):
-        columns = {r[1] for r in reg._conn.execute(f"PRAGMA table_info({table})")}
-        assert "long_run_json" in columns, table
+        assert "long_run_json" in reg._db.columns(table), table
 
 
-def test_export_import_carries_calibrations_and_maintenance(tmp_path, commissioned):
+def test_export_import_carries_calibrations_and_maintenance(
+    tmp_path, commissioned, store, new_store
+):
     from ajtwin.cli.machine import machine
 
-    reg = Registry(tmp_path / "a.sqlite")
+    reg = Registry(store)
     reg.add_machine("lab")
     reg.add_machine("other")  # its rows must not travel with "lab"
     save_calibration(reg, "other", commissioned, "other.parquet")
@@ -100,7 +99,8 @@ def test_export_import_carries_calibrations_and_maintenance(tmp_path, commission
 
     archive = tmp_path / "lab.tar"
     export_machine(reg, "lab", archive)
-    fresh = Registry(tmp_path / "b.sqlite")
+    target = new_store()
+    fresh = Registry(target)
     assert import_machine(fresh, archive)["machine"] == "lab"
     imported = _history(fresh, "lab")
     # ids are renumbered: the start names the importing registry's calibration id
@@ -116,10 +116,10 @@ def test_export_import_carries_calibrations_and_maintenance(tmp_path, commission
 
     # the CLI's import under another name, next to the first copy
     res = CliRunner().invoke(
-        machine, ["import", str(archive), "--as", "lab-2", "--store", str(tmp_path / "b.sqlite")]
+        machine, ["import", str(archive), "--as", "lab-2", "--store", str(target)]
     )
     assert res.exit_code == 0, res.output
-    again = Registry(tmp_path / "b.sqlite")
+    again = Registry(target)
     renamed = _history(again, "lab-2")
     renamed_start = dict(before["start"], started_from=renamed["start"]["started_from"])
     _assert_same(dict(before, start=renamed_start), renamed)
@@ -131,17 +131,14 @@ def test_export_import_carries_calibrations_and_maintenance(tmp_path, commission
 
 
 def _schema3(store, drop_calibration_tables: bool):
-    conn = sqlite3.connect(store)
-    if drop_calibration_tables:
-        conn.execute("DROP TABLE calibrations")
-        conn.execute("DROP TABLE maintenance_events")
-    conn.execute("UPDATE info SET value = '3' WHERE key = 'schema_version'")
-    conn.commit()
-    conn.close()
+    with Registry(store) as reg:
+        if drop_calibration_tables:
+            reg._db.execute("DROP TABLE calibrations")
+            reg._db.execute("DROP TABLE maintenance_events")
+        reg._db.execute("UPDATE info SET value = '3' WHERE key = 'schema_version'")
 
 
-def test_schema3_registry_without_the_tables_migrates(tmp_path):
-    store = tmp_path / "r.sqlite"
+def test_schema3_registry_without_the_tables_migrates(store):
     reg = Registry(store)
     reg.add_machine("m")
     reg.close()
@@ -154,14 +151,11 @@ def test_schema3_registry_without_the_tables_migrates(tmp_path):
         f"{store}: migrated registry schema 4 → 5 (the detectors' long-run noise statistics per "
         "print and calibration)",
     ]
-    assert CAL_TABLES <= reg._tables() and reg.machine("m")["name"] == "m"
+    assert CAL_TABLES <= reg._db.tables() and reg.machine("m")["name"] == "m"
     assert active_calibration(reg, "m") is None and maintenance_history(reg, "m").empty
 
 
-def test_schema3_registry_whose_tables_calibration_py_created_keeps_its_rows(
-    tmp_path, commissioned
-):
-    store = tmp_path / "r.sqlite"
+def test_schema3_registry_whose_tables_calibration_py_created_keeps_its_rows(store, commissioned):
     reg = Registry(store)
     reg.add_machine("m")
     save_calibration(reg, "m", commissioned, "c.parquet")
@@ -175,17 +169,13 @@ def test_schema3_registry_whose_tables_calibration_py_created_keeps_its_rows(
     _assert_same(before, _history(reg, "m"))
 
 
-def test_old_calibrations_table_without_noise_factors_gets_the_column(tmp_path, commissioned):
+def test_old_calibrations_table_without_noise_factors_gets_the_column(store, commissioned):
     # the first calibration tables had no noise_factors_json column
-    store = tmp_path / "r.sqlite"
     reg = Registry(store)
     reg.add_machine("m")
     save_calibration(reg, "m", commissioned, "c.parquet")
+    reg._db.execute("ALTER TABLE calibrations DROP COLUMN noise_factors_json")
     reg.close()
-    conn = sqlite3.connect(store)
-    conn.execute("ALTER TABLE calibrations DROP COLUMN noise_factors_json")
-    conn.commit()
-    conn.close()
     _schema3(store, drop_calibration_tables=False)
     reg = Registry(store)
     active = active_calibration(reg, "m")

@@ -124,8 +124,7 @@ def small_disk(monkeypatch, store):
         return conn
 
     monkeypatch.setattr(C, "connect", connect)
-    monkeypatch.setattr("ajtwin.store.registry.connect", connect)
-    monkeypatch.setattr("ajtwin.store.live_log.connect", connect)
+    monkeypatch.setattr("ajtwin.store.database.connect", connect)
 
 
 def test_a_full_disk_is_a_sentence_in_every_command_that_writes(tmp_path, short_print, monkeypatch):

@@ -114,7 +114,7 @@ def test_machine_many_prints_carry_over_exactly(twenty_prints):
          "p.machine_id = ?", (machine_id,)),
         ("SELECT name, npy FROM print_arrays WHERE print_id = ?", (1,)),
     ):  # fmt: skip
-        plan = " | ".join(r[3] for r in reg._conn.execute("EXPLAIN QUERY PLAN " + query, args))
+        plan = " | ".join(r[3] for r in reg._db.execute("EXPLAIN QUERY PLAN " + query, args))
         assert "SCAN" not in plan.replace("SCAN CONSTANT ROW", ""), (query, plan)
 
 

@@ -154,20 +154,19 @@ def test_new_print_appears_without_reload(server, page):
     page.goto(server.page_url("/machine/lab2"))
     page.wait_for_function("document.getElementById('conn').classList.contains('up')")
     page.evaluate("window.__notReloaded = true")
-    from ajtwin.store.registry import Registry
+    from ajtwin.store.registry import NewPrint, Registry
 
     n = 30
     t = np.arange(n, dtype=float)
     means = np.tile([3.5, 1.0, 0.0, 0.02, 4.6e-7], (n, 1))
     stds = np.array([0.03, 0.003, 1e-3, 1e-3, 1e-8])
     with Registry(server.store) as reg:
-        reg.save_print(
-            "lab2", content_hash="watcher-test", source="test", meta={}, summary={},
-            n_samples=n, duration_s=float(n), start_mean=means[0], start_cov=np.eye(5),
-            end_mean=means[-1], end_cov=np.diag(stds**2), theta_before=np.zeros(5),
-            theta_after=np.zeros(5), anomalies=[], expected_last_seq=None,
-            arrays={"time_s": t, "means": means, "stds": np.tile(stds, (n, 1))},
-        )  # fmt: skip
+        reg.save_print("lab2", NewPrint(
+            content_hash="watcher-test", source="test", meta={}, summary={}, n_samples=n,
+            duration_s=float(n), start_mean=means[0], start_cov=np.eye(5), end_mean=means[-1],
+            end_cov=np.diag(stds**2), theta_before=np.zeros(5), theta_after=np.zeros(5),
+            anomalies=[], arrays={"time_s": t, "means": means, "stds": np.tile(stds, (n, 1))},
+        ), expected_last_seq=None)  # fmt: skip
     page.wait_for_function("window.__ajtwin.lastPrintEvent === 1", timeout=15_000)
     page.wait_for_function("window.__ajtwin.drawnPrint === 1", timeout=15_000)
     assert page.evaluate("window.__notReloaded") is True

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from ajtwin.apps.detection.streaming import AnomalyEvent
 from ajtwin.cli.dashboard import dashboard
-from ajtwin.store.registry import Registry, RegistryError
+from ajtwin.store.registry import NewPrint, Registry, RegistryError
 from ajtwin.web.access import check_access, is_loopback
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
 from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
@@ -29,20 +29,22 @@ def hand_print(reg, name, *, seq_before, n=50, end=None, anomalies=(), tag="a"):
     cov = np.diag([0.01, 1e-4, 1e-8, 1e-6, 1e-16])
     return reg.save_print(
         name,
-        content_hash=f"{name}-{tag}",
-        source="hand-made",
-        meta={"scenario": "hand"},
-        summary={"mean_nis": 5.0},
-        n_samples=n,
-        duration_s=float(n),
-        start_mean=means[0],
-        start_cov=cov,
-        end_mean=end_mean,
-        end_cov=cov,
-        theta_before=np.zeros(5),
-        theta_after=np.full(5, 1e-6),
-        arrays={"time_s": t, "means": means, "stds": np.tile(np.sqrt(np.diag(cov)), (n, 1))},
-        anomalies=list(anomalies),
+        NewPrint(
+            content_hash=f"{name}-{tag}",
+            source="hand-made",
+            meta={"scenario": "hand"},
+            summary={"mean_nis": 5.0},
+            n_samples=n,
+            duration_s=float(n),
+            start_mean=means[0],
+            start_cov=cov,
+            end_mean=end_mean,
+            end_cov=cov,
+            theta_before=np.zeros(5),
+            theta_after=np.full(5, 1e-6),
+            arrays={"time_s": t, "means": means, "stds": np.tile(np.sqrt(np.diag(cov)), (n, 1))},
+            anomalies=list(anomalies),
+        ),
         expected_last_seq=seq_before,
     )
 
@@ -135,15 +137,14 @@ def test_fleet_and_machine_show_calibration_maintenance_and_mismatch(store):
     )
     # gamma's first print: the guard fired (the summary entry live/engine.py writes)
     t = np.arange(5.0)
-    reg.save_print(
-        "gamma", content_hash="g1", source="hand-made", meta={}, n_samples=5, duration_s=5.0,
+    reg.save_print("gamma", NewPrint(
+        content_hash="g1", source="hand-made", meta={}, n_samples=5, duration_s=5.0,
         summary={"mean_nis": 1.0, "mismatch": guard.to_dict()},
         start_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), start_cov=np.eye(5) * 1e-4,
         end_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), end_cov=np.eye(5) * 1e-4,
         theta_before=np.zeros(5), theta_after=np.zeros(5),
-        arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))},
-        anomalies=[], expected_last_seq=None,
-    )  # fmt: skip
+        arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))}, anomalies=[],
+    ), expected_last_seq=None)  # fmt: skip
     reg.close()
 
     view = RegistryView(store)
@@ -485,15 +486,15 @@ def test_fleet_and_machine_page_agree_on_mismatch_versus_alarm(tmp_path):
     for name, events in (("only-guard", [relabelled]), ("guard-and-clog", [relabelled, clog])):
         reg.add_machine(name)
         t = np.arange(5.0)
-        reg.save_print(
-            name, content_hash=name, source="hand-made", meta={}, n_samples=5, duration_s=5.0,
+        reg.save_print(name, NewPrint(
+            content_hash=name, source="hand-made", meta={}, n_samples=5, duration_s=5.0,
             summary={"mean_nis": 1.0, "mismatch": guard},
             start_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), start_cov=np.eye(5) * 1e-4,
             end_mean=np.array([3.5, 1, 0, 0, 4.6e-7]), end_cov=np.eye(5) * 1e-4,
             theta_before=np.zeros(5), theta_after=np.zeros(5),
             arrays={"time_s": t, "means": np.zeros((5, 5)), "stds": np.ones((5, 5))},
-            anomalies=events, expected_last_seq=None,
-        )  # fmt: skip
+            anomalies=events,
+        ), expected_last_seq=None)  # fmt: skip
     reg.close()
     view, pub = RegistryView(store), LivePublisher()
     fleet = {m["name"]: m["status"] for m in view.fleet()}

@@ -35,6 +35,11 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "Machine registry: add, show, history, drop, compact, backup.",
     ),
     "ingest": ("ajtwin.cli.ingest:ingest", "Ingest a print into a machine's twin."),
+    "reprocess": (
+        "ajtwin.cli.reprocess:reprocess",
+        "Re-run the twin over stored prints (Dask): a new version of results.",
+    ),
+    "store": ("ajtwin.cli.store:store", "The registry as a whole: copy (SQLite ⇄ PostgreSQL)."),
     "forecast": ("ajtwin.cli.forecast:forecast", "Forecast outputs under planned input changes."),
     "advise": ("ajtwin.cli.advise:advise", "Input settings that hold a target linewidth."),
     "develop": (

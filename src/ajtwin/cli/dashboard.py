@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ajtwin.cli.options import ToleranceType, store_option
-from ajtwin.store.registry import RegistryError, default_store_path
+from ajtwin.store.registry import RegistryError
 from ajtwin.web.access import TOKEN_ENV, check_access, dashboard_token
 
 
@@ -109,7 +109,7 @@ def dashboard(
         raise click.UsageError("--job and --tolerance go with --virtual-print SCENARIO")
     if tolerance is not None and program is None:
         raise click.UsageError("--tolerance goes with --job")
-    path = Path(store) if store else default_store_path()
+    path = store  # an SQLite file or a PostgreSQL location
     # lazy CLI loading: imported when the command runs, not for --help
     import uvicorn
 

@@ -19,6 +19,8 @@ from ajtwin.cli.options import (
     transition_option,
     transition_overrides,
 )
+from ajtwin.store.live_log import CLAIMANT
+from ajtwin.store.registry import RegistryError
 
 
 @click.command()
@@ -111,6 +113,11 @@ def live(
     entry = _job(program, process_speed, rapid_speed, tolerance)
     registry = open_registry(store, create=True)  # the live twin writes
     engine = LiveEngine(registry, twin_overrides=overrides or None)
+    try:  # one twin a machine: another one writing it (another PC of the lab) refuses this
+        for name in machines:
+            engine.log.registry.claim_machine(name, CLAIMANT)
+    except RegistryError as exc:
+        raise click.ClickException(str(exc)) from None
     engine.warm_up(len(machines))
     engine.jobs.update(dict.fromkeys(machines, entry) if entry else {})  # stored with prints
     out = None

@@ -155,17 +155,26 @@ def show(name, store):
     default=None,
     help="Also write the table as CSV.",
 )
+@click.option(
+    "--version",
+    "version",
+    type=click.IntRange(min=1),
+    default=None,
+    help="The results of an `ajtwin reprocess` run (`ajtwin store versions`); 1 or none: "
+    "the prints as stored.",
+)
 @store_option
-def history(name, csv_path, store):
+def history(name, csv_path, version, store):
     """One row per print: the program it ran, end states, θ and anomaly count."""
 
     reg = open_registry(store)
     try:
-        table = reg.history(name)
+        table = reg.history(name, version=version)
     except RegistryError as exc:
         raise click.ClickException(str(exc)) from None
     if table.empty:
-        click.echo(f"machine {printable(name)!r} has no prints yet")
+        held = "" if version in (None, 1) else f" in version {version}"
+        click.echo(f"machine {printable(name)!r} has no prints yet{held}")
         return
     show_cols = ["seq", "ingested_at", "duration_min", "program", "anomalies", "status"] + [
         "end_" + key for key, _, _ in STATE_LABELS

@@ -3,6 +3,7 @@ the record-reading and video-join options, logging."""
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from pathlib import Path
@@ -18,6 +19,7 @@ from ajtwin.io.dialect import DIALECT_CHOICES
 from ajtwin.job import ProgramError
 from ajtwin.job.speeds import SpeedSchedule
 from ajtwin.model import load_parameters
+from ajtwin.store.location import PASSWORD_FILE_ENV, parse_store
 from ajtwin.store.registry import RegistryError
 from ajtwin.vision.camera import CameraFileError, load_camera
 
@@ -324,16 +326,45 @@ def transition_overrides(transition) -> dict:
     return {"transition": transition}
 
 
+def store_location(store, password_file=None):
+    """The :class:`~ajtwin.store.location.StoreLocation` of ``--store`` and
+    ``--store-password-file`` (an unknown URL scheme, a password in the URL: a usage error
+    that says so)."""
+    try:
+        return parse_store(store, password_file)
+    except RegistryError as exc:
+        raise click.BadParameter(str(exc), param_hint="--store") from None
+
+
 def store_option(func):
-    """``--store PATH`` (or ``$AJTWIN_STORE``): the machine registry a command reads or writes."""
+    """``--store PATH|URL`` (or ``$AJTWIN_STORE``) and ``--store-password-file FILE`` (or
+    ``$AJTWIN_STORE_PASSWORD_FILE``): the registry a command reads or writes, an SQLite
+    file or a PostgreSQL database (:mod:`ajtwin.store.location`). The command gets it as
+    ``store``: a :class:`~ajtwin.store.location.StoreLocation`."""
+
+    @functools.wraps(func)
+    def command(*args, store=None, store_password_file=None, **kwargs):
+        return func(*args, store=store_location(store, store_password_file), **kwargs)
+
+    command = click.option(
+        "--store-password-file",
+        "store_password_file",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        envvar=PASSWORD_FILE_ENV,
+        help="PostgreSQL registry: a file whose first line is the password (never give it in "
+        "the URL; libpq's $PGPASSWORD and ~/.pgpass work too).",
+    )(command)
     return click.option(
         "--store",
         "store",
-        type=click.Path(dir_okay=False, path_type=Path),
         default=None,
         envvar="AJTWIN_STORE",
-        help="Registry file (default: $AJTWIN_STORE or ~/.local/share/ajtwin/registry.sqlite).",
-    )(func)
+        metavar="PATH|URL",
+        help="The registry: an SQLite file, or a PostgreSQL URL "
+        "(postgresql://user@host:5432/dbname?sslmode=verify-full); default $AJTWIN_STORE, "
+        "else ~/.local/share/ajtwin/registry.sqlite.",
+    )(command)
 
 
 def open_registry(store, create: bool = False, write: bool | None = None):

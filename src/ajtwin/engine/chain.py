@@ -95,13 +95,17 @@ class ChainStart:
         return text
 
 
-def chain_start(registry, machine: str) -> ChainStart:
-    """The start of ``machine``'s next print: the newest good print's end, else the fit."""
-    latest = registry.last_print(machine, in_chain=False)
+def chain_start(registry, machine: str, below_seq: int | None = None) -> ChainStart:
+    """The start of ``machine``'s next print: the newest good print's end, else the fit
+    (``below_seq``: of print ``below_seq``, from the prints before it)."""
+    if below_seq is None:
+        latest = registry.last_print(machine, in_chain=False)
+    else:
+        latest = registry.print_by_seq(machine, below_seq - 1) if below_seq > 1 else None
     skipped = []
     if latest is not None and latest["status"] != STATUS_OK:
         skipped.append(f"print {latest['seq']}: {latest['status']}")
-    for p in registry.chain_prints(machine):
+    for p in registry.chain_prints(machine, below_seq):
         problems = state_violations(p["end_mean"]) + _bad_covariance(p["end_cov"])
         problems += [] if np.all(np.isfinite(p["theta_after"])) else ["θ not finite"]
         if problems:  # stored before the range check (or by hand): never a start

@@ -28,7 +28,7 @@ import numpy as np
 
 from ajtwin.apps.detection.settings import DetectorSettings
 from ajtwin.engine.chain import chain_start
-from ajtwin.engine.ingest import save_print
+from ajtwin.engine.ingest import TwinOutcome, save_print
 from ajtwin.engine.messages import FinishedMessage, LinkMessage, LinkState, StepMessage
 from ajtwin.engine.parts import WHOLE_PRINT_ARRAYS, PrintWriter
 from ajtwin.engine.start import carried_long_run_history, machine_start
@@ -371,25 +371,28 @@ class LiveEngine:
             for k, v in stream.arrays(since=stream.n_committed).items()
             if k in WHOLE_PRINT_ARRAYS
         }
-        print_id, _ = save_print(
-            self.registry,
-            machine,
-            SimpleNamespace(meta=meta),
-            digest=writer.content_hash(meta),
-            source=f"live session {session.session_id} ({session.source})",
+        outcome = TwinOutcome(
             arrays=theta_history,
             events=list(stream.detector.events),
             start=(stream.start_mean, stream.start_cov),
             end=(writer.last_mean, writer.last_cov),
             theta_before=stream.theta_before,
             theta_after=stream.theta,
-            expected_last_seq=session.expected_last_seq,
             started_from=session.started_from,
             status=status,
             status_reason=reason,
+            long_run_history=stream.detector.long_run_history(),
+        )
+        print_id, _ = save_print(
+            self.registry,
+            machine,
+            SimpleNamespace(meta=meta),
+            outcome,
+            digest=writer.content_hash(meta),
+            source=f"live session {session.session_id} ({session.source})",
+            expected_last_seq=session.expected_last_seq,
             live_session=session.session_id,  # closed (and thinned) with the print
             keep_live_steps=self.keep_live_steps,
-            long_run_history=stream.detector.long_run_history(),
             writer=writer,
             n_samples=writer.n_steps,
             job=self.jobs.get(machine),

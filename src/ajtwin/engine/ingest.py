@@ -38,7 +38,7 @@ from ajtwin.estimation.print_time import is_job_record, record_duration_s
 from ajtwin.estimation.twin import Twin, first_em_update_time
 from ajtwin.io.records import JOB_COLUMNS, SpooledRecord, open_record
 from ajtwin.model import STATE_NAMES
-from ajtwin.store.registry import RegistryError, record_hash
+from ajtwin.store.registry import NewPrint, RegistryError, record_hash
 
 
 @dataclass
@@ -104,43 +104,67 @@ def print_summary(
     }
 
 
+@dataclass(frozen=True)
+class TwinOutcome:
+    """What a twin's run over one print concluded, as :func:`save_print` stores it.
+
+    Attributes
+    ----------
+    arrays : dict
+        The run's per-second arrays (:func:`run_arrays`); with a writer, only the θ
+        history (the rest went to the registry in parts).
+    events : list of AnomalyEvent
+    start, end : (mean (5,), cov (5, 5))
+    theta_before, theta_after : array (5,)
+    started_from : str
+        Where the print started (:attr:`ajtwin.engine.chain.ChainStart.description`).
+    status, status_reason : str
+        :func:`ajtwin.engine.chain.judge_run` of the run.
+    extra_summary : dict
+        More summary keys (calibration, maintenance, mismatch status).
+    long_run_history : dict, optional
+        The detectors' long-run statistics for the machine's next print.
+    """
+
+    arrays: dict
+    events: list
+    start: tuple
+    end: tuple
+    theta_before: object
+    theta_after: object
+    started_from: str
+    status: str
+    status_reason: str
+    extra_summary: dict = field(default_factory=dict)
+    long_run_history: dict | None = None
+
+
 def save_print(
     registry,
     machine: str,
     record,
+    outcome: TwinOutcome,
     *,
     digest: str,
     source: str,
-    arrays: dict,
-    events: list,
-    start,
-    end,
-    theta_before,
-    theta_after,
     expected_last_seq,
-    started_from: str,
-    status: str,
-    status_reason: str,
-    extra_summary: dict | None = None,
     live_session: int | None = None,
     keep_live_steps: bool = False,
-    long_run_history: dict | None = None,
     writer=None,
     n_samples: int | None = None,
     job: dict | None = None,
 ):
     """Store a twin's run over one print in one registry transaction; (print id, summary).
 
-    ``status``/``status_reason``: :func:`ajtwin.engine.chain.judge_run` of the run;
-    ``extra_summary``: more summary keys (calibration, maintenance, mismatch status);
+    ``outcome``: what the run concluded (:class:`TwinOutcome`);
     ``live_session``/``keep_live_steps``: the live session the print ends, closed in the
     same transaction (:meth:`ajtwin.store.registry.Registry.save_print`);
-    ``long_run_history``: the detectors' long-run statistics for the machine's next print;
     ``writer``: a :class:`~ajtwin.engine.parts.PrintWriter` that wrote the per-step arrays
-    as they came (closed here; ``arrays`` then holds the θ history, ``record`` may be None
-    with ``n_samples`` given);
-    ``job``: the machine program the print ran (:meth:`ajtwin.store.registry.Registry.save_print`).
+    as they came (closed here; ``outcome.arrays`` then holds the θ history, ``record`` may
+    be None with ``n_samples`` given);
+    ``job``: the machine program the print ran (:class:`ajtwin.store.registry.NewPrint`).
     """
+    arrays, end = outcome.arrays, outcome.end
     if writer is not None:
         writer.close()
         totals = writer.totals
@@ -152,39 +176,42 @@ def save_print(
         end[1],
         nis,
         reinitialised,
-        len(events),
+        len(outcome.events),
         len(arrays["theta_history_time_s"]),
-        started_from,
-        status,
-        status_reason,
+        outcome.started_from,
+        outcome.status,
+        outcome.status_reason,
     )
-    summary.update(extra_summary or {})
+    summary.update(outcome.extra_summary or {})
     meta = {k: v for k, v in record.meta.items() if k != "scenario_config"}
     n = len(record) if n_samples is None else int(n_samples)
-    print_id = registry.save_print(
-        machine,
+    entry = NewPrint(
         content_hash=digest,
         source=source,
         meta=meta,
         summary=summary,
         n_samples=n,
         duration_s=float(record.duration_s + 1.0) if n_samples is None else float(n),
-        start_mean=start[0],
-        start_cov=start[1],
+        start_mean=outcome.start[0],
+        start_cov=outcome.start[1],
         end_mean=end[0],
         end_cov=end[1],
-        theta_before=theta_before,
-        theta_after=theta_after,
+        theta_before=outcome.theta_before,
+        theta_after=outcome.theta_after,
         arrays=arrays,
-        anomalies=events,
+        anomalies=outcome.events,
+        status=outcome.status,
+        status_reason=outcome.status_reason,
+        long_run_history=outcome.long_run_history,
+        job=job,
+    )
+    print_id = registry.save_print(
+        machine,
+        entry,
         expected_last_seq=expected_last_seq,
-        status=status,
-        status_reason=status_reason,
+        draft=None if writer is None else writer.draft,
         live_session=live_session,
         keep_live_steps=keep_live_steps,
-        long_run_history=long_run_history,
-        draft=None if writer is None else writer.draft,
-        job=job,
     )
     return print_id, summary
 
@@ -260,26 +287,10 @@ def ingest_record(
             registry,
             machine,
             record,
+            _ingest_outcome(run, twin.theta, theta_before, begin, sink, events, mismatch),
             digest=digest,
             source=source,
-            arrays=theta_history_arrays(run),
-            events=events,
-            start=(run.start_mean, run.start_cov),
-            end=(run.end_mean, run.end_cov),
-            theta_before=theta_before,
-            theta_after=twin.theta,
             expected_last_seq=expected,
-            started_from=begin["started_from"],
-            status=sink.status[0],
-            status_reason=sink.status[1],
-            extra_summary={
-                "calibration_id": begin["calibration_id"],
-                "maintenance": begin["maintenance"],
-                "mismatch": mismatch.to_dict(),
-                # which states this print's data determined (ΔR_T: the prior's band)
-                "data_share": determined_states(sink.share),
-            },
-            long_run_history=sink.detector.long_run_history(),
             writer=writer,
             job=job,
         )
@@ -308,6 +319,30 @@ def ingest_record(
         seconds=time.perf_counter() - t0,
         run=whole,
         detection=detection,
+    )
+
+
+def _ingest_outcome(run, theta_after, theta_before, begin, sink, events, mismatch):
+    """What an ingest's run concluded (:class:`TwinOutcome`): the run, the machine's start
+    (:func:`~ajtwin.engine.start.machine_start`), the sink's judgement and detectors."""
+    return TwinOutcome(
+        arrays=theta_history_arrays(run),
+        events=events,
+        start=(run.start_mean, run.start_cov),
+        end=(run.end_mean, run.end_cov),
+        theta_before=theta_before,
+        theta_after=theta_after,
+        started_from=begin["started_from"],
+        status=sink.status[0],
+        status_reason=sink.status[1],
+        extra_summary={
+            "calibration_id": begin["calibration_id"],
+            "maintenance": begin["maintenance"],
+            "mismatch": mismatch.to_dict(),
+            # which states this print's data determined (ΔR_T: the prior's band)
+            "data_share": determined_states(sink.share),
+        },
+        long_run_history=sink.detector.long_run_history(),
     )
 
 

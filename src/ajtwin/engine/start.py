@@ -73,19 +73,27 @@ def machine_start(registry, machine: str, chain, twin_overrides: dict | None = N
     ``start`` ((mean, cov) or None), ``theta`` (5,), ``twin_kwargs`` (for
     :meth:`Twin.default`), ``started_from``, ``calibration_id``, ``maintenance``.
     """
+    active = active_calibration(registry, machine)
+    commissioned = commissioned_since_last_print(active, chain)
+    events = pending_maintenance(registry, machine, active["created_unix"] if commissioned else 0.0)
+    return start_of_print(chain, active, commissioned, events, twin_overrides)
+
+
+def start_of_print(chain, active, commissioned: bool, events: list, twin_overrides=None) -> dict:
+    """:func:`machine_start` from its parts: the chain's start (:class:`~ajtwin.engine.chain.
+    ChainStart`), the calibration ``active`` (None: the nominal model), whether the print
+    starts where that commissioning left the machine, and the maintenance ``events`` done
+    before it. A stored print re-run in its place (:mod:`ajtwin.engine.reprocess`) starts
+    the same way."""
     start = chain.start
     theta = np.zeros(5) if chain.theta is None else np.array(chain.theta, dtype=float)
     started_from = chain.description
-    active = active_calibration(registry, machine)
     overrides = dict(twin_overrides or {})
-    since = 0.0
-    if commissioned_since_last_print(active, chain):
+    if commissioned:
         # start where commissioning left the machine, θ_φA holding its pinned atomizer level
         start = carry_over(active["end_mean"], active["end_cov"])
         theta[4] = aerosol_level(active).get("theta_per_s", 0.0)
-        since = active["created_unix"]
         started_from = f"commissioning {active['id']}"
-    events = pending_maintenance(registry, machine, since)
     if events:
         if start is None:
             refills = [e["vial_refilled_ml"] for e in events if e["vial_refilled_ml"] is not None]

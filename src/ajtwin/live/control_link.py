@@ -52,8 +52,8 @@ from ajtwin.estimation import Twin
 from ajtwin.estimation.print_time import PrintContext, camera_horizon_s
 from ajtwin.live.link import LinkRefused, OpcUaLink, _refusal, buffer_samples
 from ajtwin.live.opcua import NAMESPACE_URI, SAMPLE_WIDTH, SETPOINTS, node_path
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.simulation.job_print import load_camera_defaults
-from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.control")
 

@@ -62,8 +62,8 @@ from ajtwin.live.opcua import (
     node_path,
     unece_unit_id,
 )
+from ajtwin.model.limits import DEFAULT_LIMITS
 from ajtwin.simulation.stepper import SteppedPrinter
-from ajtwin.store.registry import DEFAULT_LIMITS
 
 log = logging.getLogger("ajtwin.printer")
 
@@ -91,7 +91,7 @@ class VirtualMachine:
         Simulated time the serving starts at (a restarted server continues a print).
     limits : dict, optional
         Input limits {column: [low, high]} the set-points must respect
-        (default: the registry's DEFAULT_LIMITS).
+        (default: :data:`ajtwin.model.limits.DEFAULT_LIMITS`).
     job : str, Path or ajtwin.job.Job, optional
         A machine program the printer runs (looped to the print's length; the default
         camera trails the nozzle): served samples have no line while nothing is printed

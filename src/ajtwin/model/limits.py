@@ -30,6 +30,15 @@ from ajtwin.model.parameters import PhysicalParameters
 
 _DISPLAY_UNIT = ("µm", "mL", "µm", "µm", "")
 
+#: Default operating limits of a machine's inputs (display units): the validity range of H's
+#: Box–Behnken fit (Q_c 15–35 sccm, I_A 300–440 mA; model reference §4) and an assumed sheath
+#: range around the paper's 48–53 sccm. A registered machine keeps its own (the registry).
+DEFAULT_LIMITS = {
+    "atomizer_current_mA": [300.0, 440.0],
+    "carrier_flow_sccm": [15.0, 35.0],
+    "sheath_flow_sccm": [30.0, 80.0],
+}
+
 
 #: Allowed ranges of the inputs, display units; outside them the model refuses the call.
 INPUT_LIMITS = {

@@ -12,6 +12,10 @@ are), so the importing registry starts the machine's next print exactly as the e
 one would. They carry the machine's live-twin sessions too (:mod:`ajtwin.store.live_log`):
 closed ones as history, and an open one (a print still running, or a client that was
 stopped mid-print) whole, so ``ajtwin live`` on the importing registry resumes it.
+An archive holds the prints as they were stored; results of ``ajtwin reprocess`` stay in
+the registry (``ajtwin store copy`` carries them).
+The registry may be an SQLite file or a PostgreSQL database; the archive's member is
+always an SQLite file.
 
 Example
 -------
@@ -39,11 +43,7 @@ import tempfile
 from pathlib import Path
 
 from ajtwin import __version__
-from ajtwin.store.connection import rollback_if_open
 from ajtwin.store.registry import (
-    LIVE_SESSION_TABLES,
-    MACHINE_TABLES,
-    PRINT_TABLES,
     SCHEMA_VERSION,
     Registry,
     RegistryError,
@@ -59,31 +59,10 @@ _MAX_DATABASE = 1 << 36  # 64 GiB
 
 
 # ---------------------------------------------------------------------- copy a machine
-def _columns(conn, table) -> list[str]:
-    return [r[1] for r in conn.execute(f"PRAGMA table_info({table})").fetchall()]
-
-
-def _has_integer_id(conn, table) -> bool:
-    return any(
-        r[1] == "id" and r[5] == 1 and r[2].upper() == "INTEGER"
-        for r in conn.execute(f"PRAGMA table_info({table})").fetchall()
-    )
-
-
-def _insert(dst, table, row: dict, columns) -> int:
-    keys = [c for c in columns if c in row]
-    cur = dst.execute(
-        f"INSERT INTO {table} ({', '.join(keys)}) VALUES ({', '.join('?' * len(keys))})",
-        [row[k] for k in keys],
-    )
-    return cur.lastrowid
-
-
-def copy_machine(
-    src: sqlite3.Connection, dst: sqlite3.Connection, name: str, new_name: str
-) -> dict:
+def copy_machine(src: Registry, dst: Registry, name: str, new_name: str) -> dict:
     """Copy machine ``name`` with every machine-, print- and live-session-scoped row from
-    ``src`` into ``dst`` as ``new_name`` in one transaction of ``dst`` (ids renumbered).
+    registry ``src`` into registry ``dst`` as ``new_name`` in one transaction of ``dst``
+    (ids renumbered; the prints as stored, not their reprocessed versions).
 
     ``src`` is read in one snapshot (a live twin may be appending to an open session).
 
@@ -91,96 +70,7 @@ def copy_machine(
     -------
     dict: ``prints``, ``live_sessions``, ``open_live_sessions`` (copied counts).
     """
-    src.execute("BEGIN")  # deferred: one read snapshot of src for the whole copy
-    try:
-        return _copy_machine(src, dst, name, new_name)
-    finally:
-        src.execute("ROLLBACK")  # nothing was written to src
-
-
-def _copy_machine(src, dst, name, new_name) -> dict:
-    src_tables = {r[0] for r in src.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-    machine = src.execute("SELECT * FROM machines WHERE name = ?", (name,)).fetchone()
-    if machine is None:
-        raise RegistryError(f"no machine {printable(name)!r} to copy")
-    dst.execute("BEGIN IMMEDIATE")
-    try:
-        if dst.execute("SELECT 1 FROM machines WHERE name = ?", (new_name,)).fetchone():
-            raise RegistryError(
-                f"machine {printable(new_name)!r} already exists; import it under another "
-                "name with --as NAME"
-            )
-        if dst.execute(
-            "SELECT 1 FROM live_sessions WHERE machine = ? AND status = 'open'", (new_name,)
-        ).fetchone():
-            raise RegistryError(
-                f"an open live session of {printable(new_name)!r} is in this registry; "
-                "import the machine under another name with --as NAME"
-            )
-        row = dict(zip(machine.keys(), machine))
-        row.pop("id")
-        row["name"] = new_name
-        new_machine = _insert(dst, "machines", row, _columns(dst, "machines"))
-        print_ids = {}
-        for table in MACHINE_TABLES:
-            if table not in src_tables:
-                continue
-            columns = _columns(dst, table)
-            drop_id = _has_integer_id(dst, table)
-            cursor = src.execute(
-                f"SELECT * FROM {table} WHERE machine_id = ? ORDER BY rowid", (machine["id"],)
-            )
-            for r in cursor:
-                row = dict(zip(r.keys(), r))
-                old_id = row.get("id")
-                if drop_id:
-                    row.pop("id", None)
-                row["machine_id"] = new_machine
-                new_id = _insert(dst, table, row, columns)
-                if table == "prints":
-                    print_ids[old_id] = new_id
-        for table in PRINT_TABLES:
-            if table not in src_tables:
-                continue
-            columns = _columns(dst, table)
-            drop_id = _has_integer_id(dst, table)
-            for old_print, new_print in print_ids.items():
-                for r in src.execute(f"SELECT * FROM {table} WHERE print_id = ?", (old_print,)):
-                    row = dict(zip(r.keys(), r))
-                    if drop_id:
-                        row.pop("id", None)
-                    row["print_id"] = new_print
-                    _insert(dst, table, row, columns)
-        n_sessions = n_open = 0
-        if "live_sessions" in src_tables:
-            columns = _columns(dst, "live_sessions")
-            sessions = src.execute(
-                "SELECT * FROM live_sessions WHERE machine = ? ORDER BY id", (name,)
-            ).fetchall()
-            for r in sessions:
-                row = dict(zip(r.keys(), r))
-                old_session = row.pop("id")
-                row["machine"] = new_name
-                if row.get("print_id") is not None:
-                    row["print_id"] = print_ids.get(row["print_id"])
-                new_session = _insert(dst, "live_sessions", row, columns)
-                n_sessions += 1
-                n_open += row["status"] == "open"
-                for table in LIVE_SESSION_TABLES:
-                    if table not in src_tables:
-                        continue
-                    table_columns = _columns(dst, table)
-                    for s_row in src.execute(
-                        f"SELECT * FROM {table} WHERE session_id = ?", (old_session,)
-                    ):
-                        s_row = dict(zip(s_row.keys(), s_row))
-                        s_row["session_id"] = new_session
-                        _insert(dst, table, s_row, table_columns)
-        dst.execute("COMMIT")
-    except BaseException:
-        rollback_if_open(dst)
-        raise
-    return {"prints": len(print_ids), "live_sessions": n_sessions, "open_live_sessions": n_open}
+    return dst.load_machine(src.machine_rows(name), new_name)
 
 
 def _sha256(path) -> str:
@@ -203,8 +93,8 @@ def export_machine(registry: Registry, name: str, out) -> dict:
     with tempfile.TemporaryDirectory(prefix="ajtwin-export-") as tmp:
         db_path = Path(tmp) / "machine.sqlite"
         part = Registry(db_path)
-        copied = copy_machine(registry._conn, part._conn, machine["name"], machine["name"])
-        part._conn.execute("PRAGMA journal_mode=DELETE")  # one self-contained file
+        copied = copy_machine(registry, part, machine["name"], machine["name"])
+        part.self_contained()  # one file, no journal beside it
         part.close()
         manifest = {
             "format": EXPORT_FORMAT,
@@ -317,14 +207,14 @@ def import_machine(
         try:
             part.machine(source_name)
             # every print and array must decode before anything is copied
-            for (print_id,) in part._conn.execute("SELECT id FROM prints").fetchall():
-                part.get_print(print_id)
-                part.print_arrays(print_id)
+            for row in part.print_rows(source_name):
+                part.get_print(row["id"])
+                part.print_arrays(row["id"])
         except RegistryError as exc:
             part.close()
             raise _bad(archive, str(exc)) from None
         try:
-            copied = copy_machine(part._conn, registry._conn, source_name, new_name)
+            copied = copy_machine(part, registry, source_name, new_name)
         except sqlite3.Error as exc:
             raise _bad(archive, f"machine.sqlite: {exc}") from None
         finally:

@@ -1,7 +1,8 @@
 """Per-machine calibrations and maintenance events in the registry (model reference §11).
 
-Two tables of the registry (schema migration 4 of :mod:`ajtwin.store.registry`; export,
-import and compact carry them like the prints):
+Two tables of the registry (schema migration 4, :mod:`ajtwin.store.schema`; export,
+import, copy and compact carry them like the prints), read and written through the
+registry's methods:
 
 * ``calibrations`` — every commissioning of a machine with its provenance: the print it
   was fitted from, when, the priors, the standard errors, which parameters the print
@@ -24,71 +25,12 @@ True
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
-import time
 
 import numpy as np
 import pandas as pd
 
 from ajtwin.model.calibration import calibration_from_dict, calibration_to_dict
-from ajtwin.store.registry import _CALIBRATION_SCHEMA
-
-# created by the registry's schema migration 4; kept here for registries opened before it
-_TABLES = _CALIBRATION_SCHEMA
-
-
-def _has_tables(registry) -> bool:
-    rows = registry._conn.execute(
-        "SELECT name FROM sqlite_master WHERE type = 'table' AND name IN "
-        "('calibrations', 'maintenance_events')"
-    ).fetchall()
-    return len(rows) == 2
-
-
-def ensure_tables(registry) -> None:
-    """Create the calibration tables if this registry does not have them (every registry
-    opened by :class:`~ajtwin.store.registry.Registry` has them since schema 4; this
-    covers a connection whose tables were dropped or a hand-made registry)."""
-    conn = registry._conn
-    if _has_tables(registry):
-        return
-    if conn.in_transaction:  # inside a caller's transaction: add them there
-        for statement in _TABLES.split(";"):
-            if statement.strip():
-                conn.execute(statement)
-        _add_long_run_column(conn)
-        return
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        for statement in _TABLES.split(";"):
-            if statement.strip():
-                conn.execute(statement)
-        _add_long_run_column(conn)
-    except Exception:
-        conn.execute("ROLLBACK")
-        raise
-    conn.execute("COMMIT")
-
-
-def _add_long_run_column(conn) -> None:
-    # schema 5's column on tables made here from the schema-4 statements
-    columns = {r[1] for r in conn.execute("PRAGMA table_info(calibrations)").fetchall()}
-    if "long_run_json" not in columns:
-        conn.execute(
-            "ALTER TABLE calibrations ADD COLUMN long_run_json TEXT NOT NULL DEFAULT 'null'"
-        )
-
-
-def _now() -> tuple[str, float]:
-    now = time.time()
-    return _dt.datetime.fromtimestamp(now, _dt.UTC).isoformat(timespec="seconds"), now
-
-
-def _last_seq(registry, machine: str) -> int:
-    # the newest print, in the chain or not: events and calibrations come after it
-    last = registry.last_print(machine, in_chain=False)
-    return 0 if last is None else int(last["seq"])
 
 
 def save_calibration(
@@ -99,37 +41,26 @@ def save_calibration(
     ``long_run_history``: the detectors' long-run statistics on the commissioning print
     (:func:`ajtwin.engine.commissioning.commissioning_long_run_history`), carried to the next print.
     """
-    ensure_tables(registry)
-    machine_id = registry.machine(machine)["id"]
-    created_at, unix = _now()
-    cur = registry._conn.execute(
-        "INSERT INTO calibrations (machine_id, created_at, created_unix, source, after_print_seq,"
-        " calibration_json, std_json, prior_std_json, determined_json, priors_json, notes_json,"
-        " end_mean_json, end_cov_json, calibration_cov_json, noise_factors_json, long_run_json)"
-        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        (
-            machine_id,
-            created_at,
-            unix,
-            source,
-            _last_seq(registry, machine),
-            json.dumps(calibration_to_dict(result.calibration)),
-            json.dumps(result.std),
-            json.dumps(result.prior_std),
-            json.dumps(result.determined),
-            # φ_A's level (what pinned it) rides with the priors: no schema change
-            json.dumps({**result.priors, "aerosol_level": getattr(result, "aerosol_level", {})}),
-            json.dumps(result.notes),
-            json.dumps(np.asarray(result.end_state, float).tolist()),
-            json.dumps(np.asarray(result.end_state_cov, float).tolist()),
-            json.dumps(np.asarray(result.calibration_cov, float).tolist()),
-            json.dumps(
-                None if result.noise_factors is None else np.asarray(result.noise_factors).tolist()
-            ),
-            json.dumps(long_run_history),
+    row = {
+        "source": source,
+        "calibration_json": json.dumps(calibration_to_dict(result.calibration)),
+        "std_json": json.dumps(result.std),
+        "prior_std_json": json.dumps(result.prior_std),
+        "determined_json": json.dumps(result.determined),
+        # φ_A's level (what pinned it) rides with the priors: no schema change
+        "priors_json": json.dumps(
+            {**result.priors, "aerosol_level": getattr(result, "aerosol_level", {})}
         ),
-    )
-    return int(cur.lastrowid)
+        "notes_json": json.dumps(result.notes),
+        "end_mean_json": json.dumps(np.asarray(result.end_state, float).tolist()),
+        "end_cov_json": json.dumps(np.asarray(result.end_state_cov, float).tolist()),
+        "calibration_cov_json": json.dumps(np.asarray(result.calibration_cov, float).tolist()),
+        "noise_factors_json": json.dumps(
+            None if result.noise_factors is None else np.asarray(result.noise_factors).tolist()
+        ),
+        "long_run_json": json.dumps(long_run_history),
+    }
+    return registry.add_calibration(machine, row)
 
 
 def _calibration_row(row) -> dict:
@@ -146,36 +77,21 @@ def _calibration_row(row) -> dict:
 
 def active_calibration(registry, machine: str) -> dict | None:
     """The newest calibration of a machine (dict with ``calibration``, provenance) or None."""
-    machine_id = registry.machine(machine)["id"]
-    if not _has_tables(registry):
-        return None
-    row = registry._conn.execute(
-        "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id DESC LIMIT 1", (machine_id,)
-    ).fetchone()
-    return None if row is None else _calibration_row(row)
+    rows = registry.calibrations(machine, newest_only=True)
+    return _calibration_row(rows[0]) if rows else None
 
 
 def calibration_by_id(registry, calibration_id: int) -> dict | None:
     """The calibration row ``calibration_id`` (as :func:`active_calibration` gives it), or
     None when there is none (a print names the calibration it ran with)."""
-    if not _has_tables(registry):
-        return None
-    row = registry._conn.execute(
-        "SELECT * FROM calibrations WHERE id = ?", (int(calibration_id),)
-    ).fetchone()
+    row = registry.calibration(calibration_id)
     return None if row is None else _calibration_row(row)
 
 
 def calibration_history(registry, machine: str) -> pd.DataFrame:
     """One row per commissioning (oldest first): date, source, parameters, std errors."""
-    machine_id = registry.machine(machine)["id"]
-    if not _has_tables(registry):
-        return pd.DataFrame()
-    rows = registry._conn.execute(
-        "SELECT * FROM calibrations WHERE machine_id = ? ORDER BY id", (machine_id,)
-    ).fetchall()
     table = []
-    for row in rows:
+    for row in registry.calibrations(machine):
         r = _calibration_row(row)
         entry = {"id": r["id"], "created_at": r["created_at"], "source": r["source"]}
         entry.update(calibration_to_dict(r["calibration"]))
@@ -201,48 +117,28 @@ def record_maintenance(
         )
     if vial_refilled_ml is not None and not (0 < float(vial_refilled_ml) < 3.0):
         raise ValueError(f"--vial-refilled {vial_refilled_ml}: the fill must be in (0, 3) mL")
-    ensure_tables(registry)
-    machine_id = registry.machine(machine)["id"]
     event = {
         "nozzle_cleaned": bool(nozzle_cleaned),
         "vial_refilled_ml": None if vial_refilled_ml is None else float(vial_refilled_ml),
         "reset_theta": bool(reset_theta),
         "note": note,
     }
-    created_at, unix = _now()
-    registry._conn.execute(
-        "INSERT INTO maintenance_events (machine_id, created_at, created_unix, after_print_seq,"
-        " event_json) VALUES (?, ?, ?, ?, ?)",
-        (machine_id, created_at, unix, _last_seq(registry, machine), json.dumps(event)),
-    )
+    created_at = registry.add_maintenance(machine, event)
     return {"created_at": created_at, **event}
 
 
 def maintenance_history(registry, machine: str) -> pd.DataFrame:
     """One row per maintenance event of a machine (oldest first): when, after which print, what."""
-    machine_id = registry.machine(machine)["id"]
-    if not _has_tables(registry):
-        return pd.DataFrame()
-    rows = registry._conn.execute(
-        "SELECT * FROM maintenance_events WHERE machine_id = ? ORDER BY id", (machine_id,)
-    ).fetchall()
     return pd.DataFrame(
         [
             {"id": r["id"], "created_at": r["created_at"], "after_print_seq": r["after_print_seq"]}
-            | json.loads(r["event_json"])
-            for r in rows
+            | r["event"]
+            for r in registry.maintenance(machine)
         ]
     )
 
 
 def pending_maintenance(registry, machine: str, since_unix: float = 0.0) -> list[dict]:
     """Maintenance events done after the machine's last print (and after ``since_unix``)."""
-    machine_id = registry.machine(machine)["id"]
-    if not _has_tables(registry):
-        return []
-    rows = registry._conn.execute(
-        "SELECT * FROM maintenance_events WHERE machine_id = ? AND after_print_seq = ? "
-        "AND created_unix >= ? ORDER BY id",
-        (machine_id, _last_seq(registry, machine), since_unix),
-    ).fetchall()
-    return [json.loads(r["event_json"]) for r in rows]
+    last = registry.latest_seq(machine) or 0
+    return [r["event"] for r in registry.maintenance(machine, last, since_unix)]

@@ -4,8 +4,9 @@
 (:mod:`ajtwin.store.arrays`; version-1 prints hold raw ``.npy`` and the whole covariance
 sequence), drops the periodic covariance key frames of prints older than
 ``keep_covariances_days`` (the end covariance, the alarms' covariances, every σ and mean
-stay) and VACUUMs the file (switching it to ``auto_vacuum=INCREMENTAL``, as new
-registries are, so that later closed live sessions give their pages back). A live
+stay) and gives the space back (an SQLite file is VACUUMed and switched to
+``auto_vacuum=INCREMENTAL``, as new registries are, so that later closed live sessions
+give their pages back; PostgreSQL's tables are VACUUMed). A live
 session that ends with its print stored drops its own per-step rows
 (``Registry.save_print``); of the machine's *closed* sessions that still hold them
 (written by older code, or kept with ``keep_live_steps``) compact drops the per-step
@@ -17,33 +18,21 @@ open session is left whole, since a restarted ``ajtwin live`` replays it.
 from __future__ import annotations
 
 import datetime as _dt
-from pathlib import Path
 
 import numpy as np
 
 from ajtwin.store import arrays as _arrays
-from ajtwin.store.connection import rollback_if_open
 from ajtwin.store.registry import Registry, RegistryError, printable
 
 
-def file_bytes(path) -> int:
-    """Size of a registry on disk: the file and its WAL."""
-    total = 0
-    for suffix in ("", "-wal"):
-        p = Path(str(path) + suffix)
-        if p.exists():
-            total += p.stat().st_size
-    return total
+def file_bytes(registry: Registry) -> int:
+    """Size of a registry: an SQLite file and its WAL, or its tables on the server."""
+    return registry.size_bytes()
 
 
 def checkpointed_bytes(registry: Registry) -> int:
-    """Bytes of the registry file after its write-ahead log is checkpointed into it."""
-    _checkpoint(registry._conn)
-    return int(Path(registry.path).stat().st_size)
-
-
-def _checkpoint(conn):
-    conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    """Bytes of the registry once an SQLite file's write-ahead log is moved into it."""
+    return registry.checkpointed_bytes()
 
 
 def compact(
@@ -66,29 +55,22 @@ def compact(
 
     Returns
     -------
-    dict: ``bytes_before``, ``bytes_after`` (file + WAL), ``prints``, ``reencoded``
+    dict: ``bytes_before``, ``bytes_after`` (:func:`file_bytes`), ``prints``, ``reencoded``
     (version-1 prints converted), ``thinned`` (prints whose key frames were dropped),
     ``live_steps_dropped`` (per-step rows of closed live sessions, module docstring).
     """
     if not keep_covariances_days >= 0:
         raise RegistryError(f"--keep-covariances-days must be ≥ 0, got {keep_covariances_days}")
-    machine = registry.machine(name)
-    conn = registry._conn
+    registry.machine(name)
     now = now or _dt.datetime.now(_dt.UTC)
     cutoff = now - _dt.timedelta(days=float(keep_covariances_days))
-    _checkpoint(conn)
-    before = file_bytes(registry.path)
-    prints = conn.execute(
-        "SELECT id, seq, ingested_at FROM prints WHERE machine_id = ? ORDER BY seq",
-        (machine["id"],),
-    ).fetchall()
+    before = registry.checkpointed_bytes()
+    prints = registry.print_rows(name)
     reencoded = thinned = 0
     registry.discard_stale_drafts()
     for row in prints:
         _merge_parts(registry, row["id"], row["seq"])
-        stored = conn.execute(
-            "SELECT name, npy, codec FROM print_arrays WHERE print_id = ?", (row["id"],)
-        ).fetchall()
+        stored = registry.stored_arrays(row["id"])
         try:
             ingested = _dt.datetime.fromisoformat(row["ingested_at"])
         except ValueError:
@@ -96,17 +78,11 @@ def compact(
         if ingested.tzinfo is None:
             ingested = ingested.replace(tzinfo=_dt.UTC)
         old = ingested < cutoff
-        alarm_times = [
-            t
-            for r in conn.execute(
-                "SELECT detected_s, onset_s FROM anomalies WHERE print_id = ?", (row["id"],)
-            )
-            for t in (r[0], r[1])
-        ]
+        alarm_times = registry.alarm_times(row["id"])
         decoded = {}
         for r in stored:
             try:
-                decoded[r["name"]] = _arrays.decode(r["npy"], r["codec"])
+                decoded[r["name"]] = _arrays.decode(r["blob"], r["codec"])
             except ValueError as exc:
                 raise RegistryError(
                     f"{registry.path}: registry damaged at print {row['seq']}, array "
@@ -131,35 +107,19 @@ def compact(
             thinned += 1
         else:
             continue
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            conn.execute("DELETE FROM print_arrays WHERE print_id = ?", (row["id"],))
-            for key in decoded:
-                if key not in encoded and key not in ("covariances", "predicted_means"):
-                    encoded[key] = (
-                        next(r["codec"] for r in stored if r["name"] == key),
-                        next(r["npy"] for r in stored if r["name"] == key),
-                    )
-            conn.executemany(
-                "INSERT INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
-                [(row["id"], key, blob, codec) for key, (codec, blob) in encoded.items()],
-            )
-            conn.execute("COMMIT")
-        except BaseException:
-            conn.execute("ROLLBACK")
-            raise
+        kept = {r["name"]: (r["codec"], r["blob"]) for r in stored}
+        for key in decoded:
+            if key not in encoded and key not in ("covariances", "predicted_means"):
+                encoded[key] = kept[key]
+        registry.rewrite_arrays(row["id"], encoded)
         if old and legacy:
             thinned += 1
-    live_steps_dropped = _drop_closed_live_steps(conn, machine["name"], machine["id"])
+    live_steps_dropped = registry.drop_closed_live_steps(name)
     if vacuum:
-        _checkpoint(conn)
-        # from now on the file also shrinks when a live session closes (release_free_pages)
-        conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
-        conn.execute("VACUUM")
-        _checkpoint(conn)
+        registry.compact_storage()
     return {
         "bytes_before": before,
-        "bytes_after": file_bytes(registry.path),
+        "bytes_after": registry.size_bytes(),
         "prints": len(prints),
         "reencoded": reencoded,
         "thinned": thinned,
@@ -171,11 +131,7 @@ def _merge_parts(registry: Registry, print_id: int, seq: int) -> None:
     """A print stored in parts (written as it ran) gets one row per array, the parts joined
     exactly (each array keeps its stored type), in one transaction; then the retention
     below treats it as any other print."""
-    conn = registry._conn
-    rows = conn.execute(
-        "SELECT name, codec, blob FROM print_array_parts WHERE print_id = ? ORDER BY name, part",
-        (print_id,),
-    ).fetchall()
+    rows = registry.stored_arrays(print_id, parts=True)
     if not rows:
         return
     parts: dict[str, list] = {}
@@ -188,40 +144,6 @@ def _merge_parts(registry: Registry, print_id: int, seq: int) -> None:
                 f"{printable(r['name'])}: {exc}; nothing compacted from there on"
             ) from None
     joined = _arrays.join_parts(parts)
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        conn.executemany(
-            "INSERT OR REPLACE INTO print_arrays (print_id, name, npy, codec) VALUES (?, ?, ?, ?)",
-            [(print_id, key, *reversed(_arrays.encode(value))) for key, value in joined.items()],
-        )
-        conn.execute("DELETE FROM print_array_parts WHERE print_id = ?", (print_id,))
-        conn.execute("COMMIT")
-    except BaseException:
-        rollback_if_open(conn)
-        raise
-
-
-def _drop_closed_live_steps(conn, name: str, machine_id: int) -> int:
-    """Per-step rows of the machine's closed live sessions whose print is stored (module
-    docstring); returns how many steps were dropped. One transaction."""
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        sessions = [
-            r[0]
-            for r in conn.execute(
-                "SELECT s.id FROM live_sessions s JOIN prints p ON p.id = s.print_id "
-                "WHERE s.machine = ? AND s.status = 'closed' AND p.machine_id = ?",
-                (name, machine_id),
-            )
-        ]
-        dropped = 0
-        for session_id in sessions:
-            dropped += conn.execute(
-                "DELETE FROM live_samples WHERE session_id = ?", (session_id,)
-            ).rowcount
-            conn.execute("DELETE FROM live_states WHERE session_id = ?", (session_id,))
-        conn.execute("COMMIT")
-    except BaseException:
-        conn.execute("ROLLBACK")
-        raise
-    return dropped
+    registry.rewrite_arrays(
+        print_id, {key: _arrays.encode(value) for key, value in joined.items()}, from_parts=True
+    )

@@ -1,47 +1,26 @@
-"""Reads the dashboard needs beyond :class:`~ajtwin.store.registry.Registry`'s own: change
-markers, prints committed since a print, one array of a print, a machine's latest alarm.
+"""Reads the dashboard needs beyond :class:`~ajtwin.store.registry.Registry`'s history and
+prints: change markers, prints committed since a print, one array of a print, a machine's
+latest alarm, what a live print shows now.
 
-Each function takes an open registry and runs one or a few queries on its connection;
-pages and the registry watcher read through them (never through SQL of their own), so a
-schema change stays inside :mod:`ajtwin.store`.
+Pages and the registry watcher read through these (never through SQL of their own); each
+is one of the registry's methods, or a few of them put together, so a schema change stays
+inside :mod:`ajtwin.store`.
 """
 
 from __future__ import annotations
-
-import json
 
 import numpy as np
 
 
 def change_marker(registry) -> tuple[int, int, int]:
-    """(``PRAGMA data_version``, last print id, last machine id): changes on any commit."""
-    conn = registry._conn
-    version = conn.execute("PRAGMA data_version").fetchone()[0]
-    last_print = conn.execute("SELECT COALESCE(MAX(id), 0) FROM prints").fetchone()[0]
-    last_machine = conn.execute("SELECT COALESCE(MAX(id), 0) FROM machines").fetchone()[0]
-    return int(version), int(last_print), int(last_machine)
+    """(a number that changes on any commit, last print id, last machine id)."""
+    return registry.change_marker()
 
 
 def prints_after(registry, print_id: int) -> list[dict]:
     """Prints committed with an id above ``print_id``: ``print_id``, ``seq``, ``machine``,
     ``duration_s`` [s] and the number of ``anomalies``, oldest first."""
-    rows = registry._conn.execute(
-        "SELECT p.id, p.seq, m.name, p.duration_s, "
-        "(SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies "
-        "FROM prints p JOIN machines m ON p.machine_id = m.id WHERE p.id > ? "
-        "ORDER BY p.id",
-        (int(print_id),),
-    ).fetchall()
-    return [
-        {
-            "print_id": int(r["id"]),
-            "seq": int(r["seq"]),
-            "machine": r["name"],
-            "duration_s": float(r["duration_s"]),
-            "anomalies": int(r["n_anomalies"]),
-        }
-        for r in rows
-    ]
+    return registry.prints_after(print_id)
 
 
 def print_array(registry, print_id: int, name: str) -> np.ndarray | None:
@@ -63,43 +42,46 @@ def reported_end_std(registry, stored_print: dict) -> np.ndarray:
 
 def latest_seq(registry, name: str) -> int | None:
     """The seq of the machine's newest print, in the chain or not (None: no print)."""
-    machine = registry.machine(name)
-    row = registry._conn.execute(
-        "SELECT MAX(seq) FROM prints WHERE machine_id = ?", (machine["id"],)
-    ).fetchone()
-    return row[0]
+    return registry.latest_seq(name)
 
 
 def newest_print_alarms(registry, name: str) -> list[dict]:
     """The anomalies of the machine's newest print that raised any, in detection order:
     ``seq``, ``ingested_at``, ``detected_s``, ``onset_s`` [s], ``cause``, ``description``
     ([] when no print ever raised one)."""
-    machine = registry.machine(name)
-    rows = registry._conn.execute(
-        "SELECT p.seq, p.ingested_at, a.detected_s, a.onset_s, a.cause, a.description "
-        "FROM anomalies a JOIN prints p ON a.print_id = p.id WHERE p.machine_id = ? AND "
-        "p.seq = (SELECT MAX(p2.seq) FROM anomalies a2 JOIN prints p2 ON a2.print_id = p2.id "
-        "WHERE p2.machine_id = ?) ORDER BY a.detected_s",
-        (machine["id"], machine["id"]),
-    ).fetchall()
-    return [dict(r) for r in rows]
+    return registry.newest_print_alarms(name)
 
 
 def count_alarms(registry, name: str, seq: int, except_cause: str = "") -> int:
     """Anomalies of print ``seq`` of machine ``name`` whose cause is not ``except_cause``."""
-    machine = registry.machine(name)
-    return int(
-        registry._conn.execute(
-            "SELECT COUNT(*) FROM anomalies a JOIN prints p ON a.print_id = p.id "
-            "WHERE p.machine_id = ? AND p.seq = ? AND a.cause != ?",
-            (machine["id"], seq, except_cause),
-        ).fetchone()[0]
-    )
+    return registry.count_alarms(name, seq, except_cause)
 
 
 def print_summary(registry, print_id: int) -> dict:
     """The summary stored with a print (what the ingest wrote: end state, NIS, status ...)."""
-    row = registry._conn.execute(
-        "SELECT summary_json FROM prints WHERE id = ?", (print_id,)
-    ).fetchone()
-    return {} if row is None else json.loads(row[0])
+    return registry.print_summary(print_id)
+
+
+def open_live_states(registry, seen: dict) -> tuple[list[dict], list[str]]:
+    """What live prints published since the last look, for a dashboard in another process
+    than the live twins: (the new published messages of every open live session, in step
+    order per session; the machines whose session closed since). ``seen`` (session id →
+    last step read, with ``"_machines"``: session id → machine) is kept by the caller and
+    updated here."""
+    machines = seen.setdefault("_machines", {})
+    messages = []
+    open_now = {s["id"]: s["machine"] for s in registry.live_sessions(open_only=True)}
+    for session_id, machine in open_now.items():
+        if session_id not in seen:
+            # a session found open: start from its latest step, not its whole past
+            n, latest = registry.live_latest(session_id)
+            seen[session_id] = -1 if latest is None else int(latest.get("step", n - 1)) - 1
+            machines[session_id] = machine
+        new = registry.live_states(session_id, after_step=seen[session_id])
+        if new:
+            seen[session_id] = int(new[-1].get("step", seen[session_id] + len(new)))
+        messages += new
+    ended = [machines.pop(s) for s in list(machines) if s not in open_now]
+    for session_id in [s for s in seen if s != "_machines" and s not in open_now]:
+        del seen[session_id]
+    return messages, ended

@@ -10,7 +10,6 @@ Usage (default 90 min, ``./live-storage.sqlite``, overwritten)::
 from __future__ import annotations
 
 import os
-import sqlite3
 import sys
 import time
 
@@ -46,11 +45,8 @@ def main(minutes: float = 90.0, path: str = "live-storage.sqlite") -> dict:
     engine.close("M")
     engine.shutdown()
     closed_mb = (size() - empty) / hours / 1e6
-    conn = sqlite3.connect(path)
-    free = conn.execute("PRAGMA freelist_count").fetchone()[0]
-    free *= conn.execute("PRAGMA page_size").fetchone()[0]
-    rows = {t: conn.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0]
-            for t in ("live_samples", "live_states")}  # fmt: skip
+    free = registry.free_bytes()
+    rows = {t: registry.count_rows(t) for t in ("live_samples", "live_states")}
     return {
         "open_MB_per_print_hour": round(open_mb, 3),
         "closed_MB_per_print_hour": round(closed_mb, 3),

@@ -297,6 +297,7 @@ def _lifespan(view, watcher, feeds):
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+            watcher.close()
             view.close()
 
     return lifespan

@@ -235,9 +235,9 @@ class RegistryView:
     """Read-only view of a registry for the pages (see module docstring)."""
 
     def __init__(self, path):
-        self.path = Path(path)
-        # never creates a file (an older registry is migrated on open, as by every command)
-        self.registry = Registry(self.path, create=False)
+        # never creates a registry (an older one is migrated on open, as by every command)
+        self.registry = Registry(path, create=False)
+        self.path = self.registry.path  # an SQLite file, or a PostgreSQL location
         # one connection shared by the server's worker threads: serialise its use
         self._lock = threading.Lock()
         self._truth_cache: dict[int, np.ndarray | None] = {}

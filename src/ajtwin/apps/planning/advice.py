@@ -21,7 +21,7 @@ from scipy import optimize
 
 from ajtwin.apps.planning.forecast import forecast
 from ajtwin.model import INPUT_NAMES
-from ajtwin.store.registry import DEFAULT_LIMITS
+from ajtwin.model.limits import DEFAULT_LIMITS
 
 #: validity range of H's Box–Behnken fit (model reference §4 / paper App. B.3)
 H_FIT_LIMITS = {"atomizer_current_mA": (300.0, 440.0), "carrier_flow_sccm": (15.0, 35.0)}

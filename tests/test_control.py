@@ -175,16 +175,19 @@ def test_mismatch_reasons(twin, control_settings):
 def test_refuses_to_act_on_a_mismatch(twin, control_settings):
     """The MPC-on-twin strategy, fed a print whose line measurement goes wrong (the camera
     reads 40 % wide from 2 min on): it holds the command in force and says why."""
-    from ajtwin.engine.control import MPCTwin
+    from ajtwin.apps.planning.twin_control import MPCTwin
+    from ajtwin.engine.stream import TwinStream
     from ajtwin.simulation.stepper import SteppedPrinter
 
     u0 = np.array([375.0, 23.0, 50.0])
+    twin = Twin.default()
     strategy = MPCTwin(
-        twin=Twin.default(),
+        twin=twin,
         settings=control_settings,
         bounds=BOUNDS,
         u0=u0,
         target=75.0,
+        stream=TwinStream("m", twin, asynchronous=False),
     )
     printer = SteppedPrinter("exp1", seed=3, duration_min=6)
     printer.set_setpoints(u0)
@@ -319,7 +322,7 @@ def test_converges_after_a_step_disturbance(control_settings):
     test sees the loop, not the safety rule."""
     from dataclasses import replace
 
-    from ajtwin.engine.control import simulate_strategy
+    from ajtwin.studies.closed_loop import simulate_strategy
 
     settings = replace(control_settings, actionable_causes=("nozzle_clog", "atomizer"))
     u0 = np.array([300.0, 24.116, 80.0])
@@ -412,7 +415,7 @@ def test_vial_running_dry_stops_the_mpc_for_good(control_settings):
     """A vial filled to 0.53 mL that loses 1 mL/h (0.5 mL crossed at ~2 min): the MPC on
     the twin stops (reason ink_low), holds the inputs in force and never resumes — even
     when the ink rule would clear — while on a clean print it never stops."""
-    from ajtwin.engine.control import simulate_strategy
+    from ajtwin.studies.closed_loop import simulate_strategy
 
     u0 = np.array([300.0, 24.116, 80.0])
     dry = {"initial": {"vial_volume_mL": 0.53}, "truth": {"vial_evaporation_mL_per_h": 1.0}}
@@ -448,16 +451,19 @@ def test_vial_running_dry_stops_the_mpc_for_good(control_settings):
 
 
 def test_ink_stop_latch_ignores_a_later_all_clear(twin, control_settings):
-    from ajtwin.engine.control import MPCTwin
+    from ajtwin.apps.planning.twin_control import MPCTwin
+    from ajtwin.engine.stream import TwinStream
     from ajtwin.simulation.stepper import SteppedPrinter
 
     u0 = np.array([375.0, 23.0, 50.0])
+    twin = Twin.default(vial_fill_ml=0.45)
     strategy = MPCTwin(
-        twin=Twin.default(vial_fill_ml=0.45),
+        twin=twin,
         settings=control_settings,
         bounds=BOUNDS,
         u0=u0,
         target=75.0,
+        stream=TwinStream("m", twin, asynchronous=False),
     )
     printer = SteppedPrinter("exp1", seed=2, duration_min=2)
     printer.set_setpoints(u0)
@@ -564,25 +570,31 @@ def test_cli_merge_runs_and_truth_alt(tmp_path):
 
 
 def test_live_link_takes_the_vial_fill():
+    from ajtwin.apps.planning.supervisor import ControlTarget
     from ajtwin.live.control_link import ControlLink
 
-    link = ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=0.7)
-    assert link.vial_fill_ml == 0.7
+    link = ControlLink("opc.tcp://127.0.0.1:4840", "m", ControlTarget(65.0, vial_fill_ml=0.7))
+    assert link.print.target.vial_fill_ml == 0.7
+    link.prepare()
+    assert link.controller.twin.config.vial_fill_ml == 0.7
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="vial fill"):
-            ControlLink("opc.tcp://127.0.0.1:4840", "m", 65.0, vial_fill_ml=bad)
+            ControlLink("opc.tcp://127.0.0.1:4840", "m", ControlTarget(65.0, vial_fill_ml=bad))
 
 
 def test_ink_alarm_is_left_to_the_ink_rule(control_settings):
     """An 'ink running out' alarm does not hold the MPC on and off (the ink rule steers
     while the vial is in H's fit and stops for good before it leaves it); other alarms the
     model cannot explain still hold."""
-    from ajtwin.engine.control import MPCTwin
+    from ajtwin.apps.planning.twin_control import MPCTwin
+    from ajtwin.engine.stream import TwinStream
     from ajtwin.simulation.stepper import SteppedPrinter
 
     u0 = np.array([375.0, 23.0, 50.0])
+    twin = Twin.default()
+    stream = TwinStream("m", twin, asynchronous=False)
     strategy = MPCTwin(
-        twin=Twin.default(), settings=control_settings, bounds=BOUNDS, u0=u0, target=75.0
+        twin=twin, settings=control_settings, bounds=BOUNDS, u0=u0, target=75.0, stream=stream
     )
     printer = SteppedPrinter("exp1", seed=2, duration_min=2)
     printer.set_setpoints(u0)

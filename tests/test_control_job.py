@@ -15,13 +15,15 @@ from hypothesis import strategies as st
 from ajtwin.apps.planning.job_preview import JobPreview
 from ajtwin.apps.planning.mpc import MPC, ControlSettings
 from ajtwin.apps.planning.strategies import nominal_state, start_inputs
-from ajtwin.engine.control import MPCTwin, job_print_setup, simulate_strategy
+from ajtwin.apps.planning.twin_control import MPCTwin
 from ajtwin.engine.job_samples import JobColumns
+from ajtwin.engine.stream import TwinStream
 from ajtwin.estimation import Twin
 from ajtwin.job import SpeedSchedule, read_program_text
 from ajtwin.model.line_speed import line_speed_factors, load_line_speed_law
 from ajtwin.simulation.job_print import CameraSettings
 from ajtwin.simulation.stepper import SteppedPrinter
+from ajtwin.studies.closed_loop import job_print_setup, simulate_strategy
 
 TARGET = 55.0
 #: the speed law's factor on L_w at 4 mm/s (ν_ref = 2 mm/s, b = 0.3): 0.812
@@ -204,8 +206,10 @@ def test_the_delayed_camera_is_used_at_its_print_time(step_job):
     assert context.camera_mode == "trailing" and 2 <= context.horizon_s <= 10
     settings = ControlSettings.load()
     u0 = np.array([300.0, 20.22, 80.0])
+    twin = Twin.default()
+    stream = TwinStream("m", twin, asynchronous=False, print_context=setup["print_context"])
     controller = MPCTwin(
-        twin=Twin.default(), settings=settings, bounds=None, u0=u0, target=TARGET, **setup
+        twin=twin, settings=settings, bounds=None, u0=u0, target=TARGET, stream=stream, **setup
     )
     rows = []
     while not printer.done:

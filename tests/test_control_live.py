@@ -73,7 +73,9 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
 
     pytest.importorskip("asyncua")
     from ajtwin.apps.planning.mpc import ControlSettings
+    from ajtwin.apps.planning.supervisor import ControlTarget
     from ajtwin.live.control_link import ControlLink
+    from ajtwin.live.link import OpcUaLogin
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine
     from ajtwin.model.limits import DEFAULT_LIMITS
 
@@ -85,7 +87,10 @@ def test_control_writes_reach_the_printer_and_steer_the_line():
 
     async def main():
         link = ControlLink(
-            url, "m1", target, limits=limits, username="operator", password="pw", timeout_s=4
+            url,
+            "m1",
+            ControlTarget(target, limits=limits),
+            login=OpcUaLogin("operator", "pw", timeout_s=4),
         )
         link.prepare()  # compile before the served print's clock starts
         machine = VirtualMachine("m1", "exp1", seed=2, speed=30, duration_min=8, limits=limits)
@@ -191,32 +196,33 @@ def test_control_without_login_is_refused_with_a_clear_message(tmp_path):
 def test_live_control_bad_targets_name_the_reachable_range():
     from ajtwin.apps.planning.mpc import TargetError
     from ajtwin.apps.planning.strategies import nominal_state
+    from ajtwin.apps.planning.supervisor import ControlTarget, Supervisor
     from ajtwin.estimation import Twin
     from ajtwin.live.control_link import ControlLink
 
     for bad in (float("nan"), -3.0, "wide"):
         with pytest.raises(TargetError, match="target linewidth"):
-            ControlLink("opc.tcp://127.0.0.1:1", "m1", bad)
-    link = ControlLink("opc.tcp://127.0.0.1:1", "m1", 500.0)
+            ControlLink("opc.tcp://127.0.0.1:1", "m1", ControlTarget(bad))
+    mean, cov = nominal_state(Twin.default(), [375.0, 23.0, 50.0])
 
-    class Controller:  # the twin alone: what check_reachable needs before any MPC
+    class Controller:  # the twin alone: what the reachable range needs before any MPC
         twin = Twin.default()
 
-    link.controller = Controller()
-    from ajtwin.apps.planning.advice import effective_bounds
+        @staticmethod
+        def state_now():
+            return mean, cov
 
-    link.bounds = effective_bounds(link.limits)
-    mean, cov = nominal_state(Controller.twin, [375.0, 23.0, 50.0])
+    supervisor = Supervisor(Controller(), ControlTarget(500.0).resolved())
     with pytest.raises(TargetError, match=r"reachable now: \d+\.\d–\d+\.\d µm") as info:
-        link.check_reachable(mean, cov)
+        supervisor.check_reachable()
     import re
 
     low, high = (
         float(v) for v in re.search(r"reachable now: ([\d.]+)–([\d.]+)", str(info.value)).groups()
     )
     assert low < 74.2 < high < 500  # the nominal line at 375 mA, 23/50 sccm lies inside
-    link.target_um = 65.0
-    assert link.check_reachable(mean, cov) == pytest.approx((low, high), abs=0.05)
+    supervisor = Supervisor(Controller(), ControlTarget(65.0).resolved())
+    assert supervisor.check_reachable() == pytest.approx((low, high), abs=0.05)
 
 
 def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_path):
@@ -229,10 +235,12 @@ def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_p
 
     pytest.importorskip("asyncua")
     from ajtwin.apps.planning.mpc import ControlSettings
+    from ajtwin.apps.planning.supervisor import ControlTarget
+    from ajtwin.apps.quality.part_map import parse_tolerance
     from ajtwin.cli.control import _job_engine
-    from ajtwin.engine.part_map import parse_tolerance
     from ajtwin.job import SpeedSchedule
     from ajtwin.live.control_link import ControlLink
+    from ajtwin.live.link import OpcUaLogin
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine
     from ajtwin.model.limits import DEFAULT_LIMITS
     from ajtwin.store.registry import Registry
@@ -255,8 +263,8 @@ def test_live_control_of_a_job_print_fills_the_part_map_and_stores_the_job(tmp_p
 
     async def main():
         link = ControlLink(
-            url, "m1", 55.0, limits=limits, username="operator", password="pw", timeout_s=4,
-            engine=engine, **options,
+            url, "m1", ControlTarget(55.0, limits=limits),
+            login=OpcUaLogin("operator", "pw", timeout_s=4), engine=engine, **options,
         )  # fmt: skip
         link.prepare()  # compile before the served print's clock starts
         machine = VirtualMachine(

@@ -232,3 +232,52 @@ def test_the_command_list_imports_no_command():
     targets = [t for t, _, _ in _imports(tree, "ajtwin.cli", True)]
     assert all(not t.startswith("ajtwin.cli.") for t in targets), targets
     assert [t for t in targets if t.startswith("ajtwin")] == ["ajtwin"]  # the version
+
+
+#: what the engine may take from the model: its vocabulary and its limits
+ENGINE_MODEL_MODULES = {"ajtwin.model.names", "ajtwin.model.limits"}
+#: what the engine may not import at all: the filter's math, JAX (nothing jitted of its own)
+ENGINE_FORBIDDEN = ("ajtwin.estimation.filters", "ajtwin._jax", "ajtwin._aot", "jax", "jaxlib")
+
+
+def _engine_model_names() -> set[str]:
+    """The names ``ajtwin.model`` re-exports from its vocabulary and limits modules."""
+    names = set()
+    for module in ENGINE_MODEL_MODULES:
+        tree = ast.parse((SRC / (module.replace(".", "/") + ".py")).read_text(encoding="utf-8"))
+        for node in tree.body:
+            targets = node.targets if isinstance(node, ast.Assign) else []
+            if isinstance(node, ast.AnnAssign):
+                targets = [node.target]
+            names |= {t.id for t in targets if isinstance(t, ast.Name)}
+            if isinstance(node, ast.ClassDef | ast.FunctionDef):
+                names.add(node.name)
+    return names
+
+
+def test_the_engine_only_wires():
+    """engine/ computes nothing: no model internals (the vocabulary in ``model/names.py``
+    and the limits aside), not the filter, nothing jitted of its own."""
+    vocabulary = _engine_model_names()
+    found = []
+    for module, path, tree in _modules():
+        if not module.startswith("ajtwin.engine"):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [(alias.name, None) for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                targets = [(node.module, [alias.name for alias in node.names])]
+            else:
+                continue
+            for target, names in targets:
+                where = f"{path.relative_to(SRC)}:{node.lineno} imports {target}"
+                if any(target == f or target.startswith(f + ".") for f in ENGINE_FORBIDDEN):
+                    found.append(where)
+                elif target == "ajtwin.model":
+                    extra = sorted(set(names or ["*"]) - vocabulary)
+                    if extra:
+                        found.append(f"{where} ({', '.join(extra)})")
+                elif target.startswith("ajtwin.model.") and target not in ENGINE_MODEL_MODULES:
+                    found.append(where)
+    assert not found, "the engine reaches into the model or the filter:\n" + "\n".join(found)

@@ -31,6 +31,7 @@ from ajtwin.estimation.online import OnlineTwin  # noqa: E402
 from ajtwin.estimation.samples import Sample  # noqa: E402
 from ajtwin.live.link import (  # noqa: E402
     OpcUaLink,
+    OpcUaLogin,
     RowQueue,
     fault_text,
     new_rows,
@@ -220,8 +221,9 @@ def test_a_server_that_never_answers_is_said_in_words(tmp_path):
     """An empty TimeoutError was logged and published as "TimeoutError: "."""
     with Machine("silent") as m:
         link, _, _ = follow(
-            m.url, tmp_path / "r.sqlite", within_s=8, timeout_s=1.0, max_backoff_s=0.5
-        )
+            m.url, tmp_path / "r.sqlite", within_s=8, login=OpcUaLogin(timeout_s=1.0),
+            max_backoff_s=0.5,
+        )  # fmt: skip
     assert link.reconnects >= 1
     # the log line's text (the dashboard's link state carries the same reason)
     assert link.status.startswith(

@@ -14,7 +14,7 @@ asyncua = pytest.importorskip("asyncua")
 
 from ajtwin.engine.fleet import LiveEngine  # noqa: E402
 from ajtwin.engine.messages import LinkMessage, LinkState  # noqa: E402
-from ajtwin.live.link import OpcUaLink  # noqa: E402
+from ajtwin.live.link import OpcUaLink, OpcUaLogin  # noqa: E402
 from ajtwin.web.pages import fleet_rows  # noqa: E402
 from ajtwin.web.publisher import LivePublisher  # noqa: E402
 
@@ -42,7 +42,7 @@ def test_unreachable_server_is_published_as_reconnecting_with_attempts():
     messages: list[dict] = []
     engine.subscribe(lambda m: messages.append(m.to_dict()))
     engine.subscribe(publisher.publish_engine)
-    link = OpcUaLink(url, ["m1", "m2"], engine, max_backoff_s=1.5, timeout_s=2.0)
+    link = OpcUaLink(url, ["m1", "m2"], engine, max_backoff_s=1.5, login=OpcUaLogin(timeout_s=2.0))
 
     async def main():
         stop = asyncio.Event()
@@ -95,7 +95,7 @@ def test_server_gone_and_back_reconnected_with_gap_and_health_linkstatus():
     engine = LiveEngine(twin_overrides=NO_STEPS)
     messages: list[dict] = []
     engine.subscribe(lambda m: messages.append(m.to_dict()))
-    link = OpcUaLink(url, ["m1"], engine, max_backoff_s=0.3, timeout_s=2.0)
+    link = OpcUaLink(url, ["m1"], engine, max_backoff_s=0.3, login=OpcUaLogin(timeout_s=2.0))
 
     async def wait_for(predicate, timeout_s, what):
         deadline = time.monotonic() + timeout_s

@@ -171,7 +171,7 @@ def test_security_refusals_and_setpoints(tmp_path):
     from asyncua import Client, ua
 
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.live.link import LinkRefused, OpcUaLink
+    from ajtwin.live.link import LinkRefused, OpcUaLink, OpcUaLogin
     from ajtwin.live.printer_server import PrinterServer, VirtualMachine, ensure_certificate
 
     port = _free_port()
@@ -202,7 +202,8 @@ def test_security_refusals_and_setpoints(tmp_path):
         security = "Basic256Sha256_SignAndEncrypt"
 
         def link(**kw):
-            return OpcUaLink(url, ["m1"], LiveEngine(asynchronous=False), timeout_s=4, **kw)
+            login = OpcUaLogin(timeout_s=4, **kw)
+            return OpcUaLink(url, ["m1"], LiveEngine(asynchronous=False), login=login)
 
         try:
             # no encryption: the server offers none

@@ -437,8 +437,8 @@ def test_machine_show_and_the_dashboard_say_how_well_phi_is_known(tmp_path, pinn
 
     from ajtwin.cli import main
     from ajtwin.engine.commissioning import Commissioning, save_commissioning
+    from ajtwin.engine.views import care_fields
     from ajtwin.store.registry import Registry
-    from ajtwin.web.data import care_fields
 
     _, results = pinned_commissionings
     store = tmp_path / "r.sqlite"

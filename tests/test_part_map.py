@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ajtwin.engine.part_map import (
+from ajtwin.apps.quality.part_map import (
     PORTION_COLUMNS,
     Tolerance,
     build_part_map,
@@ -20,7 +20,7 @@ from ajtwin.engine.part_map import (
     place_alarms,
     smoothed_run,
 )
-from ajtwin.engine.part_report import write_report
+from ajtwin.apps.quality.report import write_report
 from ajtwin.estimation.part_line import block_size, line_at
 from ajtwin.estimation.print_time import program_for_record
 from ajtwin.job import read_program_text

@@ -11,12 +11,13 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.apps.quality.live_map import LivePartMap
+from ajtwin.apps.quality.part_map import Tolerance, portion_table, sample_points
 from ajtwin.cli.ingest import ingest
 from ajtwin.cli.job import job as job_group
 from ajtwin.cli.machine import machine
 from ajtwin.engine.ingest import ingest_record
-from ajtwin.engine.part_live import LivePartMap, follow_engine
-from ajtwin.engine.part_map import Tolerance, portion_table, sample_points
+from ajtwin.engine.part_live import follow_engine
 from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.io.records import write_record
 from ajtwin.simulation import run_job_print, simulate

@@ -63,8 +63,8 @@ def shots(tmp_path_factory):
 def job_registry(tmp_path_factory):
     """'lab1' printed the public program for 6 min (clog from 3 min), ingested with its job
     and a tolerance; 'lab2' printed without a job."""
+    from ajtwin.apps.quality.part_map import Tolerance
     from ajtwin.engine.ingest import ingest_record
-    from ajtwin.engine.part_map import Tolerance
     from ajtwin.engine.print_job import job_entry
     from ajtwin.simulation import run_job_print, simulate
     from ajtwin.store.registry import Registry
@@ -146,7 +146,7 @@ def live_job_print_work_s():
     """The live job print's twin, detectors and part map run once here first, so the server
     finds their compiled programs in the persistent cache (the same AJTWIN_CACHE_DIR) instead
     of compiling them against the page's clock; returns the wall time of a warm run [s]."""
-    from ajtwin.engine.part_map import parse_tolerance
+    from ajtwin.apps.quality.part_map import parse_tolerance
     from ajtwin.engine.replay import VirtualPrintFeed
 
     feed = VirtualPrintFeed(None, "vm-job", "nozzle_clog", seed=1, minutes=4, onset_min=2,

@@ -95,7 +95,7 @@ def test_tls_options_reach_libpq(pg_store):
 
 # ---------------------------------------------------------------------- roles and schemas
 def test_a_read_only_role_serves_the_dashboard_and_is_refused_writes(postgres_server, pg_store):
-    from ajtwin.web.data import RegistryView
+    from ajtwin.engine.views import RegistryView
 
     owner = Registry(pg_store)
     owner.add_machine("lab1")
@@ -218,8 +218,9 @@ def own_server():
 
 
 def test_a_live_twin_rides_out_a_server_restart_and_loses_nothing(own_server, caplog):
-    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.engine.samples import Sample
+
+    from ajtwin.engine.fleet import LiveEngine
     from ajtwin.simulation import simulate
 
     url = new_schema(own_server)

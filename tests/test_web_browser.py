@@ -175,7 +175,7 @@ def test_new_print_appears_without_reload(server, page):
 
 def test_whatif_forecast_and_advice(server, registry, page, shots):
     from ajtwin.apps.planning.forecast import Change, forecast, input_schedule
-    from ajtwin.web.data import RegistryView
+    from ajtwin.engine.views import RegistryView
 
     page.goto(server.page_url("/whatif/lab1"))
     page.fill("#horizon", "10min")
@@ -411,10 +411,10 @@ def test_machine_page_of_a_90_min_print(browser, tmp_path, shots):
     """A 90-min print with a nozzle clog from 60 min (docs/dashboard/machine_90min.png): the
     figures are decimated to at most MAX_POINTS points, the clog is found after its onset."""
     from ajtwin.engine.ingest import ingest_record
+    from ajtwin.engine.views import MAX_POINTS
     from ajtwin.io.records import write_record
     from ajtwin.simulation import simulate
     from ajtwin.store.registry import Registry
-    from ajtwin.web.data import MAX_POINTS
 
     record = simulate(
         "nozzle_clog", seed=3, duration_min=90.0, overrides={"fault": {"onset_min": 60}}

@@ -11,10 +11,10 @@ from click.testing import CliRunner
 
 from ajtwin.apps.detection.streaming import AnomalyEvent
 from ajtwin.cli.dashboard import dashboard
+from ajtwin.engine.views import MAX_POINTS, RegistryView, binned_max, decimate, json_list
 from ajtwin.store.registry import NewPrint, Registry, RegistryError
 from ajtwin.web.access import check_access, is_loopback
 from ajtwin.web.app import InputError, parse_advise_request, parse_forecast_request
-from ajtwin.web.data import MAX_POINTS, RegistryView, binned_max, decimate, json_list
 from ajtwin.web.publisher import LivePublisher
 from ajtwin.web.watcher import RegistryWatcher
 

@@ -241,7 +241,9 @@ def _control_live(
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.apps.planning.mpc import ControlSettings, TargetError
+    from ajtwin.apps.planning.supervisor import ControlTarget
     from ajtwin.live.control_link import ControlLink, LinkRefused
+    from ajtwin.live.link import OpcUaLogin
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -277,18 +279,15 @@ def _control_live(
         job_options = {}
         if job is not None:
             engine, dashboard, job_options = _job_engine(machine, job, store)
+        goal = ControlTarget(target, max_overspray, limits, settings, vial_fill_ml)
         link = ControlLink(
             url,
             machine,
-            target,
-            limits=limits,
-            settings=settings,
-            max_overspray_um=max_overspray,
-            on_decision=show,
-            vial_fill_ml=vial_fill_ml,
+            goal,
+            login=OpcUaLogin(**login),
             engine=engine,
+            on_decision=show,
             **job_options,
-            **login,
         )
         asyncio.run(link.run())
     except TargetError as exc:
@@ -318,8 +317,10 @@ def _job_engine(machine, job: dict, store):
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.cli.live import _follow_parts
     from ajtwin.cli.options import job_speeds, open_registry
+    from ajtwin.engine.control import CameraOnJob
     from ajtwin.engine.fleet import LiveEngine
     from ajtwin.engine.print_job import entry_job, job_entry
+    from ajtwin.simulation.job_print import load_camera_defaults
 
     speeds = job_speeds(job["process_speed"])
     entry = job_entry(
@@ -343,10 +344,13 @@ def _job_engine(machine, job: dict, store):
         _follow_parts(engine, publisher, [machine], entry, job["tolerance"])
         dashboard = BackgroundServer(engine.registry.path, publisher, port=job["dashboard_port"])
         click.echo(f"dashboard: open {dashboard.url}", err=True)
-    options = {"job": entry_job(entry), "camera_mode": job["camera_mode"]}
+    offset = (0.0, 0.0)
     if job["offset_mm"] is not None:
-        options["camera_offset_mm"] = job["offset_mm"]
-    return engine, dashboard, options
+        offset = tuple(job["offset_mm"])
+    elif job["camera_mode"] == "trailing":
+        offset = tuple(load_camera_defaults()["offset_mm"])
+    camera = CameraOnJob(job["camera_mode"], offset)
+    return engine, dashboard, {"job": entry_job(entry), "camera": camera}
 
 
 @control.command()

@@ -234,7 +234,7 @@ def _bars(progress: bool):
 def _echo_part_report(part, paths) -> None:
     """What `job report` prints: the headline, the worst flagged portions, the files."""
     # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.engine.part_report import summary_facts
+    from ajtwin.apps.quality.report import summary_facts
 
     facts = summary_facts(part)
     tolerance = part.tolerance.text if part.tolerance else "none (nothing flagged)"
@@ -366,8 +366,8 @@ def report(
     print. Writes OUT/strokes.csv, OUT/part.png and OUT/report.html.
     """
     # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.engine.part_map import part_map_of_record
-    from ajtwin.engine.part_report import write_report
+    from ajtwin.apps.quality.part_map import part_map_of_record
+    from ajtwin.apps.quality.report import write_report
     from ajtwin.engine.print_job import load_stored_print, map_stored_print, next_print_twin
     from ajtwin.estimation.print_time import program_for_record
     from ajtwin.io.records import RecordError, read_record

@@ -102,7 +102,7 @@ def live(
 
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.live.link import LinkRefused, OpcUaLink, follow_csv
+    from ajtwin.live.link import LinkRefused, OpcUaLink, OpcUaLogin, follow_csv
 
     configure_logging(verbose)
     if (url is None) == (follow is None):
@@ -169,12 +169,14 @@ def live(
                 url,
                 list(machines),
                 engine,
-                username=username,
-                password=password,
-                security=security,
-                certificate=certificate,
-                private_key=private_key,
-                server_certificate=server_certificate,
+                login=OpcUaLogin(
+                    username=username,
+                    password=password,
+                    security=security,
+                    certificate=certificate,
+                    private_key=private_key,
+                    server_certificate=server_certificate,
+                ),
                 max_backoff_s=max_backoff,
             )
             asyncio.run(link.run())
@@ -196,7 +198,8 @@ def live(
 def _follow_parts(engine, publisher, machines, entry: dict, tolerance) -> None:
     """Each machine's live part map, fed by the engine and published to the dashboard."""
     # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.engine.part_live import LivePartMap, follow_engine
+    from ajtwin.apps.quality.live_map import LivePartMap
+    from ajtwin.engine.part_live import follow_engine
     from ajtwin.engine.print_job import entry_job
 
     the_job = entry_job(entry)

@@ -107,14 +107,14 @@ def join_options(filled: str, suffix: str, must_exist: bool = False):
 
 class ToleranceType(click.ParamType):
     """A linewidth tolerance: ``45±3``, ``45+-3`` or ``42:48`` [µm]
-    (:func:`ajtwin.engine.part_map.parse_tolerance`)."""
+    (:func:`ajtwin.apps.quality.part_map.parse_tolerance`)."""
 
     name = "tolerance"
 
     def convert(self, value, param, ctx):
-        """The value as a :class:`~ajtwin.engine.part_map.Tolerance`, else a click error."""
+        """The value as a :class:`~ajtwin.apps.quality.part_map.Tolerance`, else a click error."""
         # lazy CLI loading: the part map's module loads JAX; --help must not
-        from ajtwin.engine.part_map import Tolerance, parse_tolerance
+        from ajtwin.apps.quality.part_map import Tolerance, parse_tolerance
 
         if isinstance(value, Tolerance):
             return value

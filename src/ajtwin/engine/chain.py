@@ -27,7 +27,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from ajtwin.model import load_parameters
 from ajtwin.model.limits import StateLimits
 from ajtwin.store.registry import STATUS_EXCLUDED, STATUS_OK, Registry
 
@@ -38,7 +37,7 @@ BETWEEN_PRINT_STD = {"droplet_diameter_um": 0.2, "aerosol_fraction_relative": 0.
 @lru_cache(maxsize=1)
 def state_limits():
     """The shared physical state range (``data/state_limits.toml``), loaded once."""
-    return StateLimits.load(load_parameters())
+    return StateLimits.default()
 
 
 def state_violations(x) -> list[str]:

@@ -35,8 +35,6 @@ from ajtwin.estimation.commission import (
     unpinned_aerosol_level,
 )
 from ajtwin.estimation.twin import Twin
-from ajtwin.model import OUTPUT_NAMES
-from ajtwin.model.calibration import write_calibration_file
 from ajtwin.store.calibration import save_calibration
 
 
@@ -178,12 +176,4 @@ def save_commissioning(registry, machine: str, commissioning: Commissioning, sou
 
 def write_calibration(path, result: CommissioningResult, provenance: dict) -> Path:
     """Write a commissioning's calibration (with covariance and noise factors) as TOML."""
-    return write_calibration_file(
-        path,
-        result.calibration,
-        result.std,
-        provenance,
-        covariance=result.calibration_cov,
-        noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(result.noise_factors).tolist())),
-        aerosol_level=result.aerosol_level,
-    )
+    return result.write_toml(path, provenance)

@@ -19,9 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.engine.chain import chain_start
-from ajtwin.engine.commissioning import calibration_twin_kwargs
-from ajtwin.engine.part_map import (
+from ajtwin.apps.quality.part_map import (
     FLAG_PROBABILITY,
     PORTION_MM,
     STEP_MM,
@@ -29,6 +27,8 @@ from ajtwin.engine.part_map import (
     Tolerance,
     build_part_map,
 )
+from ajtwin.engine.chain import chain_start
+from ajtwin.engine.commissioning import calibration_twin_kwargs
 from ajtwin.engine.start import machine_start
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin

@@ -23,7 +23,7 @@ rate_hz : float, samples published per wall-clock second (1 = real time)
 wait_for_viewer_s : float, hold the replay until a page subscribes (at most this long)
 job : str or Path, optional, a machine program: the virtual printer prints it (looped to
     the print's length, the default trailing camera) and the part map fills in as the print
-    goes (:class:`ajtwin.engine.part_live.LivePartMap`; the publisher then also needs
+    goes (:class:`ajtwin.apps.quality.live_map.LivePartMap`; the publisher then also needs
     ``open_part`` and ``publish_part``)
 tolerance : Tolerance, optional, the part's linewidth tolerance (with ``job``)
 
@@ -44,7 +44,7 @@ import numpy as np
 
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.settings import cusum_thresholds
-from ajtwin.engine.part_live import LivePartMap
+from ajtwin.apps.quality.live_map import LivePartMap
 from ajtwin.estimation import Twin
 from ajtwin.simulation import load_scenario, run_job_print, simulate
 

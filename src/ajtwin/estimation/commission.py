@@ -56,8 +56,9 @@ from ajtwin.model.calibration import (
     CalibratedCoefficients,
     Calibration,
     calibration_from_vector,
+    write_calibration_file,
 )
-from ajtwin.model.names import N_STATES, STATE_NAMES
+from ajtwin.model.names import N_STATES, OUTPUT_NAMES, STATE_NAMES
 from ajtwin.model.system import (
     aerosol_level_theta,
     check_input,
@@ -120,6 +121,19 @@ class CommissioningResult:
     #: generation prior), ``theta_per_s`` (θ_φA that holds λ at the print's last inputs),
     #: ``generation_prior_std``
     aerosol_level: dict = field(default_factory=dict)
+
+    def write_toml(self, path, provenance: dict):
+        """Write the calibration (with covariance, noise factors and φ_A's level) as TOML
+        (:func:`~ajtwin.model.calibration.write_calibration_file`); the path written."""
+        return write_calibration_file(
+            path,
+            self.calibration,
+            self.std,
+            provenance,
+            covariance=self.calibration_cov,
+            noise_factors=dict(zip(OUTPUT_NAMES, np.asarray(self.noise_factors).tolist())),
+            aerosol_level=self.aerosol_level,
+        )
 
     def table(self) -> list[dict]:
         """One row per parameter: value, standard error, prior σ, determined."""

@@ -498,9 +498,7 @@ class OnlineTwin:
                 return []
             gap = n - 1
             if gap:
-                log.info(
-                    "%s: %d s gap before t = %g s; treated as missing data", self.name, gap, t
-                )
+                log.info("%s: %d s gap before t = %g s; treated as missing data", self.name, gap, t)
                 self.missing_inserted += gap
             sample = sample._replace(time_s=self.last_time + n)
         else:

@@ -35,6 +35,7 @@ import json
 import logging
 import time
 from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 from asyncua import Client, ua
@@ -82,6 +83,25 @@ class LinkRefused(RuntimeError):
     """The server refused us for good (credentials, certificate, policy)."""
 
 
+@dataclass(frozen=True)
+class OpcUaLogin:
+    """How a client logs in to an OPC UA server.
+
+    ``username``/``password``: an authenticated session (set-points are written only by
+    one); ``security``: a policy such as ``Basic256Sha256_SignAndEncrypt`` (needs
+    ``certificate`` (DER/PEM) and ``private_key`` (PEM)); ``server_certificate``: pin the
+    server's certificate; ``timeout_s``: a request's longest wait.
+    """
+
+    username: str | None = None
+    password: str | None = field(default=None, repr=False)
+    security: str | None = None
+    certificate: object = None
+    private_key: object = None
+    server_certificate: object = None
+    timeout_s: float = 4.0
+
+
 class OpcUaLink:
     """Follow machines on one OPC UA server (see module docstring).
 
@@ -92,13 +112,8 @@ class OpcUaLink:
     machines : list of str
         Machine names under ``Machines/``.
     engine : LiveEngine
-    username, password : str, optional
-    security : str, optional
-        e.g. ``Basic256Sha256_SignAndEncrypt`` (needs ``certificate``, ``private_key``).
-    certificate, private_key : path, optional
-        Our certificate (DER/PEM) and key (PEM).
-    server_certificate : path, optional
-        Pin the server's certificate.
+    login : OpcUaLogin, optional
+        How to log in (default: anonymous, no security).
     publish_ms : int
         Subscription publishing interval.
     max_backoff_s : float
@@ -113,28 +128,18 @@ class OpcUaLink:
         machines: list[str],
         engine: LiveEngine,
         *,
-        username: str | None = None,
-        password: str | None = None,
-        security: str | None = None,
-        certificate=None,
-        private_key=None,
-        server_certificate=None,
+        login: OpcUaLogin | None = None,
         publish_ms: int = 100,
         max_backoff_s: float = 10.0,
         close_finished: bool = True,
-        timeout_s: float = 4.0,
     ):
         self.url = url
         self.machines = list(machines)
         self.engine = engine
-        self.username, self.password = username, password
-        self.security = security
-        self.certificate, self.private_key = certificate, private_key
-        self.server_certificate = server_certificate
+        self.login = login or OpcUaLogin()
         self.publish_ms = int(publish_ms)
         self.max_backoff_s = float(max_backoff_s)
         self.close_finished = close_finished
-        self.timeout_s = float(timeout_s)
         self.status = "starting"
         self.finished: set[str] = set()
         self.last_time: dict[str, float] = {}
@@ -182,7 +187,7 @@ class OpcUaLink:
                     self._announce("refused", reason=refusal)
                     raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
                 self.engine.flush()
-                reason = fault_text(exc, self.url, self.timeout_s)
+                reason = fault_text(exc, self.url, self.login.timeout_s)
                 self._set_status(
                     f"disconnected ({reason}); reconnecting in {backoff:g} s", logging.WARNING
                 )
@@ -203,19 +208,22 @@ class OpcUaLink:
 
     async def _client(self):
 
-        client = Client(self.url, timeout=self.timeout_s)
+        client = Client(self.url, timeout=self.login.timeout_s)
         client.session_timeout = 30000
-        if self.username:
-            client.set_user(self.username)
-            client.set_password(self.password or "")
-        if self.security:
+        if self.login.username:
+            client.set_user(self.login.username)
+            client.set_password(self.login.password or "")
+        if self.login.security:
             await client.set_security_string(
                 security_string(
-                    self.security, self.certificate, self.private_key, self.server_certificate
+                    self.login.security,
+                    self.login.certificate,
+                    self.login.private_key,
+                    self.login.server_certificate,
                 )
             )
             client.application_uri = "urn:ajtwin:live-client"
-        elif self.certificate:
+        elif self.login.certificate:
             raise LinkRefused("--certificate given without --security")
         return client
 

@@ -26,7 +26,7 @@ import numpy as np
 from ajtwin import units
 from ajtwin.config import load_toml
 from ajtwin.model.names import STATE_NAMES
-from ajtwin.model.parameters import PhysicalParameters
+from ajtwin.model.parameters import PhysicalParameters, load_parameters
 
 _DISPLAY_UNIT = ("µm", "mL", "µm", "µm", "")
 
@@ -63,6 +63,11 @@ class StateLimits:
     lower: np.ndarray
     upper: np.ndarray
     provenance: dict
+
+    @classmethod
+    def default(cls) -> StateLimits:
+        """The packaged ranges on the packaged machine's parameters."""
+        return cls.load(load_parameters())
 
     @classmethod
     def load(cls, params: PhysicalParameters, path: str | Path | None = None) -> StateLimits:

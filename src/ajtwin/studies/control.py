@@ -22,12 +22,12 @@ import numpy as np
 from ajtwin.apps.planning.closed_loop import STRATEGIES
 from ajtwin.apps.planning.mpc import ControlSettings
 from ajtwin.apps.planning.strategies import start_inputs
-from ajtwin.engine.control import simulate_strategy
 from ajtwin.estimation.twin import Twin
 from ajtwin.io.records import write_record
 from ajtwin.job import SpeedSchedule
 from ajtwin.model.names import INPUT_NAMES
 from ajtwin.simulation.job_print import CameraSettings, read_job
+from ajtwin.studies.closed_loop import simulate_strategy
 
 #: the drift scenarios of the comparison; slow_clog ships with the controller
 DRIFT_SCENARIOS = ("exp1", "clean_long", "ink_running_low", "slow_clog")
@@ -76,7 +76,7 @@ class JobSetup:
         }
 
     def kwargs(self) -> dict:
-        """Keywords of :func:`ajtwin.engine.control.simulate_strategy`."""
+        """Keywords of :func:`ajtwin.studies.closed_loop.simulate_strategy`."""
         return {"job": self.job, "camera": self.camera, "repeat_pitch_mm": self.repeat_pitch_mm}
 
 
@@ -156,7 +156,7 @@ def run_seed(scenario, seed, strategies, target_um, records_dir, options, log=pr
     """Every strategy on one print (scenario, seed): each run's record and commands written
     to ``records_dir/<scenario>/seed<N>/``. Returns (the scenario's name, {strategy: run}).
 
-    ``options``: keywords of :func:`ajtwin.engine.control.simulate_strategy`.
+    ``options``: keywords of :func:`ajtwin.studies.closed_loop.simulate_strategy`.
     """
     runs = {}
     name = str(scenario)

@@ -29,8 +29,8 @@ import time
 import numpy as np
 
 from ajtwin.apps.planning.strategies import start_inputs
-from ajtwin.engine.control import simulate_strategy
 from ajtwin.estimation import Twin
+from ajtwin.studies.closed_loop import simulate_strategy
 
 CASES = {
     "default": {},

@@ -6,7 +6,7 @@ seeds) three times per machine: with the packaged ``nozzle_clog`` fault (deposit
 from 60 min), with a faster clog (× 300 from 60 min: the packaged one widens the line by
 0–4 µm by the print's end, no more than the line's own wander on most machines), and
 clean (``exp1``, the same inputs without the fault). The twin maps each print's part as
-the print ran (:func:`ajtwin.engine.part_map.part_map_of_record` with the program read from
+the print ran (:func:`ajtwin.apps.quality.part_map.part_map_of_record` with the program read from
 the record, :func:`ajtwin.estimation.print_time.program_for_record`: the default trailing
 camera's frames filed at their print times) and the map is judged against the true line
 at the sample points' print times
@@ -46,8 +46,8 @@ import click
 import numpy as np
 import pandas as pd
 
-from ajtwin.engine.part_map import Tolerance, part_map_of_record
-from ajtwin.engine.part_report import plot_part_map
+from ajtwin.apps.quality.part_map import Tolerance, part_map_of_record
+from ajtwin.apps.quality.report import plot_part_map
 from ajtwin.estimation import Twin
 from ajtwin.estimation.print_time import program_for_record
 from ajtwin.model import load_parameters

@@ -9,7 +9,7 @@ to open pages over a websocket. Updates come from two sources:
 * an in-process publisher (:class:`ajtwin.web.publisher.LivePublisher`) that a live
   engine calls once per sample.
 
-Everything the pages need is read through :mod:`ajtwin.web.data` (one adapter between
+Everything the pages need is read through :mod:`ajtwin.engine.views` (one adapter between
 the registry's schema and the pages). Nothing here computes physics: forecasts and advice
 call :mod:`ajtwin.apps.planning.forecast` and :mod:`ajtwin.apps.planning.advice`, the functions
 behind

@@ -52,10 +52,8 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.planning.advice import advise
 from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, parse_duration
-from ajtwin.engine.part_map import parse_tolerance
-from ajtwin.store.registry import RegistryError
-from ajtwin.web import pages
-from ajtwin.web.data import (
+from ajtwin.apps.quality.part_map import parse_tolerance
+from ajtwin.engine.views import (
     KEY_STATES,
     NAMES,
     STATE_SCALE,
@@ -64,6 +62,8 @@ from ajtwin.web.data import (
     headline_alarm,
     json_list,
 )
+from ajtwin.store.registry import RegistryError
+from ajtwin.web import pages
 from ajtwin.web.publisher import LivePublisher, event_text
 from ajtwin.web.watcher import RegistryWatcher
 

@@ -128,7 +128,7 @@ def link_badge(link: dict) -> str:
 
 def alarm_cell_html(alarm: dict | None, others: list[dict]) -> str:
     """The fleet's alarm cell: the headline (the first unresolved fault,
-    :func:`ajtwin.web.data.headline_alarm`) and the print's other alarms beneath it."""
+    :func:`ajtwin.engine.views.headline_alarm`) and the print's other alarms beneath it."""
     if not alarm:
         return '<span class="dim">none</span>'
     where = f"print #{alarm['seq']}, " if alarm.get("seq") else "live, "

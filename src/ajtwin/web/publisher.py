@@ -30,7 +30,7 @@ A machine link's state (``ajtwin live``: connected, reconnecting since T, …; s
 ``{"type": "link", "machine", "link": {…, "text"}}``; ``text`` (:func:`link_text`) is
 what the pages show.
 
-A live print of a job also has a part map (:mod:`ajtwin.engine.part_live`): its outline
+A live print of a job also has a part map (:mod:`ajtwin.apps.quality.live_map`): its outline
 first (:meth:`LivePublisher.open_part`, event ``{"type": "part_outline", "machine", "part"}``),
 then a chunk per step that finished portions (:meth:`LivePublisher.publish_part`, event
 ``{"type": "part", "machine", "chunk"}``); the publisher keeps them so a page opened
@@ -59,8 +59,8 @@ from collections import deque
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 from ajtwin.engine.messages import FinishedMessage, LinkMessage, Message, StepMessage
+from ajtwin.engine.views import detector_thresholds
 from ajtwin.model.names import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES
-from ajtwin.web.data import detector_thresholds
 
 
 def link_text(link: dict | None) -> str:
@@ -288,7 +288,7 @@ class LivePublisher:
 
     def open_part(self, machine: str, part: dict) -> None:
         """The part map of the machine's live print starts: its outline and tolerance
-        (:meth:`ajtwin.engine.part_live.LivePartMap.header`); the previous map is dropped."""
+        (:meth:`ajtwin.apps.quality.live_map.LivePartMap.header`); the previous map is dropped."""
         if not isinstance(part, dict):
             raise ValueError(f"a part map is a dict, got {type(part).__name__}")
         part = _clean({**part, "portions": None, "points": None, "alarms": []})

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 
 class RegistryWatcher:
-    """Poll a :class:`~ajtwin.web.data.RegistryView` for commits (module docstring)."""
+    """Poll a :class:`~ajtwin.engine.views.RegistryView` for commits (module docstring)."""
 
     def __init__(self, view, publisher, poll_s: float = 0.5):
         if not poll_s > 0:

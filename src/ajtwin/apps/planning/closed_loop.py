@@ -2,9 +2,9 @@
 
 The virtual printer (:class:`ajtwin.simulation.stepper.SteppedPrinter`) prints a period of
 ``period_s`` seconds under the command in force; the controller (a strategy of
-:mod:`ajtwin.apps.planning.strategies`, or the MPC on the streaming twin,
-:class:`ajtwin.engine.control.MPCTwin`) sees the reported inputs and the measured outputs
-of that period and issues the next command. Every command passes
+:mod:`ajtwin.apps.planning.strategies`, or the MPC on the twin,
+:class:`ajtwin.apps.planning.twin_control.MPCTwin`) sees the reported inputs and the measured
+outputs of that period and issues the next command. Every command passes
 :func:`ajtwin.apps.planning.mpc.clip_command` (limits and rate limits), and the whole run
 is checked against them afterwards (:func:`run_closed_loop`).
 

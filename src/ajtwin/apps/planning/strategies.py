@@ -3,7 +3,7 @@ linewidth, and the MPC on the nominal model — each sees only what a real contr
 would (the reported inputs and the measured outputs of the last period) and issues the
 next command (:class:`Decision`). All start from the same inputs: the advice for the
 target on the nominal model (:func:`start_inputs`). The MPC on the streaming twin is the
-engine's (:class:`ajtwin.engine.control.MPCTwin`).
+engine's (:class:`ajtwin.apps.planning.twin_control.MPCTwin`).
 
 ``open_loop``
     the start inputs, held for the whole print;

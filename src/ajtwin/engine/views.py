@@ -39,20 +39,18 @@ from ajtwin import units
 from ajtwin.apps.detection.batch import detect_anomalies
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
+from ajtwin.apps.quality.live_map import part_payload
 from ajtwin.engine.commissioning import aerosol_level
 from ajtwin.engine.ingest import detector_inputs as stored_detector_inputs
-from ajtwin.engine.part_live import part_payload
 from ajtwin.engine.print_job import load_stored_print, map_stored_print
 from ajtwin.engine.start import machine_twin
 from ajtwin.estimation.commission import aerosol_level_note
 from ajtwin.io.records import read_record
-from ajtwin.model.calibration import CALIBRATION_NAMES, calibration_to_dict
-from ajtwin.model.names import INPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.model.names import INPUT_SYMBOLS, OUTPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
 from ajtwin.store import queries
 from ajtwin.store.calibration import active_calibration, maintenance_history
 from ajtwin.store.registry import Registry, RegistryError
 
-OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
 #: the units a page shows the states in (φ_A, a volume fraction, in ppm by volume) ...
 STATE_UNITS = ("µm", "mL", "µm", "µm", "ppm")
 #: ... and the factor from the model's units (display units of model reference §3) to them
@@ -178,7 +176,7 @@ def care_fields(registry, name: str) -> dict:
         "relative_std": None if level is None else level.get("relative_std"),
     }
     if active is not None:
-        values = calibration_to_dict(active["calibration"])
+        values = active["calibration"]._asdict()
         out["commissioned_at"] = active["created_at"]
         out["calibration"] = {
             "id": int(active["id"]),
@@ -193,7 +191,7 @@ def care_fields(registry, name: str) -> dict:
                     else float(active["std"][key]),
                     "determined": bool(active["determined"].get(key, False)),
                 }
-                for key in CALIBRATION_NAMES
+                for key in values
             ],
         }
     events = maintenance_history(registry, name)
@@ -464,7 +462,7 @@ class RegistryView:
 
     def part_map(self, name: str, seq: int, tolerance=None) -> dict:
         """The part map of a stored print as the page draws it
-        (:func:`ajtwin.engine.part_live.part_payload`): read under the lock, mapped (the
+        (:func:`ajtwin.apps.quality.live_map.part_payload`): read under the lock, mapped (the
         twin re-run, seconds to a minute) outside it; kept for the next viewer.
         ``tolerance``: instead of the one stored with the print's job."""
         key = (name, int(seq), None if tolerance is None else tuple(tolerance))

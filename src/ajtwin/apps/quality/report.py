@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ajtwin.engine.part_map import PartMap
+from ajtwin.apps.quality.part_map import PartMap
 from ajtwin.job.plot import plot_part_values
 
 #: flagged portions listed on the page at most (all are in strokes.csv)

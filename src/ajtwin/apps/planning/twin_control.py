@@ -1,0 +1,188 @@
+"""The MPC on the twin: a strategy that plans from the machine's twin as it runs.
+
+:class:`MPCTwin` gives every sample of a period to a *monitored twin* — the machine's twin
+core fed a sample at a time with the anomaly detectors on its committed steps (the live
+engine's :class:`ajtwin.engine.stream.TwinStream`, whichever process owns it) — and starts
+the MPC from its state now (a job print's provisional state of the newest row), its
+covariance and θ, under the safety rules of :mod:`ajtwin.apps.planning.mpc`. The same class
+steers the virtual printer in closed loop (``ajtwin control simulate``) and a real machine
+over OPC UA (``ajtwin control --opcua``).
+
+What it needs of the monitored twin is :class:`MonitoredTwin`: nothing here builds one.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Protocol
+
+import numpy as np
+
+from ajtwin.apps.detection.causes import CAUSES
+from ajtwin.apps.planning.mpc import (
+    ink_supply_status,
+    mismatch_reasons,
+    vial_level_from_material_flow,
+)
+from ajtwin.apps.planning.strategies import Decision, MPCStrategy, linewidth_variance
+from ajtwin.estimation.samples import Sample
+
+
+class MonitoredTwin(Protocol):
+    """What :class:`MPCTwin` reads of a machine's twin (the engine's ``TwinStream`` is one).
+
+    ``core``: the twin's :class:`~ajtwin.estimation.online.OnlineTwin` (its committed state
+    and recent NIS); ``provisional``: a job print's (time, mean, covariance) now;
+    ``theta``: θ in force; ``detector``: the anomaly detectors (``vial_status``);
+    ``status()``: ("alarm", cause) while an alarm stands.
+    """
+
+    core: object
+    detector: object
+
+    @property
+    def provisional(self): ...
+
+    @property
+    def theta(self) -> np.ndarray: ...
+
+    def feed(self, sample: Sample, provisional: bool = True) -> list: ...
+
+    def refresh_provisional(self) -> list: ...
+
+    def status(self, provisional: bool = False) -> tuple[str, str]: ...
+
+
+class MPCTwin(MPCStrategy):
+    """MPC on the twin: the monitored twin fed every sample, safety rules applied.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As :class:`~ajtwin.apps.planning.strategies.MPCStrategy` (twin, settings, bounds,
+        u0, target, limits, max_overspray_um, job).
+    stream : MonitoredTwin
+        The machine's monitored twin.
+    feed : callable(Sample), optional
+        How a sample reaches it (a live engine's feed, which stores and publishes each
+        step); default ``stream.feed`` without the provisional re-run, which this
+        controller then does once per period, when it plans.
+
+    Besides the safety rules of :mod:`ajtwin.apps.planning.mpc` it watches the ink supply
+    (:func:`ajtwin.apps.planning.mpc.ink_supply_status`: its own ink balance from the measured
+    Q_m and the twin's vial observer). A vial running dry is not controllable with these
+    inputs, so on ``stop`` it latches: the inputs in force are held for the rest of the
+    print (reason ``ink_low: …``) — a refill is maintenance and a new print.
+    """
+
+    name = "mpc_twin"
+
+    def __init__(self, *args, stream: MonitoredTwin, feed=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.stream = stream
+        self._own_stream = feed is None
+        self._feed = feed or functools.partial(self.stream.feed, provisional=False)
+        self.holding = False
+        # the ink balance starts from the fill the twin was told (weighed at the refill)
+        self.vial_fill_ml = float(self.twin.config.vial_fill_ml)
+        calibration = getattr(self.twin, "calibration", None)
+        self.material_flow_gain = (
+            float(calibration.material_flow_gain) if calibration is not None else 1.0
+        )
+        self.material_flow: list[np.ndarray] = []
+        self.ink = None  # the latest InkSupply
+        self.ink_stop: str | None = None  # the latched reason, once stopped
+
+    def observe(self, chunk):
+        """Feed every sample of the period to the twin (with a job print's shutter, platen
+        speed and the camera's print times when the chunk has them)."""
+        job = getattr(chunk, "printed_at_s", None) is not None
+        for k, (t, u, y) in enumerate(zip(chunk.time_s, chunk.inputs, chunk.outputs)):
+            extra = {}
+            if job:
+                extra = dict(
+                    shutter_open=float(chunk.shutter_open[k]),
+                    platen_speed_mm_s=float(chunk.platen_speed_mm_s[k]),
+                    printed_at_s=float(chunk.printed_at_s[k]),
+                )
+            self._feed(Sample(float(t), u, y, **extra))
+        if self._own_stream:
+            self.stream.refresh_provisional()
+        self.material_flow.append(np.asarray(chunk.outputs, dtype=float)[:, 4])
+
+    def state_now(self):
+        """(mean, cov) the MPC plans from: the committed step's, or on a job print the
+        provisional state of the newest row (the steps after the last final one re-run with
+        what the camera has filed so far); None before the twin has a state."""
+        core = self.stream.core
+        provisional = self.stream.provisional
+        if provisional is not None and (
+            core.n_committed == 0 or provisional[0] > core.last_time_committed
+        ):
+            return provisional[1], provisional[2]
+        if core.n_committed == 0:
+            return None
+        return core.last_mean, core.last_cov
+
+    def ink_supply(self):
+        """The ink supply now (:func:`ajtwin.apps.planning.mpc.ink_supply_status`)."""
+        q = np.concatenate(self.material_flow) if self.material_flow else np.array([])
+        balance = vial_level_from_material_flow(
+            q, self.vial_fill_ml, self.material_flow_gain, self.twin.model.params
+        )
+        observer = getattr(getattr(self.stream, "detector", None), "vial_status", None)
+        self.ink = ink_supply_status(balance, observer, self.settings)
+        return self.ink
+
+    def safety(self, mean=None):
+        """Reasons not to act now (empty: act). ``mean``: the state the MPC plans from
+        (default the committed one); before the first final step of a job print only its
+        physical range can be checked (the detectors see steps H s after they are printed)."""
+        core = self.stream.core
+        if core.n_committed == 0:
+            if mean is None:
+                return ["the twin has not started (initial fit pending)"]
+            return self.state_limits.violations(np.asarray(mean))
+        mean = core.last_mean if mean is None else np.asarray(mean)
+        window = self.settings.nis_window_s
+        reasons = mismatch_reasons(
+            mean,
+            core.recent("nis", window),
+            core.recent("n_measured", window),
+            limits=self.state_limits,
+            settings=self.settings,
+            status=getattr(self.stream, "mismatch_status", None),
+        )
+        status, cause = self.stream.status()
+        # 'ink running out' is the ink rule's (ink_supply): it keeps steering while the
+        # vial is inside H's fit and stops for good before it leaves it — no on/off holds
+        if status == "alarm" and cause not in (*self.settings.actionable_causes, "ink_low"):
+            reasons.append(f"alarm the controller cannot act on: {CAUSES.get(cause, cause)}")
+        return reasons
+
+    def decide(self, t, u):
+        """Stop for the ink, hold for a safety reason, else the MPC's command from the twin's
+        state."""
+        if self.ink_stop:
+            # latched: nothing the controller does brings the ink back
+            return Decision(u.copy(), "stop", self.ink_stop)
+        state = self.state_now()
+        if state is None:
+            return Decision(u.copy(), "warm-up", "waiting for the twin's initial fit")
+        mean, cov = state
+        ink = self.ink_supply()
+        if ink.status == "stop":
+            self.ink_stop = f"{ink.reason}; inputs held for the rest of the print (refill)"
+            self.mpc.reset()
+            return Decision(u.copy(), "stop", self.ink_stop)
+        reasons = self.safety(mean)
+        if reasons:
+            self.mpc.reset()
+            return Decision(u.copy(), "hold", "; ".join(reasons))
+        sigma = float(
+            np.sqrt(max(linewidth_variance(self.twin.model.coefficient_matrix[0], mean, cov), 0.0))
+        )
+        decision = self._act(mean, cov, self.stream.theta, u, sigma, t=t)
+        if ink.status == "low":
+            decision.reason = "; ".join(r for r in (decision.reason, ink.reason) if r)
+        return decision

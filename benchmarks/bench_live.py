@@ -83,9 +83,9 @@ def step_latency(pace_s: float = 0.02) -> dict:
 
 def fleet_cost() -> dict:
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.estimation.samples import Sample
     from ajtwin.estimation import Twin
     from ajtwin.estimation.em import run_em
+    from ajtwin.estimation.samples import Sample
     from ajtwin.simulation import simulate
 
     rec = simulate("exp1", seed=4, duration_min=11)

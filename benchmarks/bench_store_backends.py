@@ -34,7 +34,7 @@ def _live_burst(location, records, commit_every_s: float) -> tuple[float, int]:
     """(wall s, steps) of three machines' prints fed to one engine, the live log committed
     every ``commit_every_s``, the prints then stored."""
     from ajtwin.engine.fleet import LiveEngine
-    from ajtwin.engine.samples import Sample
+    from ajtwin.estimation.samples import Sample
     from ajtwin.store.registry import Registry
 
     registry = Registry(location)

@@ -218,9 +218,8 @@ def own_server():
 
 
 def test_a_live_twin_rides_out_a_server_restart_and_loses_nothing(own_server, caplog):
-    from ajtwin.engine.samples import Sample
-
     from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.estimation.samples import Sample
     from ajtwin.simulation import simulate
 
     url = new_schema(own_server)

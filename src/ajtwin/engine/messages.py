@@ -117,6 +117,36 @@ class StepMessage:
         """The events raised at this step."""
         return [e for e in self.events if e.get("state") == "raised"]
 
+    @classmethod
+    def from_dict(cls, data: dict) -> StepMessage:
+        """The message of its JSON form (:meth:`to_dict`; what the live log stores and a
+        dashboard in another process reads back); the covariance from the σ alone."""
+        stds = dict(data["stds"])
+        return cls(
+            machine=str(data["machine"]),
+            step=int(data["step"]),
+            time_s=float(data["time_s"]),
+            provisional=bool(data.get("provisional", False)),
+            states=dict(data["states"]),
+            stds=stds,
+            covariance=np.diag([float(stds[n]) ** 2 for n in STATE_NAMES]),
+            predicted_outputs=dict(data["predicted_outputs"]),
+            measured_outputs=dict(data["measured_outputs"]),
+            inputs=dict(data["inputs"]),
+            nis=float(data["nis"]),
+            n_measured=int(data.get("n_measured", 0)),
+            reinitialised=bool(data.get("reinitialised", False)),
+            theta=dict(data["theta"]),
+            em_running=bool(data.get("em_running", False)),
+            status=str(data.get("status", "")),
+            cause=str(data.get("cause", "")),
+            events=tuple(data.get("events", ())),
+            nis_p=data.get("nis_p"),
+            window_nis_p=data.get("window_nis_p"),
+            cusum=data.get("cusum"),
+            alarms=tuple(data.get("alarms", ())),
+        )
+
     def to_dict(self) -> dict:
         """The JSON-ready message (docs/reference/live-messages.md)."""
         out = {

@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import logging
 
+from ajtwin.engine.messages import StepMessage
 from ajtwin.store import queries
 from ajtwin.store.registry import Registry
 
@@ -57,7 +58,7 @@ class RegistryWatcher:
             held = latest is not None and self.publisher.is_printing(message["machine"])
             if held and float(latest["time_s"]) >= float(message.get("time_s", -1.0)):
                 continue  # this process's own twin published it already
-            self.publisher.publish_engine(message)
+            self.publisher.publish_engine(StepMessage.from_dict(message))
             published += 1
         for machine in ended:
             self.publisher.end_print(machine)

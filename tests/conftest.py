@@ -13,15 +13,11 @@ import json  # noqa: E402
 import shutil  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
-import uuid  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-#: the registry's two databases; every store test runs on both (the ``store`` fixture)
-BACKENDS = ("sqlite", "postgresql")
-#: a superuser connection to the session's server, per worker (makes the tests' schemas)
-_ADMIN: dict = {}
+from store_backends import _ADMIN, BACKENDS, new_schema, on_postgres  # noqa: E402
 
 
 # ---------------------------------------------------------------------- PostgreSQL
@@ -92,18 +88,6 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def new_schema(cluster) -> str:
-    """A new empty schema in the server's ``ajtwin`` database; the URL of a registry in it."""
-    import psycopg
-
-    conn = _ADMIN.get(cluster.port)
-    if conn is None or conn.closed or conn.broken:
-        conn = _ADMIN[cluster.port] = psycopg.connect(cluster.url(), autocommit=True)
-    schema = "t_" + uuid.uuid4().hex[:16]
-    conn.execute(f"CREATE SCHEMA {schema}")
-    return cluster.url("ajtwin", options=f"-csearch_path%3D{schema}")
-
-
 @pytest.fixture(params=BACKENDS)
 def store(request, tmp_path):
     """Where a new, empty registry is: an SQLite file's path, or a PostgreSQL URL (a schema
@@ -119,11 +103,6 @@ def pg_store(request):
     return new_schema(request.getfixturevalue("postgres_server"))
 
 
-def on_postgres(store) -> bool:
-    """Whether a ``store`` fixture value is a PostgreSQL URL."""
-    return str(store).startswith("postgresql://")
-
-
 @pytest.fixture
 def new_store(request, store, tmp_path):
     """A function giving another new, empty registry on the same database as ``store``."""
@@ -136,8 +115,3 @@ def new_store(request, store, tmp_path):
         return tmp_path / f"registry-{made[0]}.sqlite"
 
     return make
-
-
-#: a store test whose PostgreSQL run is long (subprocesses, the twin): `make test-all`
-#: runs it; the default suite keeps its SQLite run
-SLOW_ON_POSTGRES = pytest.param("postgresql", marks=pytest.mark.slow)

@@ -26,7 +26,7 @@ from ajtwin.store.registry import (
     record_hash,
     to_npy,
 )
-from conftest import on_postgres
+from store_backends import on_postgres
 
 #: a store test whose PostgreSQL run is long (subprocesses, the twin): `make test-all` runs it
 _SLOW_ON_POSTGRES = pytest.param("postgresql", marks=pytest.mark.slow)

@@ -18,7 +18,7 @@ from ajtwin.store.archive import export_machine, import_machine
 from ajtwin.store.compaction import compact
 from ajtwin.store.live_log import LiveLog
 from ajtwin.store.registry import Registry
-from conftest import SLOW_ON_POSTGRES, on_postgres
+from store_backends import SLOW_ON_POSTGRES, on_postgres
 
 LIVE_TABLES = {"live_sessions", "live_samples", "live_states", "live_events"}
 FIRST_PRINT = 100  # samples of the finished live print

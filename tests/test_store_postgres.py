@@ -20,7 +20,7 @@ from ajtwin.cli import main
 from ajtwin.store.location import parse_store
 from ajtwin.store.pg_cluster import SECRET_PASSWORD, LocalCluster
 from ajtwin.store.registry import Registry, RegistryError
-from conftest import new_schema
+from store_backends import new_schema
 
 
 def _cli(*args, env=None):

@@ -25,7 +25,7 @@ from ajtwin.store import arrays as A
 from ajtwin.store import registry as R
 from ajtwin.store.database import open_database
 from ajtwin.store.registry import NewPrint, Registry, RegistryError
-from conftest import SLOW_ON_POSTGRES, on_postgres
+from store_backends import SLOW_ON_POSTGRES, on_postgres
 
 #: ajtwin 0.1's registry (schema version 1), verbatim: a registry written by it must open.
 V1_STATEMENTS = """

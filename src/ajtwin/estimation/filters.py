@@ -232,10 +232,15 @@ class EKFStepOutput(NamedTuple):
 
 
 def ekf_init(spec: ModelSpec, prior_mean, prior_cov) -> EKFCarry:
-    """The EKF's carry before step 0: x̂_{0|−1} = prior, scaled; also the reset pair."""
-    s = spec.scaling.state
-    z0 = jnp.asarray(prior_mean, dtype=float) / s
-    p0 = jnp.asarray(prior_cov, dtype=float) / jnp.outer(s, s)
+    """The EKF's carry before step 0: x̂_{0|−1} = prior, scaled; also the reset pair.
+
+    On the host (no traced argument) in NumPy: a run's start and restarts dispatch no JAX
+    operation."""
+    traced = any(isinstance(a, jax.core.Tracer) for a in (prior_mean, prior_cov, *spec.scaling))
+    xp = jnp if traced else np
+    s = xp.asarray(spec.scaling.state)
+    z0 = xp.asarray(prior_mean, dtype=float) / s
+    p0 = xp.asarray(prior_cov, dtype=float) / xp.outer(s, s)
     return EKFCarry(z0, p0, z0, p0)
 
 
@@ -544,8 +549,22 @@ def ekf(
         x̂ at k = 0 before the first measurement, display units.
     prior_cov : array (5, 5)
         Its covariance, display units.
-    inputs, measurements, thetas, process_cov, measurement_cov, gate, functions, line_factors
-        As for :func:`ekf_continue`.
+    inputs : array (T, 3)
+        u_k [mA, sccm, sccm] (as for :func:`ekf_continue`).
+    measurements : array (T, 5)
+        y_k, NaN where nothing was measured.
+    thetas : array (5,) or (T, 5)
+        θ used in the step k → k+1.
+    process_cov : array (5, 5)
+        Σ_ξ per step, display units.
+    measurement_cov : array (5,)
+        Diagonal of Σ_w, display units.
+    gate : float
+        Per-output innovation gate in standard deviations (inf: off).
+    functions : ModelFunctions
+        The model (default: the AJ model, Euler steps).
+    line_factors : array (T, 4), optional
+        A job print's per-step (F_w, F_o, v_w, v_o); None: no job.
 
     Returns
     -------

@@ -60,6 +60,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.estimation.em import run_em
 from ajtwin.estimation.filters import (
@@ -276,7 +277,7 @@ def predict(spec, mean, cov, u, theta, process_cov, functions):
     return f_scaled(z) * s, p * jnp.outer(s, s) + process_cov
 
 
-predict = jax.jit(predict, static_argnames=("functions",))
+predict = exported_jit(predict, static_argnames=("functions",), constant_fields=(("spec", "params"),))
 
 
 # ---------------------------------------------------------------------- the core
@@ -706,7 +707,8 @@ class OnlineTwin:
             n_steps=m,
         )
         result = FilterResult(*(np.array(np.asarray(part)[:m]) for part in result))
-        return carry, result
+        # the carry on the host: the next call's arguments are alike, one compiled program
+        return EKFCarry(*(np.asarray(part) for part in carry)), result
 
     def _commit(self, rows: _Rows, result=None, carry=None) -> StepBlock:
         """Filter the rows (or take a result computed for them) and keep them."""

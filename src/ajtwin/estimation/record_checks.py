@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.io.records import RecordError
 from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES
@@ -161,7 +162,7 @@ def _output_jacobian(x, u, params, coefficients):
     return jax.jacfwd(output_function)(x, u, params, coefficients)
 
 
-_output_jacobian = jax.jit(_output_jacobian)
+_output_jacobian = exported_jit(_output_jacobian)
 
 
 def output_responds(params, coefficients, mean, state_range, u, measurement_std) -> np.ndarray:

@@ -62,6 +62,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.config import load_toml
 from ajtwin.model.atomizer import net_droplet_generation
@@ -242,7 +243,7 @@ def _scan(model, carry, inputs, material_flow, gain):
     return jax.lax.scan(body, carry, (inputs, material_flow))
 
 
-_scan_jit = jax.jit(_scan)
+_scan_jit = exported_jit(_scan)
 
 
 def initial_carry(settings: VialSettings, fill_ml: float, fill_std_ml: float) -> ObserverCarry:

@@ -101,8 +101,12 @@ class DropletDynamics:
         return self.form == "input_following"
 
     def input_shift_um(self, u):
-        """c_c (Q_c − Q_c,ref) + c_I (I_A − I_A,ref) [µm] for inputs u (..., ≥3)."""
-        u = jnp.asarray(u)
+        """c_c (Q_c − Q_c,ref) + c_I (I_A − I_A,ref) [µm] for inputs u (..., ≥3) (NumPy in,
+        NumPy out: host code never dispatches a JAX operation for it)."""
+        if not isinstance(u, np.ndarray | list | tuple):
+            u = jnp.asarray(u)
+        else:
+            u = np.asarray(u, dtype=float)
         return self.carrier_um_per_sccm * (
             u[..., 1] - self.reference_carrier_sccm
         ) + self.current_um_per_mA * (u[..., 0] - self.reference_current_mA)
@@ -197,7 +201,15 @@ def augment_inputs(inputs, dynamics: DropletDynamics, response0: float | None = 
         return inputs
     if inputs.ndim != 2 or inputs.shape[1] != N_INPUTS:
         raise ValueError(f"inputs must be (T, {N_INPUTS}); got {inputs.shape}")
-    response = np.asarray(input_response(inputs, dynamics, response0, dt))
+    # on the host, step by step (:func:`response_step`, the recursion :func:`input_response`
+    # scans): a scan compiled per length cost more than the arithmetic of a print
+    target = dynamics.input_shift_um(inputs)
+    gain = dt / dynamics.response_time_s
+    response = np.empty(len(inputs))
+    r = float(target[0]) if response0 is None else float(response0)
+    for k, target_k in enumerate(target.tolist()):
+        response[k] = r
+        r = response_step(r, target_k, gain)
     return np.concatenate([inputs, response[:, None]], axis=1)
 
 

@@ -41,20 +41,32 @@ class MonitoredTwin(Protocol):
     detector: object
 
     @property
-    def provisional(self): ...
+    def provisional(self):
+        """A job print's (time [s], mean (5,), covariance (5, 5)) now (None: none)."""
 
     @property
-    def theta(self) -> np.ndarray: ...
+    def theta(self) -> np.ndarray:
+        """θ in force [1/s]."""
 
-    def feed(self, sample: Sample, provisional: bool = True) -> list: ...
+    def feed(self, sample: Sample, provisional: bool = True) -> list:
+        """Take one sample (with a job print's provisional re-run unless ``provisional``
+        is False)."""
 
-    def refresh_provisional(self) -> list: ...
+    def refresh_provisional(self) -> list:
+        """A job print's provisional state of the newest row, re-run now."""
 
-    def status(self, provisional: bool = False) -> tuple[str, str]: ...
+    def status(self, provisional: bool = False) -> tuple[str, str]:
+        """("alarm", cause) while an alarm stands, else ("ok", "") or ("warming up", "")."""
 
 
 class MPCTwin(MPCStrategy):
     """MPC on the twin: the monitored twin fed every sample, safety rules applied.
+
+    Besides the safety rules of :mod:`ajtwin.apps.planning.mpc` it watches the ink supply
+    (:func:`ajtwin.apps.planning.mpc.ink_supply_status`: its own ink balance from the measured
+    Q_m and the twin's vial observer). A vial running dry is not controllable with these
+    inputs, so on ``stop`` it latches: the inputs in force are held for the rest of the
+    print (reason ``ink_low: …``) — a refill is maintenance and a new print.
 
     Parameters
     ----------
@@ -67,12 +79,6 @@ class MPCTwin(MPCStrategy):
         How a sample reaches it (a live engine's feed, which stores and publishes each
         step); default ``stream.feed`` without the provisional re-run, which this
         controller then does once per period, when it plans.
-
-    Besides the safety rules of :mod:`ajtwin.apps.planning.mpc` it watches the ink supply
-    (:func:`ajtwin.apps.planning.mpc.ink_supply_status`: its own ink balance from the measured
-    Q_m and the twin's vial observer). A vial running dry is not controllable with these
-    inputs, so on ``stop`` it latches: the inputs in force are held for the rest of the
-    print (reason ``ink_low: …``) — a refill is maintenance and a new print.
     """
 
     name = "mpc_twin"

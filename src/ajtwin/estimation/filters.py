@@ -105,7 +105,8 @@ class Scaling(NamedTuple):
     output: jnp.ndarray  # (5,)
 
 
-DEFAULT_SCALING = Scaling(jnp.asarray(STATE_SCALE), jnp.asarray(OUTPUT_SCALE))
+# NumPy constants: made at import without dispatching a JAX operation
+DEFAULT_SCALING = Scaling(STATE_SCALE, OUTPUT_SCALE)
 
 
 class ModelSpec(NamedTuple):

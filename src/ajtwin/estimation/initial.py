@@ -23,7 +23,7 @@ from scipy.optimize import least_squares
 
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
-from ajtwin.model.system import output_function, steady_aerosol_fraction
+from ajtwin.model.system import output_function, settled_outputs, steady_aerosol_fraction
 
 
 class InitialFit(NamedTuple):
@@ -149,10 +149,10 @@ def fit_initial_state(
     data = (
         params,
         coefficients,
-        jnp.asarray(u),
-        jnp.asarray(y_filled),
-        jnp.asarray(measured),
-        jnp.asarray(sigma),
+        np.asarray(u, dtype=float),
+        np.asarray(y_filled, dtype=float),
+        np.asarray(measured),
+        np.asarray(sigma, dtype=float),
         float(vial_fill_ml),
     )
 
@@ -162,15 +162,17 @@ def fit_initial_state(
     def jac(p):
         return _residual_jacobian(p, *data)
 
-    phi_start = float(steady_aerosol_fraction(u[0], vial_fill_ml, params))
+    phi_start = float(
+        settled_outputs(np.asarray(u[0]), float(vial_fill_ml), params, coefficients)[0]
+    )
     phi_start = float(np.clip(phi_start, AEROSOL_BOUNDS[0] * 10, AEROSOL_BOUNDS[1] / 10))
     start = np.array([3.5, phi_start / phi_scale])
     lower = [DROPLET_BOUNDS_UM[0], AEROSOL_BOUNDS[0] / phi_scale]
     upper = [DROPLET_BOUNDS_UM[1], AEROSOL_BOUNDS[1] / phi_scale]
     result = least_squares(
-        lambda p: np.asarray(fun(jnp.asarray(p))),
+        lambda p: np.asarray(fun(np.asarray(p, dtype=float))),
         start,
-        jac=lambda p: np.asarray(jac(jnp.asarray(p))),
+        jac=lambda p: np.asarray(jac(np.asarray(p, dtype=float))),
         bounds=(lower, upper),
         method="trf",
         x_scale="jac",

@@ -277,7 +277,9 @@ def predict(spec, mean, cov, u, theta, process_cov, functions):
     return f_scaled(z) * s, p * jnp.outer(s, s) + process_cov
 
 
-predict = exported_jit(predict, static_argnames=("functions",), constant_fields=(("spec", "params"),))
+predict = exported_jit(
+    predict, static_argnames=("functions",), constant_fields=(("spec", "params"),)
+)
 
 
 # ---------------------------------------------------------------------- the core
@@ -663,10 +665,13 @@ class OnlineTwin:
         if self._device_constants is None or not np.array_equal(self._device_constants[0], var):
             self._device_constants = (
                 var,
-                (
-                    jnp.asarray(twin.process_cov),
-                    jnp.asarray(var),
-                    jnp.asarray(float(twin.config.gate_sigma)),
+                # placed on the device without a compiled op (jnp.asarray compiles one)
+                jax.device_put(
+                    (
+                        np.asarray(twin.process_cov, dtype=float),
+                        var,
+                        np.asarray(float(twin.config.gate_sigma)),
+                    )
                 ),
             )
         return self._device_constants[1]

@@ -35,7 +35,7 @@ from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.io.records import RecordError
 from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES
-from ajtwin.model.system import INPUT_LIMITS, output_function, steady_aerosol_fraction
+from ajtwin.model.system import INPUT_LIMITS, output_function, settled_outputs
 
 #: Outputs compared with the model's value at the inputs (index in OUTPUT_NAMES): they
 #: do not depend on the droplet size, so the model predicts them from the inputs alone.
@@ -138,9 +138,8 @@ def check_output_medians(
     output's of :data:`SCALE_CHECKED_OUTPUTS` over its finite values (``medians``: output
     index → median, None when never measured); what a print read a column at a time gives."""
     u_med = np.asarray(u_med, dtype=float)
-    phi = float(steady_aerosol_fraction(jnp.asarray(u_med), vial_fill_ml, params))
-    x_nom = jnp.array([3.5, vial_fill_ml, 0.0, 0.0, phi])
-    expected = np.asarray(output_function(x_nom, jnp.asarray(u_med), params, coefficients))
+    _, expected = settled_outputs(u_med, float(vial_fill_ml), params, coefficients)
+    expected = np.asarray(expected)
     for j in SCALE_CHECKED_OUTPUTS:
         median = medians.get(j)
         if median is None or not expected[j] > 0:

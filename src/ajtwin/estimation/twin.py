@@ -75,7 +75,7 @@ from ajtwin.model.droplet_dynamics import (
 )
 from ajtwin.model.limits import StateLimits
 from ajtwin.model.line_speed import load_line_speed_law
-from ajtwin.model.system import check_input
+from ajtwin.model.system import check_input, settled_outputs
 
 
 @dataclass(frozen=True)
@@ -143,8 +143,7 @@ class TwinConfig:
         # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is
         # unusable)
         u = np.array([375.0, 23.0, 50.0])
-        phi = float(model.steady_aerosol_fraction(u, 1.0))
-        q_m = float(model.outputs(np.array([3.5, 1.0, 0.0, 0.0, phi]), u)[4])
+        q_m = float(settled_outputs(u, 1.0, model.params, model.coefficient_matrix)[1][4])
         process = tuple(proc[name] for name in STATE_NAMES)
         measurement = (
             meas["linewidth_um"],
@@ -452,12 +451,12 @@ class Twin:
         self.calibration = calibration
         self.commissioned_calibration = calibration
         self._learned_var = None
-        coefficients = jnp.asarray(model.coefficient_matrix)
+        coefficients = np.asarray(model.coefficient_matrix, dtype=float)
         if calibration is not None:
             coefficients = CalibratedCoefficients(coefficients, calibration)
         update_mask = None
         if config.vial_consider:
-            update_mask = jnp.asarray([1.0, 0.0, 1.0, 1.0, 1.0])
+            update_mask = np.array([1.0, 0.0, 1.0, 1.0, 1.0])
         self.spec = ModelSpec(model.params, coefficients, DEFAULT_SCALING, 1.0, update_mask)
         self.functions = twin_functions(config.method, config.transition)
         self.limits = StateLimits.load(model.params)

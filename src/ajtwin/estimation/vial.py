@@ -149,10 +149,10 @@ def observer_model(
         ]
     )
     return ObserverModel(
-        jnp.asarray(params.generation_fit, dtype=float),
+        np.asarray(params.generation_fit, dtype=float),
         float(params.silver_volume_fraction),
         decay,
-        jnp.asarray(process_var),
+        np.asarray(process_var, dtype=float),
         float(s.material_flow_log_std**2),
         float(s.innovation_gate_sigma),
         float(s.step_allowance_sigma),
@@ -382,7 +382,7 @@ def observe_vial(
         raise ValueError(f"material_flow_gain = {material_flow_gain!r} must be > 0")
     carry = initial_carry(settings, fill_ml, fill_std_ml)
     _, (means, covs, e, held) = _scan_jit(
-        model, carry, jnp.asarray(inputs), jnp.asarray(q), float(material_flow_gain)
+        model, carry, inputs, q, float(material_flow_gain)
     )
     means, covs = np.asarray(means), np.asarray(covs)
     status = status_arrays(means, covs, inputs, model, settings)

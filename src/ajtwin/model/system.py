@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin import units
+from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
 from ajtwin.model.atomizer import aerosol_fraction_rate, net_droplet_generation, vial_volume_rate
 from ajtwin.model.calibration import CalibratedCoefficients, apply_calibration
@@ -210,6 +211,20 @@ def steady_aerosol_fraction(u, vial_volume_ml, params, theta_aerosol=0.0):
     generation = net_droplet_generation(u[..., 1], vial_volume_ml, u[..., 0], params.generation_fit)
     headspace = vial_headspace_ml(vial_volume_ml, params)
     return generation / (carrier_ml_s - theta_aerosol * headspace)
+
+
+def settled_outputs(u, vial_volume_ml, params, coefficients):
+    """(φ_A in balance at inputs u (3,) and vial level V_l, the outputs (5,) of the clean
+    nominal state x = (3.5 µm, V_l, 0, 0, φ_A) there): what a record's scale is checked
+    against and where the initial fit starts.
+    """
+    phi = steady_aerosol_fraction(u, vial_volume_ml, params)
+    x = jnp.stack([3.5, vial_volume_ml, 0.0, 0.0, phi])
+    return phi, output_function(x, u, params, coefficients)
+
+
+# kept on disk (ajtwin._aot): every command that reads a record asks it once
+settled_outputs = exported_jit(settled_outputs)
 
 
 def vial_headspace_ml(vial_volume_ml, params):

@@ -90,7 +90,7 @@ class Filter:
     timeout = 600
 
     def setup(self):
-        from ajtwin.estimation.em import e_step, m_step, run_em
+        from ajtwin.estimation.em import EMSettings, e_step, m_step, run_em
         from ajtwin.estimation.filters import ModelFunctions
 
         p = self.p = _Print()
@@ -121,9 +121,7 @@ class Filter:
                 p.theta,
                 p.q,
                 p.r,
-                theta_prior_precision=prec,
-                max_iterations=10,
-                tolerance=0.0,
+                settings=EMSettings(prec, 10, 0.0),
             )
             assert em.iterations == 10
             return em

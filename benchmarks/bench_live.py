@@ -84,7 +84,7 @@ def step_latency(pace_s: float = 0.02) -> dict:
 def fleet_cost() -> dict:
     from ajtwin.engine.fleet import LiveEngine
     from ajtwin.estimation import Twin
-    from ajtwin.estimation.em import run_em
+    from ajtwin.estimation.em import EMSettings, run_em
     from ajtwin.estimation.samples import Sample
     from ajtwin.simulation import simulate
 
@@ -118,7 +118,7 @@ def fleet_cost() -> dict:
         twin.process_cov,
         twin.measurement_var,
     )
-    kw = dict(theta_prior_precision=twin.theta_prior_precision, functions=twin.functions)
+    kw = dict(settings=EMSettings(twin.theta_prior_precision), functions=twin.functions)
     run_em(*args, **kw)  # compile
     cpu0 = time.process_time()
     run_em(*args, **kw)

@@ -322,7 +322,7 @@ def test_converges_after_a_step_disturbance(control_settings):
     test sees the loop, not the safety rule."""
     from dataclasses import replace
 
-    from ajtwin.studies.closed_loop import simulate_strategy
+    from ajtwin.studies.closed_loop import ClosedLoopPlan, simulate_strategy
 
     settings = replace(control_settings, actionable_causes=("nozzle_clog", "atomizer"))
     u0 = np.array([300.0, 24.116, 80.0])
@@ -336,7 +336,10 @@ def test_converges_after_a_step_disturbance(control_settings):
     }
     runs = {
         strategy: simulate_strategy(
-            "exp1", 2, strategy, 65.0, duration_min=10, u0=u0, overrides=step, settings=settings
+            ClosedLoopPlan(
+                "exp1", 2, 65.0, duration_min=10, u0=u0, overrides=step, settings=settings
+            ),
+            strategy,
         )
         for strategy in ("open_loop", "mpc_twin")
     }
@@ -415,20 +418,14 @@ def test_vial_running_dry_stops_the_mpc_for_good(control_settings):
     """A vial filled to 0.53 mL that loses 1 mL/h (0.5 mL crossed at ~2 min): the MPC on
     the twin stops (reason ink_low), holds the inputs in force and never resumes — even
     when the ink rule would clear — while on a clean print it never stops."""
-    from ajtwin.studies.closed_loop import simulate_strategy
+    from ajtwin.studies.closed_loop import ClosedLoopPlan, simulate_strategy
 
     u0 = np.array([300.0, 24.116, 80.0])
     dry = {"initial": {"vial_volume_mL": 0.53}, "truth": {"vial_evaporation_mL_per_h": 1.0}}
-    run = simulate_strategy(
-        "exp1",
-        1,
-        "mpc_twin",
-        65.0,
-        duration_min=8,
-        overrides=dry,
-        u0=u0,
-        settings=control_settings,
+    plan = ClosedLoopPlan(
+        "exp1", 1, 65.0, duration_min=8, overrides=dry, u0=u0, settings=control_settings
     )
+    run = simulate_strategy(plan, "mpc_twin")
     c = run.commands
     stopped = np.flatnonzero(c["status"].to_numpy() == "stop")
     assert len(stopped), c["status"].value_counts()

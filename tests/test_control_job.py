@@ -23,7 +23,7 @@ from ajtwin.job import SpeedSchedule, read_program_text
 from ajtwin.model.line_speed import line_speed_factors, load_line_speed_law
 from ajtwin.simulation.job_print import CameraSettings
 from ajtwin.simulation.stepper import SteppedPrinter
-from ajtwin.studies.closed_loop import job_print_setup, simulate_strategy
+from ajtwin.studies.closed_loop import ClosedLoopPlan, job_print_setup, simulate_strategy
 
 TARGET = 55.0
 #: the speed law's factor on L_w at 4 mm/s (ν_ref = 2 mm/s, b = 0.3): 0.812
@@ -93,7 +93,8 @@ def test_a_planned_speed_step_is_met_before_the_line_moves_while_pi_sees_it(step
     u0, _ = start_inputs(Twin.default(), TARGET)
     runs = {
         strategy: simulate_strategy(
-            "exp1", 3, strategy, TARGET, duration_min=3.5, u0=u0, job=step_job, camera=camera
+            ClosedLoopPlan("exp1", 3, TARGET, duration_min=3.5, u0=u0, job=step_job, camera=camera),
+            strategy,
         )
         for strategy in ("pi", "mpc_twin")
     }

@@ -16,6 +16,7 @@ from ajtwin.estimation import (
     rts_smoother,
     run_em,
 )
+from ajtwin.estimation.em import EMSettings
 from ajtwin.estimation.filters import ModelFunctions
 from ajtwin.model import DigitalModel, euler_step, output_function
 from ajtwin.simulation import simulate
@@ -210,8 +211,7 @@ def test_em_recovers_theta_on_linear_gaussian_toy():
         np.zeros(2),
         q,
         r,
-        max_iterations=60,
-        tolerance=1e-9,
+        settings=EMSettings(max_iterations=60, tolerance=1e-9),
         functions=TOY,
     )
     # standard error from the expected complete-data information Σ E[BᵀWB] at the optimum

@@ -37,6 +37,27 @@ from ajtwin.estimation.filters import (
 )
 
 
+class EMSettings(NamedTuple):
+    """How EM iterates over a window (a pytree: one compiled loop for any values).
+
+    Attributes
+    ----------
+    theta_prior_precision : array (5,)
+        Precision of θ's MAP prior [s²] (0: flat).
+    max_iterations : int
+        M-steps at most.
+    tolerance : float
+        Stop when the window's log-likelihood changes less than this [nats per step].
+    gate : float
+        The filter's innovation gate in σ (inf: off).
+    """
+
+    theta_prior_precision: object = None
+    max_iterations: int = 10
+    tolerance: float = 1e-3
+    gate: float = np.inf
+
+
 class EMStep(NamedTuple):
     """The result of EM over one window.
 
@@ -141,18 +162,15 @@ def run_em(
     process_cov,
     measurement_cov,
     *,
-    theta_prior_precision=None,
-    max_iterations: int = 10,
-    tolerance: float = 1e-3,
-    gate: float = np.inf,
+    settings: EMSettings | None = None,
     functions: ModelFunctions = AJ_EULER,
     line_factors=None,
 ) -> EMStep:
     """EM over one window (paper Algorithm 2).
 
     Iterates E-step (EKF + RTS with θ⁽ⁱ⁾) and M-step until the change of the
-    window's log-likelihood is below ``tolerance`` (absolute, nats per step)
-    or ``max_iterations`` is reached. A non-finite θ or log-likelihood ends the
+    window's log-likelihood is below ``settings.tolerance`` (absolute, nats per step)
+    or ``settings.max_iterations`` is reached. A non-finite θ or log-likelihood ends the
     iterations and keeps the last good θ. The whole loop is one compiled
     function (:func:`em_loop`), so a new process loads one executable from the
     compilation cache instead of tracing every iteration's pieces. ``line_factors``
@@ -164,22 +182,27 @@ def run_em(
         Final θ, iterations used, convergence flag, and the final E-step
         (filter and smoother under the returned θ).
     """
-    if theta_prior_precision is None:
-        theta_prior_precision = np.zeros(np.asarray(theta0).shape[-1])
+    settings = settings or EMSettings()
+    precision = settings.theta_prior_precision
+    if precision is None:
+        precision = np.zeros(np.asarray(theta0).shape[-1])
+    settings = EMSettings(
+        np.asarray(precision, dtype=float),
+        np.asarray(settings.max_iterations, dtype=int),
+        np.asarray(settings.tolerance, dtype=float),
+        np.asarray(settings.gate, dtype=float),
+    )
     theta, iterations, converged, log_lik, filtered, smoothed = em_loop(
         spec,
-        jnp.asarray(prior_mean, dtype=float),
-        jnp.asarray(prior_cov, dtype=float),
-        jnp.asarray(inputs, dtype=float),
-        jnp.asarray(measurements, dtype=float),
-        jnp.asarray(theta0, dtype=float),
-        jnp.asarray(process_cov, dtype=float),
-        jnp.asarray(measurement_cov, dtype=float),
-        jnp.asarray(theta_prior_precision, dtype=float),
-        jnp.asarray(max_iterations, dtype=int),
-        jnp.asarray(tolerance, dtype=float),
-        jnp.asarray(gate, dtype=float),
-        None if line_factors is None else jnp.asarray(line_factors, dtype=float),
+        np.asarray(prior_mean, dtype=float),
+        np.asarray(prior_cov, dtype=float),
+        np.asarray(inputs, dtype=float),
+        np.asarray(measurements, dtype=float),
+        np.asarray(theta0, dtype=float),
+        np.asarray(process_cov, dtype=float),
+        np.asarray(measurement_cov, dtype=float),
+        settings,
+        None if line_factors is None else np.asarray(line_factors, dtype=float),
         functions=functions,
     )
     return EMStep(
@@ -196,10 +219,7 @@ def em_loop(
     theta0,
     process_cov,
     measurement_cov,
-    theta_prior_precision,
-    max_iterations,
-    tolerance,
-    gate,
+    settings: EMSettings,
     line_factors=None,
     functions=AJ_EULER,
 ):
@@ -216,6 +236,7 @@ def em_loop(
     -------
     (θ (n_θ,), iterations, converged, ℓ, FilterResult, SmootherResult)
     """
+    theta_prior_precision, max_iterations, tolerance, gate = settings
     n_steps, n_states = inputs.shape[0], prior_mean.shape[0]
     data = (prior_mean, prior_cov, inputs, measurements)
     noise = (process_cov, measurement_cov, gate)

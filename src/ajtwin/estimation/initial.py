@@ -16,6 +16,7 @@ generation model's steady state φ_ss(u₀, V_l) with a relative σ — and says
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -76,21 +77,42 @@ DROPLET_BOUNDS_UM = (0.5, 10.0)
 AEROSOL_BOUNDS = (1e-10, 1e-4)
 
 
+@dataclass(frozen=True)
+class StartPriors:
+    """What the initial fit assumes beyond the data (display units).
+
+    Attributes
+    ----------
+    n_samples : int
+        The first samples the fit uses.
+    vial_fill_ml, vial_fill_std_ml : float
+        The vial level the operator loaded, and how well it is known.
+    tube_prior_std_um, nozzle_prior_std_um : float
+        Prior σ of the deposits, which the fit holds at 0 (A x₀ = 0): the EKF's initial
+        covariance uses them so a machine whose nozzle is not clean can still be found from
+        the pressures.
+    droplet_prior_um, droplet_prior_std_um, aerosol_prior_relative_std : float, optional
+        Priors for a print with no line output in the first samples (module docstring);
+        without them such a print is refused.
+    """
+
+    n_samples: int = 10
+    vial_fill_ml: float = 1.0
+    vial_fill_std_ml: float = 0.05
+    tube_prior_std_um: float = 1e-3
+    nozzle_prior_std_um: float = 0.05
+    droplet_prior_um: float | None = None
+    droplet_prior_std_um: float | None = None
+    aerosol_prior_relative_std: float | None = None
+
+
 def fit_initial_state(
     params,
     coefficients,
     inputs,
     measurements,
     measurement_std,
-    *,
-    n_samples: int = 10,
-    vial_fill_ml: float = 1.0,
-    vial_fill_std_ml: float = 0.05,
-    tube_prior_std_um: float = 1e-3,
-    nozzle_prior_std_um: float = 0.05,
-    droplet_prior_um: float | None = None,
-    droplet_prior_std_um: float | None = None,
-    aerosol_prior_relative_std: float | None = None,
+    priors: StartPriors | None = None,
     line_factors=None,
 ) -> InitialFit:
     """Weighted least-squares fit of x₀ over the first ``n_samples`` samples.
@@ -103,15 +125,8 @@ def fit_initial_state(
         The print's first samples (more are ignored); NaN = not measured.
     measurement_std : array (5,)
         σ of each output (display units).
-    vial_fill_ml, vial_fill_std_ml
-        The vial level the operator loaded, and how well it is known.
-    tube_prior_std_um, nozzle_prior_std_um
-        Prior σ of the deposits, which the fit holds at 0 (A x₀ = 0): the
-        EKF's initial covariance uses them so a machine whose nozzle is not
-        clean can still be found from the pressures.
-    droplet_prior_um, droplet_prior_std_um, aerosol_prior_relative_std
-        Priors for a print with no line output in the first samples (module
-        docstring); without them such a print is refused.
+    priors : StartPriors, optional
+        The samples used and the priors (default :class:`StartPriors`).
     line_factors : array (T, 4), optional
         A job print's (F_w, F_o, v_w, v_o) per sample (:func:`_at_reference_speed`).
 
@@ -121,6 +136,11 @@ def fit_initial_state(
         Mean, covariance (Gauss–Newton inverse for d_a, φ_A; priors for the
         rest), cost and the optimiser's status.
     """
+    p = priors or StartPriors()
+    n_samples, vial_fill_ml, vial_fill_std_ml = p.n_samples, p.vial_fill_ml, p.vial_fill_std_ml
+    tube_prior_std_um, nozzle_prior_std_um = p.tube_prior_std_um, p.nozzle_prior_std_um
+    droplet_prior_um, droplet_prior_std_um = p.droplet_prior_um, p.droplet_prior_std_um
+    aerosol_prior_relative_std = p.aerosol_prior_relative_std
     u = np.asarray(inputs, dtype=float)[:n_samples]
     line = None if line_factors is None else np.asarray(line_factors, dtype=float)[:n_samples]
     y = np.asarray(measurements, dtype=float)[:n_samples]

@@ -62,7 +62,7 @@ import numpy as np
 
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation.em import run_em
+from ajtwin.estimation.em import EMSettings, run_em
 from ajtwin.estimation.filters import (
     EKFCarry,
     FilterResult,
@@ -813,10 +813,9 @@ class OnlineTwin:
             twin.measurement_var,
         )
         kwargs = dict(
-            theta_prior_precision=twin.theta_prior_precision,
-            max_iterations=c.em_max_iterations,
-            tolerance=c.em_tolerance,
-            gate=c.gate_sigma,
+            settings=EMSettings(
+                twin.theta_prior_precision, c.em_max_iterations, c.em_tolerance, c.gate_sigma
+            ),
             functions=twin.functions,
             line_factors=line,
         )

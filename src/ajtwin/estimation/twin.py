@@ -39,7 +39,7 @@ from ajtwin.estimation.filters import (
     model_functions,
     rts_smoother,
 )
-from ajtwin.estimation.initial import InitialFit, fit_initial_state
+from ajtwin.estimation.initial import InitialFit, StartPriors, fit_initial_state
 from ajtwin.estimation.online import (  # noqa: F401 — the schedule and predict, re-exported
     OnlineTwin,
     StepBlock,
@@ -126,6 +126,20 @@ class TwinConfig:
     # job prints: the horizon [s] after which a step is final and later camera measurements
     # of it are dropped (ajtwin.estimation.print_time); None: from the camera (data/print_time.toml)
     camera_horizon_s: float | None = None
+
+    def start_priors(self) -> StartPriors:
+        """What the initial fit assumes beyond the data (:class:`~ajtwin.estimation.initial.
+        StartPriors`)."""
+        return StartPriors(
+            n_samples=self.initial_samples,
+            vial_fill_ml=self.vial_fill_ml,
+            vial_fill_std_ml=self.vial_fill_std_ml,
+            tube_prior_std_um=self.tube_prior_std_um,
+            nozzle_prior_std_um=self.nozzle_prior_std_um,
+            droplet_prior_um=self.droplet_prior_um,
+            droplet_prior_std_um=self.droplet_prior_std_um,
+            aerosol_prior_relative_std=self.aerosol_prior_relative_std,
+        )
 
     @classmethod
     def default(
@@ -614,14 +628,7 @@ class Twin:
             inputs,
             measurements,
             self.measurement_std,
-            n_samples=c.initial_samples,
-            vial_fill_ml=c.vial_fill_ml,
-            vial_fill_std_ml=c.vial_fill_std_ml,
-            tube_prior_std_um=c.tube_prior_std_um,
-            nozzle_prior_std_um=c.nozzle_prior_std_um,
-            droplet_prior_um=c.droplet_prior_um,
-            droplet_prior_std_um=c.droplet_prior_std_um,
-            aerosol_prior_relative_std=c.aerosol_prior_relative_std,
+            c.start_priors(),
             line_factors=line_factors,
         )
 

@@ -381,9 +381,7 @@ def observe_vial(
     if not (np.isfinite(material_flow_gain) and material_flow_gain > 0):
         raise ValueError(f"material_flow_gain = {material_flow_gain!r} must be > 0")
     carry = initial_carry(settings, fill_ml, fill_std_ml)
-    _, (means, covs, e, held) = _scan_jit(
-        model, carry, inputs, q, float(material_flow_gain)
-    )
+    _, (means, covs, e, held) = _scan_jit(model, carry, inputs, q, float(material_flow_gain))
     means, covs = np.asarray(means), np.asarray(covs)
     status = status_arrays(means, covs, inputs, model, settings)
     return VialEstimate(

@@ -105,8 +105,16 @@ def point_and_tangent(seg: dict, index, f):
     return x, y, ux, uy
 
 
-def closest_point(px, py, kind, x0, y0, x1, y1, cx, cy, r, a0, sweep, length):
+#: the columns of a segment :func:`closest_point` reads: kind, ends, arc centre, radius,
+#: start angle, sweep, length
+SEGMENT_FIELDS = ("kind", "x0", "y0", "x1", "y1", "cx", "cy", "r", "a0", "sweep", "length")
+
+
+def closest_point(px, py, segments):
     """Closest point of each segment to each point (arrays aligned pairwise).
+
+    ``segments``: a mapping of the columns :data:`SEGMENT_FIELDS` (arrays aligned with
+    ``px``, ``py``).
 
     Returns
     -------
@@ -115,6 +123,7 @@ def closest_point(px, py, kind, x0, y0, x1, y1, cx, cy, r, a0, sweep, length):
     f : ndarray
         Fraction of the segment's length at the closest point.
     """
+    kind, x0, y0, x1, y1, cx, cy, r, a0, sweep, length = (segments[k] for k in SEGMENT_FIELDS)
     kind = np.asarray(kind)
     dx, dy = x1 - x0, y1 - y0
     len2 = dx * dx + dy * dy

@@ -24,6 +24,7 @@ import pandas as pd
 
 from ajtwin.job.geometry import (
     GEOMETRY_FIELDS,
+    SEGMENT_FIELDS,
     closest_point,
     point_and_tangent,
     point_at,
@@ -263,21 +264,7 @@ class TraceIndex:
         offset = np.arange(total) - np.repeat(np.cumsum(count) - count, count)
         chunk = self.order[np.repeat(start.ravel(), count) + offset]
         c = self.chunk
-        d, f = closest_point(
-            x[point],
-            y[point],
-            c["kind"][chunk],
-            c["x0"][chunk],
-            c["y0"][chunk],
-            c["x1"][chunk],
-            c["y1"][chunk],
-            c["cx"][chunk],
-            c["cy"][chunk],
-            c["r"][chunk],
-            c["a0"][chunk],
-            c["sweep"][chunk],
-            c["length"][chunk],
-        )
+        d, f = closest_point(x[point], y[point], {k: c[k][chunk] for k in SEGMENT_FIELDS})
         keep = d <= radius
         if before is not None:
             s = self.job.segments

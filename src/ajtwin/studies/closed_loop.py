@@ -7,11 +7,14 @@ the machine's twin as the live engine runs it (:class:`ajtwin.engine.stream.Twin
 
 Examples
 --------
->>> run = simulate_strategy("exp1", 1, "pi", 65.0, duration_min=10)   # doctest: +SKIP
->>> run.metrics["rms_error_um"]                                      # doctest: +SKIP
+>>> plan = ClosedLoopPlan("exp1", 1, 65.0, duration_min=10)
+>>> run = simulate_strategy(plan, "pi")                 # doctest: +SKIP
+>>> run.metrics["rms_error_um"]                         # doctest: +SKIP
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,38 +42,16 @@ STRATEGY_CLASSES = {
 }
 
 
-def simulate_strategy(
-    scenario,
-    seed: int,
-    strategy: str,
-    target_um: float,
-    *,
-    duration_min=None,
-    settings: ControlSettings | None = None,
-    limits: dict | None = None,
-    max_overspray_um=None,
-    u0=None,
-    overrides=None,
-    progress=None,
-    truth: str = "model",
-    vial_fill_ml: float | None = None,
-    job=None,
-    camera=None,
-    repeat_pitch_mm=None,
-    camera_horizon_s: float | None = None,
-    controller_options: dict | None = None,
-) -> ClosedLoopRun:
-    """Run one strategy in closed loop with the virtual printer
-    (:func:`ajtwin.apps.planning.closed_loop.run_closed_loop`).
+@dataclass(frozen=True)
+class ClosedLoopPlan:
+    """One closed-loop print with the virtual printer: the print, the target, the limits.
 
-    Parameters
+    Attributes
     ----------
     scenario : str or Path
         A packaged scenario, one of the controller's own (``slow_clog``) or a file.
     seed : int
         The print's seed.
-    strategy : str
-        One of :data:`~ajtwin.apps.planning.closed_loop.STRATEGIES`.
     target_um : float
         Target linewidth [µm].
     duration_min : float, optional
@@ -85,7 +66,6 @@ def simulate_strategy(
         Start inputs; default the advice for the target on the nominal model.
     overrides : dict, optional
         Scenario overrides.
-    progress : callable(int), optional
     truth : str
         The virtual printer's truth generator, ``"model"`` (the first, which tuned the
         twin and the controller) or ``"alt"`` (the second, structurally different one:
@@ -108,6 +88,49 @@ def simulate_strategy(
     controller_options : dict, optional
         More keywords of the strategy's class (e.g. PI's ``closed_loop_time_s``).
     """
+
+    scenario: object
+    seed: int
+    target_um: float
+    duration_min: float | None = None
+    settings: ControlSettings | None = None
+    limits: dict | None = None
+    max_overspray_um: float | None = None
+    u0: object = None
+    overrides: dict | None = None
+    truth: str = "model"
+    vial_fill_ml: float | None = None
+    job: object = None
+    camera: object = None
+    repeat_pitch_mm: object = None
+    camera_horizon_s: float | None = None
+    controller_options: dict | None = None
+
+
+def simulate_strategy(plan: ClosedLoopPlan, strategy: str, progress=None) -> ClosedLoopRun:
+    """Run one strategy in closed loop with the virtual printer
+    (:func:`ajtwin.apps.planning.closed_loop.run_closed_loop`).
+
+    Parameters
+    ----------
+    plan : ClosedLoopPlan
+        The print, the target and the limits.
+    strategy : str
+        One of :data:`~ajtwin.apps.planning.closed_loop.STRATEGIES`.
+    progress : callable(int), optional
+    """
+    p = plan
+    scenario, seed, target_um, duration_min = p.scenario, p.seed, p.target_um, p.duration_min
+    settings, limits, max_overspray_um, u0 = p.settings, p.limits, p.max_overspray_um, p.u0
+    overrides, truth, vial_fill_ml, job, camera = (
+        p.overrides,
+        p.truth,
+        p.vial_fill_ml,
+        p.job,
+        p.camera,
+    )
+    repeat_pitch_mm, camera_horizon_s = p.repeat_pitch_mm, p.camera_horizon_s
+    controller_options = p.controller_options
     if strategy not in STRATEGY_CLASSES:
         raise ValueError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
     settings = settings or ControlSettings.load()

@@ -27,7 +27,7 @@ from ajtwin.io.records import write_record
 from ajtwin.job import SpeedSchedule
 from ajtwin.model.names import INPUT_NAMES
 from ajtwin.simulation.job_print import CameraSettings, read_job
-from ajtwin.studies.closed_loop import simulate_strategy
+from ajtwin.studies.closed_loop import ClosedLoopPlan, simulate_strategy
 
 #: the drift scenarios of the comparison; slow_clog ships with the controller
 DRIFT_SCENARIOS = ("exp1", "clean_long", "ink_running_low", "slow_clog")
@@ -76,7 +76,7 @@ class JobSetup:
         }
 
     def kwargs(self) -> dict:
-        """Keywords of :func:`ajtwin.studies.closed_loop.simulate_strategy`."""
+        """Fields of :class:`ajtwin.studies.closed_loop.ClosedLoopPlan`."""
         return {"job": self.job, "camera": self.camera, "repeat_pitch_mm": self.repeat_pitch_mm}
 
 
@@ -156,13 +156,16 @@ def run_seed(scenario, seed, strategies, target_um, records_dir, options, log=pr
     """Every strategy on one print (scenario, seed): each run's record and commands written
     to ``records_dir/<scenario>/seed<N>/``. Returns (the scenario's name, {strategy: run}).
 
-    ``options``: keywords of :func:`ajtwin.studies.closed_loop.simulate_strategy`.
+    ``options``: fields of :class:`ajtwin.studies.closed_loop.ClosedLoopPlan` (and
+    ``progress``).
     """
     runs = {}
     name = str(scenario)
     for strategy in strategies:
         t0, wall0 = time.process_time(), time.perf_counter()
-        run = simulate_strategy(scenario, int(seed), strategy, target_um, **options)
+        fields = {k: v for k, v in options.items() if k != "progress"}
+        plan = ClosedLoopPlan(scenario, int(seed), target_um, **fields)
+        run = simulate_strategy(plan, strategy, progress=options.get("progress"))
         name = run.scenario
         stem = Path(records_dir) / name / f"seed{seed}"
         write_record(run.record, stem / f"{strategy}.parquet")
@@ -448,10 +451,9 @@ def tune_pi(
                     continue  # no delay to share
                 rms = []
                 for seed in seeds:
-                    run = simulate_strategy(
+                    plan = ClosedLoopPlan(
                         scenario,
                         int(seed),
-                        "pi",
                         target_um,
                         duration_min=minutes,
                         settings=settings,
@@ -462,6 +464,7 @@ def tune_pi(
                         },
                         **setup.kwargs(),
                     )
+                    run = simulate_strategy(plan, "pi")
                     rms.append(run.metrics["rms_error_um"])
                 row = {
                     "closed_loop_time_s": float(tau_c),

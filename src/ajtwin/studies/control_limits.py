@@ -30,7 +30,7 @@ import numpy as np
 
 from ajtwin.apps.planning.strategies import start_inputs
 from ajtwin.estimation import Twin
-from ajtwin.studies.closed_loop import simulate_strategy
+from ajtwin.studies.closed_loop import ClosedLoopPlan, simulate_strategy
 
 CASES = {
     "default": {},
@@ -64,15 +64,10 @@ def main(seeds=(1, 2, 3), minutes: float = 45.0, target: float = 65.0) -> dict:
         t0 = time.process_time()
         for seed in seeds:
             for strategy in STRATEGIES:
-                run = simulate_strategy(
-                    "exp1",
-                    int(seed),
-                    strategy,
-                    target,
-                    duration_min=minutes,
-                    u0=u0,
-                    overrides=overrides,
+                plan = ClosedLoopPlan(
+                    "exp1", int(seed), target, duration_min=minutes, u0=u0, overrides=overrides
                 )
+                run = simulate_strategy(plan, strategy)
                 rows[strategy].append(run.metrics["rms_error_um"])
         entry = {f"{s}_rms_um_per_seed": [round(v, 4) for v in rows[s]] for s in STRATEGIES}
         for s in STRATEGIES:

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from ajtwin.apps.planning.forecast import forecast
-from ajtwin.estimation.em import run_em
+from ajtwin.estimation.em import EMSettings, run_em
 from ajtwin.estimation.twin import Twin, TwinRun
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 from ajtwin.simulation import run_virtual_print, simulate, truth_alt
@@ -271,9 +271,7 @@ def run_exp3(
         np.zeros(5),
         twin.process_cov,
         twin.measurement_var,
-        theta_prior_precision=twin.theta_prior_precision,
-        max_iterations=em_iterations,
-        tolerance=1e-6,
+        settings=EMSettings(twin.theta_prior_precision, em_iterations, 1e-6),
         functions=twin.functions,
     )
     em_seconds = time.perf_counter() - t0

@@ -15,7 +15,7 @@ import numpy as np
 
 from ajtwin.apps.planning.forecast import forecast
 from ajtwin.estimation import Twin
-from ajtwin.estimation.em import run_em
+from ajtwin.estimation.em import EMSettings, run_em
 from ajtwin.model.names import STATE_NAMES
 from ajtwin.model.system import output_function
 from ajtwin.simulation import run_virtual_print
@@ -36,7 +36,7 @@ def diagnose(seed: int, truth: str) -> dict:
     em = run_em(
         twin.spec, cal.start_mean, cal.start_cov, model_inputs[:n], rec.outputs[:n],
         np.zeros(5), twin.process_cov, twin.measurement_var,
-        theta_prior_precision=twin.theta_prior_precision, max_iterations=10, tolerance=1e-6,
+        settings=EMSettings(twin.theta_prior_precision, 10, 1e-6),
         functions=twin.functions,
     )  # fmt: skip
     fc = forecast(

@@ -41,7 +41,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from ajtwin.io.records import LINE_TRUTH_COLUMNS
-from ajtwin.job.geometry import closest_point, point_at, segment_bbox, tangent_at
+from ajtwin.job.geometry import SEGMENT_FIELDS, closest_point, point_at, segment_bbox, tangent_at
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 from ajtwin.units import cross_section_um2
 from ajtwin.vision.camera import Camera
@@ -434,9 +434,7 @@ class PartRenderer:
             kind = one("kind")
             x0, y0, x1, y1 = one("x0"), one("y0"), one("x1"), one("y1")
             a0, sweep, length = one("a0"), one("sweep"), one("length")
-            dist, f = closest_point(
-                px, py, kind, x0, y0, x1, y1, one("cx"), one("cy"), one("r"), a0, sweep, length
-            )
+            dist, f = closest_point(px, py, {k: one(k) for k in SEGMENT_FIELDS})
             close = dist <= reach
             if not close.any():
                 continue

@@ -14,16 +14,6 @@ import os
 
 import pytest
 
-#: Modules whose examples are not run yet: their code is being restructured and their
-#: examples are rewritten with it. Remove a line once its examples run.
-NOT_YET = [
-    "ajtwin/estimation/twin.py",
-    "ajtwin/engine",
-    "ajtwin/live",
-    "ajtwin/web",
-]
-collect_ignore = NOT_YET
-
 #: the columns of a live CSV log as a machine writes it: time, the inputs, the outputs
 CSV_COLUMNS = (
     "time_s,atomizer_current_mA,carrier_flow_sccm,sheath_flow_sccm,carrier_pressure_Pa,"

@@ -41,7 +41,7 @@ def _feed_all(stream, record):
 
 
 @pytest.mark.parametrize("asynchronous", [False, True])
-def test_stream_equals_batch(clog_record, asynchronous):
+def test_a_print_fed_a_sample_at_a_time_gives_the_whole_print_result(clog_record, asynchronous):
     rec = clog_record
     batch_twin = Twin.default(**FAST_EM)
     run = batch_twin.run(rec)
@@ -79,7 +79,9 @@ def test_stream_equals_batch(clog_record, asynchronous):
         (True, (45, 70), [44.0, 59.0, 89.0, 119.0], [0.0, 0.0, 30.0, 60.0]),
     ],
 )
-def test_stream_equals_batch_with_early_em(clog_record, asynchronous, early, times, starts):
+def test_a_sample_at_a_time_gives_the_whole_print_result_with_early_em(
+    clog_record, asynchronous, early, times, starts
+):
     """EM also at the early steps, each over the print so far: the same boundaries, θ and
     states in the stream as in the batch twin."""
     overrides = {**FAST_EM, "early_em_s": early}
@@ -103,7 +105,9 @@ def test_stream_equals_batch_with_early_em(clog_record, asynchronous, early, tim
 
 
 @pytest.mark.parametrize("asynchronous", [False, True])
-def test_stream_equals_batch_with_input_following_droplets(clog_record, asynchronous):
+def test_a_sample_at_a_time_gives_the_whole_print_result_with_input_following_droplets(
+    clog_record, asynchronous
+):
     """The input_following variant reads the input response r as a 4th input: the stream
     carries it sample by sample (model.droplet_dynamics.model_input) through EM
     boundaries and held samples, and equals the batch twin's Twin.model_inputs run."""

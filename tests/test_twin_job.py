@@ -332,7 +332,9 @@ def test_a_steps_transition_input_is_computed_once_while_it_stays_provisional(
     ("mode", "horizon", "asynchronous"),
     [("trailing", 28.0, False), ("trailing", 26.0, True), ("inspection", None, False)],
 )
-def test_stream_equals_batch_on_a_job_print_with_delays(job_prints, mode, horizon, asynchronous):
+def test_a_job_print_fed_a_sample_at_a_time_gives_the_whole_print_result_with_delays(
+    job_prints, mode, horizon, asynchronous
+):
     record = job_prints[mode]
     overrides = {**FAST_EM, "camera_horizon_s": horizon}
     batch = Twin.default(**overrides)

@@ -12,8 +12,10 @@ Examples
 --------
 >>> from ajtwin.simulation import simulate
 >>> from ajtwin.estimation import Twin
->>> run = Twin.default().run(simulate("exp1", seed=1))          # doctest: +SKIP
->>> run.to_frame()[["time_s", "droplet_diameter_um"]].tail(1)   # doctest: +SKIP
+>>> run = Twin.default().run(simulate("exp1", seed=1, duration_min=2))
+>>> run.to_frame()[["time_s", "droplet_diameter_um"]].tail(1).round(1)
+     time_s  droplet_diameter_um
+119   119.0                  3.4
 """
 
 from __future__ import annotations

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
@@ -189,6 +188,8 @@ def fit_initial_state(
     start = np.array([3.5, phi_start / phi_scale])
     lower = [DROPLET_BOUNDS_UM[0], AEROSOL_BOUNDS[0] / phi_scale]
     upper = [DROPLET_BOUNDS_UM[1], AEROSOL_BOUNDS[1] / phi_scale]
+    from scipy.optimize import least_squares  # here: forecast and advise never fit a start
+
     result = least_squares(
         lambda p: np.asarray(fun(np.asarray(p, dtype=float))),
         start,

@@ -220,31 +220,6 @@ def _warn(notes: list[str], stacklevel: int = 3) -> None:
         warnings.warn(note, UserWarning, stacklevel=stacklevel)
 
 
-def validate_table(
-    df: pd.DataFrame,
-    where: str = "<table>",
-    aliases: str | Path | None = None,
-    row_offset: int = 0,
-    dialect: CsvDialect | None = None,
-) -> pd.DataFrame:
-    """Check, rename and regularise a raw table into record columns (see :func:`read_record`).
-
-    Returns a DataFrame on a 1 s grid: ``time_s``, the record columns, truth columns
-    when present, then any extra columns of the log (kept, never dropped).
-    """
-    builder = TableBuilder(
-        df.columns, where, aliases=aliases, dialect=dialect, line_offset=row_offset
-    )
-    builder.push(df, 0)
-    spooled = builder.finish()
-    try:
-        table = spooled.frame()
-    finally:
-        spooled.close()
-    _warn(builder.notes)
-    return table
-
-
 # --------------------------------------------------------------------------- #
 # Reading and writing
 # --------------------------------------------------------------------------- #
@@ -796,10 +771,6 @@ class SpooledRecord:
     def duration_s(self) -> float:
         """Time from the first to the last sample [s]."""
         return float(len(self) - 1)
-
-    def time_at(self, k: int) -> float:
-        """The time [s] of row ``k``."""
-        return self.start_s + int(k)
 
     @property
     def time_s(self) -> SecondsAxis:

@@ -11,7 +11,6 @@ Flows in m³/s, resistances in Pa·s/m³, pressures in Pa.
 
 from __future__ import annotations
 
-from ajtwin import units
 from ajtwin._jax import jnp
 
 
@@ -67,17 +66,4 @@ def sheath_pressure(carrier_flow, sheath_flow, nozzle_deposition_um, params):
     sheath_line = 0.5 * (params.sheath_inlet_r1 + params.sheath_inlet_r2 + params.sheath_inlet_r3)
     return sheath_flow * sheath_line + (carrier_flow + sheath_flow) * nozzle_resistance(
         nozzle_deposition_um, params
-    )
-
-
-def pressures_display(
-    carrier_flow_sccm, sheath_flow_sccm, tube_deposition_um, nozzle_deposition_um, params
-):
-    """(P_c, P_s) [Pa] from display-unit flows [sccm] and deposits [µm]."""
-    qc = units.sccm_to_m3_per_s(carrier_flow_sccm)
-    qs = units.sccm_to_m3_per_s(sheath_flow_sccm)
-    dt = units.um_to_m(tube_deposition_um)
-    return (
-        carrier_pressure(qc, qs, dt, nozzle_deposition_um, params),
-        sheath_pressure(qc, qs, nozzle_deposition_um, params),
     )

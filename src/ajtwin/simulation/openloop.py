@@ -16,13 +16,6 @@ from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel
 EXP1_INPUTS = (375.0, 23.0, 50.0)
 
 
-def exp1_initial_state(model: DigitalModel, droplet_um=3.5, vial_ml=1.0) -> np.ndarray:
-    """x0 for Exp 1: d_a0 3.5 µm, V_l0 1 mL, clean tube and nozzle, φ_A0 from H."""
-    u = np.array(EXP1_INPUTS)
-    phi = float(model.steady_aerosol_fraction(u, vial_ml))
-    return np.array([droplet_um, vial_ml, 0.0, 0.0, phi])
-
-
 def run_open_loop(model: DigitalModel, x0, inputs, theta=None):
     """States (T+1, 5) and outputs (T+1, 5) of an open-loop run at 1 s steps."""
     inputs = np.asarray(inputs, dtype=float)

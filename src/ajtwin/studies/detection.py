@@ -218,25 +218,6 @@ def evaluate(
     }
 
 
-def summary_figures(cache_dir=DEFAULT_CACHE) -> dict:
-    """Detection delay and cause per fault scenario (seeds 0-2, 90 min), false alarms per
-    10 print-hours on clean_long (seeds 0 and 1, 8 h): the figures of the validation table."""
-    result = evaluate(cache_dir, seeds=(0, 1, 2), clean_seeds=(0, 1), progress=None)
-    out = {}
-    for scenario in sorted({r["scenario"] for r in result["faults"]}):
-        rows = [r for r in result["faults"] if r["scenario"] == scenario]
-        delays = [r["delay_s"] for r in rows]
-        out[f"{scenario}_delay_s_per_seed"] = delays
-        out[f"{scenario}_cause_correct"] = sum(r["cause"] == r["expected_cause"] for r in rows)
-        out[f"{scenario}_false_alarms_before_onset"] = sum(
-            r["false_alarms_before_onset"] for r in rows
-        )
-    out["clean_long_hours"] = round(result["clean_hours"], 2)
-    out["clean_long_alarm_events"] = result["false_alarm_events"]
-    out["false_alarms_per_10_print_hours"] = result["false_alarms_per_10h"]
-    return out
-
-
 @click.command()
 @click.option("--cache", "cache_dir", default=DEFAULT_CACHE, show_default=True)
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated fault seeds.")

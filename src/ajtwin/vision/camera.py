@@ -35,7 +35,7 @@ The camera file (``camera.toml``, docs/reference/camera-file.md)::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -152,10 +152,6 @@ class Camera:
                 f"{where}: offset_mm_se must be two numbers >= 0, got {self.offset_mm_se}"
             )
 
-    def with_size(self, width_px: int, height_px: int) -> Camera:
-        """The same camera for frames of another size (the optical centre stays central)."""
-        return replace(self, width_px=int(width_px), height_px=int(height_px))
-
     # -- geometry --------------------------------------------------------------------------
     @property
     def axes(self) -> np.ndarray:
@@ -200,12 +196,6 @@ class Camera:
         v = (np.asarray(row, dtype=float) - row0) * self.mm_per_px
         (ax, ay), (bx, by) = self.axes
         return cx + u * ax + v * bx, cy + u * ay + v * by
-
-    def direction_to_pixel(self, ux, uy) -> tuple[np.ndarray, np.ndarray]:
-        """A part direction (unit vector) as an image direction (unit vector, col/row)."""
-        (ax, ay), (bx, by) = self.axes
-        ux, uy = np.asarray(ux, dtype=float), np.asarray(uy, dtype=float)
-        return ux * ax + uy * ay, ux * bx + uy * by
 
     def part_to_pixel_matrix(self, nozzle_mm) -> np.ndarray:
         """2x3 affine matrix: [col, row] = M @ [x_mm, y_mm, 1] (for cv2.transform)."""

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -646,13 +646,3 @@ class _VideoTruth:
                 "overspray_um": self.profiles[index]["overspray_um"],
             }
         )
-
-
-def iter_profile_frames(
-    r_um, profiles: Iterable[np.ndarray], shape, settings: RenderSettings, seed: int = 0
-):
-    """Yield rendered frames for an iterable of profiles (no files; for tests/benchmarks)."""
-    rng = np.random.default_rng(seed)
-    substrate = Substrate(shape, settings, rng)
-    for h in profiles:
-        yield render_frame(r_um, h, shape, settings, rng=rng, substrate=substrate)

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
-import pandas as pd
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 from ajtwin.apps.detection.streaming import AnomalyDetector
@@ -31,22 +30,6 @@ class DetectionResult:
     settings: DetectorSettings
     # the long-run statistics to carry to the machine's next print (AnomalyDetector)
     long_run_history: dict | None = None
-
-    def events_frame(self):
-        """The events as a table: detected_s, onset_s [s], cause, description, detectors."""
-        rows = [
-            {
-                "detected_s": ev.detected_s,
-                "onset_s": ev.onset_s,
-                "cause": ev.cause,
-                "description": ev.description,
-                "detectors": ", ".join(ev.detectors),
-            }
-            for ev in self.events
-        ]
-        return pd.DataFrame(
-            rows, columns=["detected_s", "onset_s", "cause", "description", "detectors"]
-        )
 
 
 #: The arrays of a twin run the detectors read each step, in the order

@@ -374,13 +374,6 @@ class BringUp:
         near = s_pool >= s_pool.max() - 0.02 * abs(s_pool.max())
         return pool[np.flatnonzero(near)[np.argmin(moved[near])]]
 
-    def _fallback(self, pred, p_feasible) -> np.ndarray:
-        """A score where no test is likely to finish: P(feasible), or closeness in σ."""
-        if p_feasible.max() > 1e-12:
-            return p_feasible
-        centre = _log_goal(self.goal)[0]
-        return -np.abs(pred.linewidth - centre) / pred.linewidth_sd
-
     def _rounded(self, inputs) -> np.ndarray:
         """Inputs rounded to what an operator sets, kept within the box."""
         x = np.round(np.asarray(inputs) / RESOLUTION) * RESOLUTION

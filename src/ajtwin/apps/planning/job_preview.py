@@ -97,8 +97,3 @@ class JobPreview:
             out[k - k0 : k - k0 + take] = self._block(b)[within : within + take]
             k += take
         return out
-
-
-def straight_line(horizon_s: int) -> np.ndarray:
-    """(H, 3) of ones: a straight line printed at ν_ref every second (no job)."""
-    return np.ones((int(horizon_s), 3))

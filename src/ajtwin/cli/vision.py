@@ -296,7 +296,7 @@ def render(
         )
     # lazy CLI loading: rendering loads OpenCV, `render --help` must not
     from ajtwin.vision.record_render import ConstantLine, render_record_video
-    from ajtwin.vision.render import RenderSettings
+    from ajtwin.vision.render import RenderSettings, TruthFile
 
     shape = _parse_size(size)
     overrides = {"tilt_deg": tilt_deg}
@@ -333,8 +333,7 @@ def render(
             platen_speed_mm_s=platen_speed_mm_s,
             constant=ConstantLine(linewidth_um, overspray_um, area_um2),
             seed=seed,
-            truth_path=truth,
-            extra_truth={} if record is None else {"record": str(record)},
+            truth=TruthFile(truth, {} if record is None else {"record": str(record)}),
         )
     except ValueError as exc:  # no row of the record in the time window
         raise click.ClickException(f"{record}: {exc}") from None

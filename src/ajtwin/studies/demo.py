@@ -43,7 +43,7 @@ from ajtwin.simulation import simulate
 from ajtwin.store.registry import Registry
 from ajtwin.studies import demo_report as report
 from ajtwin.vision.record_render import render_record_video
-from ajtwin.vision.render import RenderSettings
+from ajtwin.vision.render import RenderSettings, TruthFile
 
 CLEAN_MIN = 15.0
 FAULT_MIN = 40.0
@@ -197,7 +197,7 @@ def render_camera_video(run: DemoRun, seed: int) -> None:
         shape=VIDEO_SHAPE,
         settings=RenderSettings.from_defaults(tilt_deg=0.0, um_per_px=UM_PER_PX),
         seed=seed,
-        extra_truth={"record": str(run.out / "print2_nozzle_clog.parquet")},
+        truth=TruthFile(extra={"record": str(run.out / "print2_nozzle_clog.parquet")}),
     )
     for note in video.notes:
         click.echo(f"note: {note}")

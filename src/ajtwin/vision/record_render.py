@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import functools
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ajtwin.units import cross_section_um2
 from ajtwin.vision.profile import line_profile, minimum_area_um2
-from ajtwin.vision.render import RenderSettings, render_video
+from ajtwin.vision.render import RenderSettings, TruthFile, render_video
 
 
 @dataclass(frozen=True)
@@ -126,8 +126,7 @@ def render_record_video(
     platen_speed_mm_s: float | None = None,
     constant: ConstantLine = ConstantLine(),
     seed: int = 0,
-    truth_path=None,
-    extra_truth: dict | None = None,
+    truth: TruthFile | None = None,
     progress: bool = True,
 ) -> RenderedVideo:
     """Render the alignment-camera video of a print (or of a constant line).
@@ -152,14 +151,14 @@ def render_record_video(
         The line where the record has none.
     seed : int
         Seed of the frames' noise.
-    truth_path : path, optional
-        Ground-truth JSON (default: beside the video, ``.json``).
-    extra_truth : dict, optional
-        More keys for the ground truth.
+    truth : TruthFile, optional
+        Where the ground-truth JSON goes (default: beside the video, ``.json``) and more
+        keys for it.
     progress : bool
         A progress bar while frames are written.
     """
-    extra = dict(extra_truth or {})
+    truth = truth or TruthFile()
+    extra = dict(truth.extra)
     if record is not None:
         speed = platen_speed_mm_s or float(record.meta.get("platen_speed_mm_s", 1.0))
         times, lw, ov, flow = record_lines(record, start_s, duration_s)
@@ -211,8 +210,7 @@ def render_record_video(
         settings=settings,
         platen_speed_mm_s=speed,
         seed=seed,
-        truth_path=truth_path,
-        extra_truth={**extra, "print_start_s": start_s},
+        truth=replace(truth, extra={**extra, "print_start_s": start_s}),
         progress=progress,
     )
     return result

@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -497,6 +497,18 @@ def _fourcc_for(path: Path) -> int:
     raise ValueError(f"{path}: video must end in .mp4 (mp4v, lossy) or .avi/.mkv (FFV1, lossless)")
 
 
+@dataclass(frozen=True)
+class TruthFile:
+    """A rendered video's ground truth: its JSON ``path`` (None: the video's path with
+    ``.json``), ``extra`` keys for it (e.g. the print's scenario) and ``step_um``, the grid
+    step of the profiles it stores [µm] (keeps a 90-min print's truth small; the reference
+    linewidth and overspray are computed on the full grid)."""
+
+    path: str | Path | None = None
+    extra: dict = field(default_factory=dict)
+    step_um: float = 0.25
+
+
 def render_video(
     r_um,
     profiles: Sequence[np.ndarray] | np.ndarray,
@@ -509,10 +521,8 @@ def render_video(
     settings: RenderSettings | None = None,
     platen_speed_mm_s: float = 1.0,
     seed: int = 0,
-    truth_path: str | Path | None = None,
-    extra_truth: dict | None = None,
+    truth: TruthFile = TruthFile(),
     progress: bool = True,
-    truth_step_um: float = 0.25,
 ) -> Path:
     """Render a video of a print from a sequence of cross-sections, plus ground truth.
 
@@ -541,15 +551,10 @@ def render_video(
         Platen speed (moves texture and raggedness; stored in the truth).
     seed : int
         Seeds substrate and noise.
-    truth_path : path, optional
-        Ground-truth JSON (default: the video path with ``.json``).
-    extra_truth : dict, optional
-        Additional entries for the truth JSON (e.g. the print's scenario).
+    truth : TruthFile
+        Where the ground-truth JSON goes and what more it holds.
     progress : bool
         Show a tqdm progress bar.
-    truth_step_um : float
-        Grid step of the profiles stored in the JSON (keeps a 90-min print's truth small;
-        the reference linewidth/overspray are computed on the full input grid).
 
     Returns
     -------
@@ -558,7 +563,7 @@ def render_video(
     settings = RenderSettings.from_defaults() if settings is None else settings
     settings.validate()
     out_path = Path(out_path)
-    truth_path = out_path.with_suffix(".json") if truth_path is None else Path(truth_path)
+    truth_path = out_path.with_suffix(".json") if truth.path is None else Path(truth.path)
     r_um = np.asarray(r_um, dtype=float)
     profile_times_s = np.asarray(profile_times_s, dtype=float)
     if len(profiles) != profile_times_s.size or profile_times_s.size == 0:
@@ -577,7 +582,7 @@ def render_video(
     substrate = Substrate(shape, settings, rng)
     speed_um_s = mm_per_s_to_um_per_s(platen_speed_mm_s)
     dr = float(r_um[1] - r_um[0]) if r_um.size > 1 else 1.0
-    truth = _VideoTruth(r_um, profiles, profile_times_s, max(1, int(round(truth_step_um / dr))))
+    stored = _VideoTruth(r_um, profiles, profile_times_s, max(1, int(round(truth.step_um / dr))))
     try:
         for k in tqdm(
             range(n_frames), desc=f"render {out_path.name}", unit="frame", disable=not progress
@@ -589,7 +594,7 @@ def render_video(
                 r_um, h, shape, settings, rng=rng, substrate=substrate, travel_um=speed_um_s * t
             )
             writer.write(frame)
-            truth.add_frame(k, t, index)
+            stored.add_frame(k, t, index)
     finally:
         writer.release()
     document = {
@@ -602,10 +607,10 @@ def render_video(
         "seed": seed,
         "settings": dataclasses.asdict(settings),
         "definitions": "linewidth/overspray of the true profile: ajtwin.vision.profile_features",
-        "r_um": np.round(r_um[:: truth.stride], 6).tolist(),
-        "profiles": truth.profiles,
-        "frames": truth.frames,
-        **(extra_truth or {}),
+        "r_um": np.round(r_um[:: stored.stride], 6).tolist(),
+        "profiles": stored.profiles,
+        "frames": stored.frames,
+        **truth.extra,
     }
     truth_path.write_text(json.dumps(document, allow_nan=True))
     return truth_path

@@ -5,8 +5,13 @@
 
 MODE: ``back`` (exp1 seed 1, samples 100-129 stamped going backwards, 100 - 3 s each),
 ``statebad`` (PrintState set to the number 3.14 once), ``burst`` (ROWS rows written in one
-SampleBuffer value, then ``finished``), ``silent`` (a TCP socket that accepts and never
-answers). Prints ``up`` when it listens; stopped by its PID.
+SampleBuffer value, then ``finished``), ``restart`` (ROWS samples, then the server stops —
+its clients get BadShutdown — and starts again 1.5 s later with a new print from t = 0, of
+ROWS + 60 samples, then ``finished``; no PrintId: the clock alone tells), ``newid`` (PrintId
+``p1``, ROWS samples, then PrintId ``p2`` and a new print of 60 samples from t = 0: with ROWS
+< 60 the clock goes back too little to tell, the PrintId alone does), ``late`` (a print that
+began 200 s before the client subscribed: its samples from t = 200 s), ``silent`` (a TCP
+socket that accepts and never answers). Prints ``up`` when it listens; stopped by its PID.
 """
 
 from __future__ import annotations
@@ -49,8 +54,13 @@ async def silent(port: int) -> None:
         held.append(conn)
 
 
-async def machine(mode: str, port: int, n_rows: int, name: str = "m1") -> None:
-    """Serve machine ``name`` and play ``mode`` (module docstring)."""
+#: where the print began before the ``late`` machine's first sample [s]
+LATE_S = 200.0
+
+
+async def _server(port: int, name: str, print_id: str | None = None):
+    """The machine's server (not started) and its PrintState and SampleBuffer nodes, and
+    its PrintId node when ``print_id`` is given (else None: a machine without one)."""
     server = Server()
     await server.init()
     # a machine whose PrintState changes type, as a misconfigured PLC's may: let it
@@ -71,6 +81,11 @@ async def machine(mode: str, port: int, n_rows: int, name: str = "m1") -> None:
         nid("Monitoring", "Process", "PrintState"), f"{idx}:PrintState", "printing",
         datatype=any_type,
     )  # fmt: skip
+    ident = None
+    if print_id is not None:
+        ident = await process.add_variable(
+            nid("Monitoring", "Process", "PrintId"), f"{idx}:PrintId", print_id
+        )
     empty = [float("nan")] * (BUFFER_ROWS * 9)
     buffer = await process.add_variable(
         nid("Monitoring", "Process", "SampleBuffer"),
@@ -88,17 +103,39 @@ async def machine(mode: str, port: int, n_rows: int, name: str = "m1") -> None:
     for key, value in defaults.items():
         var = await health.add_variable(nid("Monitoring", "Health", key), f"{idx}:{key}", value)
         await var.set_writable()
-    rows = rows_of(n_rows)
+    return server, state, buffer, ident
+
+
+async def machine(mode: str, port: int, n_rows: int, name: str = "m1") -> None:
+    """Serve machine ``name`` and play ``mode`` (module docstring)."""
+    server, state, buffer, ident = await _server(port, name, "p1" if mode == "newid" else None)
+    rows = rows_of(n_rows if mode not in ("restart", "newid") else n_rows + 60)
+    if mode == "late":
+        rows[:, 0] += LATE_S
     async with server:
         print("up", flush=True)
         await asyncio.sleep(2.0)  # the client subscribes
         if mode == "burst":
             await buffer.write_value(ua.Variant(rows.ravel().tolist(), ua.VariantType.Double))
             await asyncio.sleep(1.0)
+        elif mode == "newid":
+            await _play(mode, rows[:n_rows], buffer, state, server)
+            await ident.write_value(ua.Variant("p2", ua.VariantType.String))
+            await asyncio.sleep(0.5)  # the new id is published before the new print's samples
+            await _play(mode, rows[:60], buffer, state, server)
         else:
-            await _play(mode, rows, buffer, state, server)
+            await _play(mode, rows[:n_rows] if mode == "restart" else rows, buffer, state, server)
+        if mode != "restart":
+            await state.write_value(ua.Variant("finished", ua.VariantType.String))
+            await asyncio.sleep(3600)  # until stopped
+    # restart: the server was stopped mid-print; it comes back and prints again from t = 0
+    await asyncio.sleep(1.5)
+    server, state, buffer, _ = await _server(port, name)
+    async with server:
+        await asyncio.sleep(2.0)  # the client reconnects
+        await _play(mode, rows, buffer, state, server)
         await state.write_value(ua.Variant("finished", ua.VariantType.String))
-        await asyncio.sleep(3600)  # until stopped
+        await asyncio.sleep(3600)
 
 
 async def _play(mode, rows, buffer, state, server) -> None:

@@ -24,8 +24,10 @@ import pytest
 
 pytest.importorskip("asyncua")
 
+from asyncua import ua  # noqa: E402
+
 from ajtwin.engine.fleet import LiveEngine  # noqa: E402
-from ajtwin.engine.messages import StepMessage
+from ajtwin.engine.messages import LinkMessage, StepMessage
 from ajtwin.engine.stream import TwinStream  # noqa: E402
 from ajtwin.estimation.online import OnlineTwin  # noqa: E402
 from ajtwin.estimation.samples import Sample  # noqa: E402
@@ -36,6 +38,7 @@ from ajtwin.live.link import (  # noqa: E402
     fault_text,
     new_rows,
     print_state,
+    subscription_status_text,
 )
 from ajtwin.simulation import simulate  # noqa: E402
 from ajtwin.store.registry import Registry  # noqa: E402
@@ -105,13 +108,15 @@ class Machine:
         self.stop()
 
 
-def follow(url: str, store, *, within_s: float, **link_options):
+def follow(url: str, store, *, within_s: float, messages: list | None = None, **link_options):
     """Follow machine m1 with a live engine on ``store`` until its print is stored (or
     ``within_s``); returns (link, registry, how often another task of the event loop ran
-    while fed rows were still queued)."""
+    while fed rows were still queued). ``messages`` gets the engine's messages."""
     registry = Registry(store)
     engine = LiveEngine(registry)
     engine.warm_up()
+    if messages is not None:
+        engine.subscribe(messages.append)
     link = OpcUaLink(url, ["m1"], engine, **link_options)
     beats = [0]
 
@@ -192,6 +197,27 @@ def test_a_timeout_is_said_in_words():
 
 
 # ------------------------------------------------------------------ against a machine
+def test_a_lost_subscription_is_said_in_words():
+    """The server's last word on a subscription (asyncua hands a StatusChangeNotification)
+    is logged and published by name and meaning, not as ``StatusCode(value=2148270080)``."""
+    url = "opc.tcp://127.0.0.1:4840"
+    shutdown = ua.StatusChangeNotification(Status=ua.StatusCode(ua.StatusCodes.BadShutdown))
+    said = fault_text(ConnectionError(subscription_status_text(shutdown)), url, 4.0)
+    assert said == (
+        "the server ended the subscription: BadShutdown: the server is shutting down "
+        "(stopped or restarting)"
+    )
+    # a code without words of our own: its OPC UA name and description
+    timeout = ua.StatusChangeNotification(Status=ua.StatusCode(ua.StatusCodes.BadTooManyOperations))
+    said = fault_text(ConnectionError(subscription_status_text(timeout)), url, 4.0)
+    assert said.startswith("the server ended the subscription: BadTooManyOperations: ")
+    assert len(said) > len("the server ended the subscription: BadTooManyOperations: ") + 10
+    # a service call refused with a status code
+    said = fault_text(ua.UaStatusCodeError(ua.StatusCodes.BadSessionIdInvalid), url, 4.0)
+    assert said == "BadSessionIdInvalid: the server no longer knows this session (it restarted)"
+    assert "StatusCode(value=" not in said
+
+
 def test_samples_whose_time_goes_back_are_dropped_with_a_line_and_no_false_alarm(tmp_path, caplog):
     """exp1 seed 1 with samples 100-129 stamped 100, 97, … 13 s: they are dropped and said
     so (how many, which times), the 29 s they leave are missing data, and the stored print
@@ -286,3 +312,120 @@ def test_samples_held_while_em_ran_are_committed_a_slice_per_poll_in_order():
     messages += stream.finish()
     steps = [m.step for m in messages if isinstance(m, StepMessage) and not m.provisional]
     assert steps == list(range(len(rows)))
+
+
+def test_a_machine_restarted_mid_print_ends_the_print_and_opens_a_new_one(tmp_path, caplog):
+    """The machine's server stops 120 s into its print (the client's subscription ends with
+    BadShutdown) and comes back 1.5 s later printing again from t = 0 (180 s, no PrintId:
+    its clock alone tells). The print followed so far is stored as it was and the new one
+    as a print of its own — never one print stitched from two runs with the new run's
+    first minutes dropped as "time went backwards" — and the lost subscription is said in
+    words, not as a raw status number."""
+    with Machine("restart", rows=120) as m, caplog.at_level(logging.INFO, logger="ajtwin.live"):
+        link, registry, _ = follow(m.url, tmp_path / "r.sqlite", within_s=240)
+    assert "m1" in link.finished, caplog.text
+    prints = registry.prints("m1")
+    assert [p["n_samples"] for p in prints] == [120, 180], (prints, caplog.text)
+    assert link.new_prints == 1
+    assert "time went backwards" not in caplog.text
+    assert re.search(r"m1: the machine began a new print \(its clock went back from t = 119 s "
+                     r"to t = 0 s", caplog.text), caplog.text  # fmt: skip
+    assert "StatusCode(value=" not in caplog.text
+    assert "BadShutdown: the server is shutting down" in caplog.text, caplog.text
+
+
+def test_a_new_print_id_ends_the_print_and_opens_a_new_one(tmp_path, caplog):
+    """The machine's PrintId goes from p1 to p2 after 40 samples and a new print begins at
+    t = 0: its clock went back only 39 s (too little to tell a new print by the clock), so
+    the PrintId alone says it. Two prints are stored, none of the new one's samples dropped
+    as "time went backwards"."""
+    with Machine("newid", rows=40) as m, caplog.at_level(logging.INFO, logger="ajtwin.live"):
+        link, registry, _ = follow(m.url, tmp_path / "r.sqlite", within_s=180)
+    assert "m1" in link.finished, caplog.text
+    assert [p["n_samples"] for p in registry.prints("m1")] == [40, 60], caplog.text
+    assert link.new_prints == 1 and link.print_ids == {"m1": "p2"}
+    assert "time went backwards" not in caplog.text
+    assert "m1: the machine began a new print (its PrintId changed from 'p1' to 'p2')" in (
+        caplog.text
+    )
+
+
+def test_a_twin_that_joins_a_print_late_says_how_much_it_missed(tmp_path, caplog):
+    """The print began 200 s before the twin's first sample (the machine's buffer no longer
+    holds its start): the link says so in words, once, and publishes ``missed_s`` on the
+    link state the dashboard shows."""
+    messages: list = []
+    with Machine("late", rows=60) as m, caplog.at_level(logging.INFO, logger="ajtwin.live"):
+        link, registry, _ = follow(m.url, tmp_path / "r.sqlite", within_s=180, messages=messages)
+    assert "m1" in link.finished, caplog.text
+    (stored,) = registry.prints("m1")
+    assert stored["n_samples"] == 60
+    said = [r.getMessage() for r in caplog.records if "joined this print" in r.getMessage()]
+    assert said == [
+        "m1: joined this print 3.3 min after its start (first sample t = 200 s): the first "
+        "3.3 min were printed before the twin connected and are no longer in the machine's "
+        "buffer (300 samples); the twin starts from there. Start the twin before the print "
+        "(`printer serve --wait-for-client` holds a virtual print until it connects)"
+    ]
+    missed = [m.link.missed_s for m in messages if isinstance(m, LinkMessage) and m.link.missed_s]
+    assert missed == [200.0]
+    # the dashboard's sentence for that link state
+    from ajtwin.web.publisher import link_text
+
+    link_state = next(m.link for m in messages if isinstance(m, LinkMessage) and m.link.missed_s)
+    assert link_text(link_state.to_dict()).endswith(
+        "joined the print 3.3 min after its start: the first 3.3 min were not seen"
+    )
+
+
+def test_the_live_dashboard_keeps_serving_after_the_print_and_says_the_link_ended(
+    tmp_path, monkeypatch
+):
+    """``ajtwin live --opcua … --dashboard 0``: when the print ends the command keeps the
+    dashboard up (the page stays, it does not fall to "reconnecting" forever) and the
+    machine's link state says the link ended, until Ctrl-C; then the port is closed."""
+    import json
+    import urllib.request
+
+    from click.testing import CliRunner
+
+    import ajtwin.cli.live as live_cli
+
+    seen = {}
+
+    def get(url):
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.read().decode()
+
+    def look_then_ctrl_c():  # the wait after the print: look at the page once, then "Ctrl-C"
+        seen["page"] = get(seen["url"] + "machine/m1")
+        seen["api"] = json.loads(get(seen["url"] + "api/machine/m1")[1])
+        raise KeyboardInterrupt
+
+    real_echo = live_cli.click.echo
+
+    def echo(message=None, *args, **kwargs):
+        if message and "dashboard still at " in str(message):
+            seen["url"] = str(message).split("dashboard still at ")[1].split(";")[0]
+        return real_echo(message, *args, **kwargs)
+
+    monkeypatch.setattr(live_cli, "_wait_until_interrupted", look_then_ctrl_c)
+    monkeypatch.setattr(live_cli.click, "echo", echo)
+    with Machine("burst", rows=60) as m:
+        args = ["--machine", "m1", "--opcua", m.url, "--store", str(tmp_path / "r.sqlite"),
+                "--dashboard", "0", "--max-backoff", "1"]  # fmt: skip
+        result = CliRunner().invoke(live_cli.live, args)
+    assert result.exit_code == 0, result.output
+    assert "followed m1 to the end of their prints" in result.output
+    assert f"dashboard still at {seen['url']}; Ctrl-C stops it" in result.output
+    assert "stopped (the prints had ended and are stored)" in result.output
+    status, _ = seen["page"]
+    assert status == 200
+    api = seen["api"]
+    assert api["link"]["state"] == "ended"
+    assert api["link"]["text"] == "link closed (prints finished)"
+    assert len(api["prints"]) == 1 and len(api["live"]["samples"]) == 60
+    port = int(seen["url"].rsplit(":", 1)[1].strip("/"))
+    with socket.socket() as s:  # stopped after Ctrl-C
+        s.settimeout(2)
+        assert s.connect_ex(("127.0.0.1", port)) != 0

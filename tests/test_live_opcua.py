@@ -309,6 +309,57 @@ def test_anonymous_cannot_write_setpoints_but_may_publish_health(tmp_path):
     asyncio.run(main())
 
 
+def test_wait_for_client_holds_the_print_at_its_start_until_a_twin_subscribes(tmp_path, caplog):
+    """``printer serve --wait-for-client``: the server is up but its print waits at t = 0
+    until a client subscribes (a client that only reads does not start it). Two seconds of
+    waiting at x60 would otherwise be two minutes of print the twin never sees; the twin that
+    then connects stores the whole print, from t = 0."""
+    import logging
+
+    from asyncua import Client, ua
+
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.live.link import OpcUaLink, OpcUaLogin
+    from ajtwin.live.printer_server import PrinterServer, VirtualMachine
+    from ajtwin.store.registry import Registry
+
+    port = _free_port()
+    url = f"opc.tcp://127.0.0.1:{port}"
+    registry = Registry(tmp_path / "r.sqlite")
+    engine = LiveEngine(registry)
+    engine.warm_up()
+
+    async def main():
+        machine = VirtualMachine("m1", "exp1", seed=1, speed=60.0, duration_min=2)
+        server = PrinterServer(url, [machine], wait_for_client=True)
+        stop, ready = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(server.serve(stop, ready.set))
+        await asyncio.wait_for(ready.wait(), 120)
+        try:
+            await asyncio.sleep(2.0)  # two minutes of print at x60, had it started
+            async with Client(url, timeout=4) as client:
+                idx = await client.get_namespace_index("urn:ajtwin:aerosol-jet")
+                node = client.get_node(ua.NodeId("m1/Monitoring/Process/SampleTime", idx))
+                assert await node.read_value() == -1.0  # nothing printed yet
+            assert machine.printer.k == 0
+            link = OpcUaLink(url, ["m1"], engine, login=OpcUaLogin(timeout_s=4))
+            await asyncio.wait_for(link.run(), 120)
+            assert link.finished == {"m1"}
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 30)
+
+    try:
+        with caplog.at_level(logging.INFO):  # ajtwin.live and ajtwin.printer
+            asyncio.run(main())
+    finally:
+        engine.shutdown()
+    time_s = registry.print_arrays(registry.last_print("m1")["id"])["time_s"]
+    assert time_s[0] == 0.0 and len(time_s) == 120, caplog.text
+    assert "joined this print" not in caplog.text
+    assert "a client subscribed: the prints start" in caplog.text
+
+
 def _steps_in(path: Path) -> int:
     if not path.exists():
         return 0
@@ -349,7 +400,8 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
             log_path=tmp_path / f"live{n}.log",
         )
 
-    server = _serve(url, tmp_path / "server1.log", "--duration-min", "15")
+    # the restarted server continues the same print: it serves the same PrintId
+    server = _serve(url, tmp_path / "server1.log", "--duration-min", "15", "--print-id", "p1")
     live = start_live(1)
     procs = [server, live]
     try:
@@ -380,8 +432,9 @@ def test_client_kill_and_server_restart_lose_nothing(tmp_path):
         _stop(server)
         time.sleep(3)
         server = _serve(
-            url, tmp_path / "server2.log", "--duration-min", "15", "--start-s", str(t_stop + 60)
-        )
+            url, tmp_path / "server2.log", "--duration-min", "15", "--start-s", str(t_stop + 60),
+            "--print-id", "p1",
+        )  # fmt: skip
         procs.append(server)
         _wait(lambda: live.poll() is not None, 240, "the end of the print")
         assert live.returncode == 0, (tmp_path / "live2.log").read_text()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from pathlib import Path
 
 import click
@@ -19,6 +20,7 @@ from ajtwin.cli.options import (
     transition_option,
     transition_overrides,
 )
+from ajtwin.engine.messages import FinishedMessage
 from ajtwin.store.live_log import CLAIMANT
 from ajtwin.store.registry import RegistryError
 
@@ -49,7 +51,8 @@ from ajtwin.store.registry import RegistryError
     type=click.IntRange(min=0, max=65535),
     default=None,
     metavar="PORT",
-    help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port).",
+    help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port); "
+    "over OPC UA it keeps serving after the prints end, until Ctrl-C.",
 )
 @transition_option
 @click.option(
@@ -120,6 +123,7 @@ def live(
         raise click.ClickException(str(exc)) from None
     engine.warm_up(len(machines))
     engine.jobs.update(dict.fromkeys(machines, entry) if entry else {})  # stored with prints
+    engine.subscribe(ConsoleReadiness(click.echo))
     out = None
     if messages is not None:
         out = messages.open("a", encoding="utf-8")
@@ -150,6 +154,7 @@ def live(
         asyncio.run(
             ensure_certificate(certificate, private_key, "localhost", "urn:ajtwin:live-client")
         )
+    link = None
     try:
         if follow is not None:
             print_id = asyncio.run(
@@ -181,18 +186,65 @@ def live(
             )
             asyncio.run(link.run())
             click.echo(f"followed {', '.join(machines)} to the end of their prints")
+            if dashboard is not None:
+                # the page keeps showing the print (and says the link ended) until stopped
+                click.echo(f"dashboard still at {dashboard.url}; Ctrl-C stops it", err=True)
+                _wait_until_interrupted()
     except LinkRefused as exc:
         raise click.ClickException(str(exc)) from None
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
-        click.echo("stopped; the live session stays open and resumes on the next start", err=True)
+        if link is not None and len(link.finished) == len(machines):
+            click.echo("stopped (the prints had ended and are stored)", err=True)
+        else:
+            click.echo(
+                "stopped; the live session stays open and resumes on the next start", err=True
+            )
     finally:
         engine.shutdown()
         if out is not None:
             out.close()
         if dashboard is not None:
             dashboard.stop()
+
+
+def _wait_until_interrupted() -> None:
+    """Sleep until Ctrl-C (KeyboardInterrupt, handled by the caller)."""
+    while True:
+        time.sleep(1.0)
+
+
+class ConsoleReadiness:
+    """The live console's line when a machine's start-up has settled ("ready to print")
+    or its atomizer started again (a subscriber of the engine's messages)."""
+
+    def __init__(self, echo):
+        self.echo = echo
+        self.ready: dict[str, bool] = {}
+
+    def __call__(self, message) -> None:
+        """One engine message: a line when a machine's readiness changes."""
+        if isinstance(message, FinishedMessage):  # the next print has its own start-up
+            self.ready.pop(message.machine, None)
+            return
+        settling = getattr(message, "settling", None)
+        if settling is None or getattr(message, "provisional", True):
+            return
+        ready = bool(settling.get("ready"))
+        before = self.ready.get(message.machine)
+        self.ready[message.machine] = ready
+        name, minute = message.machine, message.time_s / 60
+        if before is None:
+            said = "ready to print" if ready else "waiting for the line to settle"
+            self.echo(f"{name}: start-up at {minute:.1f} min — {said}")
+        elif ready and not before:
+            self.echo(f"{name}: {settling.get('text', 'ready to print')}")
+        elif before and not ready:
+            self.echo(
+                f"{name}: the atomizer started again at {minute:.1f} min: not ready to print "
+                "until it settles"
+            )
 
 
 def _follow_parts(engine, publisher, machines, entry: dict, tolerance) -> None:

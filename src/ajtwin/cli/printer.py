@@ -26,6 +26,13 @@ def _users(username, password, user_list) -> dict:
     return users
 
 
+def _print_id(given: str | None, i: int, n_machines: int) -> dict:
+    """The ``print_id`` keyword of machine ``i`` ({}: a new id of its own)."""
+    if given is None:
+        return {}
+    return {"print_id": given if n_machines == 1 else f"{given}-{i + 1}"}
+
+
 @click.group()
 def printer():
     """The virtual printer as a live machine."""
@@ -41,6 +48,18 @@ def printer():
 @click.option("--fault-onset-min", type=float, default=None, help="Move the fault's onset.")
 @click.option("--start-s", type=float, default=0.0, help="Start at this simulated time [s].")
 @click.option("--buffer-rows", type=int, default=300, show_default=True, help="SampleBuffer rows.")
+@click.option(
+    "--wait-for-client",
+    is_flag=True,
+    help="Hold the prints at their start until a client (ajtwin live) subscribes: it misses "
+    "nothing of them.",
+)
+@click.option(
+    "--print-id",
+    default=None,
+    help="The PrintId served (default: a new one each start; with --start-s, give the "
+    "stopped server's to continue its print rather than begin a new one).",
+)
 @click.option("--endpoint", default="opc.tcp://127.0.0.1:4840", show_default=True)
 @click.option("--username", default=None, help="A user (anonymous access is then off).")
 @click.option("--password", default=None, envvar="AJTWIN_OPCUA_PASSWORD")
@@ -78,6 +97,8 @@ def serve(
     fault_onset_min,
     start_s,
     buffer_rows,
+    wait_for_client,
+    print_id,
     endpoint,
     username,
     password,
@@ -129,6 +150,7 @@ def serve(
                 overrides=overrides,
                 start_s=start_s,
                 job=program,
+                **_print_id(print_id, i, n_machines),
             )
             for i in range(n_machines)
         ]
@@ -142,9 +164,12 @@ def serve(
         private_key=private_key,
         trusted=trust,
         buffer_rows=buffer_rows,
+        wait_for_client=wait_for_client,
     )
+    held = "; the prints start when a client subscribes" if wait_for_client else ""
     click.echo(
-        f"serving {', '.join(m.name for m in machines)} at {endpoint} (x{speed:g}); Ctrl-C stops",
+        f"serving {', '.join(m.name for m in machines)} at {endpoint} (x{speed:g}){held}; "
+        "Ctrl-C stops",
         err=True,
     )
     try:

@@ -183,9 +183,10 @@ class LinkState:
     """The state of a machine link.
 
     ``state``: ``connecting``, ``connected`` (``gap_s``: how long the server was gone, None
-    on the first connection), ``reconnecting`` (gone since ``since``, Unix time; ``attempt``
-    failed attempts in this outage; ``retry_in_s`` the next back-off), ``refused`` (the link
-    stops; ``reason``) or ``ended``.
+    on the first connection; ``missed_s``: the print's first seconds the twin never saw, it
+    joined late), ``reconnecting`` (gone since ``since``, Unix time; ``attempt`` failed
+    attempts in this outage; ``retry_in_s`` the next back-off; ``reason`` the fault in
+    words), ``refused`` (the link stops; ``reason``) or ``ended``.
     """
 
     state: str
@@ -195,6 +196,7 @@ class LinkState:
     retry_in_s: float | None = None
     reason: str = ""
     gap_s: float | None = None
+    missed_s: float | None = None
 
     def to_dict(self) -> dict:
         """The JSON-ready link state."""

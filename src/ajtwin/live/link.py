@@ -35,7 +35,7 @@ import json
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from asyncua import Client, ua
@@ -77,6 +77,18 @@ PRINT_STATES = ("printing", "finished")
 FEED_BUDGET_S = 0.25
 #: rows taken from each machine's queue at a time within a slice
 FEED_ROWS = 32
+#: a step back of the sample time by more than this [s], the samples running on from there,
+#: is a new print (a machine restarted mid-print begins again at t = 0); a smaller step back
+#: is a clock adjustment or a buffer out of order: those samples are dropped
+NEW_PRINT_BACK_S = 60.0
+#: samples in increasing order the new clock must show before it is taken as a new print
+NEW_PRINT_ROWS = 3
+#: a print whose first sample comes later than this [s] after its start was partly missed
+MISSED_START_S = 5.0
+#: rows queued at once from which the link says it is catching up (and when it has)
+CATCH_UP_ROWS = 600
+#: reconnection attempts made within a second of the last one before the wait grows
+FAST_RETRIES = 20
 
 
 class LinkRefused(RuntimeError):
@@ -153,6 +165,11 @@ class OpcUaLink:
         self.link: LinkState | None = None  # the last published link state
         self._lost_at: float | None = None  # Unix time the current outage began
         self._attempt = 0  # failed attempts in the current outage
+        self.print_ids: dict[str, str] = {}  # the PrintId each machine served last
+        self._new_print_queued: set[str] = set()  # a new print's rows queued behind the old
+        self.new_prints = 0  # prints ended because the machine began a new one
+        self.buffer_sizes: dict[str, int] = {}  # rows of each machine's SampleBuffer
+        self._catching_up: dict[str, tuple] = {}  # machine → (since, rows) of a burst
 
     def _set_status(self, status: str, level=logging.INFO):
         if status != self.status:
@@ -169,12 +186,10 @@ class OpcUaLink:
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
         """Follow until every machine's print is finished (or ``stop`` is set)."""
-        backoff = min(0.5, self.max_backoff_s)
         self._announce("connecting")
         while (stop is None or not stop.is_set()) and len(self.finished) < len(self.machines):
             try:
                 await self._session(stop)
-                backoff = min(0.5, self.max_backoff_s)
             except LinkRefused as exc:
                 self._announce("refused", reason=str(exc))
                 raise
@@ -188,12 +203,13 @@ class OpcUaLink:
                     raise LinkRefused(f"{self.url}: {refusal} ({type(exc).__name__})") from None
                 self.engine.flush()
                 reason = fault_text(exc, self.url, self.login.timeout_s)
-                self._set_status(
-                    f"disconnected ({reason}); reconnecting in {backoff:g} s", logging.WARNING
-                )
                 if self._lost_at is None:
                     self._lost_at = time.time()
                 self._attempt += 1
+                backoff = retry_delay_s(self._attempt, self.max_backoff_s)
+                self._set_status(
+                    f"disconnected ({reason}); reconnecting in {backoff:g} s", logging.WARNING
+                )
                 self._announce("reconnecting", reason=reason, retry_in_s=backoff)
                 self.reconnects += 1
                 try:
@@ -202,7 +218,6 @@ class OpcUaLink:
                     )
                 except TimeoutError:
                     pass
-                backoff = min(2 * backoff, self.max_backoff_s)
         self.engine.flush()
         self._announce("ended")
 
@@ -246,9 +261,12 @@ class OpcUaLink:
                 raise LinkRefused(f"{self.url}: none of the machines {self.machines} is served")
             for name in nodes:
                 self.engine.open(name, source=self.url)  # resumes an open live session
+                await self._check_print_id(name, nodes[name])
             queue: asyncio.Queue = asyncio.Queue()
             by_node = {n["buffer"].nodeid: name for name, n in nodes.items()}
             by_node.update({n["state"].nodeid: name for name, n in nodes.items()})
+            id_nodes = {n["print_id"].nodeid: name for name, n in nodes.items() if n["print_id"]}
+            by_node.update(id_nodes)
 
             class Handler:
                 def datachange_notification(self, node, value, data):
@@ -260,6 +278,10 @@ class OpcUaLink:
             sub = await client.create_subscription(self.publish_ms, Handler())
             await sub.subscribe_data_change([n["buffer"] for n in nodes.values()])
             await sub.subscribe_data_change([n["state"] for n in nodes.values()])
+            if id_nodes:
+                await sub.subscribe_data_change(
+                    [n["print_id"] for n in nodes.values() if n["print_id"]]
+                )
             self._set_status(f"connected, following {', '.join(nodes)}")
             await self._connected(client, nodes)
             states = {name: "printing" for name in nodes}
@@ -280,11 +302,18 @@ class OpcUaLink:
                 buffers = {}
                 for name, nodeid, value in batch:
                     if nodeid == "status":
-                        raise ConnectionError(f"subscription status {value}")
-                    if name is None:
+                        raise ConnectionError(subscription_status_text(value))
+                    if name is None or name not in nodes:
                         continue
                     if nodeid == nodes[name]["state"].nodeid:
-                        states[name] = print_state(name, value, states.get(name, "printing"))
+                        state = print_state(name, value, states.get(name, "printing"))
+                        if states.get(name) == "finished" and state == "printing":
+                            # its print ended and the next began before we closed it
+                            self._begin_new_print(name, "its PrintState went from finished back "
+                                                  "to printing")  # fmt: skip
+                        states[name] = state
+                    elif nodeid in id_nodes:
+                        self._print_id_seen(name, value)
                     else:
                         buffers[name] = value
                 buffered.update(buffers)
@@ -300,7 +329,7 @@ class OpcUaLink:
                         and name in buffered
                         and name not in buffers
                         and not self.queues.get(name)
-                        and not any(m == name for items in self._unfed for m, _ in items)
+                        and not self._has_unfed(name)
                     ):
                         if self.close_finished and name in self.engine.sessions:
                             final = self.engine.close(name)
@@ -355,20 +384,86 @@ class OpcUaLink:
             await out["link_status"].read_browse_name()
         except ua.UaStatusCodeError:  # a server without it (optional)
             out["link_status"] = None
+        out["print_id"] = node("Monitoring", "Process", "PrintId")
+        try:
+            await out["print_id"].read_browse_name()
+        except ua.UaStatusCodeError:  # optional too: the clock and PrintState still tell
+            out["print_id"] = None
         return out
+
+    async def _check_print_id(self, name: str, nodes: dict) -> None:
+        """At a (re)connection: the machine's ``PrintId`` now (a new print if it changed
+        while we were away), before any of its samples of this connection are taken."""
+        if nodes.get("print_id") is None:
+            return
+        try:
+            value = await nodes["print_id"].read_value()
+        except ua.UaStatusCodeError as exc:
+            log.warning(
+                "%s: could not read PrintId (%s); a new print is told by its clock", name, exc
+            )
+            return
+        self._print_id_seen(name, value)
+
+    def _print_id_seen(self, name: str, value) -> None:
+        """A ``PrintId`` value: remembered; a change from the one seen before begins a new
+        print."""
+        value = None if value is None else str(value)
+        before = self.print_ids.get(name)
+        if value is None or value == before:
+            return
+        self.print_ids[name] = value
+        if before is not None:
+            self._begin_new_print(name, f"its PrintId changed from {before!r} to {value!r}")
+
+    def _begin_new_print(self, name: str, why: str, clock_from: float | None = None) -> None:
+        """Rows queued from now on belong to a new print: the queue gets a boundary, where
+        the print so far is stored and a new one opened (:meth:`_feed_slice`)."""
+        queue = self.queues.setdefault(name, RowQueue())
+        queue.mark_new_print()
+        queue.tail = None
+        self.last_time[name] = -np.inf if clock_from is None else clock_from
+        self._new_print_queued.add(name)
+        log.warning(
+            "%s: the machine began a new print (%s): the print followed so far is stored and "
+            "a new one opened",
+            name,
+            why,
+        )
 
     def _enqueue(self, name: str, value) -> None:
         """Queue the new rows of a machine's buffer (:func:`new_rows`); log what is refused."""
         queue = self.queues.setdefault(name, RowQueue())
-        newest = self.last_time.get(name, -np.inf)
-        session = self.engine.sessions.get(name)
-        if session is not None and session.stream.last_time is not None:
-            newest = max(newest, session.stream.last_time)  # resumed: skip what is stored
         rows, problems = buffer_rows(name, value)
         if rows is None:
             for p in problems:
                 log.warning(p)
             return
+        self.buffer_sizes[name] = len(rows)
+        newest = self._newest(name)
+        start = new_print_start(rows, newest)
+        if start is not None:  # the clock began again: the rows before are the old print's
+            self._take_rows(name, queue, rows[:start], newest)
+            self._begin_new_print(
+                name,
+                f"its clock went back from t = {newest:g} s to t = {rows[start, 0]:g} s and runs "
+                "on from there",
+            )
+            rows, newest = rows[start:], -np.inf
+        self._take_rows(name, queue, rows, newest)
+
+    def _newest(self, name: str) -> float:
+        """The time [s] of the machine's newest sample taken in the print being queued."""
+        newest = self.last_time.get(name, -np.inf)
+        session = self.engine.sessions.get(name)
+        if name in self._new_print_queued or session is None:
+            return newest
+        if session.stream.last_time is not None:
+            newest = max(newest, session.stream.last_time)  # resumed: skip what is stored
+        return newest
+
+    def _take_rows(self, name: str, queue: RowQueue, rows, newest: float) -> None:
+        """Queue the rows later than ``newest`` (:func:`new_rows`); log those that went back."""
         taken, queue.tail, dropped, after, problems = new_rows(name, rows, queue.tail, newest)
         for p in problems:
             log.warning(p)
@@ -385,6 +480,15 @@ class OpcUaLink:
         if len(taken):
             queue.append(taken)
             self.last_time[name] = float(taken[-1, 0])
+            if len(queue) >= CATCH_UP_ROWS and name not in self._catching_up:
+                self._catching_up[name] = (time.monotonic(), len(queue))
+                log.warning(
+                    "%s: %d samples arrived at once (%.1f min of print): the twin takes them "
+                    "in slices and lags the machine until it has caught up",
+                    name,
+                    len(queue),
+                    len(queue) / 60.0,
+                )
 
     def _feed_slice(self) -> list:
         """Feed queued rows to the engine for about :data:`FEED_BUDGET_S` (at least one
@@ -395,6 +499,9 @@ class OpcUaLink:
             if not self._unfed:
                 by_time: dict[float, list] = {}
                 for name, queue in self.queues.items():
+                    if queue.at_new_print():  # the old print's rows are all fed
+                        queue.pass_new_print()
+                        messages += self._store_and_reopen(name)
                     rows = queue.take(FEED_ROWS)
                     if not len(rows):
                         continue
@@ -406,12 +513,52 @@ class OpcUaLink:
                 self._unfed.extend(by_time[t] for t in sorted(by_time))
             # the budget is checked after each time step (a step may replay held samples)
             while self._unfed and time.monotonic() - start < FEED_BUDGET_S:
-                messages += self.engine.feed_many(self._unfed.popleft())
+                items = self._unfed.popleft()
+                self._say_missed_start(items)
+                messages += self.engine.feed_many(items)
             if time.monotonic() - start >= FEED_BUDGET_S:
                 self.slices_cut += bool(self._unfed or any(self.queues.values()))
                 break
         self.longest_slice_s = max(self.longest_slice_s, time.monotonic() - start)
+        for name, (since, rows) in list(self._catching_up.items()):
+            if not self.queues.get(name) and not self._has_unfed(name):
+                log.warning(
+                    "%s: caught up: the %d samples that arrived at once took %.0f s",
+                    name,
+                    rows,
+                    time.monotonic() - since,
+                )
+                del self._catching_up[name]
         return messages
+
+    def _has_unfed(self, name: str) -> bool:
+        """Whether rows of ``name`` taken from its queue still wait to be fed."""
+        return any(m == name for items in self._unfed for m, _ in items)
+
+    def _store_and_reopen(self, name: str) -> list:
+        """A machine's new print: the print so far stored, a new live session opened."""
+        if not self.queues[name].has_new_print():
+            self._new_print_queued.discard(name)
+        stream = self.engine.stream(name)
+        if stream is None or not stream.n_received:  # nothing of the old print: no print
+            return []
+        final = self.engine.close(name)
+        self.new_prints += 1
+        log.warning("%s: the print followed so far is stored as registry print %s", name, final)
+        self.engine.open(name, source=self.url)
+        return []
+
+    def _say_missed_start(self, items) -> None:
+        """The first sample of a machine's print: if it comes well after the print's start,
+        say how much of the print the twin missed and why (log and link state)."""
+        for name, sample in items:
+            stream = self.engine.stream(name)
+            if stream is None or stream.n_received or sample.time_s <= MISSED_START_S:
+                continue
+            text = missed_start_text(sample.time_s, self.buffer_sizes.get(name))
+            log.warning("%s: %s", name, text)
+            link = replace(self.link or LinkState("connected", self.url), missed_s=sample.time_s)
+            self.engine.publish_link([name], link)
 
     async def _publish(self, client, nodes, messages):
 
@@ -458,25 +605,48 @@ class OpcUaLink:
 
 
 class RowQueue:
-    """A machine's buffer rows received and not yet fed (oldest first), and the last row of
-    its latest buffer (where the next buffer's new rows begin)."""
+    """A machine's buffer rows received and not yet fed (oldest first), with the boundaries
+    where a new print begins, and the last row of its latest buffer (where the next
+    buffer's new rows begin)."""
 
     def __init__(self):
-        self._parts: list[np.ndarray] = []
+        self._parts: list[np.ndarray | None] = []  # None: a new print begins here
         self._head = 0  # rows of the first part already taken
         self.tail: np.ndarray | None = None
 
     def __len__(self) -> int:
-        return sum(len(p) for p in self._parts) - self._head
+        return sum(len(p) for p in self._parts if p is not None) - self._head
+
+    def __bool__(self) -> bool:
+        """Rows or a new print's boundary still to take."""
+        return bool(self._parts)
 
     def append(self, rows: np.ndarray) -> None:
         """Queue rows (n, SAMPLE_WIDTH)."""
         self._parts.append(np.asarray(rows, dtype=float))
 
+    def mark_new_print(self) -> None:
+        """The rows queued after this belong to a new print."""
+        self._parts.append(None)
+
+    def at_new_print(self) -> bool:
+        """Whether every row before the next new print's boundary has been taken."""
+        return bool(self._parts) and self._parts[0] is None
+
+    def has_new_print(self) -> bool:
+        """Whether a new print's boundary is queued."""
+        return any(p is None for p in self._parts)
+
+    def pass_new_print(self) -> None:
+        """Step over the boundary at the head (:meth:`at_new_print`)."""
+        if self.at_new_print():
+            self._parts.pop(0)
+
     def take(self, n: int) -> np.ndarray:
-        """Up to ``n`` oldest rows, removed from the queue."""
+        """Up to ``n`` oldest rows, removed from the queue; never past a new print's
+        boundary."""
         out = []
-        while self._parts and n > 0:
+        while self._parts and self._parts[0] is not None and n > 0:
             part = self._parts[0]
             chunk = part[self._head : self._head + n]
             out.append(chunk)
@@ -486,6 +656,71 @@ class RowQueue:
                 self._parts.pop(0)
                 self._head = 0
         return np.concatenate(out) if out else np.empty((0, SAMPLE_WIDTH))
+
+
+def new_print_start(rows, newest: float, back_s: float = NEW_PRINT_BACK_S,
+                    min_rows: int = NEW_PRINT_ROWS) -> int | None:  # fmt: skip
+    """Where a new print begins in a buffer, or None.
+
+    The buffer's newest row lies more than ``back_s`` seconds before the newest sample
+    taken (``newest``) and ends a run of at least ``min_rows`` rows in increasing time: the
+    machine's clock began again (a restart begins at t = 0) and runs on. Returns the index
+    of the run's first row. Rows going back one after another (a clock stepping back, a
+    buffer out of order) are no run and give None.
+
+    Examples
+    --------
+    >>> rows = lambda times: np.array([[t] + [0.0] * 8 for t in times])
+    >>> new_print_start(rows([747, 748, 749, 0, 1, 2, 3]), 749.0)
+    3
+    >>> new_print_start(rows([100, 97, 94, 91]), 100.0) is None   # going back, no run
+    True
+    >>> new_print_start(rows([700, 701, 702]), 749.0) is None      # a reconnection's overlap
+    True
+    """
+    rows = np.asarray(rows, dtype=float)
+    times = rows[:, 0] if rows.ndim == 2 and len(rows) else np.empty(0)
+    index = np.flatnonzero(np.isfinite(times))
+    if not len(index) or not times[index[-1]] < newest - back_s:
+        return None
+    k = len(index) - 1
+    while k > 0 and times[index[k - 1]] < times[index[k]]:
+        k -= 1
+    return int(index[k]) if len(index) - k >= min_rows else None
+
+
+def retry_delay_s(attempt: int, max_backoff_s: float) -> float:
+    """The wait [s] before reconnection attempt ``attempt + 1`` of an outage: 0.5 s, then
+    1 s for :data:`FAST_RETRIES` attempts (a server restarting is back within seconds, and
+    every second away is a second of print the twin may not get back), then doubling up
+    to ``max_backoff_s``.
+
+    >>> [retry_delay_s(a, 10.0) for a in (1, 2, 20, 21, 22, 25)]
+    [0.5, 1.0, 1.0, 2.0, 4.0, 10.0]
+    """
+    if attempt <= 1:
+        delay = 0.5
+    elif attempt <= FAST_RETRIES:
+        delay = 1.0
+    else:
+        delay = 2.0 ** (attempt - FAST_RETRIES)
+    return min(delay, max_backoff_s)
+
+
+def missed_start_text(first_s: float, buffer_rows: int | None) -> str:
+    """The sentence for a print the twin joined late (its first sample at ``first_s``).
+
+    >>> missed_start_text(210.0, 300)[:62]
+    'joined this print 3.5 min after its start (first sample t = 21'
+    """
+    held = f"{buffer_rows} samples" if buffer_rows else "its last samples"
+    return (
+        f"joined this print {first_s / 60:.1f} min after its start (first sample t = "
+        f"{first_s:g} s): the first {first_s / 60:.1f} min were printed before the twin "
+        f"connected and are no longer in the machine's buffer ({held}); the twin starts "
+        "from there. Start the twin before the print (`printer serve --wait-for-client` "
+        "holds a virtual print until it connects)"
+    )
 
 
 def buffer_rows(name: str, value) -> tuple[np.ndarray | None, list[str]]:
@@ -582,6 +817,42 @@ def print_state(name: str, value, current: str) -> str:
     return current
 
 
+#: subscription statuses a server sends as it ends a session, in words
+STATUS_WORDS = {
+    "BadShutdown": "the server is shutting down (stopped or restarting)",
+    "BadServerHalted": "the server has stopped",
+    "BadTimeout": "the server timed the subscription out (the twin was too busy to answer "
+    "in time, or the network dropped)",
+    "BadSessionClosed": "the server closed the session",
+    "BadSessionIdInvalid": "the server no longer knows this session (it restarted)",
+    "BadNoSubscription": "the server no longer holds the subscription",
+    "BadCommunicationError": "the network between the twin and the server failed",
+    "BadConnectionClosed": "the server closed the connection",
+}
+
+
+def status_code_text(code) -> str:
+    """An OPC UA status code in words: its name and, for the codes a link meets when a
+    server goes away, what it means.
+
+    >>> status_code_text(2148270080)
+    'BadShutdown: the server is shutting down (stopped or restarting)'
+    """
+    value = getattr(code, "value", code)
+    try:
+        name, doc = ua.status_codes.get_name_and_doc(int(value))
+    except (TypeError, ValueError, KeyError):
+        return f"status code {value!r}"
+    return f"{name}: {STATUS_WORDS.get(name, doc.rstrip('.') or 'no description')}"
+
+
+def subscription_status_text(notification) -> str:
+    """A subscription's ``StatusChangeNotification`` in words (a raw
+    ``StatusCode(value=2148270080)`` said nothing)."""
+    code = getattr(notification, "Status", notification)
+    return f"the server ended the subscription: {status_code_text(code)}"
+
+
 def fault_text(exc: BaseException, url: str, timeout_s: float) -> str:
     """A connection fault in words (the log line and the dashboard's link state): an empty
     TimeoutError said only "TimeoutError: "."""
@@ -592,7 +863,11 @@ def fault_text(exc: BaseException, url: str, timeout_s: float) -> str:
         )
     if isinstance(exc, ConnectionRefusedError):
         return f"nothing listens at {url} (connection refused): is the server running?"
+    if isinstance(exc, ua.UaStatusCodeError):
+        return status_code_text(exc.code)
     text = str(exc) or getattr(exc, "strerror", None) or ""
+    if text.startswith("the server ended the subscription"):
+        return text
     return f"{type(exc).__name__}: {text}" if text else f"{type(exc).__name__} (no details)"
 
 

@@ -34,6 +34,7 @@ import json
 import logging
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -96,6 +97,9 @@ class VirtualMachine:
         A machine program the printer runs (looped to the print's length; the default
         camera trails the nozzle): served samples have no line while nothing is printed
         or seen (:class:`~ajtwin.simulation.stepper.SteppedPrinter`).
+    print_id : str, optional
+        The print's identity served as ``PrintId`` (default: a new one each time the
+        machine is made; give the old one with ``start_s`` to continue a print).
     """
 
     name: str
@@ -108,6 +112,7 @@ class VirtualMachine:
     limits: dict | None = None
     schedule: dict = field(default_factory=dict, repr=False)
     job: object = None
+    print_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     #: largest block of seconds simulated in one call (powers of two up to this: few
     #: compilations of the stepper's scan whatever the publishing rhythm)
@@ -282,6 +287,11 @@ class PrinterServer:
         Folder of trusted client certificates (others are refused).
     tick_s : float
         Wall-clock period of the publishing loop.
+    buffer_rows : int
+        Rows of each machine's ``SampleBuffer``.
+    wait_for_client : bool
+        Hold every print at its start until a client has subscribed (a twin started after
+        the server misses nothing of the print).
     """
 
     def __init__(
@@ -295,8 +305,10 @@ class PrinterServer:
         trusted=None,
         tick_s: float = 0.1,
         buffer_rows: int = BUFFER_ROWS,
+        wait_for_client: bool = False,
     ):
         self.buffer_rows = int(buffer_rows)
+        self.wait_for_client = bool(wait_for_client)
         self.endpoint = endpoint
         self.machines = {m.name: m for m in machines}
         self.users = dict(users or {})
@@ -383,6 +395,11 @@ class PrinterServer:
         )
         nodes["state"] = await process.add_variable(
             nid("Monitoring", "Process", "PrintState"), f"{idx}:PrintState", "printing"
+        )
+        # which print the samples belong to: a client tells a restarted machine's new print
+        # from the one it followed (docs/reference/opcua.md)
+        nodes["print_id"] = await process.add_variable(
+            nid("Monitoring", "Process", "PrintId"), f"{idx}:PrintId", machine.print_id
         )
         nodes["buffer"] = await process.add_variable(
             nid("Monitoring", "Process", "SampleBuffer"),
@@ -529,11 +546,32 @@ class PrinterServer:
                 await nodes["state"].write_value("finished")
         return running
 
+    async def _client_subscribed(self, stop_event) -> bool:
+        """Wait until a client's subscription exists (beyond the server's own); False when
+        ``stop_event`` came first."""
+        service = self.server.iserver.subscription_service
+        own = len(service.subscriptions)  # the server's subscription to its set-points
+        log.info("waiting for a client to subscribe; the prints start then")
+        while len(service.subscriptions) <= own:
+            if stop_event is not None and stop_event.is_set():
+                return False
+            await asyncio.sleep(0.05)
+        log.info("a client subscribed: the prints start")
+        return True
+
     async def serve(self, stop_event: asyncio.Event | None = None, on_ready=None):
-        """Run until every print has finished (then keep serving) or ``stop_event`` is set."""
+        """Run until every print has finished (then keep serving) or ``stop_event`` is set;
+        ``on_ready()`` once clients can connect (with ``wait_for_client``, before the prints
+        start)."""
         await self._build()
         async with self.server:
             await self._watch()
+            if self.wait_for_client:
+                if on_ready:
+                    on_ready()
+                    on_ready = None
+                if not await self._client_subscribed(stop_event):
+                    return
             now = time.monotonic()
             for m in self.machines.values():
                 m.start(now)

@@ -70,6 +70,8 @@ def link_text(link: dict | None) -> str:
     'link lost since 00:00:00 UTC — reconnecting (attempt 3, next in 4 s)'
     >>> link_text({"state": "connected", "gap_s": 12.4})
     'link up (back after a 12 s gap: missing data)'
+    >>> link_text({"state": "connected", "missed_s": 210.0})
+    'link up — joined the print 3.5 min after its start: the first 3.5 min were not seen'
     """
     if not link:
         return ""
@@ -83,12 +85,17 @@ def link_text(link: dict | None) -> str:
         )
         retry = _number(link.get("retry_in_s"))
         nxt = "" if retry is None else f", next in {retry:g} s"
-        return f"link lost{when} — reconnecting (attempt {link.get('attempt', 0)}{nxt})"
+        why = f" ({link['reason']})" if link.get("reason") else ""
+        return f"link lost{when}{why} — reconnecting (attempt {link.get('attempt', 0)}{nxt})"
     if state == "connected":
-        gap = _number(link.get("gap_s"))
-        if gap is None:
-            return "link up"
-        return f"link up (back after a {gap:.0f} s gap: missing data)"
+        gap, missed = _number(link.get("gap_s")), _number(link.get("missed_s"))
+        text = "link up" if gap is None else f"link up (back after a {gap:.0f} s gap: missing data)"
+        if missed is not None:
+            text += (
+                f" — joined the print {missed / 60:.1f} min after its start: the first "
+                f"{missed / 60:.1f} min were not seen"
+            )
+        return text
     if state == "connecting":
         return "link: connecting…"
     if state == "refused":

@@ -34,8 +34,8 @@ def _links(messages, machine="m1"):
 
 def test_unreachable_server_is_published_as_reconnecting_with_attempts():
     """Nothing listens on the port: connecting, then reconnecting attempt 1, 2, 3 … with
-    the time the link was lost, the reason and the back-off (0.5 s doubling, capped at
-    1.5 s); 'ended' when stopped."""
+    the time the link was lost, the reason and the back-off (0.5 s, then 1 s: within a
+    second at first); 'ended' when stopped."""
     url = f"opc.tcp://127.0.0.1:{_free_port()}"
     engine = LiveEngine(twin_overrides=NO_STEPS)
     publisher = LivePublisher()
@@ -75,7 +75,10 @@ def test_unreachable_server_is_published_as_reconnecting_with_attempts():
     publisher.publish_engine(LinkMessage("m1", LinkState(**lost[2])))
     text = publisher.link("m1")["text"]
     since = time.strftime("%H:%M:%S UTC", time.gmtime(lost[2]["since"]))
-    assert text.startswith(f"link lost since {since} — reconnecting (attempt 3")
+    # ... with why, in words
+    reason = lost[2]["reason"]
+    assert reason.startswith(f"nothing listens at {url} (connection refused)")
+    assert text.startswith(f"link lost since {since} ({reason}) — reconnecting (attempt 3")
     assert publisher.latest("m1") is None  # a link state is not a sample
     row = fleet_rows(
         [{"name": "m1", "status": "idle", "link": publisher.link("m1"), "states": None}]

@@ -365,6 +365,15 @@ def test_estimate_cli_writes_states_and_theta(tmp_path, exp1_record):
     import pandas as pd
 
     states = pd.read_csv(out)
+    # the start-up verdict, in the live twin's words (the same sentence, from the same table)
+    from ajtwin.apps.detection.settling import settling_time
+    from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
+
+    verdict = settling_time(
+        states["time_s"], states[list(STATE_NAMES)], states[["pred_" + n for n in OUTPUT_NAMES]]
+    )
+    assert f"start-up: {verdict.sentence()}\n" in result.output
+    assert verdict.sentence().startswith(("ready to print from ", "not settled yet: "))
     expected = [
         "time_s",
         "droplet_diameter_um",

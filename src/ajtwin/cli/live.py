@@ -216,35 +216,37 @@ def _wait_until_interrupted() -> None:
 
 
 class ConsoleReadiness:
-    """The live console's line when a machine's start-up has settled ("ready to print")
-    or its atomizer started again (a subscriber of the engine's messages)."""
+    """The live console's line when a machine's start-up has settled ("ready to print"),
+    its atomizer stopped or started again (a subscriber of the engine's messages)."""
 
     def __init__(self, echo):
         self.echo = echo
-        self.ready: dict[str, bool] = {}
+        self.said: dict[str, tuple] = {}  # machine → (ready, atomizer restarts) last said
 
     def __call__(self, message) -> None:
         """One engine message: a line when a machine's readiness changes."""
         if isinstance(message, FinishedMessage):  # the next print has its own start-up
-            self.ready.pop(message.machine, None)
+            self.said.pop(message.machine, None)
             return
         settling = getattr(message, "settling", None)
         if settling is None or getattr(message, "provisional", True):
             return
-        ready = bool(settling.get("ready"))
-        before = self.ready.get(message.machine)
-        self.ready[message.machine] = ready
         name, minute = message.machine, message.time_s / 60
+        now = (bool(settling.get("ready")), settling.get("restarts", 0))
+        before = self.said.get(name)
+        self.said[name] = now
         if before is None:
-            said = "ready to print" if ready else "waiting for the line to settle"
+            said = "ready to print" if now[0] else "waiting for the line to settle"
             self.echo(f"{name}: start-up at {minute:.1f} min — {said}")
-        elif ready and not before:
-            self.echo(f"{name}: {settling.get('text', 'ready to print')}")
-        elif before and not ready:
+        elif now[1] != before[1]:
             self.echo(
                 f"{name}: the atomizer started again at {minute:.1f} min: not ready to print "
-                "until it settles"
+                "until the line settles"
             )
+        elif now[0] and not before[0]:
+            self.echo(f"{name}: {settling.get('text', 'ready to print')}")
+        elif before[0] and not now[0]:
+            self.echo(f"{name} at {minute:.1f} min: {settling.get('text', 'not ready to print')}")
 
 
 def _follow_parts(engine, publisher, machines, entry: dict, tolerance) -> None:

@@ -73,6 +73,11 @@ class StepMessage:
         {channel: max(g⁺, g⁻)} (committed steps).
     alarms : tuple of str
         Detector labels that fired at this step.
+    settling : dict or None
+        "Ready to print" as of this step (:meth:`ajtwin.apps.detection.settling.
+        SettlingDetector.status`): ``ready``, ``ready_at_s`` [s], ``evidence`` (per watched
+        signal: trend per minute, change to come, tolerance) and ``text``; a new verdict
+        after each atomizer restart.
     """
 
     machine: str
@@ -97,6 +102,7 @@ class StepMessage:
     window_nis_p: float | None = None
     cusum: dict | None = None
     alarms: tuple = ()
+    settling: dict | None = None
 
     @property
     def input_values(self) -> np.ndarray:
@@ -145,6 +151,7 @@ class StepMessage:
             window_nis_p=data.get("window_nis_p"),
             cusum=data.get("cusum"),
             alarms=tuple(data.get("alarms", ())),
+            settling=data.get("settling"),
         )
 
     def to_dict(self) -> dict:
@@ -168,6 +175,8 @@ class StepMessage:
             "status": self.status,
             "cause": self.cause,
         }
+        if self.settling is not None:
+            out["settling"] = dict(self.settling)
         if self.cusum is not None:
             out.update(
                 nis_p=self.nis_p,
@@ -231,9 +240,11 @@ class FinishedMessage:
 Message = StepMessage | LinkMessage | FinishedMessage
 
 
-def step_message(machine: str, block, i: int, detector_step, status: tuple, em_running: bool):
+def step_message(machine: str, block, i: int, detector_step, status: tuple, em_running: bool,
+                 settling: dict | None = None):  # fmt: skip
     """Step ``i`` of a block of the twin's core (:class:`~ajtwin.estimation.online.
-    StepBlock`), committed with the detectors' ``detector_step`` (None: provisional)."""
+    StepBlock`), committed with the detectors' ``detector_step`` (None: provisional);
+    ``settling`` the "ready to print" verdict as of the step."""
     f = block.filtered
     mean = np.asarray(f.means[i])
     message = dict(
@@ -254,6 +265,7 @@ def step_message(machine: str, block, i: int, detector_step, status: tuple, em_r
         em_running=bool(em_running),
         status=status[0],
         cause=status[1],
+        settling=settling,
     )
     if detector_step is not None:
         g = np.maximum(detector_step.cusum_pos, detector_step.cusum_neg)
@@ -270,10 +282,11 @@ def step_message(machine: str, block, i: int, detector_step, status: tuple, em_r
     return StepMessage(**message)
 
 
-def provisional_message(machine: str, block, status: tuple, em_running: bool) -> StepMessage:
+def provisional_message(machine: str, block, status: tuple, em_running: bool,
+                        settling: dict | None = None) -> StepMessage:  # fmt: skip
     """The last step of a provisional block (:class:`~ajtwin.estimation.online.Provisional`
     carries it)."""
-    return step_message(machine, block, len(block) - 1, None, status, em_running)
+    return step_message(machine, block, len(block) - 1, None, status, em_running, settling)
 
 
 def finished_message(machine: str, events) -> FinishedMessage:

@@ -44,6 +44,7 @@ import numpy as np
 
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.settings import cusum_thresholds
+from ajtwin.apps.detection.settling import StartupWatch
 from ajtwin.apps.quality.live_map import LivePartMap
 from ajtwin.estimation import Twin
 from ajtwin.simulation import load_scenario, run_job_print, simulate
@@ -129,6 +130,8 @@ class VirtualPrintFeed:
         thresholds = [float(h) for h in cusum_thresholds(det.settings)]
         nis_threshold = float(-np.log10(det.settings.nis_alpha))
         truth = record.true_states if record.has_truth else None
+        # ready to print as the live twin says it (one verdict per atomizer run)
+        ready = StartupWatch().update(run.time_s, record.inputs, f.means, predicted)
         by_step: dict[int, list] = {}
         for ev in det.events:
             k = int(np.searchsorted(run.time_s, ev.detected_s))
@@ -160,6 +163,7 @@ class VirtualPrintFeed:
                     "window_nis_threshold": nis_threshold,
                 },
                 "alarms": by_step.get(k, []),
+                "settling": {key: ready[k][key] for key in ("ready", "ready_at_s", "text")},
                 "source": f"virtual printer: {self.scenario} seed {self.seed}",
             }
             if truth is not None:

@@ -27,6 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ajtwin.apps.detection.settings import DetectorSettings
+from ajtwin.apps.detection.settling import StartupWatch
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.messages import (
     StepMessage,
@@ -83,6 +84,8 @@ class TwinStream:
         self.machine = machine
         self.twin = twin
         self.detector = AnomalyDetector(detector_settings, long_run_history)
+        # "ready to print": one per print, a new detector when the atomizer starts again
+        self.startup = StartupWatch()
         self._executor = executor
         self._own_executor = False
         self.core = OnlineTwin(twin, start, print_context=print_context, name=machine)
@@ -244,7 +247,8 @@ class TwinStream:
         for item in items:
             if isinstance(item, Provisional):
                 status = self.status(True)
-                out.append(provisional_message(self.machine, item.block, status, self.em_running))
+                out.append(provisional_message(self.machine, item.block, status, self.em_running,
+                                               self.startup.status()))  # fmt: skip
             else:
                 out += self._committed(item)
         return out
@@ -256,10 +260,13 @@ class TwinStream:
         while len(self._blocks) > 1 and self._blocks[1].first <= self.n_committed - self._keep:
             self._blocks.popleft()
         out = []
+        f = block.filtered
+        ready = self.startup.update(block.time_s, block.inputs, f.means, f.predicted_outputs)
 
         def each(i, detector_step):
             status = self.status(at_s=float(block.time_s[i]))
-            out.append(step_message(self.machine, block, i, detector_step, status, self.em_running))
+            out.append(step_message(self.machine, block, i, detector_step, status,
+                                    self.em_running, ready[i]))  # fmt: skip
 
         self.detector.update_block(block, each)
         return out

@@ -24,6 +24,7 @@ through unchanged)::
                   "window_nis_threshold": float}
     alarms       [{"detected_s", "onset_s", "cause", "description", "detectors"}]
                  alarms the twin raised at this sample
+    settling     {"ready", "ready_at_s", "text"}: ready to print (the start-up has settled)
 
 A machine link's state (``ajtwin live``: connected, reconnecting since T, …; see
 :meth:`ajtwin.engine.fleet.LiveEngine.publish_link`) is kept per machine and pushed as
@@ -139,6 +140,8 @@ def sample_from_engine(message: StepMessage) -> dict | None:
         "nis": message.nis,
         "engine_status": message.status,
     }
+    if message.settling is not None:
+        sample["settling"] = {k: message.settling.get(k) for k in ("ready", "ready_at_s", "text")}
     if message.cusum is not None:
         settings = DetectorSettings()
         p = _number(message.window_nis_p)

@@ -52,6 +52,7 @@ class SettlingSettings:
     horizon_s: float = 300.0
     hold_s: int = 30
     tolerances: tuple = (1.5, 1.5, 0.10, 0.06)
+    atomizer_off_mA: float = 50.0
 
     @classmethod
     def load(cls) -> SettlingSettings:
@@ -62,6 +63,7 @@ class SettlingSettings:
             float(s["horizon_s"]),
             int(s["hold_s"]),
             tuple(float(s[name]) for name, *_ in SIGNALS),
+            float(s.get("atomizer_off_mA", 50.0)),
         )
 
 
@@ -75,20 +77,34 @@ class Readiness:
     evidence: dict = field(default_factory=dict)
 
     def sentence(self) -> str:
-        """One line for a user."""
+        """One line for a user (print time in minutes, each signal in words)."""
         if not self.ready:
             return "not settled yet: " + _evidence_text(self.evidence)
-        return f"ready at t = {self.ready_at_s:.0f} s: " + _evidence_text(self.evidence)
+        since = f"ready to print from {self.ready_at_s / 60:.1f} min: "
+        return since + _evidence_text(self.evidence)
+
+
+#: how a watched signal is said: (words, unit)
+SIGNAL_WORDS = {
+    "linewidth_um": ("linewidth", "µm"),
+    "overspray_um": ("overspray", "µm"),
+    "droplet_diameter_um": ("droplet size", "µm"),
+    "aerosol_relative": ("aerosol density", "relative"),
+}
 
 
 def _evidence_text(evidence: dict) -> str:
     if not evidence:
-        return "too few samples"
-    return "; ".join(
-        f"{name} trend {e['trend_per_min']:+.3g}/min, {e['projected']:.3g} to come (≤ "
-        f"{e['tolerance']:g})"
-        for name, e in evidence.items()
-    )
+        return "too few samples yet (2 min are needed)"
+    parts = []
+    for name, e in evidence.items():
+        words, unit = SIGNAL_WORDS.get(name, (name, ""))
+        unit = f" {unit}" if unit and unit != "relative" else ""
+        parts.append(
+            f"{words} moving {e['trend_per_min']:+.2g}{unit}/min, {e['projected']:.2g}{unit} "
+            f"still to come (allowed {e['tolerance']:g}{unit})"
+        )
+    return "; ".join(parts)
 
 
 def rolling_trends(time_s, values, window: int) -> np.ndarray:
@@ -189,6 +205,100 @@ class SettlingDetector:
             "evidence": r.evidence,
             "text": r.sentence(),
         }
+
+
+def atomizer_restarts(atomizer_current_mA, was_off: bool, off_mA: float) -> tuple[list[int], bool]:
+    """Where the atomizer starts again in a run of samples: the indices of the samples
+    at or above ``off_mA`` that follow one below it (``was_off``: the sample before the
+    first was below), and whether the last is below. A missing current (NaN) changes
+    nothing.
+
+    >>> atomizer_restarts([375.0, 0.0, 0.0, 375.0, 380.0, np.nan, 0.0], False, 50.0)
+    ([3], True)
+    """
+    restarts, off = [], bool(was_off)
+    for k, current in enumerate(np.asarray(atomizer_current_mA, dtype=float)):
+        if not np.isfinite(current):
+            continue
+        if current < off_mA:
+            off = True
+        elif off:
+            restarts.append(k)
+            off = False
+    return restarts, off
+
+
+class StartupWatch:
+    """Ready to print over a live print: a :class:`SettlingDetector` fed a block of
+    committed steps at a time, a new one whenever the atomizer starts again (its run-in
+    begins again), and the verdict as of each step: never ready while the atomizer is off.
+
+    Examples
+    --------
+    >>> watch = StartupWatch()
+    >>> t = np.arange(3.0)
+    >>> u = np.array([[375.0, 23.0, 50.0], [0.0, 23.0, 50.0], [375.0, 23.0, 50.0]])
+    >>> per_step = watch.update(t, u, np.zeros((3, 5)), np.zeros((3, 5)))
+    >>> watch.restarts, [(s["ready"], s["restarts"]) for s in per_step]
+    (1, [(False, 0), (False, 0), (False, 1)])
+    >>> per_step[1]["text"]
+    'the atomizer is off (below 50 mA): not ready to print'
+    >>> _ = watch.update([3.0], [[0.0, 23.0, 50.0]], np.zeros((1, 5)), np.zeros((1, 5)))
+    >>> _ = watch.update([4.0], [[375.0, 23.0, 50.0]], np.zeros((1, 5)), np.zeros((1, 5)))
+    >>> watch.restarts  # the restart was the block's first step: counted once
+    2
+    """
+
+    def __init__(self, settings: SettlingSettings | None = None):
+        self.settings = settings or SettlingSettings.load()
+        self.detector = SettlingDetector(self.settings)
+        self.restarts = 0  # atomizer restarts seen in this print
+        self._off = False
+
+    def update(self, time_s, inputs, means, outputs) -> list[dict]:
+        """Take committed steps: times (n,) [s], inputs (n, 3) [mA, sccm, sccm], filtered
+        state means (n, 5), predicted outputs (n, 5). Returns the JSON-ready verdict as of
+        each step (:meth:`SettlingDetector.status`, "ready" only from the second it was, and
+        ``restarts``: the atomizer restarts so far)."""
+        time_s = np.atleast_1d(np.asarray(time_s, dtype=float))
+        current = np.atleast_2d(np.asarray(inputs, dtype=float))[:, 0]
+        off_mA = self.settings.atomizer_off_mA
+        restarts, self._off = atomizer_restarts(current, self._off, off_mA)
+        # runs of steps, each begun by a restart or the block's start (a restart at step 0
+        # begins the first run: one new detector, not two)
+        cuts = [0, *(k for k in restarts if k > 0), len(time_s)]
+        out: list[dict] = []
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if a in restarts:
+                self.detector = SettlingDetector(self.settings)
+                self.restarts += 1
+            if b > a:
+                self.detector.update(time_s[a:b], np.asarray(means)[a:b], np.asarray(outputs)[a:b])
+            status = {**self.detector.status(), "restarts": self.restarts}
+            for k in range(a, b):
+                if current[k] < off_mA:  # NaN: not known to be off
+                    out.append(atomizer_off(status, off_mA))
+                elif status["ready"] and status["ready_at_s"] > time_s[k]:
+                    out.append(not_ready_yet(status))
+                else:
+                    out.append(status)
+        return out
+
+    def status(self) -> dict:
+        """The verdict now (:meth:`SettlingDetector.status`)."""
+        return {**self.detector.status(), "restarts": self.restarts}
+
+
+def not_ready_yet(status: dict) -> dict:
+    """A step before the second its detector was ready at (same evidence, not ready)."""
+    text = "not settled yet: " + status["text"].split(": ", 1)[-1]
+    return {**status, "ready": False, "ready_at_s": None, "text": text}
+
+
+def atomizer_off(status: dict, off_mA: float) -> dict:
+    """A step with the atomizer off: not ready, whatever the line did before."""
+    text = f"the atomizer is off (below {off_mA:g} mA): not ready to print"
+    return {**status, "ready": False, "ready_at_s": None, "evidence": {}, "text": text}
 
 
 def settling_time(time_s, means, outputs, settings: SettlingSettings | None = None) -> Readiness:

@@ -402,6 +402,18 @@ function machinePage() {
       c.append(el("div", { class: "dim" }, "± " + fmt(scaled(n, i, 2 * std[i]), 2) + " (2σ) · " + where));
       box.append(c);
     });
+    if (latest && latest.settling) {
+      // ready to print: the start-up has settled (a new verdict after an atomizer restart)
+      const r = latest.settling;
+      const c = el("div", { class: "card ready " + (r.ready ? "yes" : "no"), id: "ready" });
+      c.append(el("div", { class: "dim" }, "ready to print"));
+      c.append(el("div", { class: "big" }, r.ready ? "ready" : "not yet"));
+      const off = !r.ready && (r.text || "").startsWith("the atomizer is off");
+      c.append(el("div", { class: "dim" }, r.ready ? "settled at " + fmt(r.ready_at_s / 60, 3) + " min"
+        : off ? "the atomizer is off" : "the start-up is still settling"));
+      c.title = r.text || "";
+      box.append(c);
+    }
     if (m.aerosol_level) {
       const c = el("div", { class: "card aerosol-level", id: "aerosol-level" });
       c.append(el("div", { class: "dim" }, "φ_A's level"));

@@ -285,6 +285,12 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots, li
             delay = shown[0]["shown_at"] - shown[0]["published_at"]
             assert 0.0 <= delay < 3.0, f"alarm took {delay:.2f} s from the twin to the page"
             assert "nozzle clog" in page.locator("#alarm-banner").inner_text()
+            # the "ready to print" card: this print's line never held still for the 2.5 min
+            # the verdict needs before the clog moved it (the twin's verdict, computed apart:
+            # never ready), so "not yet", with the twin's sentence as its title
+            card = page.locator("#ready")
+            assert card.locator(".big").inner_text() == "not yet"
+            assert card.get_attribute("title").startswith("not settled yet: linewidth moving ")
             # states with bands were drawn live, and the page was never reloaded
             assert page.evaluate("document.getElementById('plot-states').data.length") == 20
             assert len(page.evaluate("window.__ajtwin.latencies")) > 10

@@ -446,7 +446,10 @@ def test_link_state_pushed_and_rendered_on_fleet_and_machine(store):
             event = json.loads(ws.recv(timeout=10))
         assert event["type"] == "link" and event["machine"] == "alpha"
         assert event["link"]["attempt"] == 3 and event["link"]["since"] == 3600.0
-        text = "link lost since 01:00:00 UTC — reconnecting (attempt 3, next in 4 s)"
+        text = (
+            "link lost since 01:00:00 UTC (ConnectionRefusedError) — reconnecting (attempt 3, "
+            "next in 4 s)"
+        )
         assert event["link"]["text"] == text
         with urllib.request.urlopen(server.url + "api/machine/alpha", timeout=10) as r:
             machine = json.loads(r.read())

@@ -132,19 +132,7 @@ def live(
         )
     dashboard = None
     if dashboard_port is not None:
-        # the dashboard in a thread of this process; every engine message is pushed to it
-        # lazy CLI loading: imported when the command runs, not for --help
-        from ajtwin.web.publisher import LivePublisher
-        from ajtwin.web.server import BackgroundServer
-
-        publisher = LivePublisher()
-        engine.subscribe(publisher.publish_engine)
-        for name in machines:
-            publisher.open_print(name)
-        if entry is not None:
-            _follow_parts(engine, publisher, machines, entry, tolerance)
-        dashboard = BackgroundServer(registry.path, publisher, port=dashboard_port)
-        click.echo(f"dashboard: open {dashboard.url}", err=True)
+        dashboard = _serve_dashboard(engine, registry, machines, entry, tolerance, dashboard_port)
     if generate_certificate:
         # lazy CLI loading: imported when the command runs, not for --help
         from ajtwin.live.printer_server import ensure_certificate
@@ -207,6 +195,23 @@ def live(
             out.close()
         if dashboard is not None:
             dashboard.stop()
+
+
+def _serve_dashboard(engine, registry, machines, entry, tolerance, port: int):
+    """The dashboard in a thread of this process, every engine message pushed to it."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.web.publisher import LivePublisher
+    from ajtwin.web.server import BackgroundServer
+
+    publisher = LivePublisher()
+    engine.subscribe(publisher.publish_engine)
+    for name in machines:
+        publisher.open_print(name)
+    if entry is not None:
+        _follow_parts(engine, publisher, machines, entry, tolerance)
+    dashboard = BackgroundServer(registry.path, publisher, port=port)
+    click.echo(f"dashboard: open {dashboard.url}", err=True)
+    return dashboard
 
 
 def _wait_until_interrupted() -> None:

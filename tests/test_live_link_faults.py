@@ -176,6 +176,31 @@ def test_a_queue_gives_its_rows_in_slices():
     assert queue.take(4)[:, 0].tolist() == [7] and len(queue) == 0 and not queue
 
 
+def test_a_clock_back_to_zero_is_a_new_print_only_on_a_machine_without_print_id(caplog):
+    """Buffers as a link receives them: 200 s of print, then a buffer whose clock began
+    again at 0. Without a PrintId that is a restarted machine's new print (a boundary in
+    the queue); with a PrintId that did not change it is a server continuing the same print
+    from an earlier second, and those rows are dropped as going back."""
+    from types import SimpleNamespace
+
+    def link(print_id):
+        link = OpcUaLink("opc.tcp://127.0.0.1:4840", ["m1"], SimpleNamespace(sessions={}))
+        if print_id:
+            link.print_ids["m1"] = print_id
+        link._enqueue("m1", _rows(range(200)).ravel().tolist())
+        link._enqueue("m1", _rows([*range(150, 200), *range(0, 10)]).ravel().tolist())
+        return link
+
+    with caplog.at_level(logging.WARNING, logger="ajtwin.live"):
+        queue = link(None).queues["m1"]
+        assert queue.has_new_print() and len(queue) == 210
+        assert "its clock went back from t = 199 s to t = 0 s" in caplog.text
+        caplog.clear()
+        queue = link("p1").queues["m1"]
+        assert not queue.has_new_print() and len(queue) == 200
+        assert "time went backwards" in caplog.text and "new print" not in caplog.text
+
+
 def test_print_state_must_be_one_of_its_texts(caplog):
     with caplog.at_level(logging.WARNING, logger="ajtwin.live"):
         assert print_state("m1", 3.14, "printing") == "printing"

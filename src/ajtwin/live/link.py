@@ -441,7 +441,9 @@ class OpcUaLink:
             return
         self.buffer_sizes[name] = len(rows)
         newest = self._newest(name)
-        start = new_print_start(rows, newest)
+        # a machine that serves a PrintId says itself when a print is new: its clock going
+        # back under the same id is a server continuing the print (those rows are dropped)
+        start = None if name in self.print_ids else new_print_start(rows, newest)
         if start is not None:  # the clock began again: the rows before are the old print's
             self._take_rows(name, queue, rows[:start], newest)
             self._begin_new_print(

@@ -819,9 +819,10 @@ def print_state(name: str, value, current: str) -> str:
     return current
 
 
-#: subscription statuses a server sends as it ends a session, in words
+#: subscription statuses a server sends as it ends a session, in words (asyncua's client
+#: also ends its subscriptions with BadShutdown when it finds the connection lost)
 STATUS_WORDS = {
-    "BadShutdown": "the server is shutting down (stopped or restarting)",
+    "BadShutdown": "the server stopped, is restarting or no longer answers",
     "BadServerHalted": "the server has stopped",
     "BadTimeout": "the server timed the subscription out (the twin was too busy to answer "
     "in time, or the network dropped)",
@@ -838,7 +839,7 @@ def status_code_text(code) -> str:
     server goes away, what it means.
 
     >>> status_code_text(2148270080)
-    'BadShutdown: the server is shutting down (stopped or restarting)'
+    'BadShutdown: the server stopped, is restarting or no longer answers'
     """
     value = getattr(code, "value", code)
     try:
@@ -852,7 +853,7 @@ def subscription_status_text(notification) -> str:
     """A subscription's ``StatusChangeNotification`` in words (a raw
     ``StatusCode(value=2148270080)`` said nothing)."""
     code = getattr(notification, "Status", notification)
-    return f"the server ended the subscription: {status_code_text(code)}"
+    return f"the subscription ended: {status_code_text(code)}"
 
 
 def fault_text(exc: BaseException, url: str, timeout_s: float) -> str:
@@ -868,7 +869,7 @@ def fault_text(exc: BaseException, url: str, timeout_s: float) -> str:
     if isinstance(exc, ua.UaStatusCodeError):
         return status_code_text(exc.code)
     text = str(exc) or getattr(exc, "strerror", None) or ""
-    if text.startswith("the server ended the subscription"):
+    if text.startswith("the subscription ended"):
         return text
     return f"{type(exc).__name__}: {text}" if text else f"{type(exc).__name__} (no details)"
 

@@ -159,6 +159,19 @@ class VirtualMachine:
         """Noise-free outputs (k, 5) printed so far (what a test compares a controller to)."""
         return self.printer.true_outputs
 
+    def warm_up(self) -> None:
+        """Step a throwaway printer of the same print through every block size served
+        (:attr:`MAX_BLOCK_S`): their programs compiled before the print starts, the first
+        seconds served do not hold the server's loop (2-4 s, long enough for a connected
+        client to time out)."""
+        printer = SteppedPrinter(
+            self.scenario, self.seed, self.duration_min, self.overrides, job=self.job
+        )
+        block = 1
+        while block <= self.MAX_BLOCK_S and printer.k + block <= printer.n:
+            printer.advance(block)
+            block *= 2
+
     def advance_to(self, stop: int) -> None:
         """Print up to (not including) second ``stop``."""
         with self._lock:
@@ -546,6 +559,15 @@ class PrinterServer:
                 await nodes["state"].write_value("finished")
         return running
 
+    def _warm_up(self) -> None:
+        """Each distinct print's stepper compiled (:meth:`VirtualMachine.warm_up`)."""
+        seen = set()
+        for m in self.machines.values():
+            key = (m.scenario, m.duration_min, id(m.job))
+            if key not in seen:
+                seen.add(key)
+                m.warm_up()
+
     async def _client_subscribed(self, stop_event) -> bool:
         """Wait until a client's subscription exists (beyond the server's own); False when
         ``stop_event`` came first."""
@@ -566,12 +588,12 @@ class PrinterServer:
         await self._build()
         async with self.server:
             await self._watch()
-            if self.wait_for_client:
-                if on_ready:
-                    on_ready()
-                    on_ready = None
-                if not await self._client_subscribed(stop_event):
-                    return
+            if self.wait_for_client and on_ready:
+                on_ready()
+                on_ready = None
+            await asyncio.to_thread(self._warm_up)  # clients may connect meanwhile
+            if self.wait_for_client and not await self._client_subscribed(stop_event):
+                return
             now = time.monotonic()
             for m in self.machines.values():
                 m.start(now)

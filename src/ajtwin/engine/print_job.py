@@ -237,6 +237,7 @@ def map_stored_print(
         progress=line_progress,
     )
     part.run = run
+    part.speed_exponents = stored.twin.speed_exponents
     end = np.asarray(run.end_mean, dtype=float)
     stored_end = np.asarray(stored.row["end_mean"], dtype=float)
     scale = np.maximum(np.abs(stored_end), 1e-30)

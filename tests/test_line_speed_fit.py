@@ -82,10 +82,10 @@ def test_posterior_weighs_the_prior_and_the_windows_contrast_by_their_precision(
 
 @pytest.fixture(scope="module")
 def alt_print():
-    """12 min of the CAM-style program on the second generator (not a power law), the
+    """6 min of the CAM-style program on the second generator (not a power law), the
     camera at the nozzle: traces at 3 and 5 mm/s."""
     return run_job_print(
-        PROGRAM, "exp1", 9, truth_generator="alt", duration_min=12,
+        PROGRAM, "exp1", 9, truth_generator="alt", duration_min=6,
         camera=CameraSettings(mode="at_nozzle"),
     )  # fmt: skip
 
@@ -122,7 +122,7 @@ def test_a_machine_carries_what_its_prints_learnt_to_the_next(alt_print, tmp_pat
     first_record = alt_print.record
     first = ingest_record(reg, "lab", first_record, job=job_entry(PROGRAM, first_record))
     second_record = run_job_print(
-        PROGRAM, "exp1", 9, truth_generator="alt", duration_min=6,
+        PROGRAM, "exp1", 9, truth_generator="alt", duration_min=3,
         continue_from=first_record, camera=CameraSettings(mode="at_nozzle"),
     ).record  # fmt: skip
     second = ingest_record(reg, "lab", second_record, job=job_entry(PROGRAM, second_record))

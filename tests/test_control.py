@@ -580,8 +580,9 @@ def test_only_alarms_that_make_acting_unsafe_hold_the_mpc(control_settings):
     """An alarm that is not a fault of the inputs (atomizer trouble, an unexplained
     deviation, a clog: changes the twin follows in its states) does not hold the MPC, and
     the decision names the alarm it acts through; a fault of the inputs (carrier leak / MFC
-    drift), a model–machine mismatch or a deposit beyond the model's range still hold, the
-    reason saying why. 'Ink running out' is the ink rule's (it steers while the vial is in
+    drift), a model–machine mismatch, a deposit beyond the model's range, or any alarm the
+    filter's own consistency test raised (a sensor or the model off the data) still hold,
+    the reason saying why. 'Ink running out' is the ink rule's (it steers while the vial is in
     H's fit and stops for good before it leaves it): no on/off holds."""
     from ajtwin.apps.planning.twin_control import MPCTwin
     from ajtwin.engine.stream import TwinStream
@@ -616,6 +617,16 @@ def test_only_alarms_that_make_acting_unsafe_hold_the_mpc(control_settings):
         assert reason.startswith("alarm that makes acting unsafe") and words in reason
     decision = strategy.decide(100.0, u0)
     assert decision.status == "hold" and "nozzle needs cleaning" in decision.reason
+    # whatever its cause, an alarm the filter's own consistency test raised holds: the data
+    # are off the twin's predictions by far more than their noise (a sensor or the model)
+    from ajtwin.apps.detection.streaming import AnomalyEvent
+
+    strategy.stream.status = lambda: ("alarm", "unexplained")
+    strategy.stream.detector.events.append(
+        AnomalyEvent(100.0, 80.0, "unexplained", "", ["cusum+ L_w", "windowed NIS"])
+    )
+    (reason,) = strategy.safety()
+    assert "unexplained deviation" in reason and "consistency test (windowed NIS)" in reason
 
 
 def test_stop_time_that_has_passed_today_means_tomorrow():

@@ -184,7 +184,7 @@ def camera_readings(record, job) -> CameraReadings:
     if hasattr(record, "data"):
         row_time = np.asarray(record.time_s, dtype=float)
     else:  # held on disk: a 1 Hz grid from its first row
-        row_time = record.time_at(0) + np.arange(len(record), dtype=float)
+        row_time = record.time_s[0] + np.arange(len(record), dtype=float)
     tau = np.where(np.isfinite(tau), tau, row_time)
     seen = np.isfinite(lines).any(axis=1)
     tau, lines = tau[seen], lines[seen]
@@ -267,7 +267,7 @@ def fit_speed_exponents(
             continue
         weight = y[ok] ** 2  # precision of ln y: (y/σ)², σ common
         sxy, sxx, syy, informative, dof = _contrast(s[ok], np.log(y[ok]), weight, group[ok])
-        if sxx <= 0:
+        if informative == 0 or sxx <= 0:  # no window held two speeds
             posterior.append((mean0, std0))
             continue
         slope = sxy / sxx

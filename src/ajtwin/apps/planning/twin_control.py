@@ -69,8 +69,10 @@ class MPCTwin(MPCStrategy):
     print (reason ``ink_low: …``) — a refill is maintenance and a new print. Of the
     detectors' alarms only those that make acting unsafe hold it (``hold_causes``: a fault
     of the inputs, a model that does not fit the machine, a deposit beyond the model's
-    range); through the others (a clog, atomizer trouble, an unexplained deviation: changes
-    the twin follows in its states) it keeps acting and its reason names the alarm.
+    range; ``hold_detectors``: an alarm the filter's own consistency test raised, a sensor
+    or the model off the data); through the others (a clog, atomizer trouble, an unexplained
+    deviation that drift detectors raised: changes the twin follows in its states) it keeps
+    acting and its reason names the alarm.
 
     Parameters
     ----------
@@ -163,18 +165,31 @@ class MPCTwin(MPCStrategy):
             settings=self.settings,
             status=getattr(self.stream, "mismatch_status", None),
         )
-        # only an alarm that makes acting unsafe holds (data/control.toml hold_causes); the
-        # others are changes of the machine the twin follows ('ink running out' is the ink
-        # rule's: it steers while the vial is inside H's fit and stops for good before)
-        cause = self.standing_alarm()
+        # only an alarm that makes acting unsafe holds (data/control.toml hold_causes,
+        # hold_detectors); the others are changes of the machine the twin follows ('ink
+        # running out' is the ink rule's: it steers while the vial is inside H's fit and
+        # stops for good before)
+        cause, detectors = self.standing_alarm()
+        name = CAUSES.get(cause, cause)
         if cause in self.settings.hold_causes:
-            reasons.append(f"alarm that makes acting unsafe: {CAUSES.get(cause, cause)}")
+            reasons.append(f"alarm that makes acting unsafe: {name}")
+        elif cause is not None and cause != "ink_low":
+            inconsistent = [d for d in detectors if d in self.settings.hold_detectors]
+            if inconsistent:
+                reasons.append(
+                    f"alarm that makes acting unsafe: {name}, raised by the filter's own "
+                    f"consistency test ({', '.join(inconsistent)}): a sensor or the model "
+                    "does not fit"
+                )
         return reasons
 
-    def standing_alarm(self) -> str | None:
-        """The cause of the alarm standing now (None: none)."""
+    def standing_alarm(self) -> tuple[str | None, list]:
+        """(cause, detectors) of the alarm standing now ((None, []): none)."""
         status, cause = self.stream.status()
-        return cause if status == "alarm" else None
+        if status != "alarm":
+            return None, []
+        events = getattr(getattr(self.stream, "detector", None), "events", None) or []
+        return cause, list(events[-1].detectors) if events else []
 
     def decide(self, t, u):
         """Stop for the ink, hold for a safety reason, else the MPC's command from the twin's
@@ -200,7 +215,7 @@ class MPCTwin(MPCStrategy):
         )
         decision = self._act(mean, cov, self.stream.theta, u, sigma, t=t)
         notes = [decision.reason, ink.reason if ink.status == "low" else ""]
-        cause = self.standing_alarm()
+        cause, _ = self.standing_alarm()
         if cause is not None and cause != "ink_low":
             notes.append(
                 f"acting through the alarm {CAUSES.get(cause, cause)}: not a fault of the "

@@ -317,14 +317,11 @@ def test_cli_unreachable_target(tmp_path):
 
 def test_converges_after_a_step_disturbance(control_settings):
     """Virtual print, the atomizer's generation steps to 70 % at 3 min (permanent): the
-    open loop's line narrows and stays off; the MPC on the twin brings it back. The
-    atomizer alarm is made actionable here (by default it holds: tested above) so that the
-    test sees the loop, not the safety rule."""
-    from dataclasses import replace
-
+    open loop's line narrows and stays off; the MPC on the twin brings it back (the
+    atomizer alarm does not hold it: not a fault of the inputs)."""
     from ajtwin.studies.closed_loop import ClosedLoopPlan, simulate_strategy
 
-    settings = replace(control_settings, actionable_causes=("nozzle_clog", "atomizer"))
+    settings = control_settings
     u0 = np.array([300.0, 24.116, 80.0])
     step = {
         "fault": {
@@ -579,10 +576,14 @@ def test_live_link_takes_the_vial_fill():
             ControlLink("opc.tcp://127.0.0.1:4840", "m", ControlTarget(65.0, vial_fill_ml=bad))
 
 
-def test_ink_alarm_is_left_to_the_ink_rule(control_settings):
-    """An 'ink running out' alarm does not hold the MPC on and off (the ink rule steers
-    while the vial is in H's fit and stops for good before it leaves it); other alarms the
-    model cannot explain still hold."""
+def test_only_alarms_that_make_acting_unsafe_hold_the_mpc(control_settings):
+    """An alarm that is not a fault of the inputs (atomizer trouble, an unexplained
+    deviation, a clog: changes the twin follows in its states) does not hold the MPC, and
+    the decision names the alarm it acts through; a fault of the inputs (carrier leak / MFC
+    drift), a model–machine mismatch, a deposit beyond the model's range, or any alarm the
+    filter's own consistency test raised (a sensor or the model off the data) still hold,
+    the reason saying why. 'Ink running out' is the ink rule's (it steers while the vial is in
+    H's fit and stops for good before it leaves it): no on/off holds."""
     from ajtwin.apps.planning.twin_control import MPCTwin
     from ajtwin.engine.stream import TwinStream
     from ajtwin.simulation.stepper import SteppedPrinter
@@ -600,8 +601,32 @@ def test_ink_alarm_is_left_to_the_ink_rule(control_settings):
     assert strategy.safety() == []
     strategy.stream.status = lambda: ("alarm", "ink_low")
     assert strategy.safety() == []
-    strategy.stream.status = lambda: ("alarm", "atomizer")
-    assert any("alarm the controller cannot act on" in r for r in strategy.safety())
+    for cause in ("atomizer", "unexplained", "nozzle_clog"):
+        strategy.stream.status = lambda cause=cause: ("alarm", cause)
+        assert strategy.safety() == [], cause
+    decision = strategy.decide(90.0, u0)
+    assert decision.status == "act"
+    assert "acting through the alarm nozzle clog" in decision.reason
+    for cause, words in (
+        ("carrier_leak", "carrier leak, MFC drift"),
+        ("model_machine_mismatch", "model–machine mismatch"),
+        ("nozzle_cleaning", "nozzle needs cleaning"),
+    ):
+        strategy.stream.status = lambda cause=cause: ("alarm", cause)
+        (reason,) = strategy.safety()
+        assert reason.startswith("alarm that makes acting unsafe") and words in reason
+    decision = strategy.decide(100.0, u0)
+    assert decision.status == "hold" and "nozzle needs cleaning" in decision.reason
+    # whatever its cause, an alarm the filter's own consistency test raised holds: the data
+    # are off the twin's predictions by far more than their noise (a sensor or the model)
+    from ajtwin.apps.detection.streaming import AnomalyEvent
+
+    strategy.stream.status = lambda: ("alarm", "unexplained")
+    strategy.stream.detector.events.append(
+        AnomalyEvent(100.0, 80.0, "unexplained", "", ["cusum+ L_w", "windowed NIS"])
+    )
+    (reason,) = strategy.safety()
+    assert "unexplained deviation" in reason and "consistency test (windowed NIS)" in reason
 
 
 def test_stop_time_that_has_passed_today_means_tomorrow():

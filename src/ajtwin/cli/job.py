@@ -245,6 +245,8 @@ def _echo_part_report(part, paths) -> None:
         f"{facts['printed_mm']:.1f} mm; mean L_w {facts['lw_mean_um']:.2f} µm"
     )
     click.echo(f"tolerance   {tolerance}; flagged when P(out) ≥ {part.flag_probability:g}")
+    if facts["speed_law"]:
+        click.echo(f"speed law   {facts['speed_law']}")
     click.echo(
         f"flagged     {facts['flagged_portions']} portions ({facts['flagged_mm']:.1f} mm) on "
         f"{facts['flagged_strokes']} strokes"

@@ -34,6 +34,7 @@ from ajtwin.engine.parts import PrintWriter
 from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.engine.start import carried_long_run_history, machine_start
 from ajtwin.engine.video import join_video
+from ajtwin.estimation.line_speed_fit import teach_speed_law
 from ajtwin.estimation.print_time import is_job_record, record_duration_s
 from ajtwin.estimation.twin import Twin, first_em_update_time
 from ajtwin.io.records import JOB_COLUMNS, SpooledRecord, open_record
@@ -274,6 +275,11 @@ def ingest_record(
     # the machine's calibration, commissioning start and maintenance (model reference §11)
     begin = machine_start(registry, machine, chain, twin_overrides)
     twin = Twin.default(**begin["twin_kwargs"])
+    job_run = _printed_job(job, record)
+    if begin["speed_exponents"] is not None:
+        twin.learn_speed_law(begin["speed_exponents"])
+    if job_run is not None:  # the speed law's exponents from this print's camera
+        teach_speed_law(twin, record, job_run)
     start, expected = begin["start"], chain.latest_seq
     twin.theta = begin["theta"]
     theta_before = twin.theta.copy()
@@ -281,13 +287,13 @@ def ingest_record(
     try:
         carried = carried_long_run_history(registry, machine, chain)
         sink = IngestSink(writer, record, detector_settings, carried, keep_run, twin.config)
-        run = _run_twin(twin, record, start, progress, sink, job)
+        run = _run_twin(twin, record, start, progress, sink, job_run)
         events, mismatch = sink.finish(run)
         print_id, summary = save_print(
             registry,
             machine,
             record,
-            _ingest_outcome(run, twin.theta, theta_before, begin, sink, events, mismatch),
+            _ingest_outcome(run, twin, theta_before, begin, sink, events, mismatch),
             digest=digest,
             source=source,
             expected_last_seq=expected,
@@ -322,7 +328,7 @@ def ingest_record(
     )
 
 
-def _ingest_outcome(run, theta_after, theta_before, begin, sink, events, mismatch):
+def _ingest_outcome(run, twin, theta_before, begin, sink, events, mismatch):
     """What an ingest's run concluded (:class:`TwinOutcome`): the run, the machine's start
     (:func:`~ajtwin.engine.start.machine_start`), the sink's judgement and detectors."""
     return TwinOutcome(
@@ -331,7 +337,7 @@ def _ingest_outcome(run, theta_after, theta_before, begin, sink, events, mismatc
         start=(run.start_mean, run.start_cov),
         end=(run.end_mean, run.end_cov),
         theta_before=theta_before,
-        theta_after=theta_after,
+        theta_after=twin.theta,
         started_from=begin["started_from"],
         status=sink.status[0],
         status_reason=sink.status[1],
@@ -341,15 +347,17 @@ def _ingest_outcome(run, theta_after, theta_before, begin, sink, events, mismatc
             "mismatch": mismatch.to_dict(),
             # which states this print's data determined (ΔR_T: the prior's band)
             "data_share": determined_states(sink.share),
+            # the speed law's exponents the print ran with: the machine's next print's prior
+            "speed_exponents": twin.speed_exponents.to_dict(),
         },
         long_run_history=sink.detector.long_run_history(),
     )
 
 
-def _run_twin(twin, record, start, progress, sink, job):
+def _run_twin(twin, record, start, progress, sink, job_run):
     """The twin's run over the print into ``sink`` (a job print's frames filed at their print
-    times): a piece at a time from a record held on disk, else over the record in memory."""
-    job_run = _printed_job(job, record)
+    times with ``job_run``, the program as printed): a piece at a time from a record held on
+    disk, else over the record in memory."""
     if isinstance(record, SpooledRecord):
         return twin.run_streamed(record, start=start, progress=progress, sink=sink, job=job_run)
     return twin.run(record, start=start, progress=progress, sink=sink, job=job_run)

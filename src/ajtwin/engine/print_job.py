@@ -30,6 +30,7 @@ from ajtwin.apps.quality.part_map import (
 from ajtwin.engine.chain import chain_start
 from ajtwin.engine.commissioning import calibration_twin_kwargs
 from ajtwin.engine.start import machine_start
+from ajtwin.estimation.line_speed_fit import SpeedExponents
 from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.estimation.twin import Twin
 from ajtwin.job import LoopedJob, ProgramError, read_program_bytes
@@ -109,7 +110,8 @@ def entry_job(entry: dict, print_duration_s: float | None = None, **overrides):
 
 
 def stored_print_twin(registry, print_row: dict) -> tuple[Twin, tuple]:
-    """The twin a stored print ran with (its calibration and starting θ) and its start."""
+    """The twin a stored print ran with (its calibration, starting θ and the speed law's
+    exponents it learnt) and its start."""
     kwargs = {}
     calibration_id = (print_row.get("summary") or {}).get("calibration_id")
     if calibration_id is not None:
@@ -118,6 +120,9 @@ def stored_print_twin(registry, print_row: dict) -> tuple[Twin, tuple]:
             kwargs = calibration_twin_kwargs(calibration)
     twin = Twin.default(**kwargs)
     twin.theta = np.asarray(print_row["theta_before"], dtype=float)
+    learnt = (print_row.get("summary") or {}).get("speed_exponents")
+    if learnt:  # the speed law it filed its frames with
+        twin.learn_speed_law(SpeedExponents.from_dict(learnt))
     return twin, (print_row["start_mean"], print_row["start_cov"])
 
 
@@ -232,6 +237,7 @@ def map_stored_print(
         progress=line_progress,
     )
     part.run = run
+    part.speed_exponents = stored.twin.speed_exponents
     end = np.asarray(run.end_mean, dtype=float)
     stored_end = np.asarray(stored.row["end_mean"], dtype=float)
     scale = np.maximum(np.abs(stored_end), 1e-30)
@@ -258,4 +264,6 @@ def next_print_twin(registry, machine: str) -> tuple[Twin, tuple | None]:
     begin = machine_start(registry, machine, chain_start(registry, machine))
     twin = Twin.default(**begin["twin_kwargs"])
     twin.theta = np.asarray(begin["theta"], dtype=float)
+    if begin["speed_exponents"] is not None:
+        twin.learn_speed_law(begin["speed_exponents"])
     return twin, begin["start"]

@@ -176,6 +176,9 @@ def reprocess_print(registry, version: int, machine: str, print_id: int, previou
         data_share=determined_states(data_share(run.filtered)[-1:]),
         version=int(version),
     )
+    learnt = (row.get("summary") or {}).get("speed_exponents")
+    if learnt:  # its stored frames were filed with them: the belief stays the print's
+        summary["speed_exponents"] = learnt
     result = NewPrint(
         content_hash=row["content_hash"],
         source=row["source"],

@@ -16,6 +16,7 @@ import numpy as np
 from ajtwin.engine.chain import carry_over, chain_start
 from ajtwin.engine.commissioning import aerosol_level, calibration_twin_kwargs
 from ajtwin.estimation.commission import load_commissioning_settings
+from ajtwin.estimation.line_speed_fit import SpeedExponents
 from ajtwin.estimation.twin import Twin
 from ajtwin.store.calibration import active_calibration, pending_maintenance
 from ajtwin.store.registry import RegistryError
@@ -76,7 +77,9 @@ def machine_start(registry, machine: str, chain, twin_overrides: dict | None = N
     active = active_calibration(registry, machine)
     commissioned = commissioned_since_last_print(active, chain)
     events = pending_maintenance(registry, machine, active["created_unix"] if commissioned else 0.0)
-    return start_of_print(chain, active, commissioned, events, twin_overrides)
+    begin = start_of_print(chain, active, commissioned, events, twin_overrides)
+    begin["speed_exponents"] = carried_speed_exponents(registry, machine)
+    return begin
 
 
 def start_of_print(chain, active, commissioned: bool, events: list, twin_overrides=None) -> dict:
@@ -134,6 +137,18 @@ def carried_long_run_history(registry, machine: str, chain=None) -> dict | None:
     return None if stored is None else stored[1]
 
 
+def carried_speed_exponents(registry, machine: str, below_seq: int | None = None):
+    """What the machine's prints have learnt of the speed law's exponents: the newest print
+    in its chain (``below_seq``: before that print) that stored them
+    (:class:`~ajtwin.estimation.line_speed_fit.SpeedExponents`), else None (the packaged
+    law). A belief carried from print to print, the next print's prior."""
+    for row in registry.chain_prints(machine, below_seq):
+        stored = (row.get("summary") or {}).get("speed_exponents")
+        if stored:
+            return SpeedExponents.from_dict(stored)
+    return None
+
+
 def machine_twin(reg, name, nominal_theta=False, transition=None):
     """The twin at a machine's current state, as forecasts and advice start from it.
 
@@ -172,6 +187,9 @@ def machine_twin(reg, name, nominal_theta=False, transition=None):
     calibrated = {} if active is None else calibration_twin_kwargs(active)
     chosen = {} if transition is None else {"transition": transition}
     twin = Twin.default(**chosen, **calibrated)
+    learnt = carried_speed_exponents(reg, name)
+    if learnt is not None:
+        twin.learn_speed_law(learnt)
     if not nominal_theta:
         twin.theta = np.asarray(last["theta_after"], dtype=float)
         bound = 2.0 * twin.droplet_dynamics.theta_prior_std

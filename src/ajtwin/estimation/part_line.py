@@ -11,9 +11,11 @@ output model there:
     Var L  = diag(H P(τ) Hᵀ) + (L ln(ν_ref/ν))² σ_b²           (H = ∂L/∂x at x(τ))
 
 f(ν) is the twin's speed law (:mod:`ajtwin.model.line_speed`); the second term is what the
-law's own uncertainty adds away from ν_ref (σ_b: a quarter of the exponents' bracketed range
-in ``data/line_speed.toml``, i.e. the range as ±2σ; 0 at ν_ref). P includes what the
-calibration's uncertainty adds when the twin knows it (:class:`~ajtwin.estimation.TwinRun`).
+law's own uncertainty adds away from ν_ref (σ_b: what the camera's readings at several speeds
+left of it, :mod:`ajtwin.estimation.line_speed_fit`, or before any such print a quarter of
+the exponents' bracketed range in ``data/line_speed.toml``, the range as ±2σ; 0 at ν_ref).
+P includes what the calibration's uncertainty adds when the twin knows it
+(:class:`~ajtwin.estimation.TwinRun`).
 The camera's noise is not in it: this is the line on the part, not a measurement of it.
 
 :func:`line_at` is the one evaluation of this line: the part map of a finished or stored
@@ -33,17 +35,16 @@ True
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import numpy as np
 
 from ajtwin._jax import jax, jnp
+from ajtwin.estimation.line_speed_fit import prior_exponents
 from ajtwin.model.line_speed import (
     LineSpeedLaw,
     apply_line_speed,
     load_line_speed_law,
-    read_line_speed_file,
 )
 
 
@@ -78,20 +79,18 @@ class LineEstimate(NamedTuple):
     overspray_std_um: np.ndarray
 
 
-@functools.cache
 def law_exponent_std() -> tuple[float, float]:
-    """σ of (b, c): a quarter of each bracketed range of ``data/line_speed.toml``."""
-    ranges = read_line_speed_file()["uncertainty"]
-    return tuple(
-        (float(ranges[name][1]) - float(ranges[name][0])) / 4.0
-        for name in ("linewidth_exponent_range", "overspray_exponent_range")
-    )
+    """σ of (b, c) of the packaged law: a quarter of each bracketed range of
+    ``data/line_speed.toml`` (:func:`~ajtwin.estimation.line_speed_fit.prior_exponents`)."""
+    return tuple(float(v) for v in prior_exponents().std)
 
 
-def line_model(params, coefficients, output, speed_law=None, with_law_uncertainty=True):
-    """A :class:`LineModel` (the packaged law, its uncertainty unless told otherwise)."""
+def line_model(params, coefficients, output, speed_law=None, exponent_std=None):
+    """A :class:`LineModel`: the packaged law unless given, σ of its exponents
+    ``exponent_std`` (2,) (default the packaged law's, :func:`law_exponent_std`; zeros leave
+    the law's uncertainty out)."""
     law = speed_law or load_line_speed_law()
-    std = np.asarray(law_exponent_std()) if with_law_uncertainty else np.zeros(2)
+    std = np.asarray(law_exponent_std() if exponent_std is None else exponent_std, dtype=float)
     return LineModel(params, coefficients, output, law, std)
 
 

@@ -17,7 +17,8 @@ Filing
   j = ⌊τ − t_0 + ½⌋). A measurement whose step lies more than H steps back when its row
   arrives (k − j > H) is dropped and counted (``late``); one printed before the record
   starts (j < 0) likewise (``before_start``); one the program says was printed with the
-  shutter closed (``not_printed``) too.
+  shutter closed (``not_printed``) too, and one of a dot printed while the stage stood still
+  with the shutter open (``dwell``: below the speed law's validity range, not a line).
 * The pressures and Q_m of row k belong to step k; Q_m only while the shutter is open at
   t_k (nothing reaches the substrate otherwise). L_w and L_o of a step come only from
   the camera, at their τ.
@@ -95,7 +96,7 @@ GRID_TOLERANCE_S = 1e-6
 #: A print time up to this after its row is the row's own time (rounding of a log) [s].
 PRINTED_AFTER_ROW_TOLERANCE_S = 1e-6
 #: Counters of measurements that were not filed (:attr:`PrintTimeBins.dropped`).
-DROP_REASONS = ("late", "before_start", "not_printed", "after_row")
+DROP_REASONS = ("late", "before_start", "not_printed", "dwell", "after_row")
 
 
 @functools.cache
@@ -303,6 +304,12 @@ class PrintTimeBins:
         speed = self._speed_at(tau)
         if speed is None:
             self.dropped["not_printed"] += 1
+            return
+        if speed < self.speed_law.min_speed_mm_s:
+            # a still stage with the shutter open prints a dot, not a line: the law there is
+            # its edge value held, and a dot read as a line would pull the states by whatever
+            # the law's extrapolation to a stop misses
+            self.dropped["dwell"] += 1
             return
         f = np.asarray(self._factors(speed))
         b = self._bins[j]

@@ -42,6 +42,7 @@ from ajtwin.estimation.filters import (
     rts_smoother,
 )
 from ajtwin.estimation.initial import InitialFit, StartPriors, fit_initial_state
+from ajtwin.estimation.line_speed_fit import SpeedExponents, prior_exponents
 from ajtwin.estimation.online import (  # noqa: F401 — the schedule and predict, re-exported
     OnlineTwin,
     StepBlock,
@@ -477,6 +478,7 @@ class Twin:
         self.functions = twin_functions(config.method, config.transition)
         self.limits = StateLimits.load(model.params)
         self.speed_law = load_line_speed_law()
+        self.speed_exponents = prior_exponents()
 
     @classmethod
     def default(
@@ -536,6 +538,13 @@ class Twin:
             float(augmented[-1, -1]), inputs[-1], dynamics, self.spec.dt
         )
 
+    def learn_speed_law(self, exponents: SpeedExponents) -> None:
+        """Run with the speed law's exponents ``exponents`` (what the camera's readings at
+        several speeds taught, :mod:`ajtwin.estimation.line_speed_fit`): the camera's frames
+        are filed and the line drawn with them, its band with their σ."""
+        self.speed_exponents = exponents
+        self.speed_law = exponents.law(self.speed_law)
+
     @property
     def line_model(self):
         """The twin's line as a part map evaluates it: its output model, (calibrated)
@@ -543,7 +552,11 @@ class Twin:
         (:func:`ajtwin.estimation.part_line.line_at`; what :meth:`TwinRun.line_at` and the
         live map use)."""
         return line_model(
-            self.model.params, self.spec.coefficients, self.functions.output, self.speed_law
+            self.model.params,
+            self.spec.coefficients,
+            self.functions.output,
+            self.speed_law,
+            self.speed_exponents.std,
         )
 
     @property

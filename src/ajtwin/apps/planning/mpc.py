@@ -29,7 +29,10 @@ Safety (:func:`safety_check`, :meth:`MPC.command`)
 --------------------------------------------------
 * every command is clipped to the limits and the rate limits, then asserted;
 * no command (hold the one in force, say why) while the twin reports a model–machine
-  mismatch (:func:`mismatch_reasons`) or an alarm it cannot act on;
+  mismatch (:func:`mismatch_reasons`) or an alarm that makes acting unsafe (``hold_causes``:
+  a fault of the inputs, a model that does not fit, a deposit beyond the model's range; or
+  ``hold_detectors``: raised by the filter's own consistency test, whatever its cause);
+  through any other alarm it keeps acting and says so;
 * a bounded step when L_w's 1σ exceeds ``uncertainty_sigma_um``: the rate limits are
   scaled by σ_max/σ.
 
@@ -90,7 +93,8 @@ class ControlSettings:
     nis_window_s: int = 120
     nis_ratio_max: float = 3.0
     warmup_s: int = 60
-    actionable_causes: tuple = ("nozzle_clog",)
+    hold_causes: tuple = ("carrier_leak", "model_machine_mismatch", "nozzle_cleaning")
+    hold_detectors: tuple = ("windowed NIS",)
     pi_closed_loop_time_s: float = 120.0
     # PI on a job print, per camera mode: closed-loop time and the share of the camera's
     # median delay taken as SIMC's dead time (tuned by `python -m ajtwin.studies.control tune-pi`)
@@ -127,7 +131,8 @@ class ControlSettings:
                 nis_window_s=int(safety["nis_window_s"]),
                 nis_ratio_max=float(safety["nis_ratio_max"]),
                 warmup_s=int(safety["warmup_s"]),
-                actionable_causes=tuple(safety["actionable_causes"]),
+                hold_causes=tuple(safety["hold_causes"]),
+                hold_detectors=tuple(safety["hold_detectors"]),
                 pi_closed_loop_time_s=float(pi["closed_loop_time_s"]),
                 pi_job_closed_loop_time_s=tuple(
                     (str(k), float(v))

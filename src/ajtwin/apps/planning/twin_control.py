@@ -66,7 +66,13 @@ class MPCTwin(MPCStrategy):
     (:func:`ajtwin.apps.planning.mpc.ink_supply_status`: its own ink balance from the measured
     Q_m and the twin's vial observer). A vial running dry is not controllable with these
     inputs, so on ``stop`` it latches: the inputs in force are held for the rest of the
-    print (reason ``ink_low: …``) — a refill is maintenance and a new print.
+    print (reason ``ink_low: …``) — a refill is maintenance and a new print. Of the
+    detectors' alarms only those that make acting unsafe hold it (``hold_causes``: a fault
+    of the inputs, a model that does not fit the machine, a deposit beyond the model's
+    range; ``hold_detectors``: an alarm the filter's own consistency test raised, a sensor
+    or the model off the data); through the others (a clog, atomizer trouble, an unexplained
+    deviation that drift detectors raised: changes the twin follows in its states) it keeps
+    acting and its reason names the alarm.
 
     Parameters
     ----------
@@ -159,12 +165,31 @@ class MPCTwin(MPCStrategy):
             settings=self.settings,
             status=getattr(self.stream, "mismatch_status", None),
         )
-        status, cause = self.stream.status()
-        # 'ink running out' is the ink rule's (ink_supply): it keeps steering while the
-        # vial is inside H's fit and stops for good before it leaves it — no on/off holds
-        if status == "alarm" and cause not in (*self.settings.actionable_causes, "ink_low"):
-            reasons.append(f"alarm the controller cannot act on: {CAUSES.get(cause, cause)}")
+        # only an alarm that makes acting unsafe holds (data/control.toml hold_causes,
+        # hold_detectors); the others are changes of the machine the twin follows ('ink
+        # running out' is the ink rule's: it steers while the vial is inside H's fit and
+        # stops for good before)
+        cause, detectors = self.standing_alarm()
+        name = CAUSES.get(cause, cause)
+        if cause in self.settings.hold_causes:
+            reasons.append(f"alarm that makes acting unsafe: {name}")
+        elif cause is not None and cause != "ink_low":
+            inconsistent = [d for d in detectors if d in self.settings.hold_detectors]
+            if inconsistent:
+                reasons.append(
+                    f"alarm that makes acting unsafe: {name}, raised by the filter's own "
+                    f"consistency test ({', '.join(inconsistent)}): a sensor or the model "
+                    "does not fit"
+                )
         return reasons
+
+    def standing_alarm(self) -> tuple[str | None, list]:
+        """(cause, detectors) of the alarm standing now ((None, []): none)."""
+        status, cause = self.stream.status()
+        if status != "alarm":
+            return None, []
+        events = getattr(getattr(self.stream, "detector", None), "events", None) or []
+        return cause, list(events[-1].detectors) if events else []
 
     def decide(self, t, u):
         """Stop for the ink, hold for a safety reason, else the MPC's command from the twin's
@@ -189,6 +214,12 @@ class MPCTwin(MPCStrategy):
             np.sqrt(max(linewidth_variance(self.twin.model.coefficient_matrix[0], mean, cov), 0.0))
         )
         decision = self._act(mean, cov, self.stream.theta, u, sigma, t=t)
-        if ink.status == "low":
-            decision.reason = "; ".join(r for r in (decision.reason, ink.reason) if r)
+        notes = [decision.reason, ink.reason if ink.status == "low" else ""]
+        cause, _ = self.standing_alarm()
+        if cause is not None and cause != "ink_low":
+            notes.append(
+                f"acting through the alarm {CAUSES.get(cause, cause)}: not a fault of the "
+                "inputs, the twin follows it in its states"
+            )
+        decision.reason = "; ".join(r for r in notes if r)
         return decision

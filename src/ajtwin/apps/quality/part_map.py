@@ -10,7 +10,10 @@ platen speed ν (:func:`line_at`, the twin's own
 with x̂(τ), P(τ) the smoothed mean and covariance interpolated linearly between the 1 Hz
 samples around τ (P with the calibration's share and the floor of never-seen states, as
 the twin reports its states), u(τ) the inputs held over that second, g the output model
-with the speed law and σ_b the law's own uncertainty (0 at ν_ref).
+with the speed law and σ_b the law's own uncertainty (0 at ν_ref). On a job print the
+law's exponents are first learnt from the camera's readings of the traces printed at each
+speed (:func:`~ajtwin.estimation.line_speed_fit.teach_speed_law`): σ_b is then
+what those readings leave, not the packaged bracket.
 
 The job (:mod:`ajtwin.job`) says what was printed when: each stroke is cut into portions of
 at most ``portion_mm`` (:meth:`ajtwin.job.Job.portions`) and each portion sampled along its
@@ -57,6 +60,7 @@ import pandas as pd
 from scipy.special import ndtr
 
 from ajtwin.apps.detection.batch import detect_run
+from ajtwin.estimation.line_speed_fit import teach_speed_law
 from ajtwin.estimation.print_time import is_job_record
 from ajtwin.estimation.twin import Twin
 
@@ -402,6 +406,8 @@ class PartMap:
     notes: list = field(default_factory=list)
     #: the smoothed run (TwinRun) the map was made from (None when built from elsewhere)
     run: object = None
+    #: the speed law's exponents the line was drawn with (SpeedExponents; None: not known)
+    speed_exponents: object = None
 
     @property
     def program(self) -> str:
@@ -552,8 +558,13 @@ def part_map_of_record(
     events=None,
     twin_progress=None,
     line_progress=None,
+    learn_speed: bool = True,
 ) -> PartMap:
     """Run the twin (smoothed) over ``record`` as the print ran ``job`` and map its part.
+
+    ``learn_speed``: first learn the speed law's exponents from the camera's readings of
+    this print (:func:`~ajtwin.estimation.line_speed_fit.teach_speed_law`; the twin's
+    belief is the prior).
 
     ``job``: the job as printed (:func:`ajtwin.estimation.print_time.job_as_printed`); on a
     job record the twin files the camera's frames at their print times with it
@@ -562,6 +573,9 @@ def part_map_of_record(
     default: those the detectors raise over this run
     (:func:`ajtwin.apps.detection.batch.detect_run`).
     """
+    twin = twin or Twin.default()
+    if learn_speed and job is not None and is_job_record(record):
+        teach_speed_law(twin, record, job)
     run = smoothed_run(record, twin, start, twin_progress, job=job)
     if events is None:
         events = detect_run(run, record).events
@@ -577,4 +591,5 @@ def part_map_of_record(
         progress=line_progress,
     )
     part.run = run
+    part.speed_exponents = twin.speed_exponents
     return part

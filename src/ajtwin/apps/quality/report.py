@@ -132,6 +132,7 @@ def summary_facts(part: PartMap) -> dict:
         if table["length_mm"].sum() > 0
         else float("nan"),
         "alarms": int(len(part.alarms)),
+        "speed_law": None if part.speed_exponents is None else part.speed_exponents.describe(),
     }
 
 
@@ -151,6 +152,8 @@ def report_html(part: PartMap, png: bytes) -> str:
          f"{facts['flagged_strokes']} strokes"),
         ("alarms", str(facts["alarms"])),
     ]  # fmt: skip
+    if facts["speed_law"]:
+        dl.append(("speed law", facts["speed_law"]))
     flagged = part.flagged()
     shown = flagged.head(MAX_HTML_ROWS)
     more = (

@@ -383,7 +383,8 @@ def test_machine_page_shows_calibration_and_mismatch(
     commissioned_registry, browser, tmp_path, shots
 ):
     """The commissioned machine's page: the active calibration card (the fitted values) and
-    the model–machine mismatch card with the guard's message; the fleet row says mismatch."""
+    the model–machine mismatch card — one short line in words, coloured as a notice, said
+    once, the guard's reasons on demand; the fleet row says it once too."""
     reg = commissioned_registry
     with DashboardProcess(reg["store"], log_path=tmp_path / "s.log") as dash:
         page = browser.new_page()
@@ -399,14 +400,33 @@ def test_machine_page_shows_calibration_and_mismatch(
             row = card.locator("tr", has_text="linewidth_offset_um")
             shown = float(row.locator("td").nth(1).inner_text())
             assert shown == pytest.approx(offset, rel=5e-4)  # 4 significant digits
+            # the guard's verdict: one short line in words, as a notice (not the alarm's
+            # red), said once on the page; its full reasons folded beneath, on demand
+            guard = reg["guard"]["mismatch"]
             mismatch = page.locator("#mismatch")
-            assert reg["guard"]["mismatch"]["message"] in mismatch.inner_text()
             assert "print #1" in mismatch.inner_text()
+            assert "carrier pressure" in mismatch.inner_text()
+            assert guard["message"] not in mismatch.inner_text()  # folded
+            assert guard["message"] in mismatch.locator("details").text_content()
+            page_text = page.locator("main").inner_text()
+            assert page_text.count("does not fit this machine") == 1, page_text
+            said = mismatch.inner_text() + page.locator("#alarms").inner_text()
+            assert "_Pa" not in said and "_um" not in said  # no raw variable names
+            alarm_red = "rgb(198, 40, 40)"  # --alarm in dashboard.css
+            colour = "e => getComputedStyle(e).color"
+            assert mismatch.locator(".notice").evaluate(colour) != alarm_red
             page.screenshot(path=shots / "machine_calibration.png", full_page=True)
             page.goto(dash.page_url("/"))
             lab3 = page.locator('tr[data-machine="lab3"]')
             assert "last commissioned" in lab3.inner_text()
-            assert "carrier_pressure_Pa" in lab3.inner_text()  # what the guard names
+            shown = lab3.inner_text()
+            assert "carrier pressure" in shown  # what the guard names, in words
+            assert shown.count("does not fit this machine") == 1, shown
+            assert "carrier_pressure_Pa" not in shown and guard["message"] not in shown
+            assert len(lab3.locator("td").nth(1).inner_text().split()) <= 25
+            assert lab3.locator(".cause").count() == 0  # nothing in the alarm's red
+            assert lab3.locator(".notice").evaluate(colour) != alarm_red
+            page.screenshot(path=shots / "fleet_mismatch.png", full_page=True)
         finally:
             page.close()
     assert not errors, f"JavaScript errors on the page: {errors}"

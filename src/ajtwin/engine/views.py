@@ -37,7 +37,7 @@ import pandas as pd
 
 from ajtwin import units
 from ajtwin.apps.detection.batch import detect_anomalies
-from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
+from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE, mismatch_line
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
 from ajtwin.apps.quality.live_map import part_payload
 from ajtwin.engine.commissioning import aerosol_level
@@ -160,7 +160,8 @@ def care_fields(registry, name: str) -> dict:
       ``last_maintenance`` (what was done);
     * ``aerosol_level`` — always: ``note`` (how well φ_A's level is known, in words),
       ``pinned_by`` (what pinned it at commissioning; [] = nothing), ``relative_std``;
-    * ``mismatch`` — when the newest print's guard fired: ``seq``, ``message``,
+    * ``mismatch`` — when the newest print's guard fired: ``seq``, ``line`` (one short
+      line in words), ``message`` (the guard's reasons in full),
       ``outputs`` and ``states`` it names, ``first_s``, ``fixes``;
       ``model_fit`` — ``{"seq", "ok"}`` whenever the newest print was checked.
     """
@@ -213,6 +214,7 @@ def care_fields(registry, name: str) -> dict:
         if guard.get("mismatch"):
             out["mismatch"] = {
                 "seq": int(newest["seq"]),
+                "line": mismatch_line(guard),
                 "message": str(guard.get("message", "")),
                 "outputs": list(guard.get("outputs") or []),
                 "states": list(guard.get("states") or []),
@@ -311,6 +313,12 @@ class RegistryView:
                     entry["alarm"], entry["other_alarms"] = headline_alarm(
                         alarms, maintenance_after(self.registry, row["name"], alarms[0]["seq"])
                     )
+                    # a mismatch is not a fault: the status column says it, once
+                    if entry["alarm"]["cause"] == MISMATCH_CAUSE:
+                        entry["alarm"] = None
+                    entry["other_alarms"] = [
+                        a for a in entry["other_alarms"] if a["cause"] != MISMATCH_CAUSE
+                    ]
                 # the latest print raised a fault alarm (the guard's own "mismatch, not a
                 # fault" events make the status mismatch below, as on the machine page)
                 if queries.count_alarms(self.registry, row["name"], latest_seq, MISMATCH_CAUSE):

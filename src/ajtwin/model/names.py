@@ -24,3 +24,12 @@ INPUT_SYMBOLS = ("I_A", "Q_c", "Q_s")
 OUTPUT_SYMBOLS = ("L_w", "L_o", "P_c", "P_s", "Q_m")
 #: sizes of x, u and y
 N_STATES, N_INPUTS, N_OUTPUTS = 5, 3, 5
+#: the states and outputs as a person says them (pages and one-line messages)
+STATE_WORDS = ("droplet size", "ink level", "tube deposit", "nozzle deposit", "aerosol density")
+OUTPUT_WORDS = (
+    "linewidth",
+    "overspray",
+    "carrier pressure",
+    "sheath pressure",
+    "material flow",
+)

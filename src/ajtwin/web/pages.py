@@ -126,11 +126,28 @@ def link_badge(link: dict) -> str:
     )
 
 
-def alarm_cell_html(alarm: dict | None, others: list[dict]) -> str:
+def mismatch_html(mismatch: dict) -> str:
+    """The model–machine guard's verdict as a notice: its one line in words, the print, and
+    the guard's full reasons and fixes folded beneath (opened on demand)."""
+    fixes = "".join(f"<li>{escape(str(f))}</li>" for f in mismatch.get("fixes") or [])
+    return (
+        f'<span class="notice mismatch-of">{escape(str(mismatch.get("line", "")))} '
+        f'<span class="dim">(print #{mismatch["seq"]})</span></span>'
+        f'<details class="more"><summary>details</summary>'
+        f"<p>{escape(str(mismatch.get('message', '')))}</p>"
+        + (f"<ul>{fixes}</ul>" if fixes else "")
+        + "</details>"
+    )
+
+
+def alarm_cell_html(alarm: dict | None, others: list[dict], mismatch: bool = False) -> str:
     """The fleet's alarm cell: the headline (the first unresolved fault,
-    :func:`ajtwin.engine.views.headline_alarm`) and the print's other alarms beneath it."""
+    :func:`ajtwin.engine.views.headline_alarm`) and the print's other alarms beneath it.
+    ``mismatch``: the newest print's alarms are the model–machine mismatch the status column
+    already names (not a fault)."""
     if not alarm:
-        return '<span class="dim">none</span>'
+        text = "none (its alarms are the mismatch)" if mismatch else "none"
+        return f'<span class="dim">{text}</span>'
     where = f"print #{alarm['seq']}, " if alarm.get("seq") else "live, "
     cell = (
         f'<span class="cause headline">{escape(str(alarm["description"]))}</span><br>'
@@ -160,12 +177,8 @@ def fleet_rows(machines: list[dict]) -> str:
         status = m["status"]
         badge = f'<span class="status {status}">{escape(STATUS_TEXT.get(status, status))}</span>'
         mismatch = m.get("mismatch")
-        if mismatch:  # the newest print's model–machine guard fired: say on what
-            named = ", ".join(mismatch.get("outputs") or mismatch.get("states") or [])
-            badge += (
-                f'<br><span class="cause mismatch-of" title="{escape(mismatch["message"])}">'
-                f"{escape(named or 'model fit')} (print #{mismatch['seq']})</span>"
-            )
+        if mismatch:  # the newest print's model–machine guard fired: one line, details folded
+            badge += "<br>" + mismatch_html(mismatch)
         link = m.get("link")
         if link and link.get("text"):  # the live twin's machine link (ajtwin live --dashboard)
             badge += "<br>" + link_badge(link)
@@ -180,7 +193,9 @@ def fleet_rows(machines: list[dict]) -> str:
             )
         else:
             last_cell = '<span class="dim">no prints</span>'
-        alarm_cell = alarm_cell_html(m.get("alarm"), m.get("other_alarms") or [])
+        alarm_cell = alarm_cell_html(
+            m.get("alarm"), m.get("other_alarms") or [], mismatch=bool(mismatch)
+        )
         state_cells = []
         for s in m.get("states") or [None] * 4:
             if s is None:
@@ -229,8 +244,9 @@ others beneath)</th>
 <p class="dim small">Status: <b>alarm</b> = the last print (or the live one) raised an alarm;
 <b>printing</b> = live samples within the last 30 s (beneath: the state of the live
 twin's machine link, e.g. <i>link lost — reconnecting</i>; the gap is missing data);
-<b>mismatch</b> = the model–machine guard fired on the newest print (the outputs it names
-beneath; commission the machine). States are the twin's estimate at the end of the last print
+<b>mismatch</b> = the model–machine guard fired on the newest print: the model does not fit
+the machine (what does not fit beneath; not a fault: commission the machine).
+States are the twin's estimate at the end of the last print
 (live: now); the line is their course over that print. φ_A, the aerosol volume fraction in the
 carrier gas, is in parts per million by volume; its level is known only relative to the
 generation model (to the prior of its commissioning) unless that commissioning pinned it (a

@@ -42,7 +42,7 @@ from ajtwin.config import packaged_toml
 from ajtwin.estimation.filters import DEFAULT_SCALING
 from ajtwin.model import load_parameters
 from ajtwin.model.limits import StateLimits
-from ajtwin.model.names import OUTPUT_NAMES, STATE_NAMES
+from ajtwin.model.names import OUTPUT_NAMES, OUTPUT_WORDS, STATE_NAMES, STATE_WORDS
 
 #: Likely fix per output / state.
 FIXES = {
@@ -658,6 +658,25 @@ def _event_channels(event) -> set:
     return channels
 
 
+def mismatch_line(guard: dict) -> str:
+    """One short line in words for a guard's verdict (:meth:`MismatchStatus.to_dict`, as
+    stored with a print): what does not fit, that it is not a fault, and what to do. The
+    full reasons stay in ``guard["message"]`` (shown on demand).
+
+    >>> mismatch_line({"outputs": ["carrier_pressure_Pa"], "states": ["nozzle_deposition_um"]})
+    ... # doctest: +NORMALIZE_WHITESPACE
+    'model does not fit this machine (carrier pressure, nozzle deposit): not a fault;
+     commission the machine'
+    >>> mismatch_line({"outputs": [], "states": []})
+    'model does not fit this machine: not a fault; commission the machine'
+    """
+    words = dict(zip(OUTPUT_NAMES, OUTPUT_WORDS, strict=True))
+    words.update(zip(STATE_NAMES, STATE_WORDS, strict=True))
+    named = [words.get(n, n) for n in [*(guard.get("outputs") or []), *(guard.get("states") or [])]]
+    what = f" ({', '.join(dict.fromkeys(named))})" if named else ""
+    return f"model does not fit this machine{what}: not a fault; commission the machine"
+
+
 def relabel_events(events: list, status: MismatchStatus) -> list:
     """Anomaly events explained by a mismatch get the cause ``model_machine_mismatch``.
 
@@ -682,6 +701,6 @@ def relabel_events(events: list, status: MismatchStatus) -> list:
         if explained and ev.cause != MISMATCH_CAUSE:
             ev.evidence = {**ev.evidence, "relabelled_from": ev.cause}
             ev.cause = MISMATCH_CAUSE
-            ev.description = f"model–machine mismatch, not a fault: {status.message}"
+            ev.description = mismatch_line(status.to_dict())
         out.append(ev)
     return out

@@ -430,7 +430,12 @@ function machinePage() {
     if (m.mismatch) {
       const c = el("div", { class: "card mismatch", id: "mismatch" });
       c.append(el("div", { class: "dim" }, "model–machine mismatch, print #" + m.mismatch.seq));
-      c.append(el("div", { class: "cause" }, m.mismatch.message));
+      // one line in words (a notice, not a fault); the guard's reasons on demand
+      c.append(el("div", { class: "notice" }, m.mismatch.line));
+      const more = el("details", { class: "more" });
+      more.append(el("summary", {}, "details"));
+      more.append(el("p", {}, m.mismatch.message));
+      c.append(more);
       box.append(c);
     }
     if (m.calibration) {
@@ -455,7 +460,10 @@ function machinePage() {
     tr.append(el("td", {}, live ? "live" : "#" + a.seq));
     tr.append(el("td", {}, fmt(a.detected_s / 60, 3) + " min"));
     tr.append(el("td", {}, fmt(a.onset_s / 60, 3) + " min"));
-    tr.append(el("td", { class: "cause" }, a.description));
+    // the guard's events are the mismatch the card above names: not a fault, said once
+    const mismatch = a.cause === "model_machine_mismatch";
+    tr.append(mismatch ? el("td", { class: "notice" }, "model–machine mismatch (not a fault; see above)")
+      : el("td", { class: "cause" }, a.description));
     tr.append(el("td", { class: "dim" }, a.detectors));
     return tr;
   }

@@ -62,7 +62,8 @@ def shots(tmp_path_factory):
 @pytest.fixture(scope="module")
 def job_registry(tmp_path_factory):
     """'lab1' printed the public program for 6 min (clog from 3 min), ingested with its job
-    and a tolerance; 'lab2' printed without a job."""
+    and a tolerance; 'lab2' printed without a job; 'lab3' the same print with its job but no
+    tolerance."""
     from ajtwin.apps.quality.part_map import Tolerance
     from ajtwin.engine.ingest import ingest_record
     from ajtwin.engine.print_job import job_entry
@@ -81,8 +82,10 @@ def job_registry(tmp_path_factory):
     entry = job_entry(PROGRAM, record, tolerance=Tolerance(width - 1.0, width + 1.0))
     ingest_record(reg, "lab1", record, source="job print", job=entry)
     ingest_record(reg, "lab2", simulate("exp1", seed=2, duration_min=2.0), source="plain")
+    reg.add_machine("lab3")
+    ingest_record(reg, "lab3", record, source="job print", job=job_entry(PROGRAM, record))
     reg.close()
-    return {"store": store, "record": record}
+    return {"store": store, "record": record, "tolerance": (width - 1.0, width + 1.0)}
 
 
 @pytest.fixture(scope="module")
@@ -135,10 +138,61 @@ def test_stored_print_part_map_is_drawn_from_the_api(job_registry, browser, tmp_
             assert "part (program)" in names and "printed: L_w − target" in names
             assert any(name.startswith("flagged") for name in names)
             assert "alarm raised (nozzle there)" in names  # the clog's alarm on the part
+            # the box shows the stored tolerance, not a placeholder
+            lo, hi = job_registry["tolerance"]
+            box = page.locator("#part-tolerance").input_value()
+            assert box == f"{float(f'{(lo + hi) / 2:.4g}'):g}±{float(f'{(hi - lo) / 2:.3g}'):g}"
+            # flagged portions keep their colour: a thin ring over the point, no black mass
+            traces = page.evaluate(
+                "document.getElementById('plot-part').data.map(t => ({name: t.name, "
+                "symbol: t.marker && t.marker.symbol, width: t.line && t.line.width, "
+                "rim: t.marker && t.marker.line && t.marker.line.width}))"
+            )
+            ring = next(t for t in traces if t["name"].startswith("flagged"))
+            assert ring["symbol"] == "circle-open" and ring["rim"] <= 1
+            assert all(not t["width"] or t["width"] <= 1 for t in traces)
+            printed = next(t for t in traces if t["name"].startswith("printed"))
+            assert not printed["rim"]  # no black rim over the printed colour
+            # the colour bar's title is clear of the chart's toolbar
+            assert _overlap(page, "#plot-part .cbtitle", "#plot-part .modebar") == 0
             page.screenshot(path=shots / "machine_part_map.png", full_page=True)
+
+            # without a tolerance: coloured by L_w, and the page says none is set
+            page.goto(dash.page_url("/machine/lab3"))
+            page.wait_for_function(
+                "window.__ajtwin.part && window.__ajtwin.part.portions > 0", timeout=TIMEOUT_MS
+            )
+            names = page.evaluate("document.getElementById('plot-part').data.map(t => t.name)")
+            assert "printed: L_w (no tolerance set)" in names
+            assert not any(n.startswith("flagged") for n in names)
+            assert "no tolerance set" in page.locator("#part-status").inner_text()
+            assert page.locator("#part-tolerance").input_value() == ""
+
+            # a print stored without its program: one line, no empty box
+            page.goto(dash.page_url("/machine/lab2"))
+            page.wait_for_function("window.__ajtwin.drawnPrint === 1")
+            page.wait_for_function(
+                "document.getElementById('part-status').textContent.includes('without its program')"
+            )
+            assert page.locator("#plot-part").bounding_box() is None  # not laid out
+            assert page.locator("#part-section").bounding_box()["height"] < 150
         finally:
             page.close()
         assert not errors, errors
+
+
+def _overlap(page, a: str, b: str) -> float:
+    """The area [px²] two elements' boxes share on the page (0: apart)."""
+    return page.evaluate(
+        """([a, b]) => {
+          const p = document.querySelector(a).getBoundingClientRect();
+          const q = document.querySelector(b).getBoundingClientRect();
+          const w = Math.min(p.right, q.right) - Math.max(p.left, q.left);
+          const h = Math.min(p.bottom, q.bottom) - Math.max(p.top, q.top);
+          return Math.max(w, 0) * Math.max(h, 0);
+        }""",
+        [a, b],
+    )
 
 
 @pytest.fixture(scope="module")

@@ -209,20 +209,23 @@ function alarmShapes(alarms, existing) {
 
 // ---------------------------------------------------------------- part map (machine page)
 // The part drawn from the machine's program: printed portions coloured by L_w − target
-// (diverging scale, µm), flagged portions outlined in black, alarms marked where the
-// nozzle was. A live print's map fills in from "part" events; a stored print's is asked
-// for once (the server re-runs the twin over it).
+// (diverging scale, µm; without a tolerance, by L_w itself), flagged portions ringed (their
+// colour stays visible), alarms marked where the nozzle was. A live print's map fills in
+// from "part" events; a stored print's is asked for once (the server re-runs the twin).
 function partMap(name) {
   const div = document.getElementById("plot-part");
+  const table = document.getElementById("part-flagged");
+  const box = document.getElementById("part-tolerance");
   const status = document.getElementById("part-status");
-  let data = null, current = null, timer = null;
+  let data = null, current = null, timer = null, typed = false;
   A.part = { portions: 0, flagged: 0, draws: 0, kind: null };
+  box.addEventListener("input", () => { typed = true; });
 
   function say(text) { status.textContent = text || ""; }
-  function target() {
-    if (data.target_um != null) return data.target_um;
-    const lw = (data.portions ? data.portions.lw_mean_um : []).filter((v) => v !== null).sort((a, b) => a - b);
-    return lw.length ? lw[Math.floor(lw.length / 2)] : 0;
+  // no map to draw (a print stored without its program): no empty box, one line says why
+  function shown(yes) { div.hidden = !yes; table.hidden = !yes; }
+  function tolText(tol) {
+    return fmt((tol[0] + tol[1]) / 2, 4) + "±" + fmt((tol[1] - tol[0]) / 2, 3);
   }
   function traces() {
     const out = [{
@@ -231,34 +234,51 @@ function partMap(name) {
     }];
     const P = data.portions, Q = data.points;
     if (P && Q && Q.portion.length) {
-      const t = target(), first = P.index[0];
+      const first = P.index[0];
       const at = (i) => i - first;  // portions are numbered on from the first one held
-      const dev = Q.portion.map((i) => (P.lw_mean_um[at(i)] === null ? null : P.lw_mean_um[at(i)] - t));
-      const half = data.tolerance_um ? (data.tolerance_um[1] - data.tolerance_um[0]) / 2 : 1;
-      const big = dev.filter((v) => v !== null).map(Math.abs).sort((a, b) => a - b);
-      const lim = Math.max(1.5 * half, big.length ? big[Math.floor(0.99 * (big.length - 1))] : 1);
-      const fx = [], fy = [];
-      let last = null;
-      Q.portion.forEach((i, k) => {
-        if (!P.flagged[at(i)]) return;
-        if (last !== null && last !== i) { fx.push(null); fy.push(null); }
-        fx.push(Q.x[k]); fy.push(Q.y[k]); last = i;
-      });
+      const lw = Q.portion.map((i) => P.lw_mean_um[at(i)]);
+      // with a tolerance: L_w − target on a diverging scale centred on 0, the tolerance
+      // within it; without one there is no target: L_w itself on a sequential scale
+      const tol = data.tolerance_um;
+      let marker;
+      if (tol) {
+        const t = data.target_um != null ? data.target_um : (tol[0] + tol[1]) / 2;
+        const dev = lw.map((v) => (v === null ? null : v - t));
+        const half = (tol[1] - tol[0]) / 2;
+        const big = dev.filter((v) => v !== null).map(Math.abs).sort((a, b) => a - b);
+        const lim = Math.max(1.5 * half, big.length ? big[Math.floor(0.99 * (big.length - 1))] : 1);
+        marker = { color: dev, colorscale: "RdBu", cmin: -lim, cmax: lim,
+                   colorbar: { title: { text: "L_w − target [µm]", side: "right" }, thickness: 14 } };
+      } else {
+        marker = { color: lw, colorscale: "Viridis",
+                   colorbar: { title: { text: "L_w [µm]", side: "right" }, thickness: 14 } };
+      }
       out.push({
-        type: "scattergl", mode: "lines", x: fx, y: fy, name: "flagged (P(out) ≥ " + fmt(data.flag_probability, 2) + ")",
-        line: { color: "#000", width: 5 }, hoverinfo: "skip",
-      });
-      out.push({
-        type: "scattergl", mode: "markers", x: Q.x, y: Q.y, name: "printed: L_w − target",
-        // plotly's RdBu runs from blue (low) to red (high); flagged points get a black rim
-        marker: { size: 5, color: dev, colorscale: "RdBu", cmin: -lim, cmax: lim,
-                  line: { color: "#000", width: Q.portion.map((i) => (P.flagged[at(i)] ? 1.2 : 0)) },
-                  colorbar: { title: { text: "L_w − target [µm]" }, thickness: 14 } },
+        type: "scattergl", mode: "markers", x: Q.x, y: Q.y,
+        name: tol ? "printed: L_w − target" : "printed: L_w (no tolerance set)",
+        marker: Object.assign({ size: 5 }, marker),
         text: Q.portion.map((i) => "stroke " + P.stroke[at(i)] + " portion " + P.portion[at(i)] +
           "<br>printed " + fmt(P.printed_from_s[at(i)] / 60, 4) + " min<br>L_w " + fmt(P.lw_mean_um[at(i)], 4) +
           " µm [" + fmt(P.lw_lo_um[at(i)], 4) + ", " + fmt(P.lw_hi_um[at(i)], 4) + "]<br>P(out) " + fmt(P.p_out[at(i)], 3)),
         hoverinfo: "text",
       });
+      // flagged portions: one thin open ring at the middle of each (rings on every point
+      // would merge into a black mass), so the points' own colour (how far out) stays visible
+      const fx = [], fy = [];
+      let start = 0;
+      Q.portion.forEach((i, k) => {
+        if (k + 1 < Q.portion.length && Q.portion[k + 1] === i) return;  // portion goes on
+        const mid = Math.floor((start + k) / 2);
+        if (P.flagged[at(i)]) { fx.push(Q.x[mid]); fy.push(Q.y[mid]); }
+        start = k + 1;
+      });
+      if (fx.length) {
+        out.push({
+          type: "scattergl", mode: "markers", x: fx, y: fy, hoverinfo: "skip",
+          name: "flagged (P(out) ≥ " + fmt(data.flag_probability, 2) + ")",
+          marker: { symbol: "circle-open", size: 10, color: "#222", line: { width: 1 } },
+        });
+      }
     }
     const al = data.alarms || [];
     if (al.length) {
@@ -297,13 +317,18 @@ function partMap(name) {
     if (!data) return;
     const P = data.portions;
     const n = P ? P.index.length : 0, m = P ? P.flagged.filter(Boolean).length : 0;
-    const tol = data.tolerance_um ? fmt((data.tolerance_um[0] + data.tolerance_um[1]) / 2, 4) + "±" +
-      fmt((data.tolerance_um[1] - data.tolerance_um[0]) / 2, 3) + " µm" : "no tolerance given";
+    const tol = data.tolerance_um ? tolText(data.tolerance_um) + " µm" : "none set";
+    // the box shows the tolerance the map uses (the stored or live print's), unless typed in
+    if (!typed) box.value = data.tolerance_um ? tolText(data.tolerance_um) : "";
     document.getElementById("part-title").textContent = "(" + data.program + (current && current.kind === "live" ?
       ", live" : ", print #" + (current ? current.seq : "")) + "; tolerance " + tol + ")";
-    say(n + " portions printed, " + m + " flagged" + (data.repetitions > 1 ? " · runs of the looped job side by side" : ""));
+    shown(true);
+    say(n + " portions printed, " + (data.tolerance_um ? m + " flagged" :
+      "no tolerance set: coloured by L_w; give one to flag the portions out of it") +
+      (data.repetitions > 1 ? " · runs of the looped job side by side" : ""));
     const layout = {
-      margin: { t: 10, r: 10, b: 40, l: 50 }, showlegend: true,
+      // the top margin keeps the colour bar clear of the chart's toolbar
+      margin: { t: 36, r: 10, b: 40, l: 50 }, showlegend: true,
       legend: { orientation: "h", y: -0.12 }, xaxis: { title: { text: "x [mm]" }, zeroline: false },
       yaxis: { title: { text: "y [mm]" }, scaleanchor: "x", scaleratio: 1, zeroline: false },
       uirevision: current ? current.kind + (current.seq || "") : "part",
@@ -333,13 +358,15 @@ function partMap(name) {
   async function showPrint(p) {
     if (!p.program) {
       if (!current || current.kind !== "live") {
-        data = null; Plotly.purge(div);
+        data = null; Plotly.purge(div); shown(false);
+        document.getElementById("part-title").textContent = "";
         say("print #" + p.seq + " was stored without its program (ajtwin ingest --job PROGRAM.prg keeps it)");
       }
       return;
     }
     current = { kind: "print", seq: p.seq };
-    const tol = document.getElementById("part-tolerance").value.trim();
+    // a tolerance typed in overrides the stored one; the box's own filling does not
+    const tol = typed ? box.value.trim() : "";
     say("mapping print #" + p.seq + " (the twin runs over it once; up to a minute for a long print)…");
     try {
       const url = "/api/machine/" + encodeURIComponent(name) + "/print/" + p.seq + "/part" +
@@ -350,6 +377,7 @@ function partMap(name) {
   }
   document.getElementById("part-apply").onclick = () => {
     if (current && current.kind === "print") showPrint({ seq: current.seq, program: true });
+    typed = false;
   };
   return {
     showLive, showPrint,

@@ -9,14 +9,21 @@ STAMP := $(VENV)/.installed
 
 $(VENV): $(STAMP)
 
+# Says what it installs and how big; pip shows each download with its progress bar.
 $(STAMP): pyproject.toml
+	@echo "install: ajtwin into $(VENV)/ — about 2.5 GB once installed, a few minutes (3 steps)"
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@echo "install [1/3]: pip, upgraded"
 	$(PY) -m pip install --quiet --upgrade pip
-	# torch first, from the exact pin (local CPU wheel), so nothing pulls a CUDA build
-	$(PY) -m pip install --quiet torch==2.13.0
-	# docs too: the suite builds the documentation site (tests/test_docs_site.py)
-	$(PY) -m pip install --quiet -e '.[dev,docs]'
+	@echo "install [2/3]: torch 2.13.0, CPU build (a 190 MB wheel, 750 MB installed) —"
+	@echo "               first and from the exact pin, so nothing pulls a CUDA build"
+	$(PY) -m pip install --progress-bar on torch==2.13.0
+	@echo "install [3/3]: ajtwin and its libraries (JAX 380 MB, PyArrow 170 MB, Playwright"
+	@echo "               165 MB, OpenCV 150 MB, SciPy, pandas, plotly, ...; the docs' MkDocs too:"
+	@echo "               the suite builds the documentation site, tests/test_docs_site.py)"
+	$(PY) -m pip install --progress-bar on -e '.[dev,docs]'
 	touch $(STAMP)
+	@echo "install: done — $$(du -sh $(VENV) | cut -f1) in $(VENV)/; the command: $(VENV)/bin/ajtwin"
 
 .venv: $(STAMP)
 
@@ -57,8 +64,10 @@ demo: $(STAMP)
 # its module fixtures (simulated prints, servers) are made once
 TEST_WORKERS ?= auto
 
+# every 30 s a line names the tests still running; the files that took longest last time
+# start first (tests/suite_progress.py); the 15 slowest tests are listed at the end
 test: $(STAMP) openfoam chromium postgresql
-	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
+	AJTWIN_TEST_HEARTBEAT=30 $(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 # the slow tests include the develop study's generic Bayesian optimisation (the [study] extra)
 STUDY_STAMP := $(VENV)/.installed-study

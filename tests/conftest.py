@@ -115,3 +115,77 @@ def new_store(request, store, tmp_path):
         return tmp_path / f"registry-{made[0]}.sqlite"
 
     return make
+
+
+# ---------------------------------------------------------------- what `make test` says
+# (tests/suite_progress.py): long files first, and a line every AJTWIN_TEST_HEARTBEAT
+# seconds naming the tests still running
+def pytest_collection_modifyitems(session, config, items):
+    from suite_progress import CACHE_KEY, longest_files_first
+
+    cache = getattr(config, "cache", None)
+    seconds = cache.get(CACHE_KEY, {}) if cache is not None else {}
+    if seconds:
+        order = longest_files_first([item.nodeid for item in items], seconds)
+        items[:] = [items[i] for i in order]
+
+
+def _controller(config) -> bool:
+    return not hasattr(config, "workerinput")  # not an xdist worker
+
+
+def pytest_configure(config):
+    every = os.environ.get("AJTWIN_TEST_HEARTBEAT")
+    config._ajtwin_file_seconds = {}
+    config._ajtwin_heartbeat = None
+    if every and _controller(config):
+        from suite_progress import Heartbeat
+
+        def write(line):  # the terminal reporter is registered after this hook may run
+            reporter = config.pluginmanager.get_plugin("terminalreporter")
+            if reporter is not None:
+                reporter.write_line(line)
+
+        config._ajtwin_heartbeat = Heartbeat(float(every), write)
+        config._ajtwin_heartbeat.start()
+
+
+def pytest_runtest_logstart(nodeid, location):
+    beat = getattr(_CONFIG.get("config"), "_ajtwin_heartbeat", None)
+    if beat is not None:
+        beat.started(nodeid)
+
+
+def pytest_runtest_logreport(report):
+    config = _CONFIG.get("config")
+    if config is None:
+        return
+    from suite_progress import file_of
+
+    spent = config._ajtwin_file_seconds
+    spent[file_of(report.nodeid)] = spent.get(file_of(report.nodeid), 0.0) + report.duration
+    if report.when == "teardown" and config._ajtwin_heartbeat is not None:
+        config._ajtwin_heartbeat.finished(report.nodeid)
+
+
+def pytest_sessionstart(session):
+    _CONFIG["config"] = session.config
+
+
+def pytest_sessionfinish(session, exitstatus):
+    config = session.config
+    beat = getattr(config, "_ajtwin_heartbeat", None)
+    if beat is not None:
+        beat.stop()
+    cache = getattr(config, "cache", None)
+    spent = getattr(config, "_ajtwin_file_seconds", {})
+    # recorded from `make test`'s runs only (a run of a few tests would under-count a file)
+    if cache is not None and spent and _controller(config) and beat is not None:
+        # measured files replace their old figure; the others keep theirs
+        from suite_progress import CACHE_KEY
+
+        cache.set(CACHE_KEY, {**cache.get(CACHE_KEY, {}), **spent})
+
+
+#: the session's config, for the hooks that are not given it
+_CONFIG: dict = {}

@@ -93,7 +93,8 @@ class Heartbeat:
             return
         named = ", ".join(f"{nodeid} {_took(now - t0)}" for nodeid, t0 in running[:3])
         more = f" and {len(running) - 3} more" if len(running) > 3 else ""
-        self.write(f"… still running ({len(running)} test{'s' * (len(running) > 1)}): {named}{more}")
+        tests = f"{len(running)} test{'s' * (len(running) > 1)}"
+        self.write(f"… still running ({tests}): {named}{more}")
 
     def start(self) -> None:
         def loop():

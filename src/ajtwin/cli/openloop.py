@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import click
 import numpy as np
-import pandas as pd
 
-from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel
-from ajtwin.simulation.openloop import EXP1_INPUTS, plot_open_loop, run_open_loop
+from ajtwin.config import packaged_toml
+from ajtwin.model.names import INPUT_NAMES
+
+#: (I_A [mA], Q_c [sccm], Q_s [sccm]) of the paper's Exp 1: its scenario's values at the start
+EXP1_INPUTS = tuple(
+    float(packaged_toml("simulation/scenarios/exp1.toml")["inputs"][name][0][1])
+    for name in INPUT_NAMES
+)
 
 
 @click.command("openloop")
@@ -32,6 +37,13 @@ def openloop(minutes, current_ma, carrier_sccm, sheath_sccm, droplet_um, vial_ml
 
     Prints the states at 30/60/90 min (or the run's thirds).
     """
+    # lazy CLI loading: pandas, and the model (JAX) when the run starts, not for --help
+    import pandas as pd
+
+    # lazy CLI loading
+    from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel
+    from ajtwin.simulation.openloop import plot_open_loop, run_open_loop
+
     model = DigitalModel.default()
     u = np.array([current_ma, carrier_sccm, sheath_sccm], dtype=float)
     steps = int(round(minutes * 60))

@@ -13,15 +13,8 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.config import packaged_toml
-from ajtwin.engine.chain import open_registry as open_checked_registry
-from ajtwin.estimation.print_time import job_as_printed
 from ajtwin.io.dialect import DIALECT_CHOICES
-from ajtwin.job import ProgramError
-from ajtwin.job.speeds import SpeedSchedule
-from ajtwin.model import load_parameters
 from ajtwin.store.location import PASSWORD_FILE_ENV, parse_store
-from ajtwin.store.registry import RegistryError
-from ajtwin.vision.camera import CameraFileError, load_camera
 
 
 def csv_dialect_option(command):
@@ -128,6 +121,10 @@ def load_camera_option(camera_path):
     """The camera file of ``--camera`` (beside ``--job``); a usage error without one."""
     if camera_path is None:
         raise click.UsageError("--job needs --camera camera.toml (the camera's geometry)")
+    # lazy CLI loading: the libraries a command needs are imported when it runs, never for
+    # --help (this module is imported by every command's definition)
+    from ajtwin.vision.camera import CameraFileError, load_camera
+
     try:
         return load_camera(camera_path)
     except (CameraFileError, FileNotFoundError) as exc:
@@ -140,6 +137,10 @@ def load_job_option(job_path, *, meta=None, process_speed=None, rapid_speed=None
     metadata ``meta`` where not given, and refused when the record names another program)."""
     if job_path is None:
         raise click.UsageError("--camera needs --job PROGRAM.prg")
+    # lazy CLI loading: JAX comes with the twin's print-time module
+    from ajtwin.estimation.print_time import job_as_printed
+    from ajtwin.job import ProgramError
+
     info = (meta or {}).get("job")
     try:
         return job_as_printed(
@@ -223,6 +224,9 @@ class ProcessSpeed(click.ParamType):
 
     def convert(self, value, param, ctx):
         """A float for one speed, a :class:`~ajtwin.job.SpeedSchedule` otherwise."""
+        # lazy CLI loading: the job package when a speed is read, not for --help
+        from ajtwin.job.speeds import SpeedSchedule
+
         if isinstance(value, float | SpeedSchedule):
             return value
         text = str(value).strip()
@@ -249,6 +253,9 @@ def process_speed_option(command):
 def job_speeds(process_speed) -> dict:
     """``--process-speed``'s value as keywords of the job readers: ``process_speed_mm_s``
     (one speed) or ``speed_schedule`` (speeds per layer, stroke or feature)."""
+    # lazy CLI loading: the job package when a speed is read, not for --help
+    from ajtwin.job.speeds import SpeedSchedule
+
     if isinstance(process_speed, SpeedSchedule):
         return {"process_speed_mm_s": None, "speed_schedule": process_speed}
     return {"process_speed_mm_s": process_speed, "speed_schedule": None}
@@ -286,6 +293,8 @@ def check_vial_fill(ctx, param, value):
     """Click callback: the vial fill level must be in (0, V_v) mL (V_v from parameters.toml)."""
     if value is None:
         return value
+    # lazy CLI loading: the model's parameters when a fill is checked
+    from ajtwin.model import load_parameters
 
     capacity = units.m3_to_ml(load_parameters().vial_volume)
     if not 0.0 < value < capacity:
@@ -330,6 +339,9 @@ def store_location(store, password_file=None):
     """The :class:`~ajtwin.store.location.StoreLocation` of ``--store`` and
     ``--store-password-file`` (an unknown URL scheme, a password in the URL: a usage error
     that says so)."""
+    # lazy CLI loading: the registry (pandas) when a command opens one
+    from ajtwin.store.registry import RegistryError
+
     try:
         return parse_store(store, password_file)
     except RegistryError as exc:
@@ -376,6 +388,10 @@ def open_registry(store, create: bool = False, write: bool | None = None):
     one from before the chain's range check gets its impossible prints excluded
     (:func:`ajtwin.engine.chain.open_registry`).
     """
+    # lazy CLI loading: the registry and the twin's chain when a command opens one
+    from ajtwin.engine.chain import open_registry as open_checked_registry
+    from ajtwin.store.registry import RegistryError
+
     try:
         reg = open_checked_registry(store, create=create, write=create if write is None else write)
     except RegistryError as exc:

@@ -10,10 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ajtwin.model import OUTPUT_NAMES, STATE_NAMES, DigitalModel
+from ajtwin.config import packaged_toml
+from ajtwin.model import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES, DigitalModel
 
-#: Exp 1 inputs (model reference §10): I_A 375 mA, Q_c 23 sccm, Q_s 50 sccm.
-EXP1_INPUTS = (375.0, 23.0, 50.0)
+#: Exp 1 inputs (model reference §10), (I_A [mA], Q_c [sccm], Q_s [sccm]): the scenario's
+#: values at its start (I_A 375 mA, Q_c 23 sccm, Q_s 50 sccm)
+EXP1_INPUTS = tuple(
+    float(packaged_toml("simulation/scenarios/exp1.toml")["inputs"][name][0][1])
+    for name in INPUT_NAMES
+)
 
 
 def run_open_loop(model: DigitalModel, x0, inputs, theta=None):

@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench docs docs-serve lint openfoam chromium postgresql clean
+.PHONY: demo test test-all bench docs docs-serve lint openfoam chromium postgresql clean screenshots
 
 $(VENV): $(STAMP)
 
@@ -94,6 +94,15 @@ bench: $(BENCH_STAMP) chromium postgresql
 	$(VENV)/bin/asv run --python=same --set-commit-hash=$$(git rev-parse HEAD) --show-stderr $(BENCH_ARGS)
 	# SQLite against PostgreSQL side by side in one run (a lab's registry on a server)
 	$(PY) benchmarks/bench_store_backends.py
+
+# Every page a person reads (the demo's report, a part report, the dashboard's pages) at
+# 1400 px wide into build/screenshots/now/*.png, each checked for overflow, clipped text and
+# empty boxes (problems.json). BEFORE=REV: also the same pages of another commit, into
+# build/screenshots/REV/ (e.g. make screenshots BEFORE=main).
+BEFORE ?=
+screenshots: $(STAMP) chromium
+	$(PY) scripts/screenshots.py --out build/screenshots/now
+	$(if $(BEFORE),$(PY) scripts/screenshots.py --rev $(BEFORE) --out build/screenshots/$(BEFORE))
 
 # The documentation site in site/ (open site/index.html; search needs it served: make docs-serve).
 # Strict: a broken link or anchor, a page left out of the navigation or a docstring that does

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from ajtwin.web.publisher import LivePublisher
-from ajtwin.web.server import CHROMIUM, DashboardProcess, launch_chromium
+from ajtwin.web.server import CHROMIUM, DashboardProcess, launch_chromium, layout_faults
 
 PROGRAM = Path("tests/data/prg/prg2svg/2 and 6-Au.prg").resolve()
 TIMEOUT_MS = 120_000
@@ -156,6 +156,7 @@ def test_stored_print_part_map_is_drawn_from_the_api(job_registry, browser, tmp_
             # the colour bar's title is clear of the chart's toolbar
             assert _overlap(page, "#plot-part .cbtitle", "#plot-part .modebar") == 0
             page.screenshot(path=shots / "machine_part_map.png", full_page=True)
+            assert layout_faults(page) == []
 
             # without a tolerance: coloured by L_w, and the page says none is set
             page.goto(dash.page_url("/machine/lab3"))
@@ -176,6 +177,7 @@ def test_stored_print_part_map_is_drawn_from_the_api(job_registry, browser, tmp_
             )
             assert page.locator("#plot-part").bounding_box() is None  # not laid out
             assert page.locator("#part-section").bounding_box()["height"] < 150
+            assert layout_faults(page) == []
         finally:
             page.close()
         assert not errors, errors

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ajtwin.web.server import CHROMIUM, DashboardProcess, launch_chromium
+from ajtwin.web.server import CHROMIUM, DashboardProcess, launch_chromium, layout_faults
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="run `make chromium`")
@@ -107,6 +107,7 @@ def test_fleet_page_lists_the_registry(server, registry, page, shots):
     assert "not recorded" in lab1.locator("td").nth(8).inner_text()
     page.wait_for_function("document.getElementById('conn').classList.contains('up')")
     page.screenshot(path=shots / "fleet.png", full_page=True)
+    assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 
 
 def test_machine_page_states_with_bands_and_truth(server, registry, page, shots):
@@ -147,6 +148,7 @@ def test_machine_page_states_with_bands_and_truth(server, registry, page, shots)
         assert guard["message"] in page.locator("#mismatch").inner_text()
     assert page.locator("#calibration").count() == 0  # never commissioned
     page.screenshot(path=shots / "machine.png", full_page=True)
+    assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 
 
 def test_new_print_appears_without_reload(server, page):
@@ -197,6 +199,7 @@ def test_whatif_forecast_and_advice(server, registry, page, shots):
     page.wait_for_selector("#advice-table")
     assert "target reached" in page.locator("#advice").inner_text()
     page.screenshot(path=shots / "whatif.png", full_page=True)
+    assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 
 
 def test_bad_form_value_shows_a_message(server, page, shots):

@@ -233,3 +233,61 @@ def launch_chromium(playwright, user_data_dir=None):
         context.close = close_and_remove
         context.on("close", lambda _context: shutil.rmtree(made, ignore_errors=True))
     return context
+
+
+# ---------------------------------------------------------------- a page's layout, checked
+#: a page's layout faults as sentences (run in the page by :func:`layout_faults`)
+LAYOUT_FAULTS_JS = r"""() => {
+  const out = [];
+  const W = window.innerWidth;
+  const name = (e) => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") +
+    (e.classList.length ? "." + [...e.classList].join(".") : "");
+  const meets = (p, q) => Math.min(p.right, q.right) > Math.max(p.left, q.left) + 1 &&
+    Math.min(p.bottom, q.bottom) > Math.max(p.top, q.top) + 1;
+  const shown = (e) => e.getClientRects().length > 0 && getComputedStyle(e).visibility !== "hidden";
+  const page = document.documentElement.scrollWidth;
+  if (page > W + 1) out.push(`the page is ${page} px wide in a ${W}-px window`);
+  for (const e of document.querySelectorAll("body *")) {
+    const r = e.getBoundingClientRect();
+    if (shown(e) && r.width > 0 && r.right > W + 1) {
+      out.push(`${name(e)} runs past the window's right edge (to ${Math.round(r.right)} px)`);
+      break;
+    }
+  }
+  for (const chart of document.querySelectorAll(".js-plotly-plot")) {
+    const box = chart.getBoundingClientRect();
+    const bar = chart.querySelector(".modebar");
+    const tools = bar ? bar.getBoundingClientRect() : null;
+    for (const t of chart.querySelectorAll(".cbtitle, .gtitle, .xtitle, .ytitle, .legendtext")) {
+      const r = t.getBoundingClientRect();
+      if (!r.width || !t.textContent.trim()) continue;
+      const label = `"${t.textContent.trim().slice(0, 40)}" of ${name(chart)}`;
+      if (r.left < box.left - 1 || r.right > box.right + 1 || r.top < box.top - 1 ||
+          r.bottom > box.bottom + 1) out.push(`${label} is cut by its chart's edge`);
+      if (tools && tools.width && meets(r, tools)) {
+        out.push(`${label} is under the chart's toolbar`);
+      }
+    }
+  }
+  for (const e of document.querySelectorAll("img")) {
+    if (shown(e) && (!e.complete || e.naturalWidth === 0)) out.push(`broken image ${name(e)}`);
+  }
+  for (const e of document.querySelectorAll(".plot, .card, .plots > div, figure, section")) {
+    if (!shown(e)) continue;
+    const r = e.getBoundingClientRect();
+    if (r.height < 60) continue;
+    const held = e.innerText.trim() || e.querySelector("svg, canvas, img, video, table");
+    const size = `${Math.round(r.width)} × ${Math.round(r.height)}`;
+    if (!held) out.push(`${name(e)} is an empty ${size}-px box`);
+  }
+  return out;
+}"""
+
+
+def layout_faults(page) -> list[str]:
+    """What is wrong with the layout of the page open in ``page`` (a Playwright page), in
+    sentences; [] when nothing: no horizontal overflow of the window, no chart title, axis
+    title or legend text cut by its chart's edge or under its toolbar, no broken image, no
+    empty box (a chart, card or section ≥ 60 px high holding nothing). The browser tests
+    and ``scripts/screenshots.py`` check every page with it."""
+    return list(page.evaluate(LAYOUT_FAULTS_JS))

@@ -165,7 +165,8 @@ function buildDetectors(s) {
   map.nis.push(traces.length);
   traces.push({ x: t, y: d.window_nis_log10p, mode: "lines", line: { width: 1.3, color: "#444" },
     name: "windowed NIS (" + d.window_s + " s)", yaxis: "y2" });
-  const layout = rowsLayout(2, ["CUSUM g / h", "NIS −log₁₀ p"]);
+  // seven detectors: a legend of three rows, kept below the chart's toolbar by the top margin
+  const layout = rowsLayout(2, ["CUSUM g / h", "NIS −log₁₀ p"], { margin: { l: 70, r: 12, t: 96, b: 40 } });
   layout.shapes = [
     { type: "line", xref: "paper", x0: 0, x1: 1, yref: "y", y0: 1, y1: 1, line: { color: "#c62828", dash: "dash", width: 1.2 } },
     { type: "line", xref: "paper", x0: 0, x1: 1, yref: "y2", y0: d.window_nis_threshold, y1: d.window_nis_threshold, line: { color: "#c62828", dash: "dash", width: 1.2 } },

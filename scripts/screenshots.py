@@ -7,7 +7,8 @@ Makes, through the command line, a short demo (its report and registry), a short
 of a public program with a clog (its part report, and stored with its job in the same
 registry), then opens in Debian's chromium (Playwright) at 1400 × 900 px: the demo report, the
 part report, the dashboard's fleet page, the demo machine's page (its prints were stored
-without a program), the job machine's page (its part map) and the what-if page. Each page
+without a program), the job machine's page (its part map), the page of a machine the model
+does not fit (a model–machine mismatch) and the what-if page. Each page
 is saved whole as ``NAME.png`` and checked (:func:`ajtwin.web.server.layout_faults`): nothing
 wider than the
 window, no chart text outside its chart or under its toolbar, no empty box and no broken
@@ -59,7 +60,8 @@ def ajtwin(*args, cwd: Path, env: dict) -> str:
 
 def build(work: Path, env: dict) -> dict:
     """The inputs of the pages, made in ``work`` by the command line: the demo's report and
-    registry, a job print's part report, the job print stored in the same registry.
+    registry, a job print's part report, the job print stored in the same registry, and a
+    print of a machine the model does not fit (its guard fires).
 
     Returns the paths: ``registry``, ``demo_report``, ``part_report``."""
     work.mkdir(parents=True, exist_ok=True)
@@ -78,6 +80,12 @@ def build(work: Path, env: dict) -> dict:
            "--store", registry, record, cwd=work, env=env)  # fmt: skip
     ajtwin("job", "report", record, "--job", PROGRAM, "--tolerance", tolerance, "--out",
            work / "part", cwd=work, env=env)  # fmt: skip
+    # a machine unlike the nominal one, never commissioned: the model–machine guard fires
+    other = work / "other_machine.parquet"
+    ajtwin("simulate", "--scenario", "exp1", "--seed", "5", "--duration-min", "6",
+           "--machine-seed", "1", "--out", other, cwd=work, env=env)  # fmt: skip
+    ajtwin("machine", "add", "lab-mismatch", "--store", registry, cwd=work, env=env)
+    ajtwin("ingest", "--machine", "lab-mismatch", "--store", registry, other, cwd=work, env=env)
     return {
         "registry": registry,
         "demo_report": demo / "report.html",
@@ -91,6 +99,7 @@ DASHBOARD_PAGES = (
     ("machine_demo", "/machine/demo-aj300", "window.__ajtwin.drawnPrint >= 1"),
     ("machine_part_map", "/machine/lab-part",
      "window.__ajtwin.part && window.__ajtwin.part.portions > 0"),
+    ("machine_mismatch", "/machine/lab-mismatch", "window.__ajtwin.drawnPrint >= 1"),
     ("whatif", "/whatif/demo-aj300", None),
 )  # fmt: skip
 

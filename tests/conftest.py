@@ -187,5 +187,5 @@ def pytest_sessionfinish(session, exitstatus):
         cache.set(CACHE_KEY, {**cache.get(CACHE_KEY, {}), **spent})
 
 
-#: the session's config, for the hooks that are not given it
+#: the run's config, for the hooks that are not given it
 _CONFIG: dict = {}

@@ -38,7 +38,8 @@ def test_every_page_at_1400_px_has_no_overflow_clipped_text_or_empty_box(tmp_pat
     inputs = shots.build(tmp_path / "work", env)
     problems = shots.screenshots(inputs, tmp_path / "shots", env)
     assert set(problems) == {
-        "demo_report", "part_report", "fleet", "machine_demo", "machine_part_map", "whatif",
+        "demo_report", "part_report", "fleet", "machine_demo", "machine_part_map",
+        "machine_mismatch", "whatif",
     }  # fmt: skip
     assert all((tmp_path / "shots" / f"{name}.png").stat().st_size > 10_000 for name in problems)
     assert problems == {name: [] for name in problems}

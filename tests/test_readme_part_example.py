@@ -9,18 +9,16 @@ not all), every one printed after the clog's onset.
 
 from __future__ import annotations
 
-import re
-import shlex
 from pathlib import Path
 
 import pandas as pd
 from click.testing import CliRunner
 
 from ajtwin.cli import main
+from doc_commands import ajtwin_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-BASH_BLOCK = re.compile(r"^```bash\n(.*?)^```", re.S | re.M)
 #: the clog scenario's onset [s] (src/ajtwin/simulation/scenarios/nozzle_clog.toml)
 CLOG_ONSET_S = 3600.0
 
@@ -30,13 +28,7 @@ def readme_part_commands() -> list[list[str]]:
     program, in order."""
     text = README.read_text(encoding="utf-8")
     part = text[text.index("A part printed from its program") : text.index("## In Python")]
-    commands = []
-    for block in BASH_BLOCK.findall(part):
-        for line in block.splitlines():
-            words = shlex.split(line, comments=True)
-            if words and words[0] == "ajtwin" and any("tests/data/prg/" in w for w in words):
-                commands.append(words[1:])
-    return commands
+    return [args for args in ajtwin_commands(part) if any("tests/data/prg/" in w for w in args)]
 
 
 def test_the_readme_part_example_flags_a_few_traces_after_the_clog(tmp_path, monkeypatch):

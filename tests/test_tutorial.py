@@ -11,17 +11,15 @@ Steps 6 and 7 start servers (the live twin, the dashboard): ``tests/test_live_op
 
 from __future__ import annotations
 
-import re
-import shlex
 from pathlib import Path
 
 import pandas as pd
 from click.testing import CliRunner
 
 from ajtwin.cli import main
+from doc_commands import ajtwin_commands
 
 TUTORIAL = Path(__file__).resolve().parents[1] / "docs" / "tutorial.md"
-BASH_BLOCK = re.compile(r"^```bash\n(.*?)^```", re.S | re.M)
 #: option → the short value it takes here
 #: (the clogging print keeps 3 of its 10 minutes after the fault's onset at 60 min)
 SHORTER = {"--duration-min": {"30": "2", "70": "63"}, "--horizon": {"30min": "5min"}}
@@ -33,16 +31,11 @@ def tutorial_commands() -> list[list[str]]:
     text = TUTORIAL.read_text(encoding="utf-8")
     part2 = text[text.index("## Part 2") : text.index("### 6.")]
     commands = []
-    for block in BASH_BLOCK.findall(part2):
-        for line in block.splitlines():
-            words = shlex.split(line, comments=True)
-            if not words or words[0] != "ajtwin":
-                continue
-            args = words[1:]
-            for i, word in enumerate(args[:-1]):
-                if word in SHORTER:
-                    args[i + 1] = SHORTER[word].get(args[i + 1], args[i + 1])
-            commands.append(args)
+    for args in ajtwin_commands(part2):
+        for i, word in enumerate(args[:-1]):
+            if word in SHORTER:
+                args[i + 1] = SHORTER[word].get(args[i + 1], args[i + 1])
+        commands.append(args)
     return commands
 
 

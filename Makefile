@@ -64,7 +64,7 @@ demo: $(STAMP)
 # its module fixtures (simulated prints, servers) are made once
 TEST_WORKERS ?= auto
 
-# every 30 s a line names the tests still running; the files that took longest last time
+# a test running 30 s or longer is named every 30 s; the files that took longest last time
 # start first (tests/suite_progress.py); the 15 slowest tests are listed at the end
 test: $(STAMP) openfoam chromium postgresql
 	AJTWIN_TEST_HEARTBEAT=30 $(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile --durations=15

@@ -8,7 +8,7 @@ Two pieces, wired into pytest by ``tests/conftest.py``:
   measured duration (the pytest cache, ``ajtwin/file_seconds``), longest first; files never
   measured keep their order, after those known to take over :data:`LONG_FILE_S`.
 * :class:`Heartbeat` — every ``AJTWIN_TEST_HEARTBEAT`` seconds (``make test`` sets 30) a line
-  naming the tests still running and for how long, so a wait on a long test is never silent.
+  naming the tests that have run that long or longer, so a wait on a long test is never silent.
 """
 
 from __future__ import annotations
@@ -54,14 +54,15 @@ def longest_files_first(nodeids: list[str], seconds: dict[str, float]) -> list[i
 
 
 class Heartbeat:
-    """Says, every ``every_s`` seconds, which tests are running and for how long.
+    """Says, every ``every_s`` seconds, which tests have been running that long or longer.
 
     ``write`` takes one line of text. :meth:`started` and :meth:`finished` are called from
     pytest's hooks (with xdist, in the controlling process as workers report).
 
     >>> lines = []
-    >>> beat = Heartbeat(30.0, lines.append, clock=iter([0.0, 95.0]).__next__)
+    >>> beat = Heartbeat(30.0, lines.append, clock=iter([0.0, 90.0, 95.0]).__next__)
     >>> beat.started("tests/test_web_browser.py::test_live")
+    >>> beat.started("tests/test_model.py::test_quick")      # started at 90 s: not yet long
     >>> beat.say()
     >>> lines
     ['… still running (1 test): tests/test_web_browser.py::test_live 1 min 35 s']
@@ -85,10 +86,13 @@ class Heartbeat:
             self.running.pop(nodeid, None)
 
     def say(self) -> None:
-        """Write one line: the running tests, longest running first (at most 3 named)."""
+        """Write one line naming the tests running for ``every_s`` or longer, longest running
+        first (at most 3 named); nothing while the tests come and go faster (the dots say it).
+        """
         now = self.clock()
         with self._lock:
             running = sorted(self.running.items(), key=lambda kv: kv[1])
+        running = [(nodeid, t0) for nodeid, t0 in running if now - t0 >= self.every_s]
         if not running:
             return
         named = ", ".join(f"{nodeid} {_took(now - t0)}" for nodeid, t0 in running[:3])

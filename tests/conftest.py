@@ -121,10 +121,11 @@ def new_store(request, store, tmp_path):
 # (tests/suite_progress.py): long files first, and a line every AJTWIN_TEST_HEARTBEAT
 # seconds naming the tests still running
 def pytest_collection_modifyitems(session, config, items):
-    from suite_progress import CACHE_KEY, longest_files_first
+    from suite_progress import CACHE_KEY, known_file_seconds, longest_files_first
 
     cache = getattr(config, "cache", None)
-    seconds = cache.get(CACHE_KEY, {}) if cache is not None else {}
+    # a fresh clone (CI) has no cache: the durations of a measured run kept in the tree
+    seconds = {**known_file_seconds(), **(cache.get(CACHE_KEY, {}) if cache is not None else {})}
     if seconds:
         order = longest_files_first([item.nodeid for item in items], seconds)
         items[:] = [items[i] for i in order]
@@ -166,6 +167,19 @@ def pytest_runtest_logreport(report):
     spent[file_of(report.nodeid)] = spent.get(file_of(report.nodeid), 0.0) + report.duration
     if report.when == "teardown" and config._ajtwin_heartbeat is not None:
         config._ajtwin_heartbeat.finished(report.nodeid)
+
+
+@pytest.hookimpl(optionalhook=True)  # an xdist hook
+def pytest_xdist_node_collection_finished(node, ids):
+    beat = getattr(_CONFIG.get("config"), "_ajtwin_heartbeat", None)
+    if beat is not None:
+        beat.total = len(ids)  # every worker collects the whole suite
+
+
+def pytest_collection_finish(session):
+    beat = getattr(session.config, "_ajtwin_heartbeat", None)
+    if beat is not None and not beat.total:
+        beat.total = len(session.items)
 
 
 def pytest_sessionstart(session):

@@ -5,21 +5,34 @@ Two pieces, wired into pytest by ``tests/conftest.py``:
 * :func:`longest_files_first` — with ``--dist loadfile`` each test file goes whole to the next
   free worker, in collection order. A long file that starts last keeps one worker busy, alone,
   at the end (the silent last minutes of a run). Files are put in the order of their last
-  measured duration (the pytest cache, ``ajtwin/file_seconds``), longest first; files never
-  measured keep their order, after those known to take over :data:`LONG_FILE_S`.
+  measured duration (the pytest cache, ``ajtwin/file_seconds``; in a fresh clone, the long
+  files of one measured run kept in ``tests/file_seconds.json``), longest first; the other
+  files keep their order, after those known to take over :data:`LONG_FILE_S`.
 * :class:`Heartbeat` — every ``AJTWIN_TEST_HEARTBEAT`` seconds (``make test`` sets 30) a line
   naming the tests that have run that long or longer, so a wait on a long test is never silent.
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+from pathlib import Path
 
 #: the cache key of the per-file durations [s] of the last run
 CACHE_KEY = "ajtwin/file_seconds"
 #: a file measured at least this long [s] is started before the files never measured
 LONG_FILE_S = 20.0
+#: the long files' durations [s] of one measured `make test` run, for a clone without a cache
+KNOWN = Path(__file__).with_name("file_seconds.json")
+
+
+def known_file_seconds() -> dict[str, float]:
+    """The durations kept in :data:`KNOWN` ({} without the file)."""
+    try:
+        return {str(k): float(v) for k, v in json.loads(KNOWN.read_text("utf-8")).items()}
+    except (OSError, ValueError):
+        return {}
 
 
 def file_of(nodeid: str) -> str:
@@ -65,7 +78,7 @@ class Heartbeat:
     >>> beat.started("tests/test_model.py::test_quick")      # started at 90 s: not yet long
     >>> beat.say()
     >>> lines
-    ['… still running (1 test): tests/test_web_browser.py::test_live 1 min 35 s']
+    ['… 0 tests done; running for 30 s or more: tests/test_web_browser.py::test_live 1 min 35 s']
     """
 
     def __init__(self, every_s: float, write, clock=time.monotonic):
@@ -73,6 +86,8 @@ class Heartbeat:
         self.write = write
         self.clock = clock
         self.running: dict[str, float] = {}
+        self.done = 0
+        self.total: int | None = None  # tests to run, once known
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -83,7 +98,8 @@ class Heartbeat:
 
     def finished(self, nodeid: str) -> None:
         with self._lock:
-            self.running.pop(nodeid, None)
+            if self.running.pop(nodeid, None) is not None:
+                self.done += 1
 
     def say(self) -> None:
         """Write one line naming the tests running for ``every_s`` or longer, longest running
@@ -97,8 +113,9 @@ class Heartbeat:
             return
         named = ", ".join(f"{nodeid} {_took(now - t0)}" for nodeid, t0 in running[:3])
         more = f" and {len(running) - 3} more" if len(running) > 3 else ""
-        tests = f"{len(running)} test{'s' * (len(running) > 1)}"
-        self.write(f"… still running ({tests}): {named}{more}")
+        # the line breaks pytest's row of dots before its percentage: say how far it is
+        done = f"{self.done} of {self.total}" if self.total else f"{self.done}"
+        self.write(f"… {done} tests done; running for {_took(self.every_s)} or more: {named}{more}")
 
     def start(self) -> None:
         def loop():

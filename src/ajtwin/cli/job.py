@@ -209,7 +209,7 @@ def _bars(progress: bool):
     """(twin progress, line progress, close): one tqdm bar at a time, created on first use.
 
     The twin's bar says it is starting until its first second is done (on a machine's first
-    run the twin's programs are compiled then, ~10 s); it is closed, kept as one finished
+    run the twin's programs are compiled then: 10-30 s); it is closed, kept as one finished
     line, before the line's bar opens, so the two never share the terminal's last line."""
     # lazy CLI loading: tqdm only when the command runs
     from tqdm import tqdm
@@ -219,7 +219,7 @@ def _bars(progress: bool):
     def twin_step(done):
         if "twin" not in bars:
             bars["twin"] = tqdm(unit="s", desc="twin", disable=not progress)
-            bars["twin"].set_postfix_str("starting (the first run compiles the twin, ~10 s)")
+            bars["twin"].set_postfix_str("starting: a first run compiles the twin first")
         bar = bars["twin"]
         if done > bar.n and bar.n == 0:
             bar.set_postfix_str("", refresh=False)

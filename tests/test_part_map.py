@@ -12,15 +12,18 @@ import pytest
 
 from ajtwin.apps.quality.part_map import (
     PORTION_COLUMNS,
+    REPORT_COLUMNS,
     Tolerance,
     build_part_map,
+    cause_groups,
     evaluate_portions,
+    explain_flagged,
     out_of_tolerance_probability,
     parse_tolerance,
     place_alarms,
     smoothed_run,
 )
-from ajtwin.apps.quality.report import write_report
+from ajtwin.apps.quality.report import flagged_rows, write_report
 from ajtwin.estimation.part_line import block_size, line_at
 from ajtwin.estimation.print_time import program_for_record
 from ajtwin.job import read_program_text
@@ -223,7 +226,9 @@ def clog_map(clog_print):
     job = program_for_record(record, CLOG_PROGRAM)  # the program as the print ran it
     run = smoothed_run(record, job=job)  # its frames filed at their print times
     assert run.camera_counts["filed"] > 0 and run.line_factors is not None
-    return build_part_map(job, run, tol, source="clog")
+    part = build_part_map(job, run, tol, source="clog")
+    part.run = run
+    return part
 
 
 def test_flagged_portions_are_those_whose_true_width_leaves_the_tolerance(clog_print, clog_map):
@@ -260,7 +265,7 @@ def test_report_files_are_written_readable_and_self_contained(clog_map, tmp_path
 
     paths = write_report(clog_map, tmp_path / "out")
     table = pd.read_csv(paths["strokes.csv"])
-    assert list(table.columns) == list(PORTION_COLUMNS)
+    assert list(table.columns) == list(REPORT_COLUMNS)
     assert len(table) == len(clog_map.portions) and table["flagged"].sum() > 0
     assert (table["lw_lo_um"] <= table["lw_mean_um"]).all()
     assert (table["lw_mean_um"] <= table["lw_hi_um"]).all()
@@ -274,3 +279,51 @@ def test_report_files_are_written_readable_and_self_contained(clog_map, tmp_path
     # the flagged table lists the most probable first
     rows = re.findall(r"<h2>Flagged portions.*?</table>", page, re.S)[0]
     assert rows.count("<tr>") == min(500, facts["flagged_portions"]) + 1
+
+
+def test_the_report_says_why_each_flagged_group_is_out_in_minutes_and_mm(clog_map, tmp_path):
+    """Each flagged portion carries its cause: the alarm it was printed under (cause in
+    words, since when, what to do) or that none was raised, and what the twin reads as
+    having moved the line (the nozzle deposit, here); times in minutes, no e-notation, no
+    feature −1, runs counted from 1."""
+    import dataclasses
+
+    from click.testing import CliRunner
+
+    from ajtwin.cli.job import _echo_part_report
+
+    # no alarm at all: every flagged portion is said to be out without one, driven by ΔR_N
+    (group,) = cause_groups(clog_map)
+    assert group["alarm"] == 0 and "no alarm" in group["sentence"]
+    assert "nozzle ΔR_N" in group["driver"] and "+" in group["driver"]
+    # the clog's alarm from 4.5 min: the portions printed after its onset are its own
+    event = {"detected_s": 300.0, "onset_s": 270.0, "cause": "nozzle_clog",
+             "description": "", "detectors": ["cusum+ P_c+P_s", "deposit push ΔR_N"]}  # fmt: skip
+    alarms = place_alarms(clog_map.job, [event])
+    table = explain_flagged(clog_map.portions, alarms, clog_map.run)
+    part = dataclasses.replace(clog_map, portions=table, alarms=alarms, machine="lab1")
+    groups = {g["alarm"]: g for g in cause_groups(part)}
+    clog = groups[1]
+    assert clog["sentence"] == (
+        "A1 nozzle clogging since 4.5 min: clean the nozzle, then "
+        "`ajtwin machine maintain lab1 --nozzle-cleaned`"
+    )
+    assert clog["from_min"] >= 4.5 and clog["portions"] > 0.9 * table["flagged"].sum()
+    assert "ΔR_N" in clog["driver"]
+    flagged = table[table["flagged"]]
+    assert (flagged["cause"] != "").all() and (table.loc[~table["flagged"], "cause"] == "").all()
+    paths = write_report(part, tmp_path / "out")
+    page = paths["report.html"].read_text(encoding="utf-8")
+    words = re.sub(r"<script.*?</script>|<img[^>]*>|<style>.*?</style>", "", page, flags=re.S)
+    assert "<h2>Why they are out</h2>" in words and "--nozzle-cleaned" in words
+    assert not re.search(r"\d[eE][+-]\d", words)  # no 4.75e+03
+    assert "feature -1" not in words and "(no feature)" not in words
+    assert "printed [min]" in words and "<th>run</th>" in words
+    runs = flagged_rows(part, flagged)["run"].astype(int).to_numpy()
+    assert (runs == flagged["repetition"].to_numpy() + 1).all()  # the map's "run N"
+    with CliRunner().isolation() as (out, *_):
+        _echo_part_report(part, paths)
+        text = out.getvalue().decode()
+    assert "why         A1 nozzle clogging since 4.5 min" in text
+    assert "worst: run 5," in text and " s," not in text and "feature" not in text
+    assert not re.search(r"\d[eE][+-]\d", text)

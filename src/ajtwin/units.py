@@ -30,6 +30,8 @@ Examples
 
 from __future__ import annotations
 
+import math
+
 # 1 sccm = 1 cm³/min at standard conditions = 1/60 mL/s (model reference §3).
 SCCM_IN_ML_PER_S = 1.0 / 60.0
 ML_IN_M3 = 1e-6
@@ -250,3 +252,126 @@ def cross_section_um2(material_flow_ml_s, platen_speed_mm_s):
 def material_flow_ml_s(cross_section_area_um2, platen_speed_mm_s):
     """Material flow Q_m [mL/s] from a line cross-section (µm²) at platen speed ν [mm/s]."""
     return cross_section_area_um2 * UM3_IN_ML * mm_per_s_to_um_per_s(platen_speed_mm_s)
+
+
+# --------------------------------------------------------------------------- #
+# What a person reads: one display unit per quantity
+# --------------------------------------------------------------------------- #
+
+
+class DisplayUnit:
+    """How one quantity is shown to a person: its symbol, unit, words and the factor from
+    the unit it is computed in (model reference §3) to the one shown.
+
+    >>> DISPLAY_UNITS["aerosol_fraction"].label
+    'φ_A [ppm]'
+    >>> round(float(DISPLAY_UNITS["material_flow_mL_s"].shown(1.5e-8)), 6)
+    0.015
+    """
+
+    __slots__ = ("symbol", "unit", "scale", "words")
+
+    def __init__(self, symbol: str, unit: str, scale: float, words: str):
+        self.symbol, self.unit, self.scale, self.words = symbol, unit, float(scale), words
+
+    @property
+    def label(self) -> str:
+        """``symbol [unit]``, an axis or column label."""
+        return f"{self.symbol} [{self.unit}]"
+
+    def shown(self, value):
+        """``value`` (computed units) in the unit shown (floats and arrays)."""
+        return value * self.scale
+
+    def text(self, value, digits: int = 3) -> str:
+        """``value`` as a person reads it: ``0.438 ppm``, ``9206 Pa`` (no e-notation)."""
+        return f"{readable(self.shown(value), digits)} {self.unit}"
+
+    @property
+    def rate_label(self) -> str:
+        """The label of this state's drift rate θ: ``drift rate θ of ΔR_N [%/h]``."""
+        return f"drift rate θ of {self.symbol} [{DRIFT_RATE_UNIT}]"
+
+
+#: nanolitres per second in one mL/s (Q_m, the deposited silver flow, as a person reads it)
+NL_PER_S_IN_ML_PER_S = 1e6
+#: seconds in one hour (θ, the drift rates, are shown per hour)
+S_IN_H = 3600.0
+#: θ as a person reads it: the relative drift of its state, per cent per hour
+DRIFT_RATE_UNIT = "%/h"
+
+
+def drift_rate_percent_per_hour(theta_per_s):
+    """A drift rate θ [1/s] (dx/dt = θ x, model reference §4) → per cent of the state per
+    hour.
+
+    >>> round(drift_rate_percent_per_hour(1e-6), 3)
+    0.36
+    """
+    return theta_per_s * S_IN_H * 100.0
+
+
+#: The one display unit of every state, input and output (the names of
+#: :mod:`ajtwin.model.names`); commands, reports and plots label and scale with these.
+DISPLAY_UNITS: dict[str, DisplayUnit] = {
+    "droplet_diameter_um": DisplayUnit("d_a", "µm", 1.0, "median droplet diameter"),
+    "vial_volume_mL": DisplayUnit("V_l", "mL", 1.0, "ink left in the vial"),
+    "tube_deposition_um": DisplayUnit("ΔR_T", "µm", 1.0, "ink built up in the tube"),
+    "nozzle_deposition_um": DisplayUnit("ΔR_N", "µm", 1.0, "ink built up in the nozzle"),
+    "aerosol_fraction": DisplayUnit(
+        "φ_A", "ppm", PPM_IN_FRACTION, "aerosol density (ink volume fraction in the carrier gas)"
+    ),
+    "atomizer_current_mA": DisplayUnit("I_A", "mA", 1.0, "atomizer current"),
+    "carrier_flow_sccm": DisplayUnit("Q_c", "sccm", 1.0, "carrier gas flow"),
+    "sheath_flow_sccm": DisplayUnit("Q_s", "sccm", 1.0, "sheath gas flow"),
+    "linewidth_um": DisplayUnit("L_w", "µm", 1.0, "linewidth"),
+    "overspray_um": DisplayUnit("L_o", "µm", 1.0, "overspray"),
+    "carrier_pressure_Pa": DisplayUnit("P_c", "Pa", 1.0, "carrier pressure"),
+    "sheath_pressure_Pa": DisplayUnit("P_s", "Pa", 1.0, "sheath pressure"),
+    "material_flow_mL_s": DisplayUnit(
+        "Q_m", "nL/s", NL_PER_S_IN_ML_PER_S, "deposited ink flow (silver)"
+    ),
+}
+
+
+def display(name: str) -> DisplayUnit:
+    """The :class:`DisplayUnit` of a state, input or output name (KeyError names it)."""
+    try:
+        return DISPLAY_UNITS[name]
+    except KeyError:
+        raise KeyError(f"no display unit for {name!r}; known: {', '.join(DISPLAY_UNITS)}") from None
+
+
+def readable(value, digits: int = 3) -> str:
+    """A number as a person reads it: ``digits`` significant figures, never e-notation
+    (``4750`` not ``4.75e+03``, ``0.0153`` not ``1.53e-02``); ``–`` for NaN.
+
+    >>> readable(4751.2), readable(0.015312), readable(73.96), readable(-2.0), readable(1e-9)
+    ('4751', '0.0153', '74', '-2', '0.000000001')
+    """
+    value = float(value)
+    if not math.isfinite(value):
+        return "–"
+    if value == 0:
+        return "0"
+    magnitude = math.floor(math.log10(abs(value)))
+    decimals = max(0, digits - 1 - magnitude)
+    text = f"{value:.{decimals}f}"
+    if "." in text:
+        text = text.rstrip("0").rstrip(".")
+    return text
+
+
+def print_minutes(seconds) -> float:
+    """Seconds past the print's start → minutes past the print's start (the one time base
+    a person reads)."""
+    return seconds / 60.0
+
+
+def minutes_text(seconds, decimals: int = 1) -> str:
+    """``'20.5 min'``: a print time [s past the print's start] as a person reads it.
+
+    >>> minutes_text(1231.8)
+    '20.5 min'
+    """
+    return f"{print_minutes(float(seconds)):.{decimals}f} min"

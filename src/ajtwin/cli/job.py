@@ -242,9 +242,14 @@ def _bars(progress: bool):
 
 
 def _echo_part_report(part, paths) -> None:
-    """What `job report` prints: the headline, the worst flagged portions, the files."""
+    """What `job report` prints: the headline, why the flagged portions are out (by cause,
+    with what to do), the worst of them, the alarms, the files. Times in minutes past the
+    print's start."""
     # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.causes import alarm_sentence, detector_words
+    from ajtwin.apps.quality.part_map import cause_groups
     from ajtwin.apps.quality.report import summary_facts
+    from ajtwin.units import minutes_text
 
     facts = summary_facts(part)
     tolerance = part.tolerance.text if part.tolerance else "none (nothing flagged)"
@@ -252,7 +257,8 @@ def _echo_part_report(part, paths) -> None:
     click.echo(f"program     {facts['program']}")
     click.echo(
         f"printed     {facts['strokes']} strokes, {facts['portions']} portions, "
-        f"{facts['printed_mm']:.1f} mm; mean L_w {facts['lw_mean_um']:.2f} µm"
+        f"{facts['printed_mm']:.1f} mm over {facts['print_min']:.1f} min; mean L_w "
+        f"{facts['lw_mean_um']:.1f} µm"
     )
     click.echo(f"tolerance   {tolerance}; flagged when P(out) ≥ {part.flag_probability:g}")
     if facts["speed_law"]:
@@ -261,19 +267,30 @@ def _echo_part_report(part, paths) -> None:
         f"flagged     {facts['flagged_portions']} portions ({facts['flagged_mm']:.1f} mm) on "
         f"{facts['flagged_strokes']} strokes"
     )
-    for row in part.flagged().head(5).itertuples(index=False):
+    for group in cause_groups(part):
+        click.echo(f"why         {group['sentence']}")
         click.echo(
-            f"  stroke {row.stroke} portion {row.portion} (feature {row.feature}): "
-            f"({row.from_x_mm:.3f}, {row.from_y_mm:.3f}) → ({row.to_x_mm:.3f}, "
-            f"{row.to_y_mm:.3f}) mm, printed {row.printed_from_s:.1f} s, L_w "
-            f"{row.lw_mean_um:.2f} µm [{row.lw_lo_um:.2f}, {row.lw_hi_um:.2f}], "
-            f"P(out) {row.p_out:.3f}"
+            f"              {group['portions']} portions ({group['length_mm']:.1f} mm) printed "
+            f"{group['from_min']:.1f}–{group['to_min']:.1f} min; {group['driver']}"
+        )
+    looped = part.job.repetitions > 1
+    for row in part.flagged().head(5).itertuples(index=False):
+        where = f"run {row.repetition + 1}, " if looped else ""
+        feature = f" ({part.feature_label(row.feature)})" if part.has_features else ""
+        cause = f"A{row.alarm}" if row.alarm else "no alarm"
+        click.echo(
+            f"  worst: {where}stroke {row.stroke} portion {row.portion}{feature}: "
+            f"({row.from_x_mm:.2f}, {row.from_y_mm:.2f}) → ({row.to_x_mm:.2f}, "
+            f"{row.to_y_mm:.2f}) mm, printed {minutes_text(row.printed_from_s)}, L_w "
+            f"{row.lw_mean_um:.1f} µm ({row.lw_lo_um:.1f}–{row.lw_hi_um:.1f}), "
+            f"P(out) {row.p_out:.2f}, {cause}"
         )
     for row in part.alarms.itertuples(index=False):
+        detectors = "; ".join(detector_words(d.strip()) for d in row.detectors.split(",") if d)
+        click.echo(f"alarm A{row.alarm}    {alarm_sentence(row.cause, row.onset_s, part.machine)}")
         click.echo(
-            f"alarm A{row.alarm} {row.cause}: raised {row.detected_s:.0f} s at "
-            f"({row.detected_x_mm:.3f}, {row.detected_y_mm:.3f}) mm, onset {row.onset_s:.0f} s "
-            f"at ({row.onset_x_mm:.3f}, {row.onset_y_mm:.3f}) mm"
+            f"              raised {minutes_text(row.detected_s)} at ({row.detected_x_mm:.2f}, "
+            f"{row.detected_y_mm:.2f}) mm by: {detectors}"
         )
     for note in part.notes:
         click.echo(f"note: {note}", err=True)
@@ -417,6 +434,7 @@ def report(
             part = part_map_of_record(
                 rec, the_job, tolerance, twin=twin, start=start, source=str(record), **options
             )
+            part.machine = machine
         paths = write_report(part, out_dir)
     except (ProgramError, RecordError, RegistryError, ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None

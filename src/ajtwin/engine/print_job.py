@@ -238,6 +238,7 @@ def map_stored_print(
     )
     part.run = run
     part.speed_exponents = stored.twin.speed_exponents
+    part.machine = stored.machine
     end = np.asarray(run.end_mean, dtype=float)
     stored_end = np.asarray(stored.row["end_mean"], dtype=float)
     scale = np.maximum(np.abs(stored_end), 1e-30)

@@ -5,9 +5,13 @@ running out, or unexplained.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
+from ajtwin import units
 from ajtwin.apps.detection.settings import DetectorSettings
+from ajtwin.config import packaged_toml
 
 #: The likely-cause labels (paper §4).
 CAUSES = {
@@ -107,3 +111,65 @@ def label_cause(
     if shift[3] > zs and min(z[pc], z[ps]) > -zs and z[pc] + z[ps] > zs:
         return "nozzle_clog"
     return "unexplained"
+
+
+# --------------------------------------------------------------------------- #
+# What a person is told: the cause in words and what to do (data/causes.toml)
+# --------------------------------------------------------------------------- #
+
+
+@functools.cache
+def _advice() -> dict:
+    """``data/causes.toml``: per cause its words, action and maintenance option; the
+    detectors' labels in words."""
+    return packaged_toml("data/causes.toml")
+
+
+def cause_words(cause: str) -> str:
+    """What is happening, as an operator says it (``'nozzle clogging'``); an unknown cause
+    key is returned as its words with underscores as spaces.
+
+    >>> cause_words("nozzle_clog")
+    'nozzle clogging'
+    """
+    entry = _advice()["causes"].get(str(cause))
+    return entry["words"] if entry else str(cause).replace("_", " ")
+
+
+def cause_action(cause: str, machine: str | None = None) -> str:
+    """What to do about ``cause`` (``machine``: its name in the command to run; None:
+    ``MACHINE``); ``''`` for an unknown cause.
+
+    >>> cause_action("nozzle_clog", "lab1")
+    'clean the nozzle, then `ajtwin machine maintain lab1 --nozzle-cleaned`'
+    """
+    entry = _advice()["causes"].get(str(cause))
+    return entry["action"].format(machine=machine or "MACHINE") if entry else ""
+
+
+def alarm_sentence(cause: str, since_s: float | None = None, machine: str | None = None) -> str:
+    """One line on an alarm: the cause in words, since when (minutes past the print's start)
+    and the action.
+
+    >>> alarm_sentence("carrier_leak", 3540.0, "lab1")[:42]
+    'carrier gas line leaking, or its flow cont'
+    >>> alarm_sentence("nozzle_clog", 3540.0, "lab1").split(": ")[0]
+    'nozzle clogging since 59.0 min'
+    """
+    since = "" if since_s is None else f" since {units.minutes_text(since_s)}"
+    action = cause_action(cause, machine)
+    return f"{cause_words(cause)}{since}" + (f": {action}" if action else "")
+
+
+def detector_words(label: str) -> str:
+    """A detector's label in words first, the label after it in brackets:
+    ``'both gas pressures rising together (cusum+ P_c+P_s)'``.
+
+    >>> detector_words("deposit push ΔR_N")
+    'the filter reading a growing nozzle deposit (deposit push ΔR_N)'
+    """
+    words = _advice()["detectors"]
+    fits = [prefix for prefix in words if str(label).startswith(prefix)]
+    if not fits:
+        return str(label)
+    return f"{words[max(fits, key=len)]} ({label})"

@@ -59,10 +59,14 @@ import numpy as np
 import pandas as pd
 from scipy.special import ndtr
 
+from ajtwin import units
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.estimation.line_speed_fit import teach_speed_law
+from ajtwin.estimation.part_line import interpolation
+from ajtwin.estimation.part_line import line_at as line_from_states
 from ajtwin.estimation.print_time import is_job_record
 from ajtwin.estimation.twin import Twin
+from ajtwin.model.names import STATE_NAMES
 
 #: The strokes.csv columns, in order (one row a stroke portion).
 PORTION_COLUMNS = (
@@ -89,6 +93,16 @@ PORTION_COLUMNS = (
     "p_out",
     "flagged",
 )
+#: Why a flagged portion is out (strokes.csv, after :data:`PORTION_COLUMNS`; empty for a
+#: portion in tolerance): the alarm it was printed under (0: none) and its cause, and what
+#: the twin reads as having moved the line — the state (or ``inputs``) whose change since
+#: the first trace moved L_w most, its value then and at the portion (display units,
+#: :data:`ajtwin.units.DISPLAY_UNITS`) and the change of L_w it made [µm].
+CAUSE_COLUMNS = ("alarm", "cause", "driver", "driver_from", "driver_to", "driver_lw_um")
+#: The strokes.csv columns of ``ajtwin job report``.
+REPORT_COLUMNS = (*PORTION_COLUMNS, *CAUSE_COLUMNS)
+#: What a driver of ``inputs`` is called (the operator's or a controller's input change).
+INPUTS_DRIVER = "inputs"
 #: Default longest stroke portion [mm] and spacing of the sample points along it [mm].
 PORTION_MM = 1.0
 STEP_MM = 0.1
@@ -369,6 +383,159 @@ def place_alarms(job, events) -> pd.DataFrame:
     return table[list(ALARM_COLUMNS)]
 
 
+def alarm_of(printed_to_s, alarms: pd.DataFrame) -> np.ndarray:
+    """The alarm each portion was printed under: the latest whose estimated onset came
+    before the portion's end (0: printed before any alarm's onset)."""
+    end = np.asarray(printed_to_s, dtype=float)
+    if alarms is None or len(alarms) == 0:
+        return np.zeros(end.shape, dtype=np.int64)
+    order = np.argsort(alarms["onset_s"].to_numpy(dtype=float), kind="stable")
+    onset = alarms["onset_s"].to_numpy(dtype=float)[order]
+    number = alarms["alarm"].to_numpy(dtype=np.int64)[order]
+    k = np.searchsorted(onset, end, side="right") - 1
+    return np.where(k >= 0, number[np.maximum(k, 0)], 0)
+
+
+def line_drivers(run, times_s, speeds_mm_s, reference_s: float) -> pd.DataFrame:
+    """What moved the line at print times τ, read from the twin's smoothed run.
+
+    For each state i (and the inputs as one), L_w(τ) is evaluated again with x_i (or u) held
+    at its value at ``reference_s``; the change that state made is
+    ΔL_w,i = L_w(x(τ)) − L_w(x(τ) with x_i(reference)). The driver is the one with the
+    largest |ΔL_w,i|.
+
+    Returns one row per τ: ``driver`` (a state name of :data:`STATE_NAMES` or
+    :data:`INPUTS_DRIVER`), ``driver_from``, ``driver_to`` (the state at the reference and at
+    τ, display units; NaN for the inputs), ``driver_lw_um`` (ΔL_w of the driver).
+    """
+    times = np.asarray(times_s, dtype=float)
+    speeds = np.asarray(speeds_mm_s, dtype=float)
+    src = run.smoothed if run.smoothed is not None else run.filtered
+    means = np.asarray(src.means, dtype=float)
+    covariances = run.total_covariances(run.smoothed is not None)
+    inputs = np.asarray(run.inputs, dtype=float)
+    step_t = np.asarray(run.time_s, dtype=float)
+
+    def width(x, u):
+        args = (run.line_model, step_t, x, covariances, u, times, speeds)
+        return np.asarray(line_from_states(*args).linewidth_um)
+
+    k, w, held = interpolation(step_t, [reference_s])
+    x_ref = means[k[0]] + w[0] * (means[min(k[0] + 1, len(means) - 1)] - means[k[0]])
+    now = width(means, inputs)
+    changes = []
+    for i in range(len(STATE_NAMES)):
+        held_state = means.copy()
+        held_state[:, i] = x_ref[i]
+        changes.append(now - width(held_state, inputs))
+    changes.append(now - width(means, np.broadcast_to(inputs[held[0]], inputs.shape)))
+    changes = np.stack(changes, axis=1)
+    best = np.argmax(np.abs(changes), axis=1)
+    names = np.array([*STATE_NAMES, INPUTS_DRIVER])[best]
+    tk, tw, _ = interpolation(step_t, times)
+    x_now = means[tk] + tw[:, None] * (means[np.minimum(tk + 1, len(means) - 1)] - means[tk])
+    scale = np.array([units.display(n).scale for n in STATE_NAMES])
+    is_state = best < len(STATE_NAMES)
+    column = np.minimum(best, len(STATE_NAMES) - 1)
+    rows = np.arange(len(times))
+    return pd.DataFrame(
+        {
+            "driver": names,
+            "driver_from": np.where(is_state, (x_ref * scale)[column], np.nan),
+            "driver_to": np.where(is_state, x_now[rows, column] * scale[column], np.nan),
+            "driver_lw_um": changes[rows, best],
+        }
+    )
+
+
+def explain_flagged(table: pd.DataFrame, alarms: pd.DataFrame, run) -> pd.DataFrame:
+    """``table`` with :data:`CAUSE_COLUMNS`: for each flagged portion the alarm it was
+    printed under and its cause (``'no alarm'`` when none), and what the twin reads as
+    having moved its line (:func:`line_drivers`, against the first trace printed, at the
+    portion's middle). ``run``: the smoothed run (None: no driver)."""
+    out = table.copy()
+    flagged = out["flagged"].to_numpy(dtype=bool)
+    out["alarm"] = np.where(flagged, alarm_of(out["printed_to_s"], alarms), 0)
+    causes = dict(zip(alarms["alarm"], alarms["cause"])) if len(alarms) else {}
+    out["cause"] = [
+        (causes.get(a, "") if a else "no alarm") if f else "" for a, f in zip(out["alarm"], flagged)
+    ]
+    out["driver"] = ""
+    for column in ("driver_from", "driver_to", "driver_lw_um"):
+        out[column] = np.nan
+    if flagged.any() and run is not None and getattr(run, "line_model", None) is not None:
+        rows = out.index[flagged]
+        middle = 0.5 * (out.loc[rows, "printed_from_s"] + out.loc[rows, "printed_to_s"])
+        first = float(out["printed_from_s"].min())
+        drivers = line_drivers(run, middle, out.loc[rows, "speed_mm_s"], first)
+        for column in drivers.columns:
+            out.loc[rows, column] = drivers[column].to_numpy()
+    return out
+
+
+def cause_groups(part) -> list[dict]:
+    """The flagged portions grouped by cause, each group as a person reads it.
+
+    One dict per alarm the flagged portions were printed under, and one for those printed
+    under none: ``alarm`` (0: none), ``cause``, ``sentence`` (the cause in words, since when,
+    and the action; for none, that no alarm was raised), ``driver`` (what the twin reads as
+    having moved the line, in words), ``portions``, ``length_mm``, ``from_min``, ``to_min``
+    (print time of the group's first and last portion, minutes past the print's start).
+    """
+    # lazy: the cause texts are data (data/causes.toml), read when a report is written
+    from ajtwin.apps.detection.causes import alarm_sentence
+
+    table = part.portions
+    if "alarm" not in table.columns:
+        return []
+    flagged = table[table["flagged"].to_numpy(dtype=bool)]
+    groups = []
+    for alarm, group in flagged.groupby("alarm", sort=True):
+        alarm = int(alarm)
+        if alarm:
+            row = part.alarms.loc[part.alarms["alarm"] == alarm].iloc[0]
+            sentence = f"A{alarm} " + alarm_sentence(row["cause"], row["onset_s"], part.machine)
+            cause = str(row["cause"])
+        else:
+            sentence = "no alarm was raised while these were printed"
+            cause = "no alarm"
+        groups.append(
+            {
+                "alarm": alarm,
+                "cause": cause,
+                "sentence": sentence,
+                "driver": driver_text(group),
+                "portions": int(len(group)),
+                "length_mm": float(group["length_mm"].sum()),
+                "from_min": units.print_minutes(float(group["printed_from_s"].min())),
+                "to_min": units.print_minutes(float(group["printed_to_s"].max())),
+            }
+        )
+    return groups
+
+
+def driver_text(group: pd.DataFrame) -> str:
+    """What moved the line of a group of flagged portions, in words: the driver of most of
+    them, its change since the first trace, and the L_w change it made (median)."""
+    named = group[group["driver"].astype(str) != ""]
+    if named.empty:
+        return "the twin's states were not kept with this map (no driver)"
+    driver = named["driver"].mode().iloc[0]
+    rows = named[named["driver"] == driver]
+    effect = float(np.median(rows["driver_lw_um"]))
+    share = f"{len(rows)} of {len(group)}" if len(rows) < len(group) else "all"
+    change = f"L_w {effect:+.1f} µm"
+    if driver == INPUTS_DRIVER:
+        return f"the twin reads the input settings' change ({change}) for {share} portions"
+    unit = units.display(driver)
+    then = units.readable(float(np.median(rows["driver_from"])))
+    later = units.readable(float(np.median(rows["driver_to"])))
+    return (
+        f"the twin reads {unit.words} {unit.symbol} {then} → {later} {unit.unit} since the "
+        f"first trace ({change}) for {share} portions"
+    )
+
+
 # --------------------------------------------------------------------------- #
 # The map
 # --------------------------------------------------------------------------- #
@@ -408,6 +575,8 @@ class PartMap:
     run: object = None
     #: the speed law's exponents the line was drawn with (SpeedExponents; None: not known)
     speed_exponents: object = None
+    #: the registered machine the print ran on (named in the actions), None if unknown
+    machine: str | None = None
 
     @property
     def program(self) -> str:
@@ -439,13 +608,21 @@ class PartMap:
                 "p_out_max": grouped["p_out"].max(),
             }
         ).reset_index()
-        names = self.job.feature_names
-        summary.insert(
-            1,
-            "name",
-            [names.get(int(f), "") if f >= 0 else "(no feature)" for f in summary["feature"]],
-        )
+        summary.insert(1, "name", [self.feature_label(f) for f in summary["feature"]])
         return summary
+
+    def feature_label(self, feature) -> str:
+        """A feature as a person reads it: its name from the program, ``feature N`` when it
+        has none, ``not in a named feature`` for strokes outside every ``!Feature``."""
+        feature = int(feature)
+        if feature < 0:
+            return "not in a named feature"
+        return self.job.feature_names.get(feature, "") or f"feature {feature}"
+
+    @property
+    def has_features(self) -> bool:
+        """The program names features (``!Feature`` comments) the strokes belong to."""
+        return bool((self.portions["feature"].to_numpy() >= 0).any())
 
     def coverage_of(self, true_linewidth_um) -> float:
         """Share of the printed length whose true width (one value per point) lies in the
@@ -532,11 +709,12 @@ def build_part_map(
         flag_probability=flag_probability,
         progress=progress,
     )
+    alarms = place_alarms(job, events)
     return PartMap(
         job,
-        table,
+        explain_flagged(table, alarms, run),
         points,
-        place_alarms(job, events),
+        alarms,
         tolerance,
         flag_probability,
         source,

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ajtwin.apps.quality.part_map import PartMap
+from ajtwin import units
+from ajtwin.apps.detection.causes import cause_action, cause_words, detector_words
+from ajtwin.apps.quality.part_map import REPORT_COLUMNS, PartMap, cause_groups
 from ajtwin.job.plot import plot_part_values
 
 #: flagged portions listed on the page at most (all are in strokes.csv)
@@ -51,7 +53,7 @@ def alarm_markers(part: PartMap) -> list[dict]:
                 "y_mm": row.detected_y_mm,
                 "repetition": row.detected_repetition,
                 "kind": "raised",
-                "label": f"{label} ({row.detected_s / 60:.1f} min)",
+                "label": f"{label} ({units.minutes_text(row.detected_s)})",
             }
         )
         markers.append(
@@ -96,21 +98,97 @@ def plot_part_map(part: PartMap, path) -> Path:
     return Path(path)
 
 
-def _table(frame: pd.DataFrame, text_columns=(), digits: int = 3) -> str:
-    """An HTML table of ``frame`` with every value escaped."""
+def _table(frame: pd.DataFrame, text_columns=()) -> str:
+    """An HTML table of ``frame`` (values already formatted as text) with every value
+    escaped; numbers not yet formatted are written with :func:`ajtwin.units.readable`."""
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
     rows = []
     for values in frame.itertuples(index=False):
         cells = []
         for column, value in zip(frame.columns, values):
             if isinstance(value, float | np.floating):
-                text = "" if not np.isfinite(value) else f"{value:.{digits}g}"
+                text = units.readable(value)
             else:
                 text = str(value)
             css = ' class="text"' if column in text_columns else ""
             cells.append(f"<td{css}>{html.escape(text)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def _xy(x, y) -> str:
+    """A point of the part, program millimetres to 0.01 mm."""
+    return f"({x:.2f}, {y:.2f})"
+
+
+def flagged_rows(part: PartMap, flagged: pd.DataFrame) -> pd.DataFrame:
+    """The flagged portions as the report lists them: run counted from 1 (the map's
+    "run N"), times in minutes past the print's start, lengths in mm, the cause."""
+    frame = pd.DataFrame(
+        {
+            "run": (flagged["repetition"].to_numpy(dtype=np.int64) + 1).astype(str),
+            "stroke": flagged["stroke"].astype(str).to_numpy(),
+            "portion": flagged["portion"].astype(str).to_numpy(),
+            "from [mm]": [_xy(x, y) for x, y in zip(flagged["from_x_mm"], flagged["from_y_mm"])],
+            "to [mm]": [_xy(x, y) for x, y in zip(flagged["to_x_mm"], flagged["to_y_mm"])],
+            "length [mm]": [f"{v:.2f}" for v in flagged["length_mm"]],
+            "printed [min]": [f"{units.print_minutes(v):.1f}" for v in flagged["printed_from_s"]],
+            "L_w [µm]": [f"{v:.1f}" for v in flagged["lw_mean_um"]],
+            "±2σ band [µm]": [
+                f"{lo:.1f} – {hi:.1f}" for lo, hi in zip(flagged["lw_lo_um"], flagged["lw_hi_um"])
+            ],
+            "P(out)": [f"{v:.2f}" for v in flagged["p_out"]],
+            "cause": [_cause_cell(row) for row in flagged.itertuples(index=False)],
+        }
+    )
+    if part.has_features:
+        frame.insert(0, "feature", [part.feature_label(f) for f in flagged["feature"]])
+    if part.job.repetitions <= 1:
+        frame = frame.drop(columns=["run"])
+    return frame
+
+
+def _cause_cell(row) -> str:
+    """``A1 nozzle clogging`` or ``no alarm``."""
+    alarm = int(getattr(row, "alarm", 0) or 0)
+    if not alarm:
+        return "no alarm"
+    return f"A{alarm} {cause_words(row.cause)}"
+
+
+def alarm_rows(part: PartMap) -> pd.DataFrame:
+    """The alarms as the report lists them: cause and action in words, print times in
+    minutes, where the nozzle was (mm), the detectors in words."""
+    alarms = part.alarms
+    return pd.DataFrame(
+        {
+            "alarm": [f"A{a}" for a in alarms["alarm"]],
+            "cause": [cause_words(c) for c in alarms["cause"]],
+            "what to do": [cause_action(c, part.machine) for c in alarms["cause"]],
+            "onset [min]": [f"{units.print_minutes(v):.1f}" for v in alarms["onset_s"]],
+            "raised [min]": [f"{units.print_minutes(v):.1f}" for v in alarms["detected_s"]],
+            "raised at [mm]": [
+                _xy(x, y) for x, y in zip(alarms["detected_x_mm"], alarms["detected_y_mm"])
+            ],
+            "detectors": [
+                "; ".join(detector_words(d.strip()) for d in str(text).split(",") if d.strip())
+                for text in alarms["detectors"]
+            ],
+        }
+    )
+
+
+def groups_rows(groups: list[dict]) -> pd.DataFrame:
+    """The flagged portions' causes as the report lists them (:func:`cause_groups`)."""
+    return pd.DataFrame(
+        {
+            "why": [g["sentence"] for g in groups],
+            "what the twin reads": [g["driver"] for g in groups],
+            "portions": [str(g["portions"]) for g in groups],
+            "length [mm]": [f"{g['length_mm']:.1f}" for g in groups],
+            "printed [min]": [f"{g['from_min']:.1f} – {g['to_min']:.1f}" for g in groups],
+        }
+    )
 
 
 def summary_facts(part: PartMap) -> dict:
@@ -133,6 +211,7 @@ def summary_facts(part: PartMap) -> dict:
         else float("nan"),
         "alarms": int(len(part.alarms)),
         "speed_law": None if part.speed_exponents is None else part.speed_exponents.describe(),
+        "print_min": units.print_minutes(float(table["printed_to_s"].max())) if len(table) else 0.0,
     }
 
 
@@ -147,7 +226,7 @@ def report_html(part: PartMap, png: bytes) -> str:
         ("flagged when", f"P(L_w outside the tolerance) ≥ {part.flag_probability:g} at the "
          "portion's worst point"),
         ("printed", f"{facts['strokes']} strokes, {facts['portions']} portions, "
-         f"{facts['printed_mm']:.1f} mm"),
+         f"{facts['printed_mm']:.1f} mm over {facts['print_min']:.1f} min"),
         ("flagged", f"{facts['flagged_portions']} portions ({facts['flagged_mm']:.1f} mm) on "
          f"{facts['flagged_strokes']} strokes"),
         ("alarms", str(facts["alarms"])),
@@ -161,7 +240,7 @@ def report_html(part: PartMap, png: bytes) -> str:
         if len(flagged) > len(shown)
         else ""
     )
-    alarms = part.alarms.drop(columns=["detected_repetition", "onset_repetition"])
+    groups = cause_groups(part)
     notes = "".join(f'<p class="note">{html.escape(n)}</p>' for n in part.notes)
     image = base64.b64encode(png).decode("ascii")
     return f"""<!DOCTYPE html>
@@ -173,47 +252,50 @@ def report_html(part: PartMap, png: bytes) -> str:
 {notes}
 <img alt="the part, traces coloured by the linewidth's deviation from the target"
  src="data:image/png;base64,{image}">
-<h2>Per feature</h2>
-{_table(part.feature_summary(), text_columns=("name",))}
+{_feature_section(part)}
+<h2>Why they are out</h2>
+{
+        _table(groups_rows(groups), text_columns=("why", "what the twin reads"))
+        if groups
+        else "<p>no portion flagged</p>"
+    }
 <h2>Flagged portions, most probably out of tolerance first</h2>
-{_table(shown[list(_FLAGGED_COLUMNS)]) if len(shown) else "<p>none</p>"}
+{
+        _table(flagged_rows(part, shown), text_columns=("feature", "cause"))
+        if len(shown)
+        else "<p>none</p>"
+    }
 {more}
 <h2>Alarms on the part</h2>
 {
-        _table(alarms, text_columns=("cause", "description", "detectors"))
-        if len(alarms)
+        _table(alarm_rows(part), text_columns=("cause", "what to do", "detectors"))
+        if len(part.alarms)
         else "<p>none</p>"
     }
 <p class="note">L_w and L_o along every stroke from the twin's smoothed states (mean ± 2σ);
 a portion's probability of being out of tolerance is that of its worst point. Coordinates in
-the program's millimetres; times in seconds from the start of the print.</p>
+the program's millimetres; times in minutes past the print's start; a looped job's runs are
+counted from 1. What the twin reads: the hidden state (or the input settings) whose change
+since the first trace moved the linewidth most at the portion.</p>
 <script type="application/json" id="facts">{_script_json(facts)}</script>
 </body></html>
 """
 
 
+def _feature_section(part: PartMap) -> str:
+    """The per-feature table, or a sentence when the program names no features."""
+    if not part.has_features:
+        return '<p class="note">The program names no features (no !Feature comments).</p>'
+    summary = part.feature_summary().drop(columns=["feature"])
+    for column in ("printed_mm", "flagged_mm", "lw_mean_um", "lw_min_um", "lw_max_um"):
+        summary[column] = [f"{v:.1f}" for v in summary[column]]
+    summary["p_out_max"] = [f"{v:.2f}" if np.isfinite(v) else "–" for v in summary["p_out_max"]]
+    return "<h2>Per feature</h2>" + _table(summary, text_columns=("name",))
+
+
 def _script_json(value) -> str:
     """JSON safe inside a ``<script>`` element (no ``</`` to end it early)."""
     return json.dumps(value).replace("</", "<\\/")
-
-
-_FLAGGED_COLUMNS = (
-    "feature",
-    "stroke",
-    "portion",
-    "repetition",
-    "from_x_mm",
-    "from_y_mm",
-    "to_x_mm",
-    "to_y_mm",
-    "length_mm",
-    "printed_from_s",
-    "printed_to_s",
-    "lw_mean_um",
-    "lw_lo_um",
-    "lw_hi_um",
-    "p_out",
-)
 
 
 def write_report(part: PartMap, out_dir) -> dict[str, Path]:
@@ -222,7 +304,8 @@ def write_report(part: PartMap, out_dir) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {name: out / name for name in ("strokes.csv", "part.png", "report.html")}
-    part.portions.to_csv(paths["strokes.csv"], index=False, float_format="%.6g")
+    table = part.portions[[c for c in REPORT_COLUMNS if c in part.portions.columns]]
+    table.to_csv(paths["strokes.csv"], index=False, float_format="%.6g")
     plot_part_map(part, paths["part.png"])
     page = report_html(part, paths["part.png"].read_bytes())
     paths["report.html"].write_text(page, encoding="utf-8")

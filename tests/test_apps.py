@@ -335,7 +335,7 @@ def test_advice_reaches_target_with_least_overspray(twin_and_state):
         "sheath_flow_sccm": [30, 80],
     }
     adv = advise(twin, mean, cov, [375, 23, 50], target, limits=limits, settle_s=60)
-    assert adv.reachable and adv.message == "target reached"
+    assert adv.reachable and "on the target 65 µm" in adv.message and "(2σ)" in adv.message
     # independent check: the model run open loop with the advised inputs
     u = np.tile(adv.inputs, (60, 1))
     y = twin.model.outputs(twin.model.simulate(mean, u)[-1], adv.inputs)
@@ -359,6 +359,14 @@ def test_advice_unreachable(twin_and_state):
     twin, mean, cov = twin_and_state
     adv = advise(twin, mean, cov, [375, 23, 50], 5.0, settle_s=30)
     assert not adv.reachable and "not reachable" in adv.message
+    # the closest setting sits on the search range's bounds, and says so
+    assert adv.at_limits and "on a search limit" in adv.limit_note()
+    for name, side in adv.at_limits.items():
+        low, high = adv.bounds[("atomizer_current_mA", "carrier_flow_sccm",
+                                "sheath_flow_sccm").index(name)]  # fmt: skip
+        value = adv.inputs[("atomizer_current_mA", "carrier_flow_sccm",
+                            "sheath_flow_sccm").index(name)]  # fmt: skip
+        assert value == pytest.approx(low if side == "lower" else high, abs=1e-3 * (high - low))
 
 
 def test_forecast_and_advise_cli(tmp_path):
@@ -420,7 +428,33 @@ def test_forecast_and_advise_cli(tmp_path):
         advise, ["--machine", "m", "--target-linewidth", "45", "--store", str(store)]
     )
     assert res.exit_code == 0, res.output
-    assert "target reached" in res.output
+    assert "on the target 45 µm" in res.output and "target reached" not in res.output
+    # a print that clogged: no advice until the nozzle is cleaned (or --anyway)
+    from ajtwin.apps.detection.streaming import AnomalyEvent
+    from ajtwin.cli.machine import machine
+
+    clog = AnomalyEvent(3600.0, 3540.0, "nozzle_clog", "nozzle clog", ["cusum+ P_c+P_s"])
+    last = reg.last_print("m")
+    reg.save_print("m", NewPrint(**{**{k: last[k] for k in ("start_mean", "start_cov", "end_mean",
+                   "end_cov", "theta_before", "theta_after")}, "content_hash": "y", "source": "u",
+                   "meta": {}, "summary": {}, "n_samples": 2, "duration_s": 2.0,
+                   "arrays": {"inputs": np.tile([375.0, 23.0, 50.0], (2, 1))},
+                   "anomalies": [clog]}), expected_last_seq=1)  # fmt: skip
+    args = ["--machine", "m", "--target-linewidth", "45", "--store", str(store)]
+    res = runner.invoke(advise, args)
+    assert res.exit_code == 1 and "not advising 'm': its print #2" in res.output
+    assert (
+        "nozzle clogging since 59.0 min: clean the nozzle, then `ajtwin machine maintain m "
+        "--nozzle-cleaned`"
+        in res.output
+        and "--anyway" in res.output
+    )
+    res = runner.invoke(advise, [*args, "--anyway"])
+    assert res.exit_code == 0 and "WARNING advised --anyway" in res.output, res.output
+    done = runner.invoke(machine, ["maintain", "m", "--nozzle-cleaned", "--store", str(store)])
+    assert done.exit_code == 0, done.output
+    res = runner.invoke(advise, args)
+    assert res.exit_code == 0 and "WARNING" not in res.output, res.output
 
 
 def test_long_run_scale_sees_coloured_noise_not_a_fault_step():

@@ -197,7 +197,7 @@ def test_whatif_forecast_and_advice(server, registry, page, shots):
     page.fill("#target", "70")
     page.click("#run-advise")
     page.wait_for_selector("#advice-table")
-    assert "target reached" in page.locator("#advice").inner_text()
+    assert "on the target" in page.locator("#advice").inner_text()
     page.screenshot(path=shots / "whatif.png", full_page=True)
     assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ajtwin.apps.detection.causes import open_faults
 from ajtwin.engine.chain import carry_over, chain_start
 from ajtwin.engine.commissioning import aerosol_level, calibration_twin_kwargs
 from ajtwin.estimation.commission import load_commissioning_settings
@@ -147,6 +148,18 @@ def carried_speed_exponents(registry, machine: str, below_seq: int | None = None
         if stored:
             return SpeedExponents.from_dict(stored)
     return None
+
+
+def machine_open_faults(reg, name) -> tuple[int | None, list[dict]]:
+    """The machine's newest print (its number, None without one) and the faults its alarms
+    raised that no maintenance recorded since has closed
+    (:func:`ajtwin.apps.detection.causes.open_faults`)."""
+    newest = reg.last_print(name, in_chain=False)
+    if newest is None:
+        return None, []
+    anomalies = reg.anomalies(name)
+    events = anomalies[anomalies["seq"] == newest["seq"]].to_dict("records")
+    return int(newest["seq"]), open_faults(events, pending_maintenance(reg, name), name)
 
 
 def machine_twin(reg, name, nominal_theta=False, transition=None):

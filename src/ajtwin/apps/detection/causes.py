@@ -173,3 +173,45 @@ def detector_words(label: str) -> str:
     if not fits:
         return str(label)
     return f"{words[max(fits, key=len)]} ({label})"
+
+
+def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
+    """The faults among a print's alarms that no maintenance recorded since has closed.
+
+    Parameters
+    ----------
+    events : iterable of dict
+        The print's alarms (``cause``, ``onset_s``).
+    maintenance : list of dict
+        The maintenance events recorded after the print (``nozzle_cleaned``,
+        ``vial_refilled_ml``, ``note`` …, as ``ajtwin machine maintain`` stores them).
+    machine : str, optional
+        The machine's name, for the command in the action.
+
+    Returns
+    -------
+    One dict per open fault, first onset first: ``cause``, ``onset_s`` and ``sentence``
+    (:func:`alarm_sentence`: the cause in words, since when, what to do).
+
+    Examples
+    --------
+    >>> [f["cause"] for f in open_faults([{"cause": "nozzle_clog", "onset_s": 60.0}], [])]
+    ['nozzle_clog']
+    >>> open_faults([{"cause": "nozzle_clog", "onset_s": 60.0}], [{"nozzle_cleaned": True}])
+    []
+    """
+    table = _advice()["causes"]
+    found: dict[str, float] = {}
+    for ev in events:
+        cause = str(ev["cause"])
+        entry = table.get(cause)
+        if entry is None or not entry["fault"]:
+            continue
+        key = entry["fixed_by"]
+        fixed = any(bool(m.get(key)) if key else True for m in maintenance)
+        if not fixed:
+            found[cause] = min(found.get(cause, np.inf), float(ev["onset_s"]))
+    return [
+        {"cause": cause, "onset_s": onset, "sentence": alarm_sentence(cause, onset, machine)}
+        for cause, onset in sorted(found.items(), key=lambda item: item[1])
+    ]

@@ -19,9 +19,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
+from ajtwin import units
 from ajtwin.apps.planning.forecast import forecast
 from ajtwin.model import INPUT_NAMES
 from ajtwin.model.limits import DEFAULT_LIMITS
+
+#: an advised input within this share of its search range from a bound is "on the limit"
+ON_LIMIT_SHARE = 1e-3
 
 #: validity range of H's Box–Behnken fit (model reference §4 / paper App. B.3)
 H_FIT_LIMITS = {"atomizer_current_mA": (300.0, 440.0), "carrier_flow_sccm": (15.0, 35.0)}
@@ -53,6 +57,9 @@ class Advice:
         Every local optimum tried.
     overspray_ok : bool
         The predicted overspray keeps the limit.
+    at_limits : dict
+        Input name → ``"lower"`` or ``"upper"`` for each advised input on a bound of its
+        search range: the optimum may lie beyond what the machine (or H's fit) allows.
     """
 
     inputs: np.ndarray  # (3,) recommended [I_A mA, Q_c sccm, Q_s sccm]
@@ -67,6 +74,21 @@ class Advice:
     message: str = ""
     candidates: list = field(default_factory=list)
     overspray_ok: bool = True  # predicted overspray within max_overspray_um
+    at_limits: dict = field(default_factory=dict)
+
+    def limit_note(self) -> str:
+        """The advised inputs on a search limit, in words (``''`` for none)."""
+        if not self.at_limits:
+            return ""
+        shown = ", ".join(
+            f"{units.display(name).symbol} {value:g} {units.display(name).unit} ({side})"
+            for name, side in self.at_limits.items()
+            for value in [float(self.inputs[INPUT_NAMES.index(name)])]
+        )
+        return (
+            f"on a search limit: {shown} — the best setting may lie beyond the range searched "
+            "(the machine's limits and H's fit)"
+        )
 
     def rows(self):
         """One row per input and output: (name, now, advised, σ of the advised output or None)."""
@@ -151,7 +173,11 @@ def advise(
     if feasible:
         best = min(feasible, key=lambda c: c["lo"])
         reachable = True
-        message = "target reached"
+        lw_mean, lw_std = settled.predict(settled.inputs(best["z"]))
+        message = (
+            f"forecast L_w {lw_mean[0]:.1f} ± {2 * lw_std[0]:.1f} µm (2σ) {settle_s} s after "
+            f"the change, on the target {target:g} µm"
+        )
         if not best["ok"]:
             message = (
                 f"target linewidth reached, but the least overspray there is {best['lo']:.1f} µm "
@@ -165,6 +191,13 @@ def advise(
             f"closest linewidth {best['lw']:.2f} µm"
         )
     u_best = settled.inputs(best["z"])
+    at_limits = {}
+    for i, name in enumerate(INPUT_NAMES):
+        margin = ON_LIMIT_SHARE * settled.span[i]
+        if u_best[i] <= settled.lo[i] + margin:
+            at_limits[name] = "lower"
+        elif u_best[i] >= settled.lo[i] + settled.span[i] - margin:
+            at_limits[name] = "upper"
     names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
     m, s = settled.predict(u_best)
     cm, cs = settled.predict(current)
@@ -181,6 +214,7 @@ def advise(
         message=message,
         candidates=[{**c, "u": settled.inputs(c["z"]).tolist()} for c in candidates],
         overspray_ok=max_overspray_um is None or float(m[1]) <= max_overspray_um + 1e-6,
+        at_limits=at_limits,
     )
 
 

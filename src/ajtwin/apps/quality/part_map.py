@@ -61,6 +61,7 @@ from scipy.special import ndtr
 
 from ajtwin import units
 from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.causes import alarm_sentence
 from ajtwin.estimation.line_speed_fit import teach_speed_law
 from ajtwin.estimation.part_line import interpolation
 from ajtwin.estimation.part_line import line_at as line_from_states
@@ -482,9 +483,6 @@ def cause_groups(part) -> list[dict]:
     having moved the line, in words), ``portions``, ``length_mm``, ``from_min``, ``to_min``
     (print time of the group's first and last portion, minutes past the print's start).
     """
-    # lazy: the cause texts are data (data/causes.toml), read when a report is written
-    from ajtwin.apps.detection.causes import alarm_sentence
-
     table = part.portions
     if "alarm" not in table.columns:
         return []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -451,10 +453,27 @@ def test_forecast_and_advise_cli(tmp_path):
     )
     res = runner.invoke(advise, [*args, "--anyway"])
     assert res.exit_code == 0 and "WARNING advised --anyway" in res.output, res.output
+    # the history names the fault (not `ok`), says what to do, and fits 110 columns
+    res = runner.invoke(machine, ["history", "m", "--store", str(store)])
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert max(len(line) for line in lines) <= 110, res.output
+    assert re.search(r"^\s+2\s.*\sclog\s", res.output, re.M) and "φ_A ppm" in lines[0]
+    assert re.search(r"^\s+1\s.*\sok\s", res.output, re.M)
+    assert "#2 open fault: nozzle clogging since 59.0 min: clean the nozzle" in res.output
     done = runner.invoke(machine, ["maintain", "m", "--nozzle-cleaned", "--store", str(store)])
     assert done.exit_code == 0, done.output
     res = runner.invoke(advise, args)
     assert res.exit_code == 0 and "WARNING" not in res.output, res.output
+    # a print the model did not fit is a mismatch, not ok
+    reg.save_print("m", NewPrint(**{**{k: last[k] for k in ("start_mean", "start_cov", "end_mean",
+                   "end_cov", "theta_before", "theta_after")}, "content_hash": "z", "source": "v",
+                   "meta": {}, "summary": {"mismatch": {"mismatch": True, "message": "x"}},
+                   "n_samples": 2, "duration_s": 2.0,
+                   "arrays": {"inputs": np.tile([375.0, 23.0, 50.0], (2, 1))}}),
+                   expected_last_seq=2)  # fmt: skip
+    res = runner.invoke(machine, ["history", "m", "--store", str(store)])
+    assert re.search(r"^\s+3\s.*\smismatch\s", res.output, re.M) and "open fault" not in res.output
 
 
 def test_long_run_scale_sees_coloured_noise_not_a_fault_step():

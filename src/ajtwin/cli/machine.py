@@ -165,7 +165,11 @@ def show(name, store):
 )
 @store_option
 def history(name, csv_path, version, store):
-    """One row per print: the program it ran, end states, θ and anomaly count."""
+    """One row per print: the program it ran, its status (what its alarms were: clog,
+    carrier leak, …, or mismatch; ok only without either) and its end states; what to do
+    about an open fault of the newest print. --csv: every column, θ included."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.causes import print_status
 
     reg = open_registry(store)
     try:
@@ -176,16 +180,72 @@ def history(name, csv_path, version, store):
         held = "" if version in (None, 1) else f" in version {version}"
         click.echo(f"machine {printable(name)!r} has no prints yet{held}")
         return
-    show_cols = ["seq", "ingested_at", "duration_min", "program", "anomalies", "status"] + [
-        "end_" + key for key, _, _ in STATE_LABELS
+    status = [
+        print_status(row.status, [c for c in row.causes.split(",") if c], row.mismatch)
+        for row in table.itertuples(index=False)
     ]
-    with pd.option_context("display.width", 200, "display.max_columns", 20):
-        click.echo(table[show_cols].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    for line in history_lines(table, status):
+        click.echo(line)
     for _, row in table[table["status"] != "ok"].iterrows():
-        click.echo(f"  #{row['seq']} {row['status']}: {printable(row['status_reason'])}")
+        for line in _wrapped(f"#{row['seq']} {row['status']}: {printable(row['status_reason'])}"):
+            click.echo(line)
+    if version in (None, 1):
+        # lazy CLI loading: the engine loads JAX, `machine --help` must not
+        from ajtwin.engine.start import machine_open_faults
+
+        seq, faults = machine_open_faults(reg, name)
+        for fault in faults:
+            for line in _wrapped(f"#{seq} open fault: {fault['sentence']}"):
+                click.echo(line)
     if csv_path:
         table.to_csv(csv_path, index=False)
         click.echo(f"wrote {csv_path}")
+
+
+#: the widest line `machine history` prints (a terminal of 110 columns)
+HISTORY_WIDTH = 110
+
+
+def _wrapped(text: str) -> list[str]:
+    """``text`` as lines of at most :data:`HISTORY_WIDTH` columns, indented by two."""
+    # lazy CLI loading: textwrap is only needed here
+    import textwrap
+
+    return textwrap.wrap(
+        text, HISTORY_WIDTH, initial_indent="  ", subsequent_indent="    ", break_on_hyphens=False
+    )
+
+
+def history_lines(table: pd.DataFrame, status: list[str]) -> list[str]:
+    """The history table as fixed-width lines (≤ :data:`HISTORY_WIDTH` columns): print,
+    when (UTC, to the minute), minutes, program, status, the end states in their display
+    units (:data:`ajtwin.units.DISPLAY_UNITS`)."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.units import display, readable
+
+    def cut(text, width):
+        text = str(text)
+        return text if len(text) <= width else text[: width - 1] + "…"
+
+    columns = [
+        ("#", 3, ">", [str(v) for v in table["seq"]]),
+        ("ingested (UTC)", 16, "<", [str(v)[:16].replace("T", " ") for v in table["ingested_at"]]),
+        ("min", 5, ">", [f"{v:.0f}" if v >= 100 else f"{v:.1f}" for v in table["duration_min"]]),
+        ("program", 12, "<", [cut(v or "–", 12) for v in table["program"]]),
+        ("status", 16, "<", [cut(v, 16) for v in status]),
+    ]
+    for key, _, _ in STATE_LABELS:
+        unit = display(key)
+        values = unit.shown(table["end_" + key].to_numpy(dtype=float))
+        columns.append((f"{unit.symbol} {unit.unit}", 8, ">", [readable(v) for v in values]))
+    rows = [[head for head, *_ in columns]]
+    rows += [[values[i] for *_, values in columns] for i in range(len(table))]
+    return [
+        "  ".join(
+            f"{cell:{align}{width}}" for cell, (_, width, align, _) in zip(row, columns)
+        ).rstrip()
+        for row in rows
+    ]
 
 
 @machine.command("drop")

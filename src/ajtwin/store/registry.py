@@ -912,7 +912,9 @@ class Registry:
 
     def history(self, name: str, version: int | None = None) -> pd.DataFrame:
         """One row per print: seq, id, time, duration, source, the program it ran ("" when
-        stored without a job), status, end states, θ, anomaly count.
+        stored without a job), status, end states, θ, anomaly count, the alarms' causes
+        (comma-separated, first raised first) and whether the mismatch guard found the
+        model not fitting the machine.
 
         ``version``: the results of a reprocessing (:meth:`create_version`) instead of the
         prints as stored (version 1 or None); only the prints that version holds, with
@@ -923,7 +925,7 @@ class Registry:
             self._version_row(version)
             query = (
                 "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json,"
-                " v.status, v.status_reason, v.end_mean, v.theta_after, j.program,"
+                " v.summary_json, v.status, v.status_reason, v.end_mean, v.theta_after, j.program,"
                 " (SELECT COUNT(*) FROM print_version_anomalies a"
                 "  WHERE a.print_version_id = v.id) AS n_anomalies"
                 " FROM print_versions v JOIN prints p ON p.id = v.print_id"
@@ -931,18 +933,33 @@ class Registry:
                 " WHERE p.machine_id = ? AND v.version_id = ? ORDER BY p.seq"
             )
             args = (machine["id"], int(version))
+            causes_query = (
+                "SELECT v.print_id, a.cause FROM print_version_anomalies a JOIN print_versions v"
+                " ON a.print_version_id = v.id JOIN prints p ON p.id = v.print_id"
+                " WHERE p.machine_id = ? AND v.version_id = ? ORDER BY a.detected_s"
+            )
         else:
             query = (
                 "SELECT p.id, p.seq, p.ingested_at, p.source, p.duration_s, p.meta_json,"
-                " p.status, p.status_reason, p.end_mean, p.theta_after, j.program,"
+                " p.summary_json, p.status, p.status_reason, p.end_mean, p.theta_after, j.program,"
                 " (SELECT COUNT(*) FROM anomalies a WHERE a.print_id = p.id) AS n_anomalies"
                 " FROM prints p LEFT JOIN print_jobs j ON j.print_id = p.id"
                 " WHERE machine_id = ? ORDER BY seq"
             )
             args = (machine["id"],)
+            causes_query = (
+                "SELECT a.print_id, a.cause FROM anomalies a JOIN prints p ON a.print_id = p.id"
+                " WHERE p.machine_id = ? ORDER BY a.detected_s"
+            )
+        causes: dict[int, list[str]] = {}
+        for row in self._db.execute(causes_query, args).fetchall():
+            found = causes.setdefault(int(row["print_id"]), [])
+            if row["cause"] not in found:
+                found.append(row["cause"])
         records = []
         for row in self._db.execute(query, args).fetchall():
             p = self._print_row(row)
+            summary = p["summary"] if isinstance(p["summary"], dict) else {}
             rec = {
                 "seq": p["seq"],
                 "print_id": p["id"],
@@ -952,6 +969,8 @@ class Registry:
                 "scenario": p["meta"].get("scenario") if isinstance(p["meta"], dict) else None,
                 "program": row["program"] or "",
                 "anomalies": int(row["n_anomalies"]),
+                "causes": ",".join(causes.get(int(p["id"]), [])),
+                "mismatch": bool((summary.get("mismatch") or {}).get("mismatch")),
                 "status": p["status"],
                 "status_reason": p["status_reason"],
             }

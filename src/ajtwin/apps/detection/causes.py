@@ -215,3 +215,29 @@ def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
         {"cause": cause, "onset_s": onset, "sentence": alarm_sentence(cause, onset, machine)}
         for cause, onset in sorted(found.items(), key=lambda item: item[1])
     ]
+
+
+def print_status(stored_status: str, causes, mismatch: bool = False) -> str:
+    """A print's status as ``ajtwin machine history`` shows it: what its alarms were
+    (``clog``, ``carrier leak`` …) and ``mismatch`` when the model did not fit the machine;
+    ``ok`` only for a print in the chain with neither; a print out of the chain says so
+    first (``dropped: clog``).
+
+    >>> print_status("ok", ["nozzle_clog"]), print_status("ok", [], True), print_status("ok", [])
+    ('clog', 'mismatch', 'ok')
+    >>> print_status("dropped", ["nozzle_clog", "carrier_leak"])
+    'dropped: clog, carrier leak'
+    """
+    table = _advice()["causes"]
+    words = []
+    for cause in causes:
+        entry = table.get(str(cause))
+        word = entry["status"] if entry else str(cause).replace("_", " ")
+        if word not in words:
+            words.append(word)
+    if mismatch and table["model_machine_mismatch"]["status"] not in words:
+        words.append(table["model_machine_mismatch"]["status"])
+    found = ", ".join(words)
+    if stored_status == "ok":
+        return found or "ok"
+    return f"{stored_status}: {found}" if found else str(stored_status)

@@ -1,5 +1,7 @@
 """Estimators against filterpy, analytic toy models, and virtual prints with known truth."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
@@ -358,8 +360,19 @@ def test_estimate_cli_writes_states_and_theta(tmp_path, exp1_record):
 
     path = write_record(exp1_record.window(0, 700), tmp_path / "print.parquet")
     out = tmp_path / "states.csv"
-    result = CliRunner().invoke(
-        main, ["estimate", str(path), "--out", str(out), "--window", "300", "--every", "300"]
+    theta_out = ["--theta-out", str(tmp_path / "theta.csv")]
+    runner = CliRunner()
+    with runner.isolated_filesystem(temp_dir=tmp_path) as here:
+        # unasked, the θ history is not written: nothing lands in the working folder
+        result = runner.invoke(
+            main, ["estimate", str(path), "--out", str(out), "--window", "300", "--every", "300"]
+        )
+        assert result.exit_code == 0, result.output
+        assert list(Path(here).iterdir()) == [] and not (tmp_path / "theta.csv").exists()
+        assert "drift rates" not in result.output
+    result = runner.invoke(
+        main,
+        ["estimate", str(path), "--out", str(out), "--window", "300", "--every", "300", *theta_out],
     )
     assert result.exit_code == 0, result.output
     import pandas as pd
@@ -389,12 +402,13 @@ def test_estimate_cli_writes_states_and_theta(tmp_path, exp1_record):
     ]
     assert all(c in states.columns for c in expected)
     assert len(states) == 700
-    theta = pd.read_csv(tmp_path / "theta.csv")
+    theta = pd.read_csv(tmp_path / "theta.csv")  # written as asked (--theta-out)
     assert len(theta) == 3 and "theta_aerosol_fraction" in theta.columns  # 120, 300, 600 s
     for early, times in (("none", [299.0, 599.0]), ("60,200", [59.0, 199.0, 299.0, 599.0])):
         result = CliRunner().invoke(
             main,
-            ["estimate", str(path), "--out", str(out), "--window", "300", "--early-em", early],
+            ["estimate", str(path), "--out", str(out), "--window", "300", "--early-em", early,
+             *theta_out],  # fmt: skip
         )
         assert result.exit_code == 0, result.output
         assert pd.read_csv(tmp_path / "theta.csv")["time_s"].tolist() == times

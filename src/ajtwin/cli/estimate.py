@@ -147,7 +147,8 @@ def _read_calibration(calibration_path):
     "--theta-out",
     type=click.Path(dir_okay=False),
     default=None,
-    help="θ history CSV (default: theta.csv beside --out).",
+    help="Also write the history of the drift rates θ (one row per EM update) to this CSV "
+    "(default: not written).",
 )
 @click.option(
     "--plot",
@@ -233,9 +234,13 @@ def estimate(
             raise click.ClickException(str(exc)) from None
     run, mismatch = done.run, done.mismatch
     out = Path(out_path)
-    theta_path = Path(theta_out) if theta_out else out.with_name("theta.csv")
-    run.theta_history.to_csv(theta_path, index=False)
-    click.echo(f"wrote {out} ({n} rows) and {theta_path} ({len(run.theta_history)} EM updates)")
+    click.echo(f"wrote {out} ({n} rows)")
+    if theta_out:
+        theta_path = Path(theta_out)
+        theta_path.parent.mkdir(parents=True, exist_ok=True)
+        run.theta_history.to_csv(theta_path, index=False)
+        click.echo(f"wrote {theta_path} (drift rates θ after each of {len(run.theta_history)} "
+                   "EM updates)")  # fmt: skip
     _echo_summary(run, done, mismatch, level, has_job=job is not None)
     click.echo(f"start-up: {_readiness(out).sentence()}")
     if plot_path:

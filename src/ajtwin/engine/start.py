@@ -163,7 +163,8 @@ def machine_open_faults(reg, name) -> tuple[int | None, list[dict]]:
 
 
 def machine_twin(reg, name, nominal_theta=False, transition=None):
-    """The twin at a machine's current state, as forecasts and advice start from it.
+    """The twin at a machine's current state, as forecasts and advice start from it: the
+    end of its last print with the maintenance recorded since (:func:`apply_maintenance`).
 
     Parameters
     ----------
@@ -210,7 +211,11 @@ def machine_twin(reg, name, nominal_theta=False, transition=None):
             twin.theta[0] = float(np.clip(twin.theta[0], -bound, bound))
     inputs = reg.print_arrays(last["id"]).get("inputs")
     u_last = np.nanmedian(inputs[-60:], axis=0) if inputs is not None else np.array([375, 23, 50])
-    return twin, last["end_mean"], last["end_cov"], u_last, machine, last
+    # maintenance recorded since the last print (a cleaned nozzle, a refill) is the state now
+    mean, cov, twin.theta = apply_maintenance(
+        last["end_mean"], last["end_cov"], twin.theta, pending_maintenance(reg, name)
+    )
+    return twin, mean, cov, u_last, machine, last
 
 
 def input_response_at_end(twin, reg, last):

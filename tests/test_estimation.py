@@ -407,8 +407,17 @@ def test_estimate_cli_writes_states_and_theta(tmp_path, exp1_record):
     for early, times in (("none", [299.0, 599.0]), ("60,200", [59.0, 199.0, 299.0, 599.0])):
         result = CliRunner().invoke(
             main,
-            ["estimate", str(path), "--out", str(out), "--window", "300", "--early-em", early,
-             *theta_out],  # fmt: skip
+            [
+                "estimate",
+                str(path),
+                "--out",
+                str(out),
+                "--window",
+                "300",
+                "--early-em",
+                early,
+                *theta_out,
+            ],  # fmt: skip
         )
         assert result.exit_code == 0, result.output
         assert pd.read_csv(tmp_path / "theta.csv")["time_s"].tolist() == times

@@ -1,7 +1,9 @@
 """One-figure overview of a print record: inputs, outputs and (when present) truth.
 
 Measured outputs are drawn as thin raw traces with a 60 s rolling median on top
-(NaN samples are simply absent); a fault onset in the metadata is a dashed line.
+(NaN samples are simply absent); a fault onset in the metadata is a dashed line. Every
+quantity is drawn in its display unit (:data:`ajtwin.units.DISPLAY_UNITS`: φ_A in ppm, Q_m
+in nL/s) against print time in minutes past the print's start.
 With ``nominal=True`` and truth present, the twin's nominal open-loop prediction
 (the digital model from the true initial state, driven by the measured inputs) is
 overlaid on the truth and on the outputs — the gap is what the twin must infer. A job
@@ -16,24 +18,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ajtwin import units
 from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS, TRUTH_COLUMNS, PrintRecord
 from ajtwin.model import DigitalModel
 
-LABELS = {
-    "atomizer_current_mA": "I_A [mA]",
-    "carrier_flow_sccm": "Q_c [sccm]",
-    "sheath_flow_sccm": "Q_s [sccm]",
-    "linewidth_um": "L_w [µm]",
-    "overspray_um": "L_o [µm]",
-    "carrier_pressure_Pa": "P_c [Pa]",
-    "sheath_pressure_Pa": "P_s [Pa]",
-    "material_flow_mL_s": "Q_m [mL/s]",
-    "true_droplet_diameter_um": "d_a [µm]",
-    "true_vial_volume_mL": "V_l [mL]",
-    "true_tube_deposition_um": "ΔR_T [µm]",
-    "true_nozzle_deposition_um": "ΔR_N [µm]",
-    "true_aerosol_fraction": "φ_A [–]",
-}
+
+def _unit(column: str) -> units.DisplayUnit:
+    """The display unit of a record's input, output or truth (``true_<state>``) column."""
+    return units.display(column.removeprefix("true_"))
+
+
+#: the axis label of each drawn column
+LABELS = {c: _unit(c).label for c in (*INPUT_COLUMNS, *OUTPUT_COLUMNS, *TRUTH_COLUMNS)}
+TIME_LABEL = "print time [min]"
 SMOOTHING_S = 60
 
 
@@ -100,7 +97,7 @@ def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bo
     import matplotlib.pyplot as plt
 
     data = record.data
-    minutes = record.time_s / 60.0
+    minutes = units.print_minutes(record.time_s)
     truth = record.has_truth
     ncols = 3 if truth else 2
     fig, axes = plt.subplots(5, ncols, figsize=(5.2 * ncols, 12), sharex=True, squeeze=False)
@@ -150,29 +147,30 @@ def plot_record(record: PrintRecord, path: str | Path | None = None, nominal: bo
 
     for row, column in enumerate(OUTPUT_COLUMNS):
         ax = axes[row, 1]
-        series = data[column]
+        series = _unit(column).shown(data[column])
         ax.plot(minutes, series, lw=0.3, color="0.6")
         smooth = series.rolling(SMOOTHING_S, center=True, min_periods=SMOOTHING_S // 4).median()
         ax.plot(minutes, smooth, lw=1.2, color="tab:orange")
         if predicted is not None:
-            ax.plot(minutes, predicted[1][:, row], lw=1.0, ls="--", color="k")
+            ax.plot(minutes, _unit(column).shown(predicted[1][:, row]), lw=1.0, ls="--", color="k")
         ax.set_ylabel(LABELS[column])
         mark(ax)
 
     if truth:
         for row, column in enumerate(TRUTH_COLUMNS):
             ax = axes[row, 2]
-            ax.plot(minutes, data[column], lw=1.2, color="tab:green")
+            ax.plot(minutes, _unit(column).shown(data[column]), lw=1.2, color="tab:green")
             if predicted is not None:
-                ax.plot(minutes, predicted[0][:, row], lw=1.0, ls="--", color="k")
+                shown = _unit(column).shown(predicted[0][:, row])
+                ax.plot(minutes, shown, lw=1.0, ls="--", color="k")
             ax.set_ylabel(LABELS[column])
             mark(ax)
         axes[0, 2].set_title("truth (hidden states)")
     axes[0, 0].set_title("measured inputs")
     axes[0, 1].set_title("measured outputs (grey) and 60 s median")
     for ax in axes[-1]:
-        ax.set_xlabel("time [min]")
-    axes[2, 0].set_xlabel("time [min]")
+        ax.set_xlabel(TIME_LABEL)
+    axes[2, 0].set_xlabel(TIME_LABEL)
     axes[2, 0].xaxis.set_tick_params(labelbottom=True)
     fig.suptitle(f"ajtwin print record — {meta.get('scenario')} (seed {meta.get('seed')})")
     fig.tight_layout()

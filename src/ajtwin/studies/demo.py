@@ -32,9 +32,11 @@ import numpy as np
 from tqdm import tqdm
 
 from ajtwin import units
+from ajtwin.apps.detection.causes import alarm_sentence, detector_words, open_faults
 from ajtwin.apps.planning.advice import advise
 from ajtwin.apps.planning.forecast import forecast, input_schedule, parse_change
 from ajtwin.engine.ingest import ingest_record
+from ajtwin.engine.start import apply_maintenance
 from ajtwin.engine.video import join_video
 from ajtwin.estimation import Twin
 from ajtwin.estimation.commission import aerosol_level_note
@@ -116,7 +118,8 @@ def _twin_bar(desc):
 
 
 def _fmt(v, digits=4):
-    return f"{v:.{digits}g}"
+    """A number for a person (``digits`` significant figures, never e-notation)."""
+    return units.readable(v, digits)
 
 
 @dataclass
@@ -138,6 +141,8 @@ class DemoRun:
     forecast_keep: object = None
     forecast_change: object = None
     advice: object = None
+    advice_after: str = "now"  # the machine the advice is for ("once the nozzle is cleaned")
+    faults: list | None = None  # print 2's open faults (cause, onset, what to do)
 
     @property
     def events(self) -> list:
@@ -268,6 +273,7 @@ def echo_alarms(run: DemoRun) -> None:
                 fg="red",
             )
         )
+        click.echo(f"        what to do: {alarm_sentence(ev.cause, ev.onset_s, MACHINE)}")
     if not run.events:
         click.echo("      no alarm")
 
@@ -285,17 +291,26 @@ def forecast_and_advise(run: DemoRun, reg: Registry) -> None:
     run.forecast_change = forecast(*start, input_schedule(u_now, change, HORIZON_S))
     run.forecast_keep.to_frame().to_csv(run.out / "forecast_keep.csv", index=False)
     run.forecast_change.to_frame().to_csv(run.out / "forecast_carrier26.csv", index=False)
+    # advice is for the machine as it will be: a clog is cleaned first (`advise` refuses a
+    # machine with an open fault), so the demo advises from the cleaned nozzle
+    run.faults = open_faults(run.events, [], MACHINE)
+    cleaned = [{"nozzle_cleaned": True}] if any("nozzle" in f["cause"] for f in run.faults) else []
+    mean, cov, theta = apply_maintenance(last["end_mean"], last["end_cov"], twin.theta, cleaned)
+    advised = Twin.default()
+    advised.theta = theta
     run.advice = advise(
-        *start,
+        advised,
+        mean,
+        cov,
         u_now,
         TARGET_UM,
         max_overspray_um=MAX_OVERSPRAY_UM,
         limits=reg.machine(MACHINE)["limits"],
     )
-    after = run.after_onset
-    if not run.advice.reachable and after and after[0].cause == "nozzle_clog":
-        run.advice.message += " — the nozzle is clogging: clean it, then advise again"
-    click.echo(f"      advice for L_w {TARGET_UM:g} µm: {run.advice.message}")
+    run.advice_after = "once the nozzle is cleaned" if cleaned else "now"
+    click.echo(f"      advice for L_w {TARGET_UM:g} µm {run.advice_after}: {run.advice.message}")
+    if run.advice.at_limits:
+        click.echo(f"      note: {run.advice.limit_note()}")
 
 
 def _report_runs(run: DemoRun) -> list[dict]:
@@ -330,7 +345,7 @@ def _state_table(run: DemoRun) -> str:
     """Print 2's states ± 2σ against the truth at a few times (φ_A in ppm by volume), and
     how well φ_A's level is known."""
     truth = run.faulty.true_states
-    scale = np.array([1.0, 1.0, 1.0, 1.0, units.fraction_to_ppm(1.0)])
+    scale = report.STATE_SCALE
     rows = []
     for frac in (0.1, 0.3, 0.5, 0.6, 0.75, 0.9, 1.0):
         k = min(int(frac * len(truth)), len(truth) - 1)
@@ -340,9 +355,8 @@ def _state_table(run: DemoRun) -> str:
             for i in (0, 1, 3, 4)
         ]
         rows.append([f"{k / 60:.1f}", *cells])
-    table = report.table_html(
-        ["print 2 time [min]", "d_a [µm]", "V_l [mL]", "ΔR_N [µm]", "φ_A [ppm by volume]"], rows
-    )
+    labels = [report.STATE_LABELS[i] for i in (0, 1, 3, 4)]
+    table = report.table_html(["print 2 time [min]", *labels], rows)
     return table + f"<p class='note'>{html.escape(aerosol_level_note(None))}.</p>"
 
 
@@ -355,15 +369,16 @@ def _alarm_table(run: DemoRun) -> str:
             f"{(ev.detected_s - run.onset_s):.0f}"
             if ev.detected_s >= run.onset_s
             else "false alarm",
-            ev.description,
-            ", ".join(ev.detectors),
+            alarm_sentence(ev.cause, ev.onset_s, MACHINE),
+            "; ".join(detector_words(d) for d in ev.detectors),
         ]
         for ev in run.events
     ]
     return report.table_html(
-        ["detected [min]", "onset est. [min]", "delay [s]", "likely cause", "detectors"],
+        ["detected [min]", "onset est. [min]", "delay [s]", "likely cause and what to do",
+         "detectors"],
         rows or [["–", "–", "–", "no alarm", "–"]],
-    )
+    )  # fmt: skip
 
 
 def _advice_table(run: DemoRun) -> str:
@@ -382,7 +397,9 @@ def _summary_html(run: DemoRun) -> str:
     after = run.after_onset
     alarm = (
         f"<span class='alarm'>The twin raised the alarm at {after[0].detected_s / 60:.2f} min"
-        f" — {run.delay_s:.0f} s after the onset — and labelled it: {after[0].description}.</span>"
+        f" — {run.delay_s:.0f} s after the onset — and labelled it: {after[0].description}."
+        f" What to do: {html.escape(alarm_sentence(after[0].cause, after[0].onset_s, MACHINE))}"
+        "</span>"
         if after
         else "<span class='alarm'>The fault was not detected.</span>"
     )
@@ -440,7 +457,13 @@ def write_report(run: DemoRun, stages: Stages) -> Path:
         ("Forecast from the end of print 2 (learned θ)", forecasts),
         (
             f"Input advice for L_w = {TARGET_UM:g} µm (L_o ≤ {MAX_OVERSPRAY_UM:g} µm)",
-            _advice_table(run) + f"<p>{run.advice.message}</p>",
+            _advice_table(run)
+            + f"<p>Advised {run.advice_after}: {html.escape(run.advice.message)}.</p>"
+            + (
+                f"<p class='note'>{html.escape(run.advice.limit_note())}.</p>"
+                if run.advice.at_limits
+                else ""
+            ),  # fmt: skip
         ),
         ("Run", timing_table + f"<p class='note'>Registry: {run.store_path}</p>"),
     ]
@@ -479,9 +502,14 @@ def echo_summary(run: DemoRun, stages: Stages) -> None:
         click.echo(f"  forecast warning: {w}")
     u = run.advice.inputs
     click.echo(
-        f"  advice for L_w {TARGET_UM:g} µm: I_A {u[0]:.0f} mA, Q_c {u[1]:.1f}, Q_s {u[2]:.1f} "
-        f"sccm ({run.advice.message})"
+        f"  advice for L_w {TARGET_UM:g} µm {run.advice_after}: I_A {u[0]:.0f} mA, Q_c "
+        f"{u[1]:.1f}, Q_s {u[2]:.1f} sccm ({run.advice.message})"
     )
+    if run.advice.at_limits:
+        click.echo(f"    note: {run.advice.limit_note()}")
+    for fault in run.faults or ():
+        click.echo(click.style(f"  what to do: {fault['sentence']}", bold=True))
+        click.echo(f"    (the demo's machine is kept in {run.store_path}: add --store to it)")
     click.echo(f"  total wall time {stages.elapsed:.0f} s")
     click.echo(f"  report: {run.out / 'report.html'}")
     click.echo(

@@ -10,11 +10,7 @@ import numpy as np
 
 from ajtwin import units
 from ajtwin.apps.detection.settings import cusum_thresholds
-
-OUTPUT_LABELS = ("L_w [µm]", "L_o [µm]", "P_c [Pa]", "P_s [Pa]", "Q_m [mL/s]")
-STATE_LABELS = ("d_a [µm]", "V_l [mL]", "ΔR_T [µm]", "ΔR_N [µm]", "φ_A [ppm]")
-#: from the states' model units to :data:`STATE_LABELS` (φ_A: a volume fraction → ppm)
-STATE_SCALE = np.array([1.0, 1.0, 1.0, 1.0, units.fraction_to_ppm(1.0)])
+from ajtwin.estimation.plotting import OUTPUT_LABELS, OUTPUT_SCALE, STATE_LABELS, STATE_SCALE
 
 
 def _plt():
@@ -40,66 +36,79 @@ def img_tag(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
-def _marks(ax, onset_s, events, t0=0.0):
+def _marks(ax, onset_s, events):
+    """The true fault onset (dashed) and the alarms (red) on a print-time axis [min]."""
     if onset_s is not None:
-        ax.axvline((onset_s + t0) / 60, color="k", ls="--", lw=1)
+        ax.axvline(units.print_minutes(onset_s), color="k", ls="--", lw=1)
     for ev in events:
-        ax.axvline((ev.detected_s + t0) / 60, color="tab:red", lw=1.2)
+        ax.axvline(units.print_minutes(ev.detected_s), color="tab:red", lw=1.2)
+
+
+def _print_columns(prints, title):
+    """A figure of five rows (one per quantity) and one column per print, each on its own
+    print time (minutes past that print's start) — the Detectors figure's time base."""
+    plt = _plt()
+    widths = [max(float(np.asarray(p["time_s"])[-1]), 60.0) for p in prints]
+    fig, axes = plt.subplots(
+        5, len(prints), figsize=(11, 11), sharey="row", squeeze=False,
+        gridspec_kw={"width_ratios": widths},
+    )  # fmt: skip
+    for column, p in enumerate(prints):
+        axes[0, column].set_title(p["label"], fontsize=9)
+        axes[-1, column].set_xlabel("print time [min]")
+    fig.suptitle(title)
+    return fig, axes
 
 
 def outputs_figure(prints, fault_onset_s=None) -> bytes:
-    """Measured vs one-step predicted outputs over consecutive prints.
+    """Measured vs one-step predicted outputs, one column per print, in print time.
 
     ``prints``: list of dicts with time_s, measured (T,5), predicted (T,5), events, label.
     """
-    plt = _plt()
-    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True)
-    offset = 0.0
-    for p in prints:
-        t = (np.asarray(p["time_s"]) + offset) / 60
-        for i, ax in enumerate(axes):
-            y = np.asarray(p["measured"])[:, i]
+    fig, axes = _print_columns(
+        prints, "Outputs: measured vs twin; dashed = true fault onset, red = alarm"
+    )
+    for column, p in enumerate(prints):
+        t = units.print_minutes(np.asarray(p["time_s"], dtype=float))
+        for i in range(5):
+            ax = axes[i, column]
+            y = np.asarray(p["measured"])[:, i] * OUTPUT_SCALE[i]
             ok = np.isfinite(y)
-            ax.plot(
-                t[ok], y[ok], ".", ms=2, color="0.55", label="measured" if offset == 0 else None
-            )
+            first = column == 0
+            ax.plot(t[ok], y[ok], ".", ms=2, color="0.55", label="measured" if first else None)
             ax.plot(
                 t,
-                np.asarray(p["predicted"])[:, i],
+                np.asarray(p["predicted"])[:, i] * OUTPUT_SCALE[i],
                 lw=1.2,
                 color="tab:blue",
-                label="twin (one-step prediction)" if offset == 0 else None,
+                label="twin (one-step prediction)" if first else None,
             )
-            ax.set_ylabel(OUTPUT_LABELS[i])
-            _marks(ax, p.get("fault_onset_s"), p["events"], offset)
-        axes[0].axvline(offset / 60, color="tab:green", lw=0.8)
-        axes[0].text(offset / 60, axes[0].get_ylim()[1], " " + p["label"], va="top", fontsize=8)
-        offset += float(np.asarray(p["time_s"])[-1]) + 1.0
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper left", fontsize=8)
-    axes[-1].set_xlabel("machine time [min] (prints back to back)")
-    fig.suptitle("Outputs: measured vs twin; dashed = true fault onset, red = alarm")
+            if first:
+                ax.set_ylabel(OUTPUT_LABELS[i])
+            _marks(ax, p.get("fault_onset_s"), p["events"])
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     return figure_png(fig)
 
 
 def states_figure(prints) -> bytes:
-    """Estimated states ±2σ (and the virtual printer's truth) over consecutive prints."""
-    plt = _plt()
-    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True)
-    offset = 0.0
-    for p in prints:
-        t = (np.asarray(p["time_s"]) + offset) / 60
+    """Estimated states ±2σ (and the virtual printer's truth), one column per print, in
+    print time."""
+    fig, axes = _print_columns(prints, "Hidden states: twin estimate vs truth")
+    for column, p in enumerate(prints):
+        t = units.print_minutes(np.asarray(p["time_s"], dtype=float))
         m, s = np.asarray(p["means"]) * STATE_SCALE, np.asarray(p["stds"]) * STATE_SCALE
-        for i, ax in enumerate(axes):
+        first = column == 0
+        for i in range(5):
+            ax = axes[i, column]
             ax.fill_between(
                 t,
                 m[:, i] - 2 * s[:, i],
                 m[:, i] + 2 * s[:, i],
                 alpha=0.25,
                 color="tab:blue",
-                label="twin ±2σ" if offset == 0 else None,
+                label="twin ±2σ" if first else None,
             )
             ax.plot(t, m[:, i], lw=1.2, color="tab:blue")
             if p.get("truth") is not None:
@@ -109,16 +118,13 @@ def states_figure(prints) -> bytes:
                     lw=1,
                     color="k",
                     ls=":",
-                    label="truth (virtual printer)" if offset == 0 else None,
+                    label="truth (virtual printer)" if first else None,
                 )
-            ax.set_ylabel(STATE_LABELS[i])
-            _marks(ax, p.get("fault_onset_s"), p["events"], offset)
-        offset += float(np.asarray(p["time_s"])[-1]) + 1.0
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper left", fontsize=8)
-    axes[-1].set_xlabel("machine time [min]")
-    fig.suptitle("Hidden states: twin estimate vs truth")
+            if first:
+                ax.set_ylabel(STATE_LABELS[i])
+            _marks(ax, p.get("fault_onset_s"), p["events"])
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     return figure_png(fig)
 
@@ -163,7 +169,7 @@ def forecast_figure(fc, title) -> bytes:
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     t = fc.time_s / 60
     for i, ax in enumerate(axes.ravel()):
-        mu, sd = fc.output_means[:, i], fc.output_stds[:, i]
+        mu, sd = fc.output_means[:, i] * OUTPUT_SCALE[i], fc.output_stds[:, i] * OUTPUT_SCALE[i]
         ax.fill_between(t, mu - 2 * sd, mu + 2 * sd, alpha=0.3, label="±2σ")
         ax.plot(t, mu, lw=1.5, label="forecast")
         ax.set_ylabel(OUTPUT_LABELS[i])

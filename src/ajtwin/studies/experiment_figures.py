@@ -10,10 +10,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ajtwin import units  # noqa: E402
 from ajtwin.estimation.plotting import (  # noqa: E402
     INPUT_LABELS,
     OUTPUT_LABELS,
-    STATE_LABELS,
+    OUTPUT_SCALE,
+    TIME_LABEL,
     minutes_of,
     plot_states,
     save_figure,
@@ -49,7 +51,7 @@ def exp1_figures(record, series, out: Path):
         ax.plot(minutes, pct[:, i], lw=0.5, color="tab:gray")
         ax.axhline(0, color="k", lw=0.6)
         ax.set_title(f"{OUTPUT_LABELS[i]}: predicted − measured [%]", fontsize=9)
-        ax.set_xlabel("time [min]")
+        ax.set_xlabel(TIME_LABEL)
     fig.suptitle("Exp 1: output percentage error of the closed-loop twin (one-step prediction)")
     paths.append(save_figure(fig, out / "exp1_output_errors.png"))
 
@@ -81,11 +83,12 @@ def theta_figure(history, path, title):
     for i, ax in enumerate(axes):
         col = f"theta_{STATE_NAMES[i]}"
         if len(history):
-            ax.step(history["time_s"] / 60, history[col], where="post", color="k")
-            ax.plot(history["time_s"] / 60, history[col], "k.", ms=4)
+            rate = units.drift_rate_percent_per_hour(history[col])
+            ax.step(units.print_minutes(history["time_s"]), rate, where="post", color="k")
+            ax.plot(units.print_minutes(history["time_s"]), rate, "k.", ms=4)
         ax.axhline(0, color="tab:gray", lw=0.6)
-        ax.set_title(f"θ for {STATE_LABELS[i]} [1/s]", fontsize=9)
-        ax.set_xlabel("time [min]")
+        ax.set_title(units.display(STATE_NAMES[i]).rate_label, fontsize=9)
+        ax.set_xlabel(TIME_LABEL)
         ax.tick_params(labelsize=7)
     fig.suptitle(title)
     return save_figure(fig, path)
@@ -116,9 +119,10 @@ def exp2_figures(record, series, out: Path):
         record.true_states,
     )
     for i in range(2, 5):
-        axes[2, i - 2].plot(minutes, record.outputs[:, i], lw=0.4, color="tab:gray")
+        scale = OUTPUT_SCALE[i]
+        axes[2, i - 2].plot(minutes, record.outputs[:, i] * scale, lw=0.4, color="tab:gray")
         axes[2, i - 2].plot(
-            minutes, np.asarray(em.filtered.predicted_outputs)[:, i], lw=1, color="k"
+            minutes, np.asarray(em.filtered.predicted_outputs)[:, i] * scale, lw=1, color="k"
         )
         axes[2, i - 2].set_title(OUTPUT_LABELS[i], fontsize=9)
     axes[2, 3].axis("off")
@@ -190,7 +194,7 @@ def exp3_figures(record, series, out: Path):
         ax.axvline(n_cal / 60, color="tab:blue", ls="--", lw=1)
         ax.text(n_cal / 60, ax.get_ylim()[1], " forecast →", va="top", fontsize=8, color="tab:blue")
         ax.set_title(OUTPUT_LABELS[i])
-        ax.set_xlabel("time [min]")
+        ax.set_xlabel(TIME_LABEL)
     axes[0].legend(fontsize=8)
     fig.suptitle("Exp 3: θ calibrated on t < 37.6 min, open-loop forecast afterwards")
     return [save_figure(fig, out / "exp3_forecast.png")]

@@ -180,7 +180,7 @@ def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
 
     Parameters
     ----------
-    events : iterable of dict
+    events : iterable of dict or AnomalyEvent
         The print's alarms (``cause``, ``onset_s``).
     maintenance : list of dict
         The maintenance events recorded after the print (``nozzle_cleaned``,
@@ -203,6 +203,7 @@ def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
     table = _advice()["causes"]
     found: dict[str, float] = {}
     for ev in events:
+        ev = ev if isinstance(ev, dict) else {"cause": ev.cause, "onset_s": ev.onset_s}
         cause = str(ev["cause"])
         entry = table.get(cause)
         if entry is None or not entry["fault"]:

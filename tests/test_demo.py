@@ -32,6 +32,12 @@ def test_demo_small_instance(tmp_path):
     assert f"ajtwin dashboard --store {out / 'registry.sqlite'}" in result.output
     page = _check_report(out)
     assert "nozzle starts to clog at <b>3.0 min</b>" in page
+    # the clog comes with what to do about it, and the advice is for the cleaned nozzle
+    assert "what to do: nozzle clogging since" in result.output
+    assert "then `ajtwin machine maintain demo-aj300 --nozzle-cleaned`" in result.output
+    assert "once the nozzle is cleaned" in result.output and "target reached" not in result.output
+    words = re.sub(r"<img[^>]*>|<style>.*?</style>", "", page, flags=re.S)
+    assert not re.search(r"\d[eE][+-]\d", words)  # numbers for people, no e-notation
     from ajtwin.store.registry import Registry
 
     reg = Registry(out / "registry.sqlite")

@@ -11,6 +11,7 @@ Steps 6 and 7 start servers (the live twin, the dashboard): ``tests/test_live_op
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pandas as pd
@@ -50,6 +51,8 @@ def test_the_page_holds_the_steps_this_test_runs():
         "machine show",
         "simulate --scenario",
         "ingest --machine",
+        "machine history",
+        "machine maintain",
         "forecast --machine",
         "advise --machine",
     ]
@@ -67,8 +70,9 @@ def test_tutorial_part_two_runs_as_written_on_short_prints(tmp_path, monkeypatch
             f"ajtwin {' '.join(args)} exited {result.exit_code}:\n{result.output}"
         )
         said.setdefault(" ".join(args[:2]), []).append(result.output)
-    for name in ("p1.parquet", "p1.png", "states.png", "p2.parquet", "theta.csv"):
+    for name in ("p1.parquet", "p1.png", "states.png", "p2.parquet"):
         assert (tmp_path / name).is_file(), name
+    assert not (tmp_path / "theta.csv").exists()  # written only when asked (--theta-out)
     assert len(pd.read_csv(tmp_path / "states.csv")) == 120  # a 2-min print, 1 Hz
     assert "last stored print: #1 from p1.parquet" in said["machine show"][0]
     # the story the page tells: a clean first print, then the clog found in the second
@@ -76,4 +80,11 @@ def test_tutorial_part_two_runs_as_written_on_short_prints(tmp_path, monkeypatch
     assert "anomaly" not in clean and "nozzle clog" not in clean, clean
     assert "as print #2 of 'lab1'" in clogged and "started from print 1" in clogged
     assert "nozzle clog" in clogged, clogged  # the fault the page says is found
+    # ... in minutes past the print's start, with what to do about it
+    assert re.search(r"alarm at 6\d\.\d min \(onset ≈ \d+\.\d min\)", clogged)
+    assert (
+        "what to do: clean the nozzle, then `ajtwin machine maintain lab1 --nozzle-cleaned`"
+        in clogged
+    )
+    assert re.search(r"^\s+2\s.*\sclog\s", said["machine history"][0], re.M)
     assert "target L_w 65" in said["advise --machine"][0]

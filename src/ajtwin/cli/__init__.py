@@ -107,7 +107,8 @@ class LazyGroup(click.Group):
 DOCS_EPILOG = (
     "Documentation: `make docs` in the source folder builds the site into site/ (open "
     "site/index.html; `make docs-serve` serves it with search). Its pages: docs/, starting "
-    "with docs/tutorial.md; the Python API: site/reference/api/ajtwin.html."
+    "with docs/tutorial.md; the Python API: site/reference/api/ajtwin.html. The words and "
+    "symbols the commands use (θ, NIS, EM, CUSUM, ΔR_N, …): docs/explanation/glossary.md."
 )
 
 
@@ -123,5 +124,6 @@ def main():
     Reads the machine's logs and alignment-camera video, infers the hidden
     states that make lines drift (droplet size, aerosol density, ink level,
     ink building up in tube and nozzle), warns early, and forecasts what an
-    input change will do. Units: µm, mL, mA, sccm, Pa (docs/reference/model.md §3).
+    input change will do. Units: µm, mL, mA, sccm, Pa, φ_A in ppm, Q_m in nL/s
+    (docs/reference/model.md §3); times in minutes past the print's start.
     """

@@ -77,13 +77,18 @@ def _live_demo(out_dir, seed, port=0, keep_open=False):
         if alarm is None:
             click.echo("  fault NOT detected")
         else:
+            # lazy CLI loading: imported when the command runs, not for --help
+            from ajtwin.apps.detection.causes import cause_action
+
             click.echo(
                 click.style(
-                    f"  ALARM at {alarm['detected_s']:.0f} s, {summary['delay_s']:.0f} s after "
-                    f"the clog began: {alarm['description']}",
+                    f"  ALARM at {alarm['detected_s'] / 60:.1f} min, {summary['delay_s']:.0f} s "
+                    f"after the clog began: {alarm['description']}",
                     fg="red",
                 )
             )
+            if alarm.get("cause"):
+                click.echo(f"  what to do: {cause_action(alarm['cause'], summary.get('machine'))}")
         got = [e for e in summary["events_received_by_second_client"] if e["state"] == "raised"]
         click.echo(f"  alarm events received by a second OPC UA client: {len(got)}")
         click.echo(

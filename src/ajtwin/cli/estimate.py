@@ -68,10 +68,14 @@ def _read_calibration(calibration_path):
     "out_path",
     type=click.Path(dir_okay=False),
     required=True,
-    help="CSV of states (with _std), predicted outputs and NIS.",
+    help="CSV of the hidden states (with _std), predicted outputs and NIS (normalised "
+    "innovation squared).",
 )
 @click.option(
-    "--em/--no-em", default=True, show_default=True, help="Learn θ by EM while filtering."
+    "--em/--no-em",
+    default=True,
+    show_default=True,
+    help="Learn the drift rates θ by EM (expectation–maximisation) while filtering.",
 )
 @click.option("--smooth", is_flag=True, help="Write RTS-smoothed states instead of filtered.")
 @click.option(
@@ -255,9 +259,18 @@ def _echo_summary(run, done, mismatch, level, has_job: bool) -> None:
     """What ``estimate`` says after writing its files: the end state, the fit, the guard,
     φ_A's level and the states the print's data did not determine (``done``: what
     :func:`ajtwin.engine.estimate.estimate_to_csv` reports)."""
-    end = ", ".join(f"{c} {v:.4g}" for c, v in zip(STATE_NAMES, run.end_mean))
-    click.echo(f"end state: {end}")
-    click.echo(f"mean NIS per measured output: {done.mean_nis_per_output:.2f} (1 = consistent)")
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.units import display
+
+    end = ", ".join(
+        f"{display(name).symbol} {display(name).text(value, 4)}"
+        for name, value in zip(STATE_NAMES, run.end_mean, strict=True)
+    )
+    click.echo(f"hidden states at the end: {end}")
+    click.echo(
+        "how well the model explains the data — mean normalised innovation squared (NIS) per "
+        f"measured output: {done.mean_nis_per_output:.2f} (1 = as the model's noise expects)"
+    )
     if run.camera_counts:
         click.echo(_camera_line(run.camera_counts, has_job))
     if mismatch.mismatch:

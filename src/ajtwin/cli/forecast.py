@@ -12,6 +12,7 @@ from ajtwin.cli.options import (
     open_registry,
     parse_inputs,
     store_option,
+    theta_text,
     transition_option,
     transition_overrides,
 )
@@ -133,8 +134,10 @@ def forecast(
         cells = "  ".join(f"{row[n]:9.4g} ± {2 * row[n + '_std']:<5.2g}" for n in names)
         click.echo(f"  {row['time_s'] / 60:7.2f}  {cells}")
     click.echo("  (± = 2σ)")
-    theta = ", ".join(f"{v:.3g}" for v in twin.theta)
-    click.echo(f"  θ [1/s] used: [{theta}]" + (" (nominal)" if nominal_theta else " (learned)"))
+    if nominal_theta:
+        click.echo("  drift rates θ: none (--nominal-theta)")
+    else:
+        click.echo(f"  {theta_text(twin.theta)}")
     for text in fc.warnings:
         click.echo(f"  warning: {text}")
     # beside the CSV by default, so a run never litters the working directory

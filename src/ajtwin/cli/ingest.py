@@ -142,13 +142,16 @@ def ingest(
         )
     if program is not None:
         click.echo(f"  job {program.name} kept with the print")
-    end = result.summary["end_state"]
-    for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
-        click.echo(f"  end {short:5s} = {end[key] * scale:.4g} {unit}")
     # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.causes import alarm_lines
     from ajtwin.engine.commissioning import aerosol_level
     from ajtwin.estimation.commission import aerosol_level_note
     from ajtwin.store.calibration import active_calibration
+    from ajtwin.units import readable
+
+    end = result.summary["end_state"]
+    for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
+        click.echo(f"  end {short:5s} = {readable(end[key] * scale, 4)} {unit}")
 
     active = active_calibration(reg, machine_name)
     click.echo(f"  note: {aerosol_level_note(None if active is None else aerosol_level(active))}")
@@ -157,9 +160,7 @@ def ingest(
     if result.events:
         click.echo(f"  {len(result.events)} anomaly event(s):")
         for ev in result.events:
-            click.echo(
-                f"    detected {ev.detected_s:.0f} s (onset ≈ {ev.onset_s:.0f} s): "
-                f"{ev.description} [{', '.join(ev.detectors)}]"
-            )
+            for line in alarm_lines(ev, machine_name):
+                click.echo(f"    {line}")
     else:
         click.echo("  no anomalies")

@@ -19,6 +19,7 @@ from ajtwin.cli.options import (
     open_registry,
     record_options,
     store_option,
+    theta_text,
 )
 from ajtwin.engine.chain import chain_start, state_violations
 from ajtwin.io.records import RecordError, read_record
@@ -135,15 +136,18 @@ def show(name, store):
                 " the band is the prior's)"
             )
         click.echo(line)
-    theta = ", ".join(f"{v:.3g}" for v in last["theta_after"])
-    click.echo(f"    θ [1/s] = [{theta}]")
+    click.echo(f"    {theta_text(last['theta_after'])}")
     if len(anomalies):
+        # lazy CLI loading: imported when the command runs, not for --help
+        from ajtwin.apps.detection.causes import alarm_lines
+
         click.echo(f"  anomalies ({len(anomalies)}), latest:")
         for _, row in anomalies.tail(5).iterrows():
-            click.echo(
-                f"    print #{row['seq']} at {row['detected_s']:.0f} s "
-                f"(onset ≈ {row['onset_s']:.0f} s): {printable(row['description'])}"
-            )
+            alarm = {**row.to_dict(), "description": printable(row["description"])}
+            first, *rest = alarm_lines(alarm, name)
+            click.echo(f"    print #{row['seq']}: {first}")
+            for line in rest:
+                click.echo(f"    {line}")
 
 
 @machine.command("history")
@@ -487,7 +491,10 @@ def _echo_commissioning(name, record, result) -> None:
         )
     for note in result.notes:
         click.echo(f"  note: {note}")
-    click.echo(f"  mean NIS per output {result.mean_nis:.2f} (1 = the calibrated model fits)")
+    click.echo(
+        "  how well the calibrated model explains the print — mean normalised innovation "
+        f"squared (NIS) per output: {result.mean_nis:.2f} (1 = it fits)"
+    )
     factors = ", ".join(f"{v:.2f}" for v in np.asarray(result.noise_factors))
     click.echo(f"  output noise of this machine / tuned σ (L_w, L_o, P_c, P_s, Q_m): {factors}")
 
@@ -567,18 +574,20 @@ def describe_live(live: dict | None, now: float | None = None) -> list[str]:
         lines.append("    the twin has not committed a step yet")
     else:
         lines.append(
-            f"    the twin now ({latest['time_s']:.0f} s into the print, {latest['status']}):"
+            f"    the twin now ({latest['time_s'] / 60:.1f} min into the print, "
+            f"{latest['status']}):"
         )
         for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
             mean, std = latest["states"][key] * scale, latest["stds"][key] * scale
             lines.append(f"      {short:5s} = {mean:.4g} ± {std:.2g} {unit}")
     alarms = live["alarms"]
     lines.append(f"    alarms so far: {len(alarms) if alarms else 'none'}")
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.causes import alarm_lines
+
     for event in alarms:
-        lines.append(
-            f"      at {event['detected_s']:.0f} s (onset ≈ {event['onset_s']:.0f} s): "
-            f"{printable(event['description'])}"
-        )
+        alarm = {**event, "description": printable(event["description"])}
+        lines += [f"      {line}" for line in alarm_lines(alarm)]
     return lines
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from ajtwin import units
 from ajtwin.config import packaged_toml
 from ajtwin.io.dialect import DIALECT_CHOICES
+from ajtwin.model.names import INPUT_NAMES, STATE_NAMES
 from ajtwin.store.location import PASSWORD_FILE_ENV, parse_store
 
 
@@ -436,27 +437,29 @@ def parse_seeds(text: str) -> list[int]:
 
 
 #: (state name, symbol, display unit) of the five states, as the commands print them
-STATE_LABELS = (
-    ("droplet_diameter_um", "d_a", "µm"),
-    ("vial_volume_mL", "V_l", "mL"),
-    ("tube_deposition_um", "ΔR_T", "µm"),
-    ("nozzle_deposition_um", "ΔR_N", "µm"),
-    ("aerosol_fraction", "φ_A", "ppm by volume"),
+STATE_LABELS = tuple(
+    (name, units.display(name).symbol, units.display(name).unit) for name in STATE_NAMES
 )
 #: the factor from a state's model unit to the unit of :data:`STATE_LABELS` (φ_A → ppm)
-STATE_DISPLAY_SCALE = (1.0, 1.0, 1.0, 1.0, float(units.fraction_to_ppm(1.0)))
+STATE_DISPLAY_SCALE = tuple(units.display(name).scale for name in STATE_NAMES)
+
+
+def theta_text(theta) -> str:
+    """The drift rates θ [1/s] as a person reads them: words first, per cent of each state
+    per hour."""
+    rates = ", ".join(
+        f"{short} {units.readable(units.drift_rate_percent_per_hour(float(v)), 2)}"
+        for (_, short, _), v in zip(STATE_LABELS, theta, strict=True)
+    )
+    return f"drift rates θ learned by EM [%/h]: {rates}"
 
 
 #: symbol and unit of each input and output, as the commands print them
 SHORT = {
-    "atomizer_current_mA": ("I_A", "mA"),
-    "carrier_flow_sccm": ("Q_c", "sccm"),
-    "sheath_flow_sccm": ("Q_s", "sccm"),
-    "linewidth_um": ("L_w", "µm"),
-    "overspray_um": ("L_o", "µm"),
-    "carrier_pressure_Pa": ("P_c", "Pa"),
-    "sheath_pressure_Pa": ("P_s", "Pa"),
-}
+    name: (units.display(name).symbol, units.display(name).unit)
+    for name in (*INPUT_NAMES, "linewidth_um", "overspray_um", "carrier_pressure_Pa",
+                 "sheath_pressure_Pa")
+}  # fmt: skip
 
 
 def parse_inputs(text):

@@ -242,3 +242,32 @@ def print_status(stored_status: str, causes, mismatch: bool = False) -> str:
     if stored_status == "ok":
         return found or "ok"
     return f"{stored_status}: {found}" if found else str(stored_status)
+
+
+def alarm_lines(alarm, machine: str | None = None) -> list[str]:
+    """An alarm as the commands print it, times in minutes past the print's start: when it
+    was raised and began, its likely cause, what to do, and the detectors in words.
+
+    ``alarm``: an :class:`~ajtwin.apps.detection.streaming.AnomalyEvent` or a dict with
+    ``detected_s``, ``onset_s``, ``cause``, ``description``, ``detectors`` (a list or a
+    comma-separated string, as the registry keeps them).
+
+    >>> alarm_lines({"detected_s": 3640, "onset_s": 3604, "cause": "nozzle_clog",
+    ...              "description": "nozzle clog", "detectors": "cusum+ P_c"})[0]
+    'alarm at 60.7 min (onset ≈ 60.1 min): nozzle clog'
+    """
+    get = alarm.get if isinstance(alarm, dict) else lambda key: getattr(alarm, key)
+    detectors = get("detectors") or ()
+    if isinstance(detectors, str):
+        detectors = [d.strip() for d in detectors.split(",") if d.strip()]
+    onset = float(get("onset_s"))
+    lines = [
+        f"alarm at {units.minutes_text(float(get('detected_s')))} (onset ≈ "
+        f"{units.minutes_text(onset)}): {get('description')}"
+    ]
+    action = cause_action(get("cause"), machine)
+    if action:
+        lines.append(f"  what to do: {action}")
+    if detectors:
+        lines.append(f"  seen as: {'; '.join(detector_words(d) for d in detectors)}")
+    return lines

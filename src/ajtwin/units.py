@@ -342,17 +342,20 @@ def display(name: str) -> DisplayUnit:
         raise KeyError(f"no display unit for {name!r}; known: {', '.join(DISPLAY_UNITS)}") from None
 
 
-def readable(value, digits: int = 3) -> str:
+def readable(value, digits: int = 3, zero_below: float = 0.0) -> str:
     """A number as a person reads it: ``digits`` significant figures, never e-notation
-    (``4750`` not ``4.75e+03``, ``0.0153`` not ``1.53e-02``); ``–`` for NaN.
+    (``4750`` not ``4.75e+03``, ``0.0153`` not ``1.53e-02``); ``–`` for NaN; ``0`` for a
+    magnitude below ``zero_below`` (a drift of 1e-25 %/h is none to a reader).
 
     >>> readable(4751.2), readable(0.015312), readable(73.96), readable(-2.0), readable(1e-9)
     ('4751', '0.0153', '74', '-2', '0.000000001')
+    >>> readable(-1.9e-25, 2, zero_below=1e-4)
+    '0'
     """
     value = float(value)
     if not math.isfinite(value):
         return "–"
-    if value == 0:
+    if abs(value) <= zero_below or value == 0:
         return "0"
     magnitude = math.floor(math.log10(abs(value)))
     decimals = max(0, digits - 1 - magnitude)

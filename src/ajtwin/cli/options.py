@@ -448,7 +448,7 @@ def theta_text(theta) -> str:
     """The drift rates θ [1/s] as a person reads them: words first, per cent of each state
     per hour."""
     rates = ", ".join(
-        f"{short} {units.readable(units.drift_rate_percent_per_hour(float(v)), 2)}"
+        f"{short} {units.readable(units.drift_rate_percent_per_hour(float(v)), 2, 1e-4)}"
         for (_, short, _), v in zip(STATE_LABELS, theta, strict=True)
     )
     return f"drift rates θ learned by EM [%/h]: {rates}"

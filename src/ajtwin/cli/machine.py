@@ -128,7 +128,7 @@ def show(name, store):
     shares = (last.get("summary") or {}).get("data_share") or {}
     for i, (name_i, short, unit) in enumerate(STATE_LABELS):
         scale = STATE_DISPLAY_SCALE[i]
-        line = f"    {short:5s} = {last['end_mean'][i] * scale:.4g} ± {std[i] * scale:.2g} {unit}"
+        line = f"    {short:5s} = {_band(last['end_mean'][i] * scale, std[i] * scale)} {unit}"
         share = shares.get(name_i)
         if share is not None and not share["determined"]:
             line += (
@@ -557,6 +557,14 @@ def calibrations(name, store):
         click.echo(events.to_string(index=False))
 
 
+def _band(mean, std) -> str:
+    """``mean ± σ`` as a person reads it (4 and 2 significant figures, no e-notation)."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.units import readable
+
+    return f"{readable(mean, 4)} ± {readable(std, 2)}"
+
+
 def describe_live(live: dict | None, now: float | None = None) -> list[str]:
     """Lines for `machine show` on the machine's live print (:func:`live_session_now`): since
     when, how many samples, the twin's state now with its ±1σ, the alarms so far."""
@@ -579,7 +587,7 @@ def describe_live(live: dict | None, now: float | None = None) -> list[str]:
         )
         for (key, short, unit), scale in zip(STATE_LABELS, STATE_DISPLAY_SCALE, strict=True):
             mean, std = latest["states"][key] * scale, latest["stds"][key] * scale
-            lines.append(f"      {short:5s} = {mean:.4g} ± {std:.2g} {unit}")
+            lines.append(f"      {short:5s} = {_band(mean, std)} {unit}")
     alarms = live["alarms"]
     lines.append(f"    alarms so far: {len(alarms) if alarms else 'none'}")
     # lazy CLI loading: imported when the command runs, not for --help

@@ -544,7 +544,11 @@ def test_storage_policy_compaction_keeps_what_later_commands_need(tmp_path, stor
         res = runner.invoke(forecast, ["--machine", "M", "--horizon", "5min", "--store",
                                        str(store), "--out", str(out)])  # fmt: skip
         assert res.exit_code == 0, res.output
+        # the print clogged: advice on it is refused unless --anyway (both read the store)
         res = runner.invoke(advise, ["--machine", "M", "--target-linewidth", "40",
+                                     "--store", str(store)])  # fmt: skip
+        assert res.exit_code == 1 and "not advising 'M'" in res.output, res.output
+        res = runner.invoke(advise, ["--machine", "M", "--target-linewidth", "40", "--anyway",
                                      "--store", str(store)])  # fmt: skip
         assert res.exit_code in (0, 2), res.output
         assert run_cli("show", "M", "--store", store).exit_code == 0

@@ -208,6 +208,13 @@ def history(name, csv_path, version, store):
 
 #: the widest line `machine history` prints (a terminal of 110 columns)
 HISTORY_WIDTH = 110
+#: the end states `machine history` shows (all of them, θ too, in --csv)
+HISTORY_STATES = (
+    "droplet_diameter_um",
+    "vial_volume_mL",
+    "nozzle_deposition_um",
+    "aerosol_fraction",
+)
 
 
 def _wrapped(text: str) -> list[str]:
@@ -222,8 +229,8 @@ def _wrapped(text: str) -> list[str]:
 
 def history_lines(table: pd.DataFrame, status: list[str]) -> list[str]:
     """The history table as fixed-width lines (≤ :data:`HISTORY_WIDTH` columns): print,
-    when (UTC, to the minute), minutes, program, status, the end states in their display
-    units (:data:`ajtwin.units.DISPLAY_UNITS`)."""
+    when (UTC, to the minute), minutes, program, status, the end states of
+    :data:`HISTORY_STATES` in their display units (:data:`ajtwin.units.DISPLAY_UNITS`)."""
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.units import display, readable
 
@@ -231,17 +238,22 @@ def history_lines(table: pd.DataFrame, status: list[str]) -> list[str]:
         text = str(text)
         return text if len(text) <= width else text[: width - 1] + "…"
 
+    def number(value, width):
+        text = readable(value)
+        return text if len(text) <= width else readable(value, 1)[:width]
+
     columns = [
         ("#", 3, ">", [str(v) for v in table["seq"]]),
         ("ingested (UTC)", 16, "<", [str(v)[:16].replace("T", " ") for v in table["ingested_at"]]),
         ("min", 5, ">", [f"{v:.0f}" if v >= 100 else f"{v:.1f}" for v in table["duration_min"]]),
-        ("program", 12, "<", [cut(v or "–", 12) for v in table["program"]]),
-        ("status", 16, "<", [cut(v, 16) for v in status]),
+        ("program", 16, "<", [cut(v or "–", 16) for v in table["program"]]),
+        ("status", 18, "<", [cut(v, 18) for v in status]),
     ]
-    for key, _, _ in STATE_LABELS:
+    # ΔR_T is left to --csv: no output sees the tube's deposit (it is rarely determined)
+    for key in HISTORY_STATES:
         unit = display(key)
         values = unit.shown(table["end_" + key].to_numpy(dtype=float))
-        columns.append((f"{unit.symbol} {unit.unit}", 8, ">", [readable(v) for v in values]))
+        columns.append((f"{unit.symbol} {unit.unit}", 8, ">", [number(v, 8) for v in values]))
     rows = [[head for head, *_ in columns]]
     rows += [[values[i] for *_, values in columns] for i in range(len(table))]
     return [

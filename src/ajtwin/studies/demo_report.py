@@ -60,6 +60,21 @@ def _print_columns(prints, title):
     return fig, axes
 
 
+def _dress(ax, p, label) -> None:
+    """One panel's label (first column only), the print's onset and alarms, the grid."""
+    if label:
+        ax.set_ylabel(label)
+    _marks(ax, p.get("fault_onset_s"), p["events"])
+    ax.grid(alpha=0.3)
+
+
+def _finished(fig, axes) -> bytes:
+    """The legend, the layout, the PNG."""
+    axes[0, 0].legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    return figure_png(fig)
+
+
 def outputs_figure(prints, fault_onset_s=None) -> bytes:
     """Measured vs one-step predicted outputs, one column per print, in print time.
 
@@ -83,13 +98,8 @@ def outputs_figure(prints, fault_onset_s=None) -> bytes:
                 color="tab:blue",
                 label="twin (one-step prediction)" if first else None,
             )
-            if first:
-                ax.set_ylabel(OUTPUT_LABELS[i])
-            _marks(ax, p.get("fault_onset_s"), p["events"])
-            ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    return figure_png(fig)
+            _dress(ax, p, OUTPUT_LABELS[i] if first else None)
+    return _finished(fig, axes)
 
 
 def states_figure(prints) -> bytes:
@@ -120,13 +130,8 @@ def states_figure(prints) -> bytes:
                     ls=":",
                     label="truth (virtual printer)" if first else None,
                 )
-            if first:
-                ax.set_ylabel(STATE_LABELS[i])
-            _marks(ax, p.get("fault_onset_s"), p["events"])
-            ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    return figure_png(fig)
+            _dress(ax, p, STATE_LABELS[i] if first else None)
+    return _finished(fig, axes)
 
 
 def detectors_figure(detection, fault_onset_s=None) -> bytes:

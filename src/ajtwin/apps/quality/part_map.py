@@ -102,6 +102,10 @@ PORTION_COLUMNS = (
 CAUSE_COLUMNS = ("alarm", "cause", "driver", "driver_from", "driver_to", "driver_lw_um")
 #: The strokes.csv columns of ``ajtwin job report``.
 REPORT_COLUMNS = (*PORTION_COLUMNS, *CAUSE_COLUMNS)
+#: Prefix of the per-candidate ΔL_w columns kept with a map's portions (not in strokes.csv).
+CHANGE_PREFIX = "lw_change_"
+#: Seconds of logged inputs whose median is "the inputs as set" at the reference.
+INPUT_REFERENCE_S = 60
 #: What a driver of ``inputs`` is called (the operator's or a controller's input change).
 INPUTS_DRIVER = "inputs"
 #: Default longest stroke portion [mm] and spacing of the sample points along it [mm].
@@ -401,13 +405,15 @@ def line_drivers(run, times_s, speeds_mm_s, reference_s: float) -> pd.DataFrame:
     """What moved the line at print times τ, read from the twin's smoothed run.
 
     For each state i (and the inputs as one), L_w(τ) is evaluated again with x_i (or u) held
-    at its value at ``reference_s``; the change that state made is
+    at its value at ``reference_s`` (u: its median over the :data:`INPUT_REFERENCE_S` seconds
+    from there); the change that state made is
     ΔL_w,i = L_w(x(τ)) − L_w(x(τ) with x_i(reference)). The driver is the one with the
     largest |ΔL_w,i|.
 
     Returns one row per τ: ``driver`` (a state name of :data:`STATE_NAMES` or
     :data:`INPUTS_DRIVER`), ``driver_from``, ``driver_to`` (the state at the reference and at
-    τ, display units; NaN for the inputs), ``driver_lw_um`` (ΔL_w of the driver).
+    τ, display units; NaN for the inputs), ``driver_lw_um`` (ΔL_w of the driver), and
+    ΔL_w,i of every candidate (``lw_change_<name>``; kept with the map, not in strokes.csv).
     """
     times = np.asarray(times_s, dtype=float)
     speeds = np.asarray(speeds_mm_s, dtype=float)
@@ -429,7 +435,11 @@ def line_drivers(run, times_s, speeds_mm_s, reference_s: float) -> pd.DataFrame:
         held_state = means.copy()
         held_state[:, i] = x_ref[i]
         changes.append(now - width(held_state, inputs))
-    changes.append(now - width(means, np.broadcast_to(inputs[held[0]], inputs.shape)))
+    # the inputs as set at the reference: their median over the minute from it (one logged
+    # second carries its sensors' noise, which is no change of the settings)
+    first = int(held[0])
+    set_then = np.nanmedian(inputs[first : first + INPUT_REFERENCE_S], axis=0)
+    changes.append(now - width(means, np.broadcast_to(set_then, inputs.shape)))
     changes = np.stack(changes, axis=1)
     best = np.argmax(np.abs(changes), axis=1)
     names = np.array([*STATE_NAMES, INPUTS_DRIVER])[best]
@@ -445,6 +455,10 @@ def line_drivers(run, times_s, speeds_mm_s, reference_s: float) -> pd.DataFrame:
             "driver_from": np.where(is_state, (x_ref * scale)[column], np.nan),
             "driver_to": np.where(is_state, x_now[rows, column] * scale[column], np.nan),
             "driver_lw_um": changes[rows, best],
+            **{
+                f"{CHANGE_PREFIX}{name}": changes[:, k]
+                for k, name in enumerate((*STATE_NAMES, INPUTS_DRIVER))
+            },
         }
     )
 
@@ -462,7 +476,8 @@ def explain_flagged(table: pd.DataFrame, alarms: pd.DataFrame, run) -> pd.DataFr
         (causes.get(a, "") if a else "no alarm") if f else "" for a, f in zip(out["alarm"], flagged)
     ]
     out["driver"] = ""
-    for column in ("driver_from", "driver_to", "driver_lw_um"):
+    candidates = [f"{CHANGE_PREFIX}{name}" for name in (*STATE_NAMES, INPUTS_DRIVER)]
+    for column in ("driver_from", "driver_to", "driver_lw_um", *candidates):
         out[column] = np.nan
     if flagged.any() and run is not None and getattr(run, "line_model", None) is not None:
         rows = out.index[flagged]
@@ -514,7 +529,8 @@ def cause_groups(part) -> list[dict]:
 
 def driver_text(group: pd.DataFrame) -> str:
     """What moved the line of a group of flagged portions, in words: the driver of most of
-    them, its change since the first trace, and the L_w change it made (median)."""
+    them, its change since the first trace and the L_w change it made (median), and the
+    next candidate when it made at least a quarter as much."""
     named = group[group["driver"].astype(str) != ""]
     if named.empty:
         return "the twin's states were not kept with this map (no driver)"
@@ -524,14 +540,26 @@ def driver_text(group: pd.DataFrame) -> str:
     share = f"{len(rows)} of {len(group)}" if len(rows) < len(group) else "all"
     change = f"L_w {effect:+.1f} µm"
     if driver == INPUTS_DRIVER:
-        return f"the twin reads the input settings' change ({change}) for {share} portions"
-    unit = units.display(driver)
-    then = units.readable(float(np.median(rows["driver_from"])))
-    later = units.readable(float(np.median(rows["driver_to"])))
-    return (
-        f"the twin reads {unit.words} {unit.symbol} {then} → {later} {unit.unit} since the "
-        f"first trace ({change}) for {share} portions"
-    )
+        text = f"the twin reads the input settings' change ({change})"
+    else:
+        unit = units.display(driver)
+        then = units.readable(float(np.median(rows["driver_from"])))
+        later = units.readable(float(np.median(rows["driver_to"])))
+        text = (
+            f"the twin reads {unit.words} {unit.symbol} {then} → {later} {unit.unit} since the "
+            f"first trace ({change})"
+        )
+    others = {
+        name: float(np.median(named[f"{CHANGE_PREFIX}{name}"]))
+        for name in (*STATE_NAMES, INPUTS_DRIVER)
+        if name != driver and f"{CHANGE_PREFIX}{name}" in named.columns
+    }
+    if others:
+        name, other = max(others.items(), key=lambda item: abs(item[1]))
+        if abs(other) >= 0.25 * abs(effect) and abs(other) >= 0.05:
+            what = "the input settings" if name == INPUTS_DRIVER else units.display(name).symbol
+            text += f", then {what} (L_w {other:+.1f} µm)"
+    return f"{text} for {share} portions"
 
 
 # --------------------------------------------------------------------------- #

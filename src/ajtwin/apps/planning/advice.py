@@ -173,11 +173,7 @@ def advise(
     if feasible:
         best = min(feasible, key=lambda c: c["lo"])
         reachable = True
-        lw_mean, lw_std = settled.predict(settled.inputs(best["z"]))
-        message = (
-            f"forecast L_w {lw_mean[0]:.1f} ± {2 * lw_std[0]:.1f} µm (2σ) {settle_s} s after "
-            f"the change, on the target {target:g} µm"
-        )
+        message = ""  # on target: said with the forecast below
         if not best["ok"]:
             message = (
                 f"target linewidth reached, but the least overspray there is {best['lo']:.1f} µm "
@@ -201,6 +197,11 @@ def advise(
     names = ("linewidth_um", "overspray_um", "carrier_pressure_Pa", "sheath_pressure_Pa")
     m, s = settled.predict(u_best)
     cm, cs = settled.predict(current)
+    if not message:
+        message = (
+            f"forecast L_w {m[0]:.1f} ± {2 * s[0]:.1f} µm (2σ) {settle_s} s after the change, "
+            f"on the target {target:g} µm"
+        )
     return Advice(
         inputs=u_best,
         predicted={n: (float(m[i]), float(s[i])) for i, n in enumerate(names)},

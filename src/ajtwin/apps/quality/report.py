@@ -28,7 +28,7 @@ body { font-family: system-ui, sans-serif; margin: 1.5em; color: #222; max-width
 h1 { font-size: 1.4em; } h2 { font-size: 1.15em; margin-top: 1.6em; }
 table { border-collapse: collapse; font-size: 0.85em; }
 th, td { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
-th { background: #f0f0f0; } td.text { text-align: left; }
+th { background: #f0f0f0; } td.text, th.text { text-align: left; }
 dl { display: grid; grid-template-columns: max-content auto; gap: 2px 12px; }
 dt { font-weight: 600; } img { max-width: 100%; border: 1px solid #ddd; }
 .flag { color: #a00000; font-weight: 600; } .note { color: #555; }
@@ -101,7 +101,11 @@ def plot_part_map(part: PartMap, path) -> Path:
 def _table(frame: pd.DataFrame, text_columns=()) -> str:
     """An HTML table of ``frame`` (values already formatted as text) with every value
     escaped; numbers not yet formatted are written with :func:`ajtwin.units.readable`."""
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
+    text_class = ' class="text"'
+    head = "".join(
+        f"<th{text_class if c in text_columns else ''}>{html.escape(str(c))}</th>"
+        for c in frame.columns
+    )
     rows = []
     for values in frame.itertuples(index=False):
         cells = []

@@ -76,7 +76,10 @@ def test_a_print_fed_a_sample_at_a_time_gives_the_whole_print_result(clog_record
     "asynchronous, early, times, starts",
     [
         (False, (10, 25), [9.0, 24.0, 59.0, 89.0], [0.0, 0.0, 0.0, 30.0]),
-        (True, (10, 25), [9.0, 24.0, 59.0, 89.0], [0.0, 0.0, 0.0, 30.0]),
+        # EM in a worker thread is the first test's second case; here once more, slow
+        pytest.param(
+            True, (10, 25), [9.0, 24.0, 59.0, 89.0], [0.0, 0.0, 0.0, 30.0], marks=pytest.mark.slow
+        ),
         # an early step between two multiples of every_s (and one past the window: dropped)
         (True, (45, 70), [44.0, 59.0, 89.0, 119.0], [0.0, 0.0, 30.0, 60.0]),
     ],
@@ -106,7 +109,7 @@ def test_a_sample_at_a_time_gives_the_whole_print_result_with_early_em(
     assert plain["time_s"].to_numpy(float)[0] == 59.0
 
 
-@pytest.mark.parametrize("asynchronous", [False, True])
+@pytest.mark.parametrize("asynchronous", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_a_sample_at_a_time_gives_the_whole_print_result_with_input_following_droplets(
     clog_record, asynchronous
 ):
@@ -177,7 +180,9 @@ def test_clean_sample_bad_wire_data():
     assert s is None and "not a number" in problems[0]
 
 
-@pytest.mark.parametrize("transition", ["paper", "input_following"])
+@pytest.mark.parametrize(
+    "transition", [pytest.param("paper", marks=pytest.mark.slow), "input_following"]
+)
 def test_engine_many_machines_batched_equals_single(clog_record, transition):
     from ajtwin.engine.fleet import LiveEngine
 

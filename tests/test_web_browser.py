@@ -287,7 +287,10 @@ def test_live_clog_alarm_reaches_the_page(registry, browser, tmp_path, shots, li
             assert 180.0 < shown[0]["detected_s"] < 180.0 + 90.0  # after the true onset
             delay = shown[0]["shown_at"] - shown[0]["published_at"]
             assert 0.0 <= delay < 3.0, f"alarm took {delay:.2f} s from the twin to the page"
-            assert "nozzle clog" in page.locator("#alarm-banner").inner_text()
+            banner = page.locator("#alarm-banner").inner_text()
+            # the cause in words and what to do, the command naming this page's machine
+            assert "likely cause: nozzle clogging: clean the nozzle, then `ajtwin machine" in banner
+            assert "--nozzle-cleaned`" in banner
             # the "ready to print" card: this print's line never held still for the 2.5 min
             # the verdict needs before the clog moved it (the twin's verdict, computed apart:
             # never ready), so "not yet", with the twin's sentence as its title

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from ajtwin.apps.detection.streaming import AnomalyEvent
 from ajtwin.cli.dashboard import dashboard
 from ajtwin.cli.machine import machine
 from ajtwin.store.registry import Registry, RegistryError
@@ -31,6 +32,11 @@ def web_store(tmp_path_factory):
     for name in ("alpha", ODD_NAME):
         reg.add_machine(name)
         hand_print(reg, name, seq_before=None)
+    # a machine whose newest print clogged and whose nozzle nobody has cleaned since
+    reg.add_machine("clogged")
+    clog = AnomalyEvent(3600.0, 3540.0, "nozzle_clog", "nozzle clog", ["cusum+ P_c+P_s"])
+    hand_print(reg, "clogged", seq_before=None, tag="1")
+    hand_print(reg, "clogged", seq_before=1, anomalies=[clog], tag="2")
     reg.close()
     return path
 
@@ -65,6 +71,25 @@ def test_a_text_boolean_is_a_422_with_a_sentence_over_http(client):
     r = client.post("/api/machine/alpha/forecast", json={"nominal_theta": "false"})
     assert r.status_code == 422
     assert r.json()["error"] == ("nominal θ: expected true or false (a JSON boolean), got 'false'")
+
+
+def test_the_pages_advice_refuses_a_machine_with_an_open_fault_as_the_command_does(client):
+    """What-if advice on a machine whose newest print clogged would steer the inputs around
+    the clog: refused with the fault and what to do, before any work, unless asked anyway."""
+    r = client.post("/api/machine/clogged/advise", json={"target": "40"})
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error.startswith("not advising: print #2 raised a fault no maintenance has closed")
+    assert "clean the nozzle, then `ajtwin machine maintain clogged --nozzle-cleaned`" in error
+    assert "advise with an open fault" in error
+    assert parse_advise_request({"target": "40", "anyway": True})["anyway"]
+    assert not parse_advise_request({"target": "40"})["anyway"]
+
+
+def test_the_pages_show_q_m_in_nanolitres_per_second(client):
+    names = client.get("/api/fleet").json()["names"]
+    i = names["outputs"].index("Q_m")
+    assert names["output_units"][i] == "nL/s" and names["output_scale"][i] == 1e6
 
 
 # ------------------------------------------------------------------ cross-site requests

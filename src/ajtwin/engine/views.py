@@ -37,6 +37,7 @@ import pandas as pd
 
 from ajtwin import units
 from ajtwin.apps.detection.batch import detect_anomalies
+from ajtwin.apps.detection.causes import cause_action, cause_keys, cause_words
 from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE, mismatch_line
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings, cusum_thresholds
 from ajtwin.apps.quality.live_map import part_payload
@@ -46,7 +47,13 @@ from ajtwin.engine.print_job import load_stored_print, map_stored_print
 from ajtwin.engine.start import machine_twin
 from ajtwin.estimation.commission import aerosol_level_note
 from ajtwin.io.records import read_record
-from ajtwin.model.names import INPUT_SYMBOLS, OUTPUT_SYMBOLS, STATE_NAMES, STATE_SYMBOLS
+from ajtwin.model.names import (
+    INPUT_SYMBOLS,
+    OUTPUT_NAMES,
+    OUTPUT_SYMBOLS,
+    STATE_NAMES,
+    STATE_SYMBOLS,
+)
 from ajtwin.store import queries
 from ajtwin.store.calibration import active_calibration, maintenance_history
 from ajtwin.store.registry import Registry, RegistryError
@@ -55,7 +62,9 @@ from ajtwin.store.registry import Registry, RegistryError
 STATE_UNITS = ("µm", "mL", "µm", "µm", "ppm")
 #: ... and the factor from the model's units (display units of model reference §3) to them
 STATE_SCALE = (1.0, 1.0, 1.0, 1.0, float(units.fraction_to_ppm(1.0)))
-OUTPUT_UNITS = ("µm", "µm", "Pa", "Pa", "mL/s")
+#: the units a page shows the outputs in (Q_m in nL/s) and the factor from the model's
+OUTPUT_UNITS = tuple(units.display(name).unit for name in OUTPUT_NAMES)
+OUTPUT_SCALE = tuple(units.display(name).scale for name in OUTPUT_NAMES)
 INPUT_UNITS = ("mA", "sccm", "sccm")
 #: the hidden states shown on the fleet page, in this order: d_a, φ_A, ΔR_N, V_l
 KEY_STATES = (0, 4, 3, 1)
@@ -67,12 +76,21 @@ SERIES_CACHE = 16
 #: part maps of stored prints kept in memory (each took a re-run of the twin)
 PART_CACHE = 4
 
+#: what a page says of each alarm cause: its words and the action (``{machine}`` in it is
+#: the page's machine), from ``data/causes.toml``
+CAUSES = {
+    cause: {"words": cause_words(cause), "action": cause_action(cause, "{machine}")}
+    for cause in cause_keys()
+}
+
 NAMES = {
     "states": list(STATE_SYMBOLS),
     "state_units": list(STATE_UNITS),
     "state_scale": list(STATE_SCALE),
     "outputs": list(OUTPUT_SYMBOLS),
     "output_units": list(OUTPUT_UNITS),
+    "output_scale": list(OUTPUT_SCALE),
+    "causes": CAUSES,
     "inputs": list(INPUT_SYMBOLS),
     "input_units": list(INPUT_UNITS),
     "key_states": list(KEY_STATES),

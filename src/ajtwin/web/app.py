@@ -53,6 +53,7 @@ from ajtwin.apps.detection.mismatch import MISMATCH_CAUSE
 from ajtwin.apps.planning.advice import advise
 from ajtwin.apps.planning.forecast import Change, forecast, input_schedule, parse_duration
 from ajtwin.apps.quality.part_map import parse_tolerance
+from ajtwin.engine.start import machine_open_faults
 from ajtwin.engine.views import (
     KEY_STATES,
     NAMES,
@@ -225,6 +226,7 @@ def parse_advise_request(body: dict) -> dict:
         "max_overspray": max_overspray,
         "settle_s": int(round(settle_s)),
         "nominal_theta": _flag(body, "nominal_theta", "nominal θ"),
+        "anyway": _flag(body, "anyway", "advise with an open fault"),
     }
 
 
@@ -549,6 +551,14 @@ def forecast_response(view: RegistryView, name: str, body) -> dict:
 def advice_response(view: RegistryView, name: str, body) -> dict:
     """The what-if form's advice: inputs that reach the target linewidth, and why (not)."""
     req = parse_advise_request(body)
+    faulty_print, faults = machine_open_faults(view.registry, name)
+    if faults and not req["anyway"]:
+        # as `ajtwin advise`: advice now would steer the inputs around the fault
+        raise InputError(
+            f"not advising: print #{faulty_print} raised a fault no maintenance has closed "
+            f"since: {faults[0]['sentence']}. Tick 'advise with an open fault' to advise all "
+            "the same."
+        )
     twin, mean, cov, u_now, limits, seq = view.forecast_start(name, req["nominal_theta"])
     try:
         advice = advise(
@@ -575,6 +585,9 @@ def advice_response(view: RegistryView, name: str, body) -> dict:
         "message": advice.message,
         "bounds": advice.bounds,
         "settle_s": advice.settle_s,
+        "at_limits": advice.at_limits,
+        "limit_note": advice.limit_note(),
+        "open_fault": faults[0]["sentence"] if faults else None,
     }
 
 

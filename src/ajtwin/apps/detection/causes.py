@@ -125,6 +125,15 @@ def _advice() -> dict:
     return packaged_toml("data/causes.toml")
 
 
+def cause_keys() -> tuple[str, ...]:
+    """The causes ``data/causes.toml`` has words and an action for.
+
+    >>> "nozzle_clog" in cause_keys()
+    True
+    """
+    return tuple(_advice()["causes"])
+
+
 def cause_words(cause: str) -> str:
     """What is happening, as an operator says it (``'nozzle clogging'``); an unknown cause
     key is returned as its words with underscores as spaces.

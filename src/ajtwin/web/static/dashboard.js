@@ -112,11 +112,11 @@ function buildOutputs(s) {
   for (let i = 0; i < 5; i++) {
     // the prediction first, the measurements drawn over it (else a close fit hides them)
     map.pred.push(traces.length);
-    traces.push({ x: t, y: s.predicted ? s.predicted.map((r) => r[i]) : [], mode: "lines",
+    traces.push({ x: t, y: s.predicted ? s.predicted.map((r) => outScaled(n, i, r[i])) : [], mode: "lines",
       line: { width: 1.4, color: COLORS[0] }, name: "one-step prediction", legendgroup: "p",
       showlegend: i === 0, yaxis: ax(i) });
     map.meas.push(traces.length);
-    traces.push({ x: t, y: s.measured ? s.measured.map((r) => r[i]) : [], mode: "markers",
+    traces.push({ x: t, y: s.measured ? s.measured.map((r) => outScaled(n, i, r[i])) : [], mode: "markers",
       marker: { size: 2.5, color: "#555" }, name: "measured", legendgroup: "m",
       showlegend: i === 0, yaxis: ax(i) });
   }
@@ -126,6 +126,8 @@ function buildOutputs(s) {
 
 // a state in the unit a page shows it in (φ_A: a volume fraction, shown in ppm)
 function scaled(n, i, v) { return v === null || v === undefined ? v : v * ((n.state_scale || [])[i] || 1); }
+// an output in the unit a page shows it in (Q_m in nL/s)
+function outScaled(n, i, v) { return v === null || v === undefined ? v : v * ((n.output_scale || [])[i] || 1); }
 
 function buildStates(s) {
   const n = s.names, t = s.time_s.map(minutes), traces = [], map = { lo: [], hi: [], mean: [], truth: [] };
@@ -484,6 +486,13 @@ function machinePage() {
     }
   }
 
+  // an alarm's cause in words and what to do (data/causes.toml through the page's names)
+  function causeText(a) {
+    const c = ((info && info.names && info.names.causes) || {})[a.cause];
+    if (!c) return a.description;
+    return c.words + (c.action ? ": " + c.action.split("{machine}").join(name) : "");
+  }
+
   function alarmRow(a, live) {
     const tr = el("tr", live ? { class: "live" } : {});
     tr.append(el("td", {}, live ? "live" : "#" + a.seq));
@@ -492,7 +501,7 @@ function machinePage() {
     // the guard's events are the mismatch the card above names: not a fault, said once
     const mismatch = a.cause === "model_machine_mismatch";
     tr.append(mismatch ? el("td", { class: "notice" }, "model–machine mismatch (not a fault; see above)")
-      : el("td", { class: "cause" }, a.description));
+      : el("td", { class: "cause" }, causeText(a)));
     tr.append(el("td", { class: "dim" }, a.detectors));
     return tr;
   }
@@ -592,7 +601,9 @@ function machinePage() {
     };
     const o = figs.outputs.map, st = figs.states.map;
     const op = [];
-    for (let i = 0; i < 5; i++) { op.push([o.meas[i], col("measured", i)]); op.push([o.pred[i], col("predicted", i)]); }
+    const on = info.names;
+    const ocol = (k, i) => col(k, i).map((v) => outScaled(on, i, v));
+    for (let i = 0; i < 5; i++) { op.push([o.meas[i], ocol("measured", i)]); op.push([o.pred[i], ocol("predicted", i)]); }
     ext("outputs", op);
     const sp = [];
     const n = info.names;
@@ -643,7 +654,7 @@ function machinePage() {
         banner = el("div", { id: "alarm-banner", class: "banner" });
         document.getElementById("summary").before(banner);
       }
-      banner.textContent = "ALARM at " + fmt(a.detected_s / 60, 3) + " min of the live print — likely cause: " + a.description;
+      banner.textContent = "ALARM at " + fmt(a.detected_s / 60, 3) + " min of the live print — likely cause: " + causeText(a);
       A.alarmsShown.push({ cause: a.cause, detected_s: a.detected_s, published_at: s.published_at, shown_at: now / 1000 });
       info.live.alarms.push(a);
       renderHistory(info);
@@ -783,8 +794,11 @@ function whatifPage() {
         max_overspray: document.getElementById("max-overspray").value,
         settle: document.getElementById("settle").value,
         nominal_theta: document.getElementById("nominal-theta").checked,
+        anyway: document.getElementById("advise-anyway").checked,
       });
       busy.textContent = "";
+      if (a.open_fault) box.append(el("p", { class: "cause" }, "advised with an open fault: " + a.open_fault));
+      if (a.limit_note) box.append(el("p", { class: "notice", id: "advice-limits" }, a.limit_note));
       box.append(el("p", { class: a.reachable && a.overspray_ok ? "" : "cause" }, a.message + " (judged " + a.settle_s + " s after the change)"));
       const table = el("table", { class: "advice", id: "advice-table" });
       const head = el("tr"); for (const h of ["", "now", "advised", "± 2σ"]) head.append(el("th", {}, h));

@@ -177,6 +177,7 @@ def test_new_print_appears_without_reload(server, page):
 
 def test_whatif_forecast_and_advice(server, registry, page, shots):
     from ajtwin.apps.planning.forecast import Change, forecast, input_schedule
+    from ajtwin.engine.start import machine_open_faults
     from ajtwin.engine.views import RegistryView
 
     page.goto(server.page_url("/whatif/lab1"))
@@ -195,9 +196,20 @@ def test_whatif_forecast_and_advice(server, registry, page, shots):
     assert len(mean_lw) == 600
     np.testing.assert_allclose(mean_lw, fc.output_means[:, 0], rtol=1e-9)
     page.fill("#target", "70")
+    _, open_fault = machine_open_faults(view.registry, "lab1")
+    view.close()
+    assert open_fault  # lab1's print clogged and nobody has cleaned the nozzle since
+    page.click("#run-advise")
+    # refused, as `ajtwin advise` refuses, until asked to advise all the same
+    page.locator("#advise-error").wait_for(state="visible")
+    refusal = page.locator("#advise-error").inner_text()
+    assert refusal.startswith("not advising: print #1") and "clean the nozzle" in refusal
+    page.check("#advise-anyway")
     page.click("#run-advise")
     page.wait_for_selector("#advice-table")
-    assert "on the target" in page.locator("#advice").inner_text()
+    advice = page.locator("#advice").inner_text()
+    assert "on the target" in advice
+    assert "advised with an open fault: nozzle clogging" in advice
     page.screenshot(path=shots / "whatif.png", full_page=True)
     assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 

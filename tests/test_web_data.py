@@ -307,7 +307,13 @@ def test_forecast_request_errors_are_sentences(body, message):
 
 def test_advise_request():
     ok = parse_advise_request({"target": "40", "max_overspray": "", "settle": "2min"})
-    assert ok == {"target": 40.0, "max_overspray": None, "settle_s": 120, "nominal_theta": False}
+    assert ok == {
+        "target": 40.0,
+        "max_overspray": None,
+        "settle_s": 120,
+        "nominal_theta": False,
+        "anyway": False,
+    }
     with pytest.raises(InputError, match="outside the output model's range 1–200 µm"):
         parse_advise_request({"target": "-3"})
     with pytest.raises(InputError, match="max overspray must be > 0"):

@@ -97,6 +97,10 @@ def test_fleet_page_lists_the_registry(server, registry, page, shots):
     lab2 = page.locator('tr[data-machine="lab2"]')
     assert lab1.get_attribute("data-status") == "alarm"
     assert "nozzle clog" in lab1.inner_text()
+    # the headline fault in words and what to do about it on this machine
+    assert "clean the nozzle, then `ajtwin machine maintain lab1 --nozzle-cleaned`" in (
+        lab1.inner_text()
+    )
     assert "no prints" in lab2.inner_text() and lab2.get_attribute("data-status") == "idle"
     # the state shown is the registry's end state (d_a, 4 significant digits)
     with Registry(registry["store"]) as reg:

@@ -334,6 +334,13 @@ class RegistryView:
                     # a mismatch is not a fault: the status column says it, once
                     if entry["alarm"]["cause"] == MISMATCH_CAUSE:
                         entry["alarm"] = None
+                    else:  # the cause in words and what to do about it
+                        cause = entry["alarm"]["cause"]
+                        entry["alarm"] = {
+                            **entry["alarm"],
+                            "words": cause_words(cause),
+                            "action": cause_action(cause, row["name"]),
+                        }
                     entry["other_alarms"] = [
                         a for a in entry["other_alarms"] if a["cause"] != MISMATCH_CAUSE
                     ]

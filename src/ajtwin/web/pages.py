@@ -149,9 +149,13 @@ def alarm_cell_html(alarm: dict | None, others: list[dict], mismatch: bool = Fal
         text = "none (its alarms are the mismatch)" if mismatch else "none"
         return f'<span class="dim">{text}</span>'
     where = f"print #{alarm['seq']}, " if alarm.get("seq") else "live, "
+    words = alarm.get("words") or alarm["description"]
+    action = alarm.get("action")
     cell = (
-        f'<span class="cause headline">{escape(str(alarm["description"]))}</span><br>'
-        f'<span class="dim">{where}{alarm["detected_s"] / 60:.1f} min in'
+        f'<span class="cause headline" title="{escape(str(alarm["description"]))}">'
+        f"{escape(str(words))}</span><br>"
+        + (f'<span class="action">{escape(str(action))}</span><br>' if action else "")
+        + f'<span class="dim">{where}{alarm["detected_s"] / 60:.1f} min in'
         + (f" · {_when(alarm.get('ingested_at'))}" if alarm.get("ingested_at") else "")
         + "</span>"
     )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import time
 from pathlib import Path
@@ -151,6 +152,17 @@ def test_machine_page_states_with_bands_and_truth(server, registry, page, shots)
     if guard["mismatch"]:
         assert guard["message"] in page.locator("#mismatch").inner_text()
     assert page.locator("#calibration").count() == 0  # never commissioned
+    # numbers as a person reads them: no e-notation on the cards or in the alarm table
+    for where in ("#summary", "#alarms"):
+        if page.locator(where).count():
+            assert not re.search(r"\de[-+]?\d", page.locator(where).inner_text()), where
+    # θ as drift rates in %/h, Q_m in nL/s: the units the CLI and the reports use
+    titles = page.evaluate(
+        "['plot-theta', 'plot-outputs'].map(id => { const l = document.getElementById(id)"
+        ".layout; return Object.keys(l).filter(k => k.startsWith('yaxis'))"
+        ".map(k => l[k].title.text); }).flat()"
+    )
+    assert "ΔR_N [%/h]" in titles and "Q_m [nL/s]" in titles, titles
     page.screenshot(path=shots / "machine.png", full_page=True)
     assert layout_faults(page) == []  # at 1400 px: no overflow, clipped text, empty box
 

@@ -91,6 +91,9 @@ NAMES = {
     "output_units": list(OUTPUT_UNITS),
     "output_scale": list(OUTPUT_SCALE),
     "causes": CAUSES,
+    # θ [1/s] shown as drift rates, per cent of the state per hour
+    "theta_scale": float(units.drift_rate_percent_per_hour(1.0)),
+    "theta_unit": units.DRIFT_RATE_UNIT,
     "inputs": list(INPUT_SYMBOLS),
     "input_units": list(INPUT_UNITS),
     "key_states": list(KEY_STATES),

@@ -14,11 +14,14 @@ function el(tag, attrs, text) {
   if (text !== undefined) e.textContent = text;
   return e;
 }
+// a number as a person reads it: significant digits, no e-notation (a value below 1e-6 of
+// its unit is nothing a page needs: 0)
 function fmt(v, digits) {
   if (v === null || v === undefined || !isFinite(v)) return "—";
   const a = Math.abs(v);
-  if (a !== 0 && (a < 1e-3 || a >= 1e5)) return v.toExponential(3);
-  return Number(v.toPrecision(digits || 4)).toString();
+  if (a >= 1e5) return Math.round(v).toString();
+  if (a < 1e-6) return "0";
+  return Number(v.toPrecision(digits || 4)).toFixed(Math.max(0, (digits || 4) - 1 - Math.floor(Math.log10(a)))).replace(/(\.\d*?)0+$/, "$1").replace(/\.$/, "");
 }
 function minutes(t) { return t === null ? null : t / 60; }
 // "2026-11-23T06:52:46+00:00" → "2026-11-23 06:52 UTC" (the registry's times are UTC)
@@ -180,15 +183,18 @@ function buildDetectors(s) {
   return { traces, layout, map };
 }
 
+// θ [1/s] as the drift rate a page shows (per cent of the state per hour)
+function thetaShown(n, v) { return v === null || v === undefined ? v : v * (n.theta_scale || 1); }
+
 function buildTheta(s) {
   if (!s.theta) return null;
   const n = s.names, t = s.time_s.map(minutes), traces = [], map = { theta: [] };
   for (let i = 0; i < 5; i++) {
     map.theta.push(traces.length);
-    traces.push({ x: t, y: s.theta.map((r) => r[i]), mode: "lines", line: { width: 1.4, color: COLORS[i] },
-      name: "θ " + n.states[i], showlegend: false, yaxis: ax(i) });
+    traces.push({ x: t, y: s.theta.map((r) => thetaShown(n, r[i])), mode: "lines", line: { width: 1.4, color: COLORS[i] },
+      name: "drift rate of " + n.states[i], showlegend: false, yaxis: ax(i) });
   }
-  const layout = rowsLayout(5, n.states.map((x) => "θ " + x));
+  const layout = rowsLayout(5, n.states.map((x) => x + " [" + (n.theta_unit || "1/s") + "]"));
   // a print shorter than EM's first window keeps θ as it started: say so, not five flat lines
   const first = s.theta.find((r) => r && r.every((v) => v !== null));
   const unchanged = first && s.theta.every((r) => !r || r.every((v, i) => v === null || v === first[i]));
@@ -626,7 +632,7 @@ function machinePage() {
       }
     }
     if (figs.theta) {
-      ext("theta", figs.theta.map.theta.map((idx, i) => [idx, col("theta", i)]));
+      ext("theta", figs.theta.map.theta.map((idx, i) => [idx, col("theta", i).map((v) => thetaShown(info.names, v))]));
       const first = figs.theta.unchangedFrom;  // EM landed: the "θ unchanged" note goes
       if (first && batch.some((b) => b.theta && b.theta.some((v, i) => v !== null && v !== first[i]))) {
         figs.theta.unchangedFrom = null;

@@ -52,7 +52,12 @@ def test_engine_messages_reach_the_publisher(clog_record):
     assert np.isfinite(samples[-1]["detectors"]["window_nis_log10p"])
 
 
-def test_live_command_serves_the_dashboard(clog_record, tmp_path):
+def test_live_command_serves_the_dashboard_after_the_print_until_stopped(
+    clog_record, tmp_path, monkeypatch
+):
+    """A followed print that ends leaves its page served (the operator is still looking at
+    it) until Ctrl-C; the server goes with the command."""
+    import ajtwin.cli.live as live_cli
     from ajtwin.cli.live import live
     from ajtwin.io.records import INPUT_COLUMNS, OUTPUT_COLUMNS
 
@@ -65,11 +70,32 @@ def test_live_command_serves_the_dashboard(clog_record, tmp_path):
     store = tmp_path / "r.sqlite"
     args = ["--machine", "m1", "--follow", str(path), "--idle-timeout", "2",
             "--store", str(store), "--dashboard", "0"]  # fmt: skip
+    answered = []
+
+    def ctrl_c():  # the wait after the print: the page still answers, then "Ctrl-C"
+        import urllib.request
+
+        server = live_cli_server[0]
+        with urllib.request.urlopen(server.url + "api/fleet", timeout=10) as r:
+            answered.append(r.status)
+        raise KeyboardInterrupt
+
+    live_cli_server = []
+    real_serve = live_cli._serve_dashboard
+
+    def serve(*a, **k):
+        live_cli_server.append(real_serve(*a, **k))
+        return live_cli_server[0]
+
+    monkeypatch.setattr(live_cli, "_serve_dashboard", serve)
+    monkeypatch.setattr(live_cli, "_wait_until_interrupted", ctrl_c)
     result = CliRunner().invoke(live, args)
     assert result.exit_code == 0, result.output
     line = next(x for x in result.output.splitlines() if x.startswith("dashboard: open "))
     port = int(line.rsplit(":", 1)[1].strip("/ "))
     assert "print stored as registry print id" in result.output
+    assert answered == [200] and "dashboard still at" in result.output
+    assert "stopped (the prints had ended and are stored)" in result.output
     # the server was stopped with the command: its port no longer answers
     with socket.socket() as s:
         s.settimeout(2)

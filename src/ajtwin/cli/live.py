@@ -142,7 +142,7 @@ def live(
         asyncio.run(
             ensure_certificate(certificate, private_key, "localhost", "urn:ajtwin:live-client")
         )
-    link = None
+    link, ended = None, False
     try:
         if follow is not None:
             print_id = asyncio.run(
@@ -157,6 +157,7 @@ def live(
             )
             if print_id is not None:
                 click.echo(f"print stored as registry print id {print_id}")
+            ended = True
         else:
             link = OpcUaLink(
                 url,
@@ -174,16 +175,17 @@ def live(
             )
             asyncio.run(link.run())
             click.echo(f"followed {', '.join(machines)} to the end of their prints")
-            if dashboard is not None:
-                # the page keeps showing the print (and says the link ended) until stopped
-                click.echo(f"dashboard still at {dashboard.url}; Ctrl-C stops it", err=True)
-                _wait_until_interrupted()
+            ended = len(link.finished) == len(machines)
+        if dashboard is not None:
+            # the page keeps showing the print (and says the link ended) until stopped
+            click.echo(f"dashboard still at {dashboard.url}; Ctrl-C stops it", err=True)
+            _wait_until_interrupted()
     except LinkRefused as exc:
         raise click.ClickException(str(exc)) from None
     except (ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
-        if link is not None and len(link.finished) == len(machines):
+        if ended:
             click.echo("stopped (the prints had ended and are stored)", err=True)
         else:
             click.echo(

@@ -52,7 +52,7 @@ from ajtwin.store.registry import RegistryError
     default=None,
     metavar="PORT",
     help="Also serve the browser dashboard from this process on 127.0.0.1:PORT (0: a free port); "
-    "over OPC UA it keeps serving after the prints end, until Ctrl-C.",
+    "it keeps serving after the prints end, until Ctrl-C.",
 )
 @transition_option
 @click.option(

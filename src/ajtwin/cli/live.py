@@ -176,10 +176,7 @@ def live(
             asyncio.run(link.run())
             click.echo(f"followed {', '.join(machines)} to the end of their prints")
             ended = len(link.finished) == len(machines)
-        if dashboard is not None:
-            # the page keeps showing the print (and says the link ended) until stopped
-            click.echo(f"dashboard still at {dashboard.url}; Ctrl-C stops it", err=True)
-            _wait_until_interrupted()
+        _keep_serving(dashboard)
     except LinkRefused as exc:
         raise click.ClickException(str(exc)) from None
     except (ValueError, FileNotFoundError) as exc:
@@ -214,6 +211,13 @@ def _serve_dashboard(engine, registry, machines, entry, tolerance, port: int):
     dashboard = BackgroundServer(registry.path, publisher, port=port)
     click.echo(f"dashboard: open {dashboard.url}", err=True)
     return dashboard
+
+
+def _keep_serving(dashboard) -> None:
+    """After the prints: the page keeps showing them (and says the link ended) until Ctrl-C."""
+    if dashboard is not None:
+        click.echo(f"dashboard still at {dashboard.url}; Ctrl-C stops it", err=True)
+        _wait_until_interrupted()
 
 
 def _wait_until_interrupted() -> None:

@@ -116,12 +116,14 @@ import json, sys
 import numpy as np
 from ajtwin._jax import jax, jnp, compilation_cache_dir
 from ajtwin._aot import exported_jit
-traced = []
+traced, lowered = [], []
+_deserialize = jax.export.deserialize
+jax.export.deserialize = lambda data: lowered.append(1) or _deserialize(data)
 
 def model(x, scale, gate=2.0, kind="square"):
     traced.append(kind)  # runs only when JAX traces the Python function
     y = x * scale if kind == "scale" else x**2
-    return {"y": y, "n": jnp.sum(x > gate)}
+    return {"y": y, "n": jnp.sum(x > gate), "solve": jnp.linalg.solve(jnp.eye(2) * scale, x[:2])}
 
 f = exported_jit(model, static_argnames=("kind",))
 x = jnp.linspace(0.0, 3.0, 7)
@@ -134,38 +136,52 @@ files = sorted(p.name for p in (d / "exported").iterdir()) if d else []
 same = bool(np.array_equal(out["y"], ref["y"])) and int(ref["n"]) == int(out["n"])
 print(json.dumps({"y": np.asarray(out["y"]).tolist(), "n": int(out["n"]), "same": same,
                   "vmap": np.asarray(vm).tolist(), "scale": np.asarray(other["y"]).tolist(),
+                  "solve": np.asarray(out["solve"]).tolist(),
+                  "lowered": len(lowered),
                   "traced": traced, "files": files}))
 """
 
 
 def test_exported_programs_skip_tracing_in_a_new_process(tmp_path):
-    """ajtwin._aot: the lowered program is read back by the next process (no tracing),
-    results equal plain jax.jit's, static arguments and shapes get entries of their own,
-    transformations and a switched-off cache take the plain path, a broken entry is
-    traced again."""
+    """ajtwin._aot: the compiled program is loaded by the next process (no tracing, no
+    lowering; LAPACK's solve works in it), results equal plain jax.jit's, static arguments
+    and shapes get entries of their own, transformations and a switched-off cache take the
+    plain path, a broken entry is traced again."""
     base = tmp_path / "cache"
     first = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
     x = [3.0 * i / 6 for i in range(7)]
     assert first["same"]
     assert first["y"] == [v**2 for v in x] and first["n"] == 2
     assert first["scale"] == [1.5 * v for v in x]
+    assert first["solve"] == [0.0, 0.5 / 1.5]
     assert first["vmap"] == [[1.0, 1.0]] * 3
     # traced: square (export), square (plain jit reference), square (vmap), scale (export)
     assert sorted(first["traced"]) == ["scale", "square", "square", "square"]
-    assert len(first["files"]) == 4  # two programs, each with its output tree
+    suffixes = sorted(name.rsplit(".", 1)[1] for name in first["files"])
+    # two programs, each lowered, compiled and with its output tree
+    assert suffixes == ["stablehlo", "stablehlo", "tree", "tree", "xla", "xla"]
 
     second = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
     assert second["y"] == first["y"] and second["scale"] == first["scale"]
+    assert second["solve"] == first["solve"]
     assert sorted(second["traced"]) == ["square", "square"]  # only the reference and vmap
+    assert second["lowered"] == 0  # both loaded compiled: no StableHLO read back
     assert second["files"] == first["files"]
 
-    # a truncated program (a crash mid-write on a system without atomic rename) is retraced
+    # a truncated entry (a crash mid-write on a system without atomic rename) is retraced
     directory = next(base.iterdir()) / "exported"
-    for path in directory.glob("*.stablehlo"):
+    for path in [*directory.glob("*.stablehlo"), *directory.glob("*.xla")]:
         path.write_bytes(path.read_bytes()[:20])
     third = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
     assert third["y"] == first["y"] and third["scale"] == first["scale"]
     assert sorted(third["traced"]) == sorted(first["traced"])
+    # retraced, the programs compiled from JAX's cache: an executable read back from it
+    # serializes without its kernels, so only the lowered programs are kept ...
+    assert not list(directory.glob("*.xla"))
+    # ... and the next process runs from them
+    fourth = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base)))
+    assert fourth["y"] == first["y"] and fourth["solve"] == first["solve"]
+    assert fourth["lowered"] == 2 and sorted(fourth["traced"]) == ["square", "square"]
 
     off = json.loads(_python(_EXPORT_PROBE, AJTWIN_CACHE_DIR=str(base), AJTWIN_NO_CACHE="1"))
     assert off["y"] == first["y"] and off["files"] == []

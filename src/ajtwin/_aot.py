@@ -3,13 +3,17 @@
 JAX's persistent compilation cache (:mod:`ajtwin._jax`) skips XLA's compilation, but
 every new process still *traces* a jitted function in Python and lowers it to
 StableHLO to find its cache key — for the EM loop and the filter of ``ajtwin
-estimate`` about 0.8 s of a 3.3 s run. :func:`exported_jit` keeps the lowered program
-itself (``jax.export``, serialized) beside the compiled ones, so a later process
-reads it back, lowers nothing and hits the compilation cache.
+estimate`` about 0.8 s of a 3.3 s run. :func:`exported_jit` keeps, beside JAX's own
+cache, the lowered program (``jax.export``, serialized) and the executable XLA compiled
+from it, so a later process loads the executable and neither traces nor lowers. An
+executable is kept only when every external routine it calls is LAPACK's (filled in
+before loading); a program calling any other (whose address need not hold in another
+process) keeps its lowered form alone, compiled from JAX's cache by the next process.
 
 The stored program is found by a key of: the function's module and name, the JAX
-version, ``XLA_FLAGS``, a hash of ajtwin's own source and data files (any edit makes
-new entries), the pytree structure, shapes and dtypes of the arguments, and the static
+and jaxlib versions, the machine's architecture, ``XLA_FLAGS``, a hash of ajtwin's own
+source and data files (any edit makes new entries), the pytree structure, shapes,
+dtypes and weak types of the arguments, and the static
 arguments (only values with a stable description: module-level functions, named
 tuples and frozen dataclasses of them, numbers, strings; anything else is plain
 ``jax.jit``). Calls under a JAX transformation (a tracer among the arguments: the
@@ -28,18 +32,28 @@ Examples
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import hashlib
 import inspect
 import os
 import pickle
+import platform
+import re
+import threading
 import types
 from pathlib import Path
 
 import numpy as np
 
-from ajtwin._jax import compilation_cache_dir, jax
+from ajtwin._jax import (
+    compilation_cache_dir,
+    jax,
+    jaxlib_version,
+    lapack_targets,
+    serialize_executable,
+)
 
 _PACKAGE = Path(__file__).resolve().parent
 _SOURCE_SUFFIXES = (".py", ".toml", ".csv")
@@ -162,11 +176,11 @@ def exported_jit(
         key_text = repr(
             (
                 name,
-                jax.__version__,
+                _toolchain(),
                 os.environ.get("XLA_FLAGS", ""),
                 source_digest(),
                 str(in_tree),
-                [(tuple(a.shape), str(a.dtype)) for a in arrays],
+                [(a.shape, str(a.dtype), getattr(a, "weak_type", False)) for a in arrays],
                 sorted(static_key.items()),
             )
         )
@@ -181,23 +195,89 @@ def exported_jit(
     return call
 
 
-def _paths(directory: Path, key: str) -> tuple[Path, Path]:
+@functools.cache
+def _toolchain() -> str:
+    """What an executable was built by and for: JAX, jaxlib, the CPU architecture."""
+    return f"jax {jax.__version__}, jaxlib {jaxlib_version}, {platform.machine()}"
+
+
+#: external routines a kept executable may call: LAPACK's, filled in by _lapack_ready
+_LOADABLE_TARGET = re.compile(r"lapack_\w+")
+
+
+def _paths(directory: Path, key: str) -> tuple[Path, Path, Path]:
     folder = directory / "exported"
-    return folder / f"{key}.stablehlo", folder / f"{key}.tree"
+    return folder / f"{key}.stablehlo", folder / f"{key}.tree", folder / f"{key}.xla"
 
 
 def _load(directory: Path, key: str):
-    program, tree = _paths(directory, key)
+    program, tree, executable = _paths(directory, key)
     try:
-        exported = jax.export.deserialize(bytearray(program.read_bytes()))
         # the cache directory is private to this user (ajtwin._jax); the tree is a
         # pickled PyTreeDef of ajtwin's own result types
         out_tree = pickle.loads(tree.read_bytes())
+        compiled = _load_executable(executable)
+        if compiled is not None:
+            return compiled, out_tree
+        exported = jax.export.deserialize(bytearray(program.read_bytes()))
     except FileNotFoundError:
         return None
     except Exception:  # noqa: BLE001 — any broken entry (flatbuffers, pickle, struct) is retraced
         return None
     return jax.jit(exported.call), out_tree
+
+
+def _load_executable(path: Path):
+    """The compiled program kept at ``path``, or None (absent or unreadable)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    _lapack_ready()
+    payload, in_tree, out_tree = pickle.loads(data)
+    return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+
+
+@functools.cache
+def _lapack_ready() -> None:
+    """Fill in jaxlib's LAPACK entry points, as lowering a linear solve would.
+
+    A kept executable calls LAPACK (Cholesky, LU) through targets that jaxlib fills
+    in only when the first such operation is lowered; a process that loads programs
+    without lowering anything must fill them in first or the call jumps to nothing.
+    """
+    lapack_targets.initialize()
+
+
+#: JAX's persistent-cache hits, per thread (counted by the listener below)
+_cache_hits: collections.Counter = collections.Counter()
+
+
+def _count_cache_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _cache_hits[threading.get_ident()] += 1
+
+
+jax.monitoring.register_event_listener(_count_cache_hit)
+
+
+def _compile(exported, shapes, key: str):
+    """``exported`` compiled for ``shapes``, and whether XLA compiled it here.
+
+    Only a program compiled in this process is kept as an executable: one read back
+    from JAX's cache serializes without its kernels ("Function … not found" when the
+    next process runs it). The program is named after ``key``, so JAX's cache holds it
+    under a key of its own, found again only if this entry is exported again.
+    """
+
+    def run(*leaves):
+        return exported.call(*leaves)
+
+    run.__name__ = run.__qualname__ = f"ajtwin_{key}"
+    thread = threading.get_ident()
+    before = _cache_hits[thread]
+    compiled = jax.jit(run).lower(*shapes).compile()
+    return compiled, _cache_hits[thread] == before
 
 
 def _export(directory: Path, key: str, jitted, in_tree, static: dict, arrays: list):
@@ -211,14 +291,23 @@ def _export(directory: Path, key: str, jitted, in_tree, static: dict, arrays: li
 
     shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in arrays]
     exported = jax.export.export(jax.jit(flat))(*shapes)
-    program, tree = _paths(directory, key)
+    compiled, fresh = _compile(exported, shapes, key)
+    program, tree, executable = _paths(directory, key)
+    entries = [(tree, pickle.dumps(out_trees[0])), (program, exported.serialize())]
+    targets = re.findall(r'call_target_name = "([^"]*)"', exported.mlir_module())
+    targets += re.findall(r"custom_call @([\w.]+)", exported.mlir_module())
+    keep_executable = fresh and all(_LOADABLE_TARGET.fullmatch(t) for t in targets)
+    if keep_executable:
+        entries.append((executable, pickle.dumps(serialize_executable.serialize(compiled))))
     try:
         program.parent.mkdir(mode=0o700, exist_ok=True)
         # write then rename: a killed process never leaves a half entry under the key
-        for path, data in ((tree, pickle.dumps(out_trees[0])), (program, exported.serialize())):
+        for path, data in entries:
             partial = path.with_suffix(path.suffix + f".{os.getpid()}.part")
             partial.write_bytes(data)
             os.replace(partial, path)
+        if not keep_executable:
+            executable.unlink(missing_ok=True)  # a broken one sent this process here
     except OSError:
         pass  # read-only cache: this process still runs from what it traced
-    return jax.jit(exported.call), out_trees[0]
+    return compiled, out_trees[0]

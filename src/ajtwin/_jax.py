@@ -113,6 +113,9 @@ if "jax" not in sys.modules and _jaxlib_version() >= FLAGS_SINCE_JAXLIB:
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from jax.experimental import serialize_executable  # noqa: E402, F401 — for ajtwin._aot
+from jaxlib.cpu import _lapack as lapack_targets  # noqa: E402, F401 — for ajtwin._aot
+from jaxlib.version import __version__ as jaxlib_version  # noqa: E402, F401 — for ajtwin._aot
 
 from ajtwin import __version__  # noqa: E402
 

@@ -160,7 +160,9 @@ class TwinConfig:
         # nominal Q_m at the Exp 1 operating point (model reference §6: the paper's value is
         # unusable)
         u = np.array([375.0, 23.0, 50.0])
-        q_m = float(settled_outputs(u, 1.0, model.params, model.coefficient_matrix)[1][4])
+        q_m = float(
+            np.asarray(settled_outputs(u, 1.0, model.params, model.coefficient_matrix)[1])[4]
+        )
         process = tuple(proc[name] for name in STATE_NAMES)
         measurement = (
             meas["linewidth_um"],

@@ -253,18 +253,18 @@ def initial_carry(settings: VialSettings, fill_ml: float, fill_std_ml: float) ->
     if not (np.isfinite(fill_std_ml) and fill_std_ml > 0):
         raise ValueError(f"vial fill σ = {fill_std_ml!r} mL must be a positive number")
     s = settings
-    mean = jnp.array([float(fill_ml), 0.0, 0.0, 0.0])
-    cov = jnp.diag(
-        jnp.array(
-            [
-                fill_std_ml**2,
-                s.loss_rate_std_mL_per_h**2,
-                s.efficiency_offset_std**2,
-                s.efficiency_wander_std**2,
-            ]
-        )
+    # NumPy, not jnp: built on the host before the compiled scan, it dispatches no
+    # JAX operation of its own (each would be traced and lowered in every new process)
+    mean = np.array([float(fill_ml), 0.0, 0.0, 0.0])
+    cov = np.diag(
+        [
+            fill_std_ml**2,
+            s.loss_rate_std_mL_per_h**2,
+            s.efficiency_offset_std**2,
+            s.efficiency_wander_std**2,
+        ]
     )
-    return ObserverCarry(mean, cov, jnp.zeros(()), jnp.zeros(()))
+    return ObserverCarry(mean, cov, np.zeros(()), np.zeros(()))
 
 
 @dataclass

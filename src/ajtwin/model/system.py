@@ -238,7 +238,7 @@ def aerosol_level_theta_std(u, vial_volume_ml, params, relative_std):
     From φ* ≈ H / (Q_c − θ_φA (V_v − V_l)) (:func:`steady_aerosol_fraction`, θ_φA small):
     δφ*/φ* ≈ δθ_φA (V_v − V_l) / Q_c, so σ_θ = relative_std · Q_c / (V_v − V_l).
     """
-    carrier_ml_s = units.sccm_to_ml_per_s(jnp.asarray(u)[..., 1])
+    carrier_ml_s = units.sccm_to_ml_per_s(np.asarray(u)[..., 1])  # host-side: no JAX dispatch
     return relative_std * carrier_ml_s / vial_headspace_ml(vial_volume_ml, params)
 
 

@@ -301,13 +301,15 @@ def forecast(
         droplet_std = twin.droplet_dynamics.forecast_droplet_std_um
         if droplet_std > 0:
             process_cov[0, 0] = droplet_std**2
+    # NumPy on the host: the compiled scan takes them as they are (a jnp conversion here
+    # would be one more JAX program to trace in every new process)
     args = (
         twin.spec,
-        jnp.asarray(mean, dtype=float),
-        jnp.asarray(cov, dtype=float),
-        jnp.asarray(model_inputs),
-        jnp.asarray(theta, dtype=float),
-        jnp.asarray(process_cov),
+        np.asarray(mean, dtype=float),
+        np.asarray(cov, dtype=float),
+        np.asarray(model_inputs, dtype=float),
+        np.asarray(theta, dtype=float),
+        process_cov,
     )
     # the twin's own model (discretisation, transition variant): the one its θ was learned on
     functions = getattr(twin, "functions", None)
@@ -320,7 +322,7 @@ def forecast(
     if wander > 0:
         level_var = aerosol_level_variance(twin, mean, inputs[0], wander)
         m, pdiag, y, var = _forecast_scan_level_walk(
-            *args, jnp.asarray(level_var), functions=functions
+            *args, np.asarray(level_var), functions=functions
         )
     else:
         m, pdiag, y, var = _forecast_scan(*args, functions=functions)

@@ -11,7 +11,7 @@ import pytest
 from ajtwin.estimation.print_time import program_for_record
 from ajtwin.job import SpeedSchedule, apply_speed_schedule, read_program, read_program_text
 from ajtwin.job.speeds import stroke_layers
-from ajtwin.simulation.job_print import simulate_job
+from ajtwin.simulation.job_print import JobSettings, simulate_job
 
 PUBLIC = Path(__file__).parent / "data" / "prg" / "prg2svg" / "4-naf 654321.prg"
 
@@ -160,7 +160,9 @@ def test_a_job_print_keeps_its_schedule_and_the_twin_reads_the_program_as_it_ran
     program = tmp_path / "two_layers.prg"
     program.write_text(TWO_LAYERS)
     schedule = SpeedSchedule.parse("2,4")
-    record = simulate_job(program, "exp1", seed=1, duration_min=0.5, speed_schedule=schedule)
+    record = simulate_job(
+        program, "exp1", seed=1, duration_min=0.5, job_settings=JobSettings(speed_schedule=schedule)
+    )
     assert record.meta["job"]["process_speed_schedule"] == schedule.to_meta()
     job = program_for_record(record, program)
     assert job.speed_schedule == schedule

@@ -20,7 +20,7 @@ from ajtwin.engine.ingest import ingest_record
 from ajtwin.engine.part_live import follow_engine
 from ajtwin.engine.print_job import entry_job, job_entry
 from ajtwin.io.records import write_record
-from ajtwin.simulation import run_job_print, simulate
+from ajtwin.simulation import JobSettings, run_job_print, simulate
 from ajtwin.store import registry as R
 from ajtwin.store.registry import Registry
 
@@ -91,7 +91,7 @@ def test_a_job_looped_side_by_side_is_kept_and_read_back_as_the_print_ran_it(tmp
     from ajtwin.estimation.print_time import program_for_record
 
     record = run_job_print(
-        PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(35.0, 10.0)
+        PROGRAM, "exp1", 3, duration_min=4.0, job_settings=JobSettings(repeat_pitch_mm=(35.0, 10.0))
     ).record
     assert record.meta["job"]["repeat_pitch_mm"] == [35.0, 10.0]
     from_record = program_for_record(record, PROGRAM)
@@ -118,7 +118,7 @@ def test_job_report_of_a_log_that_names_no_job_takes_the_looping_from_the_option
     from ajtwin.io.records import PrintRecord
 
     record = run_job_print(
-        PROGRAM, "exp1", 3, duration_min=4.0, repeat_pitch_mm=(35.0, 10.0)
+        PROGRAM, "exp1", 3, duration_min=4.0, job_settings=JobSettings(repeat_pitch_mm=(35.0, 10.0))
     ).record
     named = tmp_path / "named.parquet"
     write_record(record, named)

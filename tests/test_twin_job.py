@@ -41,7 +41,7 @@ from ajtwin.job import read_program_text
 from ajtwin.job.agreement import RecordMismatch
 from ajtwin.model.system import output_function
 from ajtwin.simulation import simulate
-from ajtwin.simulation.job_print import CameraSettings, run_job_print
+from ajtwin.simulation.job_print import CameraSettings, JobSettings, run_job_print
 from ajtwin.simulation.printer import run_virtual_print
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -285,7 +285,7 @@ def job_prints():
             seed=5,
             duration_min=5.0,
             camera=CameraSettings(mode=mode),
-            repeat_pitch_mm=(35.0, 10.0),
+            job_settings=JobSettings(repeat_pitch_mm=(35.0, 10.0)),
             overrides={"fault": {"onset_min": 2.5, "nozzle_deposition_multiplier": 400.0}},
         ).record
     return prints

@@ -17,7 +17,7 @@ from ajtwin.estimation.print_time import camera_horizon_s, print_context, progra
 from ajtwin.estimation.samples import Sample
 from ajtwin.io.records import write_record
 from ajtwin.job import read_program
-from ajtwin.simulation.job_print import CameraSettings, run_job_print
+from ajtwin.simulation.job_print import CameraSettings, JobSettings, run_job_print
 
 ROOT = Path(__file__).resolve().parent.parent
 PRG = ROOT / "tests" / "data" / "prg" / "prg2svg"
@@ -63,7 +63,8 @@ def test_an_inspection_pass_after_a_looped_print_sees_every_part_side_by_side():
     camera = CameraSettings(mode="inspection")
     kwargs = dict(scenario="exp1", seed=3, duration_min=10.0, camera=camera)
     over = run_job_print(NAFBOT, **kwargs).record
-    side = run_job_print(NAFBOT, **kwargs, repeat_pitch_mm=(35.0, 10.0)).record
+    side_by_side = JobSettings(repeat_pitch_mm=(35.0, 10.0))
+    side = run_job_print(NAFBOT, **kwargs, job_settings=side_by_side).record
     assert side.meta["job"]["repeat_pitch_mm"] == [35.0, 10.0]
     tau_over = over.printed_at[np.isfinite(over.printed_at)]
     tau_side = side.printed_at[np.isfinite(side.printed_at)]
@@ -78,7 +79,11 @@ def test_an_inspection_pass_after_a_looped_print_sees_every_part_side_by_side():
 def job_print_file(tmp_path_factory):
     folder = tmp_path_factory.mktemp("job")
     record = run_job_print(
-        NAFBOT, "exp1", seed=2, duration_min=5.0, repeat_pitch_mm=(35.0, 10.0)
+        NAFBOT,
+        "exp1",
+        seed=2,
+        duration_min=5.0,
+        job_settings=JobSettings(repeat_pitch_mm=(35.0, 10.0)),
     ).record
     return write_record(record, folder / "print.parquet"), record
 

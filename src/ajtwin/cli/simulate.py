@@ -265,7 +265,7 @@ def _simulate_job(
     """Run the job print for ``simulate --job``; program errors and warnings for the user."""
     # lazy CLI loading: imported when the command runs, not for --help
     from ajtwin.job import ProgramError
-    from ajtwin.simulation.job_print import CameraSettings, simulate_job
+    from ajtwin.simulation.job_print import CameraSettings, JobSettings, simulate_job
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -281,9 +281,11 @@ def _simulate_job(
                 machine_seed=machine_seed,
                 truth_generator=truth_generator,
                 camera=camera,
-                rapid_speed_mm_s=rapid_speed,
-                repeat_pitch_mm=repeat_pitch_mm,
-                **job_speeds(process_speed),
+                job_settings=JobSettings(
+                    rapid_speed_mm_s=rapid_speed,
+                    repeat_pitch_mm=repeat_pitch_mm,
+                    **job_speeds(process_speed),
+                ),
             )
         except (ProgramError, ValueError, FileNotFoundError) as exc:
             raise click.ClickException(str(exc)) from None

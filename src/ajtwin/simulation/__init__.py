@@ -5,7 +5,7 @@ with known truth; :func:`run_virtual_print` keeps everything behind it.
 :func:`simulate_job` prints a machine program (model reference §12).
 """
 
-from ajtwin.simulation.job_print import CameraSettings, run_job_print, simulate_job
+from ajtwin.simulation.job_print import CameraSettings, JobSettings, run_job_print, simulate_job
 from ajtwin.simulation.printer import VirtualPrint, run_virtual_print, simulate
 from ajtwin.simulation.scenarios import Scenario, list_scenarios, load_scenario
 
@@ -15,6 +15,7 @@ __all__ = [
     "simulate_job",
     "run_job_print",
     "CameraSettings",
+    "JobSettings",
     "VirtualPrint",
     "Scenario",
     "load_scenario",

@@ -154,6 +154,38 @@ class CameraSettings:
         return {"mode": self.mode, "offset_mm": [float(v) for v in self.offset_mm]}
 
 
+@dataclass(frozen=True)
+class JobSettings:
+    """How the printer's GUI runs a job: its speeds and where the loop's runs sit.
+
+    Attributes
+    ----------
+    process_speed_mm_s : float, optional
+        The GUI's process speed for a program that does not set its own [mm/s].
+    rapid_speed_mm_s : float, optional
+        The GUI's speed of moves with the shutter closed, for a program that does not set
+        its own [mm/s].
+    speed_schedule : ajtwin.job.SpeedSchedule, optional
+        Process speeds per layer, stroke or feature (each run of the loop follows it from
+        its start), recorded as ``job.process_speed_schedule``; instead of
+        ``process_speed_mm_s``.
+    repeat_pitch_mm : (float, float), optional
+        Loop the job as an array of parts side by side at this pitch (dx, dy) [mm] (a lab's
+        practice; an inspection pass then sees every run), recorded as
+        ``job.repeat_pitch_mm``; default: each run prints over the last.
+
+    Examples
+    --------
+    >>> JobSettings(process_speed_mm_s=4.0, repeat_pitch_mm=(35.0, 10.0)).repeat_pitch_mm
+    (35.0, 10.0)
+    """
+
+    process_speed_mm_s: float | None = None
+    rapid_speed_mm_s: float | None = None
+    speed_schedule: object = None
+    repeat_pitch_mm: tuple[float, float] | None = None
+
+
 # --------------------------------------------------------------------------- #
 # The plan: what the job and the camera decide, row by row
 # --------------------------------------------------------------------------- #
@@ -542,18 +574,18 @@ def run_job_print(
     machine_seed: int | None = None,
     truth_generator: str = "model",
     camera: CameraSettings | None = None,
-    process_speed_mm_s: float | None = None,
-    rapid_speed_mm_s: float | None = None,
-    repeat_pitch_mm=None,
-    speed_schedule=None,
+    job_settings: JobSettings | None = None,
 ) -> JobPrint:
     """Print a job on the virtual printer; see :func:`simulate_job` for the parameters."""
 
-    job, path = read_job(program, process_speed_mm_s, rapid_speed_mm_s, speed_schedule)
+    settings = job_settings or JobSettings()
+    job, path = read_job(
+        program, settings.process_speed_mm_s, settings.rapid_speed_mm_s, settings.speed_schedule
+    )
     camera = camera or CameraSettings()
     base = load_scenario(scenario, overrides)
     print_s = base.duration_s if duration_min is None else int(round(duration_min * 60.0))
-    plan = plan_job_print(job, print_s, camera, repeat_pitch_mm)
+    plan = plan_job_print(job, print_s, camera, settings.repeat_pitch_mm)
     plan.program_meta = program_meta(job, path)
     # the machine runs on through the inspection pass, inputs held at their last set-points
     virtual = run_virtual_print(
@@ -622,15 +654,9 @@ def simulate_job(program, scenario="exp1", seed: int = 0, **kwargs) -> PrintReco
         As for :func:`ajtwin.simulation.simulate`.
     camera : CameraSettings, optional
         Mode and offset of the alignment camera (default ``data/virtual_camera.toml``).
-    process_speed_mm_s, rapid_speed_mm_s : float, optional
-        The GUI's speeds for a program that does not set its own.
-    repeat_pitch_mm : (float, float), optional
-        Loop the job as an array of parts side by side at this pitch [mm] (a lab's practice;
-        an inspection pass then sees every run), recorded as ``job.repeat_pitch_mm``;
-        default: each run prints over the last.
-    speed_schedule : ajtwin.job.SpeedSchedule, optional
-        Process speeds per layer, stroke or feature (each run of the loop follows it from
-        its start), recorded as ``job.process_speed_schedule``.
+    job_settings : JobSettings, optional
+        The GUI's speeds for the program and how its loop is laid out (default: the
+        program's own speeds, each run printed over the last).
 
     Returns
     -------

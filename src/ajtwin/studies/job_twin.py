@@ -34,7 +34,7 @@ import numpy as np
 from ajtwin.engine.commissioning import calibrated_twin, commissioned_start
 from ajtwin.estimation.print_time import program_for_record
 from ajtwin.estimation.twin import Twin
-from ajtwin.simulation.job_print import CameraSettings, run_job_print
+from ajtwin.simulation.job_print import CameraSettings, JobSettings, run_job_print
 from ajtwin.simulation.printer import run_virtual_print
 from ajtwin.studies import machine_description
 from ajtwin.studies.machine import commission_virtual_machine, print_seed_of
@@ -78,7 +78,12 @@ def job_runs(program: Path, twin_factory, print_kwargs: dict, n: int, start=None
     out = {}
     for mode in ("trailing", "inspection"):
         camera = CameraSettings(mode=mode, offset_mm=OFFSET_MM if mode == "trailing" else None)
-        job_print = run_job_print(program, camera=camera, repeat_pitch_mm=PITCH_MM, **print_kwargs)
+        job_print = run_job_print(
+            program,
+            camera=camera,
+            job_settings=JobSettings(repeat_pitch_mm=PITCH_MM),
+            **print_kwargs,
+        )
         record = job_print.record
         job = program_for_record(record, program)
         run = twin_factory().run(record, job=job, smooth=True, start=start)

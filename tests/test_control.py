@@ -358,9 +358,9 @@ def test_full_comparison_exp1(tmp_path):
     ≥ 3× below the open loop in RMS error and inside every limit. (The issue's second aim,
     ≥ 1.5× below PI, is not met — docs/howto/closed-loop-control.md says why — so it is not
     asserted.)"""
-    from ajtwin.studies.control import compare
+    from ajtwin.studies.control import ComparisonGrid, compare
 
-    results = compare(["exp1"], range(1, 6), 65.0, tmp_path, log=lambda _: None)
+    results = compare(ComparisonGrid(["exp1"], range(1, 6), 65.0), tmp_path, log=lambda _: None)
     summary = results["scenarios"]["exp1"]["summary"]
     assert summary["ratio_rms_open_loop_over_mpc_twin"] >= 3.0
     for strategy in ("open_loop", "pi", "mpc_nominal", "mpc_twin"):

@@ -447,7 +447,7 @@ def simulate(
     from ajtwin.apps.planning.mpc import ControlSettings, TargetError
     from ajtwin.job import ProgramError
     from ajtwin.simulation.scenarios import load_scenario
-    from ajtwin.studies.control import JobSetup, compare
+    from ajtwin.studies.control import ComparisonGrid, JobSetup, compare
 
     chosen = tuple(s.strip() for s in strategies.split(",") if s.strip())
     unknown = [s for s in chosen if s not in STRATEGIES]
@@ -484,13 +484,12 @@ def simulate(
         total = int(total * len(chosen))
         bar = tqdm(total=total, unit="s", desc="closed loop", disable=no_progress)
         with bar:
+            grid = ComparisonGrid(
+                scenarios, seed_list, target, strategies=chosen, duration_min=duration_min
+            )
             results = compare(
-                scenarios,
-                seed_list,
-                target,
+                grid,
                 out_dir,
-                strategies=chosen,
-                duration_min=duration_min,
                 settings=settings,
                 max_overspray_um=max_overspray,
                 progress=bar.update,

@@ -80,14 +80,47 @@ class JobSetup:
         return {"job": self.job, "camera": self.camera, "repeat_pitch_mm": self.repeat_pitch_mm}
 
 
+@dataclass(frozen=True)
+class ComparisonGrid:
+    """The prints a comparison runs: every strategy on every scenario and seed, each aiming
+    at one target linewidth.
+
+    Attributes
+    ----------
+    scenarios : tuple of str or Path
+        The drift scenarios: packaged names, the controller's own (``slow_clog``) or files.
+    seeds : tuple of int
+        The prints' seeds; every scenario runs each.
+    target_um : float
+        Target linewidth L_w [µm].
+    strategies : tuple of str
+        The strategies compared (default all of
+        :data:`~ajtwin.apps.planning.closed_loop.STRATEGIES`).
+    duration_min : float, optional
+        Length of every print [min] (default: each scenario's own).
+
+    Examples
+    --------
+    >>> ComparisonGrid(["exp1"], range(1, 3), 55.0).seeds
+    (1, 2)
+    """
+
+    scenarios: tuple
+    seeds: tuple
+    target_um: float
+    strategies: tuple = STRATEGIES
+    duration_min: float | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "scenarios", tuple(self.scenarios))
+        object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
+        object.__setattr__(self, "strategies", tuple(self.strategies))
+
+
 def compare(
-    scenarios,
-    seeds,
-    target_um: float,
+    grid: ComparisonGrid,
     out_dir,
     *,
-    strategies=STRATEGIES,
-    duration_min=None,
     settings=None,
     limits=None,
     max_overspray_um=None,
@@ -96,11 +129,13 @@ def compare(
     truth: str = "model",
     job: JobSetup | None = None,
 ) -> dict:
-    """Run every strategy on every scenario and seed; write records, metrics and figures.
+    """Run every strategy on every scenario and seed of ``grid``; write records, metrics
+    and figures.
 
     ``job``: every print runs this program under its camera (:class:`JobSetup`); the
     metrics are then per printed length.
     """
+    target_um, strategies, duration_min = grid.target_um, grid.strategies, grid.duration_min
     settings = settings or ControlSettings.load()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -116,7 +151,7 @@ def compare(
         "start_inputs": u0.tolist(),
         "settings": settings.source,
         "strategies": list(strategies),
-        "seeds": [int(s) for s in seeds],
+        "seeds": list(grid.seeds),
         "duration_min": duration_min,
         "truth_generator": truth,
         # control.toml's tuning was chosen on the first generator (exp1 seeds 0 and 6)
@@ -135,10 +170,10 @@ def compare(
         "truth": truth,
         **({} if job is None else job.kwargs()),
     }
-    for scenario in scenarios:
+    for scenario in grid.scenarios:
         runs = {}
         per_seed = {}
-        for seed in seeds:
+        for seed in grid.seeds:
             name, runs[int(seed)] = run_seed(
                 scenario, seed, strategies, target_um, out, options, log=log
             )
@@ -570,14 +605,10 @@ def _in_core(cell, scenarios=None, cameras=None) -> bool:
 
 def job_comparison(
     cameras: dict,
-    scenarios,
-    seeds,
-    target_um: float,
+    grid: ComparisonGrid,
     out_dir,
     *,
     truths=("model", "alt"),
-    minutes: float | None = None,
-    strategies=STRATEGIES,
     core_scenarios=None,
     core_cameras=None,
     stop_at: float | None = None,
@@ -585,9 +616,9 @@ def job_comparison(
     resume: bool = False,
     log=print,
 ) -> dict:
-    """Every strategy on every scenario, camera, truth generator and seed, merged into one
-    table: ``out_dir/metrics.json`` and ``metrics.md`` (rewritten after every print), a
-    figure per core cell in ``out_dir``; the records under
+    """Every strategy on every scenario and seed of ``grid``, under every camera and truth
+    generator, merged into one table: ``out_dir/metrics.json`` and ``metrics.md``
+    (rewritten after every print), a figure per core cell in ``out_dir``; the records under
     ``records_dir/<truth>/<camera>/<scenario>/seed<N>/`` (default ``out_dir``).
 
     The prints run in the order of :func:`comparison_tasks`: the core cells
@@ -596,6 +627,7 @@ def job_comparison(
     slowest so far; the table says which seeds ran in each cell. ``resume``: the prints of
     an earlier ``out_dir/metrics.json`` of the same comparison are kept, not run again.
     """
+    target_um, strategies, minutes = grid.target_um, grid.strategies, grid.duration_min
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     records = Path(records_dir) if records_dir is not None else out
@@ -608,16 +640,16 @@ def job_comparison(
         "settings": settings.source,
         "strategies": list(strategies),
         "truths": list(truths),
-        "seeds_asked": [int(s) for s in seeds],
+        "seeds_asked": list(grid.seeds),
         "minutes": minutes,
         "core": {"scenarios": core_scenarios, "cameras": core_cameras},
         "jobs": {name: setup.meta() for name, setup in cameras.items()},
         "runnable_processes_1min_start": list(os.getloadavg()),
         "cameras": {},
     }
-    cells = [(t, c, sc) for c in cameras for sc in scenarios for t in truths]
+    cells = [(t, c, sc) for c in cameras for sc in grid.scenarios for t in truths]
     core = functools.partial(_in_core, scenarios=core_scenarios, cameras=core_cameras)
-    tasks = comparison_tasks(cells, [int(s) for s in seeds], core)
+    tasks = comparison_tasks(cells, list(grid.seeds), core)
     merged["cameras"] = _resumed(out / "metrics.json", merged, log) if resume else {}
     slowest, done = 0.0, 0
     for truth, camera, scenario, seed in tasks:
@@ -789,14 +821,17 @@ def main(argv=None) -> None:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(result, indent=2))
     else:
-        result = job_comparison(
-            cameras,
+        grid = ComparisonGrid(
             [s for s in args.scenarios.split(",") if s],
             seeds,
             args.target,
+            duration_min=args.minutes,
+        )
+        result = job_comparison(
+            cameras,
+            grid,
             args.out,
             truths=tuple(args.truth.split(",")),
-            minutes=args.minutes,
             core_scenarios=None if args.core_scenarios is None else args.core_scenarios.split(","),
             core_cameras=(
                 None

@@ -395,7 +395,7 @@ def report(
     print. Writes OUT/strokes.csv, OUT/part.png and OUT/report.html.
     """
     # lazy CLI loading: imported when the command runs, not for --help
-    from ajtwin.apps.quality.part_map import part_map_of_record
+    from ajtwin.apps.quality.part_map import MapSettings, part_map_of_record
     from ajtwin.apps.quality.report import write_report
     from ajtwin.engine.print_job import load_stored_print, map_stored_print, next_print_twin
     from ajtwin.estimation.print_time import program_for_record
@@ -410,8 +410,11 @@ def report(
     if record is not None and program is None:
         raise click.UsageError("a print RECORD needs the program it ran: --job PROGRAM.prg")
     twin_step, line_step, close = _bars(progress)
-    options = {"portion_mm": portion_mm, "flag_probability": flag_probability,
-               "twin_progress": twin_step, "line_progress": line_step}  # fmt: skip
+    options = {
+        "map_settings": MapSettings(portion_mm=portion_mm, flag_probability=flag_probability),
+        "twin_progress": twin_step,
+        "line_progress": line_step,
+    }
     try:
         if record is None:
             stored = load_stored_print(open_registry(store), machine, seq, program)

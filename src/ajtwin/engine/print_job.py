@@ -20,9 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from ajtwin.apps.quality.part_map import (
-    FLAG_PROBABILITY,
-    PORTION_MM,
-    STEP_MM,
+    MAP_DEFAULTS,
+    MapSettings,
     PartMap,
     Tolerance,
     build_part_map,
@@ -213,9 +212,7 @@ def map_stored_print(
     stored: StoredPrint,
     tolerance: Tolerance | None = None,
     *,
-    portion_mm: float = PORTION_MM,
-    step_mm: float = STEP_MM,
-    flag_probability: float = FLAG_PROBABILITY,
+    map_settings: MapSettings = MAP_DEFAULTS,
     twin_progress=None,
     line_progress=None,
 ) -> PartMap:
@@ -231,9 +228,7 @@ def map_stored_print(
         tolerance,
         events=stored.events,
         source=f"{stored.machine} print {stored.row['seq']}",
-        portion_mm=portion_mm,
-        step_mm=step_mm,
-        flag_probability=flag_probability,
+        map_settings=map_settings,
         progress=line_progress,
     )
     part.run = run

@@ -30,9 +30,8 @@ import numpy as np
 import pandas as pd
 
 from ajtwin.apps.quality.part_map import (
-    FLAG_PROBABILITY,
-    PORTION_MM,
-    STEP_MM,
+    MAP_DEFAULTS,
+    MapSettings,
     PartMap,
     Tolerance,
     place_alarms,
@@ -177,8 +176,9 @@ class LivePartMap:
         The live twin's line (:attr:`ajtwin.estimation.twin.Twin.line_model`, with the
         machine's calibration); :func:`follow_engine` takes it from the machine's stream.
     tolerance : Tolerance, optional
-    portion_mm, step_mm, flag_probability
-        As for :func:`ajtwin.apps.quality.part_map.build_part_map`.
+    map_settings : MapSettings, optional
+        How the part is cut, sampled and judged, as for
+        :func:`ajtwin.apps.quality.part_map.build_part_map`.
     """
 
     def __init__(
@@ -187,15 +187,13 @@ class LivePartMap:
         line_model=None,
         tolerance: Tolerance | None = None,
         *,
-        portion_mm: float = PORTION_MM,
-        step_mm: float = STEP_MM,
-        flag_probability: float = FLAG_PROBABILITY,
+        map_settings: MapSettings = MAP_DEFAULTS,
     ):
         self.base_job = job
         self.line_model = line_model
         self.tolerance = tolerance
-        self.portion_mm, self.step_mm = float(portion_mm), float(step_mm)
-        self.flag_probability = float(flag_probability)
+        self.portion_mm, self.step_mm = float(map_settings.portion_mm), float(map_settings.step_mm)
+        self.flag_probability = float(map_settings.flag_probability)
         self._steps = deque(maxlen=LIVE_HISTORY_STEPS)
         self.done_until_s = -np.inf  # portions finishing up to here were handed out
         self.n_sent = 0

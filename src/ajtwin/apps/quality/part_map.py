@@ -120,6 +120,34 @@ FLAG_PROBABILITY = 0.5
 # --------------------------------------------------------------------------- #
 
 
+class MapSettings(NamedTuple):
+    """How a part is cut, sampled and judged (module docstring).
+
+    Attributes
+    ----------
+    portion_mm : float
+        Longest stroke portion [mm] (default :data:`PORTION_MM`).
+    step_mm : float
+        Largest spacing of the sample points along a portion [mm] (default :data:`STEP_MM`).
+    flag_probability : float
+        A portion is flagged from this probability of being out of tolerance, in [0, 1]
+        (default :data:`FLAG_PROBABILITY`).
+
+    Examples
+    --------
+    >>> MapSettings(portion_mm=2.0)
+    MapSettings(portion_mm=2.0, step_mm=0.1, flag_probability=0.5)
+    """
+
+    portion_mm: float = PORTION_MM
+    step_mm: float = STEP_MM
+    flag_probability: float = FLAG_PROBABILITY
+
+
+#: The packaged way a part is cut, sampled and judged.
+MAP_DEFAULTS = MapSettings()
+
+
 class Tolerance(NamedTuple):
     """The linewidth's tolerance band [µm]."""
 
@@ -668,18 +696,18 @@ def evaluate_portions(
     tolerance: Tolerance | None,
     *,
     printed_until_s: float,
-    portion_mm: float = PORTION_MM,
-    step_mm: float = STEP_MM,
-    flag_probability: float = FLAG_PROBABILITY,
+    map_settings: MapSettings = MAP_DEFAULTS,
     progress=None,
 ):
-    """(portions table, points, notes) of the strokes printed by ``printed_until_s``.
+    """(portions table, points, notes) of the strokes printed by ``printed_until_s``, cut,
+    sampled and judged as ``map_settings`` says.
 
     ``line(times_s, speeds_mm_s, progress) -> (mean (n, 2), sd (n, 2))`` evaluates the
     line at every sample point (:func:`line_at` with a run bound), calling ``progress(done)``
     as it goes (None: no progress); ``progress(done, total)`` is called alike. Portions not
     finished by ``printed_until_s`` are left out (a note says how many).
     """
+    portion_mm, step_mm, flag_probability = map_settings
     if not 0.0 <= flag_probability <= 1.0:
         raise ValueError(f"flag_probability must lie in [0, 1], got {flag_probability}")
     portions = job.portions(portion_mm)
@@ -709,13 +737,11 @@ def build_part_map(
     *,
     events=(),
     source: str = "",
-    portion_mm: float = PORTION_MM,
-    step_mm: float = STEP_MM,
-    flag_probability: float = FLAG_PROBABILITY,
+    map_settings: MapSettings = MAP_DEFAULTS,
     progress=None,
 ) -> PartMap:
     """The part map of a smoothed run (:class:`~ajtwin.estimation.twin.TwinRun`) over a
-    print of ``job`` (module docstring).
+    print of ``job`` (module docstring), cut, sampled and judged as ``map_settings`` says.
 
     ``events``: the print's alarms (placed on the part). ``progress(done, total)`` is
     called as the sample points are evaluated.
@@ -730,9 +756,7 @@ def build_part_map(
         line,
         tolerance,
         printed_until_s=end_s,
-        portion_mm=portion_mm,
-        step_mm=step_mm,
-        flag_probability=flag_probability,
+        map_settings=map_settings,
         progress=progress,
     )
     alarms = place_alarms(job, events)
@@ -742,7 +766,7 @@ def build_part_map(
         points,
         alarms,
         tolerance,
-        flag_probability,
+        map_settings.flag_probability,
         source,
         notes,
     )
@@ -756,9 +780,7 @@ def part_map_of_record(
     twin: Twin | None = None,
     start=None,
     source: str = "",
-    portion_mm: float = PORTION_MM,
-    step_mm: float = STEP_MM,
-    flag_probability: float = FLAG_PROBABILITY,
+    map_settings: MapSettings = MAP_DEFAULTS,
     events=None,
     twin_progress=None,
     line_progress=None,
@@ -775,7 +797,8 @@ def part_map_of_record(
     (:func:`smoothed_run`). ``twin``/``start``: the machine's twin and where its print
     starts (default: the initial fit of a new twin). ``events``: the print's alarms;
     default: those the detectors raise over this run
-    (:func:`ajtwin.apps.detection.batch.detect_run`).
+    (:func:`ajtwin.apps.detection.batch.detect_run`). ``map_settings``: how the part is
+    cut, sampled and judged.
     """
     twin = twin or Twin.default()
     if learn_speed and job is not None and is_job_record(record):
@@ -789,9 +812,7 @@ def part_map_of_record(
         tolerance,
         events=events,
         source=source,
-        portion_mm=portion_mm,
-        step_mm=step_mm,
-        flag_probability=flag_probability,
+        map_settings=map_settings,
         progress=line_progress,
     )
     part.run = run

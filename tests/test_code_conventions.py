@@ -2,6 +2,9 @@
 
 * no function longer than 120 lines outside the studies (a long function is split into
   named steps);
+* no public function takes more than 12 parameters (what belongs together travels as one
+  parameter object, a NamedTuple or a frozen dataclass); a command's callback takes one
+  parameter per option and is exempt;
 * every public function, method and class of ``src/ajtwin`` has a docstring;
 * nothing points outside the repository (the model is documented in
   ``docs/reference/model.md`` and cited as "model reference §N");
@@ -22,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "src" / "ajtwin"
 TESTS = ROOT / "tests"
 MAX_LINES = 120
+MAX_PARAMETERS = 12
 
 #: The patterns below are assembled from parts so that this file does not match itself.
 _NOTE = "SP" + "EC"
@@ -102,6 +106,67 @@ def test_no_function_over_120_lines_outside_the_studies():
                 if n > MAX_LINES:
                     long.append(f"{_where(path, node.lineno)} {node.name}: {n} lines")
     assert not long, "split into named steps:\n" + "\n".join(long)
+
+
+def parameter_count(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """A function's parameters: ``self``/``cls`` not counted, ``*args``, ``**kwargs`` one each."""
+    args = node.args
+    names = [a.arg for a in (*args.posonlyargs, *args.args, *args.kwonlyargs)]
+    if names and names[0] in ("self", "cls"):
+        names = names[1:]
+    return len(names) + (args.vararg is not None) + (args.kwarg is not None)
+
+
+def _is_command(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """A click command's callback: decorated with ``click.…`` or ``@….command``/``option``."""
+    for decorator in node.decorator_list:
+        text = ast.unparse(decorator)
+        if text.startswith("click.") or re.search(r"(^|\.)(command|group|option|argument)\b", text):
+            return True
+    return False
+
+
+def public_functions(tree: ast.Module):
+    """Every public function and method of a module: (node, dotted name); a name starting
+    with ``_``, a function nested in another and the members of a private class are not."""
+
+    def visit(body, prefix):
+        for node in body:
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                if not node.name.startswith("_"):
+                    yield node, prefix + node.name
+            elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+                yield from visit(node.body, f"{prefix}{node.name}.")
+            elif isinstance(node, ast.If | ast.Try):  # definitions under a guard
+                for block in (node.body, node.orelse, getattr(node, "finalbody", [])):
+                    yield from visit(block, prefix)
+
+    yield from visit(tree.body, "")
+
+
+def test_no_public_function_takes_more_than_12_parameters():
+    long = []
+    for path in _python_files(PACKAGE):
+        for node, name in public_functions(ast.parse(path.read_text(encoding="utf-8"))):
+            n = parameter_count(node)
+            if n > MAX_PARAMETERS and not _is_command(node):
+                long.append(f"{_where(path, node.lineno)} {name}: {n} parameters")
+    assert not long, "group what belongs together into a parameter object:\n" + "\n".join(long)
+
+
+def test_the_parameter_rule_counts_what_it_should():
+    tree = ast.parse(
+        "class A:\n"
+        "    def m(self, a, /, b, *c, d, **e): pass\n"
+        "    def _hidden(self, *a): pass\n"
+        "@cli.command()\n@click.option('--x')\ndef run(x): pass\n"
+        "def outer(p):\n    def inner(q): pass\n"
+        "class _Private:\n    def m(self): pass\n"
+    )
+    found = {name: node for node, name in public_functions(tree)}
+    assert set(found) == {"A.m", "run", "outer"}
+    assert parameter_count(found["A.m"]) == 5 and parameter_count(found["outer"]) == 1
+    assert _is_command(found["run"]) and not _is_command(found["A.m"])
 
 
 def test_every_public_function_method_and_class_has_a_docstring():

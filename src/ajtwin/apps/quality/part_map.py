@@ -115,11 +115,6 @@ STEP_MM = 0.1
 FLAG_PROBABILITY = 0.5
 
 
-# --------------------------------------------------------------------------- #
-# The tolerance
-# --------------------------------------------------------------------------- #
-
-
 class MapSettings(NamedTuple):
     """How a part is cut, sampled and judged (module docstring).
 
@@ -146,6 +141,11 @@ class MapSettings(NamedTuple):
 
 #: The packaged way a part is cut, sampled and judged.
 MAP_DEFAULTS = MapSettings()
+
+
+# --------------------------------------------------------------------------- #
+# The tolerance
+# --------------------------------------------------------------------------- #
 
 
 class Tolerance(NamedTuple):

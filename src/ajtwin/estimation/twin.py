@@ -380,7 +380,8 @@ class TwinRun:
         src = self.smoothed if use_smoothed else self.filtered
         means = np.asarray(src.means)
         stds = np.sqrt(np.maximum(np.diagonal(self._total_cov(src.covariances), 0, 1, 2), 0))
-        frame = pd.DataFrame({"time_s": self.time_s})
+        # columns gathered first: one DataFrame, not ~40 insertions (each copies the block)
+        frame = {"time_s": self.time_s}
         for i, name in enumerate(STATE_NAMES):
             frame[name] = means[:, i]
             frame[name + "_std"] = stds[:, i]
@@ -410,7 +411,7 @@ class TwinRun:
             frame["vial_loss_rate_mL_per_h"] = self.vial.loss_rate_ml_per_h
             frame["atomizer_efficiency"] = self.vial.efficiency
             frame["vial_running_low"] = self.vial.running_low
-        return frame
+        return pd.DataFrame(frame)
 
 
 def twin_functions(method: str = "euler", transition: str = "paper") -> ModelFunctions:

@@ -128,12 +128,13 @@ def _is_command(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
 
 def public_functions(tree: ast.Module):
     """Every public function and method of a module: (node, dotted name); a name starting
-    with ``_``, a function nested in another and the members of a private class are not."""
+    with ``_``, a function nested in another and the members of a private class are not,
+    but a public class's ``__init__`` is (it is how the class is called)."""
 
     def visit(body, prefix):
         for node in body:
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                if not node.name.startswith("_"):
+                if not node.name.startswith("_") or (prefix and node.name == "__init__"):
                     yield node, prefix + node.name
             elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
                 yield from visit(node.body, f"{prefix}{node.name}.")
@@ -157,6 +158,7 @@ def test_no_public_function_takes_more_than_12_parameters():
 def test_the_parameter_rule_counts_what_it_should():
     tree = ast.parse(
         "class A:\n"
+        "    def __init__(self, a): pass\n"
         "    def m(self, a, /, b, *c, d, **e): pass\n"
         "    def _hidden(self, *a): pass\n"
         "@cli.command()\n@click.option('--x')\ndef run(x): pass\n"
@@ -164,7 +166,7 @@ def test_the_parameter_rule_counts_what_it_should():
         "class _Private:\n    def m(self): pass\n"
     )
     found = {name: node for node, name in public_functions(tree)}
-    assert set(found) == {"A.m", "run", "outer"}
+    assert set(found) == {"A.__init__", "A.m", "run", "outer"}
     assert parameter_count(found["A.m"]) == 5 and parameter_count(found["outer"]) == 1
     assert _is_command(found["run"]) and not _is_command(found["A.m"])
 

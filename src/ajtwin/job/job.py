@@ -376,6 +376,46 @@ class LoopPlan:
         return bool(last_segment_open) if truncated else self.program_end_shutter_open
 
 
+@dataclass(frozen=True)
+class JobOrigin:
+    """What a job was read from, passed on to every job made from it (cut, looped, re-timed).
+
+    Attributes
+    ----------
+    path : str
+        The program file.
+    n_lines : int
+        Its number of lines.
+    speed_sources : list of SpeedSource
+        Where each speed came from (re-timing adds the schedule's).
+    feature_names : dict of int to str
+        The program's feature labels.
+    stage : Stage
+        The stage's travel and rapid speed (``stage.toml``).
+    settings : ReaderSettings
+        The reader's settings (``job.toml``).
+    return_source : int
+        The speed source of the move back to a run's start when the job is looped.
+
+    Examples
+    --------
+    >>> from ajtwin.job import read_program_text
+    >>> prg = "ptp/e (X,Y),0,0\\nOUT0.0=1\\nptp/e (X,Y),4,0\\nOUT0.0=0"
+    >>> job = read_program_text(prg, process_speed_mm_s=2)
+    >>> looped = job.repeat(60.0)
+    >>> looped.origin == job.origin, job.origin.n_lines
+    (True, 4)
+    """
+
+    path: str
+    n_lines: int
+    speed_sources: list[SpeedSource]
+    feature_names: dict[int, str]
+    stage: Stage
+    settings: ReaderSettings
+    return_source: int
+
+
 class Job:
     """A program as the stage runs it: segments, strokes, and the questions asked of them.
 
@@ -411,15 +451,9 @@ class Job:
         self,
         segments: dict,
         *,
-        path: str,
-        n_lines: int,
-        speed_sources: list[SpeedSource],
-        feature_names: dict[int, str],
+        origin: JobOrigin,
         notes: list[str],
         warnings: list[str],
-        stage: Stage,
-        settings: ReaderSettings,
-        return_source: int,
         end_shutter_open: bool,
         repetition_offsets_s: np.ndarray | None = None,
         program_duration_s: float | None = None,
@@ -430,15 +464,16 @@ class Job:
         if repetition_offsets_s is None:  # a job read from a program: strokes are its own
             segments["base_stroke"] = segments["stroke"].copy()
         self._seg = _typed(segments)
-        self.path = str(path)
-        self.n_lines = n_lines
-        self.speed_sources = list(speed_sources)
-        self.feature_names = dict(feature_names)
+        self.origin = origin
+        self.path = str(origin.path)
+        self.n_lines = origin.n_lines
+        self.speed_sources = list(origin.speed_sources)
+        self.feature_names = dict(origin.feature_names)
         self.notes = list(notes)
         self.warnings = list(warnings)
-        self.stage = stage
-        self.settings = settings
-        self.return_source = return_source
+        self.stage = origin.stage
+        self.settings = origin.settings
+        self.return_source = origin.return_source
         self.end_shutter_open = bool(end_shutter_open)
         self.repetition_offsets_s = np.array(
             [0.0] if repetition_offsets_s is None else repetition_offsets_s
@@ -484,18 +519,17 @@ class Job:
         if end_open:
             line = int(parsed.shutter_line[-1])
             warnings.append(f"the program ends with the shutter open (opened at line {line})")
-        return cls(
-            seg,
+        origin = JobOrigin(
             path=parsed.path,
             n_lines=parsed.n_lines,
             speed_sources=parsed.speed_sources,
             feature_names=parsed.feature_names,
-            notes=parsed.notes,
-            warnings=warnings,
             stage=stage,
             settings=settings,
             return_source=parsed.return_source,
-            end_shutter_open=end_open,
+        )
+        return cls(
+            seg, origin=origin, notes=parsed.notes, warnings=warnings, end_shutter_open=end_open
         )
 
     def _build_strokes(self) -> None:
@@ -1009,15 +1043,9 @@ class Job:
         runs = int(np.searchsorted(self.repetition_offsets_s, t, side="left")) or 1
         return Job(
             dict(seg),
-            path=self.path,
-            n_lines=self.n_lines,
-            speed_sources=self.speed_sources,
-            feature_names=self.feature_names,
+            origin=self.origin,
             notes=self.notes,
             warnings=self.warnings,
-            stage=self.stage,
-            settings=self.settings,
-            return_source=self.return_source,
             end_shutter_open=bool(seg["shutter_open"][-1]),
             repetition_offsets_s=self.repetition_offsets_s[:runs],
             program_duration_s=self.program_duration_s,
@@ -1072,15 +1100,9 @@ class Job:
         seg = _take(seg, seg["t0_s"] < plan.duration_s)
         return Job(
             seg,
-            path=self.path,
-            n_lines=self.n_lines,
-            speed_sources=self.speed_sources,
-            feature_names=self.feature_names,
+            origin=self.origin,
             notes=list(self.notes) + [plan.note],
             warnings=self.warnings,
-            stage=self.stage,
-            settings=self.settings,
-            return_source=self.return_source,
             end_shutter_open=plan.end_shutter_open(seg["shutter_open"][-1]),
             repetition_offsets_s=plan.offsets_s,
             program_duration_s=plan.program_duration_s,

@@ -203,15 +203,9 @@ class LoopedJob:
         program = self.program
         window = Job(
             _concat(runs),
-            path=program.path,
-            n_lines=program.n_lines,
-            speed_sources=program.speed_sources,
-            feature_names=program.feature_names,
+            origin=program.origin,
             notes=[],
             warnings=[],
-            stage=program.stage,
-            settings=program.settings,
-            return_source=program.return_source,
             end_shutter_open=self.end_shutter_open,
             repetition_offsets_s=self.plan.offsets_s[first : max(int(last), first) + 1],
         )

@@ -45,7 +45,7 @@ Examples
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -314,15 +314,9 @@ def apply_speed_schedule(job: Job, schedule: SpeedSchedule) -> Job:
     )
     return Job(
         s,
-        path=job.path,
-        n_lines=job.n_lines,
-        speed_sources=sources,
-        feature_names=job.feature_names,
+        origin=replace(job.origin, speed_sources=sources),
         notes=[*job.notes, note],
         warnings=job.warnings,
-        stage=job.stage,
-        settings=job.settings,
-        return_source=job.return_source,
         end_shutter_open=job.end_shutter_open,
         speed_schedule=schedule,
     )

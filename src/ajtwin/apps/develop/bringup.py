@@ -10,8 +10,10 @@ operator's steps (``ajtwin develop``). :meth:`BringUp.decide` answers with one o
     the posterior (:mod:`ajtwin.apps.develop.surrogate`) — the recipe is always one that
     was printed;
 ``out_of_reach``
-    after at least 3 tests, no input in the limits has P(feasible) above 0.02 and the most
-    promising inputs were printed: the target is beyond this ink, with the closest it can do;
+    after at least 3 tests, no input in the limits has P(feasible) above 0.02 and either the
+    most promising inputs were printed or none has P above 0.002 (the posterior, its
+    data-driven part included, excludes the target everywhere): the target is beyond this
+    ink, with the closest it can do;
 ``test``
     the next test line: the inputs most likely to end the bring-up with the next reading.
     For a test at z the posterior after the reading is predicted (preposterior): its mean
@@ -399,6 +401,10 @@ class BringUp:
             return False
         if p_feasible.max() >= float(dec["out_of_reach_probability"]):
             return False
+        # an order below the threshold everywhere, residual included, the posterior excludes
+        # the target: where its P is ~0 the "most promising" inputs are noise, not a place
+        if p_feasible.max() < float(dec["out_of_reach_excluded_probability"]):
+            return True
         # the most promising inputs must have been printed (not the prior's word alone)
         best = self.box.scaled(candidates[np.argmax(p_feasible)])
         distance = np.sqrt(((self.box.scaled(tested) - best) ** 2).sum(axis=1)).min()

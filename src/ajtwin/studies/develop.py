@@ -113,7 +113,13 @@ def run_twin(lab: VirtualLab) -> dict:
             break
         lab.print([decision.test[n] for n in TEST_INPUTS])
     if decision.kind == "done":
-        return {"kind": "done", "recipe": [decision.recipe[n] for n in TEST_INPUTS[:3]]}
+        r = decision.recipe
+        return {
+            "kind": "done",
+            "recipe": [r[n] for n in TEST_INPUTS[:3]],
+            "probability": r["probability"],
+            "predicted_linewidth_um": [r["linewidth_um"], r["linewidth_2sd_um"]],
+        }
     return {"kind": decision.kind}
 
 
@@ -286,6 +292,11 @@ def summarise(rows: list, methods) -> dict:
                 "p90_tests": float(np.percentile(counts, 90)) if len(counts) else None,
                 "done_within_12": float(np.mean(counts <= 12)) if len(counts) else None,
                 "silent_misses": int(sum(not d["holds"] for d in done)),
+                # what the method claimed of its recipes (the twin: P(holds)), against the share
+                # that held: P ≥ 0.9 per recipe allows up to 1 miss in 10
+                "claimed_probability_mean": float(np.mean([d["probability"] for d in done]))
+                if done and all("probability" in d for d in done)
+                else None,
                 "robust_holds": float(np.mean([d["robust_holds"] for d in done])) if done else None,
                 "robust_worst_miss_um_median": float(
                     np.median([d["robust_worst_miss_um"] for d in done])
@@ -330,15 +341,17 @@ def markdown(results: dict, command: str) -> str:
     lines = [
         f"Command: `{command}` ({results['wall_s']:.0f} s)",
         "",
-        "| generator / method | inks | median tests | 90th pct | done ≤ 12 | silent misses | "
-        "robust (±5 %) | out of reach said / recipe given |",
+        "| generator / method | inks | median tests | 90th pct | done ≤ 12 | silent misses "
+        "(claimed P mean) | robust (±5 %) | out of reach said / recipe given |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for key, s in results["summary"].items():
         robust = "–" if s["robust_holds"] is None else f"{100 * s['robust_holds']:.0f} %"
+        claimed = s.get("claimed_probability_mean")
+        claimed = "" if claimed is None else f" ({claimed:.3f})"
         lines.append(
             f"| {key} | {s['inks']} | {s['median_tests']:g} | {s['p90_tests']:g} | "
-            f"{100 * s['done_within_12']:.0f} % | {s['silent_misses']} | {robust} | "
+            f"{100 * s['done_within_12']:.0f} % | {s['silent_misses']}{claimed} | {robust} | "
             f"{s['out_of_reach_said']}/{s['out_of_reach_inks']} said, "
             f"{s['out_of_reach_recipe_given']} recipe |"
         )

@@ -155,6 +155,18 @@ def finishing_probability(pred, goal: Goal, reading_sd: tuple) -> np.ndarray:
     return prob
 
 
+def finishing_rate(pred, goal: Goal, reading_sd: tuple, replicates=(1, 2, 4)) -> np.ndarray:
+    """The chance per test line that a block of n lines at each input ends the bring-up,
+    max over n of P_n / n (M,): P_n is :func:`finishing_probability` with the readings'
+    mean (σ/√n). Where one reading's σ is as wide as the tolerance, one line cannot end the
+    bring-up but a few replicates can; the block is printed one line at a time."""
+    s = np.asarray(reading_sd, dtype=float)
+    return np.max(
+        [finishing_probability(pred, goal, tuple(s / np.sqrt(n))) / n for n in replicates],
+        axis=0,
+    )
+
+
 def reading_feasibility(test: dict, goal: Goal, repeatability: float) -> float:
     """P(feasible) from one test's reading alone, with no model: the reading as the line's
     value, its σ with the line's repeatability (the rule a model-free method stops by)."""
@@ -347,7 +359,7 @@ class BringUp:
         """The next test's inputs: the highest finishing probability, refined locally."""
         goal = self.goal
         s = self._reading_sd(goal.target_linewidth_um, goal.max_overspray_um)
-        score = finishing_probability(pred, goal, s)
+        score = finishing_rate(pred, goal, s)
         if score.max() < 1e-9:  # nothing is near: go where the goal is most plausible
             score = (
                 p_feasible
@@ -363,7 +375,7 @@ class BringUp:
         pool = np.concatenate([candidates[top], self.box.inputs(local)])
         pool = self._rounded(pool)
         p = post.predict(pool)
-        s_pool = finishing_probability(p, goal, s)
+        s_pool = finishing_rate(p, goal, s)
         if s_pool.max() < 1e-9:
             s_pool = (
                 feasibility(p, goal)

@@ -11,10 +11,12 @@ from click.testing import CliRunner
 from scipy.special import ndtr
 
 from ajtwin.apps.develop.bringup import (
+    TEST_INPUTS,
     BringUp,
     Goal,
     feasibility,
     finishing_probability,
+    finishing_rate,
     reading_feasibility,
 )
 from ajtwin.apps.develop.prior import (
@@ -124,6 +126,49 @@ def test_finishing_probability_by_hand():
     assert finishing_probability(Pred, goal, (0.02, 0.05))[0] == pytest.approx(1.0)
     Pred.linewidth = to_log(np.array([60.0]), 0)
     assert finishing_probability(Pred, goal, (0.02, 0.05))[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_replicates_end_a_bring_up_one_reading_cannot():
+    # a 100-µm target, the line there known to ±2 % and one reading as wide (2 %): a reading
+    # cannot end it (1.64 σ' alone exceeds the window's half-width) but four replicates can
+    goal = Goal(100.0, 8.0)
+    low, high = np.log(99.0), np.log(103.0)  # ln(L + 1 µm) at 98 and 102 µm
+
+    class Pred:  # on the window's centre, its overspray certainly below the limit
+        linewidth = np.array([(low + high) / 2])
+        linewidth_sd = np.array([0.02])
+        overspray = to_log(np.array([2.0]), 1)
+        overspray_sd = np.array([1e-9])
+
+    def by_hand(n):  # the preposterior of the module docstring, σ = 0.02, s = 0.02/√n
+        s = 0.02 / np.sqrt(n)
+        after = 0.02 * s / np.hypot(0.02, s)
+        half = (high - low) / 2 - 1.6394 * after
+        spread = 0.02**2 / np.hypot(0.02, s)
+        return max(2 * ndtr(half / spread) - 1, 0.0)
+
+    assert by_hand(1) == 0.0 and by_hand(4) == pytest.approx(0.2261, abs=1e-3)
+    assert finishing_probability(Pred, goal, (0.02, 0.02))[0] == 0.0
+    rate = finishing_rate(Pred, goal, (0.02, 0.02))[0]
+    assert rate == pytest.approx(max(by_hand(1), by_hand(2) / 2, by_hand(4) / 4), rel=1e-9)
+    assert rate == pytest.approx(by_hand(4) / 4, rel=1e-9)
+
+
+def test_out_of_reach_when_the_posterior_excludes_the_target_everywhere():
+    b = BringUp.create(Goal(45.0, 8.0), BOX)
+    for z in ((0.1, 0.1, 0.1), (0.2, 0.2, 0.2), (0.3, 0.3, 0.3)):
+        b.add_test([*BOX.inputs(np.array([z]))[0, :3], 2.0], 150.0, 20.0)
+    tested = np.array([[t[n] for n in TEST_INPUTS] for t in b.tests])
+    candidates = BOX.inputs(np.array([[0.2, 0.2, 0.2], [0.9, 0.9, 0.9]]))
+    # P below 0.02 but 0.01 at a corner never printed: not yet (the prior's word there)
+    assert not b._out_of_reach(candidates, np.array([0.001, 0.01]), tested)
+    # ... the same P where a test was printed: the most promising inputs were tried
+    assert b._out_of_reach(candidates, np.array([0.01, 0.001]), tested)
+    # below 0.002 everywhere the posterior excludes the target, wherever its argmax lies
+    assert b._out_of_reach(candidates, np.array([0.0001, 0.0015]), tested)
+    # never before three tests
+    b.tests.pop()
+    assert not b._out_of_reach(candidates, np.array([0.0001, 0.0015]), tested[:2])
 
 
 def test_goal_and_reading_checks():

@@ -19,9 +19,11 @@ operator's steps (``ajtwin develop``). :meth:`BringUp.decide` answers with one o
     For a test at z the posterior after the reading is predicted (preposterior): its mean
     μ' ~ N(μ, σ⁴/(σ² + s²)), its σ'² = σ²s²/(σ² + s²) (s the reading's σ); the test ends the
     bring-up if |μ'_w − target| ≤ tolerance − 1.64 σ'_w and μ'_o ≤ max − 1.64 σ'_o (each at
-    √p ≈ 0.95). The next test maximises that probability over a quasi-random set of the box refined
-    around its best points: far from the goal it is ~0, near it but uncertain the reading's
-    spread carries it, and once the line is known the target's neighbourhood wins.
+    √p ≈ 0.95). The same for a block of n = 2 or 4 replicate lines (their mean: s/√n), per
+    line: the next test maximises max_n P_n/n over a quasi-random set of the box refined around
+    its best points: far from the goal it is ~0, near it but uncertain the reading's spread
+    carries it, once the line is known the target's neighbourhood wins, and where one reading
+    is as wide as the tolerance (a wide line) the inputs a few replicates would settle do.
     Among near-equals the one least moved by a ±5 % change of droplet size and aerosol
     density is printed.
 

@@ -600,9 +600,9 @@ def _extract_part(
         click.echo(f"wrote {done.annotated}")
     if done.n_readings == 0:
         raise click.ClickException(done.no_reading_reason(source))
-    warning = done.misplaced_warning()
-    if warning:
-        click.echo(f"warning: {warning}", err=True)
+    for warning in (done.misplaced_warning(), done.doubt_warning(source, Path(job_path).name)):
+        if warning:
+            click.echo(f"warning: {warning}", err=True)
     try:
         check_linewidth_scale(np.concatenate(done.widths), camera.um_per_px, source)
     except VisionInputError as exc:

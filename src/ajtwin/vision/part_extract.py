@@ -76,6 +76,7 @@ from ajtwin.vision.extract import (
     _StageClock,
     to_gray,
 )
+from ajtwin.vision.program_match import MatchSettings, lines_off_program
 
 __all__ = [
     "PartSettings",
@@ -134,6 +135,7 @@ FRAME_COLUMNS = (
     "readings",
     *(f"skip_{r}" for r in SKIP_REASONS),
     *(f"fail_{r}" for r in FAIL_REASONS),
+    "foreign_line_um",
     "status",
 )
 #: Frame statuses.
@@ -247,6 +249,10 @@ class PartFrame:
     # cross-sections measured (pixel positions, feature points)
     drawn: list = field(default_factory=list)
     geometry: dict | None = None
+    # compared with the program: the frame had light, and the lines it shows where the
+    # program prints nothing (ajtwin.vision.program_match.ForeignLine, longest first)
+    lit: bool = False
+    foreign: list = field(default_factory=list)
 
     @property
     def n_readings(self) -> int:
@@ -265,6 +271,7 @@ class PartFrame:
         }
         out.update({f"skip_{r}": self.skipped.get(r, 0) for r in SKIP_REASONS})
         out.update({f"fail_{r}": self.failed.get(r, 0) for r in FAIL_REASONS})
+        out["foreign_line_um"] = self.foreign[0].length_um if self.foreign else 0.0
         out["status"] = self.status
         return out
 
@@ -557,6 +564,9 @@ class PartExtractor:
         Defaults from ``vision/part.toml``.
     fiducials : sequence of (x_mm, y_mm[, radius_mm]), optional
         Marks on the part whose surroundings are not measured.
+    match : MatchSettings, optional
+        How each frame is compared with the program
+        (:func:`ajtwin.vision.program_match.lines_off_program`); ``vision/part.toml [match]``.
 
     Examples
     --------
@@ -573,7 +583,14 @@ class PartExtractor:
 
     CACHE_WINDOWS = 4096
 
-    def __init__(self, job, camera: Camera, settings: PartSettings | None = None, fiducials=()):
+    def __init__(
+        self,
+        job,
+        camera: Camera,
+        settings: PartSettings | None = None,
+        fiducials=(),
+        match: MatchSettings | None = None,
+    ):
         self.job = job
         self.camera = camera
         self.settings = PartSettings.from_defaults() if settings is None else settings
@@ -593,6 +610,11 @@ class PartExtractor:
         self.n_across = 2 * self.half_samples + 1
         self.zone = max(3, int(round(cfg.background_um / px)))
         self.windows = Windows(job, camera, cfg, fiducials)
+        self.fiducials = [
+            (float(f[0]), float(f[1]), float(f[2]) if len(f) > 2 else cfg.fiducial_radius_um * 1e-3)
+            for f in fiducials
+        ]
+        self.match = MatchSettings.from_defaults() if match is None else match
         # cross-section lines of recently used windows: a ring of CACHE_WINDOWS slots
         self._store = np.zeros((self.CACHE_WINDOWS, cfg.batch, 4))
         self._slot_of = np.full(self.windows.n, -1, dtype=np.int64)
@@ -676,9 +698,9 @@ class PartExtractor:
 
     # -- one frame ----------------------------------------------------------------------
     def process(self, frame: np.ndarray, index: int = 0, time_s: float = 0.0) -> PartFrame:
-        """Measure the traces the program puts in this frame (taken at job time ``time_s``)."""
-        cam, cfg, w = self.camera, self.settings, self.windows
-        clock = _StageClock(self.stage_seconds)
+        """Measure the traces the program puts in this frame (taken at job time ``time_s``),
+        and find the lines it shows where the program prints nothing (``foreign``)."""
+        cam = self.camera
         gray = to_gray(frame, f"frame {index}")
         if gray.shape != (cam.height_px, cam.width_px):
             raise VisionInputError(
@@ -686,6 +708,27 @@ class PartExtractor:
                 f"{cam.width_px}x{cam.height_px}: wrong camera file for this video"
             )
         state = self.job.state_at(time_s)
+        result = self._read_windows(gray, index, float(time_s), state)
+        if float(gray[::8, ::8].mean()) >= DARK_MEAN_GRAY:
+            clock = _StageClock(self.stage_seconds)
+            result.lit = True
+            result.foreign = lines_off_program(
+                gray,
+                self.job,
+                cam,
+                (float(state.x_mm), float(state.y_mm)),
+                float(time_s),
+                self.settings.reach_um,
+                self.match,
+                self.fiducials,
+            )
+            clock.lap("7 lines off the program")
+        return result
+
+    def _read_windows(self, gray: np.ndarray, index: int, time_s: float, state) -> PartFrame:
+        """The windows in view: skipped (why), measured, read."""
+        cam, cfg, w = self.camera, self.settings, self.windows
+        clock = _StageClock(self.stage_seconds)
         nozzle = (float(state.x_mm), float(state.y_mm))
         view = cam.view_centre(nozzle)
         result = PartFrame(index, float(time_s), (float(view[0]), float(view[1])))

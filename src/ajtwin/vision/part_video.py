@@ -40,6 +40,7 @@ from ajtwin.vision.part_extract import (
     PartSettings,
     annotate_part,
 )
+from ajtwin.vision.program_match import MISPLACED_SHARE, ProgramMatch, ProgramMismatchError
 from ajtwin.vision.video_features import AnnotatedOutput
 
 __all__ = [
@@ -58,9 +59,6 @@ FAIL_HINTS = {
     "overspray_outside": "the overspray does not end within the cross-section",
     "beyond_reach": "the overspray ends beyond --reach-um",
 }
-#: share of the measured windows that found no line where the program put it, above which
-#: the camera's geometry or the clock is suspect
-MISPLACED_SHARE = 0.5
 
 
 def _counts(counter: Counter) -> str:
@@ -86,6 +84,8 @@ class PartVideoExtraction:
         The per-frame table.
     annotated : Path or None
         The annotated video or image folder, when written.
+    match : ProgramMatch
+        The frames compared with the program.
     """
 
     statuses: Counter = field(default_factory=Counter)
@@ -95,6 +95,7 @@ class PartVideoExtraction:
     n_readings: int = 0
     frames_path: Path | None = None
     annotated: Path | None = None
+    match: ProgramMatch = field(default_factory=ProgramMatch)
 
     @property
     def n_frames(self) -> int:
@@ -120,6 +121,12 @@ class PartVideoExtraction:
             "camera file put it: check rotation_deg and offset_mm (ajtwin camera calibrate) "
             "and --start-offset"
         )
+
+    def doubt_warning(self, source, program: str) -> str | None:
+        """A warning when some frames show a line where the program prints nothing."""
+        if self.match.verdict != "doubtful":
+            return None
+        return self.match.explain(source, program)
 
     def no_reading_reason(self, source) -> str:
         """Why no frame of ``source`` gave a reading, with what to check."""
@@ -308,6 +315,10 @@ def extract_part_video(
 
     Raises
     ------
+    ProgramMismatchError
+        The frames do not show what the program prints
+        (:class:`~ajtwin.vision.program_match.ProgramMatch`): lines where it prints nothing
+        in enough frames. No table is written.
     VisionInputError
         A source that cannot be read, a video that lasts beyond the job, a writer that
         cannot be opened. The tables keep what was measured before the error.
@@ -326,12 +337,16 @@ def extract_part_video(
     extractor = PartExtractor(job, camera, settings, fiducials=fiducials)
     done = PartVideoExtraction(frames_path=out.with_name(out.stem + "_frames.csv"))
     out.parent.mkdir(parents=True, exist_ok=True)
+    # the tables are written beside their names and put in place at the end: a video that
+    # does not match the program leaves nothing (an error or a stop keeps what was measured)
+    partial = {path: path.with_name(path.name + ".partial") for path in (out, done.frames_path)}
     annotated = None if annotate_to is None else AnnotatedOutput(annotate_to, frames.fps)
+    refused = False
     try:
         with (
             frames.prefetched() as decoded,
-            out.open("w", newline="") as fh,
-            done.frames_path.open("w", newline="") as ffh,
+            partial[out].open("w", newline="") as fh,
+            partial[done.frames_path].open("w", newline="") as ffh,
         ):
             table = ReadingsWriter(fh, READING_COLUMNS)
             frame_table = csv.DictWriter(ffh, fieldnames=FRAME_COLUMNS)
@@ -349,20 +364,40 @@ def extract_part_video(
                             "was looped (--repeat-to)"
                         )
                     result = extractor.process(gray, index=index, time_s=t)
-                    done.statuses[result.status] += 1
-                    done.skipped.update(result.skipped)
-                    done.failed.update(result.failed)
+                    _tally(done, result)
                     frame_table.writerow(_formatted(result.row()))
                     if result.n_readings:
-                        done.n_readings += result.n_readings
-                        done.widths.append(result.readings["linewidth_um"])
                         table.add(result.readings)
                     if annotated is not None:
                         annotated.write(index, annotate_part(gray, result, extractor))
             finally:  # what waits is written, also when a frame is refused
                 table.flush()
+        if done.n_readings and done.match.verdict == "mismatch":
+            refused = True
+            raise ProgramMismatchError(
+                done.match.explain(source, program_name) + " Nothing was written."
+            )
     finally:
         if annotated is not None:
             annotated.close()
+        for path, written in partial.items():
+            if refused:
+                written.unlink(missing_ok=True)
+            elif written.exists():
+                written.replace(path)
     done.annotated = None if annotated is None else annotated.path
     return done
+
+
+def _tally(done: PartVideoExtraction, result) -> None:
+    """Add one frame's outcome to what the video gave."""
+    done.statuses[result.status] += 1
+    done.skipped.update(result.skipped)
+    done.failed.update(result.failed)
+    if result.n_readings:
+        done.n_readings += result.n_readings
+        done.widths.append(result.readings["linewidth_um"])
+    if result.lit:
+        missing = result.failed.get("no_line", 0) + result.failed.get("off_program", 0)
+        measured = result.n_readings + sum(result.failed.values())
+        done.match.add(result.frame, result.time_s, result.foreign, missing, measured)

@@ -9,11 +9,12 @@ there.
 
 **Lines where the program prints nothing** (:func:`lines_off_program`). The frame is
 averaged down to pixels of ``reach / grid_per_reach`` (a line's core stays darker than its
-overspray; two traces a reach apart stay apart), the substrate is estimated by a morphological closing over ``2 reach`` (it removes
-every dark band narrower than a trace's deposit) and the darkness is the substrate minus
-the image. A pixel is dark when darker than half of the frame's 99th percentile of darkness
-(the core of the darkest line in view, not its overspray) and at least
-:data:`~ajtwin.vision.extract.MIN_LINE_CONTRAST` below the substrate. Each dark pixel's
+overspray; two traces a reach apart stay apart), the substrate is estimated by a
+morphological closing over ``2 reach`` (it removes every dark band narrower than a trace's
+deposit) and the darkness is the substrate minus the image. A pixel is dark when darker
+than half of the frame's 99th percentile of darkness (the core of the darkest line in view,
+not its overspray) and at least :data:`~ajtwin.vision.extract.MIN_LINE_CONTRAST` below the
+substrate. Each dark pixel's
 point on the part is looked up among the traces the program has printed by the frame's time
 plus ``clock_tolerance_s`` (:meth:`ajtwin.job.Job.locate`, exact on lines and arcs); those
 farther than ``reach`` from every one of them, and outside the fiducial marks, are grouped
@@ -341,6 +342,7 @@ class ProgramMatch:
             "is wrong (frame k is at job time S + k / fps); marks on the substrate that are "
             "not traces can be left out with --fiducial X,Y,R."
         )
+
 
 def _line_words(run: _Run) -> str:
     line = run.example

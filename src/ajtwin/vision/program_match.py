@@ -46,12 +46,13 @@ Examples
 ...                           process_speed_mm_s=2)  # 300 µm away, outside the frame
 >>> cam = Camera(um_per_px=0.75, width_px=480, height_px=360)
 >>> frame = PartRenderer(printed, cam, PrintTruth.constant(2, 43, 29)).frame(0.4)
+>>> nozzle = (0.8, 0.0)  # at 0.4 s: the frame shows the line from x 0.62 to 0.8 mm
 >>> settings = MatchSettings.from_defaults()
->>> lines_off_program(frame, printed, cam, (0.4, 0.0), 0.4, 75.0, settings)
+>>> lines_off_program(frame, printed, cam, nozzle, 0.4, 75.0, settings)
 []
->>> [(round(line.angle_deg), round(line.y_mm, 2)) for line in
-...  lines_off_program(frame, other, cam, (0.4, 0.0), 0.4, 75.0, settings)]
-[(0, 0.0)]
+>>> [(abs(line.angle_deg) < 2, round(line.y_mm, 2), line.length_um > 150) for line in
+...  lines_off_program(frame, other, cam, nozzle, 0.4, 75.0, settings)]
+[(True, 0.0, True)]
 """
 
 from __future__ import annotations
@@ -143,7 +144,7 @@ class ForeignLine:
     x_mm, y_mm : float
         Its centre on the part (where the program puts the frame), mm.
     angle_deg : float
-        Its direction on the part, degrees in [0, 180) from +x.
+        Its direction on the part, degrees in [-90, 90) from +x.
     """
 
     length_um: float
@@ -234,8 +235,8 @@ def lines_off_program(
             continue
         dcol, drow = vectors[0, 1], vectors[1, 1]
         (ax, ay), (bx, by) = camera.axes
-        angle = math.degrees(math.atan2(dcol * ay + drow * by, dcol * ax + drow * bx)) % 180.0
-        angle = 0.0 if angle >= 179.95 else angle  # a horizontal line reads 0°, not 180°
+        angle = math.degrees(math.atan2(dcol * ay + drow * by, dcol * ax + drow * bx))
+        angle = (angle + 90.0) % 180.0 - 90.0  # a line near +x reads about 0°, not 179°
         cx, cy = camera.pixel_to_part(
             (c.mean() + 0.5) * step - 0.5, (r.mean() + 0.5) * step - 0.5, nozzle_mm
         )
@@ -346,8 +347,9 @@ class ProgramMatch:
 
 def _line_words(run: _Run) -> str:
     line = run.example
+    angle = round(line.angle_deg)
     return (
-        f"{line.length_um:.0f} µm long at {line.angle_deg:.0f}° around "
+        f"{line.length_um:.0f} µm long at {90 if angle == -90 else angle}° around "
         f"x {line.x_mm:.3f}, y {line.y_mm:.3f} mm"
     )
 

@@ -140,16 +140,25 @@ def test_verdict_counts_frames_with_lines_off_the_program(foreign, missing, verd
     match = ProgramMatch(MatchSettings.from_defaults())
     for frame in range(10):
         lines = [_line()] if frame in foreign else []
-        match.add(frame, 0.1 * frame, lines, missing=4 if frame in missing else 0, measured=5)
+        missed = 4 if frame in missing else 0
+        match.add(frame, 0.1 * frame, lines, missing=missed, measured=5, in_view=5)
     assert match.verdict == verdict
+
+
+def test_blank_frames_where_the_program_prints_nothing_in_view_are_not_counted():
+    match = ProgramMatch(MatchSettings.from_defaults())
+    for frame in range(40):  # 30 blank frames, then 10 with a trace, 3 of them off
+        in_view = 5 if frame >= 30 else 0
+        match.add(frame, frame / 20, [_line()] if frame in (31, 32, 33) else [], 0, 5, in_view)
+    assert match.frames == 10 and match.verdict == "mismatch"
 
 
 def test_verdict_needs_a_quarter_of_the_frames():
     match = ProgramMatch(MatchSettings.from_defaults())
     for frame in range(40):  # lines in 3 frames of 40: 7.5 %
-        match.add(frame, frame / 20, [_line()] if frame in (1, 2, 30) else [], 0, 5)
+        match.add(frame, frame / 20, [_line()] if frame in (1, 2, 30) else [], 0, 5, 5)
     assert match.verdict == "doubtful"
     text = match.explain("v.avi", "p.prg")
-    assert "3 of 40 frames" in text
+    assert "3 of the 40 frames where a trace is seen or expected" in text
     assert "frames 1–2, job time 0.05–0.10 s: 300 µm long at 90° around x 1.000, y 2.000 mm" in text
     assert "frame 30, job time 1.50 s" in text

@@ -30,7 +30,8 @@ measured windows mostly found no line, or found it away from the path (``no_line
 **The verdict** (:class:`ProgramMatch`). A frame disagrees when it shows a line where the
 program prints nothing, or no line where it prints one. The video *does not match* the
 program when at least ``refuse_frames`` frames show lines where it prints nothing and the
-frames that disagree are at least ``refuse_share`` of the frames with light; it is
+frames that disagree are at least ``refuse_share`` of the frames where a trace is seen or
+expected (a blank frame where the program prints nothing in view says nothing); it is
 *doubtful* when any frame shows such a line. A trace missing alone is never a mismatch: a
 clogged nozzle or an empty vial prints nothing where the program says (the extraction
 warns about it). The numbers live in ``vision/part.toml [match]`` with their reasons.
@@ -111,7 +112,8 @@ class MatchSettings:
     refuse_frames : int
         Frames with a line where the program prints nothing needed for a mismatch.
     refuse_share : float
-        Share of the frames with light that must disagree for a mismatch.
+        Share of the frames where a trace is seen or expected that must disagree for a
+        mismatch.
     """
 
     grid_per_reach: float = 4.0
@@ -264,7 +266,8 @@ class ProgramMatch:
     ----------
     settings : MatchSettings
     frames : int
-        Frames with light (compared).
+        Frames compared where a trace is seen or expected (a window of the program inside
+        the frame, or a line off it).
     foreign_frames, missing_frames, disagreeing : int
         Frames showing a line where the program prints nothing; frames with no line where
         it prints one; frames with either.
@@ -281,9 +284,14 @@ class ProgramMatch:
     #: runs kept for the message (the counts go on beyond)
     MAX_RUNS = 1000
 
-    def add(self, frame: int, time_s: float, lines, missing: int, measured: int) -> None:
-        """One frame: the lines it shows off the program, and its measured windows (those
-        that found no line or found it off the path, and all)."""
+    def add(
+        self, frame: int, time_s: float, lines, missing: int, measured: int, in_view: int
+    ) -> None:
+        """One frame with light: the lines it shows off the program, its measured windows
+        (those that found no line or found it off the path, and all) and the program's
+        windows in view."""
+        if not (lines or in_view):
+            return
         self.frames += 1
         lost = measured > 0 and missing > MISPLACED_SHARE * measured
         if lines:
@@ -336,8 +344,8 @@ class ProgramMatch:
                 f"({_runs(self.missing_runs, _missing_words)})"
             )
         return (
-            f"{source} {verb} what {program} prints: {self.disagreeing} of "
-            f"{self.frames} frames disagree — "
+            f"{source} {verb} what {program} prints: {self.disagreeing} of the "
+            f"{self.frames} frames where a trace is seen or expected disagree — "
             + "; ".join(parts)
             + ". --job may not be the program this video was filmed over, or --start-offset "
             "is wrong (frame k is at job time S + k / fps); marks on the substrate that are "

@@ -1004,6 +1004,8 @@ OUTCOME_COLOURS = {
     "neighbour": (180, 120, 255),
 }
 FAIL_COLOUR = (0, 0, 255)
+#: a line the frame shows where the program prints nothing
+FOREIGN_COLOUR = (255, 0, 160)
 SHOULDER_COLOUR, OVERSPRAY_COLOUR = (0, 0, 255), (255, 80, 0)
 
 
@@ -1013,7 +1015,8 @@ def annotate_part(frame: np.ndarray, result: PartFrame, extractor: PartExtractor
     Each window in view is drawn along the stroke in the colour of its outcome
     (:data:`OUTCOME_COLOURS`: green measured, red measured without a reading, other colours
     one per skip reason). For every reading, the middle cross-section is drawn across the
-    stroke with the linewidth edges (iii) in red and the overspray edges in blue.
+    stroke with the linewidth edges (iii) in red and the overspray edges in blue. A line the
+    frame shows where the program prints nothing is drawn along its axis in violet.
     """
     gray = to_gray(frame)
     canvas = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
@@ -1044,12 +1047,23 @@ def annotate_part(frame: np.ndarray, result: PartFrame, extractor: PartExtractor
                     a = _pt(col + ncol * points[0], row + nrow * points[0])
                     b = _pt(col + ncol * points[1], row + nrow * points[1])
                     cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
+    for line in result.foreign:
+        half = 0.5e-3 * line.length_um
+        du, dv = math.cos(math.radians(line.angle_deg)), math.sin(math.radians(line.angle_deg))
+        cols, rows = cam.part_to_pixel(
+            np.array([line.x_mm - half * du, line.x_mm + half * du]),
+            np.array([line.y_mm - half * dv, line.y_mm + half * dv]),
+            nozzle,
+        )
+        cv2.line(canvas, _pt(cols[0], rows[0]), _pt(cols[1], rows[1]), FOREIGN_COLOUR, 3)
     text = f"t={result.time_s:.2f}s  readings {result.n_readings}"
     skipped = ", ".join(f"{k} {v}" for k, v in result.skipped.most_common(3))
     if skipped:
         text += f"  skipped: {skipped}"
     if result.n_readings == 0:
         text += f"  [{result.status}]"
+    if result.foreign:
+        text += "  line off the program"
     cv2.putText(canvas, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 255, 255), 1)
     return canvas
 

@@ -318,7 +318,8 @@ def extract_part_video(
     ProgramMismatchError
         The frames do not show what the program prints
         (:class:`~ajtwin.vision.program_match.ProgramMatch`): lines where it prints nothing
-        in enough frames. No table is written.
+        in enough frames. No table is written; the annotated frames, asked for, are kept
+        (they show the lines off the program).
     VisionInputError
         A source that cannot be read, a video that lasts beyond the job, a writer that
         cannot be opened. The tables keep what was measured before the error.
@@ -374,8 +375,9 @@ def extract_part_video(
                 table.flush()
         if done.n_readings and done.match.verdict == "mismatch":
             refused = True
+            kept = "" if annotated is None else f" (the annotated frames: {annotated.path})"
             raise ProgramMismatchError(
-                done.match.explain(source, program_name) + " Nothing was written."
+                f"{done.match.explain(source, program_name)} No table was written{kept}."
             )
     finally:
         if annotated is not None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import stat
 import tomllib
+from dataclasses import fields
 from importlib import resources
 from pathlib import Path
 
@@ -178,6 +179,32 @@ def packaged_toml(name: str) -> dict:
     except FileNotFoundError:
         raise FileNotFoundError(f"ajtwin/{name}: no such packaged file") from None
     return parse_toml(data, f"ajtwin/{name}")
+
+
+def settings_from_table(cls, table: dict, overrides: dict, what: str):
+    """A settings dataclass from a packaged TOML table, with keyword overrides.
+
+    Keys of ``table`` that are not fields of ``cls`` are ignored (a table may hold several
+    classes' settings); an override that is not a field is refused; ``None`` overrides are
+    ignored (an option not given).
+
+    Examples
+    --------
+    >>> from dataclasses import dataclass
+    >>> @dataclass
+    ... class Knobs:
+    ...     a: float = 1.0
+    ...     b: int = 2
+    >>> settings_from_table(Knobs, {"a": 3.0, "c": 0}, {"b": None}, "knob")
+    Knobs(a=3.0, b=2)
+    """
+    known = {f.name for f in fields(cls)}
+    unknown = set(overrides) - known
+    if unknown:
+        raise TypeError(f"unknown {what} settings: {sorted(unknown)}")
+    base = {k: v for k, v in table.items() if k in known}
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    return cls(**base)
 
 
 def load_toml(

@@ -58,13 +58,13 @@ from __future__ import annotations
 import functools
 import math
 from collections import Counter
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ajtwin.config import packaged_toml
+from ajtwin.config import packaged_toml, settings_from_table
 from ajtwin.job.geometry import tangent_at
 from ajtwin.job.program import KIND_ARC, KIND_DWELL
 from ajtwin.vision import features as F
@@ -193,13 +193,7 @@ class PartSettings:
     @classmethod
     def from_defaults(cls, **overrides) -> PartSettings:
         """Settings from ``part.toml`` with keyword overrides (``None`` values ignored)."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(overrides) - known
-        if unknown:
-            raise TypeError(f"unknown part settings: {sorted(unknown)}")
-        base = {k: v for k, v in _defaults().items() if k in known}
-        base.update({k: v for k, v in overrides.items() if v is not None})
-        settings = cls(**base)
+        settings = settings_from_table(cls, _defaults(), overrides, "part")
         settings.validate()
         return settings
 

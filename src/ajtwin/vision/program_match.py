@@ -60,12 +60,12 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from ajtwin.config import packaged_toml
+from ajtwin.config import packaged_toml, settings_from_table
 from ajtwin.vision.errors import VisionInputError
 from ajtwin.vision.extract import MIN_LINE_CONTRAST, to_gray
 
@@ -126,13 +126,7 @@ class MatchSettings:
     @classmethod
     def from_defaults(cls, **overrides) -> MatchSettings:
         """Settings from ``part.toml [match]`` with keyword overrides."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(overrides) - known
-        if unknown:
-            raise TypeError(f"unknown match settings: {sorted(unknown)}")
-        base = {k: v for k, v in _defaults().items() if k in known}
-        base.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**base)
+        return settings_from_table(cls, _defaults(), overrides, "match")
 
 
 @dataclass(frozen=True)

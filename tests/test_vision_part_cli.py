@@ -406,23 +406,40 @@ def test_a_video_of_another_program_is_refused_and_nothing_is_written(cross, tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.csv"]
 
 
-def test_the_program_the_video_was_filmed_over_is_read_without_a_word(cross, tmp_path):
+@pytest.mark.parametrize(
+    ("start_offset", "readings"),
+    [(2.3, 147), (2.2, 137), (2.4, 135)],  # the clock right, 0.1 s early, 0.1 s late
+)
+def test_the_program_the_video_was_filmed_over_is_read_without_a_word(
+    cross, tmp_path, start_offset, readings
+):
     out = tmp_path / "g.csv"
-    result = _extract(cross, "cross.prg", out)
+    result = _extract(cross, "cross.prg", out, start_offset=start_offset)
     assert result.exit_code == 0, result.output
     assert "warning" not in result.output
-    assert "147 readings from 18 frames" in result.output
-    frames = (tmp_path / "g_frames.csv").read_text().splitlines()
-    header = frames[0].split(",")
-    foreign = [float(row.split(",")[header.index("foreign_line_um")]) for row in frames[1:]]
-    assert foreign == [0.0] * 18
+    assert f"{readings} readings from 18 frames" in result.output
+    frames = pd.read_csv(tmp_path / "g_frames.csv")
+    assert frames["foreign_line_um"].tolist() == [0.0] * 18
 
 
-def test_a_clock_one_frame_off_is_read_with_a_warning_naming_the_frames(cross, tmp_path):
-    # 50 ms early: the first trace, crossed in frames 4-7, is 100 µm from where it is seen
-    result = _extract(cross, "cross.prg", tmp_path / "h.csv", start_offset=2.25)
+def test_a_clock_off_by_more_than_a_tenth_of_a_second_is_refused(cross, tmp_path):
+    # 0.2 s early: the first trace, crossed in frames 4-7, is 400 µm from where it is seen
+    result = _extract(cross, "cross.prg", tmp_path / "h.csv", start_offset=2.1)
+    assert result.exit_code == 1, result.output
+    message = " ".join(result.output.split())
+    assert "does not show what cross.prg prints" in message and "frames 4–7" in message
+    assert "--start-offset is wrong" in message
+    assert not (tmp_path / "h.csv").exists()
+
+
+def test_a_program_without_the_trace_the_video_crosses_warns_naming_the_frames(cross, tmp_path):
+    # the cross's first stroke moved over without the shutter: only its second is printed
+    program = cross / "second_only.prg"
+    program.write_text(CROSS.replace("OUT0.0=1\nptp/e (X,Y),3,0\n", "ptp/e (X,Y),3,0\n", 1))
+    result = _extract(cross, "second_only.prg", tmp_path / "h.csv")
     assert result.exit_code == 0, result.output
     message = " ".join(result.stderr.split())
     assert message.startswith("warning: ")
-    assert "may not show what cross.prg prints" in message and "frames 4–7" in message
-    assert (tmp_path / "h.csv").exists()
+    assert "may not show what second_only.prg prints" in message
+    assert "4 show a line where second_only.prg prints nothing (frames 4–7" in message
+    assert pd.read_csv(tmp_path / "h.csv").shape[0] > 100

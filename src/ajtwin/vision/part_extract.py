@@ -710,7 +710,6 @@ class PartExtractor:
                 gray,
                 self.job,
                 cam,
-                (float(state.x_mm), float(state.y_mm)),
                 float(time_s),
                 self.settings.reach_um,
                 self.match,

@@ -417,7 +417,7 @@ def extract(
     time_s, stroke, s_mm, print_time_s, linewidth_um, overspray_um, quality figures) and
     OUT_frames.csv one row per frame with the windows skipped or failed, per reason.
     A video whose frames show lines where the program prints nothing (another program's
-    video, or a wrong --start-offset) is refused and nothing is written; a few such frames
+    video, or a wrong --start-offset) is refused and no table is written; a few such frames
     give a warning.
     """
     if part["job_path"] is not None or part["camera_path"] is not None:

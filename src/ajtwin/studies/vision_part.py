@@ -173,7 +173,8 @@ def _summary(lw, ov, skipped, failed, spoiled=None) -> dict:
     return out
 
 
-def _pass_times(job):
+def pass_times(job):
+    """Frame times of an inspection pass over a job's strokes after they are printed."""
     t_end = float(job.strokes["t_end_s"].max())
     return np.linspace(t_end + 0.05, job.duration_s - 0.05, FRAMES)
 
@@ -186,7 +187,7 @@ def straight() -> dict:
         for angle in (0, 15, 30, 45, 60, 75, 90):
             job = read_program_text(straight_program(angle), process_speed_mm_s=2.0)
             truth = PrintTruth.constant(job.duration_s, 43.0, 29.0)
-            parts = [_run(job, camera, truth, _pass_times(job), seed) for seed in SEEDS]
+            parts = [_run(job, camera, truth, pass_times(job), seed) for seed in SEEDS]
             rows[f"camera {rotation:g}°, stroke {angle}°"] = _summary(*_merge(parts))
     return rows
 
@@ -199,7 +200,7 @@ def arcs() -> dict:
         radius = factor * 0.043
         job = read_program_text(arc_program(radius), process_speed_mm_s=2.0)
         truth = PrintTruth.constant(job.duration_s, 43.0, 29.0)
-        parts = [_run(job, camera, truth, _pass_times(job), seed) for seed in SEEDS]
+        parts = [_run(job, camera, truth, pass_times(job), seed) for seed in SEEDS]
         rows[f"arc radius {factor} linewidths ({1e3 * radius:.0f} µm)"] = _summary(*_merge(parts))
     return rows
 
@@ -211,7 +212,7 @@ def widths() -> dict:
     job = read_program_text(straight_program(20.0), process_speed_mm_s=2.0)
     for lw, ov in ((30.0, 20.0), (43.0, 29.0), (60.0, 35.0)):
         truth = PrintTruth.constant(job.duration_s, lw, ov)
-        parts = [_run(job, camera, truth, _pass_times(job), seed) for seed in SEEDS]
+        parts = [_run(job, camera, truth, pass_times(job), seed) for seed in SEEDS]
         rows[f"line {lw:g}/{ov:g} µm"] = _summary(*_merge(parts))
     return rows
 
@@ -257,7 +258,7 @@ def cnn(model_path: Path) -> dict:
         for seed in SEEDS:
             renderer = PartRenderer(job, camera, truth, seed=seed)
             extractor = PartExtractor(job, camera)
-            for t in _pass_times(job):
+            for t in pass_times(job):
                 result = extractor.process(renderer.frame(t), time_s=t)
                 columns = extractor.columns(result, model.n_pixels, model.um_per_px)
                 if len(columns):

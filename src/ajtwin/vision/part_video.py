@@ -399,9 +399,4 @@ def _tally(done: PartVideoExtraction, result) -> None:
     if result.n_readings:
         done.n_readings += result.n_readings
         done.widths.append(result.readings["linewidth_um"])
-    if result.lit:
-        missing = result.failed.get("no_line", 0) + result.failed.get("off_program", 0)
-        measured = result.n_readings + sum(result.failed.values())
-        # a window at the frame's border may show no more than substrate: not expected seen
-        in_view = result.windows_in_view - result.skipped.get("border", 0)
-        done.match.add(result.frame, result.time_s, result.foreign, missing, measured, in_view)
+    done.match.add_frame(result)

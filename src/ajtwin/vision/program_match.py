@@ -348,6 +348,17 @@ class ProgramMatch:
             self._extend(self.missing_runs, frame, time_s, windows=missing)
         self.disagreeing += bool(lines) or lost
 
+    def add_frame(self, result) -> None:
+        """One frame as the extractor left it (:class:`~ajtwin.vision.part_extract.PartFrame`);
+        a frame without light is not compared."""
+        if not result.lit:
+            return
+        missing = result.failed.get("no_line", 0) + result.failed.get("off_program", 0)
+        measured = result.n_readings + sum(result.failed.values())
+        # a window at the frame's border may show no more than substrate: not expected seen
+        in_view = result.windows_in_view - result.skipped.get("border", 0)
+        self.add(result.frame, result.time_s, result.foreign, missing, measured, in_view)
+
     def _extend(self, runs, frame, time_s, example=None, windows=0) -> None:
         if runs and runs[-1].last == frame - 1:
             run = runs[-1]

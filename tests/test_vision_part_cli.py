@@ -383,10 +383,10 @@ def cross(tmp_path_factory):
     return folder
 
 
-def _extract(folder, program, out, start_offset=2.3):
+def _extract(folder, program, out, *options, start_offset=2.3):
     return _invoke("extract", folder / "vx.avi", "--job", folder / program, "--camera",
                    folder / "camx.toml", "--start-offset", start_offset, "--out", out,
-                   "--no-progress")  # fmt: skip
+                   "--no-progress", *options)  # fmt: skip
 
 
 def test_a_video_of_another_program_is_refused_and_nothing_is_written(cross, tmp_path):
@@ -432,7 +432,7 @@ def test_a_clock_off_by_more_than_a_tenth_of_a_second_is_refused(cross, tmp_path
     assert not (tmp_path / "h.csv").exists()
 
 
-def test_a_program_without_the_trace_the_video_crosses_warns_naming_the_frames(cross, tmp_path):
+def test_a_program_without_the_trace_the_video_crosses_warns_unless_it_is_a_mark(cross, tmp_path):
     # the cross's first stroke moved over without the shutter: only its second is printed
     program = cross / "second_only.prg"
     program.write_text(CROSS.replace("OUT0.0=1\nptp/e (X,Y),3,0\n", "ptp/e (X,Y),3,0\n", 1))
@@ -443,3 +443,7 @@ def test_a_program_without_the_trace_the_video_crosses_warns_naming_the_frames(c
     assert "may not show what second_only.prg prints" in message
     assert "4 show a line where second_only.prg prints nothing (frames 4–7" in message
     assert pd.read_csv(tmp_path / "h.csv").shape[0] > 100
+    # the line given as a mark on the substrate: no word (and no reading near it)
+    result = _extract(cross, "second_only.prg", tmp_path / "h.csv", "--fiducial", "1.6,0,0.4")
+    assert result.exit_code == 0, result.output
+    assert "warning" not in result.output and "fiducial 85" in result.output

@@ -13,8 +13,10 @@ overspray; two traces a reach apart stay apart), the substrate is estimated by a
 morphological closing over ``2 reach`` (it removes every dark band narrower than a trace's
 deposit) and the darkness is the substrate minus the image. A pixel is dark when darker
 than half of the frame's 99th percentile of darkness (the core of the darkest line in view,
-not its overspray) and at least :data:`~ajtwin.vision.extract.MIN_LINE_CONTRAST` below the
-substrate. Each dark pixel's point on the part is looked up among the traces the program
+not its overspray), at least :data:`~ajtwin.vision.extract.MIN_LINE_CONTRAST` below the bare
+substrate, and six robust standard deviations (1.4826 MAD) above the frame's median darkness
+(the substrate's texture, vignetting and noise: a frame filled by a fill area has no line to
+go by). Each dark pixel's point on the part is looked up among the traces the program
 has printed by the frame's time (:meth:`ajtwin.job.Job.locate`, exact on lines and arcs);
 those farther than ``reach`` from every one of them, and outside the fiducial marks, are
 grouped into connected patches. A patch is a line when its principal axis is at least
@@ -86,6 +88,11 @@ MISPLACED_SHARE = 0.5
 DARKEST_PERCENTILE = 99.0
 #: a pixel belongs to a line's core when darker than this share of the darkest line's
 CORE_SHARE = 0.5
+#: the bare substrate's brightness: this percentile of the substrate estimate
+BARE_PERCENTILE = 90.0
+#: a line's core is darker than the frame's median darkness by this many robust standard
+#: deviations of it (the substrate's texture, vignetting and noise)
+TEXTURE_SIGMAS = 6.0
 
 
 class ProgramMismatchError(VisionInputError):
@@ -226,8 +233,16 @@ def _dark_pixels(gray: np.ndarray, camera, reach_um: float, settings) -> _Dark |
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
     substrate = cv2.morphologyEx(small, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
     darkness = substrate - small
-    floor = MIN_LINE_CONTRAST * float(np.median(substrate))
-    level = max(CORE_SHARE * float(np.percentile(darkness, DARKEST_PERCENTILE)), floor)
+    # a line's core: half the darkest line's darkness, a line's least contrast below the bare
+    # substrate (its bright pixels: a fill can cover most of the frame), and well out of the
+    # substrate's own texture, vignetting and noise (a fill's frame has no line to go by)
+    middle = float(np.median(darkness))
+    spread = 1.4826 * float(np.median(np.abs(darkness - middle)))
+    level = max(
+        CORE_SHARE * float(np.percentile(darkness, DARKEST_PERCENTILE)),
+        MIN_LINE_CONTRAST * float(np.percentile(substrate, BARE_PERCENTILE)),
+        middle + TEXTURE_SIGMAS * spread,
+    )
     rows, cols = np.nonzero(darkness > level)
     if rows.size == 0:
         return None

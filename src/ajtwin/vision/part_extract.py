@@ -46,6 +46,11 @@ centre further than ``position_tolerance_um`` from the program's path: a wrong c
 geometry or clock), ``no_shoulder``, ``overspray_outside`` / ``beyond_reach`` (the
 overspray does not end within ``reach``: widen it). No reading is ever a mix of two traces.
 
+**Where the program prints nothing.** Each frame with light is also searched for lines
+farther than ``reach`` from every trace printed by then
+(:func:`ajtwin.vision.program_match.lines_off_program`): a video filmed over another
+program, or with its clock off, shows them (``PartFrame.foreign``).
+
 **Output per reading:** frame and its time, stroke, arclength of the window's middle,
 print time of that spot, linewidth, overspray, and quality figures: ``linewidth_se_um``
 (half the difference between the two halves of the window, an estimate of the reading's

@@ -27,6 +27,11 @@ $(STAMP): pyproject.toml
 
 .venv: $(STAMP)
 
+# ajtwin's bytecode, brought up to date (a second when nothing changed): an editable install
+# compiles none, and a Python that does not write bytecode (PYTHONDONTWRITEBYTECODE, common in
+# containers) would otherwise compile every ajtwin module again in every command it starts
+BYTECODE = $(PY) -m compileall -q src/ajtwin
+
 # OpenFOAM v1912 from Debian, for the CFD macro-model; skipped when already present.
 openfoam:
 	@if [ -f /usr/share/openfoam/etc/bashrc ] && command -v blockMesh >/dev/null 2>&1 || [ -x /usr/bin/blockMesh ]; then \
@@ -58,6 +63,7 @@ postgresql:
 	fi
 
 demo: $(STAMP)
+	@$(BYTECODE)
 	$(VENV)/bin/ajtwin demo
 
 # one worker per core (the suite is mostly one-threaded); a test file stays on one worker, so
@@ -67,6 +73,7 @@ TEST_WORKERS ?= auto
 # a test running 30 s or longer is named every 30 s; the files that took longest last time
 # start first (tests/suite_progress.py); the 15 slowest tests are listed at the end
 test: $(STAMP) openfoam chromium postgresql
+	@$(BYTECODE)
 	AJTWIN_TEST_HEARTBEAT=30 $(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 # the slow tests include the develop study's generic Bayesian optimisation (the [study] extra)
@@ -90,6 +97,7 @@ $(BENCH_STAMP): $(STAMP) pyproject.toml
 # e.g. BENCH_ARGS='--bench bench_startup' or '--quick'.
 BENCH_ARGS ?=
 bench: $(BENCH_STAMP) chromium postgresql
+	@$(BYTECODE)
 	$(VENV)/bin/asv machine --yes >/dev/null
 	$(VENV)/bin/asv run --python=same --set-commit-hash=$$(git rev-parse HEAD) --show-stderr $(BENCH_ARGS)
 	# SQLite against PostgreSQL side by side in one run (a lab's registry on a server)

@@ -118,7 +118,7 @@ def peak_mb(argv: list[str], env: dict) -> tuple[float, float, str]:
 
 
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-c", "from ajtwin.cli import main; main()", *args]
+    return [sys.executable, "-c", "from ajtwin.cli import run; run()", *args]
 
 
 def measure(command: str, record: Path, work: Path, env: dict) -> tuple[float, float, str]:

@@ -11,7 +11,7 @@ fastest runs is taken, which cancels most of a shared machine's speed of the day
 wall time on it varies 2-3 x). ``…_cpu_…`` is the same in CPU seconds (user + system, all
 threads), which other processes on the machine disturb less than a wall clock.
 
-The commands run as ``python -c "from ajtwin.cli import main; main()" …`` so that whichever
+The commands run as ``python -c "from ajtwin.cli import run; run()" …`` so that whichever
 ajtwin is first on the path is the one timed (``scripts/asv_at_commit.py`` puts an older
 commit's source there).
 """
@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-CLI = [sys.executable, "-c", "from ajtwin.cli import main; main()"]
+CLI = [sys.executable, "-c", "from ajtwin.cli import run; run()"]
 FLOOR = [sys.executable, "-c", "import jax.numpy, scipy.optimize, pandas, pyarrow.parquet"]
 PAIRS = 5  # floor/command pairs per ratio
 

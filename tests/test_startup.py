@@ -238,3 +238,49 @@ def test_constant_fields_compile_each_value_in_and_stay_differentiable(tmp_path,
     # a and b each traced once with constants (False), the repeat of a and b-as-arrays not
     # at all, the gradient once with the gain traced (True)
     assert run["traced"] == [False, False, True]
+
+
+_EXIT_PROBE = """
+import atexit, sys, threading, time
+from pathlib import Path
+from ajtwin.cli import run
+out = Path(sys.argv[1])
+atexit.register(lambda: (out / "atexit").write_text("ran"))
+class Kept:  # cleared only by the interpreter's teardown
+    def __del__(self):
+        (out / "teardown").write_text("ran")
+kept = Kept()
+def late():
+    time.sleep(0.3)
+    (out / "thread").write_text("done")
+if sys.argv[2] == "thread":
+    threading.Thread(target=late).start()  # not a daemon: the exit must wait for it
+sys.argv = ["ajtwin", *sys.argv[3:]]
+run()
+"""
+
+
+@pytest.mark.parametrize("thread", ["none", "thread"])
+def test_the_command_exits_with_its_code_after_the_exit_handlers_and_threads(tmp_path, thread):
+    """ajtwin.cli.run skips the interpreter's teardown, not what Python's exit does before it:
+    the exit handlers run, a thread still running is waited for, the output is whole and the
+    status is the command's."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AJTWIN_")}
+    env.update(PYTHONPATH=SRC)
+
+    def ajtwin(*args):
+        command = [sys.executable, "-c", _EXIT_PROBE, str(tmp_path), thread, *args]
+        return subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+
+    helped = ajtwin("--help")
+    assert helped.returncode == 0
+    assert helped.stdout.rstrip().endswith("docs/explanation/glossary.md.")  # the epilog's end
+    assert (tmp_path / "atexit").read_text() == "ran"
+    assert (tmp_path / "thread").exists() == (thread == "thread")
+    # the teardown is skipped, unless a thread made the exit Python's own
+    assert (tmp_path / "teardown").exists() == (thread == "thread")
+
+    (tmp_path / "atexit").unlink()
+    wrong = ajtwin("no-such-command")
+    assert wrong.returncode == 2 and "No such command 'no-such-command'" in wrong.stderr
+    assert (tmp_path / "atexit").read_text() == "ran"

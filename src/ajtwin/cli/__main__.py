@@ -1,5 +1,5 @@
 """``python -m ajtwin.cli``: the ``ajtwin`` command."""
 
-from ajtwin.cli import main
+from ajtwin.cli import run
 
-main()
+run()

@@ -143,6 +143,14 @@ def test_the_twin_refuses_before_computing_and_the_commands_store_nothing(record
     result = runner.invoke(ingest_command, [*common, "--process-speed", "5", str(path)])
     assert result.exit_code == 1 and "does not agree with" in result.output
     assert Registry(store).history("M").empty
+    wrong_speed = runner.invoke(
+        job_group,
+        ["report", str(path), "--job", str(NAFBOT), "--process-speed", "5", "--tolerance",
+         "74+-3", "--out", str(tmp_path / "fast"), "--no-progress"],
+    )  # fmt: skip
+    assert wrong_speed.exit_code == 1 and "does not agree with" in wrong_speed.output
+    assert "is 2 mm/s" in wrong_speed.output and "moves at 5 mm/s" in wrong_speed.output
+    assert not (tmp_path / "fast").exists()
     bare = write_record(without_job(record), tmp_path / "bare.parquet")
     report = runner.invoke(
         job_group,

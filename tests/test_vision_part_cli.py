@@ -447,3 +447,11 @@ def test_a_program_without_the_trace_the_video_crosses_warns_unless_it_is_a_mark
     result = _extract(cross, "second_only.prg", tmp_path / "h.csv", "--fiducial", "1.6,0,0.4")
     assert result.exit_code == 0, result.output
     assert "warning" not in result.output and "fiducial 85" in result.output
+
+
+def test_a_loop_beyond_the_record_limit_is_refused_before_the_video_is_read(cross, tmp_path):
+    out = tmp_path / "f.csv"
+    result = _extract(cross, "cross.prg", out, "--repeat-to", "1e12")
+    assert result.exit_code != 0
+    assert "a loop of 1e+12 s is longer than the 14 days a print record may last" in result.output
+    assert not list(tmp_path.iterdir())

@@ -242,9 +242,10 @@ def _load_executable(path: Path):
 def _lapack_ready() -> None:
     """Fill in jaxlib's LAPACK entry points, as lowering a linear solve would.
 
-    A kept executable calls LAPACK (LU factorisation, triangular solves) through targets that jaxlib fills
-    in only when the first such operation is lowered; a process that loads programs
-    without lowering anything must fill them in first or the call jumps to nothing.
+    A kept executable calls LAPACK (LU factorisation, triangular solves) through targets
+    that jaxlib fills in only when the first such operation is lowered; a process that
+    loads programs without lowering anything must fill them in first or the call jumps
+    to nothing.
     """
     lapack_targets.initialize()
 

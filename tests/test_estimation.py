@@ -303,6 +303,58 @@ def test_initial_fit_recovers_noise_free_state():
     assert np.all(np.linalg.eigvalsh(fit.covariance) > 0)
 
 
+def test_initial_fit_matches_scipy_least_squares_on_a_noisy_start(exp1_record):
+    """The start fit (Gauss–Newton in the box) against scipy's trust-region least squares
+    on the same weighted residuals of a virtual print's first samples."""
+    from scipy.optimize import least_squares
+
+    from ajtwin.estimation.initial import _PHI_SCALE, _residuals_impl
+
+    u, y = exp1_record.inputs[:10], exp1_record.outputs[:10]
+    std = np.array(TWIN.config.measurement_std)
+    fit = fit_initial_state(MODEL.params, MODEL.coefficient_matrix, u, y, std)
+    measured = np.isfinite(y)
+    data = (MODEL.params, MODEL.coefficient_matrix, u, np.where(measured, y, 0.0), measured)
+
+    def residuals(p):
+        return np.asarray(_residuals_impl(p, *data, np.tile(std, (10, 1)), 1.0))
+
+    reference = least_squares(
+        residuals,
+        [3.5, 4.0],
+        bounds=([0.5, 1e-3], [10.0, 1e3]),
+        x_scale="jac",
+        xtol=1e-15,
+        ftol=1e-15,
+    )
+    assert fit.success
+    np.testing.assert_allclose(fit.mean[[0, 4]] / [1, _PHI_SCALE], reference.x, rtol=1e-6)
+    np.testing.assert_allclose(fit.cost, reference.cost, rtol=1e-9)
+
+
+def test_gauss_newton_holds_a_parameter_at_its_bound_as_scipy_does():
+    from scipy.optimize import least_squares
+
+    from ajtwin.estimation.initial import gauss_newton_box
+
+    t = np.linspace(0.0, 4.0, 30)
+    observed = 2.0 * np.exp(-0.7 * t) + 0.01 * np.sin(7 * t)
+
+    def r_and_j(p):
+        e = np.exp(-p[1] * t)
+        return p[0] * e - observed, np.stack([e, -p[0] * t * e], axis=1)
+
+    for upper in ([5.0, 5.0], [1.5, 5.0]):  # the amplitude free, then held at 1.5
+        lower, upper = np.array([0.1, 0.01]), np.array(upper)
+        p, r, _, _, converged = gauss_newton_box(r_and_j, np.array([1.0, 0.2]), lower, upper)
+        reference = least_squares(
+            lambda q: r_and_j(q)[0], [1.0, 0.2], bounds=(lower, upper), xtol=1e-15, ftol=1e-15
+        )
+        assert converged
+        np.testing.assert_allclose(p, reference.x, rtol=1e-7)
+    assert p[0] == 1.5
+
+
 def test_initial_fit_rejects_prints_without_line_data():
     u = np.tile([375.0, 23.0, 50.0], (10, 1))
     y = np.full((10, 5), np.nan)

@@ -60,8 +60,8 @@ LAZY_ALLOWED = {
     "ajtwin.vision.extract": "loads OpenCV: only a print that comes with a video needs it",
     "skopt": "the develop study's generic Bayesian optimisation: an optional extra ([study])",
     "psycopg": "PostgreSQL's client (~0.2 s): only a registry on a PostgreSQL server needs it",
-    "scipy.optimize": "~0.25 s: only fitting a print's start needs it; forecast and advise start "
-    "from the stored state",
+    "scipy.special": "~0.1 s: only the live detectors' χ² tails need it; `estimate` imports their "
+    "module for the guard and never calls them",
 }
 
 

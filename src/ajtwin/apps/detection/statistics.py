@@ -32,7 +32,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
 
@@ -85,7 +84,15 @@ def nis_tail_probability(nis, n_measured) -> np.ndarray:
     nis = np.asarray(nis, dtype=float)
     dof = np.asarray(n_measured, dtype=float)
     # chdtrc is what scipy.stats.chi2.sf evaluates, without its per-call overhead (live steps)
-    return np.where(dof > 0, special.chdtrc(np.maximum(dof, 1), nis), 1.0)
+    return np.where(dof > 0, _chi2_tail(np.maximum(dof, 1), nis), 1.0)
+
+
+def _chi2_tail(dof, x):
+    """P(χ²(dof) ≥ x); scipy.special is imported on first use (0.1 s that ``estimate``, which
+    imports this module for the guard but never calls it, does not pay)."""
+    from scipy.special import chdtrc
+
+    return chdtrc(dof, x)
 
 
 class WindowedNIS:
@@ -111,7 +118,7 @@ class WindowedNIS:
         self._c_dof.append(self._c_dof[-1] + float(n_measured))
         total = self._c_nis[-1] - self._c_nis[0]
         n = self._c_dof[-1] - self._c_dof[0]
-        p = float(special.chdtrc(max(n, 1.0), total)) if n > 0 else 1.0
+        p = float(_chi2_tail(max(n, 1.0), total)) if n > 0 else 1.0
         return total, n, p
 
 

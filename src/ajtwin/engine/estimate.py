@@ -39,6 +39,7 @@ from ajtwin.apps.detection.mismatch import (
     load_guard_settings,
 )
 from ajtwin.apps.detection.statistics import normalised_innovations
+from ajtwin.io.csv_table import write_csv
 from ajtwin.model import STATE_NAMES
 
 #: the data share's columns (:func:`_with_share`), the table's last
@@ -132,7 +133,7 @@ def _whole(twin, record, out, smooth, progress, job) -> EstimateResult:
     # which bands this print's data set, and which are the prior's (ΔR_T: no output sees it)
     share = data_share(run.filtered)
     frame = _with_share(frame, share)
-    frame.to_csv(out, index=False)
+    write_csv(frame, out)
     per_output = frame["nis"] / np.maximum(frame["n_measured"], 1)
     return EstimateResult(
         run,
@@ -194,7 +195,7 @@ class _Rows:
         share's columns in the order :meth:`TwinRun.to_frame` and the guard give them."""
         vial = run.vial
         start = 0
-        with open(out, "w", newline="", encoding="utf-8") as fh:
+        with open(out, "wb") as fh:
             for path in self.frames:
                 frame = pd.read_pickle(path)
                 path.unlink()
@@ -205,6 +206,6 @@ class _Rows:
                 frame["mismatch"] = np.asarray(flags)[start:stop]
                 share = [c for c in frame.columns if c.startswith(SHARE_PREFIXES)]
                 frame = frame[[c for c in frame.columns if c not in share] + share]
-                frame.to_csv(fh, index=False, header=start == 0)
+                write_csv(frame, fh, header=start == 0)
                 start = stop
         self.frames = []

@@ -596,20 +596,20 @@ def data_share(filtered, carry: dict | None = None) -> np.ndarray:
     pred = np.asarray(filtered.predicted_covariances, dtype=float) / outer
     jac = np.asarray(filtered.transition_jacobians, dtype=float)
     n = len(post)
-    share = np.zeros((n, post.shape[1]))
+    priors = np.empty_like(post)
     prior = pred[0].copy()
     if carry:  # the previous chunk's last step: Π_0 = F Π F^T + (P_{0|−1} − F P F^T)
         f = carry["jac"]
-        prior = f @ carry["prior"] @ f.T + (pred[0] - f @ carry["post"] @ f.T)
+        prior = f @ (carry["prior"] - carry["post"]) @ f.T + pred[0]
     for k in range(n):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            share[k] = 1.0 - np.diag(post[k]) / np.diag(prior)
-        if k + 1 < n:
-            f = jac[k]
-            q = pred[k + 1] - f @ post[k] @ f.T
-            prior = f @ prior @ f.T + q
+        priors[k] = prior
+        if k + 1 < n:  # Π_{k+1} = F Π F^T + (P_{k+1|k} − F P_{k|k} F^T), one product
+            prior = jac[k] @ (prior - post[k]) @ jac[k].T + pred[k + 1]
     if carry is not None and n:
         carry.update(prior=prior, post=post[-1], jac=jac[-1])
+    diagonal = np.arange(post.shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = 1.0 - post[:, diagonal, diagonal] / priors[:, diagonal, diagonal]
     return np.clip(np.nan_to_num(share, nan=0.0), 0.0, 1.0)
 
 

@@ -4,7 +4,8 @@ it, warm (the compilation cache filled by an earlier run), and their ratios to t
 floor.
 
 The **import floor** is a new process that only imports the libraries the twin cannot run
-without (JAX, SciPy's optimisers, pandas, pyarrow's Parquet). It is ajtwin's own cost that a
+without and starts JAX's CPU backend: ``import jax, jax.numpy as jnp, pandas, scipy.linalg``,
+64-bit on, ``jnp.zeros(3)`` computed. What a command takes beyond it is ajtwin's own cost that a
 change can move, so ``track_*_to_import_floor`` is the figure to compare between commits: the
 floor and the command are timed one after the other, several times, and the ratio of their
 fastest runs is taken, which cancels most of a shared machine's speed of the day (a bare
@@ -26,7 +27,12 @@ import time
 from pathlib import Path
 
 CLI = [sys.executable, "-c", "from ajtwin.cli import run; run()"]
-FLOOR = [sys.executable, "-c", "import jax.numpy, scipy.optimize, pandas, pyarrow.parquet"]
+FLOOR = [
+    sys.executable,
+    "-c",
+    "import jax, jax.numpy as jnp, pandas, scipy.linalg; "
+    "jax.config.update('jax_enable_x64', True); jnp.zeros(3).block_until_ready()",
+]
 PAIRS = 5  # floor/command pairs per ratio
 
 

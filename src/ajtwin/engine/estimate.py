@@ -117,10 +117,11 @@ def _undetermined(share) -> list:
 def _with_share(frame: pd.DataFrame, share: np.ndarray) -> pd.DataFrame:
     """The data share columns of each state (and whether it is determined), in order."""
     threshold = float(load_guard_settings()["undetermined_share"])
+    columns = {}
     for i, name in enumerate(STATE_NAMES):
-        frame["data_share_" + name] = share[:, i]
-        frame["determined_" + name] = share[:, i] >= threshold
-    return frame
+        columns["data_share_" + name] = share[:, i]
+        columns["determined_" + name] = share[:, i] >= threshold
+    return pd.concat([frame, pd.DataFrame(columns, index=frame.index)], axis=1)
 
 
 def _whole(twin, record, out, smooth, progress, job) -> EstimateResult:
@@ -200,12 +201,13 @@ class _Rows:
                 frame = pd.read_pickle(path)
                 path.unlink()
                 stop = start + len(frame)
-                if vial is not None:
+                columns = {c: frame[c].to_numpy() for c in frame.columns}
+                if vial is not None:  # their places in the table, filled in
                     for column, attribute in VIAL_COLUMNS.items():
-                        frame[column] = np.asarray(getattr(vial, attribute))[start:stop]
-                frame["mismatch"] = np.asarray(flags)[start:stop]
-                share = [c for c in frame.columns if c.startswith(SHARE_PREFIXES)]
-                frame = frame[[c for c in frame.columns if c not in share] + share]
-                write_csv(frame, fh, header=start == 0)
+                        columns[column] = np.asarray(getattr(vial, attribute))[start:stop]
+                columns["mismatch"] = np.asarray(flags)[start:stop]
+                share = [c for c in columns if c.startswith(SHARE_PREFIXES)]
+                last = {c: columns.pop(c) for c in share}
+                write_csv({**columns, **last}, fh, header=start == 0)
                 start = stop
         self.frames = []

@@ -21,6 +21,9 @@ time_s,ok
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.csv as pa_csv
@@ -29,13 +32,14 @@ _HEADER = pa_csv.WriteOptions(quoting_header="none")
 _NO_HEADER = pa_csv.WriteOptions(include_header=False)
 
 
-def write_csv(frame: pd.DataFrame, target, header: bool = True) -> None:
+def write_csv(frame: pd.DataFrame | Mapping[str, np.ndarray], target, header: bool = True) -> None:
     """Write ``frame`` (its index left out) to ``target``, a path or a binary file.
 
     Parameters
     ----------
-    frame : pandas.DataFrame
-        Columns of numbers, booleans or text; names without commas, quotes or line breaks.
+    frame : pandas.DataFrame or mapping of str to array (n,)
+        Columns of numbers, booleans or text, in order; names without commas, quotes or
+        line breaks.
     target : str, os.PathLike or binary file
         A binary file takes further chunks (``header=False``) after the first.
     header : bool
@@ -43,8 +47,9 @@ def write_csv(frame: pd.DataFrame, target, header: bool = True) -> None:
     """
     # column by column: Table.from_pandas would also build pandas' schema metadata, which
     # CSV drops (two thirds of the time); from_pandas=True writes NaN as an empty cell
+    names = list(frame.columns if isinstance(frame, pd.DataFrame) else frame)
     table = pa.table(
-        [pa.array(frame[c].to_numpy(), from_pandas=True) for c in frame.columns],
-        names=[str(c) for c in frame.columns],
+        [pa.array(np.asarray(frame[c]), from_pandas=True) for c in names],
+        names=[str(c) for c in names],
     )
     pa_csv.write_csv(table, target, _HEADER if header else _NO_HEADER)

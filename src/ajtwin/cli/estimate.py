@@ -15,6 +15,7 @@ from ajtwin.cli.options import (
     transition_option,
     transition_overrides,
 )
+from ajtwin.io.csv_table import write_csv
 from ajtwin.io.records import read_record
 from ajtwin.model import OUTPUT_NAMES, STATE_NAMES
 
@@ -242,7 +243,7 @@ def estimate(
     if theta_out:
         theta_path = Path(theta_out)
         theta_path.parent.mkdir(parents=True, exist_ok=True)
-        run.theta_history.to_csv(theta_path, index=False)
+        write_csv(run.theta_history, theta_path)
         click.echo(f"wrote {theta_path} (drift rates θ after each of {len(run.theta_history)} "
                    "EM updates)")  # fmt: skip
     _echo_summary(run, done, mismatch, level, has_job=job is not None)

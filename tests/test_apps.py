@@ -461,10 +461,17 @@ def test_forecast_and_advise_cli(tmp_path):
     assert re.search(r"^\s+2\s.*\sclog\s", res.output, re.M) and "φ_A ppm" in lines[0]
     assert re.search(r"^\s+1\s.*\sok\s", res.output, re.M)
     assert "#2 open fault: nozzle clogging since 59.0 min: clean the nozzle" in res.output
+    shown = runner.invoke(machine, ["show", "m", "--store", str(store)])
+    assert "print #2: alarm at 60.0 min" in shown.output, shown.output
+    assert "what to do: clean the nozzle" in shown.output and "closed:" not in shown.output
     done = runner.invoke(machine, ["maintain", "m", "--nozzle-cleaned", "--store", str(store)])
-    assert done.exit_code == 0, done.output
+    assert done.exit_code == 0 and "m: nozzle cleaned (" in done.output, done.output
     res = runner.invoke(advise, args)
     assert res.exit_code == 0 and "WARNING" not in res.output, res.output
+    # the fixed clog is shown closed by the cleaning, not with the action again
+    shown = runner.invoke(machine, ["show", "m", "--store", str(store)])
+    assert "closed: nozzle cleaned after print #2 (" in shown.output, shown.output
+    assert "what to do: clean the nozzle" not in shown.output
     # a print the model did not fit is a mismatch, not ok
     reg.save_print("m", NewPrint(**{**{k: last[k] for k in ("start_mean", "start_cov", "end_mean",
                    "end_cov", "theta_before", "theta_after")}, "content_hash": "z", "source": "v",

@@ -138,16 +138,33 @@ def show(name, store):
         click.echo(line)
     click.echo(f"    {theta_text(last['theta_after'])}")
     if len(anomalies):
-        # lazy CLI loading: imported when the command runs, not for --help
-        from ajtwin.apps.detection.causes import alarm_lines
+        for line in _anomaly_lines(reg, name, anomalies.tail(5)):
+            click.echo(line)
 
-        click.echo(f"  anomalies ({len(anomalies)}), latest:")
-        for _, row in anomalies.tail(5).iterrows():
-            alarm = {**row.to_dict(), "description": printable(row["description"])}
-            first, *rest = alarm_lines(alarm, name)
-            click.echo(f"    print #{row['seq']}: {first}")
-            for line in rest:
-                click.echo(f"    {line}")
+
+def _anomaly_lines(reg, name: str, anomalies) -> list[str]:
+    """The latest anomalies, each with what to do — or the maintenance recorded after its
+    print that closed its fault."""
+    # lazy CLI loading: imported when the command runs, not for --help
+    from ajtwin.apps.detection.causes import alarm_lines, closing_maintenance, maintenance_words
+
+    maintenance = reg.maintenance(name)
+    lines = [f"  anomalies ({len(reg.anomalies(name))}), latest:"]
+    for _, row in anomalies.iterrows():
+        after = [m for m in maintenance if m["after_print_seq"] >= row["seq"]]
+        k = closing_maintenance(row["cause"], [m["event"] for m in after])
+        closed = None
+        if k is not None:
+            m = after[k]
+            closed = (
+                f"{maintenance_words(m['event'])} after print #{m['after_print_seq']} "
+                f"({m['created_at']})"
+            )
+        alarm = {**row.to_dict(), "description": printable(row["description"])}
+        first, *rest = alarm_lines(alarm, name, closed_by=closed)
+        lines.append(f"    print #{row['seq']}: {first}")
+        lines.extend(f"    {line}" for line in rest)
+    return lines
 
 
 @machine.command("history")
@@ -523,6 +540,7 @@ def _echo_commissioning(name, record, result) -> None:
 def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
     """Record a maintenance event on machine NAME; the next print starts from it."""
     # lazy CLI loading: calibrations load JAX (model.calibration), `machine --help` must not
+    from ajtwin.apps.detection.causes import maintenance_words
     from ajtwin.store.calibration import record_maintenance
 
     reg = open_registry(store, write=True)
@@ -537,12 +555,7 @@ def maintain(name, nozzle_cleaned, vial_refilled, reset_theta, note, store):
         )
     except (RegistryError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
-    done = [
-        "nozzle cleaned" if event["nozzle_cleaned"] else "",
-        f"vial refilled to {event['vial_refilled_ml']} mL" if event["vial_refilled_ml"] else "",
-        "θ reset" if event["reset_theta"] else "",
-    ]
-    click.echo(f"{name}: {', '.join(d for d in done if d)} ({event['created_at']})")
+    click.echo(f"{name}: {maintenance_words(event)} ({event['created_at']})")
 
 
 @machine.command("calibrations")

@@ -184,6 +184,40 @@ def detector_words(label: str) -> str:
     return f"{words[max(fits, key=len)]} ({label})"
 
 
+def closing_maintenance(cause: str, maintenance) -> int | None:
+    """Which of ``maintenance`` (events oldest first, as ``ajtwin machine maintain`` stores
+    them) first closes a fault of ``cause``: its index, or None (none does, or the cause is
+    no fault of the machine).
+
+    >>> closing_maintenance("nozzle_clog", [{"vial_refilled_ml": 2.0}, {"nozzle_cleaned": True}])
+    1
+    >>> closing_maintenance("nozzle_clog", [{"vial_refilled_ml": 2.0}]) is None
+    True
+    """
+    entry = _advice()["causes"].get(str(cause))
+    if entry is None or not entry["fault"]:
+        return None
+    key = entry["fixed_by"]  # "": any maintenance recorded after the print
+    return next((i for i, m in enumerate(maintenance) if not key or bool(m.get(key))), None)
+
+
+def maintenance_words(event: dict) -> str:
+    """A maintenance event as the commands say it.
+
+    >>> maintenance_words({"nozzle_cleaned": True, "vial_refilled_ml": 1.5, "note": "seal"})
+    'nozzle cleaned, vial refilled to 1.5 mL, note "seal"'
+    """
+    done = [
+        "nozzle cleaned" if event.get("nozzle_cleaned") else "",
+        f"vial refilled to {event['vial_refilled_ml']:g} mL"
+        if event.get("vial_refilled_ml")
+        else "",
+        "θ reset" if event.get("reset_theta") else "",
+        f'note "{event["note"]}"' if event.get("note") else "",
+    ]
+    return ", ".join(d for d in done if d) or "maintenance recorded"
+
+
 def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
     """The faults among a print's alarms that no maintenance recorded since has closed.
 
@@ -217,9 +251,7 @@ def open_faults(events, maintenance, machine: str | None = None) -> list[dict]:
         entry = table.get(cause)
         if entry is None or not entry["fault"]:
             continue
-        key = entry["fixed_by"]
-        fixed = any(bool(m.get(key)) if key else True for m in maintenance)
-        if not fixed:
+        if closing_maintenance(cause, maintenance) is None:
             found[cause] = min(found.get(cause, np.inf), float(ev["onset_s"]))
     return [
         {"cause": cause, "onset_s": onset, "sentence": alarm_sentence(cause, onset, machine)}
@@ -253,9 +285,10 @@ def print_status(stored_status: str, causes, mismatch: bool = False) -> str:
     return f"{stored_status}: {found}" if found else str(stored_status)
 
 
-def alarm_lines(alarm, machine: str | None = None) -> list[str]:
+def alarm_lines(alarm, machine: str | None = None, closed_by: str | None = None) -> list[str]:
     """An alarm as the commands print it, times in minutes past the print's start: when it
-    was raised and began, its likely cause, what to do, and the detectors in words.
+    was raised and began, its likely cause, what to do (or, ``closed_by``, the maintenance
+    that closed the fault since), and the detectors in words.
 
     ``alarm``: an :class:`~ajtwin.apps.detection.streaming.AnomalyEvent` or a dict with
     ``detected_s``, ``onset_s``, ``cause``, ``description``, ``detectors`` (a list or a
@@ -275,7 +308,9 @@ def alarm_lines(alarm, machine: str | None = None) -> list[str]:
         f"{units.minutes_text(onset)}): {get('description')}"
     ]
     action = cause_action(get("cause"), machine)
-    if action:
+    if closed_by:
+        lines.append(f"  closed: {closed_by}")
+    elif action:
         lines.append(f"  what to do: {action}")
     if detectors:
         lines.append(f"  seen as: {'; '.join(detector_words(d) for d in detectors)}")

@@ -405,3 +405,12 @@ def test_parameter_file_has_provenance_for_everything():
         } or r.provenance.startswith("fitted-cfd"), r
         assert r.unit
     assert load_parameters().gas_viscosity == pytest.approx(1.76e-5)
+
+
+def test_a_packaged_setting_changed_by_one_caller_does_not_reach_the_next():
+    from ajtwin.config import packaged_toml
+
+    first = packaged_toml("data/parameters.toml")
+    key = next(iter(first))
+    first[key] = "changed"
+    assert packaged_toml("data/parameters.toml")[key] != "changed"

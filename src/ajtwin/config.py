@@ -32,6 +32,7 @@ ajtwin.config.InputFileError: ... is a directory, not a scenario file
 
 from __future__ import annotations
 
+import copy
 import os
 import stat
 import tomllib
@@ -178,7 +179,16 @@ def packaged_toml(name: str) -> dict:
         data = resource.read_bytes()
     except FileNotFoundError:
         raise FileNotFoundError(f"ajtwin/{name}: no such packaged file") from None
-    return parse_toml(data, f"ajtwin/{name}")
+    # parsed once per content: `estimate` reads transition.toml and mismatch.toml ~25 times
+    # each, and a copy costs a thirtieth of a parse
+    seen = _PARSED.get(name)
+    if seen is None or seen[0] != data:
+        seen = _PARSED[name] = (data, parse_toml(data, f"ajtwin/{name}"))
+    return copy.deepcopy(seen[1])
+
+
+#: packaged TOML files as read and parsed: name → (bytes, dict)
+_PARSED: dict[str, tuple[bytes, dict]] = {}
 
 
 def settings_from_table(cls, table: dict, overrides: dict, what: str):

@@ -18,8 +18,8 @@ from ajtwin.estimation import (
     rts_smoother,
     run_em,
 )
-from ajtwin.estimation.em import EMSettings
-from ajtwin.estimation.filters import ModelFunctions
+from ajtwin.estimation.em import EMSettings, EMStep, em_loop, m_step
+from ajtwin.estimation.filters import FilterResult, ModelFunctions, SmootherResult
 from ajtwin.model import DigitalModel, euler_step, output_function
 from ajtwin.simulation import simulate
 
@@ -223,6 +223,89 @@ def test_em_recovers_theta_on_linear_gaussian_toy():
     assert np.all(np.abs(result.theta - theta_true) < 3 * stderr), (result.theta, stderr)
     # and it really moved from the wrong start (θ0 = 0 is many standard errors away)
     assert np.all(np.abs(theta_true) > 10 * stderr)
+
+
+def test_the_m_step_sums_only_the_transitions_it_is_given():
+    """m_step with a transition mask equals the toy's hand-written normal equations on the
+    kept steps alone, whatever the left-out steps hold (NaN here)."""
+    rng = np.random.default_rng(5)
+    steps, kept = 12, 8
+    means = rng.normal(1.0, 0.5, (steps, 2))
+    root = rng.normal(0.0, 0.1, (steps, 2, 2))
+    covs = root @ np.swapaxes(root, 1, 2) + 0.01 * np.eye(2)
+    lag = rng.normal(0.0, 0.01, (steps - 1, 2, 2))
+    u = rng.normal(0.0, 1.0, (steps, 1))
+    q = np.diag([0.05**2, 0.02**2])
+    flat = np.zeros(2)
+    poisoned = SmootherResult(
+        np.where(np.arange(steps)[:, None] >= kept, np.nan, means),
+        np.where(np.arange(steps)[:, None, None] >= kept, np.nan, covs),
+        np.where(np.arange(steps - 1)[:, None, None] >= kept - 1, np.nan, lag),
+    )
+    mask = np.arange(steps - 1) < kept - 1
+    masked = np.asarray(m_step(TOY_SPEC, poisoned, u, q, flat, TOY, mask))
+    short = SmootherResult(means[:kept], covs[:kept], lag[: kept - 1])
+    np.testing.assert_allclose(
+        masked, np.asarray(m_step(TOY_SPEC, short, u[:kept], q, flat, TOY)), rtol=1e-12
+    )
+    # the toy (Δt = 1, B = diag x, a(x) = x + b u, diagonal W) by hand:
+    # normal = Σ (x xᵀ + P) ∘ W, rhs_k = W_kk Σ [x_k r_k + Cov(x_j, x_{j+1})_kk − P_kk]
+    w = np.diag(1 / np.diag(q))
+    x, x_next, p = means[: kept - 1], means[1:kept], covs[: kept - 1]
+    r = x_next - x - u[: kept - 1] * np.asarray(TOY_SPEC.params["b"])
+    normal = np.einsum("jk,jl->kl", x, x) * w + p.sum(axis=0) * w
+    cross = np.einsum("jkk->k", np.swapaxes(lag[: kept - 1], 1, 2) - p)
+    rhs = np.diag(w) * (np.sum(x * r, axis=0) + cross)
+    np.testing.assert_allclose(masked, np.linalg.solve(normal, rhs), rtol=1e-10)
+
+
+def test_a_window_padded_at_its_end_runs_the_em_of_the_window_alone():
+    """run_em on a short window padded to a longer one (steps without measurements at its
+    end) gives em_loop's θ, ℓ, iterations and filter and smoother on the short arrays; so
+    does padding whose predictions fail (NaN inputs: the filter's guard resets there)."""
+    q, r = np.diag([0.05**2] * 2), np.array([0.2**2] * 2)
+    u, _, y = _toy_data(np.array([-0.05, -0.1]), 60, 2)
+    start, theta0 = (np.zeros(2), np.eye(2)), np.zeros(2)
+    settings = EMSettings(np.zeros(2), np.asarray(20), np.asarray(1e-6), np.asarray(np.inf))
+    alone = em_loop(TOY_SPEC, *start, u, y, theta0, q, r, settings, functions=TOY)
+    padded = run_em(
+        TOY_SPEC, *start, u, y, theta0, q, r, settings=settings, functions=TOY, padded_steps=150
+    )
+    nan_tail = np.full((90, 2), np.nan)
+    failing = em_loop(
+        TOY_SPEC,
+        *start,
+        np.concatenate([u, nan_tail[:, :1]]),
+        np.concatenate([y, nan_tail]),
+        theta0,
+        q,
+        r,
+        settings,
+        window_steps=np.asarray(60),
+        functions=TOY,
+    )
+    assert np.asarray(failing[4].reinitialised)[60:].any()  # the padding did fail
+    theta, iterations, converged, log_lik, filtered, smoothed = alone
+    assert 2 < int(iterations) < 20 and bool(converged)  # θ moved and the test stopped it
+    for run in (
+        padded,
+        EMStep(
+            np.asarray(failing[0]),
+            int(failing[1]),
+            bool(failing[2]),
+            float(failing[3]),
+            FilterResult(*(np.asarray(a)[:60] for a in failing[4])),
+            SmootherResult(*(np.asarray(a)[:n] for a, n in zip(failing[5], (60, 60, 59)))),
+        ),
+    ):
+        assert (run.iterations, run.converged) == (int(iterations), bool(converged))
+        np.testing.assert_allclose(run.theta, np.asarray(theta), rtol=1e-10)
+        assert run.log_likelihood == pytest.approx(float(log_lik), rel=1e-12)
+        for mine, own in [*zip(run.filtered, filtered), *zip(run.smoothed, smoothed)]:
+            assert np.asarray(mine).shape == np.asarray(own).shape
+            np.testing.assert_allclose(np.asarray(mine), np.asarray(own), rtol=1e-10, atol=1e-14)
+    with pytest.raises(ValueError, match="longer than padded_steps=50"):
+        run_em(TOY_SPEC, *start, u, y, theta0, q, r, functions=TOY, padded_steps=50)
 
 
 # --------------------------------------------------------------------------- #

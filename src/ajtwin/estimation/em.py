@@ -89,6 +89,7 @@ def m_step(
     process_cov,
     theta_prior_precision,
     functions: ModelFunctions = AJ_EULER,
+    transitions=None,
 ):
     """Closed-form M-step: θ maximising the expected complete-data log-likelihood.
 
@@ -108,6 +109,10 @@ def m_step(
     inputs : array (T, n_u)
     process_cov : array (n, n) Σ_ξ (display units)
     theta_prior_precision : array (n_θ,) 1/σ_θ² (0: flat prior)
+    transitions : array (T − 1,) bool, optional
+        Which transitions j → j+1 the sums take (None: all). The others are left out
+        whatever their terms hold (NaN included): a window padded at its end
+        (:func:`em_loop`) sums its own transitions only.
 
     Returns
     -------
@@ -142,6 +147,9 @@ def m_step(
         return normal, rhs
 
     normals, rhss = jax.vmap(per_step)(means[:-1], means[1:], covs[:-1], lag, u[:-1])
+    if transitions is not None:
+        normals = jnp.where(transitions[:, None, None], normals, 0.0)
+        rhss = jnp.where(transitions[:, None], rhss, 0.0)
     normal = normals.sum(axis=0) + jnp.diag(precision)
     rhs = rhss.sum(axis=0)
     # equilibrate before solving: the columns of B differ by ~10 orders of magnitude
@@ -165,6 +173,7 @@ def run_em(
     settings: EMSettings | None = None,
     functions: ModelFunctions = AJ_EULER,
     line_factors=None,
+    padded_steps: int | None = None,
 ) -> EMStep:
     """EM over one window (paper Algorithm 2).
 
@@ -175,6 +184,13 @@ def run_em(
     function (:func:`em_loop`), so a new process loads one executable from the
     compilation cache instead of tracing every iteration's pieces. ``line_factors``
     (T, 4): a job print's per-step line factors (:func:`ajtwin.estimation.filters.ekf`).
+
+    ``padded_steps``: the length every window is run at, so that windows of any length
+    up to it share one compiled program (the twin's early windows and its full ones). A
+    shorter window gets steps without measurements appended (inputs and line factors
+    held from its last step); they weigh nothing in θ, ℓ or the convergence test and the
+    smoother does not look past the window (:func:`em_loop`), so the result is the
+    window's own, returned at the window's length. None: the window's own length.
 
     Returns
     -------
@@ -192,18 +208,41 @@ def run_em(
         np.asarray(settings.tolerance, dtype=float),
         np.asarray(settings.gate, dtype=float),
     )
+    inputs = np.asarray(inputs, dtype=float)
+    measurements = np.asarray(measurements, dtype=float)
+    line = None if line_factors is None else np.asarray(line_factors, dtype=float)
+    n = inputs.shape[0]
+    length = n if padded_steps is None else int(padded_steps)
+    if n > length:
+        raise ValueError(f"an EM window of {n} steps is longer than padded_steps={length}")
+    # the appended steps: inputs (and line factors) held, nothing measured
+    held = np.repeat(inputs[-1:], length - n, axis=0)
+    inputs = np.concatenate([inputs, held])
+    measurements = np.concatenate(
+        [measurements, np.full((length - n, measurements.shape[1]), np.nan)]
+    )
+    if line is not None:
+        line = np.concatenate([line, np.repeat(line[-1:], length - n, axis=0)])
     theta, iterations, converged, log_lik, filtered, smoothed = em_loop(
         spec,
         np.asarray(prior_mean, dtype=float),
         np.asarray(prior_cov, dtype=float),
-        np.asarray(inputs, dtype=float),
-        np.asarray(measurements, dtype=float),
+        inputs,
+        measurements,
         np.asarray(theta0, dtype=float),
         np.asarray(process_cov, dtype=float),
         np.asarray(measurement_cov, dtype=float),
         settings,
-        None if line_factors is None else np.asarray(line_factors, dtype=float),
+        line,
+        window_steps=np.asarray(n),
         functions=functions,
+    )
+    # back to the window's length (on the host: slicing dispatches no JAX operation)
+    filtered = FilterResult(*(np.asarray(a)[:n] for a in filtered))
+    smoothed = SmootherResult(
+        np.asarray(smoothed.means)[:n],
+        np.asarray(smoothed.covariances)[:n],
+        np.asarray(smoothed.lag_one_covariances)[: n - 1],
     )
     return EMStep(
         np.asarray(theta), int(iterations), bool(converged), float(log_lik), filtered, smoothed
@@ -221,6 +260,7 @@ def em_loop(
     measurement_cov,
     settings: EMSettings,
     line_factors=None,
+    window_steps=None,
     functions=AJ_EULER,
 ):
     """The EM iterations of :func:`run_em` as a ``lax.while_loop`` (pure, jit-able).
@@ -229,15 +269,28 @@ def em_loop(
     instead) and then the E-step under that θ, so the compiled loop holds one E-step
     and one M-step (an E-step before the loop would be a second copy to compile). The
     new iterate is accepted when θ and ℓ are finite (pass 0: always); the loop stops
-    on a rejected iterate, on |Δℓ|/T < ``tolerance``, or after ``max_iterations``
+    on a rejected iterate, on |Δℓ|/n < ``tolerance``, or after ``max_iterations``
     M-steps.
+
+    The window is the first n = ``window_steps`` (a traced integer; None: all T) of the
+    T steps; the steps after it are padding without measurements. The M-step weighs
+    only the transitions inside the window, ℓ sums only its steps and the smoother
+    starts its backward pass at its last step (:func:`e_step`), so θ, ℓ, the iterations
+    and the filter and smoother at steps < n are those of the window alone: the filter
+    runs forward, and steps without measurements leave the smoothed steps before them
+    unchanged in exact arithmetic — here by construction, whatever the padding's
+    predictions do.
 
     Returns
     -------
     (θ (n_θ,), iterations, converged, ℓ, FilterResult, SmootherResult)
+        The filter and smoother over all T steps (at the padding: not the window's).
     """
     theta_prior_precision, max_iterations, tolerance, gate = settings
-    n_steps, n_states = inputs.shape[0], prior_mean.shape[0]
+    n_total, n_states = inputs.shape[0], prior_mean.shape[0]
+    n_steps = n_total if window_steps is None else window_steps
+    in_window = jnp.arange(n_total) < n_steps
+    inside = in_window[1:]  # transition j → j+1 within the window
     data = (prior_mean, prior_cov, inputs, measurements)
     noise = (process_cov, measurement_cov, gate)
     false = jnp.asarray(False)
@@ -252,10 +305,12 @@ def em_loop(
         theta_new = jax.lax.cond(
             first,
             lambda: theta0,
-            lambda: m_step(spec, smoothed, inputs, process_cov, theta_prior_precision, functions),
+            lambda: m_step(
+                spec, smoothed, inputs, process_cov, theta_prior_precision, functions, inside
+            ),
         )
         filtered_new, smoothed_new, log_lik_new = e_step(
-            spec, *data, theta_new, *noise, line_factors, functions=functions
+            spec, *data, theta_new, *noise, line_factors, in_window, functions=functions
         )
         finite = jnp.isfinite(log_lik_new) & jnp.all(jnp.isfinite(theta_new))
         accept = first | finite
@@ -277,8 +332,8 @@ def em_loop(
     state = (
         jnp.asarray(0),
         theta0,
-        _empty_filter_result(n_steps, n_states, measurements.shape[1]),
-        _empty_smoother_result(n_steps, n_states),
+        _empty_filter_result(n_total, n_states, measurements.shape[1]),
+        _empty_smoother_result(n_total, n_states),
         jnp.zeros(()),
         false,
         false,
@@ -330,9 +385,15 @@ def e_step(
     measurement_cov,
     gate,
     line_factors=None,
+    in_window=None,
     functions=AJ_EULER,
 ):
-    """E-step: EKF then RTS under θ; returns (filtered, smoothed, log-likelihood)."""
+    """E-step: EKF then RTS under θ; returns (filtered, smoothed, log-likelihood).
+
+    ``in_window`` (T,) bool, a run of True then False (None: all True): the steps after
+    the window are padding. ℓ sums the window's steps, and the smoother sees the padding
+    inert (:func:`_inert_padding`), so its backward pass starts at the window's last step.
+    """
     filtered = ekf(
         spec,
         prior_mean,
@@ -346,7 +407,38 @@ def e_step(
         functions=functions,
         line_factors=line_factors,
     )
-    return filtered, rts_smoother(spec, filtered), jnp.sum(filtered.log_likelihood)
+    if in_window is None:
+        in_window = jnp.ones(inputs.shape[0], dtype=bool)
+    smoothed = rts_smoother(spec, _inert_padding(filtered, in_window))
+    return filtered, smoothed, jnp.sum(jnp.where(in_window, filtered.log_likelihood, 0.0))
+
+
+def _inert_padding(filtered: FilterResult, in_window) -> FilterResult:
+    """The filter's results as the smoother should see a window followed by padding.
+
+    Every padding step holds the window's last filtered mean and covariance, as its
+    filtered and its predicted values, and the transitions out of the window's last
+    step and on are zero: the smoother's gains J_k = P_k Fₖᵀ P_{k+1|k}⁻¹ there are
+    exactly 0 and nothing of the padding (a NaN or a divergence-guard reset of its
+    predictions included) reaches the window. With no padding nothing changes (the last
+    step's F is not used by the smoother).
+    """
+    last = jnp.sum(in_window) - 1
+    padding = ~in_window
+
+    def held(field, at_last):
+        mask = padding.reshape((-1,) + (1,) * (field.ndim - 1))
+        return jnp.where(mask, at_last, field)
+
+    mean, cov = filtered.means[last], filtered.covariances[last]
+    leaving = (jnp.arange(in_window.shape[0]) >= last)[:, None, None]
+    return filtered._replace(
+        means=held(filtered.means, mean),
+        covariances=held(filtered.covariances, cov),
+        predicted_means=held(filtered.predicted_means, mean),
+        predicted_covariances=held(filtered.predicted_covariances, cov),
+        transition_jacobians=jnp.where(leaving, 0.0, filtered.transition_jacobians),
+    )
 
 
 e_step = jax.jit(e_step, static_argnames=("functions",))

@@ -818,6 +818,8 @@ class OnlineTwin:
             ),
             functions=twin.functions,
             line_factors=line,
+            # early windows run at the full window's length: one compiled EM program
+            padded_steps=self._window,
         )
         self._em_pos = pos
         self._spec = None

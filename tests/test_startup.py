@@ -284,3 +284,41 @@ def test_the_command_exits_with_its_code_after_the_exit_handlers_and_threads(tmp
     wrong = ajtwin("no-such-command")
     assert wrong.returncode == 2 and "No such command 'no-such-command'" in wrong.stderr
     assert (tmp_path / "atexit").read_text() == "ran"
+
+
+_EM_PROBE = """
+import json, pickle
+import numpy as np
+import ajtwin._aot as aot
+from ajtwin._jax import compilation_cache_dir
+from ajtwin.estimation import Twin
+loaded = []
+_load_executable = aot._load_executable
+aot._load_executable = lambda path: loaded.append(path.stem) or _load_executable(path)
+twin = Twin.default(window_s=60, every_s=30, early_em_s=(20,))
+u = np.array([375.0, 23.0, 50.0])
+y = np.asarray(twin.model.outputs(np.array([3.5, 1.0, 0.0, 0.0, 4.6e-7]), u))
+n = 100
+noisy = y * (1 + 0.01 * np.random.default_rng(0).standard_normal((n, 5)))
+run = twin.run(inputs=np.tile(u, (n, 1)), measurements=noisy, time_s=np.arange(float(n)))
+folder = compilation_cache_dir() / "exported"
+# em_loop's entries: the only kept program whose result holds a SmootherResult
+trees = {p.stem: str(pickle.loads(p.read_bytes())) for p in folder.glob("*.tree")}
+em = sorted(key for key, tree in trees.items() if "SmootherResult" in tree)
+windows = (run.theta_history["time_s"] - run.theta_history["window_start_s"] + 1).tolist()
+print(json.dumps({"windows": windows, "em": em,
+                  "executables": [k for k in em if (folder / f"{k}.xla").exists()],
+                  "loaded": [k for k in loaded if k in em]}))
+"""
+
+
+def test_the_early_and_full_em_windows_share_one_kept_executable(tmp_path):
+    """The twin's early EM window (20 steps here) runs padded to the full window (60): one
+    EM program is compiled and kept, and a new process loads that one executable only."""
+    cache = str(tmp_path / "cache")
+    first = json.loads(_python(_EM_PROBE, AJTWIN_CACHE_DIR=cache))
+    assert first["windows"] == [20.0, 60.0, 60.0]
+    assert len(first["em"]) == 1 and first["executables"] == first["em"]
+    second = json.loads(_python(_EM_PROBE, AJTWIN_CACHE_DIR=cache))
+    assert second["windows"] == first["windows"] and second["em"] == first["em"]
+    assert second["loaded"] == first["em"]

@@ -30,7 +30,8 @@ from ajtwin.apps.develop.surrogate import LOG_OFFSET, LinePosterior, Observation
 from ajtwin.cli import main
 from ajtwin.model import DigitalModel
 from ajtwin.simulation.printer import run_virtual_print
-from ajtwin.studies.develop import run_ink, summarise
+from ajtwin.simulation.virtual_ink import draw_ink
+from ajtwin.studies.develop import VirtualLab, evaluate, run_ink, summarise
 
 BOX = InputBox.from_limits(None, speed_mm_s=2.0)
 
@@ -252,6 +253,43 @@ def test_study_small_instance_twin_and_grid_and_an_unreachable_target():
     assert rows[0]["grid"]["kind"] in ("done", "not found") and rows[0]["grid"]["tests"] >= 1
     assert s["model/twin"]["out_of_reach_said"] == 1  # never a recipe for an unreachable target
     assert s["alt/twin"]["median_tests"] <= 12
+
+
+def test_a_recipe_is_judged_by_the_line_printed_next_at_its_stop_not_added_to_the_tests():
+    ink, recipe = draw_ink(2005, "model"), [375.0, 23.0, 50.0]
+    inputs = (recipe, [350.0, 21.0, 55.0])
+
+    def run(goal, n):
+        lab = VirtualLab(ink, 2505, BringUp.create(goal, BOX))
+        for u in inputs[:n]:
+            lab.print(u)
+        return lab
+
+    def continued(lab):  # the run's own printer prints one more line at the recipe
+        r = lab.printer.print_test_line(np.array(recipe), 2.0, lab.settle_s, lab.print_s)
+        return r.true_linewidth_um, r.true_overspray_um
+
+    lab = run(Goal(40.0, 50.0), 2)
+    printed_s = lab.printer.k
+    judged = evaluate(lab, {"kind": "done", "recipe": recipe}, 2)
+    # evaluation only: the bring-up and the run's printer are as the method left them
+    assert len(lab.bringup.tests) == 2 and lab.printer.k == printed_s
+    # the next print is the line the run's printer prints after its last test
+    after_last = continued(lab)
+    assert judged["next_linewidth_um"] == pytest.approx(after_last[0], rel=1e-12)
+    assert judged["next_overspray_um"] == pytest.approx(after_last[1], rel=1e-12)
+    # stopped after test 1 of the same run (a lenient stop): the line a run that had stopped
+    # there prints next, not the one printed after the run's last test
+    early = evaluate(lab, {"kind": "done", "recipe": recipe}, 1)
+    assert early["next_linewidth_um"] == pytest.approx(continued(run(Goal(40.0, 50.0), 1))[0])
+    assert abs(early["next_linewidth_um"] - judged["next_linewidth_um"]) > 0.01
+    # the machine stands off its nominal state here: a target the next line meets by 1.9 µm,
+    # which the ink's line at the nominal droplet size and aerosol density misses
+    gap = judged["next_linewidth_um"] - judged["nominal_linewidth_um"]
+    assert abs(gap) > 0.5
+    target = round(judged["next_linewidth_um"] + 1.9 * np.sign(gap), 1)
+    on_target = evaluate(run(Goal(target, 50.0), 2), {"kind": "done", "recipe": recipe}, 2)
+    assert on_target["holds"] and not on_target["holds_nominal"]
 
 
 @pytest.mark.slow

@@ -393,7 +393,7 @@ def simulate(ink_seed, truth, target_linewidth, max_overspray, seed, out_path):
         500 + ink_seed if seed is None else seed,
         BringUp.create(goal, InputBox.from_limits(None, SPEED_MM_S)),
     )
-    outcome = evaluate(ink, goal, run_twin(lab), len(lab.bringup.tests))
+    outcome = evaluate(lab, run_twin(lab), len(lab.bringup.tests))
     for k, t in enumerate(lab.bringup.tests, 1):
         click.echo(
             f"  test {k}: {_inputs_text(t)} → L_w {t['linewidth_um']:.1f} µm (true "
@@ -402,12 +402,14 @@ def simulate(ink_seed, truth, target_linewidth, max_overspray, seed, out_path):
         )
     if outcome["kind"] == "done":
         verdict = "holds" if outcome["holds"] else "DOES NOT HOLD"
+        nominal = "holds" if outcome["holds_nominal"] else "does not hold"
         click.echo(
-            f"done after {outcome['tests']} test lines: the recipe's true L_w "
-            f"{outcome['true_linewidth_um']:.1f} µm, "
-            f"L_o {outcome['true_overspray_um']:.1f} µm: {verdict}; after ±5 % droplet size "
-            "/ aerosol density "
-            f"the worst miss is {outcome['robust_worst_miss_um']:.1f} µm"
+            f"done after {outcome['tests']} test lines: the next line printed at the recipe "
+            f"has true L_w {outcome['next_linewidth_um']:.1f} µm, "
+            f"L_o {outcome['next_overspray_um']:.1f} µm: {verdict}; at the nominal machine "
+            f"state the ink's line there is L_w {outcome['nominal_linewidth_um']:.1f} µm, "
+            f"L_o {outcome['nominal_overspray_um']:.1f} µm ({nominal}); after ±5 % droplet "
+            f"size / aerosol density the worst miss is {outcome['robust_worst_miss_um']:.1f} µm"
         )
     else:
         click.echo(f"{outcome['kind'].replace('_', ' ')} after {outcome['tests']} test lines")

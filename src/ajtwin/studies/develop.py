@@ -47,8 +47,8 @@ included, before the recipe is printed) and its next line is the one the lab wou
 printed had it stopped there. This matters for the lenient variants: their stop is read off
 the same run at an earlier test k, after which the run went on printing other inputs; continuing
 the run's printer would judge them minutes later, on a machine state they never stopped at. For
-the methods themselves k is the run's last test, and the replay is the run's own printer
-continued.
+the methods themselves k is the run's last test, and the replay's next line is the one the
+run's own printer prints next (``tests/test_develop.py`` pins the two equal).
 
 Reported with it, by the same counts: whether the recipe holds *at the nominal machine
 state* — the ink's settled line (:func:`~ajtwin.simulation.virtual_ink.settled_line`) at the
@@ -275,7 +275,7 @@ def run_grid(lab: VirtualLab) -> dict:
     return {"kind": "not found"}
 
 
-def holds(goal: Goal, linewidth_um: float, overspray_um: float) -> bool:
+def meets_goal(goal: Goal, linewidth_um: float, overspray_um: float) -> bool:
     """Whether a line is within ± tolerance of the target with L_o ≤ max."""
     return bool(
         abs(linewidth_um - goal.target_linewidth_um) <= goal.tolerance_um
@@ -294,11 +294,11 @@ def evaluate(lab: VirtualLab, outcome: dict, n_tests: int) -> dict:
     nxt = lab.next_print(outcome["recipe"], n_tests)
     out["next_linewidth_um"] = nxt.true_linewidth_um
     out["next_overspray_um"] = nxt.true_overspray_um
-    out["holds"] = holds(goal, nxt.true_linewidth_um, nxt.true_overspray_um)
+    out["holds"] = meets_goal(goal, nxt.true_linewidth_um, nxt.true_overspray_um)
     u = np.array([outcome["recipe"]])
     w, o = settled_line(ink, u, SPEED_MM_S)
     out["nominal_linewidth_um"], out["nominal_overspray_um"] = float(w[0]), float(o[0])
-    out["holds_nominal"] = holds(goal, float(w[0]), float(o[0]))
+    out["holds_nominal"] = meets_goal(goal, float(w[0]), float(o[0]))
     moved = [
         float(settled_line(ink, u, SPEED_MM_S, droplet_scale=ds, aerosol_scale=As)[0][0])
         for ds, As in ((1.05, 1.0), (0.95, 1.0), (1.0, 1.05), (1.0, 0.95))
@@ -346,8 +346,7 @@ def _first_in_tolerance(tests: list, goal: Goal) -> dict:
     """The lenient stop: the first reading within ± tolerance of the target with L_o ≤ max
     (what a lab does without a model; the same run, so the path up to it is the method's)."""
     for k, t in enumerate(tests, 1):
-        within = abs(t["linewidth_um"] - goal.target_linewidth_um) <= goal.tolerance_um
-        if within and t["overspray_um"] <= goal.max_overspray_um:
+        if meets_goal(goal, t["linewidth_um"], t["overspray_um"]):
             return {"kind": "done", "recipe": [t[n] for n in TEST_INPUTS[:3]], "tests": k}
     return {"kind": "not found", "tests": len(tests)}
 

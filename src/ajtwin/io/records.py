@@ -547,8 +547,9 @@ def validate_meta(meta, where: str = "<record>") -> dict:
     """Check a record's metadata: types and ranges of the keys ajtwin uses.
 
     ``platen_speed_mm_s`` a number in (0, :data:`MAX_PLATEN_SPEED_MM_S`], ``seed`` an integer
-    or null, ``fault_onset_s`` a number ≥ 0 or null, ``machine_id``/``scenario``/``fault_kind``
-    text, ``units`` an object of column → unit text. Other keys are kept as they are.
+    or null, ``fault_onset_s`` a number ≥ 0 or null, ``atomizer_switched_on_s`` a number or
+    null, ``machine_id``/``scenario``/``fault_kind`` text, ``units`` an object of column →
+    unit text. Other keys are kept as they are.
 
     Raises
     ------
@@ -575,6 +576,9 @@ def validate_meta(meta, where: str = "<record>") -> dict:
     onset = meta.get("fault_onset_s")
     if onset is not None and not (is_number(onset) and math.isfinite(onset) and onset >= 0):
         raise bad("fault_onset_s", "a number of seconds ≥ 0, or null for a clean print")
+    switched_on = meta.get("atomizer_switched_on_s")
+    if switched_on is not None and not (is_number(switched_on) and math.isfinite(switched_on)):
+        raise bad("atomizer_switched_on_s", "a number of seconds, or null (not switched on)")
     for key in ("machine_id", "scenario", "fault_kind"):
         if key in meta and not isinstance(meta[key], str):
             raise bad(key, "text")

@@ -43,7 +43,7 @@ from ajtwin.model import coefficient_matrix, load_output_coefficients, load_para
 from ajtwin.model.system import output_function, steady_aerosol_fraction
 from ajtwin.simulation.machine import MachineDeviation, resolve_machine
 from ajtwin.simulation.scenarios import Scenario, load_scenario
-from ajtwin.simulation.startup import apply_startup
+from ajtwin.simulation.startup import apply_startup, startup_enabled
 from ajtwin.simulation.truth import integrate_truth, true_generation
 from ajtwin.simulation.truth_alt import (
     alt_measure,
@@ -530,6 +530,9 @@ def run_virtual_print(
         },
         "scenario_config": cfg,
     }
+    if startup_enabled(cfg["startup"]):
+        # the atomizer is switched on as the log begins: the print is its run-in
+        meta["atomizer_switched_on_s"] = 0.0
     if truth_generator != "model":
         meta["truth_generator"] = truth_generator
     if not deviation.is_nominal:

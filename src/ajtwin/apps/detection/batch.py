@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ajtwin.apps.detection.settings import CUSUM_CHANNELS, DetectorSettings
+from ajtwin.apps.detection.settling import switched_on_s
 from ajtwin.apps.detection.streaming import AnomalyDetector
 
 
@@ -83,17 +84,28 @@ def detect_anomalies(
     -------
     DetectionResult (its ``long_run_history``: what to carry to the next print)
     """
-    detector = AnomalyDetector(settings, long_run_history)
-    t = np.asarray(time_s, dtype=float)
-    filtered = SimpleNamespace(
-        predicted_outputs=predicted_outputs,
-        innovation_variances=innovation_variances,
-        nis=nis,
-        n_measured=n_measured,
-        means=means,
-        predicted_means=predicted_means,
-        covariances=covariances,
+    return run_detector(
+        AnomalyDetector(settings, long_run_history),
+        time_s,
+        measurements,
+        inputs,
+        SimpleNamespace(
+            predicted_outputs=predicted_outputs,
+            innovation_variances=innovation_variances,
+            nis=nis,
+            n_measured=n_measured,
+            means=means,
+            predicted_means=predicted_means,
+            covariances=covariances,
+        ),
     )
+
+
+def run_detector(detector: AnomalyDetector, time_s, measurements, inputs, filtered):
+    """``detector`` over a whole print: times (T,), measurements (T, 5), inputs (T, 3) or
+    None, and the filter's results (``filtered``: :data:`DETECTOR_ARRAYS`' names); the
+    :class:`DetectionResult`."""
+    t = np.asarray(time_s, dtype=float)
     block = SimpleNamespace(time_s=t, measurements=measurements, inputs=inputs, filtered=filtered)
     rows = detector.update_block(block)
     events = detector.finish()
@@ -121,21 +133,15 @@ def detect_run(
     """:func:`detect_anomalies` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record.
 
     The measurements are those the filter used (``run.measurements``: on a job print the
-    camera's filed at their print times), else the record's outputs.
+    camera's filed at their print times), else the record's outputs. A record whose
+    atomizer was switched on as it began (``atomizer_switched_on_s``) begins with a run-in.
     """
-    f = run.filtered
     measured = getattr(run, "measurements", None)
-    return detect_anomalies(
+    detector = AnomalyDetector(settings, long_run_history, switched_on_s(record.meta))
+    return run_detector(
+        detector,
         run.time_s,
         record.outputs if measured is None else measured,
-        np.asarray(f.predicted_outputs),
-        np.asarray(f.innovation_variances),
-        np.asarray(f.nis),
-        np.asarray(f.n_measured),
-        np.asarray(f.means),
-        np.asarray(f.predicted_means),
-        np.asarray(f.covariances),
-        settings,
-        inputs=record.inputs,
-        long_run_history=long_run_history,
+        record.inputs,
+        run.filtered,
     )

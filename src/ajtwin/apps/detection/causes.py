@@ -27,9 +27,20 @@ CAUSES = {
         "nozzle needs cleaning (its deposit is beyond the range the output model was built "
         "for; the print's later alarms are part of this event)"
     ),
+    # set by AnomalyDetector for an event the atomizer's run-in explains (RUN_IN_EXPLAINS)
+    "run_in": (
+        "atomizer running in (the mist still building up after switch-on, before ready to "
+        "print): not a fault"
+    ),
     # set by ajtwin.apps.detection.mismatch.relabel_events: the model does not fit the machine
     "model_machine_mismatch": "model–machine mismatch, not a fault (commission the machine)",
 }
+
+#: the causes a run-in explains when the event began in one and none of its alarms is on the
+#: pressures or the vial (:meth:`~ajtwin.apps.detection.streaming.AnomalyDetector.
+#: _run_in_explains`): a mist building up looks like the atomizer delivering less, or more,
+#: than the twin expects
+RUN_IN_EXPLAINS = ("atomizer", "unexplained")
 
 
 def label_cause(

@@ -228,6 +228,71 @@ def atomizer_restarts(atomizer_current_mA, was_off: bool, off_mA: float) -> tupl
     return restarts, off
 
 
+def switched_on_s(meta) -> float | None:
+    """When a record's atomizer was switched on (its metadata ``atomizer_switched_on_s``,
+    seconds on the record's clock; the virtual printer's start-up sets it): the print
+    begins with a run-in. None: not known (a print of a running atomizer, as far as the
+    record says).
+
+    >>> switched_on_s({"atomizer_switched_on_s": 0}), switched_on_s({})
+    (0.0, None)
+    """
+    value = (meta or {}).get("atomizer_switched_on_s")
+    return None if value is None else float(value)
+
+
+class RunIn:
+    """The atomizer's run-ins over a print, a step at a time: each begins at a switch-on
+    (the record's, :func:`switched_on_s`, or a sample at or above ``atomizer_off_mA`` after
+    one below it: :func:`atomizer_restarts`) and ends when the twin says ready to print (a
+    new :class:`SettlingDetector` per run-in). A print whose atomizer was already running
+    has none: every test that reads a run-in is then what it was without it.
+
+    Examples
+    --------
+    >>> run_in = RunIn(switched_on_s=0.0)
+    >>> for t in range(3):
+    ...     run_in.update(float(t), 375.0, np.zeros(5), np.zeros(5))
+    >>> run_in.spans, run_in.covers(2.0), RunIn().covers(2.0)
+    ([[0.0, None]], True, False)
+    """
+
+    def __init__(self, switched_on_s: float | None = None, settings=None):
+        self.settings = settings or SettlingSettings.load()
+        self._switch_on = switched_on_s
+        self._off = False
+        self._detector: SettlingDetector | None = None
+        self.spans: list[list] = []  # [start s, ready s or None (not yet)] per run-in
+
+    def update(self, time_s: float, current_mA, mean, predicted_output) -> None:
+        """One step: its time [s], the atomizer current [mA] (None or NaN: not known), the
+        twin's state mean (5,) and predicted outputs (5,)."""
+        t = float(time_s)
+        if self._switch_on is not None and t >= self._switch_on:
+            self._switch_on = None
+            self._begin(t)
+        if current_mA is not None:
+            off_mA = self.settings.atomizer_off_mA
+            restarts, self._off = atomizer_restarts([current_mA], self._off, off_mA)
+            if restarts:
+                self._begin(t)
+        if self._detector is not None:
+            verdict = self._detector.update(
+                [t], np.asarray(mean, dtype=float)[None], np.asarray(predicted_output)[None]
+            )
+            if verdict.ready:
+                self.spans[-1][1] = verdict.ready_at_s
+                self._detector = None
+
+    def _begin(self, t: float) -> None:
+        self._detector = SettlingDetector(self.settings)
+        self.spans.append([t, None])
+
+    def covers(self, time_s: float) -> bool:
+        """Whether ``time_s`` lies in a run-in (after a switch-on, before ready to print)."""
+        return any(a <= time_s and (b is None or time_s < b) for a, b in self.spans)
+
+
 class StartupWatch:
     """Ready to print over a live print: a :class:`SettlingDetector` fed a block of
     committed steps at a time, a new one whenever the atomizer starts again (its run-in

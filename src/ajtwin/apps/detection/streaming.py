@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ajtwin import units
-from ajtwin.apps.detection.causes import CAUSES, label_cause
+from ajtwin.apps.detection.causes import CAUSES, RUN_IN_EXPLAINS, label_cause
 from ajtwin.apps.detection.settings import (
     CUSUM_CHANNELS,
     SHORT_OUTPUT,
@@ -24,6 +24,7 @@ from ajtwin.apps.detection.settings import (
     DetectorSettings,
     cusum_thresholds,
 )
+from ajtwin.apps.detection.settling import RunIn
 from ajtwin.apps.detection.statistics import (
     Cusum,
     MultiScaleLongRun,
@@ -113,10 +114,17 @@ class AnomalyDetector:
         :meth:`long_run_history` of the machine's previous print (or of its commissioning
         print): the CUSUMs start with the machine's long-run noise scale instead of 1.
         Ignored when it was taken with another block length or other channels.
+    switched_on_s : float, optional
+        When the atomizer was switched on (the record's ``atomizer_switched_on_s``): the
+        print begins with a run-in (:class:`~ajtwin.apps.detection.settling.RunIn`; a
+        switch-on in the atomizer current, given with ``inputs``, begins one too).
     """
 
     def __init__(
-        self, settings: DetectorSettings | None = None, long_run_history: dict | None = None
+        self,
+        settings: DetectorSettings | None = None,
+        long_run_history: dict | None = None,
+        switched_on_s: float | None = None,
     ):
         s = self.settings = settings or DetectorSettings()
         thresholds = cusum_thresholds(s)
@@ -158,6 +166,8 @@ class AnomalyDetector:
         self.restarts: list[float] = []  # times the warm-up restarted after a data gap
         self._beyond_since: int | None = None  # first step of the deposit beyond the range
         self._cleaning: int | None = None  # the 'nozzle needs cleaning' event (its index)
+        # the atomizer's run-ins: events a mist building up explains are labelled 'run_in'
+        self.run_in = RunIn(switched_on_s)
 
     def update_block(self, block, each=None) -> list[DetectorStep]:
         """The steps of a block of the twin's run, one after the other: ``block`` has
@@ -225,6 +235,8 @@ class AnomalyDetector:
             np.asarray(innovation_variance, dtype=float)[None],
         )[0]
         mean = np.asarray(mean, dtype=float)
+        current = None if inputs is None else float(np.asarray(inputs, dtype=float)[0])
+        self.run_in.update(t, current, mean, predicted_output)
         self.time.append(t)
         self.e.append(e)
         self.corrections.append(mean - np.asarray(predicted_mean, dtype=float))
@@ -528,6 +540,25 @@ class AnomalyDetector:
             "scale": self.long_run.scale.tolist(),
         }
 
+    def _run_in_explains(self, group: list, k_end: int, onset_s: float) -> bool:
+        """Whether the atomizer's run-in explains an event: it began in a run-in (after a
+        switch-on, before the twin said ready to print) and none of its alarms up to
+        ``k_end`` is on the pressures or the vial (a windowed NIS counts as a pressure alarm
+        when it needed their excess, :meth:`_window_needs`). A mist building up moves Q_m,
+        φ_A, d_a and the line; it does not clog the nozzle or leak the carrier line, whose
+        alarms keep their label at any time."""
+        if not self.run_in.covers(onset_s):
+            return False
+        for step, _, name in group:
+            if step > k_end:
+                continue
+            family = _family(name)
+            if family is None and name == "windowed NIS" and step >= self.time.first:
+                family = "pressure" if "pressure" in self._window_needs(step) else None
+            if family in ("pressure", "vial") or name == CLEANING_DETECTOR:
+                return False
+        return True
+
     def _evidence_end(self, k_det: int) -> int | None:
         """First step at or after detection + evidence_s, if it has been seen."""
         target = self.time[k_det] + self.settings.evidence_s
@@ -560,6 +591,8 @@ class AnomalyDetector:
         for step, _, name in group:
             if step <= k_end and name not in detectors:
                 detectors.append(name)
+        if cause in RUN_IN_EXPLAINS and self._run_in_explains(group, k_end, self.time[k_on]):
+            cause = "run_in"
         return AnomalyEvent(
             detected_s=self.time[k_det],
             onset_s=self.time[k_on],

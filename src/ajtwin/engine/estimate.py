@@ -35,9 +35,10 @@ from ajtwin.apps.detection.mismatch import (
     assess_run,
     data_share,
     determined_states,
-    first_em_update_s,
     load_guard_settings,
+    settled_level_s,
 )
+from ajtwin.apps.detection.settling import SettlingDetector, switched_on_s
 from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.io.csv_table import write_csv
 from ajtwin.model import STATE_NAMES
@@ -94,7 +95,7 @@ def estimate_to_csv(
     if smooth or whole:
         return _whole(twin, record, out, smooth, progress, job)
     with tempfile.TemporaryDirectory(prefix=".ajtwin-rows-", dir=out.parent) as spill:
-        rows = _Rows(Path(spill))
+        rows = _Rows(Path(spill), switched_on_s(record.meta))
         run = twin.run(record, progress=progress, sink=rows, job=job)
         mismatch = rows.guard_verdict(run)
         # the vial observer once the guard's inputs are let go: the two never held together
@@ -151,7 +152,7 @@ class _Rows:
     what the guard needs of them; written once the run has ended (the guard's flags and
     the vial observer come with the end)."""
 
-    def __init__(self, spill: Path):
+    def __init__(self, spill: Path, switched_on: float | None = None):
         # each chunk's rows wait on disk for the end (a week's rows held were ~0.25 GB)
         self.spill = spill
         self.frames: list[Path] = []
@@ -160,6 +161,9 @@ class _Rows:
         self.share_end = None
         self.n = 0
         self.nis_sum, self.nis_n, self.reinitialised = 0.0, 0, 0
+        # a print that begins with the atomizer's run-in: when the twin said ready to print
+        self.switched_on = switched_on
+        self.settling = None if switched_on is None else SettlingDetector()
 
     def __call__(self, first: int, chunk) -> None:
         """Take the chunk of steps [first, first + n)."""
@@ -177,6 +181,13 @@ class _Rows:
         self.guard.add(
             chunk.time_s, chunk.means, e, np.asarray(f.nis), np.asarray(f.n_measured), chunk.stds
         )
+        after = np.asarray(chunk.time_s, dtype=float) >= (self.switched_on or 0.0)
+        if self.settling is not None and after.any():
+            self.settling.update(
+                np.asarray(chunk.time_s)[after],
+                np.asarray(chunk.means)[after],
+                np.asarray(f.predicted_outputs)[after],
+            )
         per_output = frame["nis"].to_numpy() / np.maximum(frame["n_measured"].to_numpy(), 1)
         self.nis_sum += float(np.nansum(per_output))
         self.nis_n += int(np.isfinite(per_output).sum())
@@ -185,10 +196,12 @@ class _Rows:
 
     def guard_verdict(self, run):
         """The mismatch guard over the whole print, from the kept per-second inputs."""
+        run_in = self.settling is not None
+        ready = self.settling.readiness.ready_at_s if run_in else None
         return self.guard.assess(
             start_mean=run.start_mean,
             start_cov=run.start_cov,
-            level_learned_s=first_em_update_s(run),
+            level_learned_s=settled_level_s(run, run_in, ready),
         )
 
     def write(self, out: Path, run, flags) -> None:

@@ -26,7 +26,10 @@ from ajtwin.apps.detection.mismatch import (
     determined_states,
     first_em_update_s,
     relabel_events,
+    run_in_level_s,
+    settled_level_s,
 )
+from ajtwin.apps.detection.settling import switched_on_s
 from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.apps.detection.streaming import AnomalyDetector
 from ajtwin.engine.chain import chain_start
@@ -410,15 +413,20 @@ class IngestSink:
         if record.has_job:
             self._job = record if isinstance(record, SpooledRecord) else record.data
         self.settings, self.long_run_history = settings, long_run_history
-        self.detector = AnomalyDetector(settings, long_run_history)
+        self.detector = AnomalyDetector(settings, long_run_history, switched_on_s(record.meta))
         self.keep = keep
         self.chunks: list = []
         self.share = None  # (1, 5) the data share at the last step so far
         self._share_carry: dict = {}
         self._guard = None  # made at the first chunk, which brings the start prior
         self._level_learned_s = None
+        self._config = twin_config
         if twin_config is not None:
             self._level_learned_s = first_em_update_time(twin_config, record.time_s)
+        # a print that begins with the atomizer's run-in: its level is learned only once EM
+        # has a window after ready to print (settled_level_s), not known before then
+        self._run_in = switched_on_s(record.meta) is not None
+        self._run_in_level_s = None
         self.status = ("ok", "")
 
     def __call__(self, first: int, chunk) -> None:
@@ -446,12 +454,32 @@ class IngestSink:
                 start_cov=chunk.start_cov,
                 level_learned_s=self._level_learned_s,
             )
+        self._guard_level()
         self._guard.add(
             arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
             arrays["stds"],
         )  # fmt: skip
         if self.keep:
             self.chunks.append(chunk)
+
+    def _ready_s(self) -> float | None:
+        """When the twin said ready to print after the print's switch-on (None: not yet)."""
+        spans = self.detector.run_in.spans
+        return spans[0][1] if spans else None
+
+    def _guard_level(self) -> None:
+        """On a print that begins with a run-in, the guard's level time: inf until ready to
+        print, then the first EM update over a window after it (from the twin's schedule:
+        the guard judges each chunk as it comes)."""
+        if not self._run_in or self._level_learned_s is None:
+            return
+        ready = self._ready_s()
+        settled = None
+        if ready is not None:
+            settled = first_em_update_time(self._config, self.record.time_s, ready)
+        level = run_in_level_s(self._level_learned_s, settled, True, ready)
+        self._run_in_level_s = level
+        self._guard.learn_level_from(level)
 
     def _job_rows(self, first: int, stop: int):
         if isinstance(self._job, SpooledRecord):
@@ -467,6 +495,12 @@ class IngestSink:
                 f"the twin's first EM update came at {first_em_update_s(run)} s, not at "
                 f"{self._level_learned_s} s as the mismatch guard was told: its Q_m level "
                 "test would be wrong"
+            )
+        settled = settled_level_s(run, self._run_in, self._ready_s())
+        if self._run_in and self._run_in_level_s != settled:
+            raise RuntimeError(
+                f"the twin's first EM update after ready to print came at {settled} s, not at "
+                f"{self._run_in_level_s} s as the mismatch guard was told"
             )
         mismatch = self._guard.finish()
         # a model that does not fit the machine is reported as such, never as a fault

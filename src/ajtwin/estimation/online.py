@@ -100,10 +100,12 @@ def em_due(pos: int, every: int, window: int, early: tuple) -> bool:
     return (pos >= window and pos % every == 0) or pos in early
 
 
-def first_em_update_time(config, time_s) -> float | None:
+def first_em_update_time(config, time_s, window_from_s: float | None = None) -> float | None:
     """When the twin makes its first EM update over a print of times ``time_s`` (the time of
     the last step before that boundary; None: EM off or never due), known before the run:
-    the first boundary where EM is due that has a step after it."""
+    the first boundary where EM is due that has a step after it. ``window_from_s``: the
+    first update whose window (the last ``window_s`` steps, or the print so far at an early
+    step) begins at or after that time, i.e. whose θ no earlier step has shaped."""
     n = len(time_s)
     if not config.em or n == 0:
         return None
@@ -115,7 +117,9 @@ def first_em_update_time(config, time_s) -> float | None:
     while pos < n:
         pos = next_em_boundary(pos, every, early)
         if pos < n and em_due(pos, every, window, early):
-            return float(time_s[pos - 1])
+            start = max(pos - window, 0)
+            if window_from_s is None or float(time_s[start]) >= window_from_s:
+                return float(time_s[pos - 1])
     return None
 
 

@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ajtwin import units
+from ajtwin.apps.detection.settling import settling_time, switched_on_s
 from ajtwin.apps.detection.statistics import normalised_innovations
 from ajtwin.config import packaged_toml
 from ajtwin.estimation.filters import DEFAULT_SCALING
@@ -276,6 +277,13 @@ class ChunkedGuard:
         self._items: dict = {}  # a test's place in the run → its first finding
         self._start_only: set = set()
         self._flags: list = []
+
+    def learn_level_from(self, level_learned_s: float | None) -> None:
+        """From when the twin holds the print's atomizer level, once it is known later than
+        at the start (a run-in's settled EM update, :func:`settled_level_s`): the rows not
+        judged yet are judged with it. Rows judged before it was known must have been judged
+        with a level not learned (inf)."""
+        self._level_learned_s = level_learned_s
 
     def add(self, time_s, means, e, nis, n_measured, stds=None) -> None:
         """A chunk's steps (as :meth:`GuardInputs.add`; ``stds`` None: no deposit test)."""
@@ -553,18 +561,68 @@ def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
         start_mean=run.start_mean,
         start_cov=run.start_cov,
         settings=settings,
-        level_learned_s=first_em_update_s(run),
+        level_learned_s=atomizer_level_s(run, record),
         stds=run.stds,
     )
 
 
-def first_em_update_s(run) -> float | None:
+def first_em_update_s(run, window_from_s: float | None = None) -> float | None:
     """When the twin's first EM update took effect (None: EM did not run): from then on θ_φA
-    holds the print's atomizer level, so Q_m's level is the model's to explain."""
+    holds the print's atomizer level, so Q_m's level is the model's to explain.
+    ``window_from_s``: the first update whose window began at or after then (inf: none)."""
     history = getattr(run, "theta_history", None)
     if history is None or len(history) == 0 or "time_s" not in history:
         return None
+    if window_from_s is not None:
+        history = history[history["window_start_s"].to_numpy(float) >= window_from_s]
+        if len(history) == 0:
+            return np.inf
     return float(history["time_s"].iloc[0])
+
+
+def atomizer_level_s(run, record) -> float | None:
+    """When the twin holds the print's atomizer level (:func:`assess`'s ``level_learned_s``)
+    over a whole run: :func:`settled_level_s` with the twin's ready-to-print time after the
+    record's switch-on (:func:`~ajtwin.apps.detection.settling.settling_time`)."""
+    start = switched_on_s(record.meta)
+    if start is None:
+        return first_em_update_s(run)
+    t = np.asarray(run.time_s, dtype=float)
+    after = t >= start
+    f = run.filtered
+    ready = settling_time(
+        t[after], np.asarray(f.means)[after], np.asarray(f.predicted_outputs)[after]
+    ).ready_at_s
+    return settled_level_s(run, True, ready)
+
+
+def settled_level_s(run, run_in: bool, ready_s: float | None) -> float | None:
+    """:func:`run_in_level_s` from a run's θ history (its EM updates and their windows)."""
+    settled = None if ready_s is None else first_em_update_s(run, ready_s)
+    return run_in_level_s(first_em_update_s(run), settled, run_in, ready_s)
+
+
+def run_in_level_s(first_s, settled_s, run_in: bool, ready_s: float | None) -> float | None:
+    """When the twin holds the print's atomizer level: EM's first θ (``first_s``; None: no
+    EM); on a print that begins with the atomizer's run-in (``run_in``) the first θ learned
+    over a window that began once the twin said ready to print at ``ready_s`` (``settled_s``;
+    inf: not ready, or no such update in this print).
+
+    Why: the run-in's mist builds up for 5-15 min, and the θ_φA that EM learns over a window
+    of it holds a level the atomizer has since left: Q_m then reads above the twin until a
+    settled window has been learned (virtual start-ups, seeds 1-10: +0.8…+1.7σ over 300 s
+    from the first level test at 7 min to 16-18 min, on every one).
+
+    >>> run_in_level_s(120.0, 900.0, True, 475.0), run_in_level_s(120.0, 900.0, False, 475.0)
+    (900.0, 120.0)
+    >>> run_in_level_s(120.0, None, True, None)
+    inf
+    """
+    if first_s is None or not run_in:
+        return first_s
+    if ready_s is None or settled_s is None or not np.isfinite(settled_s):
+        return np.inf
+    return max(float(first_s), float(settled_s))
 
 
 def data_share(filtered, carry: dict | None = None) -> np.ndarray:

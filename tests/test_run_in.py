@@ -1,0 +1,71 @@
+"""The atomizer's run-in after switch-on is a known phase, not a fault nor a misfit.
+
+A print that begins as the atomizer is switched on (the virtual ``startup``: the mist builds
+up over 5-15 min) moves Q_m and the line away from a twin tuned for steady prints: the
+detectors and the mismatch guard must say "run-in", while a clog or a leak (the pressures,
+which a mist building up does not move) keeps its label and its time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ajtwin.apps.detection.batch import detect_run
+from ajtwin.apps.detection.causes import open_faults
+from ajtwin.apps.detection.settling import RunIn
+from ajtwin.engine.chain import open_registry
+from ajtwin.engine.estimate import estimate_to_csv
+from ajtwin.engine.ingest import ingest_record
+from ajtwin.estimation import Twin
+from ajtwin.io.records import PrintRecord
+from ajtwin.simulation import simulate
+
+
+def test_a_short_start_up_print_raises_no_fault_and_no_mismatch(tmp_path):
+    """Start-up seed 3, 12 min: before, 'atomizer trouble' at 1.8 min (a fault) and a Q_m
+    mismatch from 7 min, in ingest and estimate alike; now the event is the run-in's."""
+    record = simulate("startup", seed=3, duration_min=12.0)
+    assert record.meta["atomizer_switched_on_s"] == 0.0
+    registry = open_registry(tmp_path / "r.sqlite")
+    registry.add_machine("m1")
+    ingested = ingest_record(registry, "m1", record)
+    causes = [ev.cause for ev in ingested.events]
+    assert "run_in" in causes  # the detectors did see the mist building up ...
+    assert open_faults(ingested.events, []) == []  # ... and call none of it a fault
+    assert ingested.summary["mismatch"]["mismatch"] is False
+    done = estimate_to_csv(Twin.default(), record, tmp_path / "states.csv")
+    assert done.mismatch.mismatch is False
+    assert not np.asarray(done.mismatch.flags).any()
+
+
+def test_a_clog_keeps_its_label_and_time_with_or_without_a_run_in():
+    """A clog 2 min into a print (inside the not-yet-ready minutes every print has) is found
+    when and as it was, whether or not the print began with a switch-on: a run-in explains
+    no pressure alarm."""
+    record = simulate(
+        "nozzle_clog", seed=0, duration_min=6.0, overrides={"fault": {"onset_min": 2.0}}
+    )
+    run = Twin.default().run(record)
+    steady = detect_run(run, record).events
+    switched_on = PrintRecord(record.data, {**record.meta, "atomizer_switched_on_s": 0.0})
+    as_start_up = detect_run(run, switched_on).events
+    for events in (steady, as_start_up):
+        clog = [ev for ev in events if ev.detected_s >= 120.0]
+        assert clog and clog[0].cause == "nozzle_clog"
+        assert clog[0].detected_s - 120.0 < 60.0
+    assert as_start_up[0].detected_s == steady[0].detected_s
+    assert as_start_up[0].onset_s == steady[0].onset_s
+
+
+def test_a_switch_on_in_the_atomizer_current_begins_a_run_in_until_ready():
+    """Live, the switch-on shows in the current (below 50 mA, then above): a run-in from
+    that second; a record that does not show one has none."""
+    run_in = RunIn()
+    for t, current in enumerate([0.0, 0.0, 375.0, 375.0, np.nan, 0.0, 380.0]):
+        run_in.update(float(t), current, np.zeros(5), np.zeros(5))
+    assert [start for start, _ in run_in.spans] == [2.0, 6.0]
+    assert run_in.covers(3.0) and not run_in.covers(1.0)
+    steady = RunIn()
+    for t in range(5):
+        steady.update(float(t), 375.0, np.zeros(5), np.zeros(5))
+    assert steady.spans == [] and not steady.covers(3.0)

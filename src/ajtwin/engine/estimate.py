@@ -37,6 +37,7 @@ from ajtwin.apps.detection.mismatch import (
     determined_states,
     load_guard_settings,
     settled_level_s,
+    without_run_in,
 )
 from ajtwin.apps.detection.settling import SettlingDetector, switched_on_s
 from ajtwin.apps.detection.statistics import normalised_innovations
@@ -178,9 +179,6 @@ class _Rows:
         e = normalised_innovations(
             chunk.measurements, np.asarray(f.predicted_outputs), np.asarray(f.innovation_variances)
         )
-        self.guard.add(
-            chunk.time_s, chunk.means, e, np.asarray(f.nis), np.asarray(f.n_measured), chunk.stds
-        )
         after = np.asarray(chunk.time_s, dtype=float) >= (self.switched_on or 0.0)
         if self.settling is not None and after.any():
             self.settling.update(
@@ -188,6 +186,12 @@ class _Rows:
                 np.asarray(chunk.means)[after],
                 np.asarray(f.predicted_outputs)[after],
             )
+        run_in = self.settling is not None
+        ready = self.settling.readiness.ready_at_s if run_in else None
+        e = without_run_in(chunk.time_s, e, run_in, ready)
+        self.guard.add(
+            chunk.time_s, chunk.means, e, np.asarray(f.nis), np.asarray(f.n_measured), chunk.stds
+        )
         per_output = frame["nis"].to_numpy() / np.maximum(frame["n_measured"].to_numpy(), 1)
         self.nis_sum += float(np.nansum(per_output))
         self.nis_n += int(np.isfinite(per_output).sum())

@@ -28,6 +28,7 @@ from ajtwin.apps.detection.mismatch import (
     relabel_events,
     run_in_level_s,
     settled_level_s,
+    without_run_in,
 )
 from ajtwin.apps.detection.settling import switched_on_s
 from ajtwin.apps.detection.statistics import normalised_innovations
@@ -455,6 +456,7 @@ class IngestSink:
                 level_learned_s=self._level_learned_s,
             )
         self._guard_level()
+        e = without_run_in(arrays["time_s"], e, self._run_in, self._ready_s())
         self._guard.add(
             arrays["time_s"], arrays["means"], e, arrays["nis"], arrays["n_measured"],
             arrays["stds"],

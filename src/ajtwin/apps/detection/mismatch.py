@@ -543,7 +543,9 @@ def _verdict(found: _Findings, start_only: set) -> MismatchStatus:
 
 def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
     """:func:`assess` on a :class:`~ajtwin.estimation.twin.TwinRun` and its record (the
-    measurements the filter used: on a job print, filed at their print times)."""
+    measurements the filter used: on a job print, filed at their print times); a print that
+    begins with the atomizer's run-in (the record's ``atomizer_switched_on_s``) is judged
+    without it (:func:`without_run_in`, :func:`settled_level_s`)."""
 
     f = run.filtered
     measured = getattr(run, "measurements", None)
@@ -552,6 +554,8 @@ def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
         np.asarray(f.predicted_outputs),
         np.asarray(f.innovation_variances),
     )
+    run_in, ready = run_in_ready_s(run, record)
+    e = without_run_in(run.time_s, e, run_in, ready, settings)
     return assess(
         run.time_s,
         run.means,
@@ -561,7 +565,7 @@ def assess_run(run, record, settings: dict | None = None) -> MismatchStatus:
         start_mean=run.start_mean,
         start_cov=run.start_cov,
         settings=settings,
-        level_learned_s=atomizer_level_s(run, record),
+        level_learned_s=settled_level_s(run, run_in, ready),
         stds=run.stds,
     )
 
@@ -580,26 +584,48 @@ def first_em_update_s(run, window_from_s: float | None = None) -> float | None:
     return float(history["time_s"].iloc[0])
 
 
-def atomizer_level_s(run, record) -> float | None:
-    """When the twin holds the print's atomizer level (:func:`assess`'s ``level_learned_s``)
-    over a whole run: :func:`settled_level_s` with the twin's ready-to-print time after the
-    record's switch-on (:func:`~ajtwin.apps.detection.settling.settling_time`)."""
+def run_in_ready_s(run, record) -> tuple[bool, float | None]:
+    """(whether the print begins with the atomizer's run-in — the record's
+    ``atomizer_switched_on_s`` —, when the twin said ready to print after it: None, not in
+    this print) over a whole run (:func:`~ajtwin.apps.detection.settling.settling_time`)."""
     start = switched_on_s(record.meta)
     if start is None:
-        return first_em_update_s(run)
+        return False, None
     t = np.asarray(run.time_s, dtype=float)
     after = t >= start
     f = run.filtered
-    ready = settling_time(
+    verdict = settling_time(
         t[after], np.asarray(f.means)[after], np.asarray(f.predicted_outputs)[after]
-    ).ready_at_s
-    return settled_level_s(run, True, ready)
+    )
+    return True, verdict.ready_at_s
 
 
 def settled_level_s(run, run_in: bool, ready_s: float | None) -> float | None:
     """:func:`run_in_level_s` from a run's θ history (its EM updates and their windows)."""
     settled = None if ready_s is None else first_em_update_s(run, ready_s)
     return run_in_level_s(first_em_update_s(run), settled, run_in, ready_s)
+
+
+def without_run_in(time_s, e, run_in: bool, ready_s: float | None, settings: dict | None = None):
+    """The normalised innovations (T, 5) the guard may read of a print that begins with the
+    atomizer's run-in (``run_in``): the outputs a mist building up moves (``run_in_outputs``
+    of ``data/mismatch.toml``: the line and Q_m, not the pressures) as not measured before the
+    twin said ready to print at ``ready_s`` (None: not yet — all of them). Seconds not measured
+    are no evidence of a misfit (:func:`assess`). ``e`` itself is returned when ``run_in`` is
+    false.
+
+    >>> e = np.ones((4, 5))
+    >>> without_run_in(np.arange(4.0), e, True, 2.0)[:, [0, 2, 4]].tolist()
+    [[nan, 1.0, nan], [nan, 1.0, nan], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]
+    """
+    if not run_in:
+        return e
+    g = settings or load_guard_settings()
+    e = np.array(e, dtype=float)
+    before = np.asarray(time_s, dtype=float) < (np.inf if ready_s is None else ready_s)
+    columns = [OUTPUT_NAMES.index(name) for name in g["run_in_outputs"]]
+    e[np.ix_(before, columns)] = np.nan
+    return e
 
 
 def run_in_level_s(first_s, settled_s, run_in: bool, ready_s: float | None) -> float | None:

@@ -69,3 +69,23 @@ def test_a_switch_on_in_the_atomizer_current_begins_a_run_in_until_ready():
     for t in range(5):
         steady.update(float(t), 375.0, np.zeros(5), np.zeros(5))
     assert steady.spans == [] and not steady.covers(3.0)
+
+
+def test_the_live_twin_labels_the_run_in_of_an_atomizer_it_sees_switched_on():
+    """Live, with no record metadata: the atomizer current rising through 50 mA at 3 s is the
+    switch-on, and the mist building up after it is the run-in's event, not a fault."""
+    from ajtwin.engine.fleet import LiveEngine
+    from ajtwin.estimation.samples import Sample
+
+    record = simulate("startup", seed=3, duration_min=3.0)
+    inputs = record.inputs.copy()
+    inputs[:3, 0] = 0.0  # switched on at 3 s
+    engine = LiveEngine(None, asynchronous=False)
+    messages = []
+    engine.subscribe(messages.append)
+    for t, u, y in zip(record.time_s, inputs, record.outputs, strict=True):
+        engine.feed("m1", Sample(t, u, y))
+    engine.close("m1")
+    events = [e for m in messages for e in (getattr(m, "events", None) or ())]
+    assert events and {e["cause"] for e in events} == {"run_in"}
+    assert open_faults(events, []) == []

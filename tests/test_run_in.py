@@ -9,6 +9,7 @@ which a mist building up does not move) keeps its label and its time.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from ajtwin.apps.detection.batch import detect_run
 from ajtwin.apps.detection.causes import open_faults
@@ -38,23 +39,23 @@ def test_a_short_start_up_print_raises_no_fault_and_no_mismatch(tmp_path):
     assert not np.asarray(done.mismatch.flags).any()
 
 
-def test_a_clog_keeps_its_label_and_time_with_or_without_a_run_in():
-    """A clog 2 min into a print (inside the not-yet-ready minutes every print has) is found
-    when and as it was, whether or not the print began with a switch-on: a run-in explains
-    no pressure alarm."""
-    record = simulate(
-        "nozzle_clog", seed=0, duration_min=6.0, overrides={"fault": {"onset_min": 2.0}}
-    )
+@pytest.mark.parametrize("fault", ["nozzle_clog", "carrier_leak"])
+def test_a_clog_or_leak_keeps_its_label_and_time_with_or_without_a_run_in(fault):
+    """A clog or a leak 2 min into a print (inside the not-yet-ready minutes every print has)
+    is found when and as it was, whether or not the print began with a switch-on: a run-in
+    explains no pressure alarm."""
+    overrides = {"fault": {"onset_min": 2.0}}
+    record = simulate(fault, seed=0, duration_min=6.0, overrides=overrides)
     run = Twin.default().run(record)
     steady = detect_run(run, record).events
     switched_on = PrintRecord(record.data, {**record.meta, "atomizer_switched_on_s": 0.0})
     as_start_up = detect_run(run, switched_on).events
-    for events in (steady, as_start_up):
-        clog = [ev for ev in events if ev.detected_s >= 120.0]
-        assert clog and clog[0].cause == "nozzle_clog"
-        assert clog[0].detected_s - 120.0 < 60.0
-    assert as_start_up[0].detected_s == steady[0].detected_s
-    assert as_start_up[0].onset_s == steady[0].onset_s
+    found = [
+        [(ev.detected_s, ev.onset_s, ev.cause) for ev in events if ev.detected_s >= 120.0]
+        for events in (steady, as_start_up)
+    ]
+    assert found[0] and found[0][0][2] == fault and found[0][0][0] - 120.0 < 60.0
+    assert found[1] == found[0]
 
 
 def test_a_switch_on_in_the_atomizer_current_begins_a_run_in_until_ready():

@@ -39,8 +39,9 @@ CAUSES = {
 #: the causes a run-in explains when the event began in one and none of its alarms is on the
 #: pressures or the vial (:meth:`~ajtwin.apps.detection.streaming.AnomalyDetector.
 #: _run_in_explains`): a mist building up looks like the atomizer delivering less, or more,
-#: than the twin expects
-RUN_IN_EXPLAINS = ("atomizer", "unexplained")
+#: than the twin expects, and the twin's corrections of d_a and φ_A move the pressures' means
+#: enough for a carrier-leak pattern; a clog label (a growing deposit) is never the run-in's
+RUN_IN_EXPLAINS = ("atomizer", "unexplained", "carrier_leak")
 
 
 def label_cause(

@@ -540,18 +540,18 @@ class AnomalyDetector:
             "scale": self.long_run.scale.tolist(),
         }
 
-    def _run_in_explains(self, group: list, k_end: int, onset_s: float, z) -> bool:
+    def _run_in_explains(self, group: list, k_end: int, onset_s: float) -> bool:
         """Whether the atomizer's run-in explains an event: it began in a run-in (after a
-        switch-on, before the twin said ready to print), none of its alarms up to ``k_end``
-        is on the pressures or the vial, and neither pressure moved significantly over its
-        evidence (``z``: (5,) mean normalised innovation × √n per output). A mist building up
-        moves Q_m, φ_A, d_a and the line; it does not clog the nozzle or leak the carrier
-        line, whose alarms keep their label at any time. (A windowed NIS may still have
-        counted the pressures' noise: second-generator start-up seed 28 had P_c −0.1σ,
-        P_s +0.03σ beside Q_m −0.9σ in a window that crossed.)"""
+        switch-on, before the twin said ready to print) and none of its alarms up to
+        ``k_end`` is on the pressures (their CUSUMs, the deposit push) or the vial. A mist
+        building up moves Q_m, φ_A, d_a and the line; it does not clog the nozzle or leak
+        the carrier line, which the pressure detectors find (a leak in seconds), and whose
+        alarms keep their label at any time. What the event's label read from the pressures'
+        means over its evidence does not decide: the twin correcting d_a and φ_A by tens of
+        σ moves them too (second-generator start-ups 39 and 45: P_c −0.3σ against P_s
+        +0.3σ beside Q_m −0.7σ, labelled carrier leak with only the Q_m and L_o CUSUMs
+        fired; 28: a windowed NIS that counted the pressures' noise)."""
         if not self.run_in.covers(onset_s):
-            return False
-        if np.any(np.abs(np.nan_to_num(z[2:4])) > self.settings.significance_z):
             return False
         for step, _, name in group:
             if step <= k_end and (
@@ -592,8 +592,7 @@ class AnomalyDetector:
         for step, _, name in group:
             if step <= k_end and name not in detectors:
                 detectors.append(name)
-        z = mean_e * np.sqrt(counts)
-        if cause in RUN_IN_EXPLAINS and self._run_in_explains(group, k_end, self.time[k_on], z):
+        if cause in RUN_IN_EXPLAINS and self._run_in_explains(group, k_end, self.time[k_on]):
             cause = "run_in"
         return AnomalyEvent(
             detected_s=self.time[k_det],

@@ -16,11 +16,11 @@ Run: ``python -m ajtwin.studies.run_in [--seeds 1-10] [--truth model|alt]``; wri
 from __future__ import annotations
 
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
+import click
 import numpy as np
 
 from ajtwin.apps.detection.causes import open_faults
@@ -98,15 +98,20 @@ def markdown(results: dict, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-if __name__ == "__main__":
-    first, last = 1, 10
-    if "--seeds" in sys.argv:
-        first, last = (int(v) for v in sys.argv[sys.argv.index("--seeds") + 1].split("-"))
-    generator = sys.argv[sys.argv.index("--truth") + 1] if "--truth" in sys.argv else "model"
+@click.command()
+@click.option("--seeds", default="1-10", show_default=True, help="First-last start-up seeds.")
+@click.option("--truth", type=click.Choice(["model", "alt"]), default="model", show_default=True)
+def main(seeds: str, truth: str) -> None:
+    """Start-up prints through ingest and estimate (module docstring)."""
+    first, last = (int(v) for v in seeds.split("-"))
+    results = run_study(range(first, last + 1), truth)
+    command = f"python -m ajtwin.studies.run_in --seeds {first}-{last} --truth {truth}"
     OUT.mkdir(parents=True, exist_ok=True)
-    results = run_study(range(first, last + 1), generator)
-    cmd = f"python -m ajtwin.studies.run_in --seeds {first}-{last} --truth {generator}"
-    name = f"run_in_{generator}_{first}-{last}"
-    (OUT / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
-    (OUT / f"{name}.md").write_text(markdown(results, cmd))
-    print(markdown(results, cmd))
+    stem = OUT / f"run_in_{truth}_{first}-{last}"
+    stem.with_suffix(".json").write_text(json.dumps(results, indent=1, default=float))
+    stem.with_suffix(".md").write_text(markdown(results, command))
+    click.echo(markdown(results, command))
+
+
+if __name__ == "__main__":
+    main()

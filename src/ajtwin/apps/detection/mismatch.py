@@ -16,6 +16,11 @@ the twin and says, per second and for the print, whether the model fits:
   (fill, deposits) moves more than ``start_sigma`` prior σ: a clean nozzle cannot clog
   in a minute, so pressures that say so are a gauge or plumbing misfit.
 
+On a print that begins with the atomizer's run-in (the record says when it was switched on)
+the seconds before the twin says ready to print are no evidence on the outputs a mist
+building up moves, and Q_m's level waits for an EM update learned after it
+(:func:`without_run_in`, :func:`run_in_level_s`).
+
 Each finding names the output(s)/state(s) and the likely fix. Thresholds:
 ``data/mismatch.toml`` (with how they were set). A mismatch is not a fault of the
 print: :func:`relabel_events` marks anomaly events it explains.

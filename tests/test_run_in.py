@@ -17,6 +17,7 @@ from ajtwin.apps.detection.settling import RunIn
 from ajtwin.engine.chain import open_registry
 from ajtwin.engine.estimate import estimate_to_csv
 from ajtwin.engine.ingest import ingest_record
+from ajtwin.engine.reprocess import FIRST, reprocess_print
 from ajtwin.estimation import Twin
 from ajtwin.io.records import PrintRecord
 from ajtwin.simulation import simulate
@@ -37,6 +38,11 @@ def test_a_short_start_up_print_raises_no_fault_and_no_mismatch(tmp_path):
     done = estimate_to_csv(Twin.default(), record, tmp_path / "states.csv")
     assert done.mismatch.mismatch is False
     assert not np.asarray(done.mismatch.flags).any()
+    # reprocessed from the registry (its stored metadata keeps the switch-on): the same
+    version = registry.create_version("test", {})
+    reprocess_print(registry, version, "m1", ingested.print_id, FIRST)
+    again = registry.history("m1", version=version)
+    assert again["causes"].tolist() == ["run_in"] and not again["mismatch"].any()
 
 
 @pytest.mark.parametrize("fault", ["nozzle_clog", "carrier_leak"])

@@ -156,8 +156,13 @@ def reprocess_print(registry, version: int, machine: str, print_id: int, previou
         line_factors=None if line is None else np.asarray(line, dtype=float).reshape(-1, 4),
         start=begin["start"],
     )
+    # the stored metadata says whether the print began with the atomizer's run-in
     record = SimpleNamespace(
-        outputs=arrays["measurements"], inputs=arrays["inputs"], has_job=False, data=None
+        outputs=arrays["measurements"],
+        inputs=arrays["inputs"],
+        has_job=False,
+        data=None,
+        meta=row["meta"],
     )
     detection = detect_run(run, record, detector_settings, long_run)
     mismatch = assess_run(run, record)

@@ -137,7 +137,8 @@ def detect_run(
     atomizer was switched on as it began (``atomizer_switched_on_s``) begins with a run-in.
     """
     measured = getattr(run, "measurements", None)
-    detector = AnomalyDetector(settings, long_run_history, switched_on_s(record.meta))
+    switched_on = switched_on_s(getattr(record, "meta", None))
+    detector = AnomalyDetector(settings, long_run_history, switched_on)
     return run_detector(
         detector,
         run.time_s,

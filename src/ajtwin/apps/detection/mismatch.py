@@ -593,7 +593,7 @@ def run_in_ready_s(run, record) -> tuple[bool, float | None]:
     """(whether the print begins with the atomizer's run-in — the record's
     ``atomizer_switched_on_s`` —, when the twin said ready to print after it: None, not in
     this print) over a whole run (:func:`~ajtwin.apps.detection.settling.settling_time`)."""
-    start = switched_on_s(record.meta)
+    start = switched_on_s(getattr(record, "meta", None))
     if start is None:
         return False, None
     t = np.asarray(run.time_s, dtype=float)

@@ -8,6 +8,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from ajtwin.apps.detection.causes import CAUSES, _advice, detector_words
+from ajtwin.apps.detection.settings import CUSUM_CHANNELS
 from ajtwin.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,7 +31,9 @@ def test_every_cause_and_detector_has_words_and_a_fault_an_action():
         assert entry["words"] and entry["status"], key
         if entry["fault"]:
             assert "ajtwin machine maintain {machine}" in entry["action"], key
-    for label in ("cusum+ P_c+P_s", "cusum- P_c", "windowed NIS", "deposit push ΔR_N", "V_l low",
+    # the CUSUM labels as the detector writes them (a minus sign, not a hyphen, for falling)
+    cusums = [f"cusum{sign} {channel}" for channel in CUSUM_CHANNELS for sign in "+−"]
+    for label in (*cusums, "windowed NIS", "deposit push ΔR_N", "V_l low",
                   "ΔR_N beyond the model's range"):  # fmt: skip
         words = detector_words(label)
         assert words.endswith(f"({label})") and len(words) > len(label) + 3, label

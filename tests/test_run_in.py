@@ -9,6 +9,7 @@ which a mist building up does not move) keeps its label and its time.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from ajtwin.apps.detection.batch import detect_run
@@ -96,3 +97,33 @@ def test_the_live_twin_labels_the_run_in_of_an_atomizer_it_sees_switched_on():
     events = [e for m in messages for e in (getattr(m, "events", None) or ())]
     assert events and {e["cause"] for e in events} == {"run_in"}
     assert open_faults(events, []) == []
+
+
+def test_a_log_that_does_not_say_its_switch_on_is_told_on_the_command_line(tmp_path):
+    """A machine's log carries no switch-on time: `--switched-on 0` on `estimate` and
+    `ingest` makes its run-in the known phase the record's own metadata would."""
+    from click.testing import CliRunner
+
+    from ajtwin.cli import main
+    from ajtwin.io.records import write_record
+
+    start_up = simulate("startup", seed=3, duration_min=12.0)
+    meta = {k: v for k, v in start_up.meta.items() if k != "atomizer_switched_on_s"}
+    path = write_record(PrintRecord(start_up.data, meta), tmp_path / "log.parquet")
+    runner = CliRunner()
+    for told in ([], ["--switched-on", "0"]):
+        store = ["--store", str(tmp_path / f"r{len(told)}.sqlite")]
+        assert runner.invoke(main, ["machine", "add", "m1", *store]).exit_code == 0
+        for args in (["estimate", str(path), "--out", str(tmp_path / "s.csv")],
+                     ["ingest", "--machine", "m1", str(path), *store]):  # fmt: skip
+            result = runner.invoke(main, [*args, *told])
+            assert result.exit_code == 0, result.output
+            assert args[0] == "estimate" or "ingested" in result.output
+            said = result.output
+            if args[0] == "estimate":  # the log alone: the run-in's seconds read as a misfit
+                flagged = pd.read_csv(tmp_path / "s.csv")["mismatch"].sum()
+                assert (flagged > 0) == (not told), (flagged, said)
+            else:  # ... and, ingested, as atomizer trouble (a fault)
+                assert ("atomizer trouble" in said) == (not told), said
+                assert ("running in" in said) == bool(told), said
+            assert "WARNING model–machine mismatch" not in said or not told

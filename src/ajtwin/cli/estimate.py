@@ -12,6 +12,7 @@ from ajtwin.cli.options import (
     BoundedFloat,
     check_vial_fill,
     record_options,
+    switched_on_option,
     transition_option,
     transition_overrides,
 )
@@ -162,6 +163,7 @@ def _read_calibration(calibration_path):
     default=None,
     help="Also write a PNG of states and outputs.",
 )
+@switched_on_option
 @record_options
 def estimate(
     record_path,
@@ -180,6 +182,7 @@ def estimate(
     camera_horizon,
     theta_out,
     plot_path,
+    switched_on_s,
     csv_dialect,
     aliases,
 ):
@@ -198,6 +201,8 @@ def estimate(
         record = read_record(record_path, aliases=aliases, dialect=csv_dialect)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
+    if switched_on_s is not None:
+        record.meta["atomizer_switched_on_s"] = switched_on_s
     calibration, calibration_cov, noise_factors, level = _read_calibration(calibration_path)
     try:
         early = parse_early_em(early_em)

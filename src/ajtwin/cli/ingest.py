@@ -16,6 +16,7 @@ from ajtwin.cli.options import (
     open_registry,
     record_options,
     store_option,
+    switched_on_option,
 )
 from ajtwin.io.records import RecordError
 from ajtwin.store.registry import RegistryError, printable
@@ -58,6 +59,7 @@ from ajtwin.store.registry import RegistryError, printable
     "the job for reports and the dashboard.",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
+@switched_on_option
 @record_options
 @store_option
 def ingest(
@@ -70,6 +72,7 @@ def ingest(
     rapid_speed,
     tolerance,
     progress,
+    switched_on_s,
     csv_dialect,
     aliases,
     store,
@@ -114,6 +117,7 @@ def ingest(
             dialect=csv_dialect,
             program=program,
             job_options=job_options,
+            switched_on_s=switched_on_s,
         )
     except (RegistryError, RecordError, ProgramError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from None

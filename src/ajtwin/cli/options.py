@@ -47,6 +47,21 @@ def record_options(command):
     return csv_dialect_option(aliases_option(command))
 
 
+def switched_on_option(command):
+    """``--switched-on``: when the record's atomizer was switched on (its run-in begins)."""
+    return click.option(
+        "--switched-on",
+        "switched_on_s",
+        type=click.FloatRange(min=0.0),
+        default=None,
+        metavar="SECONDS",
+        help="The atomizer was switched on this many seconds into the record (0: as it "
+        "starts): until the twin says ready to print, the run-in is a known phase, not a fault "
+        "or a misfit. Overrides the record's atomizer_switched_on_s; without either, a "
+        "switch-on shows only as a current rising through 50 mA.",
+    )(command)
+
+
 def join_options(filled: str, suffix: str, must_exist: bool = False):
     """``--join/--join-out/--start-offset/--camera-offset/--csv-dialect`` for a video reader.
 

@@ -604,16 +604,20 @@ def ingest_file(
     dialect=None,
     program=None,
     job_options: dict | None = None,
+    switched_on_s: float | None = None,
 ):
     """Read a print file (and optionally its video) and :func:`ingest_record` it.
 
     ``aliases``, ``dialect``: as :func:`ajtwin.io.records.read_record`. ``program``: the
     machine program the print ran, kept with it; ``job_options``: keywords of
     :func:`ajtwin.engine.print_job.job_entry` (speeds, looping, tolerance). The program is
-    read and checked against the record before the twin runs.
+    read and checked against the record before the twin runs. ``switched_on_s``: when the
+    atomizer was switched on, in place of the record's ``atomizer_switched_on_s``.
     """
     path = Path(path)
     with open_record(path, aliases=aliases, dialect=dialect) as spooled:
+        if switched_on_s is not None:
+            spooled.meta["atomizer_switched_on_s"] = float(switched_on_s)
         job = None if program is None else job_entry(program, spooled, **(job_options or {}))
         if video is None:
             # read a piece at a time by the twin: memory does not grow with the print

@@ -322,3 +322,33 @@ def test_the_early_and_full_em_windows_share_one_kept_executable(tmp_path):
     second = json.loads(_python(_EM_PROBE, AJTWIN_CACHE_DIR=cache))
     assert second["windows"] == first["windows"] and second["em"] == first["em"]
     assert second["loaded"] == first["em"]
+
+
+_PREFETCH_PROBE = """
+import json, threading
+import numpy as np
+from ajtwin import _aot
+
+def double(x):
+    return 2.0 * x
+
+exported = _aot.exported_jit(double)
+fresh = exported(np.ones(4))  # traced and kept, or loaded when kept by a process before
+loaders, exports = [], []
+load, export = _aot._load, _aot._export
+_aot._load = lambda *a: loaders.append(threading.current_thread().name) or load(*a)
+_aot._export = lambda *a: exports.append(1) or export(*a)
+again = _aot.exported_jit(double)  # nothing loaded yet in this wrapper
+again.prefetch(np.zeros(3))  # never kept at this shape: nothing to load
+again.prefetch(np.zeros(4))
+result = again(np.arange(4.0))
+print(json.dumps({"loaders": loaders, "exports": len(exports), "result": result.tolist()}))
+"""
+
+
+def test_a_prefetched_program_is_loaded_in_the_background_and_used_by_the_call(tmp_path):
+    probe = json.loads(_python(_PREFETCH_PROBE, AJTWIN_CACHE_DIR=str(tmp_path / "c")))
+    assert probe["result"] == [0.0, 2.0, 4.0, 6.0]
+    # one load, on the prefetch's own thread; the call took its result, traced nothing
+    assert probe["loaders"] == ["ajtwin-prefetch-__main__.double"], probe
+    assert probe["exports"] == 0

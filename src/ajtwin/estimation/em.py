@@ -198,6 +198,47 @@ def run_em(
         Final θ, iterations used, convergence flag, and the final E-step
         (filter and smoother under the returned θ).
     """
+    args, kwargs, n = _em_arguments(
+        spec, prior_mean, prior_cov, inputs, measurements, theta0, process_cov,
+        measurement_cov, settings, functions, line_factors, padded_steps,
+    )  # fmt: skip
+    theta, iterations, converged, log_lik, filtered, smoothed = em_loop(*args, **kwargs)
+    # back to the window's length (on the host: slicing dispatches no JAX operation)
+    filtered = FilterResult(*(np.asarray(a)[:n] for a in filtered))
+    smoothed = SmootherResult(
+        np.asarray(smoothed.means)[:n],
+        np.asarray(smoothed.covariances)[:n],
+        np.asarray(smoothed.lag_one_covariances)[: n - 1],
+    )
+    return EMStep(
+        np.asarray(theta), int(iterations), bool(converged), float(log_lik), filtered, smoothed
+    )
+
+
+def prefetch_em(*args, **kwargs) -> None:
+    """Start loading the kept EM program that :func:`run_em` with these arguments (their
+    shapes: the values do not matter) will run, in the background (:mod:`ajtwin._aot`):
+    a 2 MB executable whose load then overlaps the start's fit and the first filtering."""
+    call_args, call_kwargs, _ = _em_arguments(*args, **kwargs)
+    em_loop.prefetch(*call_args, **call_kwargs)
+
+
+def _em_arguments(
+    spec,
+    prior_mean,
+    prior_cov,
+    inputs,
+    measurements,
+    theta0,
+    process_cov,
+    measurement_cov,
+    settings: EMSettings | None = None,
+    functions: ModelFunctions = AJ_EULER,
+    line_factors=None,
+    padded_steps: int | None = None,
+):
+    """:func:`em_loop`'s arguments for :func:`run_em`'s (the window padded to
+    ``padded_steps``), and the window's own length."""
     settings = settings or EMSettings()
     precision = settings.theta_prior_precision
     if precision is None:
@@ -223,7 +264,7 @@ def run_em(
     )
     if line is not None:
         line = np.concatenate([line, np.repeat(line[-1:], length - n, axis=0)])
-    theta, iterations, converged, log_lik, filtered, smoothed = em_loop(
+    args = (
         spec,
         np.asarray(prior_mean, dtype=float),
         np.asarray(prior_cov, dtype=float),
@@ -234,19 +275,8 @@ def run_em(
         np.asarray(measurement_cov, dtype=float),
         settings,
         line,
-        window_steps=np.asarray(n),
-        functions=functions,
     )
-    # back to the window's length (on the host: slicing dispatches no JAX operation)
-    filtered = FilterResult(*(np.asarray(a)[:n] for a in filtered))
-    smoothed = SmootherResult(
-        np.asarray(smoothed.means)[:n],
-        np.asarray(smoothed.covariances)[:n],
-        np.asarray(smoothed.lag_one_covariances)[: n - 1],
-    )
-    return EMStep(
-        np.asarray(theta), int(iterations), bool(converged), float(log_lik), filtered, smoothed
-    )
+    return args, {"window_steps": np.asarray(n), "functions": functions}, n
 
 
 def em_loop(

@@ -62,7 +62,7 @@ import numpy as np
 
 from ajtwin._aot import exported_jit
 from ajtwin._jax import jax, jnp
-from ajtwin.estimation.em import EMSettings, run_em
+from ajtwin.estimation.em import EMSettings, prefetch_em, run_em
 from ajtwin.estimation.filters import (
     EKFCarry,
     FilterResult,
@@ -589,6 +589,8 @@ class OnlineTwin:
     def _start_filter(self) -> list:
         waiting = _join(self._waiting)
         self._waiting = []
+        if self.config.em:
+            self._prefetch_em(waiting)
         if self.start is None:
             self.initial = self.twin.initial_state(
                 waiting.inputs, waiting.measurements, waiting.line
@@ -803,7 +805,7 @@ class OnlineTwin:
 
     # ------------------------------------------------------------------ EM
     def _launch_em(self, pos: int) -> None:
-        twin, c = self.twin, self.config
+        twin = self.twin
         w0 = max(pos - self._window, 0)
         line = None if self._bins is None else self._window_array("line", w0, pos)
         args = (
@@ -816,15 +818,7 @@ class OnlineTwin:
             twin.process_cov,
             twin.measurement_var,
         )
-        kwargs = dict(
-            settings=EMSettings(
-                twin.theta_prior_precision, c.em_max_iterations, c.em_tolerance, c.gate_sigma
-            ),
-            functions=twin.functions,
-            line_factors=line,
-            # early windows run at the full window's length: one compiled EM program
-            padded_steps=self._window,
-        )
+        kwargs = self._em_options(line)
         self._em_pos = pos
         self._spec = None
         if self.executor is not None:
@@ -833,6 +827,39 @@ class OnlineTwin:
             future = Future()
             future.set_result(run_em(*args, **kwargs))
             self._em_future = future
+
+    def _em_options(self, line) -> dict:
+        """:func:`run_em`'s keywords: the twin's EM settings; every window at the full
+        window's length (early windows padded: one compiled EM program)."""
+        twin, c = self.twin, self.config
+        return dict(
+            settings=EMSettings(
+                twin.theta_prior_precision, c.em_max_iterations, c.em_tolerance, c.gate_sigma
+            ),
+            functions=twin.functions,
+            line_factors=line,
+            padded_steps=self._window,
+        )
+
+    def _prefetch_em(self, rows: _Rows) -> None:
+        """Start loading EM's kept program in the background (:func:`prefetch_em`), with
+        arguments shaped as a window of these rows' kind, so that the load overlaps the
+        start's fit and the filtering before the first EM window."""
+        model_inputs, _ = self._model_inputs(rows.inputs[:1], self._response)
+        n, twin = self._window, self.twin
+        line = None if rows.line is None else np.repeat(rows.line[:1], n, axis=0)
+        n_states = len(self.theta)
+        prefetch_em(
+            twin.spec,
+            np.zeros(n_states),
+            np.eye(n_states),
+            np.repeat(model_inputs, n, axis=0),
+            np.full((n, rows.measurements.shape[1]), np.nan),
+            self.theta,
+            twin.process_cov,
+            twin.measurement_var,
+            **self._em_options(line),
+        )
 
     def _apply_em(self, em) -> None:
         """EM's result in force from its boundary (the output EM too, when it learns)."""

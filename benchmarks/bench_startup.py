@@ -7,8 +7,8 @@ The **import floor** is a new process that only imports the libraries the twin c
 without and starts JAX's CPU backend: ``import jax, jax.numpy as jnp, pandas, scipy.linalg``,
 64-bit on, ``jnp.zeros(3)`` computed. What a command takes beyond it is ajtwin's own cost that a
 change can move, so ``track_*_to_import_floor`` is the figure to compare between commits: the
-floor and the command are timed one after the other, several times, and the ratio of their
-fastest runs is taken, which cancels most of a shared machine's speed of the day (a bare
+floor and the command are timed one after the other, several times, and the median of the
+pairs' ratios is taken, which cancels most of a shared machine's speed of the day (a bare
 wall time on it varies 2-3 x). ``…_cpu_…`` is the same in CPU seconds (user + system, all
 threads), which other processes on the machine disturb less than a wall clock.
 
@@ -25,6 +25,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 CLI = [sys.executable, "-c", "from ajtwin.cli import run; run()"]
 FLOOR = [
@@ -65,14 +67,17 @@ def _wall(args: list[str], work: str) -> float:
 
 
 def _ratio_to_floor(args: list[str], work: str, cpu: bool = False) -> float:
-    """Fastest of :data:`PAIRS` runs of ``args`` over the fastest of the import floor's, wall
-    time or (``cpu``) CPU time: the CPU time a process is given does not shrink when other
+    """The median over :data:`PAIRS` pairs of ``args``' time over the import floor's, each
+    pair run one after the other, wall time or (``cpu``) CPU time. A pair shares the
+    machine's speed of the moment, so its ratio cancels it; the median keeps one lucky or
+    one slow run from moving the figure (a ratio of the fastest runs did: one fast floor
+    run swung it by 0.2). The CPU time a process is given does not shrink when other
     processes share the cores, so it is the steadier of the two on a busy machine."""
-    floor, command = [], []
+    ratios = []
     for _ in range(PAIRS):
-        floor.append(_run(FLOOR, work)[cpu])
-        command.append(_run(args, work)[cpu])
-    return min(command) / min(floor)
+        floor = _run(FLOOR, work)[cpu]
+        ratios.append(_run(args, work)[cpu] / floor)
+    return float(np.median(ratios))
 
 
 ESTIMATE = [*CLI, "estimate", "print.parquet", "--out", "states.csv"]
